@@ -1,0 +1,206 @@
+"""Validated configuration of every pipeline stage.
+
+One frozen pydantic model per stage; :class:`PipelineConfig` groups them.
+Unknown keys and out-of-range values are errors that name the key
+(``extra="forbid"`` and ``Field`` bounds). Each stage's core function takes
+keyword-only parameters with the same names as its model's fields, so a
+task calls ``core_function(data, **config.model_dump())``.
+
+The defaults are the recommended choices of ``ALGORITHMS.md`` ([A1]-[A29]);
+``configs/paper.yaml`` spells out the paper's own settings.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from tumor3d.errors import ConfigError
+
+__all__ = [
+    "DetectConfig",
+    "InterpolateConfig",
+    "PipelineConfig",
+    "PreprocessConfig",
+    "RenderConfig",
+    "SegmentConfig",
+    "SimplifyConfig",
+    "SurfaceConfig",
+    "canonical_json",
+    "parse_config",
+]
+
+
+class _StageConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class PreprocessConfig(_StageConfig):
+    """Preprocessing (spec section 1)."""
+
+    window_percentiles: tuple[float, float] = Field(
+        (0.5, 99.5),
+        description="Percentiles of the foreground intensities mapped to 0 and 255 "
+        "when the float volume is converted to 8-bit slices (one window per volume).",
+    )
+    median_size: int = Field(3, ge=1, le=9, description="Median filter size (odd), [P] 3x3.")
+    unsharp_alpha: float = Field(0.2, ge=0.0, le=1.0, description="[A1] fspecial('unsharp') alpha.")
+    equalize_levels: int = Field(256, ge=2, le=256, description="[A2] histogram equalisation levels.")
+    skull_opening_radius: int = Field(2, ge=0, le=10, description="[A3] disk radius, pixels.")
+
+    @model_validator(mode="after")
+    def _check(self) -> PreprocessConfig:
+        lo, hi = self.window_percentiles
+        if not (0.0 <= lo < hi <= 100.0):
+            raise ValueError("window_percentiles must satisfy 0 <= low < high <= 100")
+        if self.median_size % 2 == 0:
+            raise ValueError("median_size must be odd")
+        return self
+
+
+class DetectConfig(_StageConfig):
+    """Abnormal-slice detection by histogram mode counting (spec section 2, [A5], [A6])."""
+
+    n_bins: int = Field(64, ge=8, le=256)
+    smoothing_sigma_bins: float = Field(1.0, ge=0.0, le=10.0)
+    min_mode_area: float = Field(0.005, ge=0.0, lt=0.5, description="Fraction of brain pixels.")
+    min_peak_distance_bins: int = Field(3, ge=0, le=64)
+    abnormal_min_modes: int = Field(4, ge=2, le=10, description="[A6] abnormal iff k >= this.")
+    min_brain_pixels: int = Field(
+        500, ge=0, description="Slices with fewer brain pixels are never abnormal."
+    )
+
+
+class SegmentConfig(_StageConfig):
+    """Wavelet + histogram fuzzy c-means segmentation (spec section 3, [A7], [A8])."""
+
+    wavelet: Literal["haar"] = "haar"
+    fuzziness: float = Field(2.0, gt=1.0, le=5.0, description="FCM exponent m.")
+    tol: float = Field(1e-3, gt=0.0, le=1.0, description="Stop when max |dv| < tol.")
+    max_num_iter: int = Field(100, ge=1, le=10000)
+    min_tumor_pixels: int = Field(
+        20, ge=1, description="A tumour component smaller than this on a slice is dropped."
+    )
+
+
+class InterpolateConfig(_StageConfig):
+    """Inter-slice interpolation (spec section 4, [A9]-[A14])."""
+
+    method: Literal["enhanced", "shape", "linear"] = Field(
+        "enhanced",
+        description="enhanced = chamfer + centroid alignment (Algorithm 1); shape = original "
+        "shape-based (SO, city-block); linear = linear interpolation of the masks (LG variant).",
+    )
+    slices_between: int | None = Field(
+        None, ge=0, le=50, description="[A10] inserted slices per gap; None = round(dz/dxy) - 1."
+    )
+
+
+class SurfaceConfig(_StageConfig):
+    """Marching cubes (spec section 5, [A15], [A16])."""
+
+    level: float = Field(0.5, gt=0.0, lt=1.0)
+    padding: int = Field(1, ge=1, le=5, description="[A15] zero padding in voxels.")
+
+
+class SimplifyConfig(_StageConfig):
+    """Mesh simplification (spec section 6)."""
+
+    method: Literal["qem"] = Field("qem", description="qem = quadric error metric (QSlim).")
+    reduction_percent: float = Field(
+        60.0, ge=0.0, lt=100.0, description="P of Algorithm 2: F_target = floor(F0 (1 - P/100))."
+    )
+
+
+class RenderConfig(_StageConfig):
+    """Offscreen rendering (spec section 7, [A25])."""
+
+    width: int = Field(640, ge=64, le=4096)
+    height: int = Field(480, ge=64, le=4096)
+    azimuths_deg: tuple[float, ...] = Field((0.0, 90.0, 180.0, 270.0), min_length=1, max_length=36)
+    elevation_deg: float = Field(20.0, ge=-89.0, le=89.0)
+    field_of_view_deg: float = Field(40.0, gt=1.0, lt=120.0)
+    color_rgb: tuple[float, float, float] = (0.85, 0.35, 0.3)
+    background_rgb: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+    @model_validator(mode="after")
+    def _check(self) -> RenderConfig:
+        for name in ("color_rgb", "background_rgb"):
+            if not all(0.0 <= c <= 1.0 for c in getattr(self, name)):
+                raise ValueError(f"{name} components must lie in [0, 1]")
+        return self
+
+
+class PipelineConfig(_StageConfig):
+    """Configuration of the whole single-patient pipeline."""
+
+    preprocess: PreprocessConfig = PreprocessConfig()
+    detect: DetectConfig = DetectConfig()
+    segment: SegmentConfig = SegmentConfig()
+    interpolate: InterpolateConfig = InterpolateConfig()
+    surface: SurfaceConfig = SurfaceConfig()
+    simplify: SimplifyConfig = SimplifyConfig()
+    render: RenderConfig = RenderConfig()
+
+
+def _format_validation_error(err: ValidationError, source: str) -> str:
+    lines = []
+    for e in err.errors():
+        key = ".".join(str(p) for p in e["loc"]) or "<root>"
+        if e["type"] == "extra_forbidden":
+            lines.append(f"unknown key '{key}'")
+        else:
+            got = e.get("input")
+            shown = "" if isinstance(got, dict) else f" (got {got!r})"
+            lines.append(f"key '{key}': {e['msg']}{shown}")
+    return f"invalid configuration in {source}: " + "; ".join(lines)
+
+
+def parse_config(data: Any, *, source: str = "<config>") -> PipelineConfig:
+    """Validate a mapping (or YAML text) into a :class:`PipelineConfig`.
+
+    Parameters
+    ----------
+    data : mapping, str or None
+        The configuration as a nested mapping, or YAML text. ``None`` or an
+        empty document gives the defaults.
+    source : str
+        Where the data came from, for error messages (usually a file name).
+
+    Returns
+    -------
+    PipelineConfig
+
+    Raises
+    ------
+    ConfigError
+        On YAML syntax errors, unknown keys or out-of-range values; the
+        message names the source and each offending key.
+
+    Examples
+    --------
+    >>> parse_config({"simplify": {"reduction_percent": 40}}).simplify.reduction_percent
+    40.0
+    """
+    if isinstance(data, str):
+        try:
+            data = yaml.safe_load(data)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"not valid YAML: {exc}", path=source) from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError("the configuration must be a mapping of stage names", path=source)
+    try:
+        return PipelineConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_validation_error(exc, source)) from None
+
+
+def canonical_json(model: BaseModel | dict[str, Any]) -> str:
+    """Canonical JSON of a config (sorted keys, no whitespace): the cache-key form."""
+    data = model.model_dump(mode="json") if isinstance(model, BaseModel) else model
+    return json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)

@@ -1,0 +1,261 @@
+"""The `Scan` data model: one patient's stack of 2-D MR slices.
+
+A `Scan` always holds its image as float32 ``(z, y, x)`` with ``z`` the slice
+(acquisition) axis, whatever the voxel order of the file it came from. The
+readers permute the voxel axes of the source (they never resample or flip),
+and :class:`SourceGrid` remembers how, so that every output can be written
+back in the input's own voxel grid and affine, voxel for voxel.
+
+Affine convention
+-----------------
+``Scan.affine`` is 4x4 and maps the voxel index ``(x, y, z, 1)`` to RAS
+millimetres, i.e. the affine nibabel would report for the array
+``image.transpose(2, 1, 0)``. Use :meth:`Scan.index_to_ras` to map points
+given in array order ``(z, y, x)``.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tumor3d.errors import InputError
+
+__all__ = [
+    "Scan",
+    "SourceGrid",
+    "validate_patient_id",
+    "zyx_index_to_ras",
+]
+
+_SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+
+
+def validate_patient_id(patient_id: str) -> str:
+    """Check that a patient id is a safe, single folder name.
+
+    Parameters
+    ----------
+    patient_id : str
+        Candidate id: 1-128 characters from ``[A-Za-z0-9._-]``, starting
+        with a letter or digit (so never ``.``, ``..`` or a hidden name),
+        with no path separator.
+
+    Returns
+    -------
+    str
+        The id, unchanged.
+
+    Raises
+    ------
+    InputError
+        If the id is empty, too long, or contains any other character.
+
+    Examples
+    --------
+    >>> validate_patient_id("pat-0003")
+    'pat-0003'
+    """
+    if not isinstance(patient_id, str) or not _SAFE_ID.match(patient_id):
+        raise InputError(
+            f"unsafe patient id {patient_id!r}: use 1-128 characters from "
+            "letters, digits, '.', '_' and '-', starting with a letter or digit "
+            "(no path separators, no '..')"
+        )
+    return patient_id
+
+
+def zyx_index_to_ras(points_zyx: np.ndarray, affine: np.ndarray) -> np.ndarray:
+    """Map points given as ``(z, y, x)`` voxel indices to RAS millimetres.
+
+    Parameters
+    ----------
+    points_zyx : (n, 3) array_like
+        Continuous voxel indices in array order ``(z, y, x)``.
+    affine : (4, 4) ndarray
+        Maps ``(x, y, z, 1)`` to RAS mm (see the module docstring).
+
+    Returns
+    -------
+    (n, 3) float64 ndarray
+        RAS coordinates in millimetres.
+    """
+    pts = np.asarray(points_zyx, dtype=np.float64).reshape(-1, 3)[:, ::-1]
+    aff = np.asarray(affine, dtype=np.float64)
+    return pts @ aff[:3, :3].T + aff[:3, 3]
+
+
+@dataclass(frozen=True, eq=False)
+class SourceGrid:
+    """How a `Scan`'s ``(z, y, x)`` array maps back to its source voxel grid.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Voxel shape of the source volume, in the source's own axis order.
+    affine : (4, 4) ndarray
+        The source's own affine (voxel index in source order -> RAS mm).
+    axes : tuple of int
+        ``axes[k]`` is the source voxel axis that became Scan axis ``k`` of
+        ``(x, y, z)``; ``(0, 1, 2)`` when no permutation was needed.
+    """
+
+    shape: tuple[int, int, int]
+    affine: np.ndarray
+    axes: tuple[int, int, int] = (0, 1, 2)
+
+    def __post_init__(self) -> None:
+        if sorted(self.axes) != [0, 1, 2]:
+            raise ValueError(f"axes must be a permutation of (0, 1, 2), got {self.axes}")
+        aff = np.array(self.affine, dtype=np.float64)
+        if aff.shape != (4, 4):
+            raise ValueError(f"affine must be 4x4, got shape {aff.shape}")
+        aff.setflags(write=False)
+        object.__setattr__(self, "affine", aff)
+        object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
+        object.__setattr__(self, "axes", tuple(int(a) for a in self.axes))
+
+    def to_source(self, array_zyx: np.ndarray) -> np.ndarray:
+        """Return a Scan-grid ``(z, y, x)`` array in the source's voxel order."""
+        xyz = np.asarray(array_zyx).transpose(2, 1, 0)
+        inverse = np.argsort(self.axes)
+        out = xyz.transpose(inverse)
+        if out.shape != self.shape:
+            raise ValueError(
+                f"array of shape {np.shape(array_zyx)} (z, y, x) does not match the "
+                f"source grid {self.shape}"
+            )
+        return out
+
+    def to_source_with_affine(
+        self, array_zyx: np.ndarray, affine_xyz: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Put an array on another grid in the source's axis order.
+
+        Used for volumes that share the scan's world space but not its grid
+        (the finely interpolated mask): the axes are permuted as the source's
+        are, and the affine's columns with them, so world positions are kept.
+
+        Parameters
+        ----------
+        array_zyx : ndarray, shape (z, y, x)
+        affine_xyz : (4, 4) ndarray
+            Maps ``(x, y, z, 1)`` of ``array_zyx`` to RAS mm.
+
+        Returns
+        -------
+        array : ndarray
+            Voxel array in source axis order.
+        affine : (4, 4) ndarray
+            Its affine (source-order voxel index -> RAS mm).
+        """
+        xyz = np.asarray(array_zyx).transpose(2, 1, 0)
+        inverse = np.argsort(self.axes)
+        aff = np.asarray(affine_xyz, dtype=np.float64)
+        new_aff = np.eye(4)
+        new_aff[:3, 3] = aff[:3, 3]
+        # source axis a holds Scan axis inverse[a]
+        for a in range(3):
+            new_aff[:3, a] = aff[:3, inverse[a]]
+        return xyz.transpose(inverse), new_aff
+
+
+@dataclass(frozen=True, eq=False)
+class Scan:
+    """One patient's stack of 2-D slices with its geometry.
+
+    Parameters
+    ----------
+    image : ndarray, float32, shape (z, y, x)
+        Intensities; ``z`` is the slice axis. Made read-only.
+    affine : (4, 4) ndarray
+        Maps the voxel index ``(x, y, z, 1)`` to RAS millimetres.
+    pixel_spacing_mm : tuple of float
+        In-plane spacing ``(dy, dx)``: row step and column step in mm.
+    slice_step_mm : float
+        Centre-to-centre distance of consecutive slices, in mm.
+    slice_thickness_mm : float
+        Nominal thickness of one slice, in mm.
+    slice_gap_mm : float or None
+        ``slice_step_mm - slice_thickness_mm`` where known, else ``None``.
+    modality : str
+        ``"t2"``, ``"flair"`` or ``"t1c"``.
+    patient_id : str
+        De-identified, folder-safe id (see :func:`validate_patient_id`).
+    source : str
+        Human-readable description of where the data came from; never holds
+        protected health information.
+    source_grid : SourceGrid
+        How to write Scan-grid arrays back in the source's voxel grid.
+    """
+
+    image: np.ndarray
+    affine: np.ndarray
+    pixel_spacing_mm: tuple[float, float]
+    slice_step_mm: float
+    slice_thickness_mm: float
+    slice_gap_mm: float | None
+    modality: str
+    patient_id: str
+    source: str
+    source_grid: SourceGrid = field(repr=False)
+
+    def __post_init__(self) -> None:
+        img = np.asarray(self.image)
+        if img.ndim != 3:
+            raise InputError(f"a Scan image must be 3-D (z, y, x), got shape {img.shape}")
+        if img.dtype != np.float32:
+            img = img.astype(np.float32)
+        else:
+            img = img.copy() if img.flags.writeable else img
+        img.setflags(write=False)
+        object.__setattr__(self, "image", img)
+        aff = np.array(self.affine, dtype=np.float64)
+        if aff.shape != (4, 4):
+            raise InputError(f"affine must be 4x4, got shape {aff.shape}")
+        aff.setflags(write=False)
+        object.__setattr__(self, "affine", aff)
+        dy, dx = (float(v) for v in self.pixel_spacing_mm)
+        object.__setattr__(self, "pixel_spacing_mm", (dy, dx))
+        for name, value in (
+            ("pixel spacing dy", dy),
+            ("pixel spacing dx", dx),
+            ("slice step", self.slice_step_mm),
+            ("slice thickness", self.slice_thickness_mm),
+        ):
+            if not np.isfinite(value) or value <= 0:
+                raise InputError(f"{name} must be a positive number of mm, got {value}")
+        validate_patient_id(self.patient_id)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Array shape ``(z, y, x)``."""
+        return tuple(self.image.shape)  # type: ignore[return-value]
+
+    @property
+    def n_slices(self) -> int:
+        """Number of acquired slices."""
+        return int(self.image.shape[0])
+
+    @property
+    def spacing_zyx_mm(self) -> tuple[float, float, float]:
+        """Voxel spacing in array order ``(slice step, dy, dx)`` in mm."""
+        return (float(self.slice_step_mm), *self.pixel_spacing_mm)
+
+    @property
+    def pixel_area_mm2(self) -> float:
+        """Area of one pixel, ``dx * dy`` in mm^2 (Eq. 8, [A26])."""
+        return self.pixel_spacing_mm[0] * self.pixel_spacing_mm[1]
+
+    @property
+    def slab_height_mm(self) -> float:
+        """Slice thickness + gap, the slab height of Eq. 7 (= the step if the gap is unknown)."""
+        if self.slice_gap_mm is None:
+            return float(self.slice_step_mm)
+        return float(self.slice_thickness_mm + self.slice_gap_mm)
+
+    def index_to_ras(self, points_zyx: np.ndarray) -> np.ndarray:
+        """Map ``(z, y, x)`` voxel indices to RAS mm (see :func:`zyx_index_to_ras`)."""
+        return zyx_index_to_ras(points_zyx, self.affine)
