@@ -39,7 +39,14 @@ class _StageConfig(BaseModel):
 
 
 class PreprocessConfig(_StageConfig):
-    """Preprocessing (spec section 1)."""
+    """Preprocessing (spec section 1).
+
+    ``sharpen`` and ``equalize`` default to False, a measured deviation from
+    the paper's chain (see ``tumor3d.preprocess.preprocess_volume``):
+    per-slice histogram equalisation flattens the histogram whose modes
+    section 2 counts, and the unsharp kernel adds noise/edge modes. Set
+    both to True for the paper's literal chain.
+    """
 
     window_percentiles: tuple[float, float] = Field(
         (0.5, 99.5),
@@ -47,8 +54,22 @@ class PreprocessConfig(_StageConfig):
         "when the float volume is converted to 8-bit slices (one window per volume).",
     )
     median_size: int = Field(3, ge=1, le=9, description="Median filter size (odd), [P] 3x3.")
+    sharpen: bool = Field(
+        False, description="Apply fspecial('unsharp') (paper step 2); off: it adds histogram modes."
+    )
     unsharp_alpha: float = Field(0.2, ge=0.0, le=1.0, description="[A1] fspecial('unsharp') alpha.")
-    equalize_levels: int = Field(256, ge=2, le=256, description="[A2] histogram equalisation levels.")
+    equalize: bool = Field(
+        False, description="Per-slice histogram equalisation (paper step 3); off: it flattens "
+        "the histogram that section 2 counts modes on.",
+    )
+    equalize_levels: int = Field(
+        256, ge=2, le=256, description="[A2] histogram equalisation levels."
+    )
+    skull_threshold: Literal["multiotsu", "otsu"] = Field(
+        "multiotsu",
+        description="[A3] binarisation: lower 3-class Otsu threshold (tissue vs air/bone, "
+        "robust on T2) or the 2-class Otsu threshold.",
+    )
     skull_opening_radius: int = Field(2, ge=0, le=10, description="[A3] disk radius, pixels.")
 
     @model_validator(mode="after")
@@ -62,12 +83,24 @@ class PreprocessConfig(_StageConfig):
 
 
 class DetectConfig(_StageConfig):
-    """Abnormal-slice detection by histogram mode counting (spec section 2, [A5], [A6])."""
+    """Abnormal-slice detection by histogram mode counting (spec section 2, [A5], [A6]).
+
+    ``min_valley_significance`` (not in the spec) also merges two modes when
+    the valley between them is not significantly below the lower peak
+    (in units of the Poisson noise of the smoothed counts). Without it,
+    noise bumps in sparse histogram tails give normal real slices up to 9
+    modes, violating [A5] step 6 (every normal slice k <= 3).
+    """
 
     n_bins: int = Field(64, ge=8, le=256)
     smoothing_sigma_bins: float = Field(1.0, ge=0.0, le=10.0)
     min_mode_area: float = Field(0.005, ge=0.0, lt=0.5, description="Fraction of brain pixels.")
     min_peak_distance_bins: int = Field(3, ge=0, le=64)
+    min_valley_significance: float = Field(
+        3.0, ge=0.0, le=50.0,
+        description="Merge modes whose valley is less than this many noise standard deviations "
+        "below the lower peak; 0 disables the test.",
+    )
     abnormal_min_modes: int = Field(4, ge=2, le=10, description="[A6] abnormal iff k >= this.")
     min_brain_pixels: int = Field(
         500, ge=0, description="Slices with fewer brain pixels are never abnormal."
@@ -84,6 +117,26 @@ class SegmentConfig(_StageConfig):
     min_tumor_pixels: int = Field(
         20, ge=1, description="A tumour component smaller than this on a slice is dropped."
     )
+    keep_largest_3d_component: bool = Field(
+        True,
+        description="Keep only the largest group of slice masks linked across slices "
+        "(a single tumour); drops isolated partial-volume false positives.",
+    )
+    component_tolerance_px: int = Field(
+        3, ge=0, le=50, description="In-plane tolerance (pixels) for linking masks across slices."
+    )
+    rim_px: int = Field(
+        3, ge=0, le=50, description="Tumour components are seeded at least this far inside the "
+        "brain mask (pixels); 0 = literal largest component.",
+    )
+    max_brain_fraction: float = Field(
+        0.5, gt=0.0, le=1.0, description="A tumour covering more of a slice's brain is "
+        "partial volume of the brain surface; 1 disables the check.",
+    )
+    refine_boundary: bool = Field(
+        True, description="Re-decide the tumour's boundary pixels by partial volume "
+        "(tumour fraction > 1/2) instead of by cluster label.",
+    )
 
 
 class InterpolateConfig(_StageConfig):
@@ -96,6 +149,12 @@ class InterpolateConfig(_StageConfig):
     )
     slices_between: int | None = Field(
         None, ge=0, le=50, description="[A10] inserted slices per gap; None = round(dz/dxy) - 1."
+    )
+    end_caps: Literal["none", "taper"] = Field(
+        "taper",
+        description="Beyond the first and last tumour slices: none = flat caps (the paper); "
+        "taper = the end shape eroded linearly to nothing at the next acquired slice "
+        "(unbiased for smooth objects; see tumor3d.interpolate).",
     )
 
 

@@ -1,0 +1,261 @@
+"""Deterministic NIfTI-1 encoding and decoding of volumes and masks.
+
+:func:`encode_nifti` turns a voxel array and its affine into gzip-compressed
+NIfTI-1 bytes that are identical for identical inputs (gzip ``mtime=0``, no
+file name, a fixed ``descrip``), so that the bytes can be content-addressed.
+sform and qform both hold the affine (code 1, scanner), units are mm.
+
+The ``*_to_source_nifti_bytes`` helpers write Scan-grid ``(z, y, x)``
+arrays back in the input's own voxel grid and affine through
+:class:`tumor3d.scan.SourceGrid`, so that a mask overlays its input voxel
+for voxel in any viewer.
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+from pathlib import Path
+
+import numpy as np
+
+from tumor3d.errors import InputError
+from tumor3d.scan import SourceGrid
+
+__all__ = [
+    "NIFTI_DTYPES",
+    "decode_nifti",
+    "encode_nifti",
+    "mask_to_source_nifti_bytes",
+    "read_nifti",
+    "volume_to_source_nifti_bytes",
+]
+
+NIFTI_DTYPES = (np.dtype(np.uint8), np.dtype(np.int16), np.dtype(np.float32))
+"""Voxel types :func:`encode_nifti` writes."""
+
+_DESCRIP = b"tumor3d"
+_GZIP_LEVEL = 6
+_GZIP_MAGIC = b"\x1f\x8b"
+
+
+def encode_nifti(array: np.ndarray, affine: np.ndarray, *, dtype: np.dtype | type | str) -> bytes:
+    """Encode a 3-D voxel array as gzip-compressed NIfTI-1 bytes, deterministically.
+
+    Parameters
+    ----------
+    array : ndarray, shape (i, j, k)
+        Voxel values in the file's own axis order (NIfTI order: the first
+        axis is the fastest-varying voxel index ``i``). Not modified.
+    affine : (4, 4) array_like
+        Maps the voxel index ``(i, j, k, 1)`` to RAS mm; stored as sform and
+        qform (code 1). Its last row must be ``(0, 0, 0, 1)``.
+    dtype : {uint8, int16, float32}
+        Stored voxel type. For the integer types the values must be whole
+        numbers within the type's range (nothing is rounded or clipped).
+
+    Returns
+    -------
+    bytes
+        A ``.nii.gz`` file's content; the same inputs give the same bytes.
+
+    Raises
+    ------
+    ValueError
+        Unsupported dtype, not 3-D, a bad affine, or values that the dtype
+        cannot hold exactly.
+    """
+    import nibabel as nib
+
+    dt = np.dtype(dtype)
+    if dt not in NIFTI_DTYPES:
+        raise ValueError(
+            f"dtype must be one of {', '.join(str(d) for d in NIFTI_DTYPES)}, got {dt}"
+        )
+    arr = np.asarray(array)
+    if arr.ndim != 3:
+        raise ValueError(f"array must be 3-D, got shape {arr.shape}")
+    aff = _check_affine(affine)
+    data = _cast_exactly(arr, dt)
+    header = nib.Nifti1Header()
+    header.set_data_dtype(dt)
+    img = nib.Nifti1Image(data, aff, header=header)
+    img.set_sform(aff, code=1)
+    img.set_qform(aff, code=1)
+    img.header.set_xyzt_units(xyz="mm")
+    img.header["descrip"] = _DESCRIP
+    raw = img.to_bytes()
+    return gzip.compress(raw, compresslevel=_GZIP_LEVEL, mtime=0)
+
+
+def decode_nifti(data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """Decode NIfTI-1 bytes (gzip-compressed or not) into ``(array, affine)``.
+
+    Parameters
+    ----------
+    data : bytes
+        Content of a ``.nii`` or ``.nii.gz`` file.
+
+    Returns
+    -------
+    array : ndarray
+        Voxels in the file's axis order and stored type (scaled to float if
+        the header sets ``scl_slope``).
+    affine : (4, 4) float64 ndarray
+        nibabel's affine (sform, else qform).
+
+    Raises
+    ------
+    InputError
+        If the bytes are not a NIfTI-1 image.
+    """
+    import nibabel as nib
+
+    try:
+        raw = gzip.decompress(data) if bytes(data[:2]) == _GZIP_MAGIC else bytes(data)
+        img = nib.Nifti1Image.from_bytes(raw)
+        array = np.asanyarray(img.dataobj).copy()
+    except Exception as exc:
+        raise InputError(f"not NIfTI-1 data ({type(exc).__name__}: {exc})") from exc
+    return array, np.array(img.affine, dtype=np.float64)
+
+
+def read_nifti(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Read a NIfTI file into ``(array, affine)`` (see :func:`decode_nifti`).
+
+    Parameters
+    ----------
+    path : str or path-like
+        A ``.nii`` or ``.nii.gz`` file.
+
+    Returns
+    -------
+    array : ndarray
+        Voxels in the file's axis order.
+    affine : (4, 4) float64 ndarray
+
+    Raises
+    ------
+    InputError
+        If the file is missing or not a readable NIfTI image.
+    """
+    import nibabel as nib
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError("no such file", str(p))
+    try:
+        img = nib.load(str(p))
+        if not isinstance(img, nib.Nifti1Image):
+            raise TypeError(f"nibabel read it as {type(img).__name__}")
+        array = np.asanyarray(img.dataobj).copy()
+    except Exception as exc:
+        raise InputError(
+            f"not a readable NIfTI image ({type(exc).__name__}: {exc})", str(p)
+        ) from exc
+    return array, np.array(img.affine, dtype=np.float64)
+
+
+def mask_to_source_nifti_bytes(mask_zyx: np.ndarray, grid: SourceGrid) -> bytes:
+    """Write a Scan-grid mask in the input's own voxel grid and affine.
+
+    Parameters
+    ----------
+    mask_zyx : ndarray, shape (z, y, x)
+        Boolean mask, or integer labels in ``0..255``, on the `Scan` grid.
+    grid : SourceGrid
+        ``scan.source_grid`` of the scan the mask belongs to.
+
+    Returns
+    -------
+    bytes
+        uint8 ``.nii.gz`` content with the source's shape and affine.
+
+    Raises
+    ------
+    ValueError
+        If the mask's shape does not fit the grid or its values are not
+        whole numbers in ``0..255``.
+    """
+    m = np.asarray(mask_zyx)
+    if m.ndim != 3:
+        raise ValueError(f"mask must be 3-D (z, y, x), got shape {m.shape}")
+    source = grid.to_source(m)
+    return encode_nifti(source, grid.affine, dtype=np.uint8)
+
+
+def volume_to_source_nifti_bytes(
+    array_zyx: np.ndarray,
+    affine_xyz: np.ndarray,
+    grid: SourceGrid,
+    *,
+    dtype: np.dtype | type | str,
+) -> bytes:
+    """Write a volume on another grid of the scan's world space in source axis order.
+
+    The axes (and affine columns) are permuted as the source's are (see
+    :meth:`tumor3d.scan.SourceGrid.to_source_with_affine`); no resampling,
+    so every voxel keeps its world position.
+
+    Parameters
+    ----------
+    array_zyx : ndarray, shape (z, y, x)
+        The volume (e.g. a finely interpolated mask).
+    affine_xyz : (4, 4) array_like
+        Maps ``(x, y, z, 1)`` of ``array_zyx`` to RAS mm.
+    grid : SourceGrid
+        ``scan.source_grid`` of the scan the volume derives from.
+    dtype : {uint8, int16, float32}
+        Stored voxel type (see :func:`encode_nifti`).
+
+    Returns
+    -------
+    bytes
+        ``.nii.gz`` content.
+    """
+    arr = np.asarray(array_zyx)
+    if arr.ndim != 3:
+        raise ValueError(f"array must be 3-D (z, y, x), got shape {arr.shape}")
+    aff = _check_affine(affine_xyz)
+    source, source_affine = grid.to_source_with_affine(arr, aff)
+    return encode_nifti(source, source_affine, dtype=dtype)
+
+
+def _check_affine(affine: np.ndarray) -> np.ndarray:
+    aff = np.array(affine, dtype=np.float64)
+    if aff.shape != (4, 4):
+        raise ValueError(f"affine must be 4x4, got shape {aff.shape}")
+    if not np.all(np.isfinite(aff)):
+        raise ValueError("affine must be finite")
+    if not np.array_equal(aff[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f"affine's last row must be (0, 0, 0, 1), got {aff[3]}")
+    if abs(np.linalg.det(aff[:3, :3])) < 1e-12:
+        raise ValueError("affine is singular")
+    return aff
+
+
+def _cast_exactly(arr: np.ndarray, dt: np.dtype) -> np.ndarray:
+    """Cast to ``dt``, refusing any value the type cannot hold exactly."""
+    if arr.dtype == dt:
+        return arr
+    if arr.dtype == bool:
+        return arr.astype(dt)
+    if dt.kind == "f":
+        if arr.dtype.kind not in "biuf":
+            raise ValueError(f"cannot store {arr.dtype} values as {dt}")
+        return arr.astype(dt)
+    if arr.dtype.kind not in "iuf":
+        raise ValueError(f"cannot store {arr.dtype} values as {dt}")
+    info = np.iinfo(dt)
+    if arr.size:
+        if arr.dtype.kind == "f":
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"non-finite values cannot be stored as {dt}")
+            if not np.array_equal(arr, np.round(arr)):
+                raise ValueError(f"values with a fractional part cannot be stored as {dt}")
+        lo, hi = arr.min(), arr.max()
+        if lo < info.min or hi > info.max:
+            raise ValueError(
+                f"values in [{lo}, {hi}] do not fit {dt} (range [{info.min}, {info.max}])"
+            )
+    return arr.astype(dt)

@@ -1,0 +1,267 @@
+"""Content-addressed artifact store.
+
+Each artifact is a file under ``<root>/objects/<d[:2]>/<d>.<suffix>`` where
+``d`` is the SHA-256 digest of the artifact's kind, its canonical metadata
+(dtype, shape, spacing and affine for images) and its bytes. Files are
+written under a temporary name in the same folder, flushed and renamed, so a
+crash never leaves a half-written artifact under its final name; an artifact
+that already exists is not rewritten. Reads verify the digest. Nothing is
+ever unpickled: images are NIfTI, meshes PLY, tables parquet, renders PNG,
+small records JSON.
+
+Tasks pass :class:`ArtifactRef` values around (a few hundred bytes), never
+arrays.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from pydantic import BaseModel, ConfigDict, Field
+
+from storage import formats, nifti
+from tumor3d.errors import Tumor3DError
+from tumor3d.mesh import Mesh
+from tumor3d.scan import Scan, SourceGrid
+
+__all__ = [
+    "ArtifactRef",
+    "ArtifactStore",
+    "StoreError",
+    "atomic_write_bytes",
+    "canonical_dumps",
+]
+
+_DIGEST_PREFIX = b"tumor3d-artifact-v1\0"
+
+
+class StoreError(Tumor3DError):
+    """A missing or corrupted artifact."""
+
+
+class ArtifactRef(BaseModel):
+    """A small, JSON-serialisable reference to an artifact in the store.
+
+    Parameters
+    ----------
+    kind : str
+        ``scan``, ``image``, ``mask``, ``mesh``, ``table``, ``png`` or ``json``.
+    digest : str
+        Hex SHA-256 of kind, canonical metadata and bytes.
+    relpath : str
+        Path of the file relative to the store root.
+    metadata : dict
+        Canonical, JSON-able description (shape, dtype, affine, ...).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    kind: str
+    digest: str = Field(pattern=r"^[0-9a-f]{64}$")
+    relpath: str
+    metadata: dict[str, Any] = Field(default_factory=dict)
+
+
+def canonical_dumps(obj: Any) -> str:
+    """JSON with sorted keys and no whitespace; NaN is refused."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file and a rename.
+
+    The temporary file lives in the destination folder (same file system),
+    is fsynced, then atomically renamed over ``path``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _affine_list(affine: np.ndarray) -> list[list[float]]:
+    return [[float(v) for v in row] for row in np.asarray(affine, dtype=np.float64)]
+
+
+class ArtifactStore:
+    """A folder of content-addressed artifacts.
+
+    Parameters
+    ----------
+    root : path
+        The store folder; created if missing.
+    """
+
+    def __init__(self, root: str | os.PathLike[str]) -> None:
+        self.root = Path(root).resolve()
+        (self.root / "objects").mkdir(parents=True, exist_ok=True)
+
+    # -- raw bytes ---------------------------------------------------------
+    @staticmethod
+    def digest_of(data: bytes, *, kind: str, metadata: dict[str, Any]) -> str:
+        """Digest of an artifact: SHA-256 of kind, canonical metadata and bytes."""
+        h = hashlib.sha256(_DIGEST_PREFIX)
+        h.update(canonical_dumps({"kind": kind, "metadata": metadata}).encode())
+        h.update(b"\0")
+        h.update(data)
+        return h.hexdigest()
+
+    def put_bytes(
+        self, data: bytes, *, kind: str, suffix: str, metadata: dict[str, Any] | None = None
+    ) -> ArtifactRef:
+        """Store bytes (atomically, once) and return their reference."""
+        meta = json.loads(canonical_dumps(metadata or {}))
+        digest = self.digest_of(data, kind=kind, metadata=meta)
+        relpath = f"objects/{digest[:2]}/{digest}{suffix}"
+        path = self.root / relpath
+        if not (path.exists() and path.stat().st_size == len(data)):
+            atomic_write_bytes(path, data)
+        return ArtifactRef(kind=kind, digest=digest, relpath=relpath, metadata=meta)
+
+    def path(self, ref: ArtifactRef) -> Path:
+        """Absolute path of an artifact's file."""
+        return self.root / ref.relpath
+
+    def exists(self, ref: ArtifactRef) -> bool:
+        """True if the artifact's file is present."""
+        return self.path(ref).is_file()
+
+    def get_bytes(self, ref: ArtifactRef, *, verify: bool = True) -> bytes:
+        """Read an artifact's bytes, checking its digest unless ``verify`` is False."""
+        path = self.path(ref)
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            raise StoreError(f"artifact {ref.kind} {ref.digest[:12]} is missing: {path}") from None
+        if verify and self.digest_of(data, kind=ref.kind, metadata=ref.metadata) != ref.digest:
+            raise StoreError(f"artifact {path} is corrupted (digest mismatch)")
+        return data
+
+    # -- typed helpers -----------------------------------------------------
+    def put_volume(
+        self,
+        array_zyx: np.ndarray,
+        affine: np.ndarray,
+        *,
+        kind: str = "image",
+        dtype: str | None = None,
+        extra: dict[str, Any] | None = None,
+    ) -> ArtifactRef:
+        """Store a ``(z, y, x)`` volume as NIfTI; ``affine`` maps ``(x, y, z, 1)`` to RAS."""
+        arr = np.asarray(array_zyx)
+        if arr.ndim != 3:
+            raise ValueError(f"a volume must be 3-D (z, y, x), got shape {arr.shape}")
+        dt = np.dtype(dtype or (np.uint8 if arr.dtype == bool else arr.dtype))
+        data = nifti.encode_nifti(arr.transpose(2, 1, 0), affine, dtype=dt)
+        meta = {
+            "dtype": dt.name,
+            "shape_zyx": list(arr.shape),
+            "affine": _affine_list(affine),
+            **(extra or {}),
+        }
+        return self.put_bytes(data, kind=kind, suffix=".nii.gz", metadata=meta)
+
+    def get_volume(self, ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
+        """Load a volume: ``(array (z, y, x), affine)``; masks come back as bool."""
+        arr_xyz, affine = nifti.decode_nifti(self.get_bytes(ref))
+        arr = np.asarray(arr_xyz).transpose(2, 1, 0)
+        if ref.kind == "mask":
+            arr = arr > 0
+        return np.ascontiguousarray(arr), affine
+
+    def put_scan(self, scan: Scan) -> ArtifactRef:
+        """Store a `Scan`: its image as float32 NIfTI plus its geometry as metadata."""
+        grid = scan.source_grid
+        extra = {
+            "pixel_spacing_mm": list(scan.pixel_spacing_mm),
+            "slice_step_mm": float(scan.slice_step_mm),
+            "slice_thickness_mm": float(scan.slice_thickness_mm),
+            "slice_gap_mm": None if scan.slice_gap_mm is None else float(scan.slice_gap_mm),
+            "modality": scan.modality,
+            "patient_id": scan.patient_id,
+            "source": scan.source,
+            "source_grid": {
+                "shape": list(grid.shape),
+                "affine": _affine_list(grid.affine),
+                "axes": list(grid.axes),
+            },
+        }
+        return self.put_volume(scan.image, scan.affine, kind="scan", dtype="float32", extra=extra)
+
+    def get_scan(self, ref: ArtifactRef) -> Scan:
+        """Load a `Scan` stored by :meth:`put_scan`."""
+        image, affine = self.get_volume(ref)
+        return scan_from_metadata(image, affine, ref.metadata)
+
+    def put_mesh(self, mesh: Mesh, *, extra: dict[str, Any] | None = None) -> ArtifactRef:
+        """Store a mesh as binary PLY (RAS mm)."""
+        meta = {"n_vertices": mesh.n_vertices, "n_faces": mesh.n_faces, **(extra or {})}
+        return self.put_bytes(formats.encode_ply(mesh), kind="mesh", suffix=".ply", metadata=meta)
+
+    def get_mesh(self, ref: ArtifactRef) -> Mesh:
+        """Load a mesh."""
+        return formats.decode_ply(self.get_bytes(ref), name=str(self.path(ref)))
+
+    def put_table(self, table: pd.DataFrame | list[dict[str, Any]]) -> ArtifactRef:
+        """Store a table as parquet."""
+        df = table if isinstance(table, pd.DataFrame) else pd.DataFrame(table)
+        meta = {"columns": [str(c) for c in df.columns], "n_rows": len(df)}
+        return self.put_bytes(
+            formats.encode_parquet(df), kind="table", suffix=".parquet", metadata=meta
+        )
+
+    def get_table(self, ref: ArtifactRef) -> pd.DataFrame:
+        """Load a table."""
+        return formats.decode_parquet(self.get_bytes(ref))
+
+    def put_png(self, rgb: np.ndarray, *, extra: dict[str, Any] | None = None) -> ArtifactRef:
+        """Store an RGB image as PNG."""
+        meta = {"shape": list(np.shape(rgb)), **(extra or {})}
+        return self.put_bytes(formats.encode_png(rgb), kind="png", suffix=".png", metadata=meta)
+
+    def put_json(self, obj: Any) -> ArtifactRef:
+        """Store a small JSON document."""
+        return self.put_bytes(canonical_dumps(obj).encode(), kind="json", suffix=".json")
+
+    def get_json(self, ref: ArtifactRef) -> Any:
+        """Load a JSON document."""
+        return json.loads(self.get_bytes(ref))
+
+
+def scan_from_metadata(image: np.ndarray, affine: np.ndarray, meta: dict[str, Any]) -> Scan:
+    """Rebuild a `Scan` from its image, affine and stored metadata."""
+    return Scan(
+        image=image,
+        affine=affine,
+        pixel_spacing_mm=tuple(meta["pixel_spacing_mm"]),
+        slice_step_mm=meta["slice_step_mm"],
+        slice_thickness_mm=meta["slice_thickness_mm"],
+        slice_gap_mm=meta["slice_gap_mm"],
+        modality=meta["modality"],
+        patient_id=meta["patient_id"],
+        source=meta["source"],
+        source_grid=source_grid_from_metadata(meta),
+    )
+
+
+def source_grid_from_metadata(meta: dict[str, Any]) -> SourceGrid:
+    """The `SourceGrid` recorded in a scan artifact's metadata."""
+    sg = meta["source_grid"]
+    return SourceGrid(
+        shape=tuple(sg["shape"]), affine=np.asarray(sg["affine"]), axes=tuple(sg["axes"])
+    )

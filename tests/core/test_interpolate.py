@@ -1,0 +1,592 @@
+"""Tests of tumor3d.interpolate (spec section 4, Algorithm 1)."""
+
+from __future__ import annotations
+
+import heapq
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+from scipy import ndimage as ndi
+
+from tumor3d.config import InterpolateConfig
+from tumor3d.errors import InputError
+from tumor3d.interpolate import (
+    InterpolatedStack,
+    chamfer_distance,
+    interpolate_pair,
+    interpolate_stack,
+    interpolation_error_percent,
+    leave_one_out_error,
+    signed_distance,
+    slices_between_auto,
+)
+
+METHODS = ("enhanced", "shape", "linear")
+SQRT2 = math.sqrt(2.0)
+# max of chamfer(1, sqrt2) / Euclidean, reached at 22.5 degrees
+CHAMFER_MAX_RATIO = math.cos(math.pi / 8) + (SQRT2 - 1.0) * math.sin(math.pi / 8)
+
+
+# --------------------------------------------------------------------------
+# phantoms and naive references
+
+
+def disk(shape, centre, radius):
+    yy, xx = np.mgrid[: shape[0], : shape[1]]
+    return (yy - centre[0]) ** 2 + (xx - centre[1]) ** 2 <= radius**2
+
+
+def ellipse(shape, centre, axes, angle):
+    yy, xx = np.mgrid[: shape[0], : shape[1]]
+    y, x = yy - centre[0], xx - centre[1]
+    c, s = math.cos(angle), math.sin(angle)
+    u, v = c * x + s * y, -s * x + c * y
+    return (u / axes[1]) ** 2 + (v / axes[0]) ** 2 <= 1.0
+
+
+def centroid(mask):
+    return np.argwhere(mask).mean(axis=0)
+
+
+def random_blob(rng, shape, n_ellipses=3):
+    out = np.zeros(shape, dtype=bool)
+    for _ in range(n_ellipses):
+        c = rng.uniform(0.3, 0.7, 2) * np.array(shape)
+        ax = rng.uniform(3.0, 0.2 * min(shape), 2)
+        out |= ellipse(shape, c, ax, rng.uniform(0, math.pi))
+    return out
+
+
+def dijkstra_chamfer(mask):
+    """Exact chamfer metric: shortest paths in the 8-neighbour graph (weights 1, sqrt2).
+
+    Sources: every pixel outside the mask and a one-pixel frame beyond the border.
+    """
+    h, w = mask.shape
+    big = np.zeros((h + 2, w + 2), dtype=bool)
+    big[1:-1, 1:-1] = mask
+    dist = np.full(big.shape, np.inf)
+    heap = []
+    for y, x in np.argwhere(~big):
+        dist[y, x] = 0.0
+        heap.append((0.0, int(y), int(x)))
+    heapq.heapify(heap)
+    steps = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+    while heap:
+        d, y, x = heapq.heappop(heap)
+        if d > dist[y, x]:
+            continue
+        for dy, dx in steps:
+            yy, xx = y + dy, x + dx
+            if 0 <= yy < h + 2 and 0 <= xx < w + 2:
+                nd = d + (SQRT2 if dy and dx else 1.0)
+                if nd < dist[yy, xx]:
+                    dist[yy, xx] = nd
+                    heapq.heappush(heap, (nd, yy, xx))
+    return dist[1:-1, 1:-1]
+
+
+def brute_signed_distance(mask, metric):
+    """Closed-form metric, min over all pixels of the other set (plus the frame inside)."""
+
+    def pair_metric(dy, dx):
+        dy, dx = np.abs(dy), np.abs(dx)
+        if metric == "taxicab":
+            return dy + dx
+        return np.maximum(dy, dx) + (SQRT2 - 1.0) * np.minimum(dy, dx)
+
+    h, w = mask.shape
+    big = np.zeros((h + 2, w + 2), dtype=bool)
+    big[1:-1, 1:-1] = mask
+    background = np.argwhere(~big) - 1  # includes the frame beyond the border
+    objects = np.argwhere(mask)
+    out = np.empty(mask.shape)
+    for y in range(h):
+        for x in range(w):
+            if mask[y, x]:
+                d = pair_metric(background[:, 0] - y, background[:, 1] - x).min()
+                out[y, x] = d - 0.5
+            elif len(objects):
+                d = pair_metric(objects[:, 0] - y, objects[:, 1] - x).min()
+                out[y, x] = -(d - 0.5)
+            else:
+                out[y, x] = -np.inf
+    return out
+
+
+def drifting_sphere(radius_mm=20.0, drift=0.93, dz_mm=5.0, shape=(64, 96)):
+    """Sphere sampled every dz (1 mm pixels) whose centre moves by ``drift`` mm in x per mm of z.
+
+    A shear keeps the volume, so every slab's true volume is that of the sphere.
+    """
+    zs = np.arange(-22.0, 22.0 + 1e-9, dz_mm)
+    masks = []
+    for z in zs:
+        r2 = radius_mm**2 - z**2
+        c = (31.3, 40.2 + drift * (z - zs[0]))
+        masks.append(disk(shape, c, math.sqrt(r2)) if r2 > 0 else np.zeros(shape, dtype=bool))
+    return np.array(masks), zs
+
+
+def sphere_segment_volume(radius, z_lo, z_hi):
+    z_lo, z_hi = max(z_lo, -radius), min(z_hi, radius)
+
+    def f(z):
+        return radius**2 * z - z**3 / 3.0
+
+    return math.pi * (f(z_hi) - f(z_lo))
+
+
+# --------------------------------------------------------------------------
+# distance transforms
+
+
+def test_chamfer_distance_matches_dijkstra_on_random_masks():
+    rng = np.random.default_rng(20130601)
+    cases = [np.ones((7, 9), dtype=bool), np.ones((1, 1), dtype=bool), np.zeros((4, 3), bool)]
+    for _ in range(40):
+        shape = tuple(rng.integers(1, 14, size=2))
+        density = rng.uniform(0.3, 0.95)
+        cases.append(rng.random(shape) < density)
+    for mask in cases:
+        got = chamfer_distance(mask)
+        np.testing.assert_allclose(got, dijkstra_chamfer(mask), rtol=0, atol=1e-12)
+        assert np.all(got[~mask] == 0.0)
+
+
+def test_chamfer_distance_of_disk_is_within_chamfer_bound_of_euclidean():
+    mask = disk((81, 81), (40.0, 40.0), 34.0)
+    got = chamfer_distance(mask)
+    # Euclidean distance to the nearest background pixel (the frame counts as background)
+    edt = ndi.distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1]
+    inside = mask
+    ratio = got[inside] / edt[inside]
+    assert ratio.min() >= 1.0 - 1e-12
+    assert ratio.max() <= CHAMFER_MAX_RATIO + 1e-12
+    # not the Euclidean transform: the 22.5-degree overestimate shows up
+    assert ratio.max() > 1.04
+    # at the centre both are close to the radius (34 plus the half pixel to the background)
+    assert abs(got[40, 40] - 35.0) < 0.08 * 35.0
+
+
+@pytest.mark.parametrize("metric", ["chamfer", "taxicab"])
+def test_signed_distance_matches_brute_force(metric):
+    rng = np.random.default_rng(7)
+    masks = [rng.random(tuple(rng.integers(1, 12, size=2))) < rng.uniform(0.1, 0.9)
+             for _ in range(25)]
+    masks += [np.ones((5, 6), dtype=bool), np.zeros((5, 6), dtype=bool)]
+    for mask in masks:
+        got = signed_distance(mask, metric=metric)
+        ref = brute_signed_distance(mask, metric)
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(mask=hnp.arrays(bool, hnp.array_shapes(min_dims=2, max_dims=2, max_side=16)),
+       metric=st.sampled_from(["chamfer", "taxicab"]))
+def test_signed_distance_zero_level_halfway_and_gives_mask_back(mask, metric):
+    d = signed_distance(mask, metric=metric)
+    np.testing.assert_array_equal(d >= 0, mask)
+    assert np.all(d[mask] >= 0.5)
+    assert np.all(d[~mask] <= -0.5)
+
+
+def test_signed_distance_examples_and_empty_mask():
+    row = np.array([[0, 1, 1, 1, 0, 0]], dtype=bool)
+    # the rows beyond the border are background for the inside part, so a
+    # one-row object is one pixel deep; outside, the border is not object
+    np.testing.assert_allclose(signed_distance(row), [[-0.5, 0.5, 0.5, 0.5, -0.5, -1.5]])
+    block = np.zeros((5, 7), dtype=bool)
+    block[:, 1:6] = True
+    np.testing.assert_allclose(signed_distance(block)[2], [-0.5, 0.5, 1.5, 2.5, 1.5, 0.5, -0.5])
+    assert np.all(signed_distance(np.zeros((3, 4), bool)) == -np.inf)
+    # numeric 0/1 input is accepted
+    np.testing.assert_array_equal(signed_distance(row.astype(np.uint8)), signed_distance(row))
+
+
+# --------------------------------------------------------------------------
+# interpolate_pair
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), t=st.floats(0.01, 0.99))
+def test_identical_masks_are_returned_for_all_methods(seed, t):
+    mask = random_blob(np.random.default_rng(seed), (40, 52))
+    for method in METHODS:
+        np.testing.assert_array_equal(interpolate_pair(mask, mask, t, method=method), mask)
+
+
+def test_identical_masks_far_from_centre_are_not_clipped():
+    # an L whose centroid is near the top-left corner: centring it on the grid
+    # moves the arms past the opposite border, which must not cut them
+    mask = np.zeros((40, 40), dtype=bool)
+    mask[0:3, :] = True
+    mask[:, 0:3] = True
+    for t in (0.2, 0.5, 0.9):
+        np.testing.assert_array_equal(interpolate_pair(mask, mask, t), mask)
+
+
+@pytest.mark.parametrize("centre", [(47.5, 47.5), (40.3, 51.7)])
+@pytest.mark.parametrize(("r1", "r2"), [(8.0, 24.0), (5.0, 30.0), (12.0, 16.0)])
+@pytest.mark.parametrize("t", [0.25, 0.5, 0.75])
+def test_concentric_disks_give_disk_of_interpolated_radius(centre, r1, r2, t):
+    shape = (96, 96)
+    out = interpolate_pair(disk(shape, centre, r1), disk(shape, centre, r2), t)
+    r_t = (1 - t) * r1 + t * r2
+    yy, xx = np.mgrid[: shape[0], : shape[1]]
+    rho = np.hypot(yy - centre[0], xx - centre[1])
+    assert np.all(out[rho <= r_t - 1.0])
+    assert not np.any(out[rho >= r_t + 1.0])
+    assert abs(math.sqrt(out.sum() / math.pi) - r_t) <= 1.0
+
+
+@pytest.mark.parametrize("displacement", [(14.0, 9.0), (0.0, 20.0), (20.0, 20.0)])
+def test_displaced_disks_enhanced_keeps_disk_while_so_shrinks(displacement):
+    """Enhanced moves the disk along the centroid path; SO (no alignment) gives a lens.
+
+    Without alignment, SO thresholds the mean of two distance maps whose
+    objects only partly overlap: the result is the lens-shaped region
+    around the overlap (empty when the disks are far apart), so its area
+    falls well below the disk area once the displacement exceeds the radius.
+    """
+    shape, r, t = (96, 96), 12.0, 0.5
+    a = disk(shape, (40.2, 30.6), r)
+    b = disk(shape, (40.2 + displacement[0], 30.6 + displacement[1]), r)
+    assert math.hypot(*displacement) > r
+    enhanced = interpolate_pair(a, b, t)
+    so = interpolate_pair(a, b, t, method="shape")
+    c_z = (1 - t) * centroid(a) + t * centroid(b)
+    assert abs(enhanced.sum() - a.sum()) <= 0.03 * a.sum()
+    assert np.all(np.abs(centroid(enhanced) - c_z) <= 1.0)
+    # the output is the (equal) disk around the interpolated centre, up to rasterisation
+    assert interpolation_error_percent(disk(shape, c_z, r), enhanced) < 10.0
+    assert so.sum() < 0.8 * a.sum()
+
+
+def test_centroid_follows_interpolated_path():
+    rng = np.random.default_rng(11)
+    shape = (80, 90)
+    for _ in range(20):
+        a = ellipse(shape, rng.uniform(25, 55, 2), rng.uniform(4, 14, 2), rng.uniform(0, 3))
+        b = ellipse(shape, rng.uniform(25, 55, 2), rng.uniform(4, 14, 2), rng.uniform(0, 3))
+        t = float(rng.uniform(0.05, 0.95))
+        out = interpolate_pair(a, b, t)
+        assert out.any()
+        c_z = (1 - t) * centroid(a) + t * centroid(b)
+        assert np.all(np.abs(centroid(out) - c_z) <= 0.5 + 1e-9)
+
+
+def test_objects_at_the_border_stay_there():
+    shape = (64, 64)
+    # a disk cut by the left border and a small one at the same place
+    a = disk(shape, (32.0, 3.0), 14.0)
+    b = disk(shape, (32.0, 3.0), 4.0)
+    for method in METHODS:
+        for t in (0.3, 0.5, 0.7):
+            out = interpolate_pair(a, b, t, method=method)
+            assert out[:, 0].any()
+            assert not out[:, shape[1] // 2 :].any()
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_zero_fill_shift_never_wraps_around(axis):
+    """Pixels moved past the border are dropped, never wrapped to the far side.
+
+    Padding both masks by an even number of empty rows/columns before the
+    border moves the grid centre by an integer, so the padded result cropped
+    back must equal the direct result; the padding shows what fell off.
+    """
+    rng = np.random.default_rng(2024 + axis)
+    shape, pad = (48, 48), 30
+    widths = [(0, 0), (0, 0)]
+    widths[axis] = (pad, 0)
+    n_clipped = 0
+    for _ in range(60):
+        centres = []
+        for _ in range(2):
+            c = [rng.uniform(10, 38), rng.uniform(10, 38)]
+            c[axis] = rng.uniform(-3, 8)
+            centres.append(c)
+        a = ellipse(shape, centres[0], rng.uniform(2, 15, 2), rng.uniform(0, math.pi))
+        b = ellipse(shape, centres[1], rng.uniform(2, 15, 2), rng.uniform(0, math.pi))
+        if not (a.any() and b.any()):
+            continue
+        out = interpolate_pair(a, b, 0.5)
+        big = interpolate_pair(np.pad(a, widths), np.pad(b, widths), 0.5)
+        np.testing.assert_array_equal(np.take(big, np.arange(pad, pad + 48), axis=axis), out)
+        n_clipped += bool(np.take(big, np.arange(pad), axis=axis).any())
+    assert n_clipped >= 3  # the border really cut some results
+
+
+def test_linear_method_thresholds_the_mask_average():
+    a = np.zeros((10, 10), dtype=bool)
+    a[2:6, 2:6] = True
+    b = np.zeros((10, 10), dtype=bool)
+    b[4:8, 3:9] = True
+    np.testing.assert_array_equal(interpolate_pair(a, b, 0.3, method="linear"), a)
+    np.testing.assert_array_equal(interpolate_pair(a, b, 0.7, method="linear"), b)
+    np.testing.assert_array_equal(interpolate_pair(a, b, 0.5, method="linear"), a | b)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_empty_input_gives_empty_output(method):
+    a = disk((20, 20), (10, 10), 5)
+    empty = np.zeros_like(a)
+    assert not interpolate_pair(a, empty, 0.5, method=method).any()
+    assert not interpolate_pair(empty, a, 0.5, method=method).any()
+
+
+def test_inputs_are_not_modified():
+    rng = np.random.default_rng(3)
+    a = random_blob(rng, (30, 30))
+    b = random_blob(rng, (30, 30))
+    stack = np.array([a, b, a])
+    copies = [a.copy(), b.copy(), stack.copy()]
+    for method in METHODS:
+        interpolate_pair(a, b, 0.4, method=method)
+        interpolate_stack(stack, method=method, slices_between=2)
+        leave_one_out_error(stack, 1, method=method)
+    chamfer_distance(a)
+    signed_distance(b, metric="taxicab")
+    interpolation_error_percent(a, b)
+    for orig, now in zip(copies, [a, b, stack], strict=True):
+        np.testing.assert_array_equal(orig, now)
+
+
+# --------------------------------------------------------------------------
+# interpolate_stack
+
+
+def _stack_with_gaps():
+    shape = (40, 48)
+    masks = np.zeros((7,) + shape, dtype=bool)
+    for k, (cy, cx, r) in enumerate(
+        [(20, 15, 6), (20, 18, 8), (21, 22, 9), (0, 0, 0), (19, 27, 7), (20, 30, 5), (0, 0, 0)]
+    ):
+        if r:
+            masks[k] = disk(shape, (cy, cx), r)
+    return masks
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_interpolate_stack_layout(method):
+    masks = _stack_with_gaps()
+    m = 3
+    result = interpolate_stack(masks, method=method, slices_between=m)
+    n = len(masks)
+    z = (n - 1) * (m + 1) + 1
+    assert isinstance(result, InterpolatedStack)
+    assert result.mask.shape == (z,) + masks.shape[1:]
+    assert result.mask.dtype == bool
+    assert result.slices_between == m
+    np.testing.assert_allclose(result.source_index, np.arange(z) / (m + 1))
+    # originals restored unchanged
+    np.testing.assert_array_equal(result.mask[:: m + 1], masks)
+    np.testing.assert_array_equal(result.original, np.arange(z) % (m + 1) == 0)
+    nonempty = masks.any(axis=(1, 2))
+    for k in range(n - 1):
+        inserted = slice(k * (m + 1) + 1, (k + 1) * (m + 1))
+        both = bool(nonempty[k] and nonempty[k + 1])
+        assert np.all(result.interpolated[inserted] == both)
+        if both:
+            assert result.mask[inserted].any(axis=(1, 2)).all()
+            for j in range(1, m + 1):
+                expected = interpolate_pair(masks[k], masks[k + 1], j / (m + 1), method=method)
+                np.testing.assert_array_equal(result.mask[k * (m + 1) + j], expected)
+        else:
+            assert not result.mask[inserted].any()
+    assert not result.interpolated[:: m + 1].any()
+    with pytest.raises(ValueError, match="read-only"):
+        result.mask[0, 0, 0] = True
+
+
+def test_interpolate_stack_without_inserted_slices_is_identity():
+    masks = _stack_with_gaps()
+    result = interpolate_stack(masks, slices_between=0)
+    np.testing.assert_array_equal(result.mask, masks)
+    assert not result.interpolated.any()
+    single = interpolate_stack(masks[:1], slices_between=3)
+    np.testing.assert_array_equal(single.mask, masks[:1])
+
+
+def test_interpolate_stack_accepts_config_and_resolves_auto_count():
+    masks = _stack_with_gaps()
+    cfg = InterpolateConfig()
+    assert cfg.slices_between is None
+    result = interpolate_stack(
+        masks, **cfg.model_dump(), slice_step_mm=5.0, pixel_spacing_mm=(1.0, 1.0)
+    )
+    assert result.slices_between == 4
+    assert result.mask.shape[0] == (len(masks) - 1) * 5 + 1
+    fixed = interpolate_stack(masks, **InterpolateConfig(slices_between=2).model_dump())
+    assert fixed.slices_between == 2
+
+
+def test_fine_affine_maps_fine_slices_to_original_world_positions():
+    rng = np.random.default_rng(5)
+    affine = np.eye(4)
+    affine[:3, :3] = rng.normal(size=(3, 3))
+    affine[:3, 3] = rng.normal(size=3) * 50
+    masks = _stack_with_gaps()
+    m = 4
+    result = interpolate_stack(masks, slices_between=m)
+    fine = result.fine_affine(affine)
+    for j in range(result.mask.shape[0]):
+        x, y = float(rng.integers(0, 48)), float(rng.integers(0, 40))
+        expected = affine @ np.array([x, y, j / (m + 1), 1.0])
+        np.testing.assert_allclose(fine @ np.array([x, y, j, 1.0]), expected, atol=1e-9)
+    np.testing.assert_allclose(fine[:, [0, 1, 3]], affine[:, [0, 1, 3]])
+    np.testing.assert_allclose(result.fine_affine(affine)[:3, 2] * (m + 1), affine[:3, 2])
+
+
+@pytest.mark.parametrize(
+    ("step", "spacing", "expected"),
+    [(5.0, (1.0, 1.0), 4), (5.0, (0.5, 0.5), 9), (1.0, (2.0, 2.0), 0), (5.0, (2.0, 2.0), 2),
+     (3.0, (1.0, 1.0), 2), (5.0, (0.9375, 0.9375), 4), (6.5, (0.78, 0.78), 7)],
+)
+def test_slices_between_auto(step, spacing, expected):
+    assert slices_between_auto(step, spacing) == expected
+
+
+# --------------------------------------------------------------------------
+# drifting sphere phantom and Eq. 10
+
+
+def test_enhanced_beats_shape_based_on_drifting_sphere():
+    masks, zs = drifting_sphere()
+    m = 4  # 5 mm steps, 1 mm pixels -> 1 mm fine slices
+    nonempty = np.flatnonzero(masks.any(axis=(1, 2)))
+    # true volume of the part the stack can cover: half a fine slab beyond the end slices
+    v_true = sphere_segment_volume(20.0, zs[nonempty[0]] - 0.5, zs[nonempty[-1]] + 0.5)
+    volumes = {}
+    for method in ("enhanced", "shape"):
+        fine = interpolate_stack(masks, method=method, slices_between=m).mask
+        volumes[method] = fine.sum() * 1.0 * 5.0 / (m + 1)  # mm^3
+    err = {k: abs(v - v_true) / v_true for k, v in volumes.items()}
+    assert err["enhanced"] < err["shape"]
+    assert err["enhanced"] < 0.03
+
+    interior = [k for k in range(1, len(masks) - 1) if masks[k - 1].any() and masks[k + 1].any()]
+    assert len(interior) >= 5
+    loo = {
+        method: np.array([leave_one_out_error(masks, k, method=method) for k in interior])
+        for method in METHODS
+    }
+    assert np.all(loo["enhanced"] < loo["shape"])
+    assert loo["enhanced"].mean() < loo["shape"].mean() < loo["linear"].mean()
+
+
+def test_interpolation_error_percent_known_values():
+    s = np.zeros((6, 6), dtype=bool)
+    s[1:3, 1:5] = True  # 8 pixels
+    e = np.zeros_like(s)
+    e[2:4, 1:5] = True  # overlaps 4, adds 4
+    assert interpolation_error_percent(s, e) == pytest.approx(100.0)
+    assert interpolation_error_percent(s, s) == 0.0
+    assert interpolation_error_percent(s, np.zeros_like(s)) == pytest.approx(100.0)
+    assert interpolation_error_percent(s, s | (np.arange(6) == 5)[None, :]) == pytest.approx(75.0)
+
+
+def test_leave_one_out_error_with_linear_union():
+    # linear at t = 1/2 returns the union of the neighbours
+    masks = np.zeros((3, 8, 8), dtype=bool)
+    masks[0, 1:3, 1:5] = True  # 8 px
+    masks[2, 4:6, 1:5] = True  # 8 px
+    masks[1, 2:5, 1:5] = True  # 12 px; union differs on rows 1, 3 (out) and 5 (in): 12 px
+    assert leave_one_out_error(masks, 1, method="linear") == pytest.approx(100.0)
+    expected = interpolation_error_percent(masks[1], interpolate_pair(masks[0], masks[2], 0.5))
+    assert leave_one_out_error(masks, 1) == pytest.approx(expected)
+
+
+# --------------------------------------------------------------------------
+# validation
+
+
+def test_validation_mask_dimensions():
+    with pytest.raises(InputError, match="mask must be a 2-D mask"):
+        chamfer_distance(np.zeros((2, 3, 4), dtype=bool))
+    with pytest.raises(InputError, match="slice_masks must be a 3-D mask"):
+        interpolate_stack(np.zeros((3, 4), dtype=bool), slices_between=1)
+
+
+def test_validation_mask_size_zero():
+    with pytest.raises(InputError, match="must not be empty"):
+        signed_distance(np.zeros((0, 4), dtype=bool))
+
+
+def test_validation_mask_not_binary():
+    with pytest.raises(InputError, match="mask_a must be binary"):
+        interpolate_pair(np.full((4, 4), 2), np.zeros((4, 4), bool), 0.5)
+    with pytest.raises(InputError, match="must be binary"):
+        chamfer_distance(np.array([["a", "b"]]))
+
+
+def test_validation_shapes_differ():
+    with pytest.raises(InputError, match="same shape"):
+        interpolate_pair(np.zeros((4, 4), bool), np.zeros((4, 5), bool), 0.5)
+    with pytest.raises(InputError, match="truth and estimate must have the same shape"):
+        interpolation_error_percent(np.ones((4, 4), bool), np.ones((5, 4), bool))
+
+
+@pytest.mark.parametrize("t", [0.0, 1.0, -0.5, 1.5, float("nan")])
+def test_validation_t_outside_open_interval(t):
+    with pytest.raises(InputError, match=r"t must lie in the open interval \(0, 1\)"):
+        interpolate_pair(np.ones((4, 4), bool), np.ones((4, 4), bool), t)
+
+
+def test_validation_t_not_a_number():
+    with pytest.raises(InputError, match="t must be a number"):
+        interpolate_pair(np.ones((4, 4), bool), np.ones((4, 4), bool), "half")
+
+
+def test_validation_unknown_method_and_metric():
+    with pytest.raises(InputError, match="method must be one of"):
+        interpolate_pair(np.ones((4, 4), bool), np.ones((4, 4), bool), 0.5, method="cubic")
+    with pytest.raises(InputError, match="method must be one of"):
+        interpolate_stack(np.ones((2, 4, 4), bool), method="cubic", slices_between=1)
+    with pytest.raises(InputError, match="metric must be one of"):
+        signed_distance(np.ones((4, 4), bool), metric="euclidean")
+
+
+def test_validation_slices_between():
+    masks = np.ones((2, 4, 4), bool)
+    with pytest.raises(InputError, match="slices_between must be >= 0"):
+        interpolate_stack(masks, slices_between=-1)
+    with pytest.raises(InputError, match="slices_between must be an integer or None"):
+        interpolate_stack(masks, slices_between=2.5)
+    with pytest.raises(InputError, match="slice_step_mm and pixel_spacing_mm were not both"):
+        interpolate_stack(masks, slices_between=None, slice_step_mm=5.0)
+
+
+def test_validation_slices_between_auto():
+    with pytest.raises(InputError, match="slice_step_mm must be a positive finite"):
+        slices_between_auto(0.0, (1.0, 1.0))
+    with pytest.raises(InputError, match="slice_step_mm must be a positive number"):
+        slices_between_auto("five", (1.0, 1.0))
+    with pytest.raises(InputError, match="pixel_spacing_mm must be a pair"):
+        slices_between_auto(5.0, (1.0, 1.0, 1.0))
+    with pytest.raises(InputError, match=r"pixel_spacing_mm\[1\] must be a positive finite"):
+        slices_between_auto(5.0, (1.0, -1.0))
+
+
+def test_validation_eq10_and_leave_one_out():
+    with pytest.raises(InputError, match="truth holds no object pixel"):
+        interpolation_error_percent(np.zeros((3, 3), bool), np.ones((3, 3), bool))
+    masks = np.ones((3, 4, 4), bool)
+    for k in (0, 2, 1.0):
+        with pytest.raises(InputError, match="k must be an integer with 1 <= k <= n - 2"):
+            leave_one_out_error(masks, k)
+
+
+def test_validation_stack_object():
+    result = interpolate_stack(np.ones((2, 4, 4), bool), slices_between=1)
+    with pytest.raises(InputError, match="affine must be 4x4"):
+        result.fine_affine(np.eye(3))
+    with pytest.raises(ValueError, match="needs a \\(Z, y, x\\) mask"):
+        InterpolatedStack(np.ones((3, 4, 4), bool), 1, np.arange(2), np.zeros(3, bool))
+    with pytest.raises(ValueError, match="slices_between must be >= 0"):
+        InterpolatedStack(np.ones((3, 4, 4), bool), -1, np.arange(3), np.zeros(3, bool))

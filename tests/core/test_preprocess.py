@@ -1,0 +1,272 @@
+"""Tests of tumor3d.preprocess (specification section 1)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from simple_phantom import LABELS, make_head_phantom
+
+from tumor3d.config import PreprocessConfig
+from tumor3d.errors import InputError
+from tumor3d.preprocess import (
+    equalize_slices,
+    preprocess_volume,
+    remove_skull,
+    to_uint8,
+    unsharp_kernel,
+)
+
+DEFAULTS = PreprocessConfig().model_dump()
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return make_head_phantom(tumor=True, seed=1)
+
+
+def _dice(a: np.ndarray, b: np.ndarray) -> float:
+    return 2.0 * np.count_nonzero(a & b) / (np.count_nonzero(a) + np.count_nonzero(b))
+
+
+# --------------------------------------------------------------------------- unsharp kernel
+
+
+@pytest.mark.parametrize("alpha", [0.0, 0.2, 0.5, 1.0])
+def test_unsharp_kernel_is_matlab_formula(alpha):
+    # fspecial('unsharp', a) = 1/(a+1) [[-a, a-1, -a], [a-1, a+5, a-1], [-a, a-1, -a]]
+    a = alpha
+    expected = np.array([[-a, a - 1, -a], [a - 1, a + 5, a - 1], [-a, a - 1, -a]]) / (a + 1)
+    np.testing.assert_allclose(unsharp_kernel(alpha), expected, rtol=0, atol=1e-15)
+    assert unsharp_kernel(alpha).sum() == pytest.approx(1.0)
+
+
+def test_unsharp_kernel_default_equals_matlab_printout():
+    # values printed by MATLAB for fspecial('unsharp') (alpha = 0.2)
+    matlab = np.array(
+        [[-0.1667, -0.6667, -0.1667], [-0.6667, 4.3333, -0.6667], [-0.1667, -0.6667, -0.1667]]
+    )
+    np.testing.assert_allclose(unsharp_kernel(0.2), matlab, atol=5e-5)
+
+
+def _naive_unsharp(img: np.ndarray, alpha: float) -> np.ndarray:
+    """Explicit zero-padded 3x3 convolution, rounded half up and saturated to uint8."""
+    h = unsharp_kernel(alpha)
+    ny, nx = img.shape
+    out = np.zeros((ny, nx), dtype=np.uint8)
+    for y in range(ny):
+        for x in range(nx):
+            acc = 0.0
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    yy, xx = y - dy, x - dx  # convolution (h is symmetric anyway)
+                    if 0 <= yy < ny and 0 <= xx < nx:
+                        acc += h[dy + 1, dx + 1] * float(img[yy, xx])
+            out[y, x] = int(np.floor(min(max(acc, 0.0), 255.0) + 0.5))
+    return out
+
+
+def test_sharpening_matches_naive_convolution():
+    rng = np.random.default_rng(3)
+    stack = rng.integers(0, 256, size=(2, 7, 9), dtype=np.uint8)
+    everything = np.ones(stack.shape, dtype=bool)
+    res = preprocess_volume(
+        stack,
+        **{**DEFAULTS, "median_size": 1, "sharpen": True, "unsharp_alpha": 0.3},
+        brain_mask=everything,
+    )
+    for z in range(stack.shape[0]):
+        np.testing.assert_array_equal(res.enhanced[z], _naive_unsharp(stack[z], 0.3))
+
+
+def test_median_is_per_slice_with_zero_padding():
+    rng = np.random.default_rng(4)
+    stack = rng.integers(0, 256, size=(3, 6, 5), dtype=np.uint8)
+    res = preprocess_volume(stack, **DEFAULTS, brain_mask=np.ones(stack.shape, dtype=bool))
+    padded = np.pad(stack, ((0, 0), (1, 1), (1, 1)))
+    for z in range(3):
+        for y in range(6):
+            for x in range(5):
+                assert res.enhanced[z, y, x] == np.median(padded[z, y : y + 3, x : x + 3])
+
+
+# --------------------------------------------------------------------------- equalisation
+
+
+def test_equalization_maps_gray_levels_to_their_cumulative_frequency():
+    rng = np.random.default_rng(5)
+    sl = np.clip(rng.normal(90, 20, size=(1, 40, 50)), 0, 255).astype(np.uint8)
+    out = equalize_slices(sl)
+    g = sl.ravel()
+    cdf = np.cumsum(np.bincount(g, minlength=256)) / g.size
+    # T(g) = round(255 cdf(g)): each output level is within half a level of 255 cdf(g)
+    assert np.all(np.abs(out.ravel().astype(float) - 255 * cdf[g]) <= 0.5 + 1e-9)
+    # monotone: a brighter input is never darker in the output
+    order = np.argsort(g, kind="stable")
+    assert np.all(np.diff(out.ravel()[order].astype(int)) >= 0)
+
+
+def test_equalization_with_64_levels_and_per_slice():
+    rng = np.random.default_rng(6)
+    stack = rng.integers(0, 256, size=(2, 30, 30), dtype=np.uint8)
+    stack[1] //= 4  # a darker slice equalises to the same full range
+    out = equalize_slices(stack, levels=64)
+    assert np.unique(out).size <= 64
+    assert out[0].max() == 255 and out[1].max() == 255
+
+
+def test_equalize_option_changes_only_enhanced(phantom):
+    plain = preprocess_volume(phantom.image, **DEFAULTS)
+    eq = preprocess_volume(phantom.image, **{**DEFAULTS, "equalize": True})
+    np.testing.assert_array_equal(plain.brain_mask, eq.brain_mask)
+    np.testing.assert_array_equal(plain.original_u8, eq.original_u8)
+    assert not np.array_equal(plain.enhanced, eq.enhanced)
+
+
+# --------------------------------------------------------------------------- 8-bit window
+
+
+def test_to_uint8_window_over_foreground_only():
+    vol = np.full((1, 10, 10), -3.0)  # z-scored style constant background
+    vol[0, :5, :] = np.linspace(1.0, 2.0, 50).reshape(5, 10)
+    out = to_uint8(vol, window_percentiles=(0, 100))
+    assert out.dtype == np.uint8
+    assert np.all(out[0, 5:] == 0)  # background -> 0
+    assert out[0, 0, 0] == 0 and out[0, 4, 9] == 255  # foreground min/max span 0..255
+    np.testing.assert_array_equal(
+        out[0, :5].ravel(), np.floor(np.linspace(0, 255, 50) + 0.5).astype(np.uint8)
+    )
+
+
+def test_to_uint8_clips_outside_the_window():
+    vol = np.zeros((1, 1, 101))
+    vol[0, 0, 1:] = np.arange(1, 101)
+    out = to_uint8(vol, window_percentiles=(10, 90))
+    lo, hi = np.percentile(np.arange(1, 101), [10, 90])
+    assert out[0, 0, 1] == 0 and out[0, 0, 100] == 255
+    assert out[0, 0, 50] == int(np.floor((50 - lo) / (hi - lo) * 255 + 0.5))
+
+
+# --------------------------------------------------------------------------- skull removal
+
+
+@pytest.mark.parametrize("threshold", ["multiotsu", "otsu"])
+def test_brain_mask_matches_phantom_brain_and_excludes_scalp(phantom, threshold):
+    res = preprocess_volume(phantom.image, **{**DEFAULTS, "skull_threshold": threshold})
+    assert _dice(res.brain_mask, phantom.brain) > 0.95
+    n_brain = phantom.brain.sum()
+    assert not np.any(res.brain_mask & (phantom.labels == LABELS["scalp"]))
+    # only partial-volume pixels at the inner skull border may be included
+    assert np.count_nonzero(res.brain_mask & (phantom.labels == LABELS["skull"])) < 0.03 * n_brain
+    assert np.count_nonzero(phantom.brain & ~res.brain_mask) < 0.01 * n_brain
+    # every slice individually, too
+    for z in range(phantom.image.shape[0]):
+        assert _dice(res.brain_mask[z], phantom.brain[z]) > 0.9
+
+
+def test_scalp_bridge_is_cut_by_the_opening():
+    # disc (brain) joined to a ring (scalp) by a 2-pixel bridge
+    yy, xx = np.mgrid[0:80, 0:80]
+    r = np.hypot(yy - 40, xx - 40)
+    img = np.zeros((1, 80, 80), dtype=np.uint8)
+    img[0][r < 25] = 150
+    img[0][(r > 30) & (r < 36)] = 200
+    img[0, 39:41, 60:72] = 180  # bridge through the dark gap
+    mask = remove_skull(img, opening_radius=2)[0]
+    assert not mask[(r > 30) & (r < 36)].any()
+    assert mask[r < 23].all()
+    without = remove_skull(img, opening_radius=0)[0]
+    assert without[(r > 30) & (r < 36)].all()  # the bridge joins them without the opening
+
+
+def test_background_only_slices_get_empty_mask(phantom):
+    vol = np.concatenate([np.zeros((1,) + phantom.image.shape[1:]), phantom.image])
+    res = preprocess_volume(vol, **DEFAULTS)
+    assert not res.brain_mask[0].any()
+    assert not res.enhanced[0].any()
+    assert res.brain_mask[1:].any(axis=(1, 2)).all()
+
+
+def test_given_brain_mask_replaces_skull_removal(phantom):
+    res = preprocess_volume(phantom.image, **DEFAULTS, brain_mask=phantom.brain)
+    np.testing.assert_array_equal(res.brain_mask, phantom.brain)
+    assert not res.enhanced[~phantom.brain].any()
+
+
+# --------------------------------------------------------------------------- invariants
+
+
+def test_result_types_and_inputs_unchanged(phantom):
+    image = phantom.image.copy()
+    res = preprocess_volume(image, **{**DEFAULTS, "sharpen": True, "equalize": True})
+    np.testing.assert_array_equal(image, phantom.image)
+    assert res.original_u8.dtype == np.uint8 and res.enhanced.dtype == np.uint8
+    assert res.brain_mask.dtype == bool
+    assert res.original_u8.shape == res.enhanced.shape == res.brain_mask.shape == image.shape
+    np.testing.assert_array_equal(res.original_u8, to_uint8(image))
+
+    u8 = res.original_u8.copy()
+    mask = phantom.brain.copy()
+    again = preprocess_volume(u8, **DEFAULTS, brain_mask=mask)
+    np.testing.assert_array_equal(u8, res.original_u8)
+    np.testing.assert_array_equal(mask, phantom.brain)
+    np.testing.assert_array_equal(again.original_u8, u8)  # uint8 input is used as it is
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def test_rejects_wrong_ndim():
+    with pytest.raises(InputError, match="3-D"):
+        preprocess_volume(np.zeros((5, 5)), **DEFAULTS)
+
+
+def test_rejects_nan():
+    vol = np.ones((2, 4, 4))
+    vol[1, 2, 2] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        preprocess_volume(vol, **DEFAULTS)
+
+
+def test_rejects_non_real_dtype():
+    with pytest.raises(InputError, match="real numbers"):
+        to_uint8(np.ones((2, 3, 3), dtype=complex))
+
+
+def test_rejects_constant_float_volume():
+    with pytest.raises(InputError, match="constant"):
+        to_uint8(np.full((2, 4, 4), 7.0))
+
+
+def test_rejects_constant_uint8_volume():
+    with pytest.raises(InputError, match="constant"):
+        preprocess_volume(np.full((2, 4, 4), 9, dtype=np.uint8), **DEFAULTS)
+
+
+def test_rejects_mask_shape_mismatch(phantom):
+    with pytest.raises(InputError, match="brain_mask shape"):
+        preprocess_volume(phantom.image, **DEFAULTS, brain_mask=phantom.brain[:, :-1])
+
+
+def test_rejects_bad_percentiles():
+    with pytest.raises(InputError, match="window_percentiles"):
+        to_uint8(np.arange(8.0).reshape(2, 2, 2), window_percentiles=(60, 40))
+
+
+def test_rejects_even_median_size(phantom):
+    with pytest.raises(InputError, match="median_size"):
+        preprocess_volume(phantom.image, **{**DEFAULTS, "median_size": 4})
+
+
+def test_rejects_unknown_skull_threshold(phantom):
+    with pytest.raises(InputError, match="skull_threshold"):
+        preprocess_volume(phantom.image, **{**DEFAULTS, "skull_threshold": "triangle"})
+
+
+def test_rejects_bad_alpha(phantom):
+    with pytest.raises(InputError, match="unsharp_alpha"):
+        preprocess_volume(phantom.image, **{**DEFAULTS, "unsharp_alpha": 1.5})
+
+
+def test_rejects_bad_equalize_levels(phantom):
+    with pytest.raises(InputError, match="equalize_levels"):
+        preprocess_volume(phantom.image, **{**DEFAULTS, "equalize_levels": 1})

@@ -1,0 +1,186 @@
+"""Tests of tumor3d.simplify: face budget of Algorithm 2 and the QEM baseline."""
+
+from __future__ import annotations
+
+import math
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+
+from tumor3d.errors import InputError
+from tumor3d.mesh import Mesh
+from tumor3d.simplify import METHODS, simplify_mesh, target_face_count
+from tumor3d.simplify.qem import simplify_qem
+from tumor3d.surface import extract_surface, is_watertight, mesh_volume_mm3
+
+SPACING_ZYX = (1.0, 0.9, 0.9)
+RADIUS_MM = 12.0
+
+
+def _sphere_mesh(radius_mm=RADIUS_MM, spacing_zyx=SPACING_ZYX):
+    n = [int(2 * radius_mm / s) + 6 for s in spacing_zyx]
+    centre = [(k - 1) / 2 for k in n]
+    z, y, x = np.ogrid[: n[0], : n[1], : n[2]]
+    r2 = sum(((a - c) * s) ** 2 for a, c, s in zip((z, y, x), centre, spacing_zyx, strict=True))
+    dz, dy, dx = spacing_zyx
+    affine = np.diag([dx, dy, dz, 1.0])
+    centre_ras = (affine @ [centre[2], centre[1], centre[0], 1.0])[:3]
+    return extract_surface(r2 <= radius_mm**2, affine), centre_ras
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return _sphere_mesh()
+
+
+# ---------------------------------------------------------------------------
+# target_face_count
+# ---------------------------------------------------------------------------
+
+
+def test_target_face_count_reproduces_fig9():
+    assert [target_face_count(6116, p) for p in (0, 40, 60, 80)] == [6116, 3669, 2446, 1223]
+
+
+def test_target_face_count_is_exact_where_floats_round_down():
+    # 10 * (1 - 80 / 100) == 1.9999999999999996 in floating point
+    assert math.floor(10 * (1 - 80.0 / 100)) == 1
+    assert target_face_count(10, 80.0) == 2
+    assert target_face_count(20, 90.0) == 2
+    assert target_face_count(10, 33.3) == 6  # floor(6.67)
+    assert target_face_count(0, 50.0) == 0
+
+
+@pytest.mark.parametrize(
+    ("n", "p", "match"),
+    [
+        (-1, 10.0, "n_faces"),
+        (1.5, 10.0, "n_faces"),
+        (10, -0.1, r"\[0, 100\)"),
+        (10, 100.0, r"\[0, 100\)"),
+        (10, float("nan"), r"\[0, 100\)"),
+        (10, "40", "must be a number"),
+        (10, True, "must be a number"),
+    ],
+)
+def test_target_face_count_validation(n, p, match):
+    with pytest.raises(InputError, match=match):
+        target_face_count(n, p)
+
+
+# ---------------------------------------------------------------------------
+# QEM through simplify_mesh
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("percent", [40.0, 60.0, 80.0])
+def test_qem_reaches_target_keeps_watertight_and_volume(sphere, percent):
+    mesh, centre = sphere
+    out, info = simplify_mesh(mesh, method="qem", reduction_percent=percent, return_info=True)
+    target = target_face_count(mesh.n_faces, percent)
+    # Each collapse on a closed mesh removes two faces and the algorithm stops
+    # at the first count <= target: measured exactly target or target - 1.
+    assert target - 2 <= out.n_faces <= target
+    assert info["target_faces"] == target
+    assert info["n_faces_in"] == mesh.n_faces
+    assert info["n_faces_out"] == out.n_faces
+    assert info["faces_over_target"] == out.n_faces - target
+    assert info["watertight"] is True
+    assert is_watertight(out)
+    vol0 = mesh_volume_mm3(mesh)
+    # measured: |dV| < 1e-4 relative up to P = 80 on this sphere
+    assert abs(mesh_volume_mm3(out) / vol0 - 1) < 0.01
+    # vertices stay near the sphere (QEM moves them to quadric optima)
+    dist = np.linalg.norm(out.vertices - centre, axis=1)
+    assert np.all(np.abs(dist - RADIUS_MM) < 1.5)
+
+
+def test_qem_orientation_is_outward_even_for_inward_input(sphere):
+    mesh, _ = sphere
+    inward = Mesh(mesh.vertices, mesh.faces[:, ::-1])
+    out = simplify_mesh(inward, reduction_percent=60.0)
+    assert mesh_volume_mm3(out) > 0
+    assert is_watertight(out)
+
+
+def test_zero_percent_is_identity(sphere):
+    mesh, _ = sphere
+    out, info = simplify_mesh(mesh, reduction_percent=0.0, return_info=True)
+    assert out is mesh
+    assert info["n_faces_out"] == info["target_faces"] == mesh.n_faces
+
+
+def test_input_mesh_not_modified(sphere):
+    mesh, _ = sphere
+    v, f = mesh.vertices.copy(), mesh.faces.copy()
+    simplify_mesh(mesh, reduction_percent=70.0)
+    np.testing.assert_array_equal(mesh.vertices, v)
+    np.testing.assert_array_equal(mesh.faces, f)
+
+
+def test_qem_is_deterministic_and_thread_safe(sphere):
+    mesh, _ = sphere
+    ref = simplify_mesh(mesh, reduction_percent=50.0)
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        outs = list(pool.map(lambda _: simplify_mesh(mesh, reduction_percent=50.0), range(8)))
+    for out in outs:
+        np.testing.assert_array_equal(out.faces, ref.faces)
+        np.testing.assert_array_equal(out.vertices, ref.vertices)
+
+
+def test_aggressiveness_option_is_forwarded(sphere):
+    mesh, _ = sphere
+    out = simplify_mesh(mesh, reduction_percent=60.0, aggressiveness=5.0)
+    assert out.n_faces <= target_face_count(mesh.n_faces, 60.0)
+    assert is_watertight(out)
+
+
+def test_methods_registry():
+    assert "qem" in METHODS
+
+
+# ---------------------------------------------------------------------------
+# validation
+# ---------------------------------------------------------------------------
+
+_TETRA = Mesh(
+    np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float),
+    np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]),
+)
+
+
+@pytest.mark.parametrize(
+    ("mesh", "kwargs", "match"),
+    [
+        ("mesh", {"reduction_percent": 50.0}, "tumor3d.mesh.Mesh"),
+        (_TETRA, {"reduction_percent": 50.0, "method": "magic"}, "unknown simplification method"),
+        (_TETRA, {"reduction_percent": 50.0, "agg": 3.0}, r"unknown option\(s\) \['agg'\]"),
+        (_TETRA, {"reduction_percent": -5.0}, r"\[0, 100\)"),
+        (_TETRA, {"reduction_percent": 100.0}, r"\[0, 100\)"),
+        (Mesh(np.zeros((0, 3)), np.zeros((0, 3), int)), {"reduction_percent": 10.0}, "empty"),
+        (_TETRA, {"reduction_percent": 50.0}, "at least 4"),
+    ],
+)
+def test_simplify_mesh_validation(mesh, kwargs, match):
+    with pytest.raises(InputError, match=match):
+        simplify_mesh(mesh, **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"target_faces": 2.0}, "must be an integer"),
+        ({"target_faces": 0}, r"\[1, 4\]"),
+        ({"target_faces": 5}, r"\[1, 4\]"),
+        ({"target_faces": 4, "aggressiveness": 11.0}, "aggressiveness"),
+    ],
+)
+def test_simplify_qem_validation(kwargs, match):
+    with pytest.raises(InputError, match=match):
+        simplify_qem(_TETRA, **kwargs)
+
+
+def test_simplify_qem_rejects_non_mesh():
+    with pytest.raises(InputError, match="tumor3d.mesh.Mesh"):
+        simplify_qem([1, 2, 3], target_faces=1)

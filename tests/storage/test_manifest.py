@@ -1,0 +1,168 @@
+"""Tests of storage.manifest: cohort CSV reading, validation and writing."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from storage.manifest import ManifestRow, read_manifest, write_manifest
+from tumor3d.errors import InputError
+
+HEADER = "patient_id,image,modality,reference,reference_labels,slice_thickness_mm,slice_gap_mm\n"
+
+
+@pytest.fixture
+def cohort(tmp_path):
+    """A manifest folder with two inputs and a reference, in sub-folders."""
+    root = tmp_path / "cohort"
+    (root / "images").mkdir(parents=True)
+    (root / "images" / "p1.nii.gz").write_bytes(b"x")
+    (root / "images" / "p2_dicom").mkdir()
+    (root / "refs").mkdir()
+    (root / "refs" / "p1_seg.nii.gz").write_bytes(b"x")
+    return root
+
+
+def write_csv(root: Path, text: str, name: str = "manifest.csv") -> Path:
+    p = root / name
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+def test_valid_manifest_resolves_relative_paths(cohort, tmp_path):
+    other = tmp_path / "elsewhere.nii"
+    other.write_bytes(b"x")
+    p = write_csv(
+        cohort,
+        HEADER
+        + 'p1,images/p1.nii.gz,FLAIR,refs/p1_seg.nii.gz,"1,2,4",2,3\n'
+        + "p2,./images/p2_dicom,t2,,,,\n"
+        + f"p3,{other},t1c,,,2.5,\n",
+    )
+    rows = read_manifest(p)
+    assert [r.patient_id for r in rows] == ["p1", "p2", "p3"]
+    r1, r2, r3 = rows
+    assert r1.image == (cohort / "images" / "p1.nii.gz").resolve()
+    assert r1.image.is_absolute()
+    assert r1.modality == "flair"
+    assert r1.reference == (cohort / "refs" / "p1_seg.nii.gz").resolve()
+    assert r1.reference_labels == (1, 2, 4)
+    assert (r1.slice_thickness_mm, r1.slice_gap_mm) == (2.0, 3.0)
+    assert r2.image == (cohort / "images" / "p2_dicom").resolve()
+    assert r2.reference is None and r2.reference_labels is None
+    assert r2.slice_thickness_mm is None and r2.slice_gap_mm is None
+    assert r3.image == other.resolve() and r3.slice_thickness_mm == 2.5
+
+
+def test_resolution_does_not_depend_on_the_working_directory(cohort, monkeypatch, tmp_path):
+    p = write_csv(cohort, "patient_id,image,modality\np1,images/p1.nii.gz,t2\n")
+    monkeypatch.chdir(tmp_path)
+    assert read_manifest(p)[0].image == (cohort / "images" / "p1.nii.gz").resolve()
+
+
+def test_write_then_read_round_trip_with_relative_paths(cohort):
+    rows = [
+        ManifestRow(
+            "p1",
+            cohort / "images" / "p1.nii.gz",
+            "flair",
+            reference=cohort / "refs" / "p1_seg.nii.gz",
+            reference_labels=(1, 2, 3, 4),
+            slice_thickness_mm=2.0,
+            slice_gap_mm=3.0,
+        ),
+        ManifestRow("p2", cohort / "images" / "p2_dicom", "t2"),
+    ]
+    out = write_manifest(rows, cohort / "out.csv")
+    text = out.read_text()
+    assert "images/p1.nii.gz" in text and str(cohort) not in text
+    assert '"1,2,3,4"' in text
+    assert read_manifest(out) == rows
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        (
+            "patient_id,image\np1,images/p1.nii.gz\n",
+            r"missing required column\(s\) modality",
+        ),
+        (
+            "patient_id,image,modality,notes\np1,images/p1.nii.gz,t2,x\n",
+            r"unknown column\(s\) 'notes'",
+        ),
+        ("patient_id,image,modality\n", r"no data rows below the header"),
+    ],
+)
+def test_bad_header(cohort, text, match):
+    with pytest.raises(InputError, match=rf"manifest\.csv: {match}"):
+        read_manifest(write_csv(cohort, text))
+
+
+# one invalid data row per case; the bad row is data row 2 (line 3)
+GOOD = "p0,images/p1.nii.gz,t2,,,,\n"
+
+
+@pytest.mark.parametrize(
+    ("row", "column", "problem"),
+    [
+        (",images/p1.nii.gz,t2,,,,", "patient_id", r"empty value"),
+        ("p1,,t2,,,,", "image", r"empty value"),
+        ("p1,images/p1.nii.gz,,,,,", "modality", r"empty value"),
+        ("../evil,images/p1.nii.gz,t2,,,,", "patient_id", r"unsafe patient id '\.\./evil'"),
+        (
+            "p0,images/p1.nii.gz,t2,,,,",
+            "patient_id",
+            r"duplicate patient_id 'p0' \(also in data row 1\)",
+        ),
+        ("p1,images/p1.nii.gz,pd,,,,", "modality", r"unknown modality 'pd'"),
+        ("p1,images/p1.nii.gz,t2,,,two,", "slice_thickness_mm", r"'two' is not a number"),
+        ("p1,images/p1.nii.gz,t2,,,-2,", "slice_thickness_mm", r"'-2' must be a positive number"),
+        ("p1,images/p1.nii.gz,t2,,,2,-1", "slice_gap_mm", r"'-1' must be a non-negative number"),
+        (
+            'p1,images/p1.nii.gz,t2,refs/p1_seg.nii.gz,"1,x",,',
+            "reference_labels",
+            r"bad label list '1,x'",
+        ),
+        (
+            'p1,images/p1.nii.gz,t2,refs/p1_seg.nii.gz,"0,1",,',
+            "reference_labels",
+            r"bad label list '0,1'",
+        ),
+        (
+            "p1,images/p1.nii.gz,t2,,2,,",
+            "reference_labels",
+            r"label values given without a reference",
+        ),
+        ("p1,images/missing.nii.gz,t2,,,,", "image", r".*missing\.nii\.gz does not exist"),
+        (
+            "p1,images/p1.nii.gz,t2,refs/none.nii.gz,,,",
+            "reference",
+            r".*none\.nii\.gz does not exist",
+        ),
+        (
+            "p1,images/p1.nii.gz,t2,,,,,extra",
+            r"\(extra\)",
+            r"the row has more values than the 7 columns",
+        ),
+    ],
+)
+def test_invalid_row_named_by_row_and_column(cohort, row, column, problem):
+    p = write_csv(cohort, HEADER + GOOD + row + "\n")
+    with pytest.raises(
+        InputError, match=rf"manifest\.csv: data row 2 \(line 3\), column '{column}': {problem}"
+    ):
+        read_manifest(p)
+
+
+def test_missing_manifest(tmp_path):
+    with pytest.raises(InputError, match=r"nope\.csv: no such manifest file"):
+        read_manifest(tmp_path / "nope.csv")
+
+
+def test_write_rejects_duplicate_ids(cohort):
+    row = ManifestRow("p1", cohort / "images" / "p1.nii.gz", "t2")
+    with pytest.raises(InputError, match=r"duplicate patient_id p1"):
+        write_manifest([row, row], cohort / "dup.csv")
+    assert not (cohort / "dup.csv").exists()

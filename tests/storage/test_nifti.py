@@ -1,0 +1,162 @@
+"""Tests of storage.nifti: deterministic encoding and writing back on the source grid."""
+
+from __future__ import annotations
+
+import gzip
+
+import nibabel as nib
+import numpy as np
+import pytest
+
+from storage.nifti import (
+    decode_nifti,
+    encode_nifti,
+    mask_to_source_nifti_bytes,
+    read_nifti,
+    volume_to_source_nifti_bytes,
+)
+from storage.readers import read_scan
+from tumor3d.errors import InputError
+
+OBLIQUE = np.array(
+    [
+        [-0.8660254, 0.0, 0.5 * 3.0, 12.25],
+        [0.0, 0.75, 0.0, -30.5],
+        [0.5, 0.0, 0.8660254 * 3.0, 7.0],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.int16, np.float32])
+def test_round_trip_keeps_data_and_affine(tmp_path, dtype):
+    rng = np.random.default_rng(0)
+    data = rng.integers(0, 200, size=(7, 5, 4)).astype(dtype)
+    if dtype == np.float32:
+        data = data * np.float32(0.37)
+    blob = encode_nifti(data, OBLIQUE, dtype=dtype)
+    array, affine = decode_nifti(blob)
+    assert array.dtype == np.dtype(dtype)
+    np.testing.assert_array_equal(array, data)
+    np.testing.assert_allclose(affine, OBLIQUE, rtol=0, atol=1e-6)  # float32 header fields
+    # also through a file, and the header codes/units are as promised
+    f = tmp_path / "x.nii.gz"
+    f.write_bytes(blob)
+    array2, affine2 = read_nifti(f)
+    np.testing.assert_array_equal(array2, data)
+    np.testing.assert_array_equal(affine2, affine)
+    hdr = nib.load(str(f)).header
+    assert int(hdr["sform_code"]) == 1 and int(hdr["qform_code"]) == 1
+    assert hdr.get_xyzt_units()[0] == "mm"
+    np.testing.assert_allclose(hdr.get_qform(), OBLIQUE, atol=1e-5)
+
+
+def test_encoding_is_deterministic_and_gzip_has_no_timestamp():
+    data = np.arange(60, dtype=np.int16).reshape(5, 4, 3)
+    a = encode_nifti(data, OBLIQUE, dtype=np.int16)
+    b = encode_nifti(data.copy(), OBLIQUE.copy(), dtype="int16")
+    assert a == b
+    assert a[:2] == b"\x1f\x8b" and a[4:8] == b"\x00\x00\x00\x00"  # gzip MTIME = 0
+    c = encode_nifti(data + 1, OBLIQUE, dtype=np.int16)
+    assert c != a
+    assert len(gzip.decompress(a)) == 352 + data.nbytes
+
+
+def test_encode_does_not_modify_input():
+    data = np.linspace(0, 1, 24, dtype=np.float64).reshape(2, 3, 4)
+    before = data.copy()
+    encode_nifti(data, OBLIQUE, dtype=np.float32)
+    np.testing.assert_array_equal(data, before)
+
+
+@pytest.mark.parametrize(
+    ("data", "dtype", "match"),
+    [
+        (np.zeros((2, 2, 2)), np.float64, r"dtype must be one of"),
+        (np.zeros((2, 2)), np.uint8, r"array must be 3-D"),
+        (np.full((2, 2, 2), 0.5), np.uint8, r"fractional part"),
+        (np.full((2, 2, 2), 300), np.uint8, r"do not fit uint8"),
+        (np.full((2, 2, 2), np.nan), np.int16, r"non-finite"),
+    ],
+)
+def test_encode_rejects_bad_input(data, dtype, match):
+    with pytest.raises(ValueError, match=match):
+        encode_nifti(data, OBLIQUE, dtype=dtype)
+
+
+def test_encode_rejects_singular_affine():
+    with pytest.raises(ValueError, match=r"affine is singular"):
+        encode_nifti(np.zeros((2, 2, 2)), np.diag([1.0, 0.0, 1.0, 1.0]), dtype=np.uint8)
+
+
+def test_decode_rejects_garbage():
+    with pytest.raises(InputError, match=r"not NIfTI-1 data"):
+        decode_nifti(b"definitely not a nifti file")
+
+
+def test_read_nifti_missing_file(tmp_path):
+    with pytest.raises(InputError, match=r"missing\.nii\.gz: no such file"):
+        read_nifti(tmp_path / "missing.nii.gz")
+
+
+def _save(path, data, affine):
+    img = nib.Nifti1Image(data, affine)
+    img.set_sform(affine, code=1)
+    img.set_qform(affine, code=1)
+    nib.save(img, str(path))
+
+
+LAS = np.array([[-0.9, 0, 0, 91.5], [0, 0.85, 0, -120.25], [0, 0, 5.0, -40.0], [0, 0, 0, 1.0]])
+# slice axis first: source axis 0 runs superior at 4 mm, axes 1 and 2 are in-plane
+PERMUTED = np.array([[0, -0.9, 0, 91.5], [0, 0, 0.85, -120.25], [4.0, 0, 0, -40.0], [0, 0, 0, 1.0]])
+
+
+@pytest.mark.parametrize(
+    ("affine", "shape", "axes"),
+    [(LAS, (14, 11, 6), (0, 1, 2)), (PERMUTED, (6, 14, 11), (1, 2, 0))],
+)
+def test_mask_overlays_the_input_voxel_for_voxel(tmp_path, affine, shape, axes):
+    rng = np.random.default_rng(7)
+    source = rng.integers(0, 1000, size=shape).astype(np.int16)
+    f = tmp_path / "input.nii.gz"
+    _save(f, source, affine)
+    scan = read_scan(f)
+    assert scan.source_grid.axes == axes
+    mask = scan.image > 600  # a "segmentation" on the Scan grid
+    out = tmp_path / "mask.nii.gz"
+    out.write_bytes(mask_to_source_nifti_bytes(mask, scan.source_grid))
+    written = nib.load(str(out))
+    original = nib.load(str(f))
+    assert written.shape == original.shape
+    np.testing.assert_array_equal(written.affine, original.affine)
+    assert written.get_data_dtype() == np.uint8
+    np.testing.assert_array_equal(np.asarray(written.dataobj), (source > 600).astype(np.uint8))
+
+
+def test_mask_of_wrong_shape_rejected(tmp_path):
+    f = tmp_path / "input.nii.gz"
+    _save(f, np.arange(60, dtype=np.int16).reshape(5, 4, 3), LAS)
+    scan = read_scan(f)
+    with pytest.raises(ValueError, match=r"does not match the source grid"):
+        mask_to_source_nifti_bytes(np.zeros((3, 4, 4), bool), scan.source_grid)
+
+
+def test_fine_volume_written_on_its_own_grid_keeps_world_positions(tmp_path):
+    f = tmp_path / "input.nii.gz"
+    _save(f, np.arange(6 * 14 * 11, dtype=np.int16).reshape(6, 14, 11), PERMUTED)
+    scan = read_scan(f)
+    # a volume with 4x finer slices on the Scan's world space (z step / 4)
+    fine_affine = np.array(scan.affine)
+    fine_affine[:3, 2] /= 4
+    rng = np.random.default_rng(3)
+    fine = rng.integers(0, 2, size=(21, *scan.shape[1:])).astype(np.uint8)  # (z, y, x)
+    blob = volume_to_source_nifti_bytes(fine, fine_affine, scan.source_grid, dtype=np.uint8)
+    array, affine = decode_nifti(blob)
+    # every written voxel sits at the world position of the same fine voxel
+    for z, y, x in rng.integers(0, [21, fine.shape[1], fine.shape[2]], size=(25, 3)):
+        src_index = np.empty(3, int)
+        src_index[list(scan.source_grid.axes)] = [x, y, z]
+        assert array[tuple(src_index)] == fine[z, y, x]
+        world_fine = fine_affine @ np.array([x, y, z, 1.0])
+        world_written = affine @ np.array([*src_index, 1.0])
+        np.testing.assert_allclose(world_written, world_fine, atol=1e-4)
