@@ -5,8 +5,10 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.tumor3d-installed
 DEMO_OUT ?= demo-out
+# Real MR cases for development and evaluation (never used by the tests).
+TUMOR3D_DATA_DIR ?= ../shared/data
 
-.PHONY: demo test setup system-deps lint bench evaluate-real clean
+.PHONY: demo test setup system-deps lint bench accuracy real-data clean
 
 demo: setup
 	$(BIN)/tumor3d demo --out $(DEMO_OUT)
@@ -31,5 +33,16 @@ lint: setup
 bench: setup
 	$(BIN)/python benchmarks/bench_flow.py
 
+accuracy: setup
+	$(BIN)/python benchmarks/phantom_accuracy.py
+
+# One real case end to end (BraTS 2013 patient 3, FLAIR, expert label available).
+real-data: setup
+	@if [ ! -f "$(TUMOR3D_DATA_DIR)/brats2013_pat0003/flair.nii.gz" ]; then \
+	    echo "real-data: $(TUMOR3D_DATA_DIR)/brats2013_pat0003/flair.nii.gz not found; set TUMOR3D_DATA_DIR (skipped)"; \
+	else \
+	    $(BIN)/tumor3d run "$(TUMOR3D_DATA_DIR)/brats2013_pat0003/flair.nii.gz" --modality flair --out real-out; \
+	fi
+
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(DEMO_OUT) real-out .pytest_cache .ruff_cache

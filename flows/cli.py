@@ -79,7 +79,9 @@ class _ProgressReporter:
         else:
             note = "cached" if event.status == "cached" else f"{event.seconds:.1f} s"
             self.progress.update(
-                bar, completed=event.index, description=f"{event.patient_id}: {event.stage} ({note})"
+                bar,
+                completed=event.index,
+                description=f"{event.patient_id}: {event.stage} ({note})",
             )
 
 
@@ -113,12 +115,18 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     if truth_mm3 is not None:
         table.add_row("truth (phantom)", f"{truth_mm3:,.1f}", f"{truth_mm3 / 1000.0:.3f}", "")
     console.print(table)
+    if m["faces_mc"] == 0:
+        mesh_note = "no tumour found: no mesh, no render"
+    else:
+        mesh_note = (
+            f"mesh {m['faces_mc']} faces -> {m['faces_simplified']} simplified"
+            f"{'' if m['mesh_watertight'] else ' (NOT watertight)'}"
+        )
     console.print(
-        f"slices: {m['n_slices']} acquired, {m['n_abnormal_slices']} abnormal; "
-        f"slab (thickness + gap) {m['slab_height_mm']:.2f} mm; "
-        f"{m['slices_between']} slices inserted per gap; "
-        f"mesh {m['faces_mc']} faces -> {m['faces_simplified']} simplified"
-        f"{'' if m['mesh_watertight'] else ' (NOT watertight)'}"
+        f"slices: {m['n_slices']} acquired, {m['n_abnormal_slices']} flagged abnormal, "
+        f"{m['n_tumor_slices']} with tumour; slab (thickness + gap) "
+        f"{m['slab_height_mm']:.2f} mm; {m['slices_between']} slices inserted per gap; "
+        f"{mesh_note}"
     )
     times = Table(title="Stages", title_justify="left")
     times.add_column("stage")
@@ -126,7 +134,9 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     times.add_column("this run", justify="right")
     for s in result.stages:
         times.add_row(
-            s.stage, f"{s.compute_seconds:.2f}", "cache hit" if s.cached else f"{s.wall_seconds:.2f} s"
+            s.stage,
+            f"{s.compute_seconds:.2f}",
+            "cache hit" if s.cached else f"{s.wall_seconds:.2f} s",
         )
     console.print(times)
     console.print(f"outputs: [bold]{result.output_dir}[/]")

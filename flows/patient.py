@@ -45,6 +45,7 @@ from tumor3d.errors import InputError
 from tumor3d.scan import validate_patient_id
 
 __all__ = [
+    "DirectRunner",
     "PatientResult",
     "StageRun",
     "VOLUME_METHODS",
@@ -53,6 +54,8 @@ __all__ = [
     "patient_flow",
     "prefect_result_storage",
     "run_patient",
+    "run_stages",
+    "run_stages_direct",
 ]
 
 #: Volume columns of metrics.parquet and the method each names.
@@ -154,7 +157,9 @@ class _StageRunner:
         )
         self.outputs[name] = out
         report(
-            ProgressEvent(self.patient_id, name, "cached" if cached else "done", index + 1, total, wall)
+            ProgressEvent(
+                self.patient_id, name, "cached" if cached else "done", index + 1, total, wall
+            )
         )
         return out
 
@@ -235,6 +240,27 @@ def patient_flow(
     logger.info("patient %s: %s", pid, source.name)
 
     run = _StageRunner(store, pid)
+    run_stages(run, source, cfg, root)
+    flow_seconds = time.perf_counter() - t_flow
+    metrics = _metrics_row(run, pid, flow_seconds)
+    out_path = _publish(store, Path(out_dir), pid, run, metrics, cfg, source)
+    logger.info("patient %s: published %s", pid, out_path)
+    return PatientResult(
+        patient_id=pid,
+        output_dir=str(out_path),
+        metrics=metrics,
+        stages=run.runs,
+        flow_seconds=flow_seconds,
+    )
+
+
+def run_stages(run: Any, source: InputSource, cfg: PipelineConfig, root: str) -> None:
+    """The pipeline's wiring: every stage in order, each fed its inputs' references.
+
+    ``run`` is a runner whose ``run(task, **kwargs)`` executes one stage and
+    returns its :class:`StageOutput`: :class:`_StageRunner` runs the Prefect
+    tasks (cached); :class:`DirectRunner` calls their functions directly.
+    """
     scan = run.run(stages.ingest_task, source=source, store_root=root).artifacts["scan"]
     pre = run.run(stages.preprocess_task, scan=scan, config=cfg.preprocess, store_root=root)
     enhanced, brain = pre.artifacts["enhanced"], pre.artifacts["brain_mask"]
@@ -277,17 +303,50 @@ def patient_flow(
         mesh_simplified=simple.artifacts["mesh"],
         store_root=root,
     )
-    flow_seconds = time.perf_counter() - t_flow
-    metrics = _metrics_row(run, pid, flow_seconds)
-    out_path = _publish(store, Path(out_dir), pid, run, metrics, cfg, source)
-    logger.info("patient %s: published %s", pid, out_path)
-    return PatientResult(
-        patient_id=pid,
-        output_dir=str(out_path),
-        metrics=metrics,
-        stages=run.runs,
-        flow_seconds=flow_seconds,
+
+
+class DirectRunner:
+    """Runs each stage's function directly, without Prefect (no caching).
+
+    For benchmarks (the peer of the flow) and in-process evaluation.
+    ``outputs`` maps stage name to :class:`StageOutput`, ``seconds`` to its
+    wall time.
+    """
+
+    def __init__(self) -> None:
+        self.outputs: dict[str, StageOutput] = {}
+        self.seconds: dict[str, float] = {}
+
+    def run(self, stage_task: Any, **kwargs: Any) -> StageOutput:
+        """Call the stage's undecorated function and time it."""
+        t0 = time.perf_counter()
+        out = stage_task.fn(**kwargs)
+        self.seconds[stage_task.name] = time.perf_counter() - t0
+        self.outputs[stage_task.name] = out
+        return out
+
+
+def run_stages_direct(
+    input_path: str | Path,
+    store_dir: str | Path,
+    *,
+    config: dict[str, Any] | PipelineConfig | None = None,
+    patient_id: str | None = None,
+    modality: str = "t2",
+) -> DirectRunner:
+    """Run every stage in this process without Prefect; artifacts go to ``store_dir``."""
+    cfg = config if isinstance(config, PipelineConfig) else parse_config(config or {})
+    source = _prepare_source(
+        str(input_path),
+        patient_id=patient_id,
+        modality=modality,
+        series_uid=None,
+        slice_thickness_mm=None,
+        slice_gap_mm=None,
     )
+    runner = DirectRunner()
+    run_stages(runner, source, cfg, str(ArtifactStore(store_dir).root))
+    return runner
 
 
 def run_patient(input_path: str | Path, out_dir: str | Path, **kwargs: Any) -> PatientResult:
@@ -308,6 +367,7 @@ def _metrics_row(run: _StageRunner, pid: str, flow_seconds: float) -> dict[str, 
     row["faces_simplified"] = int(run.outputs["simplify-mesh"].values["faces"])
     row["faces_target"] = int(run.outputs["simplify-mesh"].values["faces_target"])
     row["mesh_watertight"] = bool(run.outputs["extract-surface"].values["watertight"])
+    row["mesh_simplified_watertight"] = bool(run.outputs["simplify-mesh"].values["watertight"])
     row["slices_between"] = int(run.outputs["interpolate-slices"].values["slices_between"])
     for r in run.runs:
         key = r.stage.replace("-", "_")
@@ -360,7 +420,9 @@ def _publish(
         )
         brain, _ = store.get_volume(run.outputs["preprocess"].artifacts["brain_mask"])
         (staging / "brain_mask.nii.gz").write_bytes(nifti.mask_to_source_nifti_bytes(brain, grid))
-        fine, fine_affine = store.get_volume(run.outputs["interpolate-slices"].artifacts["tumor_mask"])
+        fine, fine_affine = store.get_volume(
+            run.outputs["interpolate-slices"].artifacts["tumor_mask"]
+        )
         (staging / "tumor_mask.nii.gz").write_bytes(
             nifti.volume_to_source_nifti_bytes(fine, fine_affine, grid, dtype="uint8")
         )
@@ -378,8 +440,12 @@ def _publish(
             "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
             "method": "Arakeri & Reddy (2013), IJSIP 6(3); see ALGORITHMS.md choices [A1]-[A29]",
             "versions": _versions(),
-            "input": {"name": source.name, "digest_sha256": source.digest,
-                      "modality": source.modality, "patient_id": pid},  # fmt: skip
+            "input": {
+                "name": source.name,
+                "digest_sha256": source.digest,
+                "modality": source.modality,
+                "patient_id": pid,
+            },  # fmt: skip
             "config": json.loads(canonical_dumps(cfg.model_dump(mode="json"))),
             "volume_methods": VOLUME_METHODS,
             "stages": [

@@ -1,0 +1,1 @@
+"""Artifact store, input readers and file formats (all file I/O lives here)."""

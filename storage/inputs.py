@@ -21,7 +21,7 @@ def _stem(path: Path) -> str:
     return path.stem
 
 
-def _hash_file(h: "hashlib._Hash", path: Path, label: str) -> None:
+def _hash_file(h: hashlib._Hash, path: Path, label: str) -> None:
     h.update(label.encode() + b"\0")
     with open(path, "rb") as fh:
         while chunk := fh.read(_CHUNK):

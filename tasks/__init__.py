@@ -1,0 +1,1 @@
+"""Prefect tasks: one thin, cached adapter per pipeline stage."""

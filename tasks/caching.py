@@ -21,7 +21,7 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +46,7 @@ STORE_FORMAT_VERSION = "1"
 IGNORED_INPUTS = frozenset({"store_root"})
 
 
-@lru_cache(maxsize=None)
+@cache
 def code_digest(modules: tuple[str, ...]) -> str:
     """SHA-256 of the source files of ``modules`` (dotted names), in order.
 

@@ -290,20 +290,37 @@ def surface_task(tumor_mask: ArtifactRef, config: SurfaceConfig, store_root: str
 
 @_stage_task("simplify-mesh")
 def simplify_task(mesh: ArtifactRef, config: SimplifyConfig, store_root: str) -> StageOutput:
-    """Edge-collapse simplification to F_target faces (spec section 6)."""
+    """Edge-collapse simplification to F_target faces (spec section 6).
+
+    A mesh too small to simplify (F_target below 4 faces) is passed through
+    unchanged and flagged, rather than failing the patient.
+    """
     from tumor3d.simplify import simplify_mesh, target_face_count
 
     store = ArtifactStore(store_root)
     source = store.get_mesh(mesh)
-    simplified = source if source.is_empty else simplify_mesh(source, **config.model_dump())
+    target = target_face_count(source.n_faces, config.reduction_percent)
+    values: dict[str, Any] = {"faces_target": target, "simplified": False}
+    simplified = source
+    if not source.is_empty and target >= _MIN_SIMPLIFIED_FACES:
+        simplified, info = simplify_mesh(source, **config.model_dump(), return_info=True)
+        values.update(simplified=True, watertight=bool(info["watertight"]))
+    else:
+        values["watertight"] = bool(not source.is_empty and _watertight(source))
+    values["faces"] = simplified.n_faces
     return StageOutput(
-        stage="simplify-mesh",
-        artifacts={"mesh": store.put_mesh(simplified)},
-        values={
-            "faces": simplified.n_faces,
-            "faces_target": target_face_count(source.n_faces, config.reduction_percent),
-        },
+        stage="simplify-mesh", artifacts={"mesh": store.put_mesh(simplified)}, values=values
     )
+
+
+def _watertight(mesh: Mesh) -> bool:
+    from tumor3d.surface import is_watertight
+
+    return bool(is_watertight(mesh))
+
+
+#: The smallest closed triangle mesh (a tetrahedron) has 4 faces.
+_MIN_SIMPLIFIED_FACES = 4
 
 
 @_stage_task("render-views")
@@ -319,7 +336,9 @@ def render_task(mesh: ArtifactRef, config: RenderConfig, store_root: str) -> Sta
         for azimuth, rgb in zip(config.azimuths_deg, images, strict=True):
             name = f"render_az{int(round(azimuth)) % 360:03d}"
             artifacts[name] = store.put_png(rgb, extra={"azimuth_deg": float(azimuth)})
-    return StageOutput(stage="render-views", artifacts=artifacts, values={"n_views": len(artifacts)})
+    return StageOutput(
+        stage="render-views", artifacts=artifacts, values={"n_views": len(artifacts)}
+    )
 
 
 @_stage_task("measure-volume")

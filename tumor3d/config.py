@@ -59,7 +59,8 @@ class PreprocessConfig(_StageConfig):
     )
     unsharp_alpha: float = Field(0.2, ge=0.0, le=1.0, description="[A1] fspecial('unsharp') alpha.")
     equalize: bool = Field(
-        False, description="Per-slice histogram equalisation (paper step 3); off: it flattens "
+        False,
+        description="Per-slice histogram equalisation (paper step 3); off: it flattens "
         "the histogram that section 2 counts modes on.",
     )
     equalize_levels: int = Field(
@@ -97,7 +98,9 @@ class DetectConfig(_StageConfig):
     min_mode_area: float = Field(0.005, ge=0.0, lt=0.5, description="Fraction of brain pixels.")
     min_peak_distance_bins: int = Field(3, ge=0, le=64)
     min_valley_significance: float = Field(
-        3.0, ge=0.0, le=50.0,
+        3.0,
+        ge=0.0,
+        le=50.0,
         description="Merge modes whose valley is less than this many noise standard deviations "
         "below the lower peak; 0 disables the test.",
     )
@@ -126,16 +129,30 @@ class SegmentConfig(_StageConfig):
         3, ge=0, le=50, description="In-plane tolerance (pixels) for linking masks across slices."
     )
     rim_px: int = Field(
-        3, ge=0, le=50, description="Tumour components are seeded at least this far inside the "
+        3,
+        ge=0,
+        le=50,
+        description="Tumour components are seeded at least this far inside the "
         "brain mask (pixels); 0 = literal largest component.",
     )
     max_brain_fraction: float = Field(
-        0.5, gt=0.0, le=1.0, description="A tumour covering more of a slice's brain is "
+        0.5,
+        gt=0.0,
+        le=1.0,
+        description="A tumour covering more of a slice's brain is "
         "partial volume of the brain surface; 1 disables the check.",
     )
     refine_boundary: bool = Field(
-        True, description="Re-decide the tumour's boundary pixels by partial volume "
+        True,
+        description="Re-decide the tumour's boundary pixels by partial volume "
         "(tumour fraction > 1/2) instead of by cluster label.",
+    )
+    min_tumor_slices: int = Field(
+        2,
+        ge=1,
+        le=100,
+        description="With keep_largest_3d_component: the kept tumour must span "
+        "at least this many acquired slices (drops isolated partial-volume slices).",
     )
 
 

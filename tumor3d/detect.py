@@ -144,9 +144,7 @@ class SliceDetection:
         return cls(
             n_modes=np.array([int(r["n_modes"]) for r in rows], dtype=np.int64),
             abnormal=np.array([bool(r["abnormal"]) for r in rows], dtype=bool),
-            peaks_gray=tuple(
-                np.array(list(r["peaks_gray"]), dtype=np.float64) for r in rows
-            ),
+            peaks_gray=tuple(np.array(list(r["peaks_gray"]), dtype=np.float64) for r in rows),
             brain_pixels=np.array([int(r["brain_pixels"]) for r in rows], dtype=np.int64),
         )
 
@@ -392,9 +390,7 @@ def _check_pair(enhanced: object, brain_mask: object) -> tuple[np.ndarray, np.nd
     if img.ndim != 3:
         raise InputError(f"enhanced must be a 3-D (z, y, x) array, got {img.ndim} dimension(s)")
     if mask.shape != img.shape:
-        raise InputError(
-            f"brain_mask shape {mask.shape} does not match enhanced shape {img.shape}"
-        )
+        raise InputError(f"brain_mask shape {mask.shape} does not match enhanced shape {img.shape}")
     if img.dtype != np.uint8:
         if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
             raise InputError(f"enhanced must hold gray levels 0-255, got dtype {img.dtype}")

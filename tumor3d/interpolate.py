@@ -188,9 +188,7 @@ def _two_pass(dist: np.ndarray, w_axial: float, w_diag: float) -> None:  # pragm
                 dist[y, x] = d
 
 
-def _distance_to_sources(
-    sources: np.ndarray, *, border_is_source: bool, metric: str
-) -> np.ndarray:
+def _distance_to_sources(sources: np.ndarray, *, border_is_source: bool, metric: str) -> np.ndarray:
     """Distance of every pixel to the nearest ``True`` pixel of ``sources``.
 
     Pixels beyond the border are sources too when ``border_is_source``.
@@ -329,9 +327,11 @@ def slices_between_auto(slice_step_mm: float, pixel_spacing_mm: Sequence[float])
     4
     """
     dz = _check_positive(slice_step_mm, "slice_step_mm")
-    if isinstance(pixel_spacing_mm, str | bytes) or np.ndim(pixel_spacing_mm) != 1 or len(
-        pixel_spacing_mm
-    ) != 2:
+    if (
+        isinstance(pixel_spacing_mm, str | bytes)
+        or np.ndim(pixel_spacing_mm) != 1
+        or len(pixel_spacing_mm) != 2
+    ):
         raise InputError(
             f"pixel_spacing_mm must be a pair (dy, dx) of mm, got {pixel_spacing_mm!r}"
         )
@@ -374,12 +374,8 @@ def _window_pair(
     Returns the two bool masks of the box and its origin ``(y0, x0)`` in the
     coordinates of the pixel sets.
     """
-    lo = np.array(
-        [min(a_pix[0].min(), b_pix[0].min()), min(a_pix[1].min(), b_pix[1].min())]
-    )
-    hi = np.array(
-        [max(a_pix[0].max(), b_pix[0].max()), max(a_pix[1].max(), b_pix[1].max())]
-    )
+    lo = np.array([min(a_pix[0].min(), b_pix[0].min()), min(a_pix[1].min(), b_pix[1].min())])
+    hi = np.array([max(a_pix[0].max(), b_pix[0].max()), max(a_pix[1].max(), b_pix[1].max())])
     shape = tuple(int(s) for s in hi - lo + 1)
     wa = np.zeros(shape, dtype=bool)
     wb = np.zeros(shape, dtype=bool)
@@ -613,8 +609,13 @@ def interpolate_stack(
     step ``h`` with a random phase, the cap beyond the last slice has
     expected volume ``pi R h^2 / 3``, and so does the cone ``A h / 3`` over
     the last slice's area ``A ~ 2 pi R a``: the cap is unbiased to first
-    order, while a flat cap always underestimates. Caps stop at the ends of
-    the stack.
+    order in the continuous limit, while a flat cap always underestimates.
+    On the pixel grid small end discs erode faster than ``(1 - t)^2`` in
+    area, so a bias remains (measured, 1 mm pixels, 5 mm step, mean over 8
+    phases, mesh volume of a sphere of radius R: R = 8 mm -21.3 % flat vs
+    -8.0 % taper; R = 10 mm -15.5 % vs -8.1 %; R = 14 mm -9.2 % vs -4.8 %;
+    part of it is the chord error of interpolating between slices). Caps
+    stop at the ends of the stack.
 
     Parameters
     ----------
@@ -756,9 +757,7 @@ def interpolation_error_percent(truth: np.ndarray, estimate: np.ndarray) -> floa
     return float(100.0 * np.count_nonzero(s ^ e) / n_true)
 
 
-def leave_one_out_error(
-    slice_masks: np.ndarray, k: int, *, method: Method = "enhanced"
-) -> float:
+def leave_one_out_error(slice_masks: np.ndarray, k: int, *, method: Method = "enhanced") -> float:
     """Eq. 10 error of re-creating acquired slice ``k`` from its neighbours.
 
     Interpolates ``slice_masks[k - 1]`` and ``slice_masks[k + 1]`` at

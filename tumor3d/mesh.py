@@ -30,18 +30,20 @@ class Mesh:
     faces: np.ndarray
 
     def __post_init__(self) -> None:
-        v = np.array(self.vertices, dtype=np.float64).reshape(-1, 3) if np.size(
-            self.vertices
-        ) else np.zeros((0, 3))
-        f = np.array(self.faces, dtype=np.int64).reshape(-1, 3) if np.size(
-            self.faces
-        ) else np.zeros((0, 3), dtype=np.int64)
+        v = (
+            np.array(self.vertices, dtype=np.float64).reshape(-1, 3)
+            if np.size(self.vertices)
+            else np.zeros((0, 3))
+        )
+        f = (
+            np.array(self.faces, dtype=np.int64).reshape(-1, 3)
+            if np.size(self.faces)
+            else np.zeros((0, 3), dtype=np.int64)
+        )
         if not np.all(np.isfinite(v)):
             raise MeshError("mesh vertices must be finite")
         if f.size and (f.min() < 0 or f.max() >= len(v)):
-            raise MeshError(
-                f"face indices must lie in [0, {len(v)}), got [{f.min()}, {f.max()}]"
-            )
+            raise MeshError(f"face indices must lie in [0, {len(v)}), got [{f.min()}, {f.max()}]")
         v.setflags(write=False)
         f.setflags(write=False)
         object.__setattr__(self, "vertices", v)

@@ -240,8 +240,9 @@ class TumorShape:
     def radius_function(self, directions: np.ndarray) -> np.ndarray:
         """Evaluate ``r(u)`` (mm) for unit direction vectors ``u``, shape ``(n, 3)``."""
         u = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-        return _radius_function(u, self.radius_mm, self.bump_directions,
-                                self.bump_amplitudes, self.bump_kappas)
+        return _radius_function(
+            u, self.radius_mm, self.bump_directions, self.bump_amplitudes, self.bump_kappas
+        )
 
     def contains(self, points_mm: np.ndarray) -> np.ndarray:
         """Inside-test of points.
@@ -415,9 +416,7 @@ def random_tumor_shape(
     if not isinstance(rng, np.random.Generator):
         raise InputError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
     if not (np.isfinite(equivalent_diameter_mm) and equivalent_diameter_mm > 0):
-        raise InputError(
-            f"equivalent_diameter_mm must be positive, got {equivalent_diameter_mm!r}"
-        )
+        raise InputError(f"equivalent_diameter_mm must be positive, got {equivalent_diameter_mm!r}")
     n_bumps = int(rng.integers(3, 7))
     dirs = rng.normal(size=(n_bumps, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
@@ -538,32 +537,66 @@ def _wobbles(qx, qy, qz, ch, cb):
         qy *= f
         qz *= f
     m0 = qz
-    m1 = qz*qz
-    m2 = qz*qz*qz
+    m1 = qz * qz
+    m2 = qz * qz * qz
     m3 = qy
-    m4 = qy*qz
-    m5 = qy*qz*qz
-    m6 = qy*qy
-    m7 = qy*qy*qz
-    m8 = qy*qy*qy
+    m4 = qy * qz
+    m5 = qy * qz * qz
+    m6 = qy * qy
+    m7 = qy * qy * qz
+    m8 = qy * qy * qy
     m9 = qx
-    m10 = qx*qz
-    m11 = qx*qz*qz
-    m12 = qx*qy
-    m13 = qx*qy*qz
-    m14 = qx*qy*qy
-    m15 = qx*qx
-    m16 = qx*qx*qz
-    m17 = qx*qx*qy
-    m18 = qx*qx*qx
-    wh = (ch[0] * m0 + ch[1] * m1 + ch[2] * m2 + ch[3] * m3 + ch[4] * m4 + ch[5] * m5 +
-        ch[6] * m6 + ch[7] * m7 + ch[8] * m8 + ch[9] * m9 + ch[10] * m10 + ch[11] * m11 +
-        ch[12] * m12 + ch[13] * m13 + ch[14] * m14 + ch[15] * m15 + ch[16] * m16 + ch[17] *
-        m17 + ch[18] * m18)
-    wb = (cb[0] * m0 + cb[1] * m1 + cb[2] * m2 + cb[3] * m3 + cb[4] * m4 + cb[5] * m5 +
-        cb[6] * m6 + cb[7] * m7 + cb[8] * m8 + cb[9] * m9 + cb[10] * m10 + cb[11] * m11 +
-        cb[12] * m12 + cb[13] * m13 + cb[14] * m14 + cb[15] * m15 + cb[16] * m16 + cb[17] *
-        m17 + cb[18] * m18)
+    m10 = qx * qz
+    m11 = qx * qz * qz
+    m12 = qx * qy
+    m13 = qx * qy * qz
+    m14 = qx * qy * qy
+    m15 = qx * qx
+    m16 = qx * qx * qz
+    m17 = qx * qx * qy
+    m18 = qx * qx * qx
+    wh = (
+        ch[0] * m0
+        + ch[1] * m1
+        + ch[2] * m2
+        + ch[3] * m3
+        + ch[4] * m4
+        + ch[5] * m5
+        + ch[6] * m6
+        + ch[7] * m7
+        + ch[8] * m8
+        + ch[9] * m9
+        + ch[10] * m10
+        + ch[11] * m11
+        + ch[12] * m12
+        + ch[13] * m13
+        + ch[14] * m14
+        + ch[15] * m15
+        + ch[16] * m16
+        + ch[17] * m17
+        + ch[18] * m18
+    )
+    wb = (
+        cb[0] * m0
+        + cb[1] * m1
+        + cb[2] * m2
+        + cb[3] * m3
+        + cb[4] * m4
+        + cb[5] * m5
+        + cb[6] * m6
+        + cb[7] * m7
+        + cb[8] * m8
+        + cb[9] * m9
+        + cb[10] * m10
+        + cb[11] * m11
+        + cb[12] * m12
+        + cb[13] * m13
+        + cb[14] * m14
+        + cb[15] * m15
+        + cb[16] * m16
+        + cb[17] * m17
+        + cb[18] * m18
+    )
     return wh, wb
 
 
@@ -609,9 +642,12 @@ def _head_label(x, y, z, rho_h, rho_b, head, vent):
 def _box_overlaps(x, y, z, half, bbox):
     """Whether the box ``[x +- half[0]] x [y +- half[1]] x [z +- half[2]]`` meets ``bbox``."""
     return (
-        x + half[0] >= bbox[0] and x - half[0] <= bbox[3]
-        and y + half[1] >= bbox[1] and y - half[1] <= bbox[4]
-        and z + half[2] >= bbox[2] and z - half[2] <= bbox[5]
+        x + half[0] >= bbox[0]
+        and x - half[0] <= bbox[3]
+        and y + half[1] >= bbox[1]
+        and y - half[1] <= bbox[4]
+        and z + half[2] >= bbox[2]
+        and z - half[2] <= bbox[5]
     )
 
 
@@ -657,8 +693,23 @@ def _is_pure(x, y, z, rho_h, rho_b, half_diag, box, head, vent, tum_bbox):
 
 @numba.njit(cache=True, fastmath=True)
 def _render(
-    aff, nz, ny, nx, sub_xy, sub_z, head, wob_h, wob_b, vent,
-    tum, dirs, amps, kappas, tum_bbox, values, adaptive,
+    aff,
+    nz,
+    ny,
+    nx,
+    sub_xy,
+    sub_z,
+    head,
+    wob_h,
+    wob_b,
+    vent,
+    tum,
+    dirs,
+    amps,
+    kappas,
+    tum_bbox,
+    values,
+    adaptive,
 ):
     """Partial-volume image and centre labels of every slice.
 
@@ -712,8 +763,26 @@ def _render(
                 for j in range(j0, j1):
                     for i in range(i0, i1):
                         lab, val = _render_pixel(
-                            aff, k, j, i, sub_xy, sub_z, head, wob_h, wob_b, vent, tum, dirs,
-                            amps, kappas, tum_bbox, values, adaptive, half_diag, box, zero3,
+                            aff,
+                            k,
+                            j,
+                            i,
+                            sub_xy,
+                            sub_z,
+                            head,
+                            wob_h,
+                            wob_b,
+                            vent,
+                            tum,
+                            dirs,
+                            amps,
+                            kappas,
+                            tum_bbox,
+                            values,
+                            adaptive,
+                            half_diag,
+                            box,
+                            zero3,
                         )
                         labels[k, j, i] = lab
                         image[k, j, i] = val
@@ -722,8 +791,26 @@ def _render(
 
 @numba.njit(cache=True, inline="always", fastmath=True)
 def _render_pixel(
-    aff, k, j, i, sub_xy, sub_z, head, wob_h, wob_b, vent, tum, dirs, amps, kappas,
-    tum_bbox, values, adaptive, half_diag, box, zero3,
+    aff,
+    k,
+    j,
+    i,
+    sub_xy,
+    sub_z,
+    head,
+    wob_h,
+    wob_b,
+    vent,
+    tum,
+    dirs,
+    amps,
+    kappas,
+    tum_bbox,
+    values,
+    adaptive,
+    half_diag,
+    box,
+    zero3,
 ):
     """Centre label and partial-volume value of pixel ``(k, j, i)``."""
     x = aff[0, 0] * i + aff[0, 1] * j + aff[0, 2] * k + aff[0, 3]
@@ -751,8 +838,21 @@ def _render_pixel(
                 ys = aff[1, 0] * ii + aff[1, 1] * jj + aff[1, 2] * kk + aff[1, 3]
                 zs = aff[2, 0] * ii + aff[2, 1] * jj + aff[2, 2] * kk + aff[2, 3]
                 acc += values[
-                    _label_at(xs, ys, zs, head, wob_h, wob_b, vent,
-                              tum, dirs, amps, kappas, tum_bbox, zero3)
+                    _label_at(
+                        xs,
+                        ys,
+                        zs,
+                        head,
+                        wob_h,
+                        wob_b,
+                        vent,
+                        tum,
+                        dirs,
+                        amps,
+                        kappas,
+                        tum_bbox,
+                        zero3,
+                    )
                 ]
     return lab, acc / (sub_xy.shape[0] * sub_xy.shape[0] * sub_z.shape[0])
 
@@ -877,8 +977,14 @@ def _random_head(rng: np.random.Generator) -> _Head:
     vz = rng.uniform(4.0, 12.0)
     ventricles = np.array(
         [
-            [side * rng.uniform(7.0, 9.0), vy + rng.uniform(-2.0, 2.0), vz,
-             rng.uniform(4.0, 6.0), rng.uniform(18.0, 24.0), rng.uniform(8.0, 11.0)]
+            [
+                side * rng.uniform(7.0, 9.0),
+                vy + rng.uniform(-2.0, 2.0),
+                vz,
+                rng.uniform(4.0, 6.0),
+                rng.uniform(18.0, 24.0),
+                rng.uniform(8.0, 11.0),
+            ]
             for side in (-1.0, 1.0)
         ]
     )
@@ -1113,8 +1219,10 @@ def make_phantom_patient(
         if (
             not isinstance(matrix_size, tuple | list)
             or len(matrix_size) != 2
-            or any(isinstance(m, bool) or not isinstance(m, int | np.integer) or m < 8
-                   for m in matrix_size)
+            or any(
+                isinstance(m, bool) or not isinstance(m, int | np.integer) or m < 8
+                for m in matrix_size
+            )
         ):
             raise InputError(
                 f"matrix_size must be two integers (rows, columns) >= 8, got {matrix_size!r}"
@@ -1187,8 +1295,23 @@ def make_phantom_patient(
     sub_xy = (np.arange(n_sub_xy) + 0.5) / n_sub_xy - 0.5
     sub_z = ((np.arange(n_sub_z) + 0.5) / n_sub_z - 0.5) * thickness / step
     clean, labels = _render(
-        affine, nz, ny, nx, sub_xy, sub_z, head.packed(), head.wob_h, head.wob_b,
-        head.ventricles, tum, dirs, amps, kappas, tum_bbox, values, True,
+        affine,
+        nz,
+        ny,
+        nx,
+        sub_xy,
+        sub_z,
+        head.packed(),
+        head.wob_h,
+        head.wob_b,
+        head.ventricles,
+        tum,
+        dirs,
+        amps,
+        kappas,
+        tum_bbox,
+        values,
+        True,
     )
     bias, bias_coef = _bias_field(rng_bias, head, affine, (nz, ny, nx), bias_field_strength)
     clean *= bias

@@ -90,9 +90,7 @@ def _check_percentiles(window_percentiles: object) -> tuple[float, float]:
             f"window_percentiles must be a pair of numbers, got {window_percentiles!r}"
         ) from None
     if not (0.0 <= lo < hi <= 100.0):
-        raise InputError(
-            f"window_percentiles must satisfy 0 <= low < high <= 100, got {(lo, hi)}"
-        )
+        raise InputError(f"window_percentiles must satisfy 0 <= low < high <= 100, got {(lo, hi)}")
     return lo, hi
 
 
@@ -380,8 +378,6 @@ def _keep_nested_slices(mask: np.ndarray) -> np.ndarray:
                 break
             z += step
     return out
-
-
 
 
 # --------------------------------------------------------------------------- pipeline

@@ -32,35 +32,43 @@ gives the classic display-space Phong look.
 
 Design: one subprocess per call
 -------------------------------
-Open3D's Filament renderer (open3d-cpu 0.20, Mesa llvmpipe, Vulkan backend,
-headless: no DISPLAY needed) was measured on this 2-core machine, shared
-with other jobs (times vary by a factor of two or more):
+Measurements of Open3D's Filament renderer (open3d-cpu 0.20, Mesa 22.3
+llvmpipe through Filament's Vulkan backend, headless: no DISPLAY needed) on
+this 2-core machine, shared with other jobs:
 
-* a renderer created at the start of a fresh process: creation ~0.1 s,
-  first frame 0.3-2 s (about 1.5 s more when the Mesa shader cache in
-  ``~/.cache/mesa_shader_cache`` is cold), later frames 0.1-0.4 s;
-* a renderer created *after* any Open3D geometry work in the process (for
-  example ``TriangleMesh.create_sphere``), and every second renderer created
-  after deleting the first: its first frame takes 9-15 s (and 20-55 s under
-  load), CPU-bound, every time;
-* a second renderer created while the first is alive kills the process;
-* rendering from a thread other than the one that created the renderer
-  aborts the whole process (Filament ``PreconditionPanic``: "This thread
-  has not been adopted") -- fatal for Prefect, which may run tasks in
-  worker threads.
+* a fresh process: ``import open3d`` 0.6-0.9 s, ``OffscreenRenderer``
+  creation ~0.1 s, first frame ~0.3 s (about 1.5 s more while the Mesa
+  shader cache in ``~/.cache/mesa_shader_cache`` is cold), later frames
+  0.07-0.1 s at 320x240 and ~0.1-0.4 s at 640x480;
+* a second renderer created after deleting the first works, with the same
+  timings (first frame ~0.3 s);
+* meshes given as the *legacy* ``o3d.geometry.TriangleMesh`` made some
+  frames take 5-100 s instead of 0.1 s, erratically: it depended on the mesh
+  (a marching-cubes ball of radius 9 voxels: 25 s then 65 s; radius 10:
+  0.3 s) and on whether Open3D geometry had been built before the renderer
+  was created -- the "first render took 15 s" seen earlier. The
+  tensor-based ``o3d.t.geometry.TriangleMesh`` never showed this: all the
+  same cases render in 0.1-0.3 s per frame, so it is used here;
+* rendering from any thread other than the one that created the (process-
+  wide) Filament engine aborts the whole process (``PreconditionPanic``:
+  "This thread has not been adopted"), and so does creating a second
+  renderer in a new thread; two renderers alive at once in one thread work
+  but abort the process at exit ("destroying MaterialInstance ... still in
+  use"). Prefect may run tasks in worker threads, so an in-process
+  renderer would be a process-killing hazard.
 
 So every :func:`render_views` call runs the renderer in a fresh child
-process (``python -m tumor3d.render``) that creates the renderer *before*
-any geometry. The mesh and camera set-up go to the child's stdin and the
-images come back on a private copy of its stdout, as ``.npy`` bytes
-(no pickle, no temporary files); the C++ chatter of Filament (printed on
-stdout/stderr regardless of Open3D's verbosity) is diverted to the child's
-stderr, which is shown only if the child fails. Cost: a 4-view 640x480
-render of a 10k-face mesh takes about 2-4 s wall time in total (Python
-start and Open3D import ~1 s, renderer set-up and first frame 0.3-2 s,
-~0.1-0.4 s per further view). The calling process never imports Open3D,
-works from any thread, and survives a crash of the renderer, which is
-reported as a ``RuntimeError`` carrying the child's error output.
+process (``python -m tumor3d.render``). The mesh and camera set-up go to the
+child's stdin and the images come back on a private copy of its stdout, as
+``.npy`` bytes (no pickle, no temporary files); Filament's C++ messages
+("FEngine ...", "Selected physical device ...", printed whatever Open3D's
+verbosity) are diverted to the child's stderr, which is shown only if the
+child fails. The child leaves with ``os._exit`` once the images are
+written, skipping Filament's teardown. Cost: a 4-view 640x480 render of a
+10k-face mesh takes 2-3 s wall time in total, most of it Python start-up and
+the Open3D import. The calling process never imports Open3D, may call from
+any thread, and survives a crash of the renderer, reported as a
+``RuntimeError`` carrying the child's error output.
 """
 
 from __future__ import annotations
@@ -374,22 +382,22 @@ def _worker_main() -> int:
     with np.load(io.BytesIO(payload), allow_pickle=False) as data:
         req = {k: data[k] for k in data.files}
 
-    import open3d as o3d  # noqa: PLC0415 - only ever imported in the child
+    import open3d as o3d  # only ever imported in the child
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     rendering = o3d.visualization.rendering
     width, height = (int(x) for x in req["size"])
-    # Create the renderer before any other Open3D geometry work: otherwise its
-    # first frame takes 10+ s (see the module docstring).
+    # Renderer first, geometry after: with legacy meshes the reverse order hit
+    # a 10+ s first frame (see the module docstring); kept as a precaution.
     renderer = rendering.OffscreenRenderer(width, height)
 
-    tri = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(np.ascontiguousarray(req["vertices"], dtype=np.float64)),
-        o3d.utility.Vector3iVector(np.ascontiguousarray(req["faces"], dtype=np.int32)),
-    )
-    tri.vertex_normals = o3d.utility.Vector3dVector(
-        np.ascontiguousarray(req["normals"], dtype=np.float64)
-    )
+    # The tensor-based mesh: the legacy o3d.geometry.TriangleMesh path made
+    # some meshes (e.g. a marching-cubes ball of radius 9 voxels) take 20-100 s
+    # per frame instead of 0.1 s (see the module docstring).
+    tri = o3d.t.geometry.TriangleMesh()
+    tri.vertex.positions = o3d.core.Tensor(np.ascontiguousarray(req["vertices"], np.float32))
+    tri.vertex.normals = o3d.core.Tensor(np.ascontiguousarray(req["normals"], np.float32))
+    tri.triangle.indices = o3d.core.Tensor(np.ascontiguousarray(req["faces"], np.int32))
     sun_lux, ibl, roughness, reflectance = (float(x) for x in req["light"])
     material = rendering.MaterialRecord()
     material.shader = "defaultLit"
@@ -402,6 +410,7 @@ def _worker_main() -> int:
     scene.add_geometry("mesh", tri, material)
     scene.set_background([*(float(c) for c in req["background_srgb"]), 1.0])
     scene.view.set_post_processing(False)
+    scene.view.set_shadowing(False)  # a headlight casts no visible shadow
     scene.scene.enable_indirect_light(True)
     scene.scene.set_indirect_light_intensity(ibl)
     scene.scene.enable_sun_light(True)
@@ -424,4 +433,6 @@ def _worker_main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(_worker_main())
+    _code = _worker_main()
+    sys.stderr.flush()
+    os._exit(_code)  # skip Filament's teardown: the images are already written

@@ -225,9 +225,7 @@ def test_rejects_wrong_ndim():
 
 def test_rejects_shape_mismatch():
     with pytest.raises(InputError, match="does not match"):
-        detect_abnormal_slices(
-            np.zeros((2, 4, 4), np.uint8), np.ones((2, 4, 5), bool), **DEFAULTS
-        )
+        detect_abnormal_slices(np.zeros((2, 4, 4), np.uint8), np.ones((2, 4, 5), bool), **DEFAULTS)
 
 
 def test_rejects_non_gray_levels():
@@ -237,9 +235,7 @@ def test_rejects_non_gray_levels():
 
 def test_rejects_non_boolean_mask():
     with pytest.raises(InputError, match="brain_mask must be boolean"):
-        detect_abnormal_slices(
-            np.zeros((1, 4, 4), np.uint8), np.full((1, 4, 4), 2), **DEFAULTS
-        )
+        detect_abnormal_slices(np.zeros((1, 4, 4), np.uint8), np.full((1, 4, 4), 2), **DEFAULTS)
 
 
 def test_count_rejects_float_values():

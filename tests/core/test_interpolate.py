@@ -176,8 +176,9 @@ def test_chamfer_distance_of_disk_is_within_chamfer_bound_of_euclidean():
 @pytest.mark.parametrize("metric", ["chamfer", "taxicab"])
 def test_signed_distance_matches_brute_force(metric):
     rng = np.random.default_rng(7)
-    masks = [rng.random(tuple(rng.integers(1, 12, size=2))) < rng.uniform(0.1, 0.9)
-             for _ in range(25)]
+    masks = [
+        rng.random(tuple(rng.integers(1, 12, size=2))) < rng.uniform(0.1, 0.9) for _ in range(25)
+    ]
     masks += [np.ones((5, 6), dtype=bool), np.zeros((5, 6), dtype=bool)]
     for mask in masks:
         got = signed_distance(mask, metric=metric)
@@ -186,8 +187,10 @@ def test_signed_distance_matches_brute_force(metric):
 
 
 @settings(max_examples=60, deadline=None)
-@given(mask=hnp.arrays(bool, hnp.array_shapes(min_dims=2, max_dims=2, max_side=16)),
-       metric=st.sampled_from(["chamfer", "taxicab"]))
+@given(
+    mask=hnp.arrays(bool, hnp.array_shapes(min_dims=2, max_dims=2, max_side=16)),
+    metric=st.sampled_from(["chamfer", "taxicab"]),
+)
 def test_signed_distance_zero_level_halfway_and_gives_mask_back(mask, metric):
     d = signed_distance(mask, metric=metric)
     np.testing.assert_array_equal(d >= 0, mask)
@@ -445,8 +448,15 @@ def test_fine_affine_maps_fine_slices_to_original_world_positions():
 
 @pytest.mark.parametrize(
     ("step", "spacing", "expected"),
-    [(5.0, (1.0, 1.0), 4), (5.0, (0.5, 0.5), 9), (1.0, (2.0, 2.0), 0), (5.0, (2.0, 2.0), 2),
-     (3.0, (1.0, 1.0), 2), (5.0, (0.9375, 0.9375), 4), (6.5, (0.78, 0.78), 7)],
+    [
+        (5.0, (1.0, 1.0), 4),
+        (5.0, (0.5, 0.5), 9),
+        (1.0, (2.0, 2.0), 0),
+        (5.0, (2.0, 2.0), 2),
+        (3.0, (1.0, 1.0), 2),
+        (5.0, (0.9375, 0.9375), 4),
+        (6.5, (0.78, 0.78), 7),
+    ],
 )
 def test_slices_between_auto(step, spacing, expected):
     assert slices_between_auto(step, spacing) == expected

@@ -42,14 +42,17 @@ def _naive_inside(shape: TumorShape, pts: np.ndarray) -> np.ndarray:
     z = v[:, 2]
     k = np.arange(1, shape.shear_coefficients.shape[1] + 1)
     zp = z[:, None] ** k[None, :]
-    v = v - np.stack([zp @ shape.shear_coefficients[0], zp @ shape.shear_coefficients[1],
-                      np.zeros(len(v))], axis=1)
+    v = v - np.stack(
+        [zp @ shape.shear_coefficients[0], zp @ shape.shear_coefficients[1], np.zeros(len(v))],
+        axis=1,
+    )
     w = np.linalg.solve(shape.linear_map, v.T).T
     n = np.linalg.norm(w, axis=1)
     u = w / np.where(n > 0, n, 1.0)[:, None]
     r = shape.radius_mm * np.ones(len(w))
-    for d, a, kap in zip(shape.bump_directions, shape.bump_amplitudes, shape.bump_kappas,
-                         strict=True):
+    for d, a, kap in zip(
+        shape.bump_directions, shape.bump_amplitudes, shape.bump_kappas, strict=True
+    ):
         r = r + shape.radius_mm * a * np.exp(kap * (u @ d - 1.0))
     return n <= r
 
@@ -76,8 +79,12 @@ def test_sheared_ellipsoid_volume_is_analytic():
     rng = np.random.default_rng(0)
     lin = rng.normal(size=(3, 3)) + 2 * np.eye(3)
     shape = TumorShape(
-        center_mm=(5, 5, 5), radius_mm=7.0, bump_directions=np.zeros((0, 3)),
-        bump_amplitudes=[], bump_kappas=[], linear_map=lin,
+        center_mm=(5, 5, 5),
+        radius_mm=7.0,
+        bump_directions=np.zeros((0, 3)),
+        bump_amplitudes=[],
+        bump_kappas=[],
+        linear_map=lin,
         shear_coefficients=[[0.3, 0.01, 0.0], [-0.2, 0.0, 0.001]],
     )
     expected = 4.0 / 3.0 * np.pi * 7.0**3 * abs(np.linalg.det(lin))
@@ -127,8 +134,9 @@ def test_volume_agrees_with_fine_voxel_count(small):
     shape = small.tumor_shape
     surf = shape.surface_points(64, 128)
     h = 0.3
-    axes = [np.arange(a, b, h) + h / 2 for a, b in zip(surf.min(0) - 1, surf.max(0) + 1,
-                                                         strict=True)]
+    axes = [
+        np.arange(a, b, h) + h / 2 for a, b in zip(surf.min(0) - 1, surf.max(0) + 1, strict=True)
+    ]
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     count = shape.contains(pts).sum() * h**3
     assert count == pytest.approx(small.true_volume_mm3, rel=2e-3)
@@ -181,16 +189,14 @@ def test_fine_mask_geometry(small):
     step = small.scan.slice_step_mm
     fine_step = small.fine_affine[2, 2]
     ratio = int(round(step / fine_step))
-    assert small.fine_mask.shape == (
-        (small.scan.n_slices - 1) * ratio + 1, *small.scan.shape[1:])
+    assert small.fine_mask.shape == ((small.scan.n_slices - 1) * ratio + 1, *small.scan.shape[1:])
     np.testing.assert_array_equal(small.fine_affine[:2], small.scan.affine[:2])
     assert small.fine_affine[2, 3] == small.scan.affine[2, 3]
     # every ratio-th fine plane is an acquired slice's centre plane
     np.testing.assert_array_equal(small.fine_mask[::ratio], small.slice_masks)
     # and the fine mask is the inside test at its own voxel centres
     pts = _voxel_centres(small.fine_affine, small.fine_mask.shape)
-    np.testing.assert_array_equal(
-        small.fine_mask.ravel(), small.tumor_shape.contains(pts))
+    np.testing.assert_array_equal(small.fine_mask.ravel(), small.tumor_shape.contains(pts))
 
 
 def test_cross_section_centroid_drifts(small, medium):
@@ -268,8 +274,13 @@ def test_normal_patient_has_no_tumour(small):
 
 
 def test_outputs_are_read_only(small):
-    for arr in (small.scan.image, small.slice_masks, small.fine_mask, small.tissue_labels,
-                small.fine_affine):
+    for arr in (
+        small.scan.image,
+        small.slice_masks,
+        small.fine_mask,
+        small.tissue_labels,
+        small.fine_affine,
+    ):
         with pytest.raises(ValueError, match="read-only"):
             arr[(0,) * arr.ndim] = 1
 
@@ -293,8 +304,11 @@ def _interior_means(p: PhantomPatient) -> dict[int, float]:
 
 @pytest.mark.parametrize("modality", ["t2", "flair"])
 def test_tissue_intensity_order(medium, modality):
-    p = medium if modality == "t2" else make_phantom_patient(11, matrix_size=(128, 128),
-                                                             modality="flair")
+    p = (
+        medium
+        if modality == "t2"
+        else make_phantom_patient(11, matrix_size=(128, 128), modality="flair")
+    )
     mean = _interior_means(p)
     sigma = p.params["noise_sigma"]
     csf, gm, wm, tum = mean[3], mean[4], mean[5], mean[6]
@@ -366,8 +380,22 @@ def test_adaptive_rendering_equals_full_supersampling(small):
     values = np.array(TISSUE_INTENSITIES["t2"])
     sub_xy = (np.arange(3) + 0.5) / 3 - 0.5
     sub_z = ((np.arange(4) + 0.5) / 4 - 0.5) * 0.4
-    args = (aff, *p.scan.shape, sub_xy, sub_z, head.packed(), head.wob_h, head.wob_b,
-            head.ventricles, tum, dirs, amps, kappas, bbox, values)
+    args = (
+        aff,
+        *p.scan.shape,
+        sub_xy,
+        sub_z,
+        head.packed(),
+        head.wob_h,
+        head.wob_b,
+        head.ventricles,
+        tum,
+        dirs,
+        amps,
+        kappas,
+        bbox,
+        values,
+    )
     fast_img, fast_lab = _render(*args, True)
     full_img, full_lab = _render(*args, False)
     np.testing.assert_array_equal(fast_lab, full_lab)
@@ -441,9 +469,16 @@ def test_paper_preset_geometry():
 
 
 def test_overrides_scale_everything():
-    p = make_phantom_patient(2, matrix_size=(64, 80), pixel_spacing_mm=3.5, n_slices=12,
-                             slice_thickness_mm=3.0, slice_gap_mm=1.0, modality="flair",
-                             patient_id="case_A-1")
+    p = make_phantom_patient(
+        2,
+        matrix_size=(64, 80),
+        pixel_spacing_mm=3.5,
+        n_slices=12,
+        slice_thickness_mm=3.0,
+        slice_gap_mm=1.0,
+        modality="flair",
+        patient_id="case_A-1",
+    )
     assert p.scan.shape == (12, 64, 80)
     assert p.scan.slice_step_mm == 4.0 and p.scan.slice_gap_mm == 1.0
     assert p.scan.modality == "flair" and p.scan.patient_id == "case_A-1"
@@ -457,8 +492,8 @@ def test_short_coverage_shrinks_tumour_to_fit():
     assert info["scale_factor"] < 1.0
     assert p.fine_mask.any() and not p.fine_mask[[0, -1]].any()
     assert p.true_volume_mm3 == pytest.approx(
-        np.pi / 6 * (info["target_equivalent_diameter_mm"] * info["scale_factor"]) ** 3,
-        rel=1e-9)
+        np.pi / 6 * (info["target_equivalent_diameter_mm"] * info["scale_factor"]) ** 3, rel=1e-9
+    )
 
 
 # ---------------------------------------------------------------------------
@@ -522,9 +557,14 @@ def test_one_slice_normal_patient_is_allowed():
 )
 def test_tumor_shape_rejects_bad_input(kwargs, match):
     args = {
-        "center_mm": (0, 0, 0), "radius_mm": 5.0, "bump_directions": [[1, 0, 0]],
-        "bump_amplitudes": [0.2], "bump_kappas": [3.0], "linear_map": np.eye(3),
-        "shear_coefficients": np.zeros((2, 1)), **kwargs,
+        "center_mm": (0, 0, 0),
+        "radius_mm": 5.0,
+        "bump_directions": [[1, 0, 0]],
+        "bump_amplitudes": [0.2],
+        "bump_kappas": [3.0],
+        "linear_map": np.eye(3),
+        "shear_coefficients": np.zeros((2, 1)),
+        **kwargs,
     }
     with pytest.raises(InputError, match=match):
         TumorShape(**args)

@@ -100,10 +100,12 @@ def test_shading_is_smooth_and_headlit(sphere_images):
     fg = _foreground(sphere_images[0])
     lum = img.mean(axis=2)
     assert lum[fg].std() > 10  # not flat
-    # the surface colour is applied: red dominates on the object
-    assert np.all(img[fg][:, 0] >= img[fg][:, 1])
-    # headlight: the part facing the camera is brighter than the silhouette rim
     dist = ndi.distance_transform_edt(fg)
+    # the surface colour is applied: red dominates on the object (off the
+    # silhouette, where grazing-angle reflections of the ambient light show)
+    inner = dist > 3
+    assert np.all(img[inner][:, 0] > img[inner][:, 1] + 20)
+    # headlight: the part facing the camera is brighter than the silhouette rim
     rim = fg & (dist <= 3)
     core = dist >= 0.6 * dist.max()
     assert lum[core].mean() > lum[rim].mean() + 20
@@ -221,3 +223,11 @@ def test_render_views_validation(mesh, kwargs, match):
 def test_vertex_normals_rejects_non_mesh():
     with pytest.raises(InputError, match="tumor3d.mesh.Mesh"):
         vertex_normals(OCTA_V)
+
+
+def test_importing_render_does_not_import_open3d():
+    import subprocess
+    import sys
+
+    code = "import sys, tumor3d.render; sys.exit('open3d' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0

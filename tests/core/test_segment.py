@@ -157,12 +157,10 @@ def test_tumour_free_phantom_gives_empty_masks():
 def test_t2_fallback_without_normal_slices(t2_case):
     ph, pre, det = t2_case
     keep = np.flatnonzero(det.abnormal)  # only abnormal slices: no reference
-    sub = SliceDetection.from_records([
-        {**det.to_records()[z], "slice_index": i} for i, z in enumerate(keep)
-    ])
-    res = segment_tumor(
-        pre.enhanced[keep], pre.brain_mask[keep], sub, modality="t2", **DEFAULTS
+    sub = SliceDetection.from_records(
+        [{**det.to_records()[z], "slice_index": i} for i, z in enumerate(keep)]
     )
+    res = segment_tumor(pre.enhanced[keep], pre.brain_mask[keep], sub, modality="t2", **DEFAULTS)
     assert np.all(np.isnan(res.reference_centers))
     assert np.all(res.selection == "rule")  # second-brightest cluster on T2
     for i, z in enumerate(keep):
@@ -179,9 +177,9 @@ def test_flair_with_reference_and_with_the_brightest_rule(flair_case):
     # no slice outside the blob gets a tumour (implausible clusters are rejected)
     assert not res.tumor_mask[ph.tumor.sum(axis=(1, 2)) == 0].any()
 
-    sub = SliceDetection.from_records([
-        {**det.to_records()[z], "slice_index": i} for i, z in enumerate(large)
-    ])
+    sub = SliceDetection.from_records(
+        [{**det.to_records()[z], "slice_index": i} for i, z in enumerate(large)]
+    )
     rule = segment_tumor(pre.enhanced[large], pre.brain_mask[large], sub, modality="flair")
     assert np.all(rule.selection == "rule")  # brightest cluster on FLAIR
     for i, z in enumerate(large):
@@ -194,7 +192,9 @@ def test_normal_slice_flagged_abnormal_gets_no_tumour(t2_case):
     flagged = det.abnormal.copy()
     flagged[normal[:2]] = True  # two tumour-free slices wrongly flagged, k = 3
     wrong = SliceDetection(
-        n_modes=det.n_modes, abnormal=flagged, peaks_gray=det.peaks_gray,
+        n_modes=det.n_modes,
+        abnormal=flagged,
+        peaks_gray=det.peaks_gray,
         brain_pixels=det.brain_pixels,
     )
     res = segment_tumor(pre.enhanced, pre.brain_mask, wrong, modality="t2", **DEFAULTS)

@@ -1,0 +1,130 @@
+"""Volume accuracy of the whole core chain on the project phantom (no Prefect).
+
+The chain is called exactly as the task layer (``tasks/stages.py``) calls it
+with ``PipelineConfig()`` defaults: preprocess, detect, segment, interpolate
+(automatic slice count, tapered end caps), marching cubes, and Eq. 7 over the
+abnormal slices plus the slices where segmentation found the tumour's tip.
+The truth is the phantom's exact ``true_volume_mm3``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from tumor3d.config import PipelineConfig
+from tumor3d.detect import SliceDetection, detect_abnormal_slices
+from tumor3d.interpolate import InterpolatedStack, interpolate_stack, slices_between_auto
+from tumor3d.mesh import Mesh
+from tumor3d.metrics import volume_eq7_mm3, volume_voxel_mm3, voxel_volume_mm3
+from tumor3d.phantom import PhantomPatient, make_phantom_patient
+from tumor3d.preprocess import preprocess_volume
+from tumor3d.segment import SegmentationResult, segment_tumor
+from tumor3d.surface import extract_surface, is_watertight, mesh_volume_mm3
+
+TUMOUR_SEEDS = [0, 1, 2, 3, 4]
+TUMOUR_FREE_SEEDS = [0, 1]
+
+
+@dataclass(frozen=True)
+class ChainRun:
+    patient: PhantomPatient
+    detection: SliceDetection
+    segmentation: SegmentationResult
+    stack: InterpolatedStack
+    fine_affine: np.ndarray
+
+
+def _run_chain(patient: PhantomPatient, cfg: PipelineConfig) -> ChainRun:
+    """preprocess -> detect -> segment -> interpolate, as tasks/stages.py does."""
+    scan = patient.scan
+    pre = preprocess_volume(scan.image, **cfg.preprocess.model_dump())
+    det = detect_abnormal_slices(pre.enhanced, pre.brain_mask, **cfg.detect.model_dump())
+    seg = segment_tumor(
+        pre.enhanced, pre.brain_mask, det, modality=scan.modality, **cfg.segment.model_dump()
+    )
+    m = cfg.interpolate.slices_between
+    if m is None:
+        m = slices_between_auto(scan.slice_step_mm, scan.pixel_spacing_mm)
+    stack = interpolate_stack(
+        seg.tumor_mask,
+        method=cfg.interpolate.method,
+        slices_between=m,
+        end_caps=cfg.interpolate.end_caps,
+    )
+    return ChainRun(patient, det, seg, stack, stack.fine_affine(scan.affine))
+
+
+def _eq7_mm3(run: ChainRun) -> float:
+    """Eq. 7 as the measure task computes it (tips found by segmentation count)."""
+    scan = run.patient.scan
+    pixels = run.segmentation.tumor_pixels
+    return volume_eq7_mm3(
+        pixels,
+        run.detection.abnormal | (pixels > 0),
+        pixel_area_mm2=scan.pixel_area_mm2,
+        slab_height_mm=scan.slab_height_mm,
+    )
+
+
+def _error_percent(estimate: float, truth: float) -> float:
+    return 100.0 * (estimate - truth) / truth
+
+
+@pytest.fixture(scope="module", params=TUMOUR_SEEDS, ids=lambda s: f"seed{s}")
+def tumour_run(request) -> tuple[ChainRun, Mesh]:
+    """One phantom and one chain run per seed for the whole module."""
+    cfg = PipelineConfig()
+    run = _run_chain(make_phantom_patient(request.param), cfg)
+    mesh = extract_surface(run.stack.mask, run.fine_affine, **cfg.surface.model_dump())
+    return run, mesh
+
+
+def test_eq7_volume_within_10_percent(tumour_run):
+    run, _ = tumour_run
+    truth = run.patient.true_volume_mm3
+    assert truth > 0
+    err = _error_percent(_eq7_mm3(run), truth)
+    assert abs(err) < 10.0, f"Eq. 7 volume error {err:+.2f} %"
+
+
+def test_mesh_volume_within_10_percent(tumour_run):
+    run, mesh = tumour_run
+    err = _error_percent(mesh_volume_mm3(mesh), run.patient.true_volume_mm3)
+    assert abs(err) < 10.0, f"mesh volume error {err:+.2f} %"
+
+
+def test_mesh_is_watertight(tumour_run):
+    _, mesh = tumour_run
+    assert is_watertight(mesh)
+
+
+def test_mesh_volume_agrees_with_voxel_volume(tumour_run):
+    run, mesh = tumour_run
+    voxel = volume_voxel_mm3(run.stack.mask, voxel_volume_mm3=voxel_volume_mm3(run.fine_affine))
+    assert voxel > 0
+    err = _error_percent(mesh_volume_mm3(mesh), voxel)
+    assert abs(err) < 3.0, f"mesh vs voxel volume {err:+.2f} %"
+
+
+def test_segmented_tumour_lies_on_the_true_tumour(tumour_run):
+    # the volumes could agree by accident (misses cancelling false positives):
+    # the segmented pixels must be mostly true tumour, and cover most of it
+    run, _ = tumour_run
+    seg = run.segmentation.tumor_mask
+    truth = run.patient.slice_masks
+    overlap = np.count_nonzero(seg & truth)
+    assert overlap >= 0.9 * np.count_nonzero(seg)
+    assert overlap >= 0.9 * np.count_nonzero(truth)
+
+
+@pytest.mark.parametrize("seed", TUMOUR_FREE_SEEDS)
+def test_tumour_free_patient_gets_no_tumour_voxel(seed):
+    patient = make_phantom_patient(seed, tumor=False)
+    assert patient.true_volume_mm3 == 0.0
+    run = _run_chain(patient, PipelineConfig())
+    assert run.segmentation.tumor_pixels.tolist() == [0] * patient.scan.n_slices
+    assert not run.stack.mask.any()
+    assert _eq7_mm3(run) == 0.0

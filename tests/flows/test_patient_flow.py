@@ -1,0 +1,225 @@
+"""The single-patient flow end to end, under one temporary Prefect server.
+
+Phantom patients with known truth go in as NIfTI or as a DICOM series; the
+tests check what lands under ``<out>/<patient_id>/``, that a second run is
+all cache hits, that a config change recomputes exactly the stages after it,
+that no DICOM identity leaks into any file or log, and that a failing run
+publishes nothing.
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import json
+import logging
+
+import nibabel as nib
+import numpy as np
+import pandas as pd
+import pytest
+from pydicom.dataset import Dataset, FileMetaDataset
+from pydicom.uid import ExplicitVRLittleEndian, MRImageStorage, generate_uid
+
+from flows.patient import VOLUME_METHODS, run_patient
+from storage.formats import decode_ply
+from storage.phantom_io import write_phantom_patient
+from tasks.stages import STAGES
+from tumor3d.errors import InputError
+from tumor3d.phantom import make_phantom_patient
+from tumor3d.surface import is_watertight, mesh_volume_mm3
+
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
+
+STAGE_NAMES = list(STAGES)
+SECRET = {"PatientName": "Zzyzx^Quintessa^Private", "PatientID": "PHI-99331177",
+          "PatientBirthDate": "19531207"}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return make_phantom_patient(7, patient_id="flowpat")
+
+
+@pytest.fixture(scope="module")
+def nifti_input(phantom, tmp_path_factory):
+    return write_phantom_patient(phantom, tmp_path_factory.mktemp("inputs")).image
+
+
+@pytest.fixture(scope="module")
+def first_run(nifti_input, tmp_path_factory):
+    out = tmp_path_factory.mktemp("out")
+    return out, run_patient(nifti_input, out, patient_id="flowpat")
+
+
+def test_first_run_computes_every_stage_and_publishes_all_outputs(first_run, phantom):
+    out, result = first_run
+    assert [s.stage for s in result.stages] == STAGE_NAMES
+    assert not any(result.cache_hits)
+    folder = out / "flowpat"
+    for name in ("tumor_mask_slices.nii.gz", "tumor_mask.nii.gz", "brain_mask.nii.gz",
+                 "tumor.ply", "tumor_simplified.ply", "metrics.parquet", "slices.parquet",
+                 "provenance.json"):  # fmt: skip
+        assert (folder / name).is_file(), name
+    assert list(folder.glob("render_az*.png"))
+    # nothing half-written or staged is left beside the outputs
+    assert not [p for p in out.iterdir() if p.name.startswith(".flowpat")]
+
+    metrics = pd.read_parquet(folder / "metrics.parquet")
+    required = {"patient_id", "volume_eq7_mm3", "volume_voxel_mm3", "volume_mesh_mm3",
+                "n_slices", "n_abnormal_slices", "faces_mc", "faces_simplified"}  # fmt: skip
+    assert required <= set(metrics.columns)
+    assert {f"time_{s.replace('-', '_')}_s" for s in STAGE_NAMES} <= set(metrics.columns)
+    row = metrics.iloc[0]
+    truth = phantom.true_volume_mm3
+    for key in VOLUME_METHODS:
+        assert abs(row[key] - truth) / truth < 0.10, key
+        assert row[key.replace("_mm3", "_ml")] == pytest.approx(row[key] / 1000.0)
+    assert row["n_slices"] == phantom.scan.n_slices
+    assert 0 < row["faces_simplified"] < row["faces_mc"]
+
+
+def test_published_masks_overlay_the_input(first_run, nifti_input, phantom):
+    out, _ = first_run
+    src = nib.load(nifti_input)
+    seg = nib.load(out / "flowpat" / "tumor_mask_slices.nii.gz")
+    assert seg.shape == src.shape
+    np.testing.assert_array_equal(seg.affine, src.affine)
+    seg_zyx = np.asarray(seg.dataobj).transpose(2, 1, 0) > 0
+    inter = np.count_nonzero(seg_zyx & phantom.slice_masks)
+    dice = 2 * inter / (seg_zyx.sum() + phantom.slice_masks.sum())
+    assert dice > 0.9
+    # The fine mask shares the world space: its RAS bounding box lies inside the
+    # input's, and its voxels sit on the input's slice positions every m+1 slices.
+    fine = nib.load(out / "flowpat" / "tumor_mask.nii.gz")
+    corners = np.array([[0, 0, 0, 1], [*np.array(fine.shape) - 1, 1]], float)
+    ras = corners @ fine.affine.T
+    src_box = np.array([[0, 0, 0, 1], [*np.array(src.shape) - 1, 1]], float) @ src.affine.T
+    lo, hi = src_box[:, :3].min(0) - 1e-6, src_box[:, :3].max(0) + 1e-6
+    assert np.all(ras[:, :3] >= lo) and np.all(ras[:, :3] <= hi)
+
+
+def test_mesh_is_closed_in_ras_and_matches_voxel_volume(first_run):
+    out, result = first_run
+    mesh = decode_ply((out / "flowpat" / "tumor.ply").read_bytes())
+    assert is_watertight(mesh)
+    voxel = result.metrics["volume_voxel_mm3"]
+    assert abs(mesh_volume_mm3(mesh) - voxel) / voxel < 0.03
+    assert b"SPACE=RAS" in (out / "flowpat" / "tumor.ply").read_bytes()[:300]
+
+
+def test_provenance_records_versions_config_and_input_digest(first_run):
+    out, result = first_run
+    prov = json.loads((out / "flowpat" / "provenance.json").read_text())
+    assert prov["versions"]["tumor3d"]
+    assert prov["input"]["digest_sha256"] and len(prov["input"]["digest_sha256"]) == 64
+    assert prov["config"]["simplify"]["reduction_percent"] == 60.0
+    assert [s["stage"] for s in prov["stages"]] == STAGE_NAMES
+
+
+def test_second_run_is_all_cache_hits(first_run, nifti_input):
+    out, first = first_run
+    second = run_patient(nifti_input, out, patient_id="flowpat")
+    assert all(second.cache_hits), [s.stage for s in second.stages if not s.cached]
+    for key in VOLUME_METHODS:
+        assert second.metrics[key] == first.metrics[key]
+
+
+@pytest.mark.parametrize(
+    ("config", "first_changed"),
+    [
+        ({"simplify": {"reduction_percent": 40}}, "simplify-mesh"),
+        ({"interpolate": {"method": "shape"}}, "interpolate-slices"),
+    ],
+)
+def test_config_change_recomputes_that_stage_and_later_only(
+    first_run, nifti_input, config, first_changed
+):
+    out, _ = first_run
+    result = run_patient(nifti_input, out, patient_id="flowpat", config=config)
+    k = STAGE_NAMES.index(first_changed)
+    hits = result.cache_hits
+    assert all(hits[:k]), "stages before the changed one must be cache hits"
+    assert not hits[k], "the changed stage must recompute"
+    # stages after it see new inputs (measure-volume always depends on the mesh)
+    assert not hits[-1]
+
+
+def _write_dicom_series(patient, folder):
+    """An axial DICOM series of a phantom, carrying a known patient identity."""
+    scan = patient.scan
+    folder.mkdir(parents=True)
+    aff = scan.affine  # (x, y, z, 1) -> RAS, x to the patient's left, y posterior
+    lps = np.diag([-1.0, -1.0, 1.0]) @ aff[:3, :3]
+    row_dir = lps[:, 0] / np.linalg.norm(lps[:, 0])
+    col_dir = lps[:, 1] / np.linalg.norm(lps[:, 1])
+    dy, dx = scan.pixel_spacing_mm
+    series_uid = generate_uid()
+    scale = 30000.0 / float(scan.image.max())
+    for k in range(scan.n_slices):
+        origin = np.diag([-1.0, -1.0, 1.0]) @ (aff @ [0, 0, k, 1])[:3]
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID = MRImageStorage
+        meta.MediaStorageSOPInstanceUID = generate_uid()
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        ds = Dataset()
+        ds.file_meta = meta
+        ds.SOPClassUID = MRImageStorage
+        ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+        ds.SeriesInstanceUID = series_uid
+        ds.StudyInstanceUID = generate_uid()
+        ds.Modality = "MR"
+        ds.SeriesDescription = "T2 AX"
+        for key, value in SECRET.items():
+            setattr(ds, key, value)
+        ds.InstanceNumber = k + 1
+        ds.ImageOrientationPatient = [f"{v:.6f}" for v in (*row_dir, *col_dir)]
+        ds.ImagePositionPatient = [f"{v:.6f}" for v in origin]
+        ds.PixelSpacing = [f"{dy:.6f}", f"{dx:.6f}"]
+        ds.SliceThickness = f"{scan.slice_thickness_mm:.3f}"
+        ds.RescaleSlope, ds.RescaleIntercept = f"{1 / scale:.9f}", "0"
+        ds.Rows, ds.Columns = scan.shape[1], scan.shape[2]
+        ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
+        ds.PixelData = np.round(scan.image[k] * scale).astype("<i2").tobytes()
+        ds.save_as(folder / f"slice{(k * 7) % scan.n_slices:03d}.dcm", enforce_file_format=True)
+
+
+def _readable_text(path):
+    """A file's content as searchable bytes: decompressed and decoded where needed."""
+    data = path.read_bytes()
+    if path.name.endswith(".gz"):
+        data = gzip.decompress(data)
+    if path.suffix == ".parquet":
+        data = pd.read_parquet(io.BytesIO(data)).to_csv().encode()
+    return data
+
+
+def test_dicom_identity_never_reaches_outputs_or_logs(tmp_path, caplog, capfd):
+    patient = make_phantom_patient(3, patient_id="dcmsrc")
+    series = tmp_path / "series"
+    _write_dicom_series(patient, series)
+    out = tmp_path / "out"
+    with caplog.at_level(logging.DEBUG):
+        result = run_patient(series, out)
+    assert result.patient_id == "series"  # from the folder name, never from the DICOM
+    assert result.metrics["n_tumor_slices"] > 0
+    captured = capfd.readouterr()
+    logs = caplog.text + captured.out + captured.err
+    for value in SECRET.values():
+        needles = {value, value.replace("^", " "), *value.split("^")}
+        for needle in needles:
+            assert needle not in logs
+            for f in out.rglob("*"):
+                if f.is_file():
+                    assert needle.encode() not in _readable_text(f), (needle, f)
+
+
+def test_failure_inside_the_flow_publishes_nothing(tmp_path):
+    bad = tmp_path / "zeros.nii.gz"
+    nib.save(nib.Nifti1Image(np.zeros((16, 16, 6), np.float32), np.eye(4)), bad)
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match="all-zero"):
+        run_patient(bad, out, patient_id="p1")
+    assert not (out / "p1").exists()
+    assert not [p for p in out.iterdir() if p.name.startswith(".p1")]
