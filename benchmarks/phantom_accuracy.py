@@ -25,18 +25,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from flows.patient import VOLUME_METHODS, run_stages_direct  # noqa: E402
+from flows.patient import VOLUME_LABELS, VOLUME_METHODS, run_stages_direct  # noqa: E402
 from storage.phantom_io import write_phantom_patient  # noqa: E402
 from storage.store import ArtifactStore  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.phantom import make_phantom_patient  # noqa: E402
-
-SHORT = {
-    "volume_eq7_mm3": "Eq. 7",
-    "volume_voxel_mm3": "voxel",
-    "volume_mesh_mm3": "mesh",
-    "volume_mesh_simplified_mm3": "simplified mesh",
-}
 
 
 def _dice(a: np.ndarray, b: np.ndarray) -> float:
@@ -85,7 +78,7 @@ def main() -> None:
         )
         print(normal_rows[-1], flush=True)
     elapsed = time.perf_counter() - t0
-    header = " | ".join(f"{SHORT[k]} error (%)" for k in VOLUME_METHODS)
+    header = " | ".join(f"{VOLUME_LABELS[k]} error (%)" for k in VOLUME_METHODS)
     lines = [
         "# Volume accuracy on phantoms",
         "",
@@ -101,7 +94,7 @@ def main() -> None:
         "|---:|---:|" + "---:|" * len(VOLUME_METHODS) + "---:|---:|",
         *rows,
         "",
-        "| summary | " + " | ".join(SHORT[k] for k in VOLUME_METHODS) + " |",
+        "| summary | " + " | ".join(VOLUME_LABELS[k] for k in VOLUME_METHODS) + " |",
         "|---|" + "---:|" * len(VOLUME_METHODS),
         "| mean error (%) | "
         + " | ".join(f"{statistics.mean(errors[k]):+.2f}" for k in VOLUME_METHODS)

@@ -98,7 +98,7 @@ def _progress() -> Progress:
 
 def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     """Print a patient's volumes (mm3 and mL, by method), slices and stage times."""
-    from flows.patient import VOLUME_METHODS
+    from flows.patient import VOLUME_LABELS, VOLUME_METHODS
 
     m = result.metrics
     table = Table(title=f"Tumour volume, patient {result.patient_id}", title_justify="left")
@@ -107,14 +107,17 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     table.add_column("volume (mL)", justify="right")
     if truth_mm3 is not None:
         table.add_column("error vs truth", justify="right")
-    for key, label in VOLUME_METHODS.items():
-        row = [label, f"{m[key]:,.1f}", f"{m[key] / 1000.0:.3f}"]
+    for key in VOLUME_METHODS:
+        row = [VOLUME_LABELS[key], f"{m[key]:,.1f}", f"{m[key] / 1000.0:.3f}"]
         if truth_mm3 is not None:
             row.append(f"{100.0 * abs(m[key] - truth_mm3) / truth_mm3:.2f} %" if truth_mm3 else "-")
         table.add_row(*row)
     if truth_mm3 is not None:
         table.add_row("truth (phantom)", f"{truth_mm3:,.1f}", f"{truth_mm3 / 1000.0:.3f}", "")
     console.print(table)
+    console.print(
+        "[dim]" + "; ".join(f"{VOLUME_LABELS[k]}: {d}" for k, d in VOLUME_METHODS.items()) + "[/]"
+    )
     if m["faces_mc"] == 0:
         mesh_note = "no tumour found: no mesh, no render"
     else:

@@ -48,6 +48,7 @@ __all__ = [
     "DirectRunner",
     "PatientResult",
     "StageRun",
+    "VOLUME_LABELS",
     "VOLUME_METHODS",
     "default_store_dir",
     "derive_patient_id",
@@ -64,6 +65,14 @@ VOLUME_METHODS: dict[str, str] = {
     "volume_voxel_mm3": "voxel count of the interpolated 3-D mask x voxel volume",
     "volume_mesh_mm3": "volume enclosed by the marching-cubes mesh",
     "volume_mesh_simplified_mm3": "volume enclosed by the simplified mesh",
+}
+
+#: Short names of the volume methods, for tables.
+VOLUME_LABELS: dict[str, str] = {
+    "volume_eq7_mm3": "Eq. 7 (slab sum)",
+    "volume_voxel_mm3": "voxel count",
+    "volume_mesh_mm3": "mesh (marching cubes)",
+    "volume_mesh_simplified_mm3": "mesh (simplified)",
 }
 
 _MODALITIES = ("t2", "flair", "t1c")
