@@ -42,7 +42,7 @@ from tasks.caching import code_digest
 from tasks.stages import InputSource, StageOutput
 from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.errors import InputError
-from tumor3d.scan import validate_patient_id
+from tumor3d.scan import MODALITIES, validate_patient_id
 
 __all__ = [
     "DirectRunner",
@@ -75,7 +75,6 @@ VOLUME_LABELS: dict[str, str] = {
     "volume_mesh_simplified_mm3": "mesh (simplified)",
 }
 
-_MODALITIES = ("t2", "flair", "t1c")
 _PACKAGES = (
     "prefect", "numpy", "scipy", "scikit-image", "nibabel", "pydicom", "open3d-cpu",
     "pandas", "pyarrow", "PyWavelets", "numba", "pydantic", "fast-simplification",
@@ -185,8 +184,8 @@ def _prepare_source(
     path = Path(input_path).expanduser()
     if not path.exists():
         raise InputError("no such file or folder", path=str(path))
-    if modality not in _MODALITIES:
-        raise InputError(f"unknown modality {modality!r}; choose one of {', '.join(_MODALITIES)}")
+    if modality not in MODALITIES:
+        raise InputError(f"unknown modality {modality!r}: expected one of {', '.join(MODALITIES)}")
     pid = validate_patient_id(patient_id) if patient_id is not None else derive_patient_id(path)
     return InputSource(
         path=str(path.resolve()),

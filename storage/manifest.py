@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tumor3d.errors import InputError
-from tumor3d.scan import validate_patient_id
+from tumor3d.scan import MODALITIES, validate_patient_id
 
 __all__ = ["MANIFEST_COLUMNS", "REQUIRED_COLUMNS", "ManifestRow", "read_manifest", "write_manifest"]
 
@@ -44,7 +44,6 @@ MANIFEST_COLUMNS = (
     "slice_thickness_mm",
     "slice_gap_mm",
 )
-_MODALITIES = ("t2", "flair", "t1c")
 _Fail = Callable[[str, str], InputError]
 
 
@@ -82,9 +81,9 @@ class ManifestRow:
         if self.reference is not None:
             object.__setattr__(self, "reference", Path(self.reference))
         modality = self.modality.strip().lower() if isinstance(self.modality, str) else None
-        if modality not in _MODALITIES:
+        if modality not in MODALITIES:
             raise InputError(
-                f"unknown modality {self.modality!r}: expected one of {', '.join(_MODALITIES)}"
+                f"unknown modality {self.modality!r}: expected one of {', '.join(MODALITIES)}"
             )
         object.__setattr__(self, "modality", modality)
         if self.reference_labels is not None:
@@ -160,10 +159,10 @@ def read_manifest(path: str | os.PathLike[str]) -> list[ManifestRow]:
             raise fail("patient_id", f"duplicate patient_id {pid!r} (also in data row {seen[pid]})")
         seen[pid] = index
         modality = cells["modality"].lower()
-        if modality not in _MODALITIES:
+        if modality not in MODALITIES:
             raise fail(
                 "modality",
-                f"unknown modality {cells['modality']!r}: expected one of {', '.join(_MODALITIES)}",
+                f"unknown modality {cells['modality']!r}: expected one of {', '.join(MODALITIES)}",
             )
         image = _resolve(base, cells["image"])
         if not image.exists():

@@ -72,7 +72,7 @@ from typing import Any
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.scan import Scan, SourceGrid, validate_patient_id
+from tumor3d.scan import MODALITIES, Scan, SourceGrid, validate_patient_id
 
 __all__ = [
     "IMAGE_STACK_SUFFIXES",
@@ -87,7 +87,6 @@ __all__ = [
     "read_scan",
 ]
 
-MODALITIES = ("t2", "flair", "t1c")
 """Accepted values of ``modality`` (case-insensitive)."""
 
 REL_TOL = 0.01

@@ -24,11 +24,15 @@ import numpy as np
 from tumor3d.errors import InputError
 
 __all__ = [
+    "MODALITIES",
     "Scan",
     "SourceGrid",
     "validate_patient_id",
     "zyx_index_to_ras",
 ]
+
+#: The MR sequences the pipeline knows (they decide which cluster is tumour).
+MODALITIES = ("t2", "flair", "t1c")
 
 _SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 
@@ -228,6 +232,10 @@ class Scan:
             if not np.isfinite(value) or value <= 0:
                 raise InputError(f"{name} must be a positive number of mm, got {value}")
         validate_patient_id(self.patient_id)
+        if self.modality not in MODALITIES:
+            raise InputError(
+                f"unknown modality {self.modality!r}: expected one of {', '.join(MODALITIES)}"
+            )
 
     @property
     def shape(self) -> tuple[int, int, int]:

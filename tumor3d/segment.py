@@ -30,6 +30,7 @@ from skimage.morphology import disk
 
 from tumor3d.detect import SliceDetection, _check_pair
 from tumor3d.errors import InputError
+from tumor3d.scan import MODALITIES
 
 __all__ = [
     "FCMDiagnostics",
@@ -39,7 +40,6 @@ __all__ = [
     "segment_tumor",
 ]
 
-MODALITIES = ("t2", "flair", "t1c")
 N_GRAY = 256
 
 
