@@ -36,6 +36,7 @@ from flows.progress import ProgressEvent, report
 from storage import nifti
 from storage.formats import encode_parquet
 from storage.inputs import input_digest
+from storage.readers import derive_patient_id
 from storage.store import ArtifactStore, canonical_dumps, source_grid_from_metadata
 from tasks import stages
 from tasks.caching import code_digest
@@ -51,7 +52,6 @@ __all__ = [
     "VOLUME_LABELS",
     "VOLUME_METHODS",
     "default_store_dir",
-    "derive_patient_id",
     "patient_flow",
     "prefect_result_storage",
     "run_patient",
@@ -122,13 +122,6 @@ def prefect_result_storage(store_dir: str | Path) -> Iterator[None]:
     path.mkdir(parents=True, exist_ok=True)
     with temporary_settings({PREFECT_LOCAL_STORAGE_PATH: path}):
         yield
-
-
-def derive_patient_id(input_path: str | Path) -> str:
-    """Patient id from an input's file or folder name (see :mod:`storage.readers`)."""
-    from storage.readers import derive_patient_id as _derive
-
-    return _derive(input_path)
 
 
 class _StageRunner:
