@@ -77,3 +77,30 @@ def test_invalid_config_names_the_key(tmp_path):
     assert "simplify.reduction_percent" in result.output
     assert "simplify.colour" in result.output
     assert "bad.yaml" in result.output
+
+
+def test_phantom_command_writes_patients_truth_and_a_readable_manifest(tmp_path):
+    import json
+
+    from storage.manifest import read_manifest
+    from storage.readers import read_scan
+
+    out = tmp_path / "cohort"
+    result = runner.invoke(app, ["phantom", "--out", str(out), "--n", "2", "--normal", "1"])
+    assert result.exit_code == 0, result.output
+    rows = read_manifest(out / "manifest.csv")
+    assert [r.patient_id for r in rows] == ["phantom000", "phantom001n"]
+    volumes = []
+    for row in rows:
+        scan = read_scan(row.image, modality=row.modality)
+        assert (scan.slice_thickness_mm, scan.slice_gap_mm) == (2.0, 3.0)  # from the sidecar
+        assert row.reference is not None and row.reference.is_file()
+        truth = json.loads((row.image.parent / f"{row.patient_id}_truth.json").read_text())
+        volumes.append(truth["true_volume_mm3"])
+    assert volumes[0] > 0 and volumes[1] == 0
+
+
+def test_phantom_command_rejects_more_normal_than_total(tmp_path):
+    result = runner.invoke(app, ["phantom", "--out", str(tmp_path), "--n", "1", "--normal", "2"])
+    assert result.exit_code == 2
+    assert "--normal" in result.output
