@@ -30,6 +30,7 @@ from tumor3d.config import (
 )
 from tumor3d.errors import NoSurfaceError
 from tumor3d.mesh import Mesh
+from tumor3d.scan import slab_height_mm
 
 __all__ = [
     "STAGES",
@@ -269,7 +270,7 @@ def interpolate_task(
 @_stage_task("extract-surface")
 def surface_task(tumor_mask: ArtifactRef, config: SurfaceConfig, store_root: str) -> StageOutput:
     """Marching cubes on the zero-padded interpolated mask (spec section 5)."""
-    from tumor3d.surface import extract_surface, is_watertight
+    from tumor3d.surface import extract_surface
 
     store = ArtifactStore(store_root)
     mask, affine = store.get_volume(tumor_mask)
@@ -283,7 +284,7 @@ def surface_task(tumor_mask: ArtifactRef, config: SurfaceConfig, store_root: str
         values={
             "faces": mesh.n_faces,
             "vertices": mesh.n_vertices,
-            "watertight": bool(not mesh.is_empty and is_watertight(mesh)),
+            "watertight": _closed(mesh),
         },
     )
 
@@ -306,17 +307,18 @@ def simplify_task(mesh: ArtifactRef, config: SimplifyConfig, store_root: str) ->
         simplified, info = simplify_mesh(source, **config.model_dump(), return_info=True)
         values.update(simplified=True, watertight=bool(info["watertight"]))
     else:
-        values["watertight"] = bool(not source.is_empty and _watertight(source))
+        values["watertight"] = _closed(source)
     values["faces"] = simplified.n_faces
     return StageOutput(
         stage="simplify-mesh", artifacts={"mesh": store.put_mesh(simplified)}, values=values
     )
 
 
-def _watertight(mesh: Mesh) -> bool:
+def _closed(mesh: Mesh) -> bool:
+    """True for a non-empty watertight mesh (an empty mesh encloses nothing)."""
     from tumor3d.surface import is_watertight
 
-    return bool(is_watertight(mesh))
+    return bool(not mesh.is_empty and is_watertight(mesh))
 
 
 #: The smallest closed triangle mesh (a tetrahedron) has 4 faces.
@@ -361,10 +363,8 @@ def measure_task(
     seg = store.get_table(segmentation)
     fine, fine_affine = store.get_volume(tumor_mask)
     dy, dx = meta["pixel_spacing_mm"]
-    slab_mm = (
-        meta["slice_step_mm"]
-        if meta["slice_gap_mm"] is None
-        else meta["slice_thickness_mm"] + meta["slice_gap_mm"]
+    slab_mm = slab_height_mm(
+        meta["slice_step_mm"], meta["slice_thickness_mm"], meta["slice_gap_mm"]
     )
     tumor_pixels = seg["tumor_pixels"].to_numpy()
     # Eq. 7 sums the abnormal slices; a slice where segmentation found the

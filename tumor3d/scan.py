@@ -27,6 +27,7 @@ __all__ = [
     "MODALITIES",
     "Scan",
     "SourceGrid",
+    "slab_height_mm",
     "validate_patient_id",
     "zyx_index_to_ras",
 ]
@@ -69,6 +70,15 @@ def validate_patient_id(patient_id: str) -> str:
             "(no path separators, no '..')"
         )
     return patient_id
+
+
+def slab_height_mm(
+    slice_step_mm: float, slice_thickness_mm: float, slice_gap_mm: float | None
+) -> float:
+    """Slab height of Eq. 7: thickness + gap, or the step where the gap is unknown."""
+    if slice_gap_mm is None:
+        return float(slice_step_mm)
+    return float(slice_thickness_mm + slice_gap_mm)
 
 
 def zyx_index_to_ras(points_zyx: np.ndarray, affine: np.ndarray) -> np.ndarray:
@@ -259,10 +269,8 @@ class Scan:
 
     @property
     def slab_height_mm(self) -> float:
-        """Slice thickness + gap, the slab height of Eq. 7 (= the step if the gap is unknown)."""
-        if self.slice_gap_mm is None:
-            return float(self.slice_step_mm)
-        return float(self.slice_thickness_mm + self.slice_gap_mm)
+        """Slice thickness + gap, the slab height of Eq. 7 (see :func:`slab_height_mm`)."""
+        return slab_height_mm(self.slice_step_mm, self.slice_thickness_mm, self.slice_gap_mm)
 
     def index_to_ras(self, points_zyx: np.ndarray) -> np.ndarray:
         """Map ``(z, y, x)`` voxel indices to RAS mm (see :func:`zyx_index_to_ras`)."""
