@@ -1,0 +1,310 @@
+"""DICOM reader: one series from a folder of single-frame images -> `Scan`."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from storage.readers.common import (
+    REL_TOL,
+    _check_modality,
+    _check_override,
+    _check_volume,
+    _describe,
+    _resolve_thickness,
+    derive_patient_id,
+)
+from tumor3d.constants import (
+    DICOM_DUPLICATE_POSITION_MM,
+    DICOM_IN_PLANE_DRIFT_FRACTION,
+    DICOM_ORIENTATION_TOL,
+    DICOM_PIXEL_SPACING_REL_TOL,
+    DICOM_UNIT_VECTOR_TOL,
+)
+from tumor3d.errors import InputError
+from tumor3d.scan import Scan, SourceGrid, validate_patient_id
+
+__all__ = ["DICOM_FILE_SUFFIXES", "read_dicom_series"]
+
+DICOM_FILE_SUFFIXES = (".dcm", ".dicom", ".ima")
+"""File suffixes (lower case) of single DICOM files."""
+
+
+class _NoDicomImagesError(InputError):
+    """A folder without any DICOM image (lets read_scan suggest a stack sidecar)."""
+
+
+def read_dicom_series(
+    folder: str | os.PathLike[str],
+    *,
+    modality: str = "t2",
+    patient_id: str | None = None,
+    series_uid: str | None = None,
+    slice_thickness_mm: float | None = None,
+    slice_gap_mm: float | None = None,
+) -> Scan:
+    """Read one DICOM series from a folder (not recursive) as a `Scan`.
+
+    Files that are not DICOM (README, DICOMDIR without pixels, ...) are
+    skipped. Images are grouped by ``SeriesInstanceUID``, sorted by their
+    position along the slice normal, checked for a uniform step (1 %) and
+    rescaled with ``RescaleSlope``/``RescaleIntercept`` (see the module
+    docstring for the affine).
+
+    Parameters
+    ----------
+    folder : str or path-like
+        Folder holding the series' files.
+    modality, patient_id, slice_thickness_mm, slice_gap_mm
+        As for :func:`read_scan`.
+    series_uid : str, optional
+        Required when the folder holds several series.
+
+    Returns
+    -------
+    Scan
+
+    Raises
+    ------
+    InputError
+        No images, several series without ``series_uid``, an unknown
+        ``series_uid``, a single image, inconsistent geometry, duplicate
+        positions, a non-uniform step, undecodable pixels, or a constant or
+        non-finite volume.
+    """
+    import pydicom
+    from pydicom.errors import InvalidDicomError
+
+    d = Path(folder)
+    mod = _check_modality(modality)
+    pid = derive_patient_id(d) if patient_id is None else validate_patient_id(patient_id)
+    thickness_override = _check_override("slice_thickness_mm", slice_thickness_mm, allow_zero=False)
+    gap_override = _check_override("slice_gap_mm", slice_gap_mm, allow_zero=True)
+    if not d.is_dir():
+        raise InputError("no such folder", str(d))
+
+    series: dict[str, list[tuple[Path, Any]]] = {}
+    for f in sorted(d.iterdir()):
+        if not f.is_file():
+            continue
+        try:
+            ds = pydicom.dcmread(f, defer_size="4 KB", force=False)
+        except InvalidDicomError:
+            continue  # not a DICOM file: skipped silently
+        except Exception as exc:
+            raise InputError(f"unreadable DICOM file ({_describe(exc)})", str(f)) from exc
+        if "PixelData" not in ds:
+            continue  # DICOMDIR, structured report, presentation state, ...
+        series.setdefault(str(ds.get("SeriesInstanceUID", "")), []).append((f, ds))
+
+    if not series:
+        raise _NoDicomImagesError(f"no DICOM images found in {d}")
+    if series_uid is None and len(series) > 1:
+        raise InputError(
+            f"{len(series)} DICOM series found; choose one with series_uid: "
+            + _describe_series(series),
+            str(d),
+        )
+    if series_uid is not None and series_uid not in series:
+        raise InputError(
+            f"series_uid {series_uid!r} not found; available: " + _describe_series(series),
+            str(d),
+        )
+    items = series[series_uid if series_uid is not None else next(iter(series))]
+    if len(items) < 2:
+        raise InputError(
+            f"a single 2-D image ({items[0][0].name}) in the DICOM series: at least 2 "
+            "slices are needed",
+            str(d),
+        )
+    geometry = [_dicom_geometry(f, ds) for f, ds in items]
+    image, affine, step, pixel_spacing, first = _assemble_dicom(items, geometry, d)
+    _check_volume(image, str(d))
+    file_thickness = None
+    raw_thickness = first.get("SliceThickness", None)
+    if raw_thickness not in (None, ""):
+        try:
+            value = float(raw_thickness)
+        except (TypeError, ValueError):
+            value = float("nan")
+        if math.isfinite(value) and value > 0:
+            file_thickness = value
+    thickness, gap = _resolve_thickness(
+        step, file_thickness, thickness_override, gap_override, str(d)
+    )
+    nz, ny, nx = image.shape
+    return Scan(
+        image=image,
+        affine=affine,
+        pixel_spacing_mm=pixel_spacing,
+        slice_step_mm=step,
+        slice_thickness_mm=thickness,
+        slice_gap_mm=gap,
+        modality=mod,
+        patient_id=pid,
+        source=f"DICOM series in folder {d.name}, {nz} slices",
+        source_grid=SourceGrid(shape=(nx, ny, nz), affine=affine, axes=(0, 1, 2)),
+    )
+
+
+def _describe_series(series: dict[str, list[tuple[Path, Any]]]) -> str:
+    parts = []
+    for uid, items in series.items():
+        description = str(items[0][1].get("SeriesDescription", "") or "")
+        parts.append(f"{uid or '(no SeriesInstanceUID)'} ({description!r}, {len(items)} files)")
+    return "; ".join(parts)
+
+
+def _dicom_geometry(f: Path, ds: Any) -> dict[str, Any]:
+    """Read and check the geometry tags of one image."""
+    values: dict[str, Any] = {}
+    for tag, n in (
+        ("ImageOrientationPatient", 6),
+        ("ImagePositionPatient", 3),
+        ("PixelSpacing", 2),
+    ):
+        raw = ds.get(tag, None)
+        if raw is None or raw == "":
+            raise InputError(f"missing {tag}: cannot place the slice in space", str(f))
+        try:
+            arr = np.array([float(v) for v in raw], dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"invalid {tag} {raw!r}", str(f)) from exc
+        if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+            raise InputError(f"{tag} must hold {n} finite numbers, got {list(raw)}", str(f))
+        values[tag] = arr
+    if np.any(values["PixelSpacing"] <= 0):
+        raise InputError(f"PixelSpacing must be positive, got {values['PixelSpacing']}", str(f))
+    row_cos, col_cos = values["ImageOrientationPatient"][:3], values["ImageOrientationPatient"][3:]
+    nr, nc = np.linalg.norm(row_cos), np.linalg.norm(col_cos)
+    if (
+        abs(nr - 1) > DICOM_UNIT_VECTOR_TOL
+        or abs(nc - 1) > DICOM_UNIT_VECTOR_TOL
+        or abs(row_cos @ col_cos) > DICOM_UNIT_VECTOR_TOL
+    ):
+        raise InputError(
+            "ImageOrientationPatient does not hold two orthogonal unit vectors", str(f)
+        )
+    frames = ds.get("NumberOfFrames", 1)
+    if int(frames or 1) > 1:
+        raise InputError(
+            f"a multi-frame image ({frames} frames) is not supported: give one file per slice",
+            str(f),
+        )
+    if int(ds.get("SamplesPerPixel", 1) or 1) != 1:
+        raise InputError("a colour DICOM image is not supported (SamplesPerPixel != 1)", str(f))
+    try:
+        rows, cols = int(ds.Rows), int(ds.Columns)
+    except (AttributeError, TypeError, ValueError) as exc:
+        raise InputError("missing or invalid Rows/Columns", str(f)) from exc
+    values["row_cos"] = row_cos / nr
+    values["col_cos"] = col_cos / nc
+    values["shape"] = (rows, cols)
+    return values
+
+
+def _assemble_dicom(
+    items: list[tuple[Path, Any]], geometry: list[dict[str, Any]], folder: Path
+) -> tuple[np.ndarray, np.ndarray, float, tuple[float, float], Any]:
+    """Sort, check and stack the slices; return image, RAS affine, step, (dy, dx), first ds."""
+    g0, f0 = geometry[0], items[0][0]
+    for (f, _), g in zip(items[1:], geometry[1:], strict=True):
+        if g["shape"] != g0["shape"]:
+            raise InputError(
+                f"image size {g['shape']} differs from {g0['shape']} of {f0.name}", str(f)
+            )
+        if (
+            np.max(np.abs(g["ImageOrientationPatient"] - g0["ImageOrientationPatient"]))
+            > DICOM_ORIENTATION_TOL
+        ):
+            raise InputError(
+                f"ImageOrientationPatient differs from that of {f0.name}: all slices of a "
+                "series must share one orientation",
+                str(f),
+            )
+        if np.any(
+            np.abs(g["PixelSpacing"] - g0["PixelSpacing"])
+            > DICOM_PIXEL_SPACING_REL_TOL * g0["PixelSpacing"]
+        ):
+            raise InputError(
+                f"PixelSpacing {g['PixelSpacing']} differs from {g0['PixelSpacing']} of {f0.name}",
+                str(f),
+            )
+    row_cos, col_cos = g0["row_cos"], g0["col_cos"]
+    normal = np.cross(row_cos, col_cos)
+    normal /= np.linalg.norm(normal)
+    positions = np.array([g["ImagePositionPatient"] for g in geometry])
+    dist = positions @ normal
+    order = np.argsort(dist, kind="stable")
+    dist, positions = dist[order], positions[order]
+    names = [items[i][0].name for i in order]
+    steps = np.diff(dist)
+    for i, s in enumerate(steps):
+        if s < DICOM_DUPLICATE_POSITION_MM:
+            raise InputError(
+                f"duplicate slice position: {names[i]} and {names[i + 1]} lie at the same "
+                f"position ({dist[i]:.4f} mm along the slice normal); several images per "
+                "position (echoes, time points) are not supported",
+                str(folder),
+            )
+    expected = float(np.median(steps))
+    bad = np.flatnonzero(np.abs(steps - expected) > REL_TOL * expected)
+    if bad.size:
+        i = int(bad[0])
+        raise InputError(
+            f"non-uniform slice step: between {names[i]} and {names[i + 1]} the step is "
+            f"{steps[i]:.4g} mm, expected {expected:.4g} mm (the median step; tolerance 1 %)",
+            str(folder),
+        )
+    step = float((dist[-1] - dist[0]) / (len(dist) - 1))
+    in_plane = (positions - positions[0]) - np.outer(dist - dist[0], normal)
+    drift = float(np.max(np.linalg.norm(in_plane, axis=1)))
+    dy, dx = (float(v) for v in g0["PixelSpacing"])
+    if drift > DICOM_IN_PLANE_DRIFT_FRACTION * min(dx, dy):
+        raise InputError(
+            f"slice positions drift by up to {drift:.3g} mm within the slice plane (a "
+            "sheared stack, e.g. gantry tilt), which is not supported",
+            str(folder),
+        )
+
+    slices = []
+    for i in order:
+        f, ds = items[i]
+        try:
+            pixels = np.asarray(ds.pixel_array, dtype=np.float64)
+        except Exception as exc:
+            raise InputError(f"cannot decode the pixel data ({_describe(exc)})", str(f)) from exc
+        if pixels.shape != g0["shape"]:
+            raise InputError(
+                f"pixel data of shape {pixels.shape} does not match Rows x Columns {g0['shape']}",
+                str(f),
+            )
+        slope = _dicom_float(ds, "RescaleSlope", 1.0, f)
+        intercept = _dicom_float(ds, "RescaleIntercept", 0.0, f)
+        slices.append(pixels * slope + intercept)
+    image = np.stack(slices).astype(np.float32)
+
+    lps = np.eye(4)
+    lps[:3, 0] = row_cos * dx
+    lps[:3, 1] = col_cos * dy
+    lps[:3, 2] = normal * step
+    lps[:3, 3] = positions[0]
+    affine = np.diag([-1.0, -1.0, 1.0, 1.0]) @ lps
+    return image, affine, step, (dy, dx), items[int(order[0])][1]
+
+
+def _dicom_float(ds: Any, tag: str, default: float, f: Path) -> float:
+    raw = ds.get(tag, None)
+    if raw is None or raw == "":
+        return default
+    try:
+        value = float(raw)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"invalid {tag} {raw!r}", str(f)) from exc
+    if not math.isfinite(value):
+        raise InputError(f"{tag} must be finite, got {raw!r}", str(f))
+    return value

@@ -1,0 +1,163 @@
+"""NIfTI reader: a ``.nii``/``.nii.gz`` file (and its BIDS JSON sidecar) -> `Scan`."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from storage.readers.common import (
+    NIFTI_SUFFIXES,
+    REL_TOL,
+    _check_modality,
+    _check_override,
+    _check_volume,
+    _describe,
+    _positive_number,
+    _resolve_thickness,
+    choose_slice_axis,
+    derive_patient_id,
+)
+from tumor3d.constants import SINGULAR_DET_TOL
+from tumor3d.errors import InputError
+from tumor3d.scan import Scan, SourceGrid, validate_patient_id
+
+__all__ = ["read_nifti_scan"]
+
+
+def read_nifti_scan(
+    path: str | os.PathLike[str],
+    *,
+    modality: str = "t2",
+    patient_id: str | None = None,
+    slice_thickness_mm: float | None = None,
+    slice_gap_mm: float | None = None,
+) -> Scan:
+    """Read a 3-D NIfTI file (or 4-D with one volume) as a `Scan`.
+
+    The affine is nibabel's ``img.affine`` (sform or qform as nibabel
+    chooses); the slice axis follows :func:`choose_slice_axis`. An optional
+    BIDS JSON sidecar (``x.nii.gz`` -> ``x.json``) gives ``SliceThickness``
+    and ``SpacingBetweenSlices`` (centre to centre; must match the affine's
+    slice step within 1 %).
+
+    Parameters
+    ----------
+    path : str or path-like
+        The ``.nii`` or ``.nii.gz`` file.
+    modality, patient_id, slice_thickness_mm, slice_gap_mm
+        As for :func:`read_scan`.
+
+    Returns
+    -------
+    Scan
+
+    Raises
+    ------
+    InputError
+        Unreadable file, unsupported dimensionality, a single 2-D image,
+        a singular affine, a constant or non-finite volume, or a sidecar that
+        contradicts the image.
+    """
+    import nibabel as nib
+
+    p = Path(path)
+    where = str(p)
+    mod = _check_modality(modality)
+    pid = derive_patient_id(p) if patient_id is None else validate_patient_id(patient_id)
+    thickness_override = _check_override("slice_thickness_mm", slice_thickness_mm, allow_zero=False)
+    gap_override = _check_override("slice_gap_mm", slice_gap_mm, allow_zero=True)
+    if not p.is_file():
+        raise InputError("no such file", where)
+    try:
+        img = nib.load(where)
+    except Exception as exc:  # nibabel raises many types for a bad file
+        raise InputError(f"not a readable NIfTI image ({_describe(exc)})", where) from exc
+    if not isinstance(img, nib.Nifti1Image | nib.Nifti2Image):
+        raise InputError(f"not a NIfTI image (nibabel read it as {type(img).__name__})", where)
+
+    shape = tuple(int(s) for s in img.shape)
+    if len(shape) == 4 and shape[3] == 1:
+        shape = shape[:3]
+    elif len(shape) == 4:
+        raise InputError(
+            f"a 4-D image with {shape[3]} volumes (shape {shape}): give a single 3-D volume",
+            where,
+        )
+    elif len(shape) > 4:
+        raise InputError(f"a {len(shape)}-D image (shape {shape}): give a 3-D volume", where)
+    if len(shape) < 3 or min(shape) < 2:
+        raise InputError(f"a single 2-D image (shape {shape}): at least 2 slices are needed", where)
+
+    affine = np.asarray(img.affine, dtype=np.float64)
+    if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < SINGULAR_DET_TOL:
+        raise InputError("the image affine is singular or not finite", where)
+    try:
+        data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32)
+    except Exception as exc:
+        raise InputError(f"cannot read the voxel data ({_describe(exc)})", where) from exc
+    data = data.reshape(shape)
+
+    s = choose_slice_axis(affine)
+    axes = (*[a for a in range(3) if a != s], s)
+    image = np.ascontiguousarray(data.transpose(axes[::-1]))  # (z, y, x)
+    _check_volume(image, where)
+    scan_affine = affine.copy()
+    for k in range(3):
+        scan_affine[:, k] = affine[:, axes[k]]
+    spacing = np.linalg.norm(affine[:3, :3], axis=0)
+    dx, dy, step = (float(spacing[a]) for a in axes)
+
+    file_thickness = _read_bids_sidecar(p, step)
+    thickness, gap = _resolve_thickness(
+        step, file_thickness, thickness_override, gap_override, where
+    )
+    return Scan(
+        image=image,
+        affine=scan_affine,
+        pixel_spacing_mm=(dy, dx),
+        slice_step_mm=step,
+        slice_thickness_mm=thickness,
+        slice_gap_mm=gap,
+        modality=mod,
+        patient_id=pid,
+        source=f"NIfTI file {p.name}, {image.shape[0]} slices along voxel axis {s}",
+        source_grid=SourceGrid(shape=shape, affine=affine, axes=axes),
+    )
+
+
+def _bids_sidecar_path(p: Path) -> Path:
+    lower = p.name.lower()
+    for suffix in NIFTI_SUFFIXES:
+        if lower.endswith(suffix):
+            return p.with_name(p.name[: -len(suffix)] + ".json")
+    return p.with_suffix(".json")
+
+
+def _read_bids_sidecar(p: Path, step: float) -> float | None:
+    """Return the sidecar's SliceThickness (or None); check SpacingBetweenSlices."""
+    sidecar = _bids_sidecar_path(p)
+    if not sidecar.is_file():
+        return None
+    try:
+        meta = json.loads(sidecar.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"not a readable JSON sidecar ({_describe(exc)})", str(sidecar)) from exc
+    if not isinstance(meta, dict):
+        raise InputError("the JSON sidecar must hold an object", str(sidecar))
+    thickness = None
+    if "SliceThickness" in meta:
+        thickness = _positive_number(meta["SliceThickness"], "SliceThickness", str(sidecar))
+    if "SpacingBetweenSlices" in meta:
+        spacing = _positive_number(
+            meta["SpacingBetweenSlices"], "SpacingBetweenSlices", str(sidecar)
+        )
+        if abs(spacing - step) > REL_TOL * step:
+            raise InputError(
+                f"SpacingBetweenSlices = {spacing:g} mm disagrees with the slice step "
+                f"{step:.6g} mm of the image affine (more than 1 %)",
+                str(sidecar),
+            )
+    return thickness
