@@ -13,6 +13,7 @@ __all__ = [
     "DICOM_ORIENTATION_TOL",
     "DICOM_PIXEL_SPACING_REL_TOL",
     "DICOM_UNIT_VECTOR_TOL",
+    "IN_PLANE_ORTHOGONALITY_TOL",
     "MAX_VOXELS_DEFAULT",
     "REL_TOL",
     "SHEAR_TOL",
@@ -31,6 +32,13 @@ REL_TOL = 0.01
 
 Scanner-stated spacings are rounded to a few digits; 1 % is well above that
 rounding and well below any step a reader could confuse with another."""
+
+IN_PLANE_ORTHOGONALITY_TOL = 1e-4
+"""Largest ``1 - sin(angle)`` between a grid's two in-plane axes.
+
+Above it ``dx * dy`` overstates the pixel area by more than 0.01 % (an angle
+of about 89.2 degrees), so such an input is refused rather than measured
+wrongly; real MR affines are perpendicular to float32 round-off."""
 
 SHEAR_TOL = 1e-6
 """Relative shear below which an affine's slice axis counts as orthogonal to

@@ -12,6 +12,21 @@ Affine convention
 millimetres, i.e. the affine nibabel would report for the array
 ``image.transpose(2, 1, 0)``. Use :meth:`Scan.index_to_ras` to map points
 given in array order ``(z, y, x)``.
+
+Sheared grids
+-------------
+The slice-axis column of the affine need not be perpendicular to the slice
+plane (a NIfTI converted from a gantry-tilted series has such a shear). The
+slice *step* is then the distance between slice planes, not the length of
+that column: with ``c_x, c_y, c_z`` the affine's first three columns,
+
+    step = |det [c_x c_y c_z]| / |c_x x c_y|
+
+(:func:`slice_plane_spacing_mm`), so that one pixel area times the step is
+the voxel volume ``|det|`` and the slab volumes of Eq. 7 add up to the
+voxel-counted volume. The two in-plane columns must be perpendicular (to
+:data:`tumor3d.constants.IN_PLANE_ORTHOGONALITY_TOL`), so that the pixel area
+is ``dx * dy``.
 """
 
 from __future__ import annotations
@@ -21,13 +36,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tumor3d.constants import IN_PLANE_ORTHOGONALITY_TOL, REL_TOL, SINGULAR_DET_TOL
 from tumor3d.errors import InputError
 
 __all__ = [
     "MODALITIES",
     "Scan",
     "SourceGrid",
+    "in_plane_shear",
     "slab_height_mm",
+    "slice_plane_spacing_mm",
     "validate_patient_id",
     "zyx_index_to_ras",
 ]
@@ -75,10 +93,105 @@ def validate_patient_id(patient_id: str) -> str:
 def slab_height_mm(
     slice_step_mm: float, slice_thickness_mm: float, slice_gap_mm: float | None
 ) -> float:
-    """Slab height of Eq. 7: thickness + gap, or the step where the gap is unknown."""
+    """Slab height of Eq. 7: thickness + gap, or the step where the gap is unknown.
+
+    Parameters
+    ----------
+    slice_step_mm : float
+        Distance between consecutive slice *planes* in mm (for a sheared
+        grid: :func:`slice_plane_spacing_mm`, never the slice-axis column's
+        length). ``Scan.slice_step_mm`` always is.
+    slice_thickness_mm : float
+        Nominal slice thickness in mm.
+    slice_gap_mm : float or None
+        Gap between slices in mm, ``None`` if unknown.
+
+    Returns
+    -------
+    float
+        ``slice_thickness_mm + slice_gap_mm``, or ``slice_step_mm`` when the
+        gap is unknown, in mm.
+    """
     if slice_gap_mm is None:
         return float(slice_step_mm)
     return float(slice_thickness_mm + slice_gap_mm)
+
+
+def slice_plane_spacing_mm(affine: np.ndarray, slice_axis: int = 2) -> float:
+    """Distance between consecutive slice planes of a voxel grid, in mm.
+
+    The slice-axis column ``c_s`` projected on the unit normal of the plane
+    spanned by the two other columns ``c_a, c_b``:
+
+        spacing = |c_s . (c_a x c_b)| / |c_a x c_b| = |det A| / |c_a x c_b|
+
+    It equals the column length ``|c_s|`` only when the grid is not sheared.
+
+    Parameters
+    ----------
+    affine : (4, 4) array_like
+        Voxel index -> world mm.
+    slice_axis : {0, 1, 2}
+        The voxel axis whose step is wanted (2 for a `Scan`'s affine).
+
+    Returns
+    -------
+    float
+        The plane spacing in mm (> 0).
+
+    Raises
+    ------
+    InputError
+        If the affine is not 4x4, not finite, or singular.
+
+    Examples
+    --------
+    >>> shear = np.array([[1.0, 0, 3, 0], [0, 1, 0, 0], [0, 0, 5, 0], [0, 0, 0, 1]])
+    >>> slice_plane_spacing_mm(shear)  # the column has length 5.83
+    5.0
+    """
+    lin = _linear_part(affine)
+    if slice_axis not in (0, 1, 2):
+        raise InputError(f"slice_axis must be 0, 1 or 2, got {slice_axis!r}")
+    a, b = (k for k in range(3) if k != slice_axis)
+    normal = np.cross(lin[:, a], lin[:, b])
+    area = float(np.linalg.norm(normal))
+    return abs(float(np.linalg.det(lin))) / area
+
+
+def in_plane_shear(affine: np.ndarray, slice_axis: int = 2) -> float:
+    """How far the two in-plane columns of an affine are from perpendicular.
+
+    Returns ``1 - |c_a x c_b| / (|c_a| |c_b|)`` (0 for perpendicular
+    columns; ``1 - sin`` of the angle between them), the relative error of
+    ``dx * dy`` as the pixel area.
+
+    Parameters
+    ----------
+    affine : (4, 4) array_like
+        Voxel index -> world mm.
+    slice_axis : {0, 1, 2}
+        The slice axis; the two others span the slice plane.
+
+    Returns
+    -------
+    float
+        In ``[0, 1)``.
+    """
+    lin = _linear_part(affine)
+    a, b = (k for k in range(3) if k != slice_axis)
+    na, nb = np.linalg.norm(lin[:, a]), np.linalg.norm(lin[:, b])
+    return float(1.0 - np.linalg.norm(np.cross(lin[:, a], lin[:, b])) / (na * nb))
+
+
+def _linear_part(affine: np.ndarray) -> np.ndarray:
+    aff = np.asarray(affine, dtype=np.float64)
+    if aff.shape != (4, 4):
+        raise InputError(f"affine must be 4x4, got shape {aff.shape}")
+    lin = aff[:3, :3]
+    if not np.all(np.isfinite(lin)) or abs(np.linalg.det(lin)) < SINGULAR_DET_TOL:
+        raise InputError("affine is singular or not finite")
+    return lin
 
 
 def zyx_index_to_ras(points_zyx: np.ndarray, affine: np.ndarray) -> np.ndarray:
@@ -187,9 +300,13 @@ class Scan:
     affine : (4, 4) ndarray
         Maps the voxel index ``(x, y, z, 1)`` to RAS millimetres.
     pixel_spacing_mm : tuple of float
-        In-plane spacing ``(dy, dx)``: row step and column step in mm.
+        In-plane spacing ``(dy, dx)``: row step and column step in mm (the
+        lengths of the affine's y and x columns, checked to 1 %; the two
+        columns must be perpendicular).
     slice_step_mm : float
-        Centre-to-centre distance of consecutive slices, in mm.
+        Centre-to-centre distance of consecutive slice planes, in mm: the
+        affine's :func:`slice_plane_spacing_mm` (checked to 1 %), which for a
+        sheared grid is less than the slice-axis column's length.
     slice_thickness_mm : float
         Nominal thickness of one slice, in mm.
     slice_gap_mm : float or None
@@ -241,11 +358,38 @@ class Scan:
         ):
             if not np.isfinite(value) or value <= 0:
                 raise InputError(f"{name} must be a positive number of mm, got {value}")
+        self._check_geometry(aff, dy, dx)
         validate_patient_id(self.patient_id)
         if self.modality not in MODALITIES:
             raise InputError(
                 f"unknown modality {self.modality!r}: expected one of {', '.join(MODALITIES)}"
             )
+
+    def _check_geometry(self, aff: np.ndarray, dy: float, dx: float) -> None:
+        """The stated spacings must be those of the affine (no silent inflation of Eq. 7)."""
+        shear = in_plane_shear(aff)
+        if shear > IN_PLANE_ORTHOGONALITY_TOL:
+            raise InputError(
+                "the affine's in-plane axes are not perpendicular (1 - sin(angle) = "
+                f"{shear:.3g}): the pixel area would not be dx * dy"
+            )
+        col_x, col_y = np.linalg.norm(aff[:3, 0]), np.linalg.norm(aff[:3, 1])
+        plane = slice_plane_spacing_mm(aff)
+        for name, stated, actual in (
+            ("pixel spacing dx", dx, col_x),
+            ("pixel spacing dy", dy, col_y),
+            ("slice step", float(self.slice_step_mm), plane),
+        ):
+            if abs(stated - actual) > REL_TOL * actual:
+                raise InputError(
+                    f"{name} {stated:.6g} mm disagrees with the affine's {actual:.6g} mm "
+                    "(more than 1 %; the slice step is the distance between slice planes)"
+                )
+
+    @property
+    def voxel_volume_mm3(self) -> float:
+        """Volume of one voxel, ``|det(affine[:3, :3])|`` in mm^3 (= dx * dy * step)."""
+        return abs(float(np.linalg.det(self.affine[:3, :3])))
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -264,7 +408,7 @@ class Scan:
 
     @property
     def pixel_area_mm2(self) -> float:
-        """Area of one pixel, ``dx * dy`` in mm^2 (Eq. 8, [A26])."""
+        """Area of one pixel, ``dx * dy`` in mm^2 (Eq. 8, [A26]), = ``|c_x x c_y|``."""
         return self.pixel_spacing_mm[0] * self.pixel_spacing_mm[1]
 
     @property

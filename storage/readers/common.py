@@ -6,22 +6,32 @@ Also the one geometry rule of volume files (NIfTI, NRRD, MetaImage):
 
 from __future__ import annotations
 
+import math
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from tumor3d.constants import REL_TOL
+from tumor3d.constants import IN_PLANE_ORTHOGONALITY_TOL, REL_TOL, SHEAR_TOL
 from tumor3d.errors import InputError
-from tumor3d.scan import MODALITIES, validate_patient_id
+from tumor3d.scan import (
+    MODALITIES,
+    Scan,
+    SourceGrid,
+    in_plane_shear,
+    slice_plane_spacing_mm,
+    validate_patient_id,
+)
 from tumor3d.validation import check_positive
 
 __all__ = [
     "REL_TOL",
     "choose_slice_axis",
     "derive_patient_id",
+    "scan_from_volume",
 ]
 
 NIFTI_SUFFIXES = (".nii.gz", ".nii")
@@ -109,6 +119,95 @@ def choose_slice_axis(affine: np.ndarray) -> int:
         if si >= best_si:  # ">=" so that an exact tie goes to the higher axis
             best, best_si = a, si
     return int(best)
+
+
+def scan_from_volume(
+    data: np.ndarray,
+    affine: np.ndarray,
+    *,
+    where: str,
+    source: str,
+    modality: str,
+    patient_id: str,
+    slice_thickness_mm: float | None,
+    slice_gap_mm: float | None,
+    file_thickness: Callable[[float], float | None] | None = None,
+) -> Scan:
+    """Make a `Scan` from a 3-D volume in its file's voxel order and its RAS affine.
+
+    The geometry rules of every volume file (NIfTI, NRRD, MetaImage): the
+    slice axis is :func:`choose_slice_axis`; the voxel axes are only
+    permuted (never resampled or flipped) so that it becomes ``z``; the
+    pixel spacings are the in-plane column lengths, which must be
+    perpendicular; the slice step is the distance between slice planes
+    (:func:`tumor3d.scan.slice_plane_spacing_mm`, less than the column
+    length on a sheared grid).
+
+    Parameters
+    ----------
+    data : ndarray, shape (i, j, k)
+        Voxels in the file's axis order.
+    affine : (4, 4) ndarray
+        Voxel index ``(i, j, k, 1)`` -> RAS mm (finite, invertible).
+    where : str
+        The file, for error messages.
+    source : str
+        Start of ``Scan.source`` (e.g. ``"NIfTI file x.nii.gz"``).
+    modality, patient_id : str
+        Already validated.
+    slice_thickness_mm, slice_gap_mm : float or None
+        Validated overrides.
+    file_thickness : callable, optional
+        Given the slice step (mm), returns the thickness the file's metadata
+        states, or None (and checks any stated spacing against the step).
+
+    Returns
+    -------
+    Scan
+
+    Raises
+    ------
+    InputError
+        Perpendicularity violated, a constant or non-finite volume, or
+        thickness/gap that contradict the geometry.
+    """
+    s = choose_slice_axis(affine)
+    axes = (*[a for a in range(3) if a != s], s)
+    image = np.ascontiguousarray(data.transpose(axes[::-1]))  # (z, y, x)
+    _check_volume(image, where)
+    scan_affine = affine.copy()
+    for k in range(3):
+        scan_affine[:, k] = affine[:, axes[k]]
+    shear = in_plane_shear(scan_affine)
+    if shear > IN_PLANE_ORTHOGONALITY_TOL:
+        angle = math.degrees(math.asin(max(0.0, min(1.0, 1.0 - shear))))
+        raise InputError(
+            f"the in-plane voxel axes {axes[0]} and {axes[1]} are not perpendicular "
+            f"({angle:.2f} degrees apart): such an in-plane shear is not supported",
+            where,
+        )
+    dx, dy = (float(np.linalg.norm(scan_affine[:3, k])) for k in (0, 1))
+    column = float(np.linalg.norm(scan_affine[:3, 2]))
+    step = slice_plane_spacing_mm(scan_affine)
+    stated = None if file_thickness is None else file_thickness(step)
+    thickness, gap = _resolve_thickness(step, stated, slice_thickness_mm, slice_gap_mm, where)
+    text = f"{source}, {image.shape[0]} slices along voxel axis {s}"
+    if column - step > SHEAR_TOL * column:
+        text += (
+            f" (sheared grid: slice planes {step:.4g} mm apart, slice-axis column {column:.4g} mm)"
+        )
+    return Scan(
+        image=image,
+        affine=scan_affine,
+        pixel_spacing_mm=(dy, dx),
+        slice_step_mm=step,
+        slice_thickness_mm=thickness,
+        slice_gap_mm=gap,
+        modality=modality,
+        patient_id=patient_id,
+        source=text,
+        source_grid=SourceGrid(shape=tuple(data.shape), affine=affine, axes=axes),
+    )
 
 
 def _check_modality(modality: Any, where: str | None = None) -> str:

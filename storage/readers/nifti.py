@@ -13,16 +13,14 @@ from storage.readers.common import (
     REL_TOL,
     _check_modality,
     _check_override,
-    _check_volume,
     _describe,
     _positive_number,
-    _resolve_thickness,
-    choose_slice_axis,
     derive_patient_id,
+    scan_from_volume,
 )
 from tumor3d.constants import SINGULAR_DET_TOL
 from tumor3d.errors import InputError
-from tumor3d.scan import Scan, SourceGrid, validate_patient_id
+from tumor3d.scan import Scan, validate_patient_id
 
 __all__ = ["read_nifti_scan"]
 
@@ -100,31 +98,16 @@ def read_nifti_scan(
         raise InputError(f"cannot read the voxel data ({_describe(exc)})", where) from exc
     data = data.reshape(shape)
 
-    s = choose_slice_axis(affine)
-    axes = (*[a for a in range(3) if a != s], s)
-    image = np.ascontiguousarray(data.transpose(axes[::-1]))  # (z, y, x)
-    _check_volume(image, where)
-    scan_affine = affine.copy()
-    for k in range(3):
-        scan_affine[:, k] = affine[:, axes[k]]
-    spacing = np.linalg.norm(affine[:3, :3], axis=0)
-    dx, dy, step = (float(spacing[a]) for a in axes)
-
-    file_thickness = _read_bids_sidecar(p, step)
-    thickness, gap = _resolve_thickness(
-        step, file_thickness, thickness_override, gap_override, where
-    )
-    return Scan(
-        image=image,
-        affine=scan_affine,
-        pixel_spacing_mm=(dy, dx),
-        slice_step_mm=step,
-        slice_thickness_mm=thickness,
-        slice_gap_mm=gap,
+    return scan_from_volume(
+        data,
+        affine,
+        where=where,
+        source=f"NIfTI file {p.name}",
         modality=mod,
         patient_id=pid,
-        source=f"NIfTI file {p.name}, {image.shape[0]} slices along voxel axis {s}",
-        source_grid=SourceGrid(shape=shape, affine=affine, axes=axes),
+        slice_thickness_mm=thickness_override,
+        slice_gap_mm=gap_override,
+        file_thickness=lambda step: _read_bids_sidecar(p, step),
     )
 
 
