@@ -201,6 +201,8 @@ class ArtifactStore:
                 "axes": list(grid.axes),
             },
         }
+        if scan.skipped_files:  # only when present, so other scans keep their digests
+            extra["skipped_files"] = list(scan.skipped_files)
         return self.put_volume(scan.image, scan.affine, kind="scan", dtype="float32", extra=extra)
 
     def get_scan(self, ref: ArtifactRef) -> Scan:
@@ -256,6 +258,7 @@ def scan_from_metadata(image: np.ndarray, affine: np.ndarray, meta: dict[str, An
         patient_id=meta["patient_id"],
         source=meta["source"],
         source_grid=source_grid_from_metadata(meta),
+        skipped_files=tuple(meta.get("skipped_files", ())),
     )
 
 

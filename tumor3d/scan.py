@@ -320,6 +320,10 @@ class Scan:
         protected health information.
     source_grid : SourceGrid
         How to write Scan-grid arrays back in the source's voxel grid.
+    skipped_files : tuple of str
+        Names (relative to the input folder) of files the reader skipped as
+        unreadable on request (DICOM ``skip_unreadable``); empty otherwise.
+        The summary and provenance should list them.
     """
 
     image: np.ndarray
@@ -332,8 +336,10 @@ class Scan:
     patient_id: str
     source: str
     source_grid: SourceGrid = field(repr=False)
+    skipped_files: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "skipped_files", tuple(str(f) for f in self.skipped_files))
         img = np.asarray(self.image)
         if img.ndim != 3:
             raise InputError(f"a Scan image must be 3-D (z, y, x), got shape {img.shape}")

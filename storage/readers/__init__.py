@@ -106,6 +106,7 @@ def read_scan(
     series_uid: str | None = None,
     slice_thickness_mm: float | None = None,
     slice_gap_mm: float | None = None,
+    skip_unreadable: bool = False,
 ) -> Scan:
     """Read one patient's slice stack from a NIfTI file or a folder.
 
@@ -124,6 +125,10 @@ def read_scan(
     slice_thickness_mm, slice_gap_mm : float, optional
         Override the nominal slice thickness (> 0) and inter-slice gap
         (>= 0) that the input states (see the module docstring).
+    skip_unreadable : bool
+        DICOM only: skip files that cannot be read as DICOM instead of
+        stopping with an error that names them; the skipped file names are
+        in ``Scan.skipped_files`` (see :func:`read_dicom_series`).
 
     Returns
     -------
@@ -168,7 +173,13 @@ def read_scan(
     if any((p / name).is_file() for name in STACK_SIDECAR_NAMES):
         return read_image_stack(p, modality=mod, **common)
     try:
-        return read_dicom_series(p, modality=mod or "t2", series_uid=series_uid, **common)
+        return read_dicom_series(
+            p,
+            modality=mod or "t2",
+            series_uid=series_uid,
+            skip_unreadable=skip_unreadable,
+            **common,
+        )
     except _NoDicomImagesError:
         if _list_stack_images(p):
             raise InputError(

@@ -28,10 +28,20 @@ from tumor3d.constants import (
 from tumor3d.errors import InputError
 from tumor3d.scan import Scan, SourceGrid, validate_patient_id
 
-__all__ = ["DICOM_FILE_SUFFIXES", "read_dicom_series"]
+__all__ = ["DICOM_FILE_SUFFIXES", "NOT_DICOM_SUFFIXES", "read_dicom_series"]
 
 DICOM_FILE_SUFFIXES = (".dcm", ".dicom", ".ima")
 """File suffixes (lower case) of single DICOM files."""
+
+
+#: Suffixes (lower case) of files that are evidently not DICOM and are ignored
+#: in a series folder (notes, sidecars, previews, archives).
+NOT_DICOM_SUFFIXES = (
+    ".txt", ".md", ".rst", ".json", ".xml", ".csv", ".tsv", ".yaml", ".yml", ".html",
+    ".htm", ".pdf", ".log", ".ini", ".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp",
+    ".gif", ".nii", ".gz", ".zip", ".tar", ".nrrd", ".nhdr", ".mha", ".mhd", ".raw",
+)  # fmt: skip
+_TEXT_PROBE_BYTES = 4096
 
 
 class _NoDicomImagesError(InputError):
@@ -46,12 +56,20 @@ def read_dicom_series(
     series_uid: str | None = None,
     slice_thickness_mm: float | None = None,
     slice_gap_mm: float | None = None,
+    skip_unreadable: bool = False,
 ) -> Scan:
     """Read one DICOM series from a folder (not recursive) as a `Scan`.
 
-    Files that are not DICOM (README, DICOMDIR without pixels, ...) are
-    skipped. Images are grouped by ``SeriesInstanceUID``, sorted by their
-    position along the slice normal, checked for a uniform step (1 %) and
+    Files that are evidently not DICOM are ignored: hidden files, files with
+    a suffix in :data:`NOT_DICOM_SUFFIXES`, text files (the first 4 KB are
+    UTF-8 without NUL bytes, e.g. a ``README``), and DICOM files without
+    pixel data (DICOMDIR, structured reports). Any other file that cannot be
+    parsed as DICOM (random bytes, a truncated header) is *unreadable*: by
+    default the read stops with an error naming every such file; with
+    ``skip_unreadable=True`` they are skipped and listed in
+    ``Scan.skipped_files`` (and counted in ``Scan.source``). Images are
+    grouped by ``SeriesInstanceUID``, sorted by their position along the
+    slice normal, checked for a uniform step (1 %) and
     rescaled with ``RescaleSlope``/``RescaleIntercept`` (see the module
     docstring for the affine).
 
@@ -63,6 +81,10 @@ def read_dicom_series(
         As for :func:`read_scan`.
     series_uid : str, optional
         Required when the folder holds several series.
+    skip_unreadable : bool
+        Skip files that cannot be read as DICOM instead of stopping (the
+        CLI's ``--skip-unreadable-dicom``); they are listed in
+        ``Scan.skipped_files``.
 
     Returns
     -------
@@ -71,7 +93,8 @@ def read_dicom_series(
     Raises
     ------
     InputError
-        No images, several series without ``series_uid``, an unknown
+        Unreadable files (without ``skip_unreadable``), no images, several
+        series without ``series_uid``, an unknown
         ``series_uid``, a single image, inconsistent geometry, duplicate
         positions, a non-uniform step, undecodable pixels, or a constant or
         non-finite volume.
@@ -88,18 +111,34 @@ def read_dicom_series(
         raise InputError("no such folder", str(d))
 
     series: dict[str, list[tuple[Path, Any]]] = {}
+    unreadable: list[tuple[str, str]] = []  # (file name, reason)
     for f in sorted(d.iterdir()):
-        if not f.is_file():
+        if not f.is_file() or _evidently_not_dicom(f):
             continue
         try:
             ds = pydicom.dcmread(f, defer_size="4 KB", force=False)
         except InvalidDicomError:
-            continue  # not a DICOM file: skipped silently
-        except Exception as exc:
-            raise InputError(f"unreadable DICOM file ({_describe(exc)})", str(f)) from exc
+            unreadable.append((f.name, "not a DICOM file (no DICOM header)"))
+            continue
+        except Exception as exc:  # pydicom raises many types for a damaged file
+            unreadable.append((f.name, _describe(exc)))
+            continue
         if "PixelData" not in ds:
+            damage = _missing_pixels_problem(ds)
+            if damage:
+                unreadable.append((f.name, damage))
             continue  # DICOMDIR, structured report, presentation state, ...
         series.setdefault(str(ds.get("SeriesInstanceUID", "")), []).append((f, ds))
+    if unreadable and not skip_unreadable:
+        shown = "; ".join(f"{name}: {why}" for name, why in unreadable[:10])
+        more = f"; and {len(unreadable) - 10} more" if len(unreadable) > 10 else ""
+        raise InputError(
+            f"{len(unreadable)} file(s) could not be read as DICOM: {shown}{more}. Remove "
+            "them, or skip them explicitly with --skip-unreadable-dicom "
+            "(skip_unreadable=True)",
+            str(d),
+        )
+    skipped = tuple(name for name, _ in unreadable)
 
     if not series:
         raise _NoDicomImagesError(f"no DICOM images found in {d}")
@@ -146,9 +185,44 @@ def read_dicom_series(
         slice_gap_mm=gap,
         modality=mod,
         patient_id=pid,
-        source=f"DICOM series in folder {d.name}, {nz} slices",
+        source=f"DICOM series in folder {d.name}, {nz} slices"
+        + (f", {len(skipped)} unreadable file(s) skipped" if skipped else ""),
         source_grid=SourceGrid(shape=(nx, ny, nz), affine=affine, axes=(0, 1, 2)),
+        skipped_files=skipped,
     )
+
+
+def _missing_pixels_problem(ds: Any) -> str | None:
+    """Why a DICOM object without pixel data is damaged, or None for a non-image object."""
+    sop = ds.get("SOPClassUID", None) or ds.get("file_meta", {}).get(
+        "MediaStorageSOPClassUID", None
+    )
+    if not sop:
+        return "a DICOM header without SOP class or pixel data (truncated or damaged)"
+    name = getattr(sop, "name", str(sop))
+    if "Image Storage" in name:
+        return f"a {name} object without pixel data (truncated?)"
+    return None  # DICOMDIR, structured report, presentation state, ...
+
+
+def _evidently_not_dicom(f: Path) -> bool:
+    """Hidden files, known non-DICOM suffixes and text files are not slices."""
+    name = f.name.lower()
+    if name.startswith(".") or name.endswith(NOT_DICOM_SUFFIXES):
+        return True
+    try:
+        with open(f, "rb") as fh:
+            head = fh.read(_TEXT_PROBE_BYTES)
+    except OSError:
+        return False  # reported as unreadable by pydicom
+    if not head or b"\0" in head:
+        return False  # empty (a truncated slice?) or binary: let pydicom judge it
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        # a multi-byte character cut at the probe's end is still text
+        return exc.start >= len(head) - 3
+    return True
 
 
 def _describe_series(series: dict[str, list[tuple[Path, Any]]]) -> str:
