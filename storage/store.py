@@ -4,10 +4,23 @@ Each artifact is a file under ``<root>/objects/<d[:2]>/<d>.<suffix>`` where
 ``d`` is the SHA-256 digest of the artifact's kind, its canonical metadata
 (dtype, shape, spacing and affine for images) and its bytes. Files are
 written under a temporary name in the same folder, flushed and renamed, so a
-crash never leaves a half-written artifact under its final name; an artifact
-that already exists is not rewritten. Reads verify the digest. Nothing is
+crash never leaves a half-written artifact under its final name. Nothing is
 ever unpickled: images are NIfTI, meshes PLY, tables parquet, renders PNG,
 small records JSON.
+
+A store that heals
+------------------
+Reads verify the digest. A file whose content no longer matches its digest
+(bit rot, a hand edit) is *quarantined*: moved to
+``<root>/quarantine/<name>.<utc time>-<random>`` (kept for inspection, never
+deleted) and a :class:`CorruptArtifactError` is raised, so that the stage
+that made it can be run again and write it afresh. :meth:`ArtifactStore.verify`
+does the same check without raising (for a cached stage's outputs).
+:meth:`ArtifactStore.put_bytes` rewrites an existing object whose bytes
+differ from the new ones (same size or not). Every repair is a
+:class:`Repair`, kept in :attr:`ArtifactStore.repairs` and appended as one
+JSON line to ``<root>/repairs.jsonl``, so the task layer can say what was
+repaired.
 
 Tasks pass :class:`ArtifactRef` values around (a few hundred bytes), never
 arrays.
@@ -18,7 +31,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import time
 import uuid
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +49,8 @@ from tumor3d.scan import Scan, SourceGrid
 __all__ = [
     "ArtifactRef",
     "ArtifactStore",
+    "CorruptArtifactError",
+    "Repair",
     "StoreError",
     "atomic_write_bytes",
     "canonical_dumps",
@@ -44,6 +61,46 @@ _DIGEST_PREFIX = b"tumor3d-artifact-v1\0"
 
 class StoreError(Tumor3DError):
     """A missing or corrupted artifact."""
+
+
+@dataclass(frozen=True)
+class Repair:
+    """One repair the store made.
+
+    Parameters
+    ----------
+    relpath : str
+        The object's path relative to the store root.
+    action : str
+        ``"quarantined"`` (content did not match the digest; moved aside) or
+        ``"rewritten"`` (an existing object with other bytes was replaced
+        by :meth:`ArtifactStore.put_bytes`).
+    detail : str
+        One line for a log.
+    quarantined_to : str or None
+        Where the bad file now is (relative to the root), if quarantined.
+    time_utc : str
+        ISO 8601 time of the repair.
+    """
+
+    relpath: str
+    action: str
+    detail: str
+    quarantined_to: str | None = None
+    time_utc: str = ""
+
+
+class CorruptArtifactError(StoreError):
+    """An artifact whose content did not match its digest; it has been quarantined.
+
+    The stage that produced ``ref`` should be run again (its output will be
+    written afresh). ``repair`` says where the bad file went.
+    """
+
+    def __init__(self, message: str, *, ref: ArtifactRef, repair: Repair) -> None:
+        super().__init__(message)
+        self.ref = ref
+        self.repair = repair
 
 
 class ArtifactRef(BaseModel):
@@ -94,6 +151,10 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             tmp.unlink()
 
 
+def _utc_now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
 def _affine_list(affine: np.ndarray) -> list[list[float]]:
     return [[float(v) for v in row] for row in np.asarray(affine, dtype=np.float64)]
 
@@ -110,6 +171,52 @@ class ArtifactStore:
     def __init__(self, root: str | os.PathLike[str]) -> None:
         self.root = Path(root).resolve()
         (self.root / "objects").mkdir(parents=True, exist_ok=True)
+        self.repairs: list[Repair] = []
+        """Repairs made through this instance (also in ``<root>/repairs.jsonl``)."""
+
+    # -- healing -----------------------------------------------------------
+    def _record(self, repair: Repair) -> Repair:
+        self.repairs.append(repair)
+        line = json.dumps(asdict(repair), sort_keys=True) + "\n"
+        try:
+            with open(self.root / "repairs.jsonl", "a", encoding="utf-8") as fh:
+                fh.write(line)
+        except OSError:
+            pass  # the log is informative; the repair itself is done
+        return repair
+
+    def _quarantine(self, path: Path, detail: str) -> Repair:
+        """Move a bad object aside (never delete it) so that it can be rewritten."""
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        target = self.root / "quarantine" / f"{path.name}.{stamp}-{uuid.uuid4().hex[:8]}"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.replace(path, target)
+            moved: str | None = target.relative_to(self.root).as_posix()
+        except FileNotFoundError:  # another process moved or rewrote it first
+            moved = None
+        return self._record(
+            Repair(
+                relpath=path.relative_to(self.root).as_posix(),
+                action="quarantined",
+                detail=detail,
+                quarantined_to=moved,
+                time_utc=_utc_now(),
+            )
+        )
+
+    def verify(self, ref: ArtifactRef) -> bool:
+        """True if the artifact is present and intact.
+
+        A present file whose digest does not match is quarantined (see the
+        module docstring) and False is returned, so the caller recomputes
+        the stage that made it. A missing file gives False.
+        """
+        try:
+            self.get_bytes(ref)
+        except StoreError:  # missing, unreadable or corrupted (then quarantined)
+            return False
+        return True
 
     # -- raw bytes ---------------------------------------------------------
     @staticmethod
@@ -124,13 +231,31 @@ class ArtifactStore:
     def put_bytes(
         self, data: bytes, *, kind: str, suffix: str, metadata: dict[str, Any] | None = None
     ) -> ArtifactRef:
-        """Store bytes (atomically, once) and return their reference."""
+        """Store bytes (atomically) and return their reference.
+
+        An object that already exists with exactly these bytes is left
+        alone; one with other bytes (a corrupted copy, even of the same size)
+        is rewritten and the repair recorded (:attr:`repairs`).
+        """
         meta = json.loads(canonical_dumps(metadata or {}))
         digest = self.digest_of(data, kind=kind, metadata=meta)
         relpath = f"objects/{digest[:2]}/{digest}{suffix}"
         path = self.root / relpath
-        if not (path.exists() and path.stat().st_size == len(data)):
+        try:
+            existing = path.read_bytes() if path.is_file() else None
+        except OSError:
+            existing = None
+        if existing != data:
             atomic_write_bytes(path, data)
+            if existing is not None:
+                self._record(
+                    Repair(
+                        relpath=relpath,
+                        action="rewritten",
+                        detail=f"{relpath}: existing content did not match its digest; rewritten",
+                        time_utc=_utc_now(),
+                    )
+                )
         return ArtifactRef(kind=kind, digest=digest, relpath=relpath, metadata=meta)
 
     def path(self, ref: ArtifactRef) -> Path:
@@ -142,14 +267,34 @@ class ArtifactStore:
         return self.path(ref).is_file()
 
     def get_bytes(self, ref: ArtifactRef, *, verify: bool = True) -> bytes:
-        """Read an artifact's bytes, checking its digest unless ``verify`` is False."""
+        """Read an artifact's bytes, checking its digest unless ``verify`` is False.
+
+        Raises
+        ------
+        StoreError
+            If the file is missing or cannot be read.
+        CorruptArtifactError
+            If its content does not match the digest; the file has then
+            been quarantined, so that recomputing the stage heals the store.
+        """
         path = self.path(ref)
         try:
             data = path.read_bytes()
         except FileNotFoundError:
             raise StoreError(f"artifact {ref.kind} {ref.digest[:12]} is missing: {path}") from None
+        except OSError as exc:
+            raise StoreError(f"{path}: cannot read the artifact ({exc.strerror or exc})") from None
         if verify and self.digest_of(data, kind=ref.kind, metadata=ref.metadata) != ref.digest:
-            raise StoreError(f"artifact {path} is corrupted (digest mismatch)")
+            repair = self._quarantine(
+                path, f"{ref.relpath}: content does not match its digest; quarantined"
+            )
+            where = repair.quarantined_to or "(already moved)"
+            raise CorruptArtifactError(
+                f"artifact {path} is corrupted (digest mismatch); moved to {where} so the "
+                "stage that made it can recompute it",
+                ref=ref,
+                repair=repair,
+            )
         return data
 
     # -- typed helpers -----------------------------------------------------
