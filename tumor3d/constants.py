@@ -18,7 +18,10 @@ __all__ = [
     "REL_TOL",
     "SHEAR_TOL",
     "SINGULAR_DET_TOL",
+    "MESSAGE_VALUE_CHARS",
     "YAML_MAX_ALIASES",
+    "YAML_MAX_BYTES",
+    "YAML_MAX_EXPANDED_NODES",
 ]
 
 SINGULAR_DET_TOL = 1e-12
@@ -71,4 +74,17 @@ YAML_MAX_ALIASES = 100
 """Largest number of alias (``*name``) uses a YAML document may contain.
 
 A configuration or sidecar needs none; 100 leaves room for hand-written
-reuse while refusing the nested-anchor "billion laughs" expansion."""
+reuse."""
+
+YAML_MAX_EXPANDED_NODES = 100_000
+"""Largest number of nodes a YAML document may have once its aliases are
+expanded. Nested anchors ("billion laughs") stay under any alias-count bound
+(9 levels of 9 aliases expand 81 aliases into 387 million values), so the
+expanded size is bounded too. A configuration has tens of nodes, a stack
+sidecar's ``order`` one per slice."""
+
+YAML_MAX_BYTES = 1_000_000
+"""Largest YAML text (characters) read as a configuration or sidecar."""
+
+MESSAGE_VALUE_CHARS = 80
+"""Longest rendering of a user-supplied value inside an error message."""

@@ -10,11 +10,12 @@ names the argument (and the file, where given) and the problem.
 from __future__ import annotations
 
 import math
+import reprlib
 from typing import Any
 
 import numpy as np
 
-from tumor3d.constants import SINGULAR_DET_TOL
+from tumor3d.constants import MESSAGE_VALUE_CHARS, SINGULAR_DET_TOL
 from tumor3d.errors import InputError
 
 __all__ = [
@@ -22,6 +23,7 @@ __all__ = [
     "check_binary_mask",
     "check_int",
     "check_positive",
+    "short_repr",
 ]
 
 
@@ -156,7 +158,24 @@ def check_binary_mask(mask: Any, name: str = "mask", *, ndim: int | None = None)
     return arr.astype(bool)
 
 
-def _short(value: Any, limit: int = 80) -> str:
-    """``repr(value)`` cut to ``limit`` characters (long values never flood a message)."""
-    text = repr(value)
+def short_repr(value: Any, limit: int = MESSAGE_VALUE_CHARS) -> str:
+    """A ``repr`` of ``value`` of at most ``limit`` characters, for error messages.
+
+    Containers are abbreviated while they are rendered (``reprlib``), so a
+    huge or deeply nested value (an expanded YAML alias bomb) costs no more
+    than a small one.
+
+    Examples
+    --------
+    >>> short_repr(list(range(10**6)))
+    '[0, 1, 2, 3, 4, 5, ...]'
+    """
+    text = _REPR.repr(value)
     return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+_REPR = reprlib.Repr()
+_REPR.maxlevel = 3
+_REPR.maxlist = _REPR.maxtuple = _REPR.maxset = _REPR.maxdict = 6
+_REPR.maxstring = _REPR.maxother = MESSAGE_VALUE_CHARS
+_short = short_repr

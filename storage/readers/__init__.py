@@ -3,6 +3,8 @@
 :func:`read_scan` is the one entry point. It dispatches on what ``path`` is:
 
 * a ``.nii`` / ``.nii.gz`` file -> :func:`read_nifti_scan`;
+* a ``.nrrd`` / ``.nhdr`` / ``.mha`` / ``.mhd`` file -> :func:`read_itk_scan`
+  (SimpleITK; LPS converted to RAS, the same slice-axis rule as NIfTI);
 * a folder holding a ``stack.yaml`` (or ``slices.yaml``) sidecar ->
   :func:`read_image_stack` (2-D PNG/TIFF/JPEG slices);
 * any other folder -> :func:`read_dicom_series` (one DICOM series).
@@ -66,14 +68,17 @@ import os
 from pathlib import Path
 
 from storage.readers.common import (
+    MAX_VOXELS_DEFAULT,
     NIFTI_SUFFIXES,
     REL_TOL,
     _check_modality,
     _check_override,
+    check_max_voxels,
     choose_slice_axis,
     derive_patient_id,
 )
 from storage.readers.dicom import DICOM_FILE_SUFFIXES, _NoDicomImagesError, read_dicom_series
+from storage.readers.itk import ITK_SUFFIXES, read_itk_scan
 from storage.readers.nifti import read_nifti_scan
 from storage.readers.stack import (
     IMAGE_STACK_SUFFIXES,
@@ -86,6 +91,8 @@ from tumor3d.scan import MODALITIES, Scan, validate_patient_id
 
 __all__ = [
     "IMAGE_STACK_SUFFIXES",
+    "ITK_SUFFIXES",
+    "MAX_VOXELS_DEFAULT",
     "MODALITIES",
     "REL_TOL",
     "STACK_SIDECAR_NAMES",
@@ -93,6 +100,7 @@ __all__ = [
     "derive_patient_id",
     "read_dicom_series",
     "read_image_stack",
+    "read_itk_scan",
     "read_nifti_scan",
     "read_scan",
 ]
@@ -107,14 +115,16 @@ def read_scan(
     slice_thickness_mm: float | None = None,
     slice_gap_mm: float | None = None,
     skip_unreadable: bool = False,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
 ) -> Scan:
     """Read one patient's slice stack from a NIfTI file or a folder.
 
     Parameters
     ----------
     path : str or path-like
-        A ``.nii``/``.nii.gz`` file, a DICOM series folder, or a folder of
-        2-D PNG/TIFF/JPEG slices with a ``stack.yaml`` sidecar.
+        A ``.nii``/``.nii.gz`` file, an NRRD/MetaImage file (``.nrrd``,
+        ``.nhdr``, ``.mha``, ``.mhd``), a DICOM series folder, or a folder
+        of 2-D PNG/TIFF/JPEG slices with a ``stack.yaml`` sidecar.
     modality : {"t2", "flair", "t1c"}, optional
         MR sequence (case-insensitive). ``None`` means ``"t2"``, except for
         an image stack whose sidecar names a modality.
@@ -129,6 +139,10 @@ def read_scan(
         DICOM only: skip files that cannot be read as DICOM instead of
         stopping with an error that names them; the skipped file names are
         in ``Scan.skipped_files`` (see :func:`read_dicom_series`).
+    max_voxels : int
+        Refuse a volume whose header (NIfTI, NRRD, MetaImage; for DICOM the
+        rows x columns x files) declares more voxels, before reading it.
+        Default :data:`tumor3d.constants.MAX_VOXELS_DEFAULT` (512 million).
 
     Returns
     -------
@@ -149,12 +163,15 @@ def read_scan(
     pid = derive_patient_id(p) if patient_id is None else validate_patient_id(patient_id)
     thickness = _check_override("slice_thickness_mm", slice_thickness_mm, allow_zero=False)
     gap = _check_override("slice_gap_mm", slice_gap_mm, allow_zero=True)
+    limit = check_max_voxels(max_voxels)
     common = {"patient_id": pid, "slice_thickness_mm": thickness, "slice_gap_mm": gap}
 
     if p.is_file():
         lower = p.name.lower()
         if lower.endswith(NIFTI_SUFFIXES):
-            return read_nifti_scan(p, modality=mod or "t2", **common)
+            return read_nifti_scan(p, modality=mod or "t2", max_voxels=limit, **common)
+        if lower.endswith(ITK_SUFFIXES):
+            return read_itk_scan(p, modality=mod or "t2", max_voxels=limit, **common)
         if lower.endswith(IMAGE_STACK_SUFFIXES + DICOM_FILE_SUFFIXES):
             raise InputError(
                 "a single 2-D image was given where a stack is needed: at least 2 slices "
@@ -164,7 +181,8 @@ def read_scan(
             )
         raise InputError(
             f"unsupported file type {''.join(p.suffixes) or '(no extension)'!r}: give a NIfTI "
-            "file (.nii, .nii.gz), a DICOM series folder, or a folder of 2-D "
+            "file (.nii, .nii.gz), an NRRD or MetaImage file (.nrrd, .nhdr, .mha, .mhd), "
+            "a DICOM series folder, or a folder of 2-D "
             f"PNG/TIFF/JPEG slices with {STACK_SIDECAR_NAMES[0]}",
             str(p),
         )
@@ -178,6 +196,7 @@ def read_scan(
             modality=mod or "t2",
             series_uid=series_uid,
             skip_unreadable=skip_unreadable,
+            max_voxels=limit,
             **common,
         )
     except _NoDicomImagesError:

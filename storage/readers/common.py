@@ -15,7 +15,12 @@ from typing import Any
 
 import numpy as np
 
-from tumor3d.constants import IN_PLANE_ORTHOGONALITY_TOL, REL_TOL, SHEAR_TOL
+from tumor3d.constants import (
+    IN_PLANE_ORTHOGONALITY_TOL,
+    MAX_VOXELS_DEFAULT,
+    REL_TOL,
+    SHEAR_TOL,
+)
 from tumor3d.errors import InputError
 from tumor3d.scan import (
     MODALITIES,
@@ -25,10 +30,13 @@ from tumor3d.scan import (
     slice_plane_spacing_mm,
     validate_patient_id,
 )
-from tumor3d.validation import check_positive
+from tumor3d.validation import check_int, check_positive
 
 __all__ = [
+    "MAX_VOXELS_DEFAULT",
     "REL_TOL",
+    "check_max_voxels",
+    "check_voxel_count",
     "choose_slice_axis",
     "derive_patient_id",
     "scan_from_volume",
@@ -208,6 +216,30 @@ def scan_from_volume(
         source=text,
         source_grid=SourceGrid(shape=tuple(data.shape), affine=affine, axes=axes),
     )
+
+
+def check_max_voxels(max_voxels: int) -> int:
+    """Validate the ``max_voxels`` option (an integer >= 1)."""
+    return check_int(max_voxels, "max_voxels", minimum=1)
+
+
+def check_voxel_count(shape: tuple[int, ...], max_voxels: int, where: str) -> None:
+    """Refuse a volume whose declared shape exceeds ``max_voxels``, before reading it.
+
+    Raises
+    ------
+    InputError
+        Naming the declared shape, its voxel count, the limit and the option.
+    """
+    n = math.prod(int(s) for s in shape)
+    if n > max_voxels:
+        dims = " x ".join(str(int(s)) for s in shape)
+        raise InputError(
+            f"the header declares {dims} = {n:,} voxels, more than the limit of "
+            f"{max_voxels:,} (option max_voxels, CLI --max-voxels; raise it only for a "
+            "genuine volume)",
+            where,
+        )
 
 
 def _check_modality(modality: Any, where: str | None = None) -> str:

@@ -10,12 +10,15 @@ from typing import Any
 import numpy as np
 
 from storage.readers.common import (
+    MAX_VOXELS_DEFAULT,
     REL_TOL,
     _check_modality,
     _check_override,
     _check_volume,
     _describe,
     _resolve_thickness,
+    check_max_voxels,
+    check_voxel_count,
     derive_patient_id,
 )
 from tumor3d.constants import (
@@ -57,6 +60,7 @@ def read_dicom_series(
     slice_thickness_mm: float | None = None,
     slice_gap_mm: float | None = None,
     skip_unreadable: bool = False,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
 ) -> Scan:
     """Read one DICOM series from a folder (not recursive) as a `Scan`.
 
@@ -85,6 +89,9 @@ def read_dicom_series(
         Skip files that cannot be read as DICOM instead of stopping (the
         CLI's ``--skip-unreadable-dicom``); they are listed in
         ``Scan.skipped_files``.
+    max_voxels : int
+        Refuse a series whose Rows x Columns x number of images exceeds
+        this, before any pixel data is decoded.
 
     Returns
     -------
@@ -107,6 +114,7 @@ def read_dicom_series(
     pid = derive_patient_id(d) if patient_id is None else validate_patient_id(patient_id)
     thickness_override = _check_override("slice_thickness_mm", slice_thickness_mm, allow_zero=False)
     gap_override = _check_override("slice_gap_mm", slice_gap_mm, allow_zero=True)
+    limit = check_max_voxels(max_voxels)
     if not d.is_dir():
         raise InputError("no such folder", str(d))
 
@@ -161,6 +169,7 @@ def read_dicom_series(
             str(d),
         )
     geometry = [_dicom_geometry(f, ds) for f, ds in items]
+    check_voxel_count((*geometry[0]["shape"], len(items)), limit, str(d))
     image, affine, step, pixel_spacing, first = _assemble_dicom(items, geometry, d)
     _check_volume(image, str(d))
     file_thickness = None

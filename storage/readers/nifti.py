@@ -9,12 +9,15 @@ from pathlib import Path
 import numpy as np
 
 from storage.readers.common import (
+    MAX_VOXELS_DEFAULT,
     NIFTI_SUFFIXES,
     REL_TOL,
     _check_modality,
     _check_override,
     _describe,
     _positive_number,
+    check_max_voxels,
+    check_voxel_count,
     derive_patient_id,
     scan_from_volume,
 )
@@ -32,6 +35,7 @@ def read_nifti_scan(
     patient_id: str | None = None,
     slice_thickness_mm: float | None = None,
     slice_gap_mm: float | None = None,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
 ) -> Scan:
     """Read a 3-D NIfTI file (or 4-D with one volume) as a `Scan`.
 
@@ -45,7 +49,7 @@ def read_nifti_scan(
     ----------
     path : str or path-like
         The ``.nii`` or ``.nii.gz`` file.
-    modality, patient_id, slice_thickness_mm, slice_gap_mm
+    modality, patient_id, slice_thickness_mm, slice_gap_mm, max_voxels
         As for :func:`read_scan`.
 
     Returns
@@ -55,7 +59,8 @@ def read_nifti_scan(
     Raises
     ------
     InputError
-        Unreadable file, unsupported dimensionality, a single 2-D image,
+        Unreadable file, more voxels declared than ``max_voxels`` (checked
+        on the header, before any voxel is read), unsupported dimensionality, a single 2-D image,
         a singular affine, a constant or non-finite volume, or a sidecar that
         contradicts the image.
     """
@@ -67,6 +72,7 @@ def read_nifti_scan(
     pid = derive_patient_id(p) if patient_id is None else validate_patient_id(patient_id)
     thickness_override = _check_override("slice_thickness_mm", slice_thickness_mm, allow_zero=False)
     gap_override = _check_override("slice_gap_mm", slice_gap_mm, allow_zero=True)
+    limit = check_max_voxels(max_voxels)
     if not p.is_file():
         raise InputError("no such file", where)
     try:
@@ -77,6 +83,7 @@ def read_nifti_scan(
         raise InputError(f"not a NIfTI image (nibabel read it as {type(img).__name__})", where)
 
     shape = tuple(int(s) for s in img.shape)
+    check_voxel_count(shape, limit, where)
     if len(shape) == 4 and shape[3] == 1:
         shape = shape[:3]
     elif len(shape) == 4:

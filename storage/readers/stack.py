@@ -17,8 +17,11 @@ from storage.readers.common import (
     _positive_number,
     derive_patient_id,
 )
-from tumor3d.errors import InputError
+from tumor3d.config import load_yaml
+from tumor3d.constants import YAML_MAX_BYTES
+from tumor3d.errors import ConfigError, InputError
 from tumor3d.scan import Scan, SourceGrid, validate_patient_id
+from tumor3d.validation import short_repr
 
 __all__ = ["IMAGE_STACK_SUFFIXES", "STACK_SIDECAR_NAMES", "read_image_stack"]
 
@@ -71,8 +74,6 @@ def read_image_stack(
         unreadable image, slices of different sizes, or a constant or
         non-finite volume.
     """
-    import yaml
-
     d = Path(folder)
     pid = derive_patient_id(d) if patient_id is None else validate_patient_id(patient_id)
     thickness_override = _check_override("slice_thickness_mm", slice_thickness_mm, allow_zero=False)
@@ -94,8 +95,15 @@ def read_image_stack(
     sidecar = present[0]
     where = str(sidecar)
     try:
-        meta = yaml.safe_load(sidecar.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        size = sidecar.stat().st_size
+        if size > YAML_MAX_BYTES:
+            raise InputError(
+                f"a sidecar of {size:,} bytes, more than the {YAML_MAX_BYTES:,} allowed", where
+            )
+        meta = load_yaml(sidecar.read_text(encoding="utf-8"), source=where)
+    except ConfigError as exc:
+        raise InputError(f"not a readable YAML sidecar ({exc.problem})", where) from None
+    except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"not a readable YAML sidecar ({_describe(exc)})", where) from exc
     if not isinstance(meta, dict):
         raise InputError("the sidecar must hold a mapping of keys to values", where)
@@ -106,12 +114,17 @@ def read_image_stack(
         )
 
     if "pixel_spacing_mm" not in meta:
-        raise InputError("missing key 'pixel_spacing_mm' ([dy, dx] in mm)", where)
+        raise InputError(
+            "missing key 'pixel_spacing_mm' (the row and column spacing dy, dx in mm, "
+            "or one number)",
+            where,
+        )
     raw_spacing = meta["pixel_spacing_mm"]
     if isinstance(raw_spacing, list | tuple):
         if len(raw_spacing) != 2:
             raise InputError(
-                f"key 'pixel_spacing_mm' must be [dy, dx] or one number, got {raw_spacing!r}",
+                "key 'pixel_spacing_mm' must be a list of two numbers (dy, dx) or one number, "
+                f"got {short_repr(raw_spacing)}",
                 where,
             )
         dy = _positive_number(raw_spacing[0], "pixel_spacing_mm", where)
