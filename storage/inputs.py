@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import re
 from pathlib import Path
 
 from tumor3d.errors import InputError
@@ -11,6 +12,12 @@ __all__ = ["input_digest"]
 
 _SIDECAR_SUFFIXES = (".json", ".yaml", ".yml")
 _CHUNK = 1 << 20
+_DETACHED_HEADERS = (".nhdr", ".mhd")
+_HEADER_PROBE = 1 << 16
+# NRRD "data file: x.raw" / "datafile: x.raw"; MetaImage "ElementDataFile = x.raw"
+_DATA_FILE_LINE = re.compile(
+    r"^(?:data ?file\s*:|ElementDataFile\s*=)\s*(.+?)\s*$", re.IGNORECASE | re.MULTILINE
+)
 
 
 def _stem(path: Path) -> str:
@@ -19,6 +26,31 @@ def _stem(path: Path) -> str:
         if name.endswith(ext):
             return name[: -len(ext)]
     return path.stem
+
+
+def _detached_data_files(header: Path) -> list[Path]:
+    """The voxel-data files a ``.nhdr``/``.mhd`` header points to.
+
+    A single named file is returned when it exists; for a list, a file-name
+    pattern or anything not understood, every other regular file in the
+    header's folder (over-inclusion only costs a cache miss).
+    """
+    try:
+        with open(header, "rb") as fh:
+            text = fh.read(_HEADER_PROBE).decode("latin-1")
+    except OSError:
+        return []
+    match = _DATA_FILE_LINE.search(text)
+    if match is None:
+        return []
+    ref = match.group(1)
+    if ref.upper() == "LOCAL":
+        return []  # the data follow the header in the same file
+    if " " not in ref and "%" not in ref and ref.upper() != "LIST":
+        target = (header.parent / ref).resolve()
+        if target.is_file():
+            return [target]
+    return sorted(f for f in header.parent.iterdir() if f.is_file() and f != header)
 
 
 def _hash_file(h: hashlib._Hash, path: Path, label: str) -> None:
@@ -33,9 +65,11 @@ def input_digest(path: str | Path) -> str:
     """SHA-256 over everything a reader may read for this input.
 
     For a file: its bytes plus those of any sidecar beside it with the same
-    stem (``x.nii.gz`` -> ``x.json``). For a folder (DICOM series, image
-    stack): the relative names and bytes of all its regular files, in sorted
-    order. Locations do not enter the digest, so moving an input keeps it.
+    stem (``x.nii.gz`` -> ``x.json``), and for a detached NRRD/MetaImage
+    header (``.nhdr``, ``.mhd``) the bytes of the data file(s) it names.
+    For a folder (DICOM series, image stack): the relative names and bytes
+    of all its regular files, in sorted order. Locations do not enter the
+    digest, so moving an input keeps it.
 
     Raises
     ------
@@ -52,6 +86,9 @@ def input_digest(path: str | Path) -> str:
             _hash_file(h, f, f.relative_to(p).as_posix())
     else:
         _hash_file(h, p, "image")
+        if p.name.lower().endswith(_DETACHED_HEADERS):
+            for data_file in _detached_data_files(p):
+                _hash_file(h, data_file, "data:" + data_file.name)
         stem = _stem(p)
         for suffix in _SIDECAR_SUFFIXES:
             side = p.with_name(stem + suffix)

@@ -43,15 +43,18 @@ __all__ = [
 ]
 
 NIFTI_SUFFIXES = (".nii.gz", ".nii")
+VOLUME_FILE_SUFFIXES = (*NIFTI_SUFFIXES, ".nrrd", ".nhdr", ".mha", ".mhd")
+"""Suffixes stripped from a volume file's name to make its patient id."""
 _UNSAFE_ID_CHARS = re.compile(r"[^A-Za-z0-9._-]")
 
 
 def derive_patient_id(path: str | os.PathLike[str]) -> str:
     """Make a folder-safe patient id from an input's file or folder name.
 
-    ``.nii.gz``/``.nii`` is stripped from a file name; every character
-    outside ``[A-Za-z0-9._-]`` becomes ``_``; leading ``.``, ``_`` and ``-``
-    are dropped and the result is cut to 128 characters. It is then checked
+    A volume suffix (``.nii.gz``, ``.nii``, ``.nrrd``, ``.nhdr``, ``.mha``,
+    ``.mhd``) is stripped from a file name; every character outside
+    ``[A-Za-z0-9._-]`` becomes ``_``; leading ``.``, ``_`` and ``-`` are
+    dropped and the result is cut to 128 characters. It is then checked
     by :func:`tumor3d.scan.validate_patient_id`.
 
     Parameters
@@ -77,7 +80,7 @@ def derive_patient_id(path: str | os.PathLike[str]) -> str:
     full_name = Path(os.path.abspath(os.fspath(path))).name
     name = full_name
     lower = name.lower()
-    for suffix in NIFTI_SUFFIXES:
+    for suffix in VOLUME_FILE_SUFFIXES:
         if lower.endswith(suffix):
             name = name[: -len(suffix)]
             break
