@@ -1,13 +1,27 @@
-"""Byte codecs for meshes (PLY), tables (parquet) and images (PNG).
+"""Byte codecs for meshes (PLY, VTK, STL), tables (parquet) and images (PNG).
 
 Every encoder is deterministic: the same input gives the same bytes, so an
 artifact's digest depends only on its content. Decoders never unpickle.
+
+Meshes for every viewer
+-----------------------
+A `Mesh` holds RAS millimetres. 3D Slicer reads the PLY (its ``SPACE=RAS``
+comment); ITK-SNAP and ParaView (like ITK and DICOM) work in **LPS**:
+``(x, y, z)_LPS = (-x, -y, z)_RAS``. :func:`encode_vtk_polydata` writes
+legacy VTK PolyData in LPS (``tumor_lps.vtk``), :func:`encode_stl` binary STL
+in LPS by default (Slicer's own STL convention, with ``SPACE=LPS`` in the
+header, which Slicer reads). Both go through VTK's own writers
+(``vtkPolyDataWriter``, file version 4.2 so that VTK 6-9 read it;
+``vtkSTLWriter``). Negating x and y is a rotation by 180 degrees about the
+superior axis (determinant +1), so the faces keep their outward winding.
 """
 
 from __future__ import annotations
 
 import io
 import re
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -25,6 +39,9 @@ __all__ = [
     "encode_parquet",
     "encode_ply",
     "encode_png",
+    "encode_stl",
+    "encode_vtk_polydata",
+    "ras_to_lps",
 ]
 
 _PLY_HEADER = (
@@ -80,6 +97,110 @@ def decode_ply(data: bytes, *, name: str = "<ply>") -> Mesh:
     if n_faces and not np.all(faces["n"] == 3):
         raise InputError("PLY holds non-triangular faces", path=name)
     return Mesh(verts.astype(np.float64), faces["v"].astype(np.int64))
+
+
+_RAS_LPS = np.array([-1.0, -1.0, 1.0])
+
+
+def ras_to_lps(points_mm: np.ndarray) -> np.ndarray:
+    """Convert ``(n, 3)`` points between RAS and LPS mm (negate x and y; its own inverse)."""
+    pts = np.asarray(points_mm, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must have shape (n, 3), got {pts.shape}")
+    return pts * _RAS_LPS
+
+
+def _vtk_polydata(mesh: Mesh, space: str) -> object:
+    from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
+    from vtkmodules.vtkCommonCore import vtkPoints
+    from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+
+    verts = mesh.vertices if space == "RAS" else ras_to_lps(mesh.vertices)
+    points = vtkPoints()
+    points.SetData(numpy_to_vtk(np.ascontiguousarray(verts, dtype=np.float32), deep=True))
+    offsets = np.arange(0, 3 * mesh.n_faces + 1, 3, dtype=np.int64)
+    connectivity = np.ascontiguousarray(mesh.faces, dtype=np.int64).ravel()
+    cells = vtkCellArray()
+    cells.SetData(
+        numpy_to_vtkIdTypeArray(offsets, deep=True),
+        numpy_to_vtkIdTypeArray(connectivity, deep=True),
+    )
+    poly = vtkPolyData()
+    poly.SetPoints(points)
+    poly.SetPolys(cells)
+    return poly
+
+
+def _write_with(writer: object, suffix: str) -> bytes:
+    with tempfile.TemporaryDirectory(prefix="tumor3d-mesh-") as tmp:
+        path = Path(tmp) / f"mesh{suffix}"
+        writer.SetFileName(str(path))  # type: ignore[attr-defined]
+        if not writer.Write():  # type: ignore[attr-defined]
+            raise OSError(f"VTK could not write a {suffix} mesh")
+        return path.read_bytes()
+
+
+def _check_space(space: str) -> str:
+    if space not in ("LPS", "RAS"):
+        raise ValueError(f"space must be 'LPS' or 'RAS', got {space!r}")
+    return space
+
+
+def encode_vtk_polydata(mesh: Mesh, *, space: str = "LPS") -> bytes:
+    """Encode a triangle mesh as binary legacy VTK PolyData (``tumor_lps.vtk``).
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Vertices in RAS mm.
+    space : {"LPS", "RAS"}
+        Coordinates written: LPS (default; ITK-SNAP, ParaView, ITK) has
+        ``x_LPS = -x_RAS, y_LPS = -y_RAS``.
+
+    Returns
+    -------
+    bytes
+        A ``.vtk`` file (``DATASET POLYDATA``, float32 points, triangles),
+        header line ``tumor3d mesh, SPACE=<space>, units mm``.
+    """
+    from vtkmodules.vtkIOLegacy import vtkPolyDataWriter
+
+    sp = _check_space(space)
+    writer = vtkPolyDataWriter()
+    writer.SetInputData(_vtk_polydata(mesh, sp))
+    writer.SetFileTypeToBinary()
+    writer.SetFileVersion(42)
+    writer.SetHeader(f"tumor3d mesh, SPACE={sp}, units mm")
+    return _write_with(writer, ".vtk")
+
+
+def encode_stl(mesh: Mesh, *, space: str = "LPS") -> bytes:
+    """Encode a triangle mesh as binary STL.
+
+    STL has no coordinate system; 3D Slicer reads ``SPACE=LPS`` or
+    ``SPACE=RAS`` from the 80-byte header (and assumes LPS without it),
+    which is written here.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Vertices in RAS mm.
+    space : {"LPS", "RAS"}
+        Coordinates written (default LPS, Slicer's STL convention).
+
+    Returns
+    -------
+    bytes
+        A binary ``.stl`` file (float32 facet normals and vertices).
+    """
+    from vtkmodules.vtkIOGeometry import vtkSTLWriter
+
+    sp = _check_space(space)
+    writer = vtkSTLWriter()
+    writer.SetInputData(_vtk_polydata(mesh, sp))
+    writer.SetFileTypeToBinary()
+    writer.SetHeader(f"SPACE={sp} tumor3d mesh, units mm")
+    return _write_with(writer, ".stl")
 
 
 def encode_parquet(table: pd.DataFrame) -> bytes:
