@@ -21,6 +21,7 @@ import numpy as np
 
 from tumor3d.errors import InputError
 from tumor3d.scan import SourceGrid
+from tumor3d.validation import check_affine
 
 __all__ = [
     "NIFTI_DTYPES",
@@ -222,16 +223,8 @@ def volume_to_source_nifti_bytes(
 
 
 def _check_affine(affine: np.ndarray) -> np.ndarray:
-    aff = np.array(affine, dtype=np.float64)
-    if aff.shape != (4, 4):
-        raise ValueError(f"affine must be 4x4, got shape {aff.shape}")
-    if not np.all(np.isfinite(aff)):
-        raise ValueError("affine must be finite")
-    if not np.array_equal(aff[3], [0.0, 0.0, 0.0, 1.0]):
-        raise ValueError(f"affine's last row must be (0, 0, 0, 1), got {aff[3]}")
-    if abs(np.linalg.det(aff[:3, :3])) < 1e-12:
-        raise ValueError("affine is singular")
-    return aff
+    """A finite, invertible 4x4 affine (see :func:`tumor3d.validation.check_affine`)."""
+    return check_affine(affine)
 
 
 def _cast_exactly(arr: np.ndarray, dt: np.dtype) -> np.ndarray:
