@@ -6,7 +6,7 @@ import hashlib
 import re
 from pathlib import Path
 
-from tumor3d.errors import InputError
+from tumor3d.errors import InputError, os_error_path, os_error_text
 
 __all__ = ["input_digest"]
 
@@ -74,11 +74,20 @@ def input_digest(path: str | Path) -> str:
     Raises
     ------
     InputError
-        If the path does not exist.
+        If the path does not exist or cannot be read (one line naming it).
     """
     p = Path(path)
     if not p.exists():
         raise InputError("no such file or folder", path=str(p))
+    try:
+        return _input_digest(p)
+    except OSError as exc:
+        raise InputError(
+            f"cannot read the input ({os_error_text(exc)})", os_error_path(exc, p)
+        ) from None
+
+
+def _input_digest(p: Path) -> str:
     h = hashlib.sha256(b"tumor3d-input-v1\0")
     if p.is_dir():
         files = sorted(f for f in p.rglob("*") if f.is_file())

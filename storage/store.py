@@ -42,7 +42,7 @@ import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field
 
 from storage import formats, nifti
-from tumor3d.errors import Tumor3DError
+from tumor3d.errors import InputError, Tumor3DError, os_error_path, os_error_text
 from tumor3d.mesh import Mesh
 from tumor3d.scan import Scan, SourceGrid
 
@@ -60,7 +60,7 @@ _DIGEST_PREFIX = b"tumor3d-artifact-v1\0"
 
 
 class StoreError(Tumor3DError):
-    """A missing or corrupted artifact."""
+    """A missing, corrupted or unwritable artifact (an environment problem, not bad input)."""
 
 
 @dataclass(frozen=True)
@@ -166,11 +166,24 @@ class ArtifactStore:
     ----------
     root : path
         The store folder; created if missing.
+
+    Raises
+    ------
+    InputError
+        If ``root`` is a file or cannot be created (one line naming it).
     """
 
     def __init__(self, root: str | os.PathLike[str]) -> None:
         self.root = Path(root).resolve()
-        (self.root / "objects").mkdir(parents=True, exist_ok=True)
+        if self.root.exists() and not self.root.is_dir():
+            raise InputError("the artifact store must be a folder, but this is a file", self.root)
+        try:
+            (self.root / "objects").mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(
+                f"cannot create the artifact store ({os_error_text(exc)})",
+                os_error_path(exc, self.root),
+            ) from None
         self.repairs: list[Repair] = []
         """Repairs made through this instance (also in ``<root>/repairs.jsonl``)."""
 
@@ -233,6 +246,9 @@ class ArtifactStore:
     ) -> ArtifactRef:
         """Store bytes (atomically) and return their reference.
 
+        Raises :class:`StoreError` (one line naming the file) when the
+        object cannot be written (a full disk, a read-only mount).
+
         An object that already exists with exactly these bytes is left
         alone; one with other bytes (a corrupted copy, even of the same size)
         is rewritten and the repair recorded (:attr:`repairs`).
@@ -246,7 +262,12 @@ class ArtifactStore:
         except OSError:
             existing = None
         if existing != data:
-            atomic_write_bytes(path, data)
+            try:
+                atomic_write_bytes(path, data)
+            except OSError as exc:  # a full disk, a read-only mount, ...
+                raise StoreError(
+                    f"{path}: cannot write the artifact ({os_error_text(exc)})"
+                ) from None
             if existing is not None:
                 self._record(
                     Repair(

@@ -7,6 +7,19 @@ parameter and says what is wrong with it.
 
 from __future__ import annotations
 
+import errno
+import os
+
+__all__ = [
+    "ConfigError",
+    "InputError",
+    "MeshError",
+    "NoSurfaceError",
+    "Tumor3DError",
+    "os_error_path",
+    "os_error_text",
+]
+
 
 class Tumor3DError(Exception):
     """Base class of all tumor3d errors."""
@@ -39,3 +52,22 @@ class MeshError(Tumor3DError, ValueError):
 
 class NoSurfaceError(Tumor3DError, RuntimeError):
     """The mask holds no object, so there is no surface to extract."""
+
+
+def os_error_text(exc: OSError) -> str:
+    """One line describing an OS error for a user, without a traceback.
+
+    Examples
+    --------
+    >>> os_error_text(OSError(28, "No space left on device"))
+    'no space left on device (ENOSPC)'
+    """
+    text = (exc.strerror or str(exc) or type(exc).__name__).strip().splitlines()[0]
+    code = errno.errorcode.get(exc.errno or -1)
+    text = text[:1].lower() + text[1:]
+    return f"{text} ({code})" if code else text
+
+
+def os_error_path(exc: OSError, default: str | os.PathLike[str]) -> str:
+    """The file an OS error concerns (its ``filename``), else ``default``."""
+    return str(exc.filename) if exc.filename else os.fspath(default)

@@ -86,7 +86,7 @@ from storage.readers.stack import (
     _list_stack_images,
     read_image_stack,
 )
-from tumor3d.errors import InputError
+from tumor3d.errors import InputError, os_error_path, os_error_text
 from tumor3d.scan import MODALITIES, Scan, validate_patient_id
 
 __all__ = [
@@ -154,9 +154,38 @@ def read_scan(
     InputError
         If the path is missing, unsupported or unreadable, holds a single
         2-D image, a constant volume or non-finite values, or if a parameter
-        is invalid. The message names the file and the problem.
+        is invalid. The message names the file and the problem; operating-
+        system errors (permissions, I/O) are mapped to one such line.
     """
     p = Path(path)
+    try:
+        return _read_scan(
+            p,
+            modality=modality,
+            patient_id=patient_id,
+            series_uid=series_uid,
+            slice_thickness_mm=slice_thickness_mm,
+            slice_gap_mm=slice_gap_mm,
+            skip_unreadable=skip_unreadable,
+            max_voxels=max_voxels,
+        )
+    except OSError as exc:  # permissions, a vanished mount, an I/O error: one line
+        raise InputError(
+            f"cannot read the input ({os_error_text(exc)})", os_error_path(exc, p)
+        ) from None
+
+
+def _read_scan(
+    p: Path,
+    *,
+    modality: str | None,
+    patient_id: str | None,
+    series_uid: str | None,
+    slice_thickness_mm: float | None,
+    slice_gap_mm: float | None,
+    skip_unreadable: bool,
+    max_voxels: int,
+) -> Scan:
     if not p.exists():
         raise InputError("no such file or folder", str(p))
     mod = None if modality is None else _check_modality(modality)

@@ -152,13 +152,14 @@ def read_dicom_series(
         raise _NoDicomImagesError(f"no DICOM images found in {d}")
     if series_uid is None and len(series) > 1:
         raise InputError(
-            f"{len(series)} DICOM series found; choose one with series_uid: "
-            + _describe_series(series),
+            f"{len(series)} DICOM series found; choose one with --series-uid "
+            "(series_uid=...): " + _describe_series(series),
             str(d),
         )
     if series_uid is not None and series_uid not in series:
         raise InputError(
-            f"series_uid {series_uid!r} not found; available: " + _describe_series(series),
+            f"series {series_uid!r} (--series-uid) not found; available: "
+            + _describe_series(series),
             str(d),
         )
     items = series[series_uid if series_uid is not None else next(iter(series))]

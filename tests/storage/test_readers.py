@@ -226,7 +226,9 @@ def test_dicom_two_series_listed_and_selectable(tmp_path):
     folder = tmp_path / "mixed"
     a = write_series(folder, description="T2 AX", seed=1, prefix="A")
     b = write_series(folder, description="FLAIR SAG", seed=2, prefix="B", n_slices=4)
-    with pytest.raises(InputError, match=r"2 DICOM series found") as info:
+    with pytest.raises(
+        InputError, match=r"2 DICOM series found; choose one with --series-uid"
+    ) as info:
         read_scan(folder)
     message = str(info.value)
     assert f"{a.series_uid} ('T2 AX', 6 files)" in message
@@ -239,7 +241,7 @@ def test_dicom_two_series_listed_and_selectable(tmp_path):
 def test_dicom_unknown_series_uid_lists_available(tmp_path):
     s = write_series(tmp_path / "one")
     with pytest.raises(
-        InputError, match=rf"series_uid '1\.2\.3' not found; available: {s.series_uid}"
+        InputError, match=rf"series '1\.2\.3' \(--series-uid\) not found; available: {s.series_uid}"
     ):
         read_scan(tmp_path / "one", series_uid="1.2.3")
 
