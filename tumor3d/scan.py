@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tumor3d.constants import IN_PLANE_ORTHOGONALITY_TOL, REL_TOL, SINGULAR_DET_TOL
+from tumor3d.constants import IN_PLANE_ORTHOGONALITY_TOL, REL_TOL, SHEAR_TOL, SINGULAR_DET_TOL
 from tumor3d.errors import InputError
 
 __all__ = [
@@ -125,7 +125,9 @@ def slice_plane_spacing_mm(affine: np.ndarray, slice_axis: int = 2) -> float:
 
         spacing = |c_s . (c_a x c_b)| / |c_a x c_b| = |det A| / |c_a x c_b|
 
-    It equals the column length ``|c_s|`` only when the grid is not sheared.
+    It equals the column length ``|c_s|`` only when the grid is not sheared;
+    when the two differ by at most :data:`tumor3d.constants.SHEAR_TOL`
+    (relative), the column length is returned, free of round-off.
 
     Parameters
     ----------
@@ -155,8 +157,12 @@ def slice_plane_spacing_mm(affine: np.ndarray, slice_axis: int = 2) -> float:
         raise InputError(f"slice_axis must be 0, 1 or 2, got {slice_axis!r}")
     a, b = (k for k in range(3) if k != slice_axis)
     normal = np.cross(lin[:, a], lin[:, b])
-    area = float(np.linalg.norm(normal))
-    return abs(float(np.linalg.det(lin))) / area
+    column = lin[:, slice_axis]
+    length = float(np.linalg.norm(column))
+    spacing = abs(float(column @ normal)) / float(np.linalg.norm(normal))
+    # Not sheared (to SHEAR_TOL): the column length itself, free of round-off,
+    # so an orthogonal grid keeps exactly its stated step.
+    return length if length - spacing <= SHEAR_TOL * length else spacing
 
 
 def in_plane_shear(affine: np.ndarray, slice_axis: int = 2) -> float:
