@@ -1,4 +1,9 @@
-"""Input readers (a package): a NIfTI file, a DICOM series or a stack of 2-D images -> `Scan`.
+"""Input readers: a NIfTI/NRRD/MetaImage file, a DICOM series or 2-D images -> `Scan`.
+
+The package's modules: :mod:`~storage.readers.common` (shared checks and the
+volume geometry rules), :mod:`~storage.readers.nifti`,
+:mod:`~storage.readers.itk` (NRRD, MetaImage), :mod:`~storage.readers.dicom`,
+:mod:`~storage.readers.stack`; every public name is importable from here.
 
 :func:`read_scan` is the one entry point. It dispatches on what ``path`` is:
 
@@ -14,8 +19,8 @@ image with ``z`` the slice axis, an affine mapping the voxel index
 ``(x, y, z, 1)`` to RAS mm, and a :class:`tumor3d.scan.SourceGrid` that
 writes Scan-grid arrays back in the input's own voxel grid.
 
-Slice axis of a NIfTI volume (the one rule)
--------------------------------------------
+Slice axis of a NIfTI, NRRD or MetaImage volume (the one rule)
+--------------------------------------------------------------
 The voxel spacings are the norms of the affine's first three columns. The
 voxel axis with the **coarsest spacing** is the slice axis. When several axes
 are within 1 % of the coarsest spacing (e.g. an isotropic 1 mm volume), the
@@ -24,6 +29,10 @@ one among them whose direction is **closest to superior-inferior** (largest
 tie goes to the highest voxel axis. The voxel axes are only permuted (never
 resampled, never flipped) so that the slice axis becomes ``z``; the two other
 axes keep their source order as ``(x, y)``. See :func:`choose_slice_axis`.
+The two in-plane axes must be perpendicular; the slice step is the distance
+between slice planes, ``|det A| / |c_x x c_y|``, which on a sheared grid is
+less than the slice-axis column's length
+(:func:`tumor3d.scan.slice_plane_spacing_mm`).
 
 Slice thickness and gap
 -----------------------
