@@ -138,15 +138,7 @@ def read_dicom_series(
             continue  # DICOMDIR, structured report, presentation state, ...
         series.setdefault(str(ds.get("SeriesInstanceUID", "")), []).append((f, ds))
     if unreadable and not skip_unreadable:
-        shown = "; ".join(f"{name}: {why}" for name, why in unreadable[:10])
-        more = f"; and {len(unreadable) - 10} more" if len(unreadable) > 10 else ""
-        raise InputError(
-            f"{len(unreadable)} file(s) could not be read as DICOM: {shown}{more}. Remove "
-            "them, or skip them explicitly with --skip-unreadable-dicom "
-            "(skip_unreadable=True)",
-            str(d),
-        )
-    skipped = tuple(name for name, _ in unreadable)
+        raise _unreadable_error(unreadable, d)
 
     if not series:
         raise _NoDicomImagesError(f"no DICOM images found in {d}")
@@ -171,7 +163,27 @@ def read_dicom_series(
         )
     geometry = [_dicom_geometry(f, ds) for f, ds in items]
     check_voxel_count((*geometry[0]["shape"], len(items)), limit, str(d))
-    image, affine, step, pixel_spacing, first = _assemble_dicom(items, geometry, d)
+    pixels: dict[Path, np.ndarray] = {}
+    undecodable: list[tuple[str, str]] = []
+    for f, ds in items:
+        try:
+            pixels[f] = np.asarray(ds.pixel_array, dtype=np.float64)
+        except Exception as exc:  # truncated or damaged pixel data, unknown codec
+            undecodable.append((f.name, f"cannot decode the pixel data ({_describe(exc)[:160]})"))
+    if undecodable:
+        if not skip_unreadable:
+            raise _unreadable_error(undecodable, d)
+        unreadable += undecodable
+        kept = [k for k, (f, _) in enumerate(items) if f in pixels]
+        items, geometry = [items[k] for k in kept], [geometry[k] for k in kept]
+        if len(items) < 2:
+            raise InputError(
+                f"fewer than 2 readable images remain in the DICOM series after skipping "
+                f"{len(unreadable)} unreadable file(s)",
+                str(d),
+            )
+    skipped = tuple(sorted(name for name, _ in unreadable))
+    image, affine, step, pixel_spacing, first = _assemble_dicom(items, geometry, pixels, d)
     _check_volume(image, str(d))
     file_thickness = None
     raw_thickness = first.get("SliceThickness", None)
@@ -199,6 +211,17 @@ def read_dicom_series(
         + (f", {len(skipped)} unreadable file(s) skipped" if skipped else ""),
         source_grid=SourceGrid(shape=(nx, ny, nz), affine=affine, axes=(0, 1, 2)),
         skipped_files=skipped,
+    )
+
+
+def _unreadable_error(unreadable: list[tuple[str, str]], d: Path) -> InputError:
+    """One line naming every unreadable file (the first 10, then a count)."""
+    shown = "; ".join(f"{name}: {why}" for name, why in unreadable[:10])
+    more = f"; and {len(unreadable) - 10} more" if len(unreadable) > 10 else ""
+    return InputError(
+        f"{len(unreadable)} file(s) could not be read as DICOM: {shown}{more}. Remove "
+        "them, or skip them explicitly with --skip-unreadable-dicom (skip_unreadable=True)",
+        str(d),
     )
 
 
@@ -292,7 +315,10 @@ def _dicom_geometry(f: Path, ds: Any) -> dict[str, Any]:
 
 
 def _assemble_dicom(
-    items: list[tuple[Path, Any]], geometry: list[dict[str, Any]], folder: Path
+    items: list[tuple[Path, Any]],
+    geometry: list[dict[str, Any]],
+    pixels: dict[Path, np.ndarray],
+    folder: Path,
 ) -> tuple[np.ndarray, np.ndarray, float, tuple[float, float], Any]:
     """Sort, check and stack the slices; return image, RAS affine, step, (dy, dx), first ds."""
     g0, f0 = geometry[0], items[0][0]
@@ -358,18 +384,15 @@ def _assemble_dicom(
     slices = []
     for i in order:
         f, ds = items[i]
-        try:
-            pixels = np.asarray(ds.pixel_array, dtype=np.float64)
-        except Exception as exc:
-            raise InputError(f"cannot decode the pixel data ({_describe(exc)})", str(f)) from exc
-        if pixels.shape != g0["shape"]:
+        values = pixels[f]
+        if values.shape != g0["shape"]:
             raise InputError(
-                f"pixel data of shape {pixels.shape} does not match Rows x Columns {g0['shape']}",
+                f"pixel data of shape {values.shape} does not match Rows x Columns {g0['shape']}",
                 str(f),
             )
         slope = _dicom_float(ds, "RescaleSlope", 1.0, f)
         intercept = _dicom_float(ds, "RescaleIntercept", 0.0, f)
-        slices.append(pixels * slope + intercept)
+        slices.append(values * slope + intercept)
     image = np.stack(slices).astype(np.float32)
 
     lps = np.eye(4)

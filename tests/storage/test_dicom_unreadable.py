@@ -68,3 +68,16 @@ def test_notes_and_previews_beside_the_series_are_not_unreadable(tmp_path):
     scan = read_scan(folder)
     assert scan.n_slices == 4 and scan.skipped_files == ()
     assert "skipped" not in scan.source
+
+
+def test_truncated_pixel_data_is_named_and_can_be_skipped(tmp_path):
+    folder = tmp_path / "case"
+    s = write_series(folder, n_slices=6)
+    victim = s.files[0]  # the bottom slice: the others remain a uniform series
+    victim.write_bytes(victim.read_bytes()[:-100])
+    with pytest.raises(InputError, match=r"1 file.s. could not be read") as info:
+        read_scan(folder)
+    assert f"{victim.name}: cannot decode the pixel data" in str(info.value)
+    scan = read_scan(folder, skip_unreadable=True)
+    assert scan.skipped_files == (victim.name,) and scan.n_slices == 5
+    np.testing.assert_array_equal(scan.image, s.raw[1:].astype(np.float32) * 2 - 10)
