@@ -19,9 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
+from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
 from tumor3d.scan import SourceGrid
-from tumor3d.validation import check_affine
+from tumor3d.validation import check_affine, check_int
 
 __all__ = [
     "NIFTI_DTYPES",
@@ -121,13 +122,18 @@ def decode_nifti(data: bytes) -> tuple[np.ndarray, np.ndarray]:
     return array, np.array(img.affine, dtype=np.float64)
 
 
-def read_nifti(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+def read_nifti(
+    path: str | os.PathLike[str], *, max_voxels: int = MAX_VOXELS_DEFAULT
+) -> tuple[np.ndarray, np.ndarray]:
     """Read a NIfTI file into ``(array, affine)`` (see :func:`decode_nifti`).
 
     Parameters
     ----------
     path : str or path-like
         A ``.nii`` or ``.nii.gz`` file.
+    max_voxels : int
+        Refuse a file whose header declares more voxels (checked before any
+        voxel is read; default 512 million).
 
     Returns
     -------
@@ -138,10 +144,12 @@ def read_nifti(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     Raises
     ------
     InputError
-        If the file is missing or not a readable NIfTI image.
+        If the file is missing, declares more than ``max_voxels`` voxels,
+        or is not a readable NIfTI image.
     """
     import nibabel as nib
 
+    limit = check_int(max_voxels, "max_voxels", minimum=1)
     p = Path(path)
     if not p.is_file():
         raise InputError("no such file", str(p))
@@ -149,7 +157,16 @@ def read_nifti(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
         img = nib.load(str(p))
         if not isinstance(img, nib.Nifti1Image):
             raise TypeError(f"nibabel read it as {type(img).__name__}")
+        n = int(np.prod([int(v) for v in img.shape]))
+        if n > limit:
+            raise InputError(
+                f"the header declares {' x '.join(str(v) for v in img.shape)} = {n:,} voxels, "
+                f"more than the limit of {limit:,} (max_voxels)",
+                str(p),
+            )
         array = np.asanyarray(img.dataobj).copy()
+    except InputError:
+        raise
     except Exception as exc:
         raise InputError(
             f"not a readable NIfTI image ({type(exc).__name__}: {exc})", str(p)

@@ -127,3 +127,11 @@ def test_dicom_series_size_is_checked_before_decoding(tmp_path):
     with pytest.raises(InputError, match="16 x 12 x 6 = 1,152 voxels"):
         read_scan(folder, max_voxels=1000)
     assert read_scan(folder, max_voxels=1152).n_slices == 6
+
+
+def test_read_nifti_checks_the_declared_size(tmp_path):
+    from storage.nifti import read_nifti
+
+    f = _nifti_header_only(tmp_path / "ref.nii.gz", (2048, 2048, 300))
+    with pytest.raises(InputError, match=r"ref\.nii\.gz: the header declares 2048 x 2048 x 300"):
+        read_nifti(f)
