@@ -54,7 +54,11 @@ Slices are sorted by ``ImagePositionPatient`` projected on the slice normal
 ``InstanceNumber``. The affine, in LPS, has columns ``r * PixelSpacing[1]``
 (x = column index), ``c * PixelSpacing[0]`` (y = row index), ``n * step``
 (z = sorted slice index) and origin the first sorted slice's position; its
-first two rows are negated to give RAS (DICOM PS3.3 C.7.6.2.1.1).
+first two rows are negated to give RAS (DICOM PS3.3 C.7.6.2.1.1). A
+gantry-tilted stack (positions drifting within the slice plane by more than
+0.1 pixel, but along a straight line) keeps its geometry: the z column is the
+mean position step ``(p_last - p_first) / (n - 1)``, not perpendicular to the
+slices, and ``slice_step_mm`` is still the distance between slice planes.
 
 Image stack convention
 ----------------------

@@ -374,12 +374,24 @@ def _assemble_dicom(
     in_plane = (positions - positions[0]) - np.outer(dist - dist[0], normal)
     drift = float(np.max(np.linalg.norm(in_plane, axis=1)))
     dy, dx = (float(v) for v in g0["PixelSpacing"])
-    if drift > DICOM_IN_PLANE_DRIFT_FRACTION * min(dx, dy):
-        raise InputError(
-            f"slice positions drift by up to {drift:.3g} mm within the slice plane (a "
-            "sheared stack, e.g. gantry tilt), which is not supported",
-            str(folder),
-        )
+    tolerance = DICOM_IN_PLANE_DRIFT_FRACTION * min(dx, dy)
+    slice_column = normal * step
+    if drift > tolerance:
+        # A sheared stack (gantry tilt): the slices must still lie on one
+        # straight line, the slice column is then the mean position step
+        # (not perpendicular to the slices) and the step stays the distance
+        # between slice planes.
+        slice_column = (positions[-1] - positions[0]) / (len(positions) - 1)
+        k = (dist - dist[0]) / step  # 0, 1, 2, ... (the step is uniform)
+        off_line = positions - positions[0] - np.outer(k, slice_column)
+        worst = float(np.max(np.linalg.norm(off_line, axis=1)))
+        if worst > tolerance:
+            raise InputError(
+                f"slice positions drift by up to {drift:.3g} mm within the slice plane and "
+                f"not along a straight line (off by up to {worst:.3g} mm): a uniformly "
+                "tilted (gantry-tilt) stack is supported, an irregular one is not",
+                str(folder),
+            )
 
     slices = []
     for i in order:
@@ -398,7 +410,7 @@ def _assemble_dicom(
     lps = np.eye(4)
     lps[:3, 0] = row_cos * dx
     lps[:3, 1] = col_cos * dy
-    lps[:3, 2] = normal * step
+    lps[:3, 2] = slice_column
     lps[:3, 3] = positions[0]
     affine = np.diag([-1.0, -1.0, 1.0, 1.0]) @ lps
     return image, affine, step, (dy, dx), items[int(order[0])][1]

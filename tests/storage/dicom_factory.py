@@ -55,6 +55,7 @@ def write_series(
     origin=(-40.0, 25.0, 12.5),
     step_mm: float = 5.0,
     offsets_mm=None,
+    tilt_mm_per_slice: float = 0.0,
     pixel_spacing=(0.8, 0.9),
     thickness_mm: float | None = 2.0,
     slope: float = 2.0,
@@ -74,7 +75,9 @@ def write_series(
     offsets_mm = np.asarray(offsets_mm, dtype=float)
     n = len(offsets_mm)
     # round positions to what is written (6 decimals) so expectations match the file
-    positions = np.round(np.asarray(origin) + offsets_mm[:, None] * normal, 6)
+    # gantry tilt: each slice shifted along the column direction in proportion to its offset
+    shift = (offsets_mm / step_mm * tilt_mm_per_slice)[:, None] * col_dir
+    positions = np.round(np.asarray(origin) + offsets_mm[:, None] * normal + shift, 6)
     row_dir_w, col_dir_w = np.round(row_dir, 6), np.round(col_dir, 6)
     raw = rng.integers(0, 1000, size=(n, rows, cols)).astype(np.int16)
     series_uid = generate_uid(entropy_srcs=[f"series-{seed}-{description}"])

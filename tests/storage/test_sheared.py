@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import nibabel as nib
 import numpy as np
+import pydicom
 import pytest
+from dicom_factory import write_series
 
 from storage.readers import read_scan
 from tumor3d.errors import InputError
@@ -107,3 +109,32 @@ def test_scan_refuses_a_slice_step_that_is_the_column_length():
     with pytest.raises(InputError, match="slice step 5.83095 mm disagrees"):
         Scan(slice_step_mm=float(np.linalg.norm(SHEARED[:3, 2])), **kw)
     assert Scan(slice_step_mm=5.0, **kw).slab_height_mm == 5.0
+
+
+def test_gantry_tilted_dicom_keeps_its_geometry_and_plane_spacing(tmp_path):
+    s = write_series(tmp_path / "tilt", n_slices=6, step_mm=5.0, tilt_mm_per_slice=1.5)
+    scan = read_scan(tmp_path / "tilt")
+    assert scan.slice_step_mm == pytest.approx(5.0, abs=1e-5)  # between planes, not 5.22
+    assert "sheared" not in scan.source  # DICOM: sheared affine, source unchanged
+    # every voxel where DICOM PS3.3 C.7.6.2.1.1 puts it (LPS -> RAS)
+    dy, dx = s.pixel_spacing
+    for k, j, i in [(0, 0, 0), (5, 0, 0), (3, 7, 5), (5, 15, 11)]:
+        lps = s.positions[k] + i * dx * s.row_dir + j * dy * s.col_dir
+        np.testing.assert_allclose(
+            scan.index_to_ras([[k, j, i]])[0], lps * [-1.0, -1.0, 1.0], atol=1e-4
+        )
+    assert scan.voxel_volume_mm3 == pytest.approx(dx * dy * 5.0, rel=1e-6)
+
+
+def test_irregularly_drifting_dicom_is_refused(tmp_path):
+    rng = np.random.default_rng(0)
+    write_series(tmp_path / "wobble", n_slices=6, tilt_mm_per_slice=0.0)
+    # move one middle slice sideways by 2 mm: not a straight line any more
+    f = sorted((tmp_path / "wobble").glob("*.dcm"))[int(rng.integers(1, 5))]
+    ds = pydicom.dcmread(f)
+    pos = [float(v) for v in ds.ImagePositionPatient]
+    iop = [float(v) for v in ds.ImageOrientationPatient]
+    ds.ImagePositionPatient = [f"{p + 2.0 * c:.6f}" for p, c in zip(pos, iop[3:], strict=True)]
+    ds.save_as(f)
+    with pytest.raises(InputError, match="not along a straight line"):
+        read_scan(tmp_path / "wobble")
