@@ -27,6 +27,7 @@ from tumor3d.constants import (
     DICOM_ORIENTATION_TOL,
     DICOM_PIXEL_SPACING_REL_TOL,
     DICOM_UNIT_VECTOR_TOL,
+    SHEAR_TOL,
 )
 from tumor3d.errors import InputError
 from tumor3d.scan import Scan, SourceGrid, validate_patient_id
@@ -208,10 +209,18 @@ def read_dicom_series(
         modality=mod,
         patient_id=pid,
         source=f"DICOM series in folder {d.name}, {nz} slices"
+        + _tilt_note(affine, step)
         + (f", {len(skipped)} unreadable file(s) skipped" if skipped else ""),
         source_grid=SourceGrid(shape=(nx, ny, nz), affine=affine, axes=(0, 1, 2)),
         skipped_files=skipped,
     )
+
+
+def _tilt_note(affine: np.ndarray, step: float) -> str:
+    column = float(np.linalg.norm(affine[:3, 2]))
+    if column - step <= SHEAR_TOL * column:
+        return ""
+    return f" (gantry tilt: slice planes {step:.4g} mm apart, slice-axis column {column:.4g} mm)"
 
 
 def _unreadable_error(unreadable: list[tuple[str, str]], d: Path) -> InputError:

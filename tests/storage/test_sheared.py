@@ -115,7 +115,7 @@ def test_gantry_tilted_dicom_keeps_its_geometry_and_plane_spacing(tmp_path):
     s = write_series(tmp_path / "tilt", n_slices=6, step_mm=5.0, tilt_mm_per_slice=1.5)
     scan = read_scan(tmp_path / "tilt")
     assert scan.slice_step_mm == pytest.approx(5.0, abs=1e-5)  # between planes, not 5.22
-    assert "sheared" not in scan.source  # DICOM: sheared affine, source unchanged
+    assert "gantry tilt: slice planes 5 mm apart" in scan.source
     # every voxel where DICOM PS3.3 C.7.6.2.1.1 puts it (LPS -> RAS)
     dy, dx = s.pixel_spacing
     for k, j, i in [(0, 0, 0), (5, 0, 0), (3, 7, 5), (5, 15, 11)]:
