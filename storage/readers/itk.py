@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -127,6 +128,27 @@ def read_itk_scan(
     if not p.is_file():
         raise InputError("no such file", where)
     kind = "NRRD" if p.name.lower().endswith((".nrrd", ".nhdr")) else "MetaImage"
+    # ITK prints warnings for odd headers to stderr; the reader reports in one line instead
+    shown = sitk.ProcessObject.GetGlobalWarningDisplay()
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    try:
+        data, affine = _read_itk(sitk, where, kind, limit)
+    finally:
+        sitk.ProcessObject.SetGlobalWarningDisplay(shown)
+    return scan_from_volume(
+        np.ascontiguousarray(data),
+        affine,
+        where=where,
+        source=f"{kind} file {p.name}",
+        modality=mod,
+        patient_id=pid,
+        slice_thickness_mm=thickness_override,
+        slice_gap_mm=gap_override,
+    )
+
+
+def _read_itk(sitk: Any, where: str, kind: str, limit: int) -> tuple[np.ndarray, np.ndarray]:
+    """Header check, then voxels ``(i, j, k)`` float32 and the RAS affine."""
     reader = sitk.ImageFileReader()
     reader.SetFileName(where)
     try:
@@ -159,16 +181,7 @@ def read_itk_scan(
     affine = itk_ras_affine(image.GetSpacing(), image.GetOrigin(), image.GetDirection())
     if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < SINGULAR_DET_TOL:
         raise InputError("the image geometry (spacing, direction) is singular or not finite", where)
-    return scan_from_volume(
-        np.ascontiguousarray(data),
-        affine,
-        where=where,
-        source=f"{kind} file {p.name}",
-        modality=mod,
-        patient_id=pid,
-        slice_thickness_mm=thickness_override,
-        slice_gap_mm=gap_override,
-    )
+    return data, affine
 
 
 def _itk_message(exc: BaseException) -> str:

@@ -119,3 +119,11 @@ def test_input_digest_of_a_detached_header_covers_its_data_file(tmp_path, suffix
     d0 = input_digest(f)
     write_itk(f, data + 1, (1, 1, 5), (0, 0, 0), np.eye(3))  # same header, other voxels
     assert input_digest(f) != d0
+
+
+def test_itk_4d_image_with_one_volume_is_read_as_3d(tmp_path):
+    data = np.random.default_rng(0).integers(1, 100, (1, 3, 8, 8)).astype(np.int16)  # (t, k, j, i)
+    sitk.WriteImage(sitk.GetImageFromArray(data, isVector=False), str(tmp_path / "four.nrrd"))
+    scan = read_scan(tmp_path / "four.nrrd")
+    assert scan.shape == (3, 8, 8)
+    np.testing.assert_array_equal(scan.image, data[0].astype(np.float32))
