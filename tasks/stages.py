@@ -96,20 +96,7 @@ class InputSource(BaseModel):
 
 #: Stage name -> the modules whose source is part of its cache key.
 STAGES: dict[str, tuple[str, ...]] = {
-    "ingest-scan": (
-        "storage.readers",  # a package since the split: list its modules (issue 5)
-        "storage.readers.common",
-        "storage.readers.dicom",
-        "storage.readers.itk",
-        "storage.readers.nifti",
-        "storage.readers.stack",
-        "storage.inputs",
-        "storage.nifti",
-        "tumor3d.config",
-        "tumor3d.constants",
-        "tumor3d.scan",
-        "tumor3d.validation",
-    ),
+    "ingest-scan": ("storage.readers", "storage.nifti", "tumor3d.scan"),
     "preprocess": ("tumor3d.preprocess",),
     "detect-abnormal": ("tumor3d.detect",),
     "segment-tumor": ("tumor3d.segment", "tumor3d.detect"),
