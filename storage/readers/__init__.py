@@ -153,8 +153,9 @@ def read_scan(
         stopping with an error that names them; the skipped file names are
         in ``Scan.skipped_files`` (see :func:`read_dicom_series`).
     max_voxels : int
-        Refuse a volume whose header (NIfTI, NRRD, MetaImage; for DICOM the
-        rows x columns x files) declares more voxels, before reading it.
+        Refuse a volume whose header (NIfTI, NRRD, MetaImage; for DICOM and
+        image stacks rows x columns x files) declares more voxels, before
+        reading it.
         Default :data:`tumor3d.constants.MAX_VOXELS_DEFAULT` (512 million).
 
     Returns
@@ -231,7 +232,7 @@ def _read_scan(
     if not p.is_dir():
         raise InputError("neither a regular file nor a folder", str(p))
     if any((p / name).is_file() for name in STACK_SIDECAR_NAMES):
-        return read_image_stack(p, modality=mod, **common)
+        return read_image_stack(p, modality=mod, max_voxels=limit, **common)
     try:
         return read_dicom_series(
             p,

@@ -10,11 +10,14 @@ from typing import Any
 import numpy as np
 
 from storage.readers.common import (
+    MAX_VOXELS_DEFAULT,
     _check_modality,
     _check_override,
     _check_volume,
     _describe,
     _positive_number,
+    check_max_voxels,
+    check_voxel_count,
     derive_patient_id,
 )
 from tumor3d.config import load_yaml
@@ -42,11 +45,12 @@ def read_image_stack(
     patient_id: str | None = None,
     slice_thickness_mm: float | None = None,
     slice_gap_mm: float | None = None,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
 ) -> Scan:
     """Read a folder of 2-D PNG/TIFF/JPEG slices with a YAML sidecar as a `Scan`.
 
     The sidecar ``stack.yaml`` (or ``slices.yaml``) holds
-    ``pixel_spacing_mm`` (``[dy, dx]`` or one number), ``slice_thickness_mm``,
+    ``pixel_spacing_mm`` (a list ``dy, dx`` or one number), ``slice_thickness_mm``,
     ``slice_gap_mm``, and optionally ``order`` (file names, first = lowest z;
     default: natural sort of the image file names, so ``2`` before ``10``)
     and ``modality``. RGB slices are converted to luminance
@@ -62,6 +66,9 @@ def read_image_stack(
     patient_id, slice_thickness_mm, slice_gap_mm
         As for :func:`read_scan`; the overrides make the sidecar keys
         optional.
+    max_voxels : int
+        Refuse a stack whose first image's width x height x number of
+        files exceeds this, before any pixel is decoded.
 
     Returns
     -------
@@ -70,11 +77,12 @@ def read_image_stack(
     Raises
     ------
     InputError
-        Missing or invalid sidecar or key, fewer than 2 slices, an
-        unreadable image, slices of different sizes, or a constant or
-        non-finite volume.
+        Missing or invalid sidecar or key, fewer than 2 slices, more voxels
+        than ``max_voxels``, an unreadable image (or a decompression bomb),
+        slices of different sizes, or a constant or non-finite volume.
     """
     d = Path(folder)
+    limit = check_max_voxels(max_voxels)
     pid = derive_patient_id(d) if patient_id is None else validate_patient_id(patient_id)
     thickness_override = _check_override("slice_thickness_mm", slice_thickness_mm, allow_zero=False)
     gap_override = _check_override("slice_gap_mm", slice_gap_mm, allow_zero=True)
@@ -159,6 +167,8 @@ def read_image_stack(
         raise InputError(
             f"a single 2-D image ({files[0].name}): at least 2 slices are needed", str(d)
         )
+    width, height = _slice_size(files[0])
+    check_voxel_count((width, height, len(files)), limit, str(d))
     slices = [_read_slice(files[0])]
     for f in files[1:]:
         arr = _read_slice(f)
@@ -221,6 +231,19 @@ def _stack_files(d: Path, order: Any, where: str) -> list[Path]:
     return files
 
 
+def _slice_size(f: Path) -> tuple[int, int]:
+    """``(width, height)`` from an image's header, without decoding its pixels."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(f) as im:
+            return int(im.size[0]), int(im.size[1])
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
+        raise InputError(f"not a readable 2-D image ({_describe(exc)})", str(f)) from exc
+    except Image.DecompressionBombError as exc:
+        raise InputError(f"refused as a decompression bomb ({_describe(exc)})", str(f)) from None
+
+
 def _read_slice(f: Path) -> np.ndarray:
     from PIL import Image, UnidentifiedImageError
 
@@ -242,6 +265,8 @@ def _read_slice(f: Path) -> np.ndarray:
         raise
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
         raise InputError(f"not a readable 2-D image ({_describe(exc)})", str(f)) from exc
+    except Image.DecompressionBombError as exc:
+        raise InputError(f"refused as a decompression bomb ({_describe(exc)})", str(f)) from None
     if arr.ndim != 2:
         raise InputError(f"expected a 2-D grayscale or RGB image, got shape {arr.shape}", str(f))
     return arr

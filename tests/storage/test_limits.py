@@ -135,3 +135,31 @@ def test_read_nifti_checks_the_declared_size(tmp_path):
     f = _nifti_header_only(tmp_path / "ref.nii.gz", (2048, 2048, 300))
     with pytest.raises(InputError, match=r"ref\.nii\.gz: the header declares 2048 x 2048 x 300"):
         read_nifti(f)
+
+
+def test_image_stack_size_is_checked_before_decoding(tmp_path):
+    folder = tmp_path / "stack"
+    folder.mkdir()
+    for k in range(3):
+        Image.fromarray((np.arange(80).reshape(8, 10) + k).astype(np.uint8)).save(
+            folder / f"s{k}.png"
+        )
+    (folder / "stack.yaml").write_text(
+        "pixel_spacing_mm: 1\nslice_thickness_mm: 2\nslice_gap_mm: 0\n"
+    )
+    with pytest.raises(InputError, match=r"stack: the header declares 10 x 8 x 3 = 240 voxels"):
+        read_scan(folder, max_voxels=239)
+    assert read_scan(folder, max_voxels=240).shape == (3, 8, 10)
+
+
+def test_image_decompression_bomb_is_one_line(tmp_path, monkeypatch):
+    folder = tmp_path / "stack"
+    folder.mkdir()
+    for k in range(2):
+        Image.fromarray(np.full((64, 64), 10 + k, np.uint8)).save(folder / f"s{k}.png")
+    (folder / "stack.yaml").write_text(
+        "pixel_spacing_mm: 1\nslice_thickness_mm: 2\nslice_gap_mm: 0\n"
+    )
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)  # 64 x 64 > 2 x 1000: Pillow's bomb error
+    with pytest.raises(InputError, match=r"s0\.png: refused as a decompression bomb"):
+        read_scan(folder)
