@@ -218,6 +218,28 @@ class ArtifactStore:
             )
         )
 
+    def read_repairs(self) -> list[Repair]:
+        """Every repair recorded in ``<root>/repairs.jsonl``, oldest first.
+
+        Tasks open their own store instances, so a flow that wants to say
+        what a run repaired compares ``len(store.read_repairs())`` before and
+        after the run. Unparsable lines (a torn write) are skipped.
+        """
+        path = self.root / "repairs.jsonl"
+        try:
+            lines = path.read_text(encoding="utf-8").splitlines()
+        except FileNotFoundError:
+            return []
+        except OSError as exc:
+            raise StoreError(f"{path}: cannot read the repair log ({os_error_text(exc)})") from None
+        out = []
+        for line in lines:
+            try:
+                out.append(Repair(**json.loads(line)))
+            except (ValueError, TypeError):
+                continue
+        return out
+
     def verify(self, ref: ArtifactRef) -> bool:
         """True if the artifact is present and intact.
 

@@ -83,3 +83,17 @@ def test_recomputing_after_a_mismatch_heals_the_store(store):
     back, _ = store.get_volume(ref)
     np.testing.assert_array_equal(back, volume)
     assert ArtifactStore(store.root).verify(ref)  # and later runs see a healthy store
+
+
+def test_repairs_are_readable_by_another_store_instance(store):
+    ref = store.put_bytes(b"payload!", kind="json", suffix=".json")
+    flip_bytes(store.path(ref), offset=0, n=3)
+    other = ArtifactStore(store.root)  # what a task opens
+    assert other.read_repairs() == []
+    assert not other.verify(ref)
+    other.put_bytes(b"payload!", kind="json", suffix=".json")  # the recomputed stage
+    log = ArtifactStore(store.root).read_repairs()
+    assert [r.action for r in log] == ["quarantined"]
+    assert log[0].relpath == ref.relpath and log[0].quarantined_to.startswith("quarantine/")
+    (store.root / "repairs.jsonl").open("a").write("{torn\n")
+    assert len(store.read_repairs()) == 1
