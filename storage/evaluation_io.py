@@ -159,9 +159,9 @@ def prepare_case(row: ManifestRow, work_dir: str | Path) -> PreparedCase:
         combined with thickness/gap overrides.
     """
     kind = row.reference_kind or "unspecified"
+    shape, aff = _image_grid(row)
     if row.reference is not None:
         ref_mask, ref_aff = reference_mask(row)
-        shape, aff = _image_grid(row)
         if not grids_overlap(shape, aff, ref_mask.shape, ref_aff):
             raise InputError(
                 f"patient {row.patient_id}: the reference does not overlap the image "
@@ -169,7 +169,8 @@ def prepare_case(row: ManifestRow, work_dir: str | Path) -> PreparedCase:
                 str(row.reference),
             )
     if row.emulate_step_mm is None:
-        return PreparedCase(row, row, kind, "native")
+        step = float(np.linalg.norm(aff[:3, choose_slice_axis(aff)]))
+        return PreparedCase(row, row, kind, f"native, {step:.3g} mm slice step")
     if row.slice_thickness_mm is not None or row.slice_gap_mm is not None:
         raise InputError(
             f"patient {row.patient_id}: slice_thickness_mm/slice_gap_mm cannot be combined "
