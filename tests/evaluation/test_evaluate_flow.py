@@ -87,3 +87,10 @@ def test_cli_rejects_a_bad_manifest_and_config_with_exit_2(tmp_path):
         app, ["evaluate", str(good), "--out", str(tmp_path / "o"), "--config", "a=nope.yaml"]
     )
     assert r.exit_code == 2 and "nope.yaml" in r.output
+
+
+def test_evaluate_has_help():
+    from flows.cli import app
+
+    r = CliRunner().invoke(app, ["evaluate", "--help"])
+    assert r.exit_code == 0 and "NAME=FILE" in r.output
