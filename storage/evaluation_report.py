@@ -266,10 +266,13 @@ def write_report(
     parts += ["", "## Overlap and surface distance", ""]
     parts.append("Per configuration: mean Dice over the reference's tumour slices / pooled "
                  "Dice on the acquired slices / 3-D Dice on the reference grid; HD95 / max HD "
-                 "in mm.")  # fmt: skip
+                 "in mm between boundary voxels on the reference grid, and between the "
+                 "vertices of the published marching-cubes surface and of the reference's "
+                 "marching-cubes surface (mesh).")  # fmt: skip
     parts.append("")
     header = ["patient"] + [h for n in names for h in (f"{n}: Dice slice / pooled / 3-D",
-                                                       f"{n}: HD95 / HD (mm)")]  # fmt: skip
+                                                       f"{n}: HD95 / HD (mm)",
+                                                       f"{n}: mesh HD95 / HD (mm)")]  # fmt: skip
     rows = []
     tumour_pids = [pid for pid in with_ref if not groups[pid].startswith("tumor_free")]
     for pid in tumour_pids:
@@ -279,6 +282,8 @@ def write_report(
                                     for k in ("dice_slices_mean", "dice_pooled", "dice_3d")))
             cells.append(" / ".join(_f(_get(df, n, pid, k), "{:.1f}")
                                     for k in ("hd95_mm", "hd_max_mm")))  # fmt: skip
+            cells.append(" / ".join(_f(_get(df, n, pid, k), "{:.1f}")
+                                    for k in ("hd95_surface_mm", "hd_max_surface_mm")))  # fmt: skip
         rows.append([pid, *cells])
     parts.append(_table(header, rows))
 

@@ -234,3 +234,27 @@ def test_hd95_is_the_larger_directed_percentile():
     hd95, hdmax = m.hausdorff_mm(d)
     assert hd95 == pytest.approx(np.percentile(d.ref_to_pred, 95))
     assert hd95 >= 10.0 and hdmax == pytest.approx(19.0 - 5.0)
+
+
+def test_point_set_distances_brute_force_and_sphere_meshes():
+    rng = np.random.default_rng(3)
+    a, b = rng.random((40, 3)) * 10, rng.random((25, 3)) * 10
+    d = m.point_set_distances_mm(a, b)
+    brute = np.sqrt(((a[:, None] - b[None]) ** 2).sum(-1))
+    np.testing.assert_allclose(d.pred_to_ref, brute.min(axis=1))
+    np.testing.assert_allclose(d.ref_to_pred, brute.min(axis=0))
+    # marching-cubes surfaces of two concentric balls (anisotropic voxels): HD = r2 - r1
+    from tumor3d.surface import extract_surface
+
+    spacing = (2.0, 1.0, 1.0)  # (z, y, x)
+    shape = (20, 40, 40)
+    centre = (20.0, 20.0, 20.0)
+    aff = np.diag([spacing[2], spacing[1], spacing[0], 1.0])  # (x, y, z) -> mm
+    inner = extract_surface(_ball(shape, centre, 8.0, spacing), aff)
+    outer = extract_surface(_ball(shape, centre, 14.0, spacing), aff)
+    hd95, hdmax = m.hausdorff_mm(m.point_set_distances_mm(inner.vertices, outer.vertices))
+    assert abs(hdmax - 6.0) <= float(np.linalg.norm(spacing))
+    assert abs(hd95 - 6.0) <= float(np.linalg.norm(spacing))
+    assert not m.point_set_distances_mm(np.zeros((0, 3)), b).defined
+    with pytest.raises(InputError, match=r"\(n, 3\)"):
+        m.point_set_distances_mm(np.zeros((4, 2)), b)

@@ -44,6 +44,7 @@ def test_phantoms_match_their_truth(evaluated):
     assert (df["dice_pooled"] > 0.95).all()
     assert (df["fn"] == 0).all() and (df["fp"] == 0).all()
     assert (df["hd95_mm"] < 3.0).all()
+    assert (df["hd95_surface_mm"] < 3.0).all()  # published mesh vs the truth's surface
     assert (df["volume_eq7_error_percent"].abs() < 5.0).all()
     slices = pd.read_parquet(out / "evaluation_slices.parquet")
     n = slices.groupby("patient_id").size()

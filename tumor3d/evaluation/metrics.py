@@ -62,6 +62,7 @@ __all__ = [
     "hausdorff_mm",
     "jaccard",
     "overlap_counts",
+    "point_set_distances_mm",
     "relative_error_percent",
     "signed_percent_error",
     "slice_confusion",
@@ -430,6 +431,36 @@ def surface_distances_world_mm(
         return SurfaceDistances(empty, empty.copy())
     d_ab, _ = cKDTree(pb).query(pa, k=1)
     d_ba, _ = cKDTree(pa).query(pb, k=1)
+    return SurfaceDistances(np.asarray(d_ab, np.float64), np.asarray(d_ba, np.float64))
+
+
+def point_set_distances_mm(pred_points: np.ndarray, ref_points: np.ndarray) -> SurfaceDistances:
+    """Directed nearest-point distances (mm) between two point sets, e.g. mesh vertices.
+
+    Parameters
+    ----------
+    pred_points, ref_points : (n, 3), (m, 3) array_like of float
+        Points in one world space (RAS mm), e.g. the vertices of the
+        reconstructed and of the reference surface.
+
+    Returns
+    -------
+    SurfaceDistances
+        ``pred_to_ref[i]`` = distance from ``pred_points[i]`` to the nearest
+        reference point (k-d tree), and the other way round; empty arrays
+        when either set is empty. Vertex-to-vertex distances exceed the
+        point-to-surface ones by at most half the longest edge.
+    """
+    a = np.asarray(pred_points, dtype=np.float64)
+    b = np.asarray(ref_points, dtype=np.float64)
+    for arr, name in ((a, "pred_points"), (b, "ref_points")):
+        if arr.ndim != 2 or arr.shape[1] != 3 or not np.all(np.isfinite(arr)):
+            raise InputError(f"{name} must be a finite (n, 3) array, got shape {arr.shape}")
+    if a.shape[0] == 0 or b.shape[0] == 0:
+        empty = np.zeros(0, dtype=np.float64)
+        return SurfaceDistances(empty, empty.copy())
+    d_ab, _ = cKDTree(b).query(a, k=1)
+    d_ba, _ = cKDTree(a).query(b, k=1)
     return SurfaceDistances(np.asarray(d_ab, np.float64), np.asarray(d_ba, np.float64))
 
 

@@ -12,7 +12,11 @@ For one patient against its reference (:class:`EvaluationCase`):
   slices;
 * 3-D: Dice/Jaccard of the interpolated mask sampled on the reference's
   grid, and the 95th-percentile and maximum symmetric surface distance in mm
-  (:mod:`tumor3d.evaluation.metrics`) on that grid;
+  (:mod:`tumor3d.evaluation.metrics`) between the boundary voxels on that
+  grid (``hd95_mm``, ``hd_max_mm``); and between the published
+  marching-cubes surface (``tumor.ply``) and the reference's own
+  marching-cubes surface (:func:`tumor3d.surface.extract_surface`), vertex
+  to nearest vertex (``hd95_surface_mm``, ``hd_max_surface_mm``);
 * volumes: each method of ``metrics.parquet`` against the reference volume
   (reference voxels x voxel volume), signed % error.
 """
@@ -51,7 +55,8 @@ def evaluate_segmentation(case: EvaluationCase) -> EvaluationRows:
         ``patient``: ``tp, fp, tn, fn``, ``det_tp, det_fp, det_tn, det_fn``,
         ``n_p, n_g, eq9_percent``, ``dice_slices_mean``, ``jaccard_slices_mean``,
         ``dice_pooled``, ``jaccard_pooled``, ``n_ref_slices``, ``dice_3d``,
-        ``jaccard_3d``, ``hd95_mm``, ``hd_max_mm``, ``ref_volume_mm3``, and per
+        ``jaccard_3d``, ``hd95_mm``, ``hd_max_mm``, ``hd95_surface_mm``,
+        ``hd_max_surface_mm``, ``ref_volume_mm3``, and per
         volume method ``<method>_error_percent`` (signed). ``slices``: per
         acquired slice ``slice_index``, ``n_p``, ``n_g``, ``truly_abnormal``,
         ``pred_abnormal``, ``detector_abnormal``, ``dice``, ``jaccard``,
@@ -122,7 +127,20 @@ def evaluate_segmentation(case: EvaluationCase) -> EvaluationRows:
         hd95, hdmax = m.hausdorff_mm(dist, 95.0)
         voxel_mm3 = float(abs(np.linalg.det(case.reference_affine[:3, :3])))
         ref_volume = float(reference.sum()) * voxel_mm3
+        hd95_s = hdmax_s = nan
+        mesh = case.extras.get("mesh_tumor")
+        if mesh is not None and len(mesh.vertices) and reference.any():
+            from tumor3d.surface import extract_surface
+
+            # extract_surface takes (z, y, x) with an affine of (x, y, z): the
+            # reference's own (i0, i1, i2) order reversed, with its affine unchanged
+            ref_mesh = extract_surface(reference.transpose(2, 1, 0), case.reference_affine)
+            hd95_s, hdmax_s = m.hausdorff_mm(
+                m.point_set_distances_mm(mesh.vertices, ref_mesh.vertices), 95.0
+            )
         row.update(
+            hd95_surface_mm=hd95_s,
+            hd_max_surface_mm=hdmax_s,
             dice_3d=m.dice(on_ref, reference),
             jaccard_3d=m.jaccard(on_ref, reference),
             hd95_mm=hd95,
