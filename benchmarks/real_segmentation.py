@@ -102,17 +102,14 @@ def run_pipeline(image, cfg, modality, brain_mask=None):
     pre = preprocess_volume(image, **cfg.preprocess.model_dump(), brain_mask=brain_mask)
     t["preprocess"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    det = detect_abnormal_slices(pre.enhanced, pre.brain_mask, **_detect_kwargs(cfg, image))
+    det = detect_abnormal_slices(pre.enhanced, pre.brain_mask, modality=modality,
+                                 **cfg.detect.model_dump())
     t["detect"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     seg = segment_tumor(pre.enhanced, pre.brain_mask, det, modality=modality,
                         **cfg.segment.model_dump())
     t["segment"] = time.perf_counter() - t0
     return pre, det, seg, t
-
-
-def _detect_kwargs(cfg, image):
-    return cfg.detect.model_dump()
 
 
 def evaluate(case: Case, cfg, *, native: bool, offset: int, use_mask: bool) -> dict:
