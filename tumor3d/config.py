@@ -121,10 +121,11 @@ class DetectConfig(_StageConfig):
     min_brain_pixels: int = Field(
         500, ge=0, description="Slices with fewer brain pixels are never abnormal."
     )
-    method: Literal["robust", "histogram"] = Field(
-        "robust",
+    method: Literal["auto", "robust", "histogram"] = Field(
+        "auto",
         description="robust = slices holding a patient-level lesion (tumor3d.lesion); "
-        "histogram = the paper's mode count ([A5], [A6]).",
+        "histogram = the paper's mode count ([A5], [A6]); auto = robust on FLAIR/T1c, "
+        "histogram on T2 or without modality.",
     )
     lesion_smoothing_px: float = Field(
         2.0,
@@ -154,10 +155,11 @@ class DetectConfig(_StageConfig):
 class SegmentConfig(_StageConfig):
     """Tumour segmentation (spec section 3): robust default, the paper's method, a peer."""
 
-    method: Literal["robust", "paper", "multiotsu"] = Field(
-        "robust",
+    method: Literal["auto", "robust", "paper", "multiotsu"] = Field(
+        "auto",
         description="robust = patient-pooled lesion model (tumor3d.lesion); paper = wavelet + "
-        "histogram FCM per slice ([A7], [A8]); multiotsu = peer (brightest of 4 classes).",
+        "histogram FCM per slice ([A7], [A8]); multiotsu = peer (brightest of 4 classes); "
+        "auto = robust on FLAIR/T1c, paper on T2.",
     )
     wavelet: Literal["haar"] = "haar"
     fuzziness: float = Field(2.0, gt=1.0, le=5.0, description="FCM exponent m.")

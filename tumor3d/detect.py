@@ -151,7 +151,7 @@ class SliceDetection:
         )
 
 
-DETECT_METHODS = ("robust", "histogram")
+DETECT_METHODS = ("auto", "robust", "histogram")
 
 # --------------------------------------------------------------------------- mode counting
 
@@ -434,7 +434,7 @@ def detect_abnormal_slices(
     min_valley_significance: float = 3.0,
     abnormal_min_modes: int = 4,
     min_brain_pixels: int = 500,
-    method: str = "robust",
+    method: str = "auto",
     modality: str | None = None,
     lesion_smoothing_px: float = 2.0,
     lesion_seed_sigmas: float = 2.0,
@@ -443,7 +443,10 @@ def detect_abnormal_slices(
 ) -> SliceDetection:
     """Flag the abnormal slices of a patient (specification section 2).
 
-    Two methods (``DetectConfig.method``); both record the histogram modes
+    Two methods (``DetectConfig.method``; ``"auto"``, the default, is
+    ``"robust"`` on FLAIR and T1c and ``"histogram"`` on T2 or when
+    ``modality`` is None, for the reason given in
+    :func:`tumor3d.segment.resolve_method`); both record the histogram modes
     of every slice (``n_modes``, ``peaks_gray``: the seeds of the paper's
     segmentation).
 
@@ -478,7 +481,7 @@ def detect_abnormal_slices(
         ``k`` from which a slice is abnormal (4: three tissues plus tumour).
     min_brain_pixels : int
         Slices with fewer brain pixels are never abnormal.
-    method : {"robust", "histogram"}
+    method : {"auto", "robust", "histogram"}
         See above.
     modality : {"t2", "flair", "t1c"} or None
         Sequence (robust method only): on T2 the CSF-bright voxels are
@@ -522,6 +525,9 @@ def detect_abnormal_slices(
     brain_pixels = hists.sum(axis=1).astype(np.int64)
     if method not in DETECT_METHODS:
         raise InputError(f"unknown detect method {method!r}: expected one of {DETECT_METHODS}")
+    if method == "auto":
+        mod = modality.strip().lower() if isinstance(modality, str) else None
+        method = "robust" if mod in ("flair", "t1c") else "histogram"
     if method == "histogram":
         flagged = n_modes >= int(abnormal_min_modes)
     else:

@@ -40,8 +40,7 @@ its modes to be counted. This module uses what a single slice cannot:
    or necrosis, not parenchyma). On T1c this fills the necrotic core
    inside the enhancing rim.
 6. **T2 and CSF.** On T2 the CSF is brighter than the lesion; voxels above
-   the CSF level (the lower bound of the brightest of three pooled fuzzy
-   c-means classes, ``(v2 + v3) / 2``) are excluded from the seeds and the
+   the CSF threshold are excluded from the seeds and the
    growth (they may still be enclosed and filled).
 
 No constant here is fitted to a case: ``seed_sigmas`` was chosen by
@@ -58,7 +57,6 @@ from scipy import ndimage as ndi
 from skimage.morphology import disk
 
 from tumor3d.errors import InputError
-from tumor3d.fcm import fcm_histogram
 
 __all__ = ["LesionResult", "NormalModel", "segment_hyperintense_lesion"]
 
@@ -122,12 +120,12 @@ def _smooth_in_brain(img: np.ndarray, brain: np.ndarray, sigma_px: float) -> np.
     return np.where(brain, num / np.maximum(den, 1e-6), 0.0).astype(np.float32)
 
 
-def _csf_threshold(img: np.ndarray, brain: np.ndarray) -> float:
-    hist = np.bincount(img[brain].ravel(), minlength=256).astype(np.float64)
-    cdf = np.cumsum(hist) / hist.sum()
-    seeds = np.searchsorted(cdf, [1 / 6, 1 / 2, 5 / 6]).astype(np.float64) + [-0.25, 0.0, 0.25]
-    v = np.sort(fcm_histogram(hist, seeds, 2.0, 1e-3, 200)[0])
-    return float((v[1] + v[2]) / 2.0)
+def _csf_threshold(img: np.ndarray, brain: np.ndarray, seed_threshold: float) -> float:
+    # CSF is the brightest T2 tissue and fills several per cent of the brain, so the
+    # 99th percentile of the brain's gray levels lies in pure CSF; a voxel is CSF when
+    # it is nearer that level than the lesion seed level (partial-volume midpoint).
+    csf_level = float(np.percentile(img[brain], 99.0))
+    return 0.5 * (csf_level + float(seed_threshold))
 
 
 def normal_model(
@@ -135,11 +133,14 @@ def normal_model(
 ) -> NormalModel:
     """Median / MAD model of the smoothed brain intensities pooled over all slices."""
     vals = smoothed[brain]
+    csf = float("inf")
     mu = float(np.median(vals))
     sigma = float(_MAD_TO_SIGMA * np.median(np.abs(vals - mu)))
     sigma = max(sigma, 1.0)  # at least one gray level: a flat image has no outliers
-    csf = _csf_threshold(img, brain) if modality == "t2" else float("inf")
-    return NormalModel(mu, sigma, mu + float(seed_sigmas) * sigma, csf)
+    seed_t = mu + float(seed_sigmas) * sigma
+    if modality == "t2":
+        csf = _csf_threshold(img, brain, seed_t)
+    return NormalModel(mu, sigma, seed_t, csf)
 
 
 def _significant_components(
@@ -276,7 +277,9 @@ def segment_hyperintense_lesion(
     if refine_boundary:
         reach = max(1, int(round(2 * float(smoothing_px))))
         zone = ndi.binary_dilation(core, structure=np.ones((1, 3, 3), bool), iterations=reach)
-        cand = (b & zone & not_csf & (img > grow_t)) | core
+        # the smoothed seeds only locate the lesion: every pixel is decided by the
+        # partial-volume rule, so the blur halo of the seeds does not stay in
+        cand = b & zone & not_csf & (img > grow_t)
         lab2, _ = ndi.label(cand, structure=np.ones((3, 3, 3), dtype=bool))
         keep = np.unique(lab2[core])
         mask = np.isin(lab2, keep[keep > 0])
