@@ -150,6 +150,9 @@ class DetectConfig(_StageConfig):
         le=100,
         description="robust: consecutive slices on which a lesion must reach that cross-section.",
     )
+    lesion_min_slice_pixels: int = Field(
+        20, ge=1, description="robust: a slice holding this many lesion pixels is abnormal."
+    )
 
 
 class SegmentConfig(_StageConfig):

@@ -440,6 +440,7 @@ def detect_abnormal_slices(
     lesion_seed_sigmas: float = 2.0,
     lesion_min_region_pixels: int = 50,
     lesion_min_slices: int = 2,
+    lesion_min_slice_pixels: int = 20,
 ) -> SliceDetection:
     """Flag the abnormal slices of a patient (specification section 2).
 
@@ -450,8 +451,8 @@ def detect_abnormal_slices(
     of every slice (``n_modes``, ``peaks_gray``: the seeds of the paper's
     segmentation).
 
-    ``method="robust"`` (default): a slice is abnormal when it holds at least
-    ``lesion_min_region_pixels`` pixels of a lesion found by
+    ``method="robust"``: a slice is abnormal when it holds at least
+    ``lesion_min_slice_pixels`` pixels of a lesion found by
     :func:`tumor3d.lesion.segment_hyperintense_lesion` over the whole
     patient: the normal-tissue intensity model is learned across all
     slices (median / MAD of the smoothed brain), a region is abnormal when
@@ -491,6 +492,9 @@ def detect_abnormal_slices(
         Robust method: ``smoothing_px``, ``seed_sigmas``,
         ``min_region_pixels`` and ``min_slices`` of
         :func:`tumor3d.lesion.segment_hyperintense_lesion`.
+    lesion_min_slice_pixels : int
+        Robust method: a slice is abnormal when it holds at least this many
+        lesion pixels (the lesion itself must be significant elsewhere).
 
     Returns
     -------
@@ -548,7 +552,7 @@ def detect_abnormal_slices(
             min_region_pixels=int(lesion_min_region_pixels),
             min_slices=int(lesion_min_slices),
         )
-        flagged = lesion.mask.sum(axis=(1, 2)) >= int(lesion_min_region_pixels)
+        flagged = lesion.mask.sum(axis=(1, 2)) >= int(lesion_min_slice_pixels)
     abnormal = flagged & (brain_pixels >= int(min_brain_pixels))
     return SliceDetection(
         n_modes=n_modes,

@@ -28,9 +28,12 @@ its modes to be counted. This module uses what a single slice cannot:
    and normal tissue is lesion for more than half of its area when its
    intensity exceeds the midpoint ``(t + mu) / 2`` of the pure intensities
    (``t`` = median intensity of the seed component, linear partial-volume
-   mixing). Unsmoothed pixels above that midpoint within ``2 smoothing_px``
-   of the seed component and connected to it are added; this undoes the
-   blur of step 1 at the border.
+   mixing). Every pixel is decided by this rule: the unsmoothed pixels above
+   the midpoint within ``2 smoothing_px`` of the seed component (in-plane,
+   and on the slice just beyond each of its slices: the tip) and connected
+   to it form the lesion; this undoes the blur of step 1 at the border.
+   A lesion covering more than half of the brain is rejected (the model's
+   premise is violated: see ``MAX_BRAIN_FRACTION``).
 5. **Enclosed core.** Necrosis and cysts are dark on FLAIR and T1c but part of
    the whole tumour; holes of each slice's mask are filled, and so are dark
    cavities enclosed by the lesion *and the brain border* (a cavity that
@@ -61,6 +64,10 @@ from tumor3d.errors import InputError
 __all__ = ["LesionResult", "NormalModel", "segment_hyperintense_lesion"]
 
 _MAD_TO_SIGMA = 1.4826  # sigma of a normal distribution = 1.4826 MAD
+
+#: A lesion covering more than this share of the brain violates the premise of the
+#: median / MAD model (breakdown point 50 %): no lesion is reported.
+MAX_BRAIN_FRACTION = 0.5
 
 
 @dataclass(frozen=True)
@@ -221,6 +228,7 @@ def segment_hyperintense_lesion(
     keep_largest: bool = True,
     refine_boundary: bool = True,
     fill_core: bool = True,
+    tips: bool = True,
     allowed_slices: np.ndarray | None = None,
 ) -> LesionResult:
     """Segment the hyperintense whole tumour of a patient (module docstring steps 1-6).
@@ -248,6 +256,9 @@ def segment_hyperintense_lesion(
         Step 4 (partial-volume growth at the border).
     fill_core : bool
         Step 5 (enclosed necrotic core / cavities).
+    tips : bool
+        Let the step-4 growth reach one slice beyond the seed component
+        (the lesion's tip on the next thick slice).
     allowed_slices : (z,) array_like of bool, optional
         Slices where the lesion may lie (e.g. a detection); others are cleared
         at the end.
@@ -276,7 +287,10 @@ def segment_hyperintense_lesion(
     mask = core
     if refine_boundary:
         reach = max(1, int(round(2 * float(smoothing_px))))
-        zone = ndi.binary_dilation(core, structure=np.ones((1, 3, 3), bool), iterations=reach)
+        # the lesion may continue onto the slice just beyond its seeds (its tip, too
+        # small or too partial-volumed for a seed): the zone reaches one slice further
+        zone = ndi.binary_dilation(core, structure=np.ones((3, 1, 1), bool)) if tips else core
+        zone = ndi.binary_dilation(zone, structure=np.ones((1, 3, 3), bool), iterations=reach)
         # the smoothed seeds only locate the lesion: every pixel is decided by the
         # partial-volume rule, so the blur halo of the seeds does not stay in
         cand = b & zone & not_csf & (img > grow_t)
@@ -286,6 +300,11 @@ def segment_hyperintense_lesion(
     if fill_core:
         mask = _fill_enclosed(mask, b, img, model.median)
     mask &= b
+    if np.count_nonzero(mask) > MAX_BRAIN_FRACTION * np.count_nonzero(b):
+        # the model's premise (the lesion is a minority of the brain, so the median and
+        # the MAD describe normal tissue) is violated: what lies "outside" it is a
+        # normal tissue class (e.g. grey matter of a strongly bimodal parenchyma)
+        return LesionResult(np.zeros(b.shape, bool), model, float("nan"), float("nan"), 0)
     if allowed_slices is not None:
         mask[~np.asarray(allowed_slices, dtype=bool)] = False
     return LesionResult(mask, model, lesion_gray, grow_t, int(ids.size))
