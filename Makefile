@@ -8,7 +8,7 @@ DEMO_OUT ?= demo-out
 # Real MR cases for development and evaluation (never used by the tests).
 TUMOR3D_DATA_DIR ?= ../shared/data
 
-.PHONY: demo test setup system-deps lint bench accuracy real-data clean
+.PHONY: demo test setup system-deps lint bench accuracy real-data evaluate clean
 
 demo: setup
 	$(BIN)/tumor3d demo --out $(DEMO_OUT)
@@ -43,6 +43,21 @@ real-data: setup
 	else \
 	    $(BIN)/tumor3d run "$(TUMOR3D_DATA_DIR)/brats2013_pat0003/flair.nii.gz" --modality flair --out real-out; \
 	fi
+
+# Evaluation against reference labels: the labelled real cases of
+# configs/evaluation/real_cases.csv (absent files are skipped with a message)
+# and 10 generated phantoms, with the defaults and the paper's configuration
+# side by side. Regenerates reports/REPORT.md and its PNGs; the full run
+# (masks, meshes, tables) stays in $(EVAL_OUT). Exit status 1 (some patient
+# failed) still publishes the report, which names the failures.
+EVAL_OUT ?= eval-out
+evaluate: setup
+	TUMOR3D_DATA_DIR="$(TUMOR3D_DATA_DIR)" $(BIN)/python -m flows.cli evaluate \
+	    configs/evaluation/real_cases.csv --phantoms 10 \
+	    --config default=configs/default.yaml --config paper=configs/paper.yaml \
+	    --out $(EVAL_OUT); rc=$$?; [ $$rc -le 1 ] || exit $$rc
+	mkdir -p reports && cp $(EVAL_OUT)/REPORT.md reports/REPORT.md
+	rm -f reports/bland_altman_*.png && cp $(EVAL_OUT)/bland_altman_*.png reports/
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) real-out .pytest_cache .ruff_cache

@@ -14,11 +14,29 @@ reference_labels    no        label values forming the tumour, e.g. ``"1,2,4"``
                               (default: every value > 0); needs ``reference``
 slice_thickness_mm  no        overrides the input's slice thickness (> 0)
 slice_gap_mm        no        overrides the input's inter-slice gap (>= 0)
+emulate_step_mm     no        evaluation only: resample the (thin-slice NIfTI)
+                              image to one slice every this many mm before the
+                              pipeline (:mod:`tumor3d.evaluation.emulate`)
+emulate_thickness_mm no       evaluation only: thickness of each emulated
+                              slice in mm (<= the step; needs
+                              ``emulate_step_mm``; default: the image's own
+                              slice step, i.e. keep every k-th slice)
+reference_kind      no        what the reference is: ``expert``,
+                              ``algorithmic`` (made by a program), ``truth``
+                              (a phantom's), or ``tumor_free`` (no tumour:
+                              no ``reference`` file needed)
 ==================  ========  ==============================================
 
-Relative paths are relative to the manifest's folder. An empty optional cell
-means "not given". Errors name the manifest, the data row (1-based, the
-header excluded; the file line is given too) and the column.
+Relative paths are relative to the manifest's folder; ``$VAR`` / ``${VAR}``
+in a path is replaced from the environment, and ``${TUMOR3D_DATA_DIR}``
+defaults to ``../shared/data`` beside the repository (:data:`DATA_DIR_DEFAULT`).
+An empty optional cell means "not given". Errors name the manifest, the data
+row (1-based, the header excluded; the file line is given too) and the column.
+
+:func:`read_manifest` stops at the first bad row (a cohort with a bad
+manifest does not start); :func:`read_manifest_rows` reports every bad row
+as a :class:`RowProblem` and returns the good ones, so that one bad row does
+not stop the other patients (the evaluation flow uses it).
 """
 
 from __future__ import annotations
@@ -34,7 +52,17 @@ from pathlib import Path
 from tumor3d.errors import InputError
 from tumor3d.scan import MODALITIES, validate_patient_id
 
-__all__ = ["MANIFEST_COLUMNS", "REQUIRED_COLUMNS", "ManifestRow", "read_manifest", "write_manifest"]
+__all__ = [
+    "DATA_DIR_DEFAULT",
+    "MANIFEST_COLUMNS",
+    "REFERENCE_KINDS",
+    "REQUIRED_COLUMNS",
+    "ManifestRow",
+    "RowProblem",
+    "read_manifest",
+    "read_manifest_rows",
+    "write_manifest",
+]
 
 REQUIRED_COLUMNS = ("patient_id", "image", "modality")
 MANIFEST_COLUMNS = (
@@ -43,7 +71,14 @@ MANIFEST_COLUMNS = (
     "reference_labels",
     "slice_thickness_mm",
     "slice_gap_mm",
+    "emulate_step_mm",
+    "emulate_thickness_mm",
+    "reference_kind",
 )
+#: Values of the ``reference_kind`` column.
+REFERENCE_KINDS = ("expert", "algorithmic", "truth", "tumor_free")
+#: ``${TUMOR3D_DATA_DIR}`` when the environment does not set it.
+DATA_DIR_DEFAULT = (Path(__file__).resolve().parents[1] / ".." / "shared" / "data").resolve()
 _Fail = Callable[[str, str], InputError]
 
 
@@ -65,6 +100,10 @@ class ManifestRow:
         Label values that form the tumour; ``None`` means every value > 0.
     slice_thickness_mm, slice_gap_mm : float or None
         Overrides of the input's slice thickness and gap, in mm.
+    emulate_step_mm, emulate_thickness_mm : float or None
+        Thick-slice emulation for evaluation (see the module docstring).
+    reference_kind : str or None
+        One of :data:`REFERENCE_KINDS`, or ``None`` (not stated).
     """
 
     patient_id: str
@@ -74,6 +113,9 @@ class ManifestRow:
     reference_labels: tuple[int, ...] | None = None
     slice_thickness_mm: float | None = None
     slice_gap_mm: float | None = None
+    emulate_step_mm: float | None = None
+    emulate_thickness_mm: float | None = None
+    reference_kind: str | None = None
 
     def __post_init__(self) -> None:
         validate_patient_id(self.patient_id)
@@ -95,10 +137,60 @@ class ManifestRow:
             if self.reference is None:
                 raise InputError("reference_labels given without a reference")
             object.__setattr__(self, "reference_labels", labels)
+        if self.emulate_thickness_mm is not None and self.emulate_step_mm is None:
+            raise InputError("emulate_thickness_mm given without emulate_step_mm")
+        for name in ("emulate_step_mm", "emulate_thickness_mm"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(float(v)) and float(v) > 0):
+                raise InputError(f"{name} must be a positive number of mm, got {v!r}")
+        if (
+            self.emulate_step_mm is not None
+            and self.emulate_thickness_mm is not None
+            and self.emulate_thickness_mm > self.emulate_step_mm
+        ):
+            raise InputError(
+                f"emulate_thickness_mm = {self.emulate_thickness_mm:g} exceeds "
+                f"emulate_step_mm = {self.emulate_step_mm:g}"
+            )
+        if self.reference_kind is not None:
+            kind = str(self.reference_kind).strip().lower().replace("-", "_")
+            if kind not in REFERENCE_KINDS:
+                raise InputError(
+                    f"unknown reference_kind {self.reference_kind!r}: expected one of "
+                    f"{', '.join(REFERENCE_KINDS)}"
+                )
+            if kind == "tumor_free" and self.reference is not None:
+                raise InputError("reference_kind tumor_free with a reference file")
+            object.__setattr__(self, "reference_kind", kind)
+
+
+@dataclass(frozen=True)
+class RowProblem:
+    """A manifest row that cannot be used.
+
+    Parameters
+    ----------
+    row : int
+        Data row, 1-based (the header excluded).
+    patient_id : str or None
+        The row's patient id, if it has one.
+    column : str
+        The offending column.
+    message : str
+        The full error message (names the manifest, row and column).
+    missing_file : bool
+        Whether the problem is only that a file named by the row is absent.
+    """
+
+    row: int
+    patient_id: str | None
+    column: str
+    message: str
+    missing_file: bool = False
 
 
 def read_manifest(path: str | os.PathLike[str]) -> list[ManifestRow]:
-    """Read and validate a cohort manifest CSV.
+    """Read and validate a cohort manifest CSV; the first bad row is an error.
 
     Parameters
     ----------
@@ -116,7 +208,38 @@ def read_manifest(path: str | os.PathLike[str]) -> list[ManifestRow]:
         Missing file, missing or unknown column, no data rows, or a row with
         an empty required value, an unsafe or duplicate ``patient_id``, an
         unknown modality, a non-numeric or negative thickness or gap, a bad
-        label list, or an image/reference path that does not exist.
+        label list, bad emulation values or reference kind, or an
+        image/reference path that does not exist.
+    """
+    rows, problems = read_manifest_rows(path)
+    if problems:
+        raise InputError(problems[0].message)
+    return rows
+
+
+def read_manifest_rows(
+    path: str | os.PathLike[str],
+) -> tuple[list[ManifestRow], list[RowProblem]]:
+    """Read a cohort manifest, keeping the good rows and listing the bad ones.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The CSV file (UTF-8, optional BOM).
+
+    Returns
+    -------
+    rows : list of ManifestRow
+        The valid rows, in file order (of two rows with one ``patient_id``,
+        the first).
+    problems : list of RowProblem
+        One per invalid row, in file order.
+
+    Raises
+    ------
+    InputError
+        For problems of the whole file: missing or unreadable file, bad
+        header, no data rows.
     """
     p = Path(path)
     where = str(p)
@@ -138,61 +261,109 @@ def read_manifest(path: str | os.PathLike[str]) -> list[ManifestRow]:
         raise InputError("no data rows below the header", where)
 
     rows: list[ManifestRow] = []
+    problems: list[RowProblem] = []
     seen: dict[str, int] = {}
     for index, (line, rec) in enumerate(records, start=1):
-
-        def fail(column: str, problem: str, _i: int = index, _line: int = line) -> InputError:
-            return InputError(f"data row {_i} (line {_line}), column {column!r}: {problem}", where)
-
-        if None in rec:
-            raise fail("(extra)", f"the row has more values than the {len(header)} columns")
-        cells = {k: (v or "").strip() for k, v in rec.items()}
-        for column in REQUIRED_COLUMNS:
-            if not cells.get(column):
-                raise fail(column, "empty value")
-        pid = cells["patient_id"]
+        pid = ((rec.get("patient_id") or "") if isinstance(rec, dict) else "").strip() or None
         try:
-            validate_patient_id(pid)
-        except InputError as exc:
-            raise fail("patient_id", exc.problem) from None
-        if pid in seen:
-            raise fail("patient_id", f"duplicate patient_id {pid!r} (also in data row {seen[pid]})")
-        seen[pid] = index
-        modality = cells["modality"].lower()
-        if modality not in MODALITIES:
-            raise fail(
-                "modality",
-                f"unknown modality {cells['modality']!r}: expected one of {', '.join(MODALITIES)}",
+            rows.append(_parse_row(index, line, rec, header, base, seen, where))
+        except _RowError as exc:
+            problems.append(
+                RowProblem(index, pid, exc.column, str(exc), missing_file=exc.missing_file)
             )
-        image = _resolve(base, cells["image"])
-        if not image.exists():
-            raise fail("image", f"{image} does not exist")
-        reference = None
-        if cells.get("reference"):
-            reference = _resolve(base, cells["reference"])
-            if not reference.exists():
-                raise fail("reference", f"{reference} does not exist")
-        labels = None
-        if cells.get("reference_labels"):
-            labels = _parse_labels(cells["reference_labels"], fail)
-            if reference is None:
-                raise fail("reference_labels", "label values given without a reference")
-        thickness = _parse_mm(
-            cells.get("slice_thickness_mm", ""), "slice_thickness_mm", fail, allow_zero=False
+    return rows, problems
+
+
+class _RowError(InputError):
+    def __init__(self, message: str, path: str, column: str, missing_file: bool) -> None:
+        super().__init__(message, path)
+        self.column = column
+        self.missing_file = missing_file
+
+
+def _parse_row(
+    index: int,
+    line: int,
+    rec: dict,
+    header: list[str],
+    base: Path,
+    seen: dict[str, int],
+    where: str,
+) -> ManifestRow:
+    def fail(column: str, problem: str, missing: bool = False) -> _RowError:
+        return _RowError(
+            f"data row {index} (line {line}), column {column!r}: {problem}", where, column, missing
         )
-        gap = _parse_mm(cells.get("slice_gap_mm", ""), "slice_gap_mm", fail, allow_zero=True)
-        rows.append(
-            ManifestRow(
-                patient_id=pid,
-                image=image,
-                modality=modality,
-                reference=reference,
-                reference_labels=labels,
-                slice_thickness_mm=thickness,
-                slice_gap_mm=gap,
-            )
+
+    if None in rec:
+        raise fail("(extra)", f"the row has more values than the {len(header)} columns")
+    cells = {k: (v or "").strip() for k, v in rec.items()}
+    for column in REQUIRED_COLUMNS:
+        if not cells.get(column):
+            raise fail(column, "empty value")
+    pid = cells["patient_id"]
+    try:
+        validate_patient_id(pid)
+    except InputError as exc:
+        raise fail("patient_id", exc.problem) from None
+    if pid in seen:
+        raise fail("patient_id", f"duplicate patient_id {pid!r} (also in data row {seen[pid]})")
+    modality = cells["modality"].lower()
+    if modality not in MODALITIES:
+        raise fail(
+            "modality",
+            f"unknown modality {cells['modality']!r}: expected one of {', '.join(MODALITIES)}",
         )
-    return rows
+    image = _resolve(base, cells["image"])
+    if not image.exists():
+        raise fail("image", f"{image} does not exist", missing=True)
+    reference = None
+    if cells.get("reference"):
+        reference = _resolve(base, cells["reference"])
+        if not reference.exists():
+            raise fail("reference", f"{reference} does not exist", missing=True)
+    labels = None
+    if cells.get("reference_labels"):
+        labels = _parse_labels(cells["reference_labels"], fail)
+        if reference is None:
+            raise fail("reference_labels", "label values given without a reference")
+    thickness = _parse_mm(
+        cells.get("slice_thickness_mm", ""), "slice_thickness_mm", fail, allow_zero=False
+    )
+    gap = _parse_mm(cells.get("slice_gap_mm", ""), "slice_gap_mm", fail, allow_zero=True)
+    e_step = _parse_mm(cells.get("emulate_step_mm", ""), "emulate_step_mm", fail, allow_zero=False)
+    e_thick = _parse_mm(
+        cells.get("emulate_thickness_mm", ""), "emulate_thickness_mm", fail, allow_zero=False
+    )
+    if e_thick is not None and e_step is None:
+        raise fail("emulate_thickness_mm", "given without emulate_step_mm")
+    if e_thick is not None and e_step is not None and e_thick > e_step:
+        raise fail(
+            "emulate_thickness_mm",
+            f"{e_thick:g} mm exceeds emulate_step_mm = {e_step:g} mm (slices would overlap)",
+        )
+    kind = cells.get("reference_kind", "").lower().replace("-", "_") or None
+    if kind is not None and kind not in REFERENCE_KINDS:
+        raise fail(
+            "reference_kind",
+            f"unknown kind {cells['reference_kind']!r}: "
+            f"expected one of {', '.join(REFERENCE_KINDS)}",
+        )
+    if kind == "tumor_free" and reference is not None:
+        raise fail("reference_kind", "tumor_free, but a reference file is given")
+    seen[pid] = index
+    return ManifestRow(
+        patient_id=pid,
+        image=image,
+        modality=modality,
+        reference=reference,
+        reference_labels=labels,
+        slice_thickness_mm=thickness,
+        slice_gap_mm=gap,
+        emulate_step_mm=e_step,
+        emulate_thickness_mm=e_thick,
+        reference_kind=kind,
+    )
 
 
 def write_manifest(rows: Iterable[ManifestRow], path: str | os.PathLike[str]) -> Path:
@@ -247,6 +418,11 @@ def write_manifest(rows: Iterable[ManifestRow], path: str | os.PathLike[str]) ->
                         else ",".join(str(v) for v in r.reference_labels),
                         "" if r.slice_thickness_mm is None else repr(float(r.slice_thickness_mm)),
                         "" if r.slice_gap_mm is None else repr(float(r.slice_gap_mm)),
+                        "" if r.emulate_step_mm is None else repr(float(r.emulate_step_mm)),
+                        ""
+                        if r.emulate_thickness_mm is None
+                        else repr(float(r.emulate_thickness_mm)),
+                        r.reference_kind or "",
                     ]
                 )
         os.replace(tmp, p)
@@ -282,7 +458,13 @@ def _check_header(header: list[str], where: str) -> None:
 
 
 def _resolve(base: Path, value: str) -> Path:
-    q = Path(os.path.expanduser(value))
+    if "TUMOR3D_DATA_DIR" in value:
+        env = os.environ.get("TUMOR3D_DATA_DIR")
+        # a relative TUMOR3D_DATA_DIR is relative to the working directory, as any env path
+        data_dir = str(Path(env).resolve()) if env else str(DATA_DIR_DEFAULT)
+        value = value.replace("${TUMOR3D_DATA_DIR}", data_dir)
+        value = value.replace("$TUMOR3D_DATA_DIR", data_dir)
+    q = Path(os.path.expanduser(os.path.expandvars(value)))
     return (q if q.is_absolute() else base / q).resolve()
 
 

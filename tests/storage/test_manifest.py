@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from storage.manifest import ManifestRow, read_manifest, write_manifest
+from storage.manifest import ManifestRow, read_manifest, read_manifest_rows, write_manifest
 from tumor3d.errors import InputError
 
 HEADER = "patient_id,image,modality,reference,reference_labels,slice_thickness_mm,slice_gap_mm\n"
@@ -166,3 +166,85 @@ def test_write_rejects_duplicate_ids(cohort):
     with pytest.raises(InputError, match=r"duplicate patient_id p1"):
         write_manifest([row, row], cohort / "dup.csv")
     assert not (cohort / "dup.csv").exists()
+
+
+# --------------------------------------------------------------------------- evaluation columns
+
+EVAL_HEADER = (
+    "patient_id,image,modality,reference,reference_labels,emulate_step_mm,"
+    "emulate_thickness_mm,reference_kind\n"
+)
+
+
+def test_emulation_and_reference_kind_columns_round_trip(cohort):
+    p = write_csv(
+        cohort,
+        EVAL_HEADER
+        + 'p1,images/p1.nii.gz,flair,refs/p1_seg.nii.gz,"1,2,3,4",5,2,expert\n'
+        + "p2,images/p1.nii.gz,t2,,,5,,tumor-free\n",
+    )
+    r1, r2 = read_manifest(p)
+    assert (r1.emulate_step_mm, r1.emulate_thickness_mm, r1.reference_kind) == (5.0, 2.0, "expert")
+    assert (r2.emulate_step_mm, r2.emulate_thickness_mm) == (5.0, None)
+    assert r2.reference_kind == "tumor_free"
+    again = read_manifest(write_manifest([r1, r2], cohort / "again.csv"))
+    assert again == [r1, r2]
+
+
+@pytest.mark.parametrize(
+    ("row", "column", "problem"),
+    [
+        ("p1,images/p1.nii.gz,t2,,,,2,", "emulate_thickness_mm", "given without emulate_step_mm"),
+        ("p1,images/p1.nii.gz,t2,,,5,6,", "emulate_thickness_mm", "6 mm exceeds emulate_step_mm"),
+        ("p1,images/p1.nii.gz,t2,,,0,,", "emulate_step_mm", "'0' must be a positive number"),
+        ("p1,images/p1.nii.gz,t2,,,,,guess", "reference_kind", "unknown kind 'guess'"),
+        (
+            "p1,images/p1.nii.gz,t2,refs/p1_seg.nii.gz,,,,tumor_free",
+            "reference_kind",
+            "tumor_free, but a reference file is given",
+        ),
+    ],
+)
+def test_invalid_evaluation_columns(cohort, row, column, problem):
+    p = write_csv(cohort, EVAL_HEADER + "p0,images/p1.nii.gz,t2,,,,,\n" + row + "\n")
+    with pytest.raises(
+        InputError, match=rf"manifest\.csv: data row 2 \(line 3\), column '{column}': {problem}"
+    ):
+        read_manifest(p)
+
+
+def test_lenient_read_keeps_good_rows_and_names_each_bad_one(cohort):
+    p = write_csv(
+        cohort,
+        HEADER
+        + "p1,images/p1.nii.gz,t2,,,,\n"
+        + "p2,images/absent.nii.gz,t2,,,,\n"
+        + "p1,images/p1.nii.gz,t2,,,,\n"
+        + "p3,images/p1.nii.gz,t2,refs/absent_seg.nii.gz,,,\n"
+        + "p4,images/p1.nii.gz,t2,,,,\n",
+    )
+    rows, problems = read_manifest_rows(p)
+    assert [r.patient_id for r in rows] == ["p1", "p4"]
+    assert [(q.row, q.patient_id, q.column, q.missing_file) for q in problems] == [
+        (2, "p2", "image", True),
+        (3, "p1", "patient_id", False),
+        (4, "p3", "reference", True),
+    ]
+    assert "data row 3 (line 4)" in problems[1].message and "duplicate" in problems[1].message
+    with pytest.raises(InputError, match="data row 2"):
+        read_manifest(p)  # strict: the first bad row stops it
+
+
+def test_data_dir_variable_in_paths(cohort, monkeypatch, tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "x.nii.gz").write_bytes(b"x")
+    p = write_csv(cohort, "patient_id,image,modality\np1,${TUMOR3D_DATA_DIR}/x.nii.gz,t2\n")
+    monkeypatch.setenv("TUMOR3D_DATA_DIR", str(data))
+    assert read_manifest(p)[0].image == (data / "x.nii.gz").resolve()
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("TUMOR3D_DATA_DIR", "data")  # relative: to the working directory
+    assert read_manifest(p)[0].image == (data / "x.nii.gz").resolve()
+    monkeypatch.delenv("TUMOR3D_DATA_DIR")
+    rows, problems = read_manifest_rows(p)  # default ../shared/data: absent here, or present
+    assert len(rows) + len(problems) == 1

@@ -1,0 +1,96 @@
+"""The evaluation flow end to end on two phantoms against their own truth."""
+
+from __future__ import annotations
+
+import csv
+
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from storage.phantom_io import write_phantom_cohort
+from tumor3d.phantom import make_phantom_patient
+
+pytestmark = [pytest.mark.slow]
+
+
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory, prefect_harness):
+    from flows.evaluate import run_evaluation
+
+    root = tmp_path_factory.mktemp("evalflow")
+    patients = [make_phantom_patient(s, patient_id=f"ph{s}") for s in (0, 1)]
+    manifest = write_phantom_cohort(patients, root / "in")
+    with open(manifest, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    # + a row whose image is absent (skipped) and one asking for a label the truth lacks
+    absent = dict(rows[0], patient_id="gone", image="nowhere/x.nii.gz")
+    nolabel = dict(rows[1], patient_id="nolabel", reference_labels="7")
+    with open(manifest, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows([*rows, absent, nolabel])
+    out = root / "out"
+    result = run_evaluation([manifest], out, command="pytest")
+    return result, out
+
+
+def test_phantoms_match_their_truth(evaluated):
+    result, out = evaluated
+    df = pd.read_parquet(out / "evaluation.parquet")
+    assert sorted(df["patient_id"]) == ["ph0", "ph1"]
+    assert (df["status"] == "ok").all()
+    assert (df["dice_3d"] > 0.95).all()
+    assert (df["dice_pooled"] > 0.95).all()
+    assert (df["fn"] == 0).all() and (df["fp"] == 0).all()
+    assert (df["hd95_mm"] < 3.0).all()
+    assert (df["volume_eq7_error_percent"].abs() < 5.0).all()
+    slices = pd.read_parquet(out / "evaluation_slices.parquet")
+    n = slices.groupby("patient_id").size()
+    assert (n == df.set_index("patient_id")["n_slices"]).all()
+    # per-slice rows add up to the patient's pixel counts
+    sums = slices.groupby("patient_id")[["n_p", "n_g"]].sum()
+    assert (sums["n_g"] == df.set_index("patient_id")["n_g"]).all()
+
+
+def test_bad_rows_are_reported_and_do_not_stop_the_others(evaluated):
+    result, _ = evaluated
+    reasons = {s["patient_id"]: s for s in result.skipped}
+    assert reasons["gone"]["missing_file"] and "does not exist" in reasons["gone"]["reason"]
+    assert not reasons["nolabel"]["missing_file"]
+    assert "patient nolabel" in reasons["nolabel"]["reason"]
+    assert "none of the requested labels 7" in reasons["nolabel"]["reason"]
+    assert result.n_invalid == 1 and result.n_failed == 0
+
+
+def test_report_has_the_tables_and_plot(evaluated):
+    result, out = evaluated
+    text = (out / "REPORT.md").read_text()
+    for heading in ("## Table 2", "## Table 3", "## Overlap and surface distance", "## Volumes",
+                    "## Provenance", "Bland-Altman"):  # fmt: skip
+        assert heading in text
+    assert "| ph0 |" in text and "gone (file absent)" in text
+    png = out / "bland_altman_default.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_rejects_a_bad_manifest_and_config_with_exit_2(tmp_path):
+    from flows.cli import app
+
+    bad = tmp_path / "m.csv"
+    bad.write_text("patient_id,image\n")
+    r = CliRunner().invoke(app, ["evaluate", str(bad), "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and "missing required column" in r.output
+    good = tmp_path / "g.csv"
+    good.write_text("patient_id,image,modality\np,x.nii.gz,t2\n")
+    r = CliRunner().invoke(
+        app, ["evaluate", str(good), "--out", str(tmp_path / "o"), "--config", "a=nope.yaml"]
+    )
+    assert r.exit_code == 2 and "nope.yaml" in r.output
+
+
+def test_evaluate_has_help():
+    from flows.cli import app
+
+    r = CliRunner().invoke(app, ["evaluate", "--help"])
+    assert r.exit_code == 0 and "NAME=FILE" in r.output

@@ -1,0 +1,101 @@
+"""storage.evaluation_io: preparing manifest rows for evaluation (bad input, emulation files)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from storage import nifti
+from storage.evaluation_io import prepare_case, reference_mask
+from storage.manifest import ManifestRow
+from storage.readers import read_nifti_scan
+from tumor3d.errors import InputError
+
+
+def _write(path, array, affine, dtype="float32"):
+    path.write_bytes(nifti.encode_nifti(array, affine, dtype=dtype))
+    return path
+
+
+@pytest.fixture
+def thin(tmp_path):
+    """A 1 mm 'thin' image 12x10x20 (slice axis 2) and a label with values 1 and 2."""
+    rng = np.random.default_rng(0)
+    img = (rng.random((12, 10, 20)) * 100 + 10).astype(np.float32)
+    aff = np.diag([-1.0, -1.0, 1.0, 1.0])
+    lab = np.zeros((12, 10, 20), np.uint8)
+    lab[3:7, 3:6, 4:12] = 2
+    lab[4:6, 4:5, 6:9] = 1
+    return (
+        _write(tmp_path / "img.nii.gz", img, aff),
+        _write(tmp_path / "seg.nii.gz", lab, aff, "uint8"),
+        img,
+        lab,
+        aff,
+    )
+
+
+def test_emulated_image_and_sidecar_read_back_as_thick_slices(thin, tmp_path):
+    image, seg, img, _, aff = thin
+    row = ManifestRow(
+        "p1", image, "t2", reference=seg, reference_labels=(1, 2),
+        emulate_step_mm=5.0, emulate_thickness_mm=2.0, reference_kind="expert",
+    )  # fmt: skip
+    prep = prepare_case(row, tmp_path / "emu")
+    assert prep.acquisition == "emulated 2 mm every 5 mm"
+    assert prep.run_row.image.parent == (tmp_path / "emu" / "p1").resolve()
+    assert prep.run_row.emulate_step_mm is None
+    meta = json.loads(prep.run_row.image.with_name("p1_t2.json").read_text())
+    assert (meta["SliceThickness"], meta["SpacingBetweenSlices"]) == (2.0, 5.0)
+    scan = read_nifti_scan(prep.run_row.image)  # the reader honours the sidecar
+    assert scan.n_slices == 4  # thin 0-1, 5-6, 10-11, 15-16
+    assert (scan.slice_step_mm, scan.slice_thickness_mm, scan.slice_gap_mm) == (5.0, 2.0, 3.0)
+    back, back_aff = nifti.read_nifti(prep.run_row.image)
+    np.testing.assert_allclose(back[:, :, 1], img[:, :, 5:7].mean(axis=2), rtol=1e-6)
+    np.testing.assert_allclose(back_aff[:3, 3], aff[:3, 3] + [0, 0, 0.5])
+    assert prep.emulation["thin_indices"][1] == [5, 6]
+
+
+def test_native_row_and_label_selection(thin, tmp_path):
+    image, seg, _, lab, _ = thin
+    prep = prepare_case(ManifestRow("p1", image, "t2", reference=seg), tmp_path)
+    assert prep.acquisition.startswith("native, 1 mm") and prep.reference_kind == "unspecified"
+    only1 = ManifestRow("p1", image, "t2", reference=seg, reference_labels=(1,))
+    mask, _ = reference_mask(only1)
+    assert mask.sum() == (lab == 1).sum()
+
+
+def test_reference_without_requested_labels(thin, tmp_path):
+    image, seg, *_ = thin
+    row = ManifestRow("p7", image, "t2", reference=seg, reference_labels=(3, 4))
+    with pytest.raises(InputError, match=r"patient p7: .*none of the requested labels 3,4 "
+                       r"\(present: 1,2\)"):  # fmt: skip
+        prepare_case(row, tmp_path)
+
+
+def test_reference_outside_the_image_world_space(thin, tmp_path):
+    image, _, _, lab, aff = thin
+    far = aff.copy()
+    far[:3, 3] = [500.0, 0.0, 0.0]
+    seg = _write(tmp_path / "far.nii.gz", lab, far, "uint8")
+    with pytest.raises(InputError, match=r"patient p2: the reference does not overlap the image"):
+        prepare_case(ManifestRow("p2", image, "t2", reference=seg), tmp_path)
+
+
+def test_emulation_on_slices_already_thicker_than_the_step(tmp_path):
+    img = np.random.default_rng(1).random((8, 8, 10)).astype(np.float32) + 1
+    image = _write(tmp_path / "thick.nii.gz", img, np.diag([1.0, 1.0, 6.5, 1.0]))
+    row = ManifestRow("p3", image, "t2", emulate_step_mm=5.0, emulate_thickness_mm=2.0)
+    with pytest.raises(InputError, match=r"patient p3: emulate_step_mm = 5 mm is smaller than "
+                       r"the image's own slice step 6.5 mm"):  # fmt: skip
+        prepare_case(row, tmp_path / "emu")
+    assert not (tmp_path / "emu" / "p3").exists()
+
+
+def test_emulation_needs_nifti_and_no_overrides(thin, tmp_path):
+    image, *_ = thin
+    row = ManifestRow("p4", image, "t2", emulate_step_mm=5.0, slice_thickness_mm=2.0)
+    with pytest.raises(InputError, match="cannot be combined with emulation"):
+        prepare_case(row, tmp_path)

@@ -1,0 +1,23 @@
+"""Evaluation of the pipeline against reference labels (pure core).
+
+* :mod:`tumor3d.evaluation.metrics` -- Dice, Jaccard, Eq. 9, Table 2
+  confusion counts, Bland-Altman, surface distances (HD95, Hausdorff) in mm;
+* :mod:`tumor3d.evaluation.emulate` -- thick-slice emulation of thin volumes
+  and labels (which thin slices form each thick one);
+* :mod:`tumor3d.evaluation.grids` -- world-space overlap and nearest-neighbour
+  resampling between voxel grids;
+* :mod:`tumor3d.evaluation.registry` -- the registry of evaluations that
+  ``tumor3d evaluate`` runs (:func:`register_evaluation`);
+* :mod:`tumor3d.evaluation.segmentation` -- the built-in evaluation.
+
+No file I/O here: the flow (``flows/evaluate.py``) loads and writes.
+"""
+
+from tumor3d.evaluation.registry import (
+    EvaluationCase,
+    EvaluationRows,
+    register_evaluation,
+    registered_evaluations,
+)
+
+__all__ = ["EvaluationCase", "EvaluationRows", "register_evaluation", "registered_evaluations"]

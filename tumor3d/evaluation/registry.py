@@ -1,0 +1,181 @@
+"""The registry of evaluations that ``tumor3d evaluate`` runs.
+
+An *evaluation* is a pure function ``fn(case: EvaluationCase) ->
+EvaluationRows``: arrays in (one patient's published results and its
+reference, already loaded and put on comparable grids by the flow), rows
+out. It never reads files. Optionally it also has ``summarize(rows) -> str``,
+which turns every patient's row of one configuration into a Markdown section
+of the report.
+
+Adding an evaluation = one module and one line:
+
+1. a module, e.g. ``tumor3d/evaluation/interpolation.py``, with::
+
+       from tumor3d.evaluation.registry import register_evaluation
+
+       @register_evaluation("interpolation", description="Table 4: ...")
+       def evaluate_interpolation(case):
+           ...
+           return EvaluationRows(patient={...}, slices=[...])
+
+2. its name in :data:`EVALUATION_MODULES` below.
+
+Column names of the rows are prefixed with nothing: keep them unique across
+evaluations (``patient_id`` and ``config`` are added by the flow).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from tumor3d.errors import InputError
+
+__all__ = [
+    "EVALUATION_MODULES",
+    "Evaluation",
+    "EvaluationCase",
+    "EvaluationRows",
+    "register_evaluation",
+    "registered_evaluations",
+]
+
+#: Modules whose import registers evaluations; add one line per new module.
+EVALUATION_MODULES: tuple[str, ...] = (
+    "tumor3d.evaluation.segmentation",
+)
+
+#: Kinds of reference a case may have.
+REFERENCE_KINDS = ("expert", "algorithmic", "truth", "tumor_free", "unspecified")
+
+
+@dataclass(frozen=True, eq=False)
+class EvaluationCase:
+    """One patient's results and reference, ready to compare.
+
+    All masks are boolean arrays in their file's own voxel order; every
+    affine maps the voxel index ``(i0, i1, i2, 1)`` in array order to RAS mm.
+
+    Parameters
+    ----------
+    patient_id : str
+    reference_kind : str
+        One of :data:`REFERENCE_KINDS`.
+    slice_axis : int
+        The acquisition (slice) axis of the acquired grid.
+    acquired_affine : (4, 4) ndarray
+        Grid of the image the pipeline ran on (emulated or native).
+    pred_slices : bool ndarray
+        The pipeline's tumour on the acquired slices (``tumor_mask_slices``).
+    ref_slices : bool ndarray or None
+        The reference on the acquired grid (emulated the same way as the
+        image, or sampled at its voxel centres); ``None`` without reference.
+    detector_abnormal : (n_slices,) bool ndarray or None
+        The abnormal-slice detector's flags (before segmentation).
+    pred_fine, pred_fine_affine : bool ndarray, (4, 4) ndarray
+        The interpolated 3-D tumour (``tumor_mask``) and its grid.
+    reference, reference_affine : bool ndarray or None, (4, 4) ndarray or None
+        The reference at full resolution on its own grid.
+    pred_on_reference : bool ndarray or None
+        ``pred_fine`` sampled at the reference's voxel centres (nearest).
+    metrics : dict
+        The patient's ``metrics.parquet`` row (volumes in mm^3 etc.).
+    extras : dict
+        Anything else a later evaluation needs (e.g. meshes), by name.
+    """
+
+    patient_id: str
+    reference_kind: str
+    slice_axis: int
+    acquired_affine: np.ndarray
+    pred_slices: np.ndarray
+    ref_slices: np.ndarray | None
+    detector_abnormal: np.ndarray | None
+    pred_fine: np.ndarray
+    pred_fine_affine: np.ndarray
+    reference: np.ndarray | None
+    reference_affine: np.ndarray | None
+    pred_on_reference: np.ndarray | None
+    metrics: dict[str, Any]
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.reference_kind not in REFERENCE_KINDS:
+            raise InputError(
+                f"reference_kind must be one of {', '.join(REFERENCE_KINDS)}, "
+                f"got {self.reference_kind!r}"
+            )
+        if self.ref_slices is not None and self.ref_slices.shape != self.pred_slices.shape:
+            raise InputError(
+                f"ref_slices {self.ref_slices.shape} and pred_slices "
+                f"{self.pred_slices.shape} must share the acquired grid"
+            )
+        if (self.reference is None) != (self.reference_affine is None):
+            raise InputError("reference and reference_affine go together")
+
+
+@dataclass
+class EvaluationRows:
+    """What an evaluation returns for one patient.
+
+    ``patient``: one row of ``evaluation.parquet`` (column -> scalar);
+    ``slices``: rows of ``evaluation_slices.parquet`` (each with
+    ``slice_index``).
+    """
+
+    patient: dict[str, Any] = field(default_factory=dict)
+    slices: list[dict[str, Any]] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """A registered evaluation."""
+
+    name: str
+    description: str
+    fn: Callable[[EvaluationCase], EvaluationRows]
+    summarize: Callable[[list[dict[str, Any]]], str] | None = None
+
+
+_REGISTRY: dict[str, Evaluation] = {}
+
+
+def register_evaluation(
+    name: str,
+    *,
+    description: str,
+    summarize: Callable[[list[dict[str, Any]]], str] | None = None,
+) -> Callable[[Callable[[EvaluationCase], EvaluationRows]], Callable]:
+    """Decorator registering ``fn(case) -> EvaluationRows`` under ``name``.
+
+    Parameters
+    ----------
+    name : str
+        Unique name (re-registering the same function is a no-op).
+    description : str
+        One line for the report.
+    summarize : callable, optional
+        ``summarize(patient_rows) -> markdown`` for one configuration.
+    """
+    if not isinstance(name, str) or not name:
+        raise InputError(f"evaluation name must be a non-empty string, got {name!r}")
+
+    def deco(fn: Callable[[EvaluationCase], EvaluationRows]) -> Callable:
+        old = _REGISTRY.get(name)
+        if old is not None and old.fn.__qualname__ != fn.__qualname__:
+            raise InputError(f"an evaluation named {name!r} is already registered")
+        _REGISTRY[name] = Evaluation(name, description, fn, summarize)
+        return fn
+
+    return deco
+
+
+def registered_evaluations() -> dict[str, Evaluation]:
+    """All evaluations, after importing :data:`EVALUATION_MODULES` (name -> Evaluation)."""
+    for module in EVALUATION_MODULES:
+        importlib.import_module(module)
+    return dict(_REGISTRY)
