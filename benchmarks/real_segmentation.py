@@ -24,6 +24,11 @@ the stack's extent as missed. Eq. 7 volume = 5 mm x sum of tumour pixel
 areas of the acquired slabs; the reference volume = label voxel count x
 voxel volume. Native mode runs all 1 mm slices (no interpolation).
 
+Also printed, when ``tumor3d.evaluation`` is importable: recall, specificity
+and mean per-slice Dice with the evaluation flow's rules (binary slab
+reference = mean label of its two thin slices >= 0.5, i.e. their union;
+binary Dice), so that both agree.
+
 Printed per case and configuration: abnormal-slice recall and specificity
 (the detector's flag vs reference tumour slabs), recall of the final masks
 (slab with a non-empty tumour mask), mean per-slice Dice over reference
@@ -146,6 +151,18 @@ def evaluate(case: Case, cfg, *, native: bool, offset: int, use_mask: bool) -> d
     row["spec_found"] = float((~found[~ref_slices]).mean()) if (~ref_slices).any() else float("nan")
     row["slice_dice"] = float(np.mean([soft_dice(mask[z], ref[z])
                                        for z in np.flatnonzero(ref_slices)]))
+    # the same figures with tumor3d.evaluation's rules (binary reference: tumour where
+    # the mean label of the slab's thin slices is >= 0.5, binary Dice), if available
+    try:
+        from tumor3d.evaluation.metrics import dice, slice_confusion
+
+        ref_bin = ref >= 0.5
+        conf = slice_confusion(det.abnormal, ref_bin.sum(axis=(1, 2)))
+        row["eval_recall"], row["eval_spec"] = conf.sensitivity, conf.specificity
+        zs = np.flatnonzero(ref_bin.any(axis=(1, 2)))
+        row["eval_slice_dice"] = float(np.mean([dice(mask[z], ref_bin[z]) for z in zs]))
+    except ImportError:
+        pass
     ref_ml = float(label.sum()) * voxel_mm3 / 1000.0
     row["ref_ml"] = ref_ml
     row["vol_err"] = 100.0 * (vol_eq7 / 1000.0 - ref_ml) / ref_ml
@@ -182,7 +199,10 @@ def _fmt(row: dict) -> str:
             f"spec={100 * row['spec']:5.1f} (masks: {100 * row['recall_found']:5.1f}/"
             f"{100 * row['spec_found']:5.1f}) sliceDice={row['slice_dice']:.3f} "
             f"dice3d={row['dice3d']:.3f} vol={row['vol_eq7_ml']:.1f}/{row['ref_ml']:.1f} mL "
-            f"err={row['vol_err']:+.1f} %  [{ts}]")
+            f"err={row['vol_err']:+.1f} %  [{ts}]"
+            + (f"\n{'':12} eval rules: recall={100 * row['eval_recall']:5.1f} "
+               f"spec={100 * row['eval_spec']:5.1f} sliceDice={row['eval_slice_dice']:.3f}"
+               if "eval_recall" in row else ""))
 
 
 def main(argv=None) -> int:

@@ -315,6 +315,14 @@ def test_robust_default_on_flair_finds_every_blob_slice_and_nothing_else():
     assert rec["fcm_iterations"] == -1 and rec["fcm_converged"] is False
 
 
+def test_robust_default_on_tumour_free_flair_is_empty():
+    # the phantom's bimodal parenchyma puts grey matter "outside" the median / MAD
+    # model; a lesion covering most of the brain is rejected (MAX_BRAIN_FRACTION)
+    _, det, res = _flair_robust(6, tumor=False)
+    assert not det.abnormal.any()
+    assert res.tumor_pixels.sum() == 0
+
+
 def test_multiotsu_peer_segments_the_flair_blob():
     ph = make_head_phantom(tumor=True, seed=7, intensities=FLAIR_INTENSITY)
     pre = preprocess_volume(ph.image, **PreprocessConfig().model_dump())
