@@ -194,8 +194,29 @@ def unsharp_kernel(alpha: float) -> np.ndarray:
 
 
 def _median_stack(stack: np.ndarray, size: int) -> np.ndarray:
-    # MATLAB medfilt2 pads with zeros; a depth-1 kernel never mixes slices.
-    return ndi.median_filter(stack, size=(1, size, size), mode="constant", cval=0)
+    # MATLAB medfilt2 pads with zeros; a depth-1 kernel never mixes slices. The median of
+    # an all-zero neighbourhood is 0, so only the bounding box of the non-zero pixels
+    # (plus the kernel's half width, where zero padding and zero pixels agree) is filtered.
+    box = _nonzero_box(stack, size // 2)
+    if box is None:
+        return np.zeros_like(stack)
+    out = np.zeros_like(stack)
+    out[box] = ndi.median_filter(stack[box], size=(1, size, size), mode="constant", cval=0)
+    return out
+
+
+def _nonzero_box(stack: np.ndarray, margin: int) -> tuple[slice, ...] | None:
+    """In-plane bounding box of the non-zero pixels grown by ``margin`` (all slices)."""
+    rows = np.flatnonzero(stack.any(axis=(0, 2)))
+    cols = np.flatnonzero(stack.any(axis=(0, 1)))
+    if rows.size == 0:
+        return None
+    ny, nx = stack.shape[1:]
+    return (
+        slice(None),
+        slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, ny)),
+        slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, nx)),
+    )
 
 
 def _unsharp_stack(stack: np.ndarray, alpha: float) -> np.ndarray:
@@ -415,10 +436,20 @@ def foreground_brain_mask(image: np.ndarray) -> np.ndarray:
         sizes = np.bincount(labels.ravel())
         sizes[0] = 0
         fg = labels == int(np.argmax(sizes))
-    out = np.zeros_like(fg)
-    for z in np.flatnonzero(fg.any(axis=(1, 2))):
-        out[z] = ndi.binary_fill_holes(fg[z])
-    return out
+    return fill_holes_per_slice(fg)
+
+
+def fill_holes_per_slice(mask: np.ndarray) -> np.ndarray:
+    """Fill the holes of every ``(y, x)`` slice of a ``(z, y, x)`` mask in one call.
+
+    An in-plane structuring element never links slices; a zero slice padded
+    at each end keeps the first and last slices' interiors off the array
+    border (which would otherwise make every pixel of them "outside").
+    """
+    in_plane = np.zeros((3, 3, 3), dtype=bool)
+    in_plane[1] = ndi.generate_binary_structure(2, 1)
+    padded = np.pad(np.asarray(mask, dtype=bool), ((1, 1), (0, 0), (0, 0)))
+    return ndi.binary_fill_holes(padded, structure=in_plane)[1:-1]
 
 
 # --------------------------------------------------------------------------- pipeline

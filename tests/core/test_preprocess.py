@@ -300,3 +300,14 @@ def test_brain_extraction_rejects_unknown_mode():
 
     with pytest.raises(InputError, match="brain_extraction"):
         preprocess_volume(np.arange(27.0).reshape(3, 3, 3), brain_extraction="bet")
+
+
+def test_fill_holes_per_slice_matches_slice_by_slice_filling():
+    from scipy import ndimage as ndi
+
+    from tumor3d.preprocess import fill_holes_per_slice
+
+    rng = np.random.default_rng(0)
+    mask = rng.random((5, 40, 40)) > 0.6
+    expect = np.stack([ndi.binary_fill_holes(m) for m in mask])
+    assert np.array_equal(fill_holes_per_slice(mask), expect)
