@@ -150,6 +150,19 @@ class DetectConfig(_StageConfig):
         le=100,
         description="robust: consecutive slices on which a lesion must reach that cross-section.",
     )
+    lesion_boundary_rings: int = Field(
+        3,
+        ge=0,
+        le=20,
+        description="robust: rings of partial-volume growth against the local lesion gray.",
+    )
+    lesion_floor_sigmas: float = Field(
+        1.0,
+        ge=0.0,
+        le=10.0,
+        description="robust: that growth never goes below median + this many robust SDs "
+        "(chosen by leave-one-case-out).",
+    )
     lesion_min_slice_pixels: int = Field(
         20, ge=1, description="robust: a slice holding this many lesion pixels is abnormal."
     )
@@ -227,6 +240,19 @@ class SegmentConfig(_StageConfig):
         ge=1,
         le=100,
         description="robust: consecutive slices on which a lesion must reach that cross-section.",
+    )
+    lesion_boundary_rings: int = Field(
+        3,
+        ge=0,
+        le=20,
+        description="robust: rings of partial-volume growth against the local lesion gray.",
+    )
+    lesion_floor_sigmas: float = Field(
+        1.0,
+        ge=0.0,
+        le=10.0,
+        description="robust: that growth never goes below median + this many robust SDs "
+        "(chosen by leave-one-case-out).",
     )
     lesion_fill_core: bool = Field(
         True, description="robust: fill the enclosed (necrotic) core and cavities at the rim."

@@ -440,6 +440,8 @@ def detect_abnormal_slices(
     lesion_seed_sigmas: float = 2.0,
     lesion_min_region_pixels: int = 50,
     lesion_min_slices: int = 2,
+    lesion_boundary_rings: int = 3,
+    lesion_floor_sigmas: float = 1.0,
     lesion_min_slice_pixels: int = 20,
 ) -> SliceDetection:
     """Flag the abnormal slices of a patient (specification section 2).
@@ -488,7 +490,8 @@ def detect_abnormal_slices(
         Sequence (robust method only): on T2 the CSF-bright voxels are
         excluded from the lesion. None = no CSF rule (FLAIR, T1c). The
         adapter passes the scan's modality.
-    lesion_smoothing_px, lesion_seed_sigmas, lesion_min_region_pixels, lesion_min_slices
+    lesion_smoothing_px, lesion_seed_sigmas, lesion_min_region_pixels, lesion_min_slices,
+    lesion_boundary_rings, lesion_floor_sigmas
         Robust method: ``smoothing_px``, ``seed_sigmas``,
         ``min_region_pixels`` and ``min_slices`` of
         :func:`tumor3d.lesion.segment_hyperintense_lesion`.
@@ -541,7 +544,12 @@ def detect_abnormal_slices(
         from tumor3d.segment import _check_lesion_params
 
         _check_lesion_params(
-            lesion_smoothing_px, lesion_seed_sigmas, lesion_min_region_pixels, lesion_min_slices
+            lesion_smoothing_px,
+            lesion_seed_sigmas,
+            lesion_min_region_pixels,
+            lesion_min_slices,
+            lesion_boundary_rings,
+            lesion_floor_sigmas,
         )
         lesion = segment_hyperintense_lesion(
             img,
@@ -551,6 +559,8 @@ def detect_abnormal_slices(
             seed_sigmas=float(lesion_seed_sigmas),
             min_region_pixels=int(lesion_min_region_pixels),
             min_slices=int(lesion_min_slices),
+            boundary_rings=int(lesion_boundary_rings),
+            floor_sigmas=float(lesion_floor_sigmas),
         )
         flagged = lesion.mask.sum(axis=(1, 2)) >= int(lesion_min_slice_pixels)
     abnormal = flagged & (brain_pixels >= int(min_brain_pixels))

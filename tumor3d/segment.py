@@ -641,6 +641,8 @@ def segment_tumor(
     lesion_seed_sigmas: float = 2.0,
     lesion_min_region_pixels: int = 50,
     lesion_min_slices: int = 2,
+    lesion_boundary_rings: int = 3,
+    lesion_floor_sigmas: float = 1.0,
     lesion_fill_core: bool = True,
     multiotsu_classes: int = 4,
 ) -> SegmentationResult:
@@ -685,7 +687,8 @@ def segment_tumor(
     component_tolerance_px, rim_px, max_brain_fraction, refine_boundary, min_tumor_slices
         Paper-method parameters (see :func:`_segment_paper`); the robust
         method uses the last three listed above.
-    lesion_smoothing_px, lesion_seed_sigmas, lesion_min_region_pixels, lesion_min_slices
+    lesion_smoothing_px, lesion_seed_sigmas, lesion_min_region_pixels, lesion_min_slices,
+    lesion_boundary_rings, lesion_floor_sigmas
         Robust method, see :func:`tumor3d.lesion.segment_hyperintense_lesion`
         (``smoothing_px``, ``seed_sigmas``, ``min_region_pixels``,
         ``min_slices``).
@@ -747,7 +750,12 @@ def segment_tumor(
         ref = np.full(3, np.nan)
     else:
         _check_lesion_params(
-            lesion_smoothing_px, lesion_seed_sigmas, lesion_min_region_pixels, lesion_min_slices
+            lesion_smoothing_px,
+            lesion_seed_sigmas,
+            lesion_min_region_pixels,
+            lesion_min_slices,
+            lesion_boundary_rings,
+            lesion_floor_sigmas,
         )
         res = segment_hyperintense_lesion(
             img,
@@ -757,6 +765,8 @@ def segment_tumor(
             seed_sigmas=float(lesion_seed_sigmas),
             min_region_pixels=int(lesion_min_region_pixels),
             min_slices=int(lesion_min_slices),
+            boundary_rings=int(lesion_boundary_rings),
+            floor_sigmas=float(lesion_floor_sigmas),
             keep_largest=bool(keep_largest_3d_component),
             refine_boundary=bool(refine_boundary),
             fill_core=bool(lesion_fill_core),
@@ -780,7 +790,13 @@ def segment_tumor(
     )
 
 
-def _check_lesion_params(smoothing_px, seed_sigmas, min_region_pixels, min_slices) -> None:
+def _check_lesion_params(
+    smoothing_px, seed_sigmas, min_region_pixels, min_slices, boundary_rings=0, floor_sigmas=0.0
+) -> None:
+    if int(boundary_rings) < 0:
+        raise InputError(f"lesion_boundary_rings must be >= 0, got {boundary_rings}")
+    if not float(floor_sigmas) >= 0.0:
+        raise InputError(f"lesion_floor_sigmas must be >= 0, got {floor_sigmas}")
     if not 0.0 <= float(smoothing_px) <= 20.0:
         raise InputError(f"lesion_smoothing_px must lie in [0, 20], got {smoothing_px}")
     if not float(seed_sigmas) > 0.0:
