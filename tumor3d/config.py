@@ -75,6 +75,19 @@ class PreprocessConfig(_StageConfig):
         "robust on T2) or the 2-class Otsu threshold.",
     )
     skull_opening_radius: int = Field(2, ge=0, le=10, description="[A3] disk radius, pixels.")
+    brain_extraction: Literal["auto", "skull_strip", "foreground"] = Field(
+        "auto",
+        description="skull_strip = [A3] skull removal; foreground = the volume is already "
+        "skull-stripped (voxels above its constant minimum, whole brain kept); auto = "
+        "foreground when >= masked_background_fraction of the voxels equal the minimum.",
+    )
+    masked_background_fraction: float = Field(
+        0.3,
+        gt=0.0,
+        le=1.0,
+        description="auto rule: share of voxels at exactly the minimum that marks a "
+        "masked (skull-stripped) background; raw MR air is noisy, never one value.",
+    )
 
     @model_validator(mode="after")
     def _check(self) -> PreprocessConfig:
@@ -111,11 +124,62 @@ class DetectConfig(_StageConfig):
     min_brain_pixels: int = Field(
         500, ge=0, description="Slices with fewer brain pixels are never abnormal."
     )
+    method: Literal["auto", "robust", "histogram"] = Field(
+        "auto",
+        description="robust = slices holding a patient-level lesion (tumor3d.lesion); "
+        "histogram = the paper's mode count ([A5], [A6]); auto = robust on FLAIR/T1c, "
+        "histogram on T2 or without modality.",
+    )
+    lesion_smoothing_px: float = Field(
+        2.0,
+        ge=0.0,
+        le=20.0,
+        description="robust: in-plane Gaussian sigma (pixels) of the spatial regularisation "
+        "before the patient-pooled normal-tissue model.",
+    )
+    lesion_seed_sigmas: float = Field(
+        2.0,
+        gt=0.0,
+        le=10.0,
+        description="robust: lesion seeds lie this many robust SDs (1.4826 MAD) above the "
+        "median of the smoothed brain (chosen by leave-one-case-out).",
+    )
+    lesion_min_region_pixels: int = Field(
+        50, ge=1, description="robust: smallest significant lesion cross-section on a slice, px."
+    )
+    lesion_min_slices: int = Field(
+        2,
+        ge=1,
+        le=100,
+        description="robust: consecutive slices on which a lesion must reach that cross-section.",
+    )
+    lesion_boundary_rings: int = Field(
+        3,
+        ge=0,
+        le=20,
+        description="robust: rings of partial-volume growth against the local lesion gray.",
+    )
+    lesion_floor_sigmas: float = Field(
+        1.0,
+        ge=0.0,
+        le=10.0,
+        description="robust: that growth never goes below median + this many robust SDs "
+        "(chosen by leave-one-case-out).",
+    )
+    lesion_min_slice_pixels: int = Field(
+        20, ge=1, description="robust: a slice holding this many lesion pixels is abnormal."
+    )
 
 
 class SegmentConfig(_StageConfig):
-    """Wavelet + histogram fuzzy c-means segmentation (spec section 3, [A7], [A8])."""
+    """Tumour segmentation (spec section 3): robust default, the paper's method, a peer."""
 
+    method: Literal["auto", "robust", "paper", "multiotsu"] = Field(
+        "auto",
+        description="robust = patient-pooled lesion model (tumor3d.lesion); paper = wavelet + "
+        "histogram FCM per slice ([A7], [A8]); multiotsu = peer (brightest of 4 classes); "
+        "auto = robust on FLAIR/T1c, paper on T2.",
+    )
     wavelet: Literal["haar"] = "haar"
     fuzziness: float = Field(2.0, gt=1.0, le=5.0, description="FCM exponent m.")
     tol: float = Field(1e-3, gt=0.0, le=1.0, description="Stop when max |dv| < tol.")
@@ -157,6 +221,46 @@ class SegmentConfig(_StageConfig):
         description="With keep_largest_3d_component: the kept tumour must span "
         "at least this many acquired slices (drops isolated partial-volume slices).",
     )
+    lesion_smoothing_px: float = Field(
+        2.0,
+        ge=0.0,
+        le=20.0,
+        description="robust: in-plane Gaussian sigma (pixels) of the spatial regularisation "
+        "before the patient-pooled normal-tissue model.",
+    )
+    lesion_seed_sigmas: float = Field(
+        2.0,
+        gt=0.0,
+        le=10.0,
+        description="robust: lesion seeds lie this many robust SDs (1.4826 MAD) above the "
+        "median of the smoothed brain (chosen by leave-one-case-out).",
+    )
+    lesion_min_region_pixels: int = Field(
+        50, ge=1, description="robust: smallest significant lesion cross-section on a slice, px."
+    )
+    lesion_min_slices: int = Field(
+        2,
+        ge=1,
+        le=100,
+        description="robust: consecutive slices on which a lesion must reach that cross-section.",
+    )
+    lesion_boundary_rings: int = Field(
+        3,
+        ge=0,
+        le=20,
+        description="robust: rings of partial-volume growth against the local lesion gray.",
+    )
+    lesion_floor_sigmas: float = Field(
+        1.0,
+        ge=0.0,
+        le=10.0,
+        description="robust: that growth never goes below median + this many robust SDs "
+        "(chosen by leave-one-case-out).",
+    )
+    lesion_fill_core: bool = Field(
+        True, description="robust: fill the enclosed (necrotic) core and cavities at the rim."
+    )
+    multiotsu_classes: int = Field(4, ge=2, le=6, description="multiotsu peer: classes.")
 
 
 class InterpolateConfig(_StageConfig):

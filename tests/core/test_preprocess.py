@@ -270,3 +270,44 @@ def test_rejects_bad_alpha(phantom):
 def test_rejects_bad_equalize_levels(phantom):
     with pytest.raises(InputError, match="equalize_levels"):
         preprocess_volume(phantom.image, **{**DEFAULTS, "equalize_levels": 1})
+
+
+# --------------------------------------------------------------------------- skull-stripped input
+
+
+def test_zscored_skull_stripped_volume_keeps_the_whole_brain():
+    # BraTS-like: z-scored intensities, the masked background a negative constant
+    rng = np.random.default_rng(1)
+    nz, n = 5, 64
+    yy, xx = np.mgrid[:n, :n]
+    brain2d = (yy - 32) ** 2 + (xx - 32) ** 2 < 25**2
+    tissue = np.clip(rng.normal(0.0, 1.0, (nz, n, n)), -3.0, None)
+    vol = np.where(brain2d, tissue, -3.16).astype(np.float32)
+    vol[0, 32, 32] = 1e4  # one extreme outlier voxel
+    from tumor3d.preprocess import preprocess_volume
+
+    res = preprocess_volume(vol)  # brain_extraction="auto" -> foreground
+    expect = np.broadcast_to(brain2d, vol.shape)
+    assert np.array_equal(res.brain_mask, expect)  # nothing eaten at the rim, speck dropped
+    skull = preprocess_volume(vol, brain_extraction="skull_strip")
+    assert skull.brain_mask.sum() < expect.sum()  # the paper's skull removal erodes the rim
+    # the outlier does not set the window: the tissue median stays mid-range
+    assert 110 < np.median(res.enhanced[res.brain_mask]) < 145
+
+
+def test_brain_extraction_rejects_unknown_mode():
+    from tumor3d.preprocess import preprocess_volume
+
+    with pytest.raises(InputError, match="brain_extraction"):
+        preprocess_volume(np.arange(27.0).reshape(3, 3, 3), brain_extraction="bet")
+
+
+def test_fill_holes_per_slice_matches_slice_by_slice_filling():
+    from scipy import ndimage as ndi
+
+    from tumor3d.preprocess import fill_holes_per_slice
+
+    rng = np.random.default_rng(0)
+    mask = rng.random((5, 40, 40)) > 0.6
+    expect = np.stack([ndi.binary_fill_holes(m) for m in mask])
+    assert np.array_equal(fill_holes_per_slice(mask), expect)

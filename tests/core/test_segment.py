@@ -180,7 +180,9 @@ def test_flair_with_reference_and_with_the_brightest_rule(flair_case):
     sub = SliceDetection.from_records(
         [{**det.to_records()[z], "slice_index": i} for i, z in enumerate(large)]
     )
-    rule = segment_tumor(pre.enhanced[large], pre.brain_mask[large], sub, modality="flair")
+    rule = segment_tumor(
+        pre.enhanced[large], pre.brain_mask[large], sub, modality="flair", method="paper"
+    )
     assert np.all(rule.selection == "rule")  # brightest cluster on FLAIR
     for i, z in enumerate(large):
         assert _dice(rule.tumor_mask[i], ph.tumor[z]) > 0.85
@@ -288,3 +290,84 @@ def test_rejects_non_detection(t2_case):
     _, pre, _ = t2_case
     with pytest.raises(InputError, match="SliceDetection"):
         segment_tumor(pre.enhanced, pre.brain_mask, {"abnormal": []}, **DEFAULTS)
+
+
+# --------------------------------------------------------------------------- robust method and peer
+
+
+def _flair_robust(seed: int, tumor: bool = True):
+    ph = make_head_phantom(tumor=tumor, seed=seed, intensities=FLAIR_INTENSITY)
+    pre = preprocess_volume(ph.image, **PreprocessConfig().model_dump())
+    det = detect_abnormal_slices(
+        pre.enhanced, pre.brain_mask, modality="flair", **DetectConfig().model_dump()
+    )
+    res = segment_tumor(pre.enhanced, pre.brain_mask, det, modality="flair", **DEFAULTS)
+    return ph, det, res
+
+
+def test_robust_default_on_flair_finds_every_blob_slice_and_nothing_else():
+    ph, det, res = _flair_robust(5)
+    truth_slices = ph.tumor.any(axis=(1, 2))
+    assert np.array_equal(det.abnormal, truth_slices)
+    assert _dice(res.tumor_mask, ph.tumor) > 0.97
+    assert set(res.selection[truth_slices]) == {"lesion"}
+    rec = res.to_records()[0]
+    assert rec["fcm_iterations"] == -1 and rec["fcm_converged"] is False
+
+
+def test_robust_default_on_tumour_free_flair_is_empty():
+    # the phantom's bimodal parenchyma puts grey matter "outside" the median / MAD
+    # model; a lesion covering most of the brain is rejected (MAX_BRAIN_FRACTION)
+    _, det, res = _flair_robust(6, tumor=False)
+    assert not det.abnormal.any()
+    assert res.tumor_pixels.sum() == 0
+
+
+def test_multiotsu_peer_segments_the_flair_blob():
+    ph = make_head_phantom(tumor=True, seed=7, intensities=FLAIR_INTENSITY)
+    pre = preprocess_volume(ph.image, **PreprocessConfig().model_dump())
+    det = detect_abnormal_slices(pre.enhanced, pre.brain_mask)
+    res = segment_tumor(
+        pre.enhanced, pre.brain_mask, det, modality="flair", **{**DEFAULTS, "method": "multiotsu"}
+    )
+    assert _dice(res.tumor_mask, ph.tumor) > 0.8
+    assert set(res.selection[res.tumor_pixels > 0]) == {"multiotsu"}
+
+
+def test_auto_method_resolves_by_modality():
+    from tumor3d.segment import resolve_method
+
+    assert resolve_method("auto", "FLAIR") == "robust"
+    assert resolve_method("auto", "t1c") == "robust"
+    assert resolve_method("auto", "t2") == "paper"
+    assert resolve_method("multiotsu", "t2") == "multiotsu"
+
+
+def test_rejects_unknown_method(t2_case):
+    _, pre, det = t2_case
+    with pytest.raises(InputError, match="method"):
+        segment_tumor(pre.enhanced, pre.brain_mask, det, method="kmeans")
+    with pytest.raises(InputError, match="method"):
+        detect_abnormal_slices(pre.enhanced, pre.brain_mask, method="kmeans")
+
+
+def test_robust_on_a_brain_without_any_tissue_contrast_is_empty():
+    brain = np.zeros((3, 40, 40), dtype=bool)
+    brain[:, 5:35, 5:35] = True
+    enhanced = np.where(brain, 120, 0).astype(np.uint8)
+    det = detect_abnormal_slices(enhanced, brain, modality="flair", min_brain_pixels=0)
+    res = segment_tumor(enhanced, brain, det, modality="flair", method="robust")
+    assert not det.abnormal.any() and res.tumor_pixels.sum() == 0
+
+
+def test_histogram_fcm_matches_naive_pixel_fcm_of_tumor3d_fcm():
+    from tumor3d.fcm import fuzzy_cmeans_pixels
+
+    rng = np.random.default_rng(2)
+    pixels = np.clip(np.concatenate([rng.normal(m, 6, 300) for m in (60, 120, 200)]), 0, 255)
+    pixels = np.round(pixels)
+    hist = np.bincount(pixels.astype(int), minlength=256)
+    v0 = np.array([50.0, 130.0, 190.0])
+    v_hist = fuzzy_cmeans_histogram(hist, v0, tol=1e-6, max_num_iter=500)
+    v_pix = fuzzy_cmeans_pixels(pixels, v0, tol=1e-6, max_num_iter=500)
+    np.testing.assert_allclose(v_hist, v_pix, atol=1e-3)

@@ -1,0 +1,90 @@
+"""Speed of preprocess + detect + segment: the default pipeline as a ratio to the multi-Otsu peer.
+
+Runs both configurations in the same process on the same 155 x 240 x 240
+volume (``$TUMOR3D_DATA_DIR/brats2013_pat0003/flair.nii.gz`` when present,
+else a smooth synthetic head of that size with a bright blob), ``--repeat``
+times each, interleaved, and prints the median seconds per stage and the
+ratio default / peer (the machine is shared and noisy: only the ratio is
+meaningful). Not a test.
+
+Usage::
+
+    TUMOR3D_DATA_DIR=/work/shared/data python benchmarks/bench_segmentation.py [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tumor3d.config import parse_config  # noqa: E402
+from tumor3d.detect import detect_abnormal_slices  # noqa: E402
+from tumor3d.preprocess import preprocess_volume  # noqa: E402
+from tumor3d.segment import segment_tumor  # noqa: E402
+
+
+def _volume() -> tuple[np.ndarray, str]:
+    data = Path(os.environ.get("TUMOR3D_DATA_DIR", ROOT / ".." / "shared" / "data"))
+    f = data / "brats2013_pat0003" / "flair.nii.gz"
+    if f.is_file():
+        from storage.readers import read_scan
+
+        return read_scan(f, modality="flair").image, str(f)
+    rng = np.random.default_rng(0)
+    z, y, x = np.mgrid[:155, :240, :240].astype(np.float32)
+    r = np.sqrt(((z - 77) / 70) ** 2 + ((y - 120) / 95) ** 2 + ((x - 120) / 80) ** 2)
+    vol = np.where(r < 1, 100.0, 0.0) + rng.normal(0, 5, r.shape) * (r < 1)
+    vol[((z - 80) ** 2 + (y - 100) ** 2 + (x - 140) ** 2) < 20**2] = 200.0
+    return vol.astype(np.float32), "synthetic 155x240x240 head"
+
+
+def _run(image: np.ndarray, cfg) -> dict[str, float]:
+    t = {}
+    t0 = time.perf_counter()
+    pre = preprocess_volume(image, **cfg.preprocess.model_dump())
+    t["preprocess"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    det = detect_abnormal_slices(
+        pre.enhanced, pre.brain_mask, modality="flair", **cfg.detect.model_dump()
+    )
+    t["detect"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    segment_tumor(pre.enhanced, pre.brain_mask, det, modality="flair", **cfg.segment.model_dump())
+    t["segment"] = time.perf_counter() - t0
+    t["total"] = sum(t.values())
+    return t
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=3)
+    args = ap.parse_args(argv)
+    image, what = _volume()
+    configs = {
+        "default": parse_config((ROOT / "configs" / "default.yaml").read_text()),
+        "peer": parse_config((ROOT / "configs" / "peer_multiotsu.yaml").read_text()),
+    }
+    times: dict[str, list[dict[str, float]]] = {k: [] for k in configs}
+    for _ in range(max(1, args.repeat)):
+        for name, cfg in configs.items():
+            times[name].append(_run(image, cfg))
+    print(f"volume: {what}, shape {image.shape}, {args.repeat} repeats (median seconds)")
+    med = {}
+    for name, runs in times.items():
+        med[name] = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
+        print(f"  {name:<8} " + "  ".join(f"{k}={v:.2f}" for k, v in med[name].items()))
+    print(f"  ratio default / peer (total): {med['default']['total'] / med['peer']['total']:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
