@@ -835,18 +835,27 @@ def _lt_cost_place(u, v, V, F, su, nu, sv, nv_, mark, stamp, cA, cb, H, r):  # p
     those before: volume preservation ``sum_t V_t(p) = 0``; volume
     optimisation ``min sum_t V_t(p)^2``; (boundary terms vanish on a closed
     mesh); triangle-shape optimisation ``min sum_k ||p - v_k||^2`` over the
-    link vertices. Cost ``sum_t V_t(p)^2`` (the volume objective).
+    link vertices. Cost ``sum_t V_t(p)^2 = (sum d_t^2 - 2 p . sum d_t n_t +
+    p^T (sum n_t n_t^T) p) / 36`` (the volume objective), evaluated in
+    coordinates centred on u to avoid cancellation.
     """
-    for a in range(3):
-        cb[a] = 0.0
-        r[a] = 0.0
-        for c in range(3):
-            cA[a, c] = 0.0
-            H[a, c] = 0.0
+    ox = V[u, 0]
+    oy = V[u, 1]
+    oz = V[u, 2]
+    h00 = 0.0
+    h01 = 0.0
+    h02 = 0.0
+    h11 = 0.0
+    h12 = 0.0
+    h22 = 0.0
+    r0 = 0.0
+    r1 = 0.0
+    r2 = 0.0
     sx = 0.0
     sy = 0.0
     sz = 0.0
     sd = 0.0
+    sdd = 0.0
     stamp[0] += 1
     s = stamp[0]
     mark[u] = s
@@ -855,52 +864,61 @@ def _lt_cost_place(u, v, V, F, su, nu, sv, nv_, mark, stamp, cA, cb, H, r):  # p
     lx = 0.0
     ly = 0.0
     lz = 0.0
-    for side in range(2):
-        star = su if side == 0 else sv
-        n = nu if side == 0 else nv_
-        other = v if side == 0 else u
-        for k in range(n):
-            f = star[k]
-            if side == 1 and (F[f, 0] == other or F[f, 1] == other or F[f, 2] == other):
+    for k in range(nu + nv_):
+        if k < nu:
+            f = su[k]
+        else:
+            f = sv[k - nu]
+            if F[f, 0] == u or F[f, 1] == u or F[f, 2] == u:
                 continue  # an edge face, already counted from u's side
-            a = F[f, 0]
-            b = F[f, 1]
-            c = F[f, 2]
-            ax = V[a, 0]
-            ay = V[a, 1]
-            az = V[a, 2]
-            bx = V[b, 0]
-            by = V[b, 1]
-            bz = V[b, 2]
-            cx = V[c, 0]
-            cy = V[c, 1]
-            cz = V[c, 2]
-            nx, ny, nz = _tri_normal(ax, ay, az, bx, by, bz, cx, cy, cz)
-            d = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
-            sx += nx
-            sy += ny
-            sz += nz
-            sd += d
-            H[0, 0] += nx * nx
-            H[0, 1] += nx * ny
-            H[0, 2] += nx * nz
-            H[1, 1] += ny * ny
-            H[1, 2] += ny * nz
-            H[2, 2] += nz * nz
-            r[0] += d * nx
-            r[1] += d * ny
-            r[2] += d * nz
-            for t in range(3):
-                w = F[f, t]
-                if mark[w] != s:
-                    mark[w] = s
-                    nlink += 1
-                    lx += V[w, 0]
-                    ly += V[w, 1]
-                    lz += V[w, 2]
-    H[1, 0] = H[0, 1]
-    H[2, 0] = H[0, 2]
-    H[2, 1] = H[1, 2]
+        a = F[f, 0]
+        b = F[f, 1]
+        c = F[f, 2]
+        ax = V[a, 0] - ox
+        ay = V[a, 1] - oy
+        az = V[a, 2] - oz
+        bx = V[b, 0] - ox
+        by = V[b, 1] - oy
+        bz = V[b, 2] - oz
+        cx = V[c, 0] - ox
+        cy = V[c, 1] - oy
+        cz = V[c, 2] - oz
+        nx, ny, nz = _tri_normal(ax, ay, az, bx, by, bz, cx, cy, cz)
+        d = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+        sx += nx
+        sy += ny
+        sz += nz
+        sd += d
+        sdd += d * d
+        h00 += nx * nx
+        h01 += nx * ny
+        h02 += nx * nz
+        h11 += ny * ny
+        h12 += ny * nz
+        h22 += nz * nz
+        r0 += d * nx
+        r1 += d * ny
+        r2 += d * nz
+        for t in range(3):
+            w = F[f, t]
+            if mark[w] != s:
+                mark[w] = s
+                nlink += 1
+                lx += V[w, 0] - ox
+                ly += V[w, 1] - oy
+                lz += V[w, 2] - oz
+    H[0, 0] = h00
+    H[0, 1] = h01
+    H[0, 2] = h02
+    H[1, 0] = h01
+    H[1, 1] = h11
+    H[1, 2] = h12
+    H[2, 0] = h02
+    H[2, 1] = h12
+    H[2, 2] = h22
+    r[0] = r0
+    r[1] = r1
+    r[2] = r2
     n = _add_constraint(cA, cb, 0, sx, sy, sz, sd)
     n = _add_gradient(cA, cb, n, H, r)
     if n < 3 and nlink > 0:
@@ -917,33 +935,12 @@ def _lt_cost_place(u, v, V, F, su, nu, sv, nv_, mark, stamp, cA, cb, H, r):  # p
     ok, px, py, pz = _solve3(cA, cb)
     if not ok:
         return False, np.inf, 0.0, 0.0, 0.0
-    # cost: sum_t V_t(p)^2 (recomputed face by face)
-    cost = 0.0
-    for side in range(2):
-        star = su if side == 0 else sv
-        n = nu if side == 0 else nv_
-        other = v if side == 0 else u
-        for k in range(n):
-            f = star[k]
-            if side == 1 and (F[f, 0] == other or F[f, 1] == other or F[f, 2] == other):
-                continue
-            a = F[f, 0]
-            b = F[f, 1]
-            c = F[f, 2]
-            # signed volume of the tetrahedron (p, a, b, c)
-            ax = V[a, 0] - px
-            ay = V[a, 1] - py
-            az = V[a, 2] - pz
-            bx = V[b, 0] - px
-            by = V[b, 1] - py
-            bz = V[b, 2] - pz
-            cx = V[c, 0] - px
-            cy = V[c, 1] - py
-            cz = V[c, 2] - pz
-            vol = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
-            vol /= 6.0
-            cost += vol * vol
-    return True, cost, px, py, pz
+    quad = (
+        h00 * px * px + h11 * py * py + h22 * pz * pz
+        + 2.0 * (h01 * px * py + h02 * px * pz + h12 * py * pz)
+    )  # fmt: skip
+    cost = max(0.0, sdd - 2.0 * (r0 * px + r1 * py + r2 * pz) + quad) / 36.0
+    return True, cost, px + ox, py + oy, pz + oz
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
