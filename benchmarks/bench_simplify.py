@@ -43,21 +43,32 @@ from tumor3d.simplify import simplify_mesh  # noqa: E402
 from tumor3d.surface import extract_surface, is_watertight  # noqa: E402
 
 #: voxel sizes (mm) of a 60 mm phantom tumour giving about 125k ... 1M faces
-SPACINGS_MM = (0.55, 0.39, 0.275, 0.195)
+SPACINGS_MM = (0.55, 0.39, 0.275, 0.19)
 DIAMETER_MM = 60.0
+
+
+def _mask(shape, z_mm, y_mm, x_mm):
+    """Inside-test of a phantom tumour on the grid ``z_mm x y_mm x x_mm``, slab by slab."""
+    yy, xx = np.meshgrid(y_mm, x_mm, indexing="ij")
+    plane = np.column_stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)])
+    mask = np.zeros((len(z_mm), len(y_mm), len(x_mm)), dtype=bool)
+    for k, z in enumerate(z_mm):
+        plane[:, 2] = z
+        mask[k] = shape.contains(plane).reshape(len(y_mm), len(x_mm))
+    return mask
 
 
 def tumour_mesh(spacing_mm: float, seed: int = 7):
     """Marching-cubes surface of a random phantom tumour sampled at ``spacing_mm``."""
     shape = random_tumor_shape(np.random.default_rng(seed), equivalent_diameter_mm=DIAMETER_MM)
-    half = 1.1 * DIAMETER_MM
-    axis = np.arange(-half, half + spacing_mm, spacing_mm)
-    n = len(axis)
-    z, y, x = np.meshgrid(axis, axis, axis, indexing="ij")
-    pts = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
-    mask = shape.contains(pts).reshape(n, n, n)
+    pts = shape.surface_points()
+    margin = 0.05 * np.ptp(pts, axis=0) + 2 * spacing_mm  # the samples may miss a bump's top
+    lo = pts.min(axis=0) - margin
+    hi = pts.max(axis=0) + margin
+    axes = [np.arange(lo[k], hi[k], spacing_mm) for k in range(3)]  # x, y, z
+    mask = _mask(shape, axes[2], axes[1], axes[0])
     affine = np.diag([spacing_mm, spacing_mm, spacing_mm, 1.0])
-    affine[:3, 3] = -half
+    affine[:3, 3] = lo
     return extract_surface(mask, affine)
 
 
@@ -65,7 +76,8 @@ def _open3d(mesh, target):
     import open3d as o3d
 
     m = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(mesh.vertices), o3d.utility.Vector3iVector(mesh.faces)
+        o3d.utility.Vector3dVector(np.array(mesh.vertices)),
+        o3d.utility.Vector3iVector(np.array(mesh.faces, dtype=np.int32)),
     )
     return m.simplify_quadric_decimation(target_number_of_triangles=int(target))
 
@@ -81,17 +93,14 @@ def _time(fn, repeats):
 
 
 def _child_peak_rss_mb(spacing_mm: float, simplify: bool) -> float:
+    action = "simplify_mesh(m, method='curvature', reduction_percent=60.0)" if simplify else ""
     code = (
-        "import resource, sys; sys.path.insert(0, %r)\n"
+        f"import resource, sys; sys.path.insert(0, {str(ROOT)!r})\n"
         "from benchmarks.bench_simplify import tumour_mesh\n"
         "from tumor3d.simplify import simplify_mesh\n"
-        "m = tumour_mesh(%r)\n"
-        "%s\n"
+        f"m = tumour_mesh({spacing_mm!r})\n"
+        f"{action}\n"
         "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)\n"
-    ) % (
-        str(ROOT),
-        spacing_mm,
-        "simplify_mesh(m, method='curvature', reduction_percent=60.0)" if simplify else "",
     )
     out = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
@@ -103,13 +112,8 @@ def _mc_512(repeats):
     shape = random_tumor_shape(np.random.default_rng(3), equivalent_diameter_mm=110.0)
     n_z, n_y, n_x = 300, 512, 512
     spacing = np.array([0.5, 0.45, 0.45])  # (z, y, x) mm
-    centre = np.array([n_z, n_y, n_x]) / 2
-    zz, yy, xx = np.meshgrid(
-        *[(np.arange(k) - c) * s for k, c, s in zip((n_z, n_y, n_x), centre, spacing, strict=True)],
-        indexing="ij",
-    )
-    mask = shape.contains(np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()]))
-    mask = mask.reshape(n_z, n_y, n_x)
+    axes = [(np.arange(n) - n / 2) * s for n, s in zip((n_z, n_y, n_x), spacing, strict=True)]
+    mask = _mask(shape, *axes)
     affine = np.diag([spacing[2], spacing[1], spacing[0], 1.0])
     t, mesh = _time(lambda: extract_surface(mask, affine), repeats)
     return t, mesh.n_faces, int(mask.sum())
@@ -132,7 +136,9 @@ def main() -> None:
         mesh = tumour_mesh(spacing)
         target = int(mesh.n_faces * 0.4)
         peers = {
-            "curvature": lambda m=mesh: simplify_mesh(m, method="curvature", reduction_percent=60.0),
+            "curvature": lambda m=mesh: simplify_mesh(
+                m, method="curvature", reduction_percent=60.0
+            ),
             "fast-simplification": lambda m=mesh: simplify_mesh(
                 m, method="qem", reduction_percent=60.0
             ),

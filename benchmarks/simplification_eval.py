@@ -199,7 +199,7 @@ def main() -> None:
         "| case | P (%) | F_target | faces | watertight |",
         "|---|---:|---:|---:|:-:|",
     ]
-    for case, (path, counts) in fig9.items():
+    for case, (_, counts) in fig9.items():
         for p, target, faces, wt in counts:
             lines.append(f"| {case} | {p:.0f} | {target:,} | {faces:,} | {wt} |")
     lines += [""] + [f"![Figure 9 {c}]({p.name})" for c, (p, _) in fig9.items()]

@@ -304,22 +304,18 @@ def _prepare_i(i, F, face_alive, head, nxt, mark, stamp, si):  # pragma: no cove
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _check_collapse_j(
-    i, ni, si, s1, j, px, py, pz, move_j, V, F, face_alive, locked, head, nxt, mark, sj,
-    max_star, min_quality,
+def _check_topology_j(
+    i, ni, si, s1, j, F, face_alive, locked, head, nxt, mark, sj, max_star
 ):  # pragma: no cover - numba
-    r"""Whether ``v_i -> v_j`` (``v_j`` moved to p) keeps the mesh a valid closed manifold.
+    """Topological part of :func:`_check_collapse_j`; returns ``n_j`` (or -1 when invalid).
 
-    ``si[:ni]`` is the star of ``v_i`` and its neighbours carry the stamp
-    ``s1`` (:func:`_prepare_i`). Returns ``(ok, cost, sum_q)``: the Eq. 6
-    cost and ``sum (1 - S(t'))`` over ``T_{v_i} \ T_{e}`` (the paper's cost
-    for the half-edge collapse, where ``p = v_j``).
+    The star of ``v_j`` is left in ``sj[:n_j]``.
     """
     if i == j or locked[i] or locked[j] or ni > si.shape[0]:
-        return False, 0.0, 0.0
+        return -1
     nj = _gather_star(j, F, face_alive, head, nxt, sj)
     if nj > sj.shape[0] or ni + nj - 4 > max_star:
-        return False, 0.0, 0.0
+        return -1
     # faces of the edge and their opposite vertices
     ne = 0
     a = -1
@@ -334,7 +330,7 @@ def _check_collapse_j(
             else:
                 b = o
     if ne != 2 or a == b:
-        return False, 0.0, 0.0
+        return -1
     # link condition: the common neighbours are exactly {a, b} (fan neighbours are distinct)
     common = 0
     for k in range(nj):
@@ -343,7 +339,7 @@ def _check_collapse_j(
         if mark[F[f, (r + 1) % 3]] == s1:
             common += 1
     if common != 2:
-        return False, 0.0, 0.0
+        return -1
     # tetrahedron: faces (i, a, b) and (j, a, b) both present
     abi = False
     for k in range(ni):
@@ -354,7 +350,25 @@ def _check_collapse_j(
         for k in range(nj):
             f = sj[k]
             if _slot(F, f, a) >= 0 and _slot(F, f, b) >= 0:
-                return False, 0.0, 0.0
+                return -1
+    return nj
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _check_collapse_j(
+    i, ni, si, s1, j, px, py, pz, move_j, V, F, face_alive, locked, head, nxt, mark, sj,
+    max_star, min_quality,
+):  # pragma: no cover - numba
+    r"""Whether ``v_i -> v_j`` (``v_j`` moved to p) keeps the mesh a valid closed manifold.
+
+    ``si[:ni]`` is the star of ``v_i`` and its neighbours carry the stamp
+    ``s1`` (:func:`_prepare_i`). Returns ``(ok, cost, sum_q)``: the Eq. 6
+    cost and ``sum (1 - S(t'))`` over ``T_{v_i} \ T_{e}`` (the paper's cost
+    for the half-edge collapse, where ``p = v_j``).
+    """
+    nj = _check_topology_j(i, ni, si, s1, j, F, face_alive, locked, head, nxt, mark, sj, max_star)
+    if nj < 0:
+        return False, 0.0, 0.0
     ok, cost, sq = _check_star_geometry(i, j, px, py, pz, V, F, si, ni, True, min_quality)
     if not ok:
         return False, 0.0, 0.0
@@ -606,6 +620,8 @@ def run_vertex_priority(
     ring = np.empty(cap, dtype=np.int64)
     fbuf = np.empty((cap, 4))
     ibuf = np.empty((cap, 2), dtype=np.int64)
+    cand_j = np.empty(cap, dtype=np.int64)
+    cand_f = np.empty((cap, 3))
     mark = np.zeros(nv, dtype=np.int64)
     stamp = np.zeros(1, dtype=np.int64)
 
@@ -658,39 +674,51 @@ def run_vertex_priority(
             continue
         ni, s1 = _prepare_i(vi, F, face_alive, head, nxt, mark, stamp, si)
         _neighbours(vi, F, si, ni, ring)
-        best_j = -1
-        best_cost = np.inf
-        best_sq = np.inf
-        best_len = np.inf
+        # Eq. 6 cost of every edge whose geometry is valid (star of v_i only), then
+        # the topological checks in order of increasing (cost, sum(1 - S), length, j)
+        # ([A24]) until one passes: the same choice as checking every edge, cheaper
+        nc = 0
         for k in range(ni):
             j = ring[k]
+            if locked[j]:
+                continue
             px = V[j, 0]
             py = V[j, 1]
             pz = V[j, 2]
-            ok, cost, sq = _check_collapse_j(
-                vi, ni, si, s1, j, px, py, pz, False, V, F, face_alive, locked, head, nxt,
-                mark, sj, max_star, min_quality,
-            )  # fmt: skip
+            ok, cost, sq = _check_star_geometry(vi, j, px, py, pz, V, F, si, ni, True, min_quality)
             if not ok:
                 continue
-            length = (px - V[vi, 0]) ** 2 + (py - V[vi, 1]) ** 2 + (pz - V[vi, 2]) ** 2
-            # [A24] ties: cost, then sum (1 - S(t')), then the shorter edge, then the lower j
-            better = False
-            if cost < best_cost:
-                better = True
-            elif cost == best_cost:
-                if sq < best_sq:
-                    better = True
-                elif sq == best_sq:
-                    if length < best_len:
-                        better = True
-                    elif length == best_len and j < best_j:
-                        better = True
-            if better:
+            cand_j[nc] = j
+            cand_f[nc, 0] = cost
+            cand_f[nc, 1] = sq
+            cand_f[nc, 2] = (px - V[vi, 0]) ** 2 + (py - V[vi, 1]) ** 2 + (pz - V[vi, 2]) ** 2
+            nc += 1
+        best_j = -1
+        while nc > 0:
+            b = 0
+            for k in range(1, nc):
+                if cand_f[k, 0] != cand_f[b, 0]:
+                    better = cand_f[k, 0] < cand_f[b, 0]
+                elif cand_f[k, 1] != cand_f[b, 1]:
+                    better = cand_f[k, 1] < cand_f[b, 1]
+                elif cand_f[k, 2] != cand_f[b, 2]:
+                    better = cand_f[k, 2] < cand_f[b, 2]
+                else:
+                    better = cand_j[k] < cand_j[b]
+                if better:
+                    b = k
+            j = cand_j[b]
+            nj = _check_topology_j(
+                vi, ni, si, s1, j, F, face_alive, locked, head, nxt, mark, sj, max_star
+            )
+            if nj >= 0:
                 best_j = j
-                best_cost = cost
-                best_sq = sq
-                best_len = length
+                break
+            nc -= 1  # drop candidate b
+            cand_j[b] = cand_j[nc]
+            cand_f[b, 0] = cand_f[nc, 0]
+            cand_f[b, 1] = cand_f[nc, 1]
+            cand_f[b, 2] = cand_f[nc, 2]
         if best_j == -1:
             in_c[vi] = False  # [A23]
             continue
