@@ -172,9 +172,9 @@ def test_options_are_forwarded_to_the_method(sphere, monkeypatch):
 
 def test_curvedness_is_forwarded(sphere):
     mesh, _ = sphere
-    _, sqrt = simplify_mesh(mesh, reduction_percent=40.0, return_info=True)
-    _, no_root = simplify_mesh(mesh, reduction_percent=40.0, curvedness="no_root",
-                               return_info=True)  # fmt: skip
+    _, sqrt = simplify_mesh(mesh, method="curvature", reduction_percent=40.0, return_info=True)
+    _, no_root = simplify_mesh(mesh, method="curvature", reduction_percent=40.0,
+                               curvedness="no_root", return_info=True)  # fmt: skip
     r = vertex_curvatures(mesh)[:, 2]
     assert sqrt["tau"] == pytest.approx(np.nanmean(r))
     assert no_root["tau"] == pytest.approx(np.nanmean(r**2))

@@ -110,7 +110,7 @@ def target_face_count(n_faces: int, reduction_percent: float) -> int:
 def simplify_mesh(
     mesh: Mesh,
     *,
-    method: Literal["curvature", "memoryless", "qem"] = "curvature",
+    method: Literal["curvature", "memoryless", "qem"] = "memoryless",
     reduction_percent: float,
     curvedness: Literal["sqrt", "no_root"] = "sqrt",
     return_info: bool = False,
@@ -123,8 +123,11 @@ def simplify_mesh(
     mesh : Mesh
         A surface, normally closed and outward-oriented (from
         :func:`tumor3d.surface.extract_surface`). It is not modified.
-    method : {"curvature", "memoryless", "qem"}
-        Simplification method (see the module docstring).
+    method : {"curvature", "memoryless", "qem"}, optional
+        Simplification method (see the module docstring). The default,
+        ``memoryless``, preserves the enclosed volume exactly and never
+        breaks the manifold; ``curvature`` is the paper's Algorithm 2
+        (``configs/paper.yaml``).
     reduction_percent : float
         ``P`` in [0, 100): the target is ``floor(F0 * (1 - P / 100))``
         faces (:func:`target_face_count`). ``P = 0`` returns ``mesh``
