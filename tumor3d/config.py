@@ -292,9 +292,20 @@ class SurfaceConfig(_StageConfig):
 class SimplifyConfig(_StageConfig):
     """Mesh simplification (spec section 6)."""
 
-    method: Literal["qem"] = Field("qem", description="qem = quadric error metric (QSlim).")
+    method: Literal["curvature", "memoryless", "qem"] = Field(
+        "memoryless",
+        description="curvature = the paper's Algorithm 2; memoryless = Lindstrom-Turk "
+        "(default: keeps the enclosed volume exactly and the surface closed, and has the "
+        "smallest surface error at P >= 60 %, reports/simplification.md); "
+        "qem = quadric error metric (QSlim, fast-simplification; may break manifoldness).",
+    )
     reduction_percent: float = Field(
         60.0, ge=0.0, lt=100.0, description="P of Algorithm 2: F_target = floor(F0 (1 - P/100))."
+    )
+    curvedness: Literal["sqrt", "no_root"] = Field(
+        "sqrt",
+        description="[A17] R = sqrt(max(0, 2H^2 - K)) (Koenderink curvedness) or its square; "
+        "used by method=curvature only.",
     )
 
 

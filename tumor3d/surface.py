@@ -12,8 +12,32 @@ and the mesh checks the later stages rely on:
 * :func:`edge_manifold_report`, :func:`is_watertight` -- vectorised edge
   topology checks (closed, consistently oriented 2-manifold edges).
 
+Why Lewiner's MC33 tables rather than Montani's 21 cases
+--------------------------------------------------------
+The paper cites Montani et al. [MSS94], who add to the 15 Lorensen-Cline
+cases the complements of the six cases with ambiguous faces (3, 6, 7, 10,
+12, 13) and resolve every ambiguous face by one fixed rule, so that
+neighbouring cubes agree and the surface is crack-free. Lewiner et al.
+implement Chernyaev's MC33 instead: each ambiguous face is resolved by the
+asymptotic decider and the cube interior by an interior test, so the
+triangulation is the topology of the trilinear interpolant, with the same
+crack-free guarantee; it ships in scikit-image, tested and fast ([A16]). On
+binary masks every face saddle equals the iso-value, so each decider is a
+deterministic tie: face counts can differ slightly from a 21-case table,
+and diagonal voxels may be joined (a 2x2x2 block can give a torus), but the
+surface stays closed. The tests check this on all 255 single-cube and all
+4095 two-cube (2x2x3) corner patterns, which contain every ambiguous case
+and its complement: watertight, edge- and vertex-manifold, consistently
+oriented. (scikit-image's ``'lorensen'`` table, which the spec forbids, was
+also watertight on those patterns and on 300 random 7x7x7 masks in
+scikit-image 0.26: the choice rests on the guarantee, not on an observed
+hole.)
+
 References
 ----------
+C. Montani, R. Scateni, R. Scopigno, "A modified look-up table for implicit
+disambiguation of marching cubes", The Visual Computer 10(6), 1994,
+doi:10.1007/BF01900830.
 W. E. Lorensen, H. E. Cline, "Marching cubes", SIGGRAPH 1987,
 doi:10.1145/37402.37422.
 T. Lewiner, H. Lopes, A. W. Vieira, G. Tavares, "Efficient implementation of
@@ -148,7 +172,7 @@ def edge_manifold_report(mesh: Mesh) -> dict[str, int]:
     Each face ``(a, b, c)`` contributes the directed edges ``a->b``,
     ``b->c`` and ``c->a``. An undirected edge of a closed, consistently
     oriented 2-manifold is used by exactly two faces, once in each direction.
-    Fully vectorised (``np.unique`` on sorted edge keys).
+    Fully vectorised (``np.unique`` on one integer key per undirected edge).
 
     Parameters
     ----------
@@ -180,7 +204,7 @@ def edge_manifold_report(mesh: Mesh) -> dict[str, int]:
         return report
     degenerate = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
     report["n_degenerate_faces"] = int(degenerate.sum())
-    report["n_duplicate_faces"] = int(len(f) - len(np.unique(np.sort(f, axis=1), axis=0)))
+    report["n_duplicate_faces"] = int(len(f) - len(_unique_rows(np.sort(f, axis=1))[0]))
     f = f[~degenerate]  # their edges are not counted
     if len(f) == 0:
         return report
@@ -188,7 +212,10 @@ def edge_manifold_report(mesh: Mesh) -> dict[str, int]:
     directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=0)
     forward = directed[:, 0] < directed[:, 1]
     keys = np.sort(directed, axis=1)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    n_keys = int(f.max()) + 1  # one int64 key per undirected edge: lo * n + hi
+    _, inverse, counts = np.unique(
+        keys[:, 0] * n_keys + keys[:, 1], return_inverse=True, return_counts=True
+    )
     inverse = inverse.reshape(-1)
     n_forward = np.bincount(inverse, weights=forward, minlength=len(counts))
     report["n_edges"] = int(len(counts))
@@ -237,6 +264,23 @@ def _face_parity(faces: np.ndarray) -> np.ndarray:
     return second < third
 
 
+def _unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(a, axis=0, return_inverse=True)`` for an (n, 3) array, by one lexsort.
+
+    Same lexicographic order as :func:`numpy.unique`, several times faster
+    on large arrays (no structured-dtype view).
+    """
+    n = len(a)
+    order = np.lexsort((a[:, 2], a[:, 1], a[:, 0]))
+    s = a[order]
+    new = np.ones(n, dtype=bool)
+    if n > 1:
+        new[1:] = np.any(s[1:] != s[:-1], axis=1)
+    inverse = np.empty(n, dtype=np.int64)
+    inverse[order] = np.cumsum(new) - 1
+    return s[new], inverse
+
+
 def _clean(
     vertices: np.ndarray, faces: np.ndarray, *, weld: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -254,16 +298,15 @@ def _clean(
     if len(faces) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
     if weld:
-        uniq, inverse = np.unique(vertices, axis=0, return_inverse=True)
-        f = inverse.reshape(-1)[faces]
+        uniq, inverse = _unique_rows(vertices)
+        f = inverse[faces]
     else:
         uniq, f = vertices, faces
     keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
     f = f[keep]
     if len(f) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-    _, group = np.unique(np.sort(f, axis=1), axis=0, return_inverse=True)
-    group = group.reshape(-1)
+    _, group = _unique_rows(np.sort(f, axis=1))
     sign = np.where(_face_parity(f), 1, -1)
     net = np.bincount(group, weights=sign).astype(np.int64)
     # keep one face per vertex set whose orientations do not cancel, with the
@@ -400,9 +443,13 @@ def extract_surface(
     if not m.any():
         raise NoSurfaceError("the mask holds no voxel: there is no surface to extract")
 
-    nz = np.nonzero(m)
-    lo = np.array([a.min() for a in nz])
-    hi = np.array([a.max() for a in nz]) + 1
+    # bounding box from the three axis projections (much cheaper than np.nonzero)
+    lo = np.zeros(3, dtype=np.int64)
+    hi = np.zeros(3, dtype=np.int64)
+    for axis in range(3):
+        occupied = np.flatnonzero(m.any(axis=tuple(k for k in range(3) if k != axis)))
+        lo[axis] = occupied[0]
+        hi[axis] = occupied[-1] + 1
     crop = m[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
     volume = np.pad(crop.astype(np.float32), int(padding), mode="constant")
     verts, faces, _, _ = marching_cubes(

@@ -1,4 +1,4 @@
-"""Tests of tumor3d.simplify: face budget of Algorithm 2 and the QEM baseline."""
+"""Tests of tumor3d.simplify: face budget of Algorithm 2, the method registry and QEM."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import pytest
 from tumor3d.errors import InputError
 from tumor3d.mesh import Mesh
 from tumor3d.simplify import METHODS, simplify_mesh, target_face_count
+from tumor3d.simplify.curvature import vertex_curvatures
 from tumor3d.simplify.qem import simplify_qem
 from tumor3d.surface import extract_surface, is_watertight, mesh_volume_mm3
 
@@ -96,48 +97,117 @@ def test_qem_reaches_target_keeps_watertight_and_volume(sphere, percent):
     assert np.all(np.abs(dist - RADIUS_MM) < 1.5)
 
 
-def test_qem_orientation_is_outward_even_for_inward_input(sphere):
+@pytest.mark.parametrize("method", METHODS)
+def test_orientation_is_outward_even_for_inward_input(sphere, method):
     mesh, _ = sphere
     inward = Mesh(mesh.vertices, mesh.faces[:, ::-1])
-    out = simplify_mesh(inward, reduction_percent=60.0)
+    out = simplify_mesh(inward, method=method, reduction_percent=60.0)
     assert mesh_volume_mm3(out) > 0
     assert is_watertight(out)
 
 
-def test_zero_percent_is_identity(sphere):
+@pytest.mark.parametrize("method", METHODS)
+def test_zero_percent_is_identity(sphere, method):
     mesh, _ = sphere
-    out, info = simplify_mesh(mesh, reduction_percent=0.0, return_info=True)
+    out, info = simplify_mesh(mesh, method=method, reduction_percent=0.0, return_info=True)
     assert out is mesh
     assert info["n_faces_out"] == info["target_faces"] == mesh.n_faces
+    assert info["simplified"] is False
 
 
-def test_input_mesh_not_modified(sphere):
+@pytest.mark.parametrize("method", METHODS)
+def test_input_mesh_not_modified(sphere, method):
     mesh, _ = sphere
     v, f = mesh.vertices.copy(), mesh.faces.copy()
-    simplify_mesh(mesh, reduction_percent=70.0)
+    simplify_mesh(mesh, method=method, reduction_percent=70.0)
     np.testing.assert_array_equal(mesh.vertices, v)
     np.testing.assert_array_equal(mesh.faces, f)
 
 
+@pytest.mark.parametrize("method", METHODS)
+def test_info_is_consistent(sphere, method):
+    mesh, _ = sphere
+    out, info = simplify_mesh(mesh, method=method, reduction_percent=50.0, return_info=True)
+    assert info["method"] == method
+    assert info["simplified"] is True and info["reason"] is None
+    assert info["n_faces_out"] == out.n_faces
+    assert info["reduction_reached_percent"] == pytest.approx(
+        100 * (1 - out.n_faces / mesh.n_faces)
+    )
+    assert info["watertight"] == is_watertight(out)
+
+
 def test_qem_is_deterministic_and_thread_safe(sphere):
     mesh, _ = sphere
-    ref = simplify_mesh(mesh, reduction_percent=50.0)
+    ref = simplify_mesh(mesh, method="qem", reduction_percent=50.0)
     with ThreadPoolExecutor(max_workers=4) as pool:
-        outs = list(pool.map(lambda _: simplify_mesh(mesh, reduction_percent=50.0), range(8)))
+        outs = list(
+            pool.map(
+                lambda _: simplify_mesh(mesh, method="qem", reduction_percent=50.0), range(8)
+            )
+        )
     for out in outs:
         np.testing.assert_array_equal(out.faces, ref.faces)
         np.testing.assert_array_equal(out.vertices, ref.vertices)
 
 
-def test_aggressiveness_option_is_forwarded(sphere):
+def test_options_are_forwarded_to_the_method(sphere, monkeypatch):
+    # fast_simplification's result does not change with agg on this sphere, so a
+    # spy in the registry checks what simplify_mesh passes on
+    import tumor3d.simplify as simplify_pkg
+
     mesh, _ = sphere
-    out = simplify_mesh(mesh, reduction_percent=60.0, aggressiveness=5.0)
-    assert out.n_faces <= target_face_count(mesh.n_faces, 60.0)
-    assert is_watertight(out)
+    seen = {}
+
+    def spy(m, **kwargs):
+        seen.update(kwargs)
+        return simplify_qem(m, **kwargs)
+
+    allowed = simplify_pkg._METHODS["qem"][1]
+    monkeypatch.setitem(simplify_pkg._METHODS, "qem", (spy, allowed))
+    simplify_mesh(mesh, method="qem", reduction_percent=60.0, aggressiveness=3.0)
+    assert seen["aggressiveness"] == 3.0
+    assert seen["target_faces"] == target_face_count(mesh.n_faces, 60.0)
+
+
+def test_curvedness_is_forwarded(sphere):
+    mesh, _ = sphere
+    _, sqrt = simplify_mesh(mesh, method="curvature", reduction_percent=40.0, return_info=True)
+    _, no_root = simplify_mesh(mesh, method="curvature", reduction_percent=40.0,
+                               curvedness="no_root", return_info=True)  # fmt: skip
+    r = vertex_curvatures(mesh)[:, 2]
+    assert sqrt["tau"] == pytest.approx(np.nanmean(r))
+    assert no_root["tau"] == pytest.approx(np.nanmean(r**2))
 
 
 def test_methods_registry():
-    assert "qem" in METHODS
+    assert set(METHODS) == {"curvature", "memoryless", "qem"}
+
+
+_TETRA_FOR_PASS = Mesh(
+    np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float),
+    np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]),
+)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("percent", [50.0, 99.0])
+def test_tiny_mesh_passes_through_unchanged(method, percent):
+    out, info = simplify_mesh(
+        _TETRA_FOR_PASS, method=method, reduction_percent=percent, return_info=True
+    )
+    assert out is _TETRA_FOR_PASS
+    assert info["simplified"] is False
+    assert "below 4" in info["reason"]
+    assert info["watertight"] is True
+
+
+def test_empty_mesh_passes_through():
+    empty = Mesh(np.zeros((0, 3)), np.zeros((0, 3), int))
+    out, info = simplify_mesh(empty, reduction_percent=60.0, return_info=True)
+    assert out is empty
+    assert info["simplified"] is False and "empty" in info["reason"]
+    assert info["watertight"] is False
 
 
 # ---------------------------------------------------------------------------
@@ -158,8 +228,7 @@ _TETRA = Mesh(
         (_TETRA, {"reduction_percent": 50.0, "agg": 3.0}, r"unknown option\(s\) \['agg'\]"),
         (_TETRA, {"reduction_percent": -5.0}, r"\[0, 100\)"),
         (_TETRA, {"reduction_percent": 100.0}, r"\[0, 100\)"),
-        (Mesh(np.zeros((0, 3)), np.zeros((0, 3), int)), {"reduction_percent": 10.0}, "empty"),
-        (_TETRA, {"reduction_percent": 50.0}, "at least 4"),
+        (_TETRA, {"reduction_percent": 50.0, "method": "qem", "curvedness": "x"}, "curvedness"),
     ],
 )
 def test_simplify_mesh_validation(mesh, kwargs, match):

@@ -4,13 +4,30 @@
 ``F_target = floor(F0 * (1 - P / 100))`` of Algorithm 2 and dispatches to one
 method. Methods live in their own modules and take the mesh and an absolute
 ``target_faces``; to add one, write ``simplify_<name>(mesh, *, target_faces,
-**options) -> Mesh`` and register it in ``_METHODS`` with its option names.
+return_info=False, **options) -> Mesh | (Mesh, dict)`` and register it in
+``_METHODS`` with its option names.
 
 Methods
 -------
+``"curvature"``
+    The paper's Algorithm 2: curvature-priority half-edge collapse with the
+    volume-and-shape cost of Eq. 6, on the numba collapse engine
+    (:func:`tumor3d.simplify.curvature.simplify_curvature`).
+``"memoryless"``
+    Lindstrom-Turk memoryless simplification (the paper's "MS" baseline) on
+    the same engine (:func:`tumor3d.simplify.memoryless.simplify_memoryless`).
 ``"qem"``
-    Quadric error metric edge collapse (QSlim baseline),
+    Quadric error metric edge collapse (QSlim baseline, ``fast-simplification``),
     :func:`tumor3d.simplify.qem.simplify_qem`.
+
+Input requirements
+------------------
+``curvature`` and ``memoryless`` need a closed, consistently oriented
+2-manifold (what :func:`tumor3d.surface.extract_surface` returns); any other
+mesh is refused with an :class:`~tumor3d.errors.InputError` that counts its
+boundary, non-manifold and inconsistent edges. Vertices where several closed
+fans touch (pinches) are accepted and left untouched. ``qem`` accepts any
+triangle mesh but may itself create non-manifold edges (see its module).
 """
 
 from __future__ import annotations
@@ -24,13 +41,24 @@ import numpy as np
 
 from tumor3d.errors import InputError
 from tumor3d.mesh import Mesh
+from tumor3d.simplify.curvature import simplify_curvature
+from tumor3d.simplify.memoryless import simplify_memoryless
 from tumor3d.simplify.qem import simplify_qem
-from tumor3d.surface import is_watertight
+from tumor3d.surface import is_watertight, orient_outward
 
-__all__ = ["METHODS", "simplify_mesh", "simplify_qem", "target_face_count"]
+__all__ = [
+    "METHODS",
+    "simplify_curvature",
+    "simplify_memoryless",
+    "simplify_mesh",
+    "simplify_qem",
+    "target_face_count",
+]
 
-#: method name -> (function(mesh, *, target_faces, **options) -> Mesh, allowed option names)
-_METHODS: dict[str, tuple[Callable[..., Mesh], frozenset[str]]] = {
+#: method name -> (function(mesh, *, target_faces, return_info, **options), allowed option names)
+_METHODS: dict[str, tuple[Callable[..., Any], frozenset[str]]] = {
+    "curvature": (simplify_curvature, frozenset({"curvedness"})),
+    "memoryless": (simplify_memoryless, frozenset()),
     "qem": (simplify_qem, frozenset({"aggressiveness"})),
 }
 METHODS: tuple[str, ...] = tuple(_METHODS)
@@ -82,8 +110,9 @@ def target_face_count(n_faces: int, reduction_percent: float) -> int:
 def simplify_mesh(
     mesh: Mesh,
     *,
-    method: Literal["qem"] = "qem",
+    method: Literal["curvature", "memoryless", "qem"] = "memoryless",
     reduction_percent: float,
+    curvedness: Literal["sqrt", "no_root"] = "sqrt",
     return_info: bool = False,
     **options: Any,
 ) -> Mesh | tuple[Mesh, dict[str, Any]]:
@@ -92,14 +121,20 @@ def simplify_mesh(
     Parameters
     ----------
     mesh : Mesh
-        A non-empty surface, normally closed and outward-oriented (from
+        A surface, normally closed and outward-oriented (from
         :func:`tumor3d.surface.extract_surface`). It is not modified.
-    method : {"qem"}
-        Simplification method (see the module docstring).
+    method : {"curvature", "memoryless", "qem"}, optional
+        Simplification method (see the module docstring). The default,
+        ``memoryless``, preserves the enclosed volume exactly and never
+        breaks the manifold; ``curvature`` is the paper's Algorithm 2
+        (``configs/paper.yaml``).
     reduction_percent : float
         ``P`` in [0, 100): the target is ``floor(F0 * (1 - P / 100))``
         faces (:func:`target_face_count`). ``P = 0`` returns ``mesh``
         itself, unchanged.
+    curvedness : {"sqrt", "no_root"}, optional
+        The ``curvature`` method's reading of Eq. 2 ([A17]); ignored by the
+        other methods.
     return_info : bool, optional
         Also return diagnostics.
     **options
@@ -108,18 +143,25 @@ def simplify_mesh(
     Returns
     -------
     mesh : Mesh
-        The simplified mesh, faces oriented outward.
+        The simplified mesh, faces oriented outward. A mesh whose
+        ``F_target`` is below 4 faces (the smallest closed surface, a
+        tetrahedron), including an empty mesh, is returned unchanged.
     info : dict, optional
         With ``return_info``: ``method``, ``reduction_percent``,
         ``n_faces_in`` (F0), ``target_faces`` (F_target), ``n_faces_out``,
         ``faces_over_target`` (``n_faces_out - target_faces``; negative when
-        it undershoots), ``watertight`` (of the result).
+        it undershoots), ``reduction_reached_percent``
+        (``100 (1 - n_faces_out / F0)``), ``simplified`` (False for a
+        pass-through), ``reason`` (why not, else None), ``watertight`` (of
+        the result), plus the method's own diagnostics (``curvature`` and
+        ``memoryless``: ``n_collapses``, ``candidates_exhausted``, ...).
 
     Raises
     ------
     InputError
-        On an unknown method or option, a ``P`` outside [0, 100), an empty
-        mesh, or a ``P`` that leaves fewer than 4 faces.
+        On an unknown method or option, a ``P`` outside [0, 100), or (for
+        ``curvature`` and ``memoryless``) a mesh that is not a closed,
+        consistently oriented 2-manifold.
     """
     if not isinstance(mesh, Mesh):
         raise InputError(f"mesh must be a tumor3d.mesh.Mesh, got {type(mesh).__name__}")
@@ -132,20 +174,30 @@ def simplify_mesh(
             f"unknown option(s) {unknown} for simplification method {method!r}; "
             f"allowed: {sorted(allowed)}"
         )
+    if method == "curvature":
+        options = {**options, "curvedness": curvedness}
+    elif curvedness not in ("sqrt", "no_root"):
+        raise InputError(f"curvedness must be 'sqrt' or 'no_root', got {curvedness!r}")
     p = _check_percent(reduction_percent)
-    if mesh.is_empty:
-        raise InputError("cannot simplify an empty mesh (it has no faces)")
     n_in = mesh.n_faces
     target = target_face_count(n_in, p)
+    reason = None
+    method_info: dict[str, Any] = {}
     if p == 0.0:
         out = mesh
+        reason = "reduction_percent is 0"
+    elif mesh.is_empty:
+        out = mesh
+        reason = "the mesh is empty (no surface)"
+    elif target < _MIN_FACES:
+        out = mesh
+        reason = (
+            f"F_target={target} of F0={n_in} faces is below {_MIN_FACES} "
+            "(the smallest closed surface); returned unchanged"
+        )
     else:
-        if target < _MIN_FACES:
-            raise InputError(
-                f"reduction_percent={reduction_percent} leaves F_target={target} of "
-                f"F0={n_in} faces; a closed surface needs at least {_MIN_FACES}"
-            )
-        out = func(mesh, target_faces=target, **options)
+        out, method_info = func(mesh, target_faces=target, return_info=True, **options)
+        out = orient_outward(out)
     if not return_info:
         return out
     info = {
@@ -155,6 +207,10 @@ def simplify_mesh(
         "target_faces": target,
         "n_faces_out": out.n_faces,
         "faces_over_target": out.n_faces - target,
-        "watertight": is_watertight(out),
+        "reduction_reached_percent": 100.0 * (1.0 - out.n_faces / n_in) if n_in else 0.0,
+        "simplified": reason is None,
+        "reason": reason,
+        "watertight": bool(not out.is_empty and is_watertight(out)),
+        **method_info,
     }
     return out, info

@@ -35,6 +35,7 @@ https://github.com/sp4cerat/Fast-Quadric-Mesh-Simplification.
 from __future__ import annotations
 
 import threading
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +49,9 @@ _LOCK = threading.Lock()
 _MAX_PASSES = 4
 
 
-def simplify_qem(mesh: Mesh, *, target_faces: int, aggressiveness: float = 7.0) -> Mesh:
+def simplify_qem(
+    mesh: Mesh, *, target_faces: int, aggressiveness: float = 7.0, return_info: bool = False
+) -> Mesh | tuple[Mesh, dict[str, Any]]:
     """Simplify a triangle mesh to about ``target_faces`` faces by QEM edge collapse.
 
     Parameters
@@ -61,6 +64,8 @@ def simplify_qem(mesh: Mesh, *, target_faces: int, aggressiveness: float = 7.0) 
         ``fast_simplification``'s ``agg`` (0-10): the per-sweep error
         threshold grows as ``1e-9 * (iteration + 3) ** agg`` (errors are in
         mm^2 here). Lower is more faithful but may stop short of the target.
+    return_info : bool, optional
+        Also return ``{"n_passes": ...}`` (calls of the C++ simplifier).
 
     Returns
     -------
@@ -87,17 +92,20 @@ def simplify_qem(mesh: Mesh, *, target_faces: int, aggressiveness: float = 7.0) 
         )
     if not (isinstance(aggressiveness, (int, float)) and 0.0 <= aggressiveness <= 10.0):
         raise InputError(f"aggressiveness must be a number in [0, 10], got {aggressiveness!r}")
-    return _simplify_qem(mesh, int(target_faces), float(aggressiveness))
+    out, n_passes = _simplify_qem(mesh, int(target_faces), float(aggressiveness))
+    return (out, {"n_passes": n_passes}) if return_info else out
 
 
-def _simplify_qem(mesh: Mesh, target_faces: int, aggressiveness: float) -> Mesh:
+def _simplify_qem(mesh: Mesh, target_faces: int, aggressiveness: float) -> tuple[Mesh, int]:
     import fast_simplification  # deferred: a compiled extension, only needed here
 
     vertices = np.array(mesh.vertices, dtype=np.float64, order="C")
     faces = np.array(mesh.faces, dtype=np.int64, order="C")
+    n_passes = 0
     for _ in range(_MAX_PASSES):
         if len(faces) <= target_faces:
             break
+        n_passes += 1
         with _LOCK:
             new_v, new_f = fast_simplification.simplify(
                 vertices, faces, target_count=target_faces, agg=aggressiveness
@@ -108,4 +116,4 @@ def _simplify_qem(mesh: Mesh, target_faces: int, aggressiveness: float) -> Mesh:
         vertices = np.array(new_v, dtype=np.float64, order="C")
         faces = np.ascontiguousarray(new_f)
     out = clean_mesh(Mesh(vertices, faces), weld=False)
-    return orient_outward(out)
+    return orient_outward(out), n_passes
