@@ -41,8 +41,6 @@ app = typer.Typer(
 console = Console()
 err_console = Console(stderr=True)
 
-_STAGE_COUNT = 9
-
 
 def _fail(exc: BaseException) -> typer.Exit:
     err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
