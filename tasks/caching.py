@@ -19,9 +19,11 @@ The flow run id is *not* part of the key, so a result computed by any earlier
 run is reused; Prefect's default policy would key on the run id, and its
 ``TASK_SOURCE`` ignores the core functions a task calls.
 
-The artifact store's own codecs (``storage/store.py``, ``storage/formats.py``)
-are not followed by the closure walk: the on-disk form of artifacts is
-covered by :data:`ARTIFACT_FORMAT_VERSION`, bumped by hand when it changes.
+The sources of the artifact store's own codecs (``storage/store.py``,
+``storage/formats.py``, :data:`FORMAT_MODULES`) are not hashed: the on-disk
+form of artifacts is covered by :data:`ARTIFACT_FORMAT_VERSION`, bumped by
+hand when it changes. The modules they import are walked and hashed as any
+other (``storage/nifti.py``, ``tumor3d/scan.py``, ...).
 """
 
 from __future__ import annotations
@@ -63,7 +65,7 @@ IGNORED_INPUTS = frozenset({"store_root"})
 #: Top-level packages whose modules enter code digests.
 PROJECT_PACKAGES = ("tumor3d", "storage", "tasks")
 
-#: The store's codecs: covered by :data:`ARTIFACT_FORMAT_VERSION`, not walked.
+#: The store's codecs: covered by :data:`ARTIFACT_FORMAT_VERSION`, their source not hashed.
 FORMAT_MODULES = frozenset({"storage.store", "storage.formats"})
 
 #: The folder holding the project packages (this repository's root).
@@ -88,7 +90,13 @@ def _with_parents(name: str) -> list[str]:
 
 def _imports_of(name: str, path: Path, root: Path) -> set[str]:
     """Project modules named by the import statements of one module (any depth)."""
-    tree = ast.parse(path.read_bytes(), filename=str(path))
+    return set(_parse_imports(name, str(path), str(root), path.read_bytes()))
+
+
+@cache
+def _parse_imports(name: str, path_str: str, root_str: str, source: bytes) -> frozenset[str]:
+    path, root = Path(path_str), Path(root_str)
+    tree = ast.parse(source, filename=path_str)
     is_package = path.name == "__init__.py"
     package = name if is_package else name.rpartition(".")[0]
     found: set[str] = set()
@@ -111,7 +119,7 @@ def _imports_of(name: str, path: Path, root: Path) -> set[str]:
     for mod in found:
         if mod.split(".")[0] in PROJECT_PACKAGES:
             out.update(m for m in _with_parents(mod) if _module_file(m, root) is not None)
-    return out
+    return frozenset(out)
 
 
 @cache
@@ -120,8 +128,7 @@ def module_closure(roots: tuple[str, ...], root: str | None = None) -> tuple[str
 
     An AST walk over the import statements (top level and inside functions)
     of the project packages :data:`PROJECT_PACKAGES`; third-party imports are
-    ignored; the store's codecs (:data:`FORMAT_MODULES`) are included but
-    not walked further. Cached: computed once per process.
+    ignored. Cached: computed once per process.
 
     Parameters
     ----------
@@ -156,8 +163,7 @@ def module_closure(roots: tuple[str, ...], root: str | None = None) -> tuple[str
         if path is None:
             continue
         seen.add(name)
-        if name not in FORMAT_MODULES:
-            todo.extend(_imports_of(name, path, base) - seen)
+        todo.extend(_imports_of(name, path, base) - seen)
     return tuple(sorted(seen))
 
 

@@ -24,7 +24,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-from prefect.filesystems import LocalFileSystem
 from pydantic import BaseModel, ConfigDict, Field
 
 from storage.store import ArtifactStore
@@ -64,11 +63,15 @@ class StageRun(BaseModel):
     repaired: str | None = None
 
 
-def result_storage_for(store_root: str | Path) -> LocalFileSystem:
-    """Prefect result storage inside an artifact store: ``<store>/prefect-results``."""
+def result_storage_for(store_root: str | Path) -> Path:
+    """Prefect result storage inside an artifact store: ``<store>/prefect-results``.
+
+    A path (Prefect makes it a local file system), so no storage block has to
+    be registered on the server.
+    """
     path = Path(store_root).resolve() / "prefect-results"
     path.mkdir(parents=True, exist_ok=True)
-    return LocalFileSystem(basepath=str(path))
+    return path
 
 
 class _Recorder:
