@@ -190,12 +190,21 @@ def run_stages(run: Any, source: InputSource, cfg: PipelineConfig, root: str) ->
 
 
 def patient_pipeline(
-    source: InputSource, out_dir: str | Path, cfg: PipelineConfig, store: ArtifactStore
+    source: InputSource,
+    out_dir: str | Path,
+    cfg: PipelineConfig,
+    store: ArtifactStore,
+    *,
+    runs: list[StageRun] | None = None,
 ) -> PatientResult:
-    """Run every stage for one patient (inside a flow) and publish the results."""
+    """Run every stage for one patient (inside a flow) and publish the results.
+
+    ``runs``, if given, is filled with each stage's :class:`StageRun` as it
+    completes (so a caller learns which stage failed).
+    """
     t0 = time.perf_counter()
     pid = source.patient_id
-    runner = PrefectRunner(store, pid, total=len(stages.STAGES))
+    runner = PrefectRunner(store, pid, total=len(stages.STAGES), runs=runs)
     outputs = run_stages(runner, source, cfg, str(store.root))
     flow_seconds = time.perf_counter() - t0
     notes = [NO_TUMOUR_NOTE] if outputs["extract-surface"].values["faces"] == 0 else []

@@ -18,6 +18,7 @@ Two safety rules:
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import shutil
@@ -107,20 +108,34 @@ def _tag() -> str:
     return f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
 
 
-def _swap_into_place(staging: Path, final: Path) -> None:
-    """Replace ``final`` by ``staging`` with renames; restore the old one on failure."""
-    trash = final.with_name(f".{final.name}.old-{_tag()}")
-    had_old = final.exists()
-    if had_old:
-        os.replace(final, trash)
-    try:
-        os.replace(staging, final)
-    except BaseException:
+def _swap_into_place(staging: Path, final: Path, *, attempts: int = 20) -> None:
+    """Replace ``final`` by ``staging`` with renames; restore the old one on failure.
+
+    A concurrent publisher of the same name may put its folder in place
+    between our two renames: then we move that one aside and try again, so
+    the last writer wins and no folder is ever half-written.
+    """
+    for attempt in range(attempts):
+        trash = final.with_name(f".{final.name}.old-{_tag()}")
+        try:
+            os.replace(final, trash)
+            had_old = True
+        except FileNotFoundError:
+            had_old = False
+        try:
+            os.replace(staging, final)
+        except OSError as exc:
+            if had_old:
+                try:
+                    os.replace(trash, final)
+                except OSError:  # another run's folder is there now: ours is obsolete
+                    shutil.rmtree(trash, ignore_errors=True)
+            if exc.errno in (errno.ENOTEMPTY, errno.EEXIST) and attempt < attempts - 1:
+                continue
+            raise
         if had_old:
-            os.replace(trash, final)
-        raise
-    if had_old:
-        shutil.rmtree(trash, ignore_errors=True)
+            shutil.rmtree(trash, ignore_errors=True)
+        return
 
 
 @contextmanager

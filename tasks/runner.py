@@ -77,10 +77,10 @@ def result_storage_for(store_root: str | Path) -> Path:
 class _Recorder:
     """Bookkeeping shared by the runners."""
 
-    def __init__(self, patient_id: str, total: int) -> None:
+    def __init__(self, patient_id: str, total: int, runs: list[StageRun] | None = None) -> None:
         self.patient_id = patient_id
         self.total = total
-        self.runs: list[StageRun] = []
+        self.runs: list[StageRun] = runs if runs is not None else []
         self.outputs: dict[str, StageOutput] = {}
 
     def started(self, name: str) -> None:
@@ -116,10 +116,18 @@ class PrefectRunner(_Recorder):
         For progress events.
     total : int
         Number of stages (for progress events).
+    runs : list of StageRun, optional
+        Filled as stages complete (default: a new list, :attr:`runs`).
     """
 
-    def __init__(self, store: ArtifactStore, patient_id: str, total: int) -> None:
-        super().__init__(patient_id, total)
+    def __init__(
+        self,
+        store: ArtifactStore,
+        patient_id: str,
+        total: int,
+        runs: list[StageRun] | None = None,
+    ) -> None:
+        super().__init__(patient_id, total, runs)
         self.store = store
         self.result_storage = result_storage_for(store.root)
 

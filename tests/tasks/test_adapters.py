@@ -23,7 +23,8 @@ def tumour_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("direct")
     patient = make_phantom_patient(2, patient_id="direct2")
     image = write_phantom_patient(patient, tmp / "in").image
-    return run_stages_direct(image, tmp / "store", patient_id="direct2"), ArtifactStore(tmp / "store")
+    run = run_stages_direct(image, tmp / "store", patient_id="direct2")
+    return run, ArtifactStore(tmp / "store")
 
 
 def test_specs_match_the_adapters_signatures_and_products(tumour_run):
@@ -88,7 +89,8 @@ def test_measure_stage_counts_the_tumour_tip_beyond_the_abnormal_slices(tumour_r
     det.loc[det["slice_index"] == tip, "abnormal"] = False
     scan = outs["ingest-scan"].artifacts["scan"]
     kwargs = dict(
-        scan=scan, detection=store.put_table(det), segmentation=outs["segment-tumor"].artifacts["segmentation"],
+        scan=scan, detection=store.put_table(det),
+        segmentation=outs["segment-tumor"].artifacts["segmentation"],
         tumor_mask=outs["interpolate-slices"].artifacts["tumor_mask"],
         mesh=outs["extract-surface"].artifacts["mesh"],
         mesh_simplified=outs["simplify-mesh"].artifacts["mesh"], store_root=str(store.root),

@@ -180,7 +180,8 @@ def test_each_policy_sees_only_its_part():
     base = {"mesh": _ref("a"), "config": SimplifyConfig(), "store_root": "/s"}
     other_cfg = {**base, "config": SimplifyConfig(reduction_percent=40)}
     other_mesh = {**base, "mesh": _ref("b")}
-    code, cfg, art = StageCode(stage="simplify-mesh", modules=MODULES), StageConfig(), InputArtifacts()
+    code = StageCode(stage="simplify-mesh", modules=MODULES)
+    cfg, art = StageConfig(), InputArtifacts()
     assert code.compute_key(None, base, {}) == code.compute_key(None, other_cfg, {})
     assert cfg.compute_key(None, base, {}) != cfg.compute_key(None, other_cfg, {})
     assert cfg.compute_key(None, base, {}) == cfg.compute_key(None, other_mesh, {})
