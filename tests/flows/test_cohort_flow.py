@@ -82,7 +82,8 @@ def test_rerun_is_all_cache_hits_and_a_new_patient_computes_alone(first, inputs)
     again = run_cohort(rows, out, workers=2)
     assert again.exit_code == 0
     for p in again.patients:
-        assert all(s.cached for s in p.stages), p.patient_id
+        missed = [(s.stage, s.repaired) for s in p.stages if not s.cached]
+        assert not missed, (p.patient_id, missed)
         assert p.metrics["volume_eq7_mm3"] == next(
             q for q in result.patients if q.patient_id == p.patient_id
         ).metrics["volume_eq7_mm3"]
