@@ -20,6 +20,7 @@ each went (:class:`StageRun`).
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -105,6 +106,28 @@ class _Recorder:
         return out
 
 
+_TASKS: dict[tuple[str, Path, bool, str], Any] = {}
+_TASKS_LOCK = threading.Lock()
+
+
+def _task_for(spec: StageSpec, result_storage: Path, refresh: bool, patient_id: str) -> Any:
+    """The stage's task with this store's result storage, its runs named after the patient.
+
+    Made once per process and key (``with_options`` builds a new task).
+    """
+    key = (spec.name, result_storage, refresh, patient_id)
+    with _TASKS_LOCK:
+        task = _TASKS.get(key)
+        if task is None or task.fn is not spec.task.fn:
+            task = spec.task.with_options(
+                result_storage=result_storage,
+                refresh_cache=refresh,
+                task_run_name=f"{spec.name}-{patient_id}" if patient_id else spec.name,
+            )
+            _TASKS[key] = task
+    return task
+
+
 class PrefectRunner(_Recorder):
     """Submit each stage's cached Prefect task from inside a flow.
 
@@ -132,7 +155,7 @@ class PrefectRunner(_Recorder):
         self.result_storage = result_storage_for(store.root)
 
     def _submit(self, spec: StageSpec, *, refresh: bool, **inputs: Any) -> Any:
-        task = spec.task.with_options(result_storage=self.result_storage, refresh_cache=refresh)
+        task = _task_for(spec, self.result_storage, refresh, self.patient_id)
         future = task.submit(**inputs)
         future.wait()
         return future.state
