@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -62,7 +63,9 @@ def runtime_imports() -> dict[str, set[str]]:
     out = subprocess.run(
         [sys.executable, "-c", _PROBE, ",".join(PROJECT_PACKAGES), *adapters],
         capture_output=True, text=True, check=True, cwd=PROJECT_ROOT,
-        env={"PYTHONPATH": str(PROJECT_ROOT), "PATH": "/usr/bin:/bin", "HOME": "/tmp"},
+        env={"PYTHONPATH": str(PROJECT_ROOT), "PATH": "/usr/bin:/bin",
+             "HOME": os.environ.get("PREFECT_HOME", "/tmp"),
+             "PREFECT_HOME": os.environ.get("PREFECT_HOME", "/tmp/tumor3d-probe-prefect")},
     )  # fmt: skip
     return {k: set(v) for k, v in json.loads(out.stdout.strip().splitlines()[-1]).items()}
 
