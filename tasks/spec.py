@@ -159,6 +159,11 @@ def stage_task(name: str) -> Callable[[Callable[..., StageOutput]], Any]:
             cache_policy=stage_cache_policy(name, (fn.__module__,)),
             persist_result=True,
             result_serializer="json",
+            # Prefect's in-memory result cache is an LRUCache shared by every
+            # thread of a flow and not thread-safe: with patients running in
+            # parallel lanes it made random cached stages look like misses.
+            # Results are small; read them from the store instead.
+            cache_result_in_memory=False,
             retries=0,
         )(timed)
 
