@@ -8,13 +8,14 @@ DEMO_OUT ?= demo-out
 # Real MR cases for development and evaluation (never used by the tests).
 TUMOR3D_DATA_DIR ?= ../shared/data
 
-.PHONY: demo test setup system-deps lint bench accuracy real-data evaluate clean
+.PHONY: demo test setup system-deps lint bench bench-cohort accuracy real-data evaluate clean
 
 demo: setup
 	$(BIN)/tumor3d demo --out $(DEMO_OUT)
 
+# The test suite plus the doctests of every package (examples in docstrings must run).
 test: setup
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q tests --doctest-modules tumor3d storage tasks flows
 
 setup: system-deps $(STAMP)
 
@@ -32,6 +33,10 @@ lint: setup
 
 bench: setup
 	$(BIN)/python benchmarks/bench_flow.py
+
+# 20 phantom patients, 2 workers: orchestration share and cached re-run (reports/benchmarks.md).
+bench-cohort: setup
+	$(BIN)/python benchmarks/bench_cohort.py
 
 accuracy: setup
 	$(BIN)/python benchmarks/phantom_accuracy.py

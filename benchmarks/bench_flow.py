@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import re
 import statistics
 import subprocess
 import sys
@@ -93,8 +94,6 @@ def main() -> None:
     cold_med, cached_med = med(cold_wall), med(cached_wall)
     overhead_share = 1.0 - compute_total / cold_med
     lines = [
-        "# Benchmarks",
-        "",
         "## Single-patient flow, 31-slice phantom",
         "",
         f"Produced by `python benchmarks/bench_flow.py --repeats {args.repeats}` "
@@ -127,7 +126,14 @@ def main() -> None:
     ]
     text = "\n".join(lines)
     args.report.parent.mkdir(parents=True, exist_ok=True)
-    args.report.write_text(text)
+    old = args.report.read_text() if args.report.exists() else "# Benchmarks\n"
+    # replace this benchmark's own section only (bench_cohort.py writes another)
+    pattern = re.compile(r"^## Single-patient flow.*?(?=^## |\Z)", re.S | re.M)
+    if pattern.search(old):
+        new = pattern.sub(lambda _: text + "\n", old)
+    else:
+        new = old.rstrip("\n") + "\n\n" + text + "\n"
+    args.report.write_text(new)
     print(text)
 
 

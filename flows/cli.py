@@ -1,11 +1,16 @@
 """The ``tumor3d`` command line.
 
-Commands: ``run`` (one patient), ``demo`` (a built-in phantom patient end to
-end), ``phantom`` (write synthetic patients and a cohort manifest).
+Commands: ``run`` (one patient), ``cohort`` (every patient of a manifest,
+N at a time), ``demo`` (a built-in phantom patient end to end), ``phantom``
+(write synthetic patients and a cohort manifest).
 
 Errors a user can cause (a missing or unreadable file, an unsafe patient id,
-an invalid configuration) are printed as one line naming the file and the
-problem, with exit code 2; nothing is published under the final names.
+an invalid configuration, an output folder that holds the input) are printed
+as one line naming the file and the problem, with exit code 2; nothing is
+published under the final names. ``cohort`` exits 1 when some patients
+failed (the summary names them). User-supplied strings are escaped before
+Rich prints them. When stdout is not a terminal, progress is one plain line
+per stage instead of a progress bar.
 """
 
 from __future__ import annotations
@@ -20,11 +25,14 @@ if "--verbose" not in sys.argv and "-v" not in sys.argv:
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 
+from collections.abc import Iterator  # noqa: E402
+from contextlib import contextmanager  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Annotated, Any  # noqa: E402
 
 import typer  # noqa: E402
 from rich.console import Console  # noqa: E402
+from rich.markup import escape  # noqa: E402
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: E402
 from rich.table import Table  # noqa: E402
 
@@ -41,11 +49,9 @@ app = typer.Typer(
 console = Console()
 err_console = Console(stderr=True)
 
-_STAGE_COUNT = 9
-
 
 def _fail(exc: BaseException) -> typer.Exit:
-    err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+    err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
     return typer.Exit(code=2)
 
 
@@ -70,30 +76,65 @@ class _ProgressReporter:
         self.bars: dict[str, Any] = {}
 
     def __call__(self, event: Any) -> None:
+        pid = escape(event.patient_id)
         bar = self.bars.get(event.patient_id)
         if bar is None:
-            bar = self.progress.add_task(event.patient_id, total=event.total)
+            bar = self.progress.add_task(pid, total=event.total)
             self.bars[event.patient_id] = bar
         if event.status == "started":
-            self.progress.update(bar, description=f"{event.patient_id}: {event.stage}")
-        else:
+            self.progress.update(bar, description=f"{pid}: {event.stage}")
+        elif event.status in ("done", "cached"):
             note = "cached" if event.status == "cached" else f"{event.seconds:.1f} s"
             self.progress.update(
-                bar,
-                completed=event.index,
-                description=f"{event.patient_id}: {event.stage} ({note})",
+                bar, completed=event.index, description=f"{pid}: {event.stage} ({note})"
             )
+
+
+class _CohortReporter:
+    """One bar over patients; its description shows the current stage of each active one."""
+
+    def __init__(self, progress: Progress, n_patients: int) -> None:
+        self.progress = progress
+        self.bar = progress.add_task("patients", total=n_patients)
+        self.current: dict[str, str] = {}
+        self.failed = 0
+
+    def __call__(self, event: Any) -> None:
+        if event.status in ("published", "failed"):
+            self.current.pop(event.patient_id, None)
+            self.failed += event.status == "failed"
+            self.progress.advance(self.bar)
+        elif event.status == "started":
+            self.current[event.patient_id] = event.stage
+        active = ", ".join(f"{escape(p)}: {s}" for p, s in sorted(self.current.items()))
+        failed = f" ({self.failed} failed)" if self.failed else ""
+        self.progress.update(self.bar, description=f"patients{failed}  {active}")
 
 
 def _progress() -> Progress:
     return Progress(
         TextColumn("{task.description}"),
         BarColumn(),
-        TextColumn("{task.completed}/{task.total} stages"),
+        TextColumn("{task.completed}/{task.total}"),
         TimeElapsedColumn(),
         console=console,
         transient=False,
     )
+
+
+class _PlainReporter:
+    """For a pipe or a file: one plain line per finished stage (stage, time, cache hit)."""
+
+    def __call__(self, event: Any) -> None:
+        if event.status == "started":
+            return
+        if event.status == "cached":
+            what = "cache hit"
+        elif event.status == "done":
+            what = f"{event.seconds:.2f} s"
+        else:
+            what = event.status
+        print(f"{event.patient_id}\t{event.stage}\t{what}", flush=True)
 
 
 def print_summary(result: Any, truth_mm3: float | None = None) -> None:
@@ -101,7 +142,9 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     from flows.patient import VOLUME_LABELS, VOLUME_METHODS
 
     m = result.metrics
-    table = Table(title=f"Tumour volume, patient {result.patient_id}", title_justify="left")
+    table = Table(
+        title=f"Tumour volume, patient {escape(result.patient_id)}", title_justify="left"
+    )
     table.add_column("method")
     table.add_column("volume (mm3)", justify="right")
     table.add_column("volume (mL)", justify="right")
@@ -142,25 +185,60 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
             "cache hit" if s.cached else f"{s.wall_seconds:.2f} s",
         )
     console.print(times)
-    console.print(f"outputs: [bold]{result.output_dir}[/]")
+    for note in getattr(result, "notes", []):
+        console.print(f"[bold yellow]{escape(note)}[/]")
+    eq7 = m.get("eq7_slice_rule")
+    if eq7:
+        from tumor3d.metrics import EQ7_SLICE_RULES
+
+        console.print(f"[dim]Eq. 7 slices ({eq7}): {EQ7_SLICE_RULES[eq7]}[/]")
+    console.print(f"outputs: [bold]{escape(result.output_dir)}[/]")
 
 
-def _preflight(input_path: Path, patient_id: str | None, modality: str, **read_kw: Any) -> None:
-    """Read the input once before starting Prefect, so bad input fails in a second."""
-    from storage.readers import read_scan
+def _preflight(
+    input_path: Path, out: Path, patient_id: str | None, modality: str, **read_kw: Any
+) -> None:
+    """Check the destination and read the input once before starting Prefect.
 
+    Bad input then fails in a second, and an output folder that is or holds
+    the input is refused before any work.
+    """
+    from storage.publish import check_output_not_input
+    from storage.readers import derive_patient_id, read_scan
+    from tumor3d.scan import validate_patient_id
+
+    if input_path.exists():
+        pid = validate_patient_id(patient_id) if patient_id else derive_patient_id(input_path)
+        check_output_not_input(out / pid, [input_path])
     read_scan(input_path, modality=modality, patient_id=patient_id, **read_kw)
+
+
+def _starting_prefect_note() -> None:
+    if not os.environ.get("PREFECT_API_URL"):
+        console.print(
+            "[dim]starting Prefect (a temporary local server unless PREFECT_API_URL is set; "
+            "10-20 s)...[/]"
+        )
+
+
+@contextmanager
+def _reporting(make_reporter: Any) -> Iterator[None]:
+    """A live progress bar on a terminal, plain lines otherwise."""
+    from flows.progress import use_reporter
+
+    if not console.is_terminal:
+        with use_reporter(_PlainReporter()):
+            yield
+        return
+    with _progress() as progress, use_reporter(make_reporter(progress)):
+        yield
 
 
 def _run_with_progress(**kwargs: Any) -> Any:
     from flows.patient import run_patient
-    from flows.progress import use_reporter
 
-    console.print(
-        "[dim]starting Prefect (a temporary local server unless PREFECT_API_URL is set; "
-        "10-20 s)...[/]"
-    )
-    with _progress() as progress, use_reporter(_ProgressReporter(progress)):
+    _starting_prefect_note()
+    with _reporting(_ProgressReporter):
         return run_patient(**kwargs)
 
 
@@ -198,7 +276,7 @@ def run(
             "slice_thickness_mm": slice_thickness_mm,
             "slice_gap_mm": slice_gap_mm,
         }
-        _preflight(input_path, patient_id, modality, **read_kw)
+        _preflight(input_path, out, patient_id, modality, **read_kw)
         result = _run_with_progress(
             input_path=input_path,
             out_dir=out,
@@ -211,6 +289,72 @@ def run(
     except Tumor3DError as exc:
         raise _fail(exc) from None
     print_summary(result)
+
+
+@app.command()
+def cohort(
+    manifest: Annotated[Path, typer.Argument(help="Cohort manifest CSV (patient_id, image, ...).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
+    config: Annotated[Path | None, typer.Option(help="YAML configuration file.")] = None,
+    workers: Annotated[
+        int | None, typer.Option(min=1, help="Patients at a time (default: the CPU cores).")
+    ] = None,
+    store: Annotated[
+        Path | None, typer.Option(help="Artifact store (default OUT/.tumor3d-store).")
+    ] = None,
+    verbose: Verbose = False,
+) -> None:
+    """Run every patient of a manifest, N at a time: OUT/<id>/, OUT/cohort.parquet, OUT/cohort.md.
+
+    Exit code 0 when every patient succeeded, 1 when some failed (named in the
+    summary), 2 for an invalid manifest or configuration.
+    """
+    from flows.cohort import run_cohort
+    from storage.manifest import read_manifest
+
+    try:
+        cfg = _load_config(config)
+        rows = read_manifest(manifest)
+        _starting_prefect_note()
+        with _reporting(lambda progress: _CohortReporter(progress, len(rows))):
+            result = run_cohort(
+                rows, out, config=cfg, workers=workers, store_dir=None if store is None else store
+            )
+    except Tumor3DError as exc:
+        raise _fail(exc) from None
+    print_cohort_summary(result)
+    raise typer.Exit(code=result.exit_code)
+
+
+def print_cohort_summary(result: Any) -> None:
+    """Print each patient's status and volumes, and name the failures."""
+    from flows.patient import VOLUME_LABELS
+
+    table = Table(title=f"Cohort: {len(result.patients)} patients", title_justify="left")
+    table.add_column("patient")
+    table.add_column("status")
+    for key in VOLUME_LABELS:
+        table.add_column(f"{VOLUME_LABELS[key]} (mL)", justify="right")
+    table.add_column("cache hits", justify="right")
+    for p in result.patients:
+        if p.status == "ok":
+            vols = [f"{p.metrics[k] / 1000.0:.3f}" for k in VOLUME_LABELS]
+            hits = f"{sum(s.cached for s in p.stages)}/{len(p.stages)}"
+            table.add_row(escape(p.patient_id), "ok", *vols, hits)
+        else:
+            table.add_row(escape(p.patient_id), "[red]failed[/]", *["-"] * len(VOLUME_LABELS), "-")
+    console.print(table)
+    for p in result.failed:
+        console.print(
+            f"[red]failed[/] {escape(p.patient_id)} at {escape(str(p.failed_stage))}: "
+            f"{escape(str(p.error))}",
+            soft_wrap=True,
+        )
+    console.print(
+        f"{len(result.patients) - len(result.failed)} ok, {len(result.failed)} failed in "
+        f"{result.wall_seconds:.1f} s; outputs: [bold]{escape(result.out_dir)}[/] "
+        "(cohort.parquet, cohort.md)"
+    )
 
 
 @app.command()
@@ -279,7 +423,10 @@ def phantom(
         manifest = write_phantom_cohort(patients, out)
     except Tumor3DError as exc:
         raise _fail(exc) from None
-    console.print(f"wrote {n} patients ({normal} without tumour) and manifest [bold]{manifest}[/]")
+    console.print(
+        f"wrote {n} patients ({normal} without tumour) and manifest "
+        f"[bold]{escape(str(manifest))}[/]"
+    )
 
 
 # ----------------------------------------------------------------- evaluate (EVAL helper's block)

@@ -1,59 +1,60 @@
 """Single-patient flow: MR slices -> tumour masks, meshes, renders and volumes.
 
-Wiring only. Each stage is a cached task of :mod:`tasks.stages`; this module
-orders them, records which were cache hits, and publishes the results under
-``<out_dir>/<patient_id>/`` as one unit: everything is written to a staging
-folder which then replaces the patient folder by renames, so a failed run
-leaves nothing under the final names.
+Wiring only: :func:`run_stages` orders the stages of :mod:`tasks.stages`
+and feeds each its inputs' references; a runner (:mod:`tasks.runner`)
+executes them; :func:`publish_patient` hands the results to
+:mod:`storage.publish` (staging folder, fsync, rename swap),
+:mod:`storage.slice_table` and :mod:`storage.provenance`.
 
-Use :func:`run_patient` from Python code: it points Prefect's result storage
-into the artifact store so that cached results live beside the artifacts
-they refer to.
+:func:`patient_pipeline` is the whole single-patient pipeline inside a
+running flow; :func:`patient_flow` is the Prefect flow around it and
+:func:`flows.cohort.cohort_flow` runs it for many patients at once. Prefect's
+results are kept in the artifact store by the runner itself, so a
+deployment or parent flow calling :func:`patient_flow` directly gets the same
+caching as :func:`run_patient`.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
-import os
-import platform
-import shutil
 import time
-import uuid
-from collections.abc import Iterator
-from contextlib import contextmanager
-from datetime import UTC, datetime
-from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 from prefect import flow, get_run_logger
-from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, temporary_settings
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict
 
-import tumor3d
-from flows.progress import ProgressEvent, report
 from storage import nifti
 from storage.formats import encode_parquet
 from storage.inputs import input_digest
+from storage.provenance import build_provenance
+from storage.publish import check_output_not_input, staged_folder
 from storage.readers import derive_patient_id
+from storage.slice_table import slice_table
 from storage.store import ArtifactStore, canonical_dumps, source_grid_from_metadata
 from tasks import stages
-from tasks.caching import code_digest
-from tasks.stages import InputSource, StageOutput
+from tasks.runner import DirectRunner, PrefectRunner, StageRun
+from tasks.spec import InputSource, StageOutput
 from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.errors import InputError
+from tumor3d.metrics import EQ7_SLICE_RULES
 from tumor3d.scan import MODALITIES, validate_patient_id
 
 __all__ = [
     "DirectRunner",
+    "NO_TUMOUR_NOTE",
     "PatientResult",
     "StageRun",
     "VOLUME_LABELS",
     "VOLUME_METHODS",
+    "config_digest",
     "default_store_dir",
     "patient_flow",
-    "prefect_result_storage",
+    "patient_pipeline",
+    "prepare_source",
+    "publish_patient",
     "run_patient",
     "run_stages",
     "run_stages_direct",
@@ -61,7 +62,8 @@ __all__ = [
 
 #: Volume columns of metrics.parquet and the method each names.
 VOLUME_METHODS: dict[str, str] = {
-    "volume_eq7_mm3": "Eq. 7: (thickness + gap) x sum of tumour areas on abnormal slices",
+    "volume_eq7_mm3": "Eq. 7: (thickness + gap) x sum of tumour areas over every acquired "
+    "slice with segmented tumour (the abnormal slices and the tumour's end slices)",
     "volume_voxel_mm3": "voxel count of the interpolated 3-D mask x voxel volume",
     "volume_mesh_mm3": "volume enclosed by the marching-cubes mesh",
     "volume_mesh_simplified_mm3": "volume enclosed by the simplified mesh",
@@ -75,22 +77,8 @@ VOLUME_LABELS: dict[str, str] = {
     "volume_mesh_simplified_mm3": "mesh (simplified)",
 }
 
-_PACKAGES = (
-    "prefect", "numpy", "scipy", "scikit-image", "nibabel", "pydicom", "open3d-cpu",
-    "pandas", "pyarrow", "PyWavelets", "numba", "pydantic", "fast-simplification",
-)  # fmt: skip
-
-
-class StageRun(BaseModel):
-    """How one stage went in this flow run."""
-
-    model_config = ConfigDict(frozen=True)
-
-    stage: str
-    cached: bool
-    wall_seconds: float
-    compute_seconds: float
-    artifacts: dict[str, str] = Field(default_factory=dict, description="name -> digest")
+#: The note recorded in summary, metrics and provenance when there is no tumour.
+NO_TUMOUR_NOTE = "no tumour found: no mesh and no render written"
 
 
 class PatientResult(BaseModel):
@@ -103,6 +91,7 @@ class PatientResult(BaseModel):
     metrics: dict[str, Any]
     stages: list[StageRun]
     flow_seconds: float
+    notes: list[str] = []
 
     @property
     def cache_hits(self) -> list[bool]:
@@ -115,71 +104,40 @@ def default_store_dir(out_dir: str | Path) -> Path:
     return Path(out_dir) / ".tumor3d-store"
 
 
-@contextmanager
-def prefect_result_storage(store_dir: str | Path) -> Iterator[None]:
-    """Keep Prefect's task results (and so the cache records) inside the store."""
-    path = Path(store_dir).resolve() / "prefect-results"
-    path.mkdir(parents=True, exist_ok=True)
-    with temporary_settings({PREFECT_LOCAL_STORAGE_PATH: path}):
-        yield
+def config_digest(cfg: PipelineConfig) -> str:
+    """SHA-256 of the canonical JSON of a whole configuration."""
+    return hashlib.sha256(canonical_dumps(cfg.model_dump(mode="json")).encode()).hexdigest()
 
 
-class _StageRunner:
-    """Runs stage tasks in order, noting cache hits and timing."""
-
-    def __init__(self, store: ArtifactStore, patient_id: str) -> None:
-        self.store = store
-        self.patient_id = patient_id
-        self.runs: list[StageRun] = []
-        self.outputs: dict[str, StageOutput] = {}
-
-    def run(self, stage_task: Any, **kwargs: Any) -> StageOutput:
-        name = stage_task.name
-        index, total = len(self.runs), len(stages.STAGES)
-        report(ProgressEvent(self.patient_id, name, "started", index, total))
-        t0 = time.perf_counter()
-        state = stage_task(**kwargs, return_state=True)
-        out: StageOutput = state.result()
-        cached = state.name == "Cached"
-        if cached and not all(self.store.exists(r) for r in out.artifacts.values()):
-            # The cache record outlived its artifacts (store pruned by hand): recompute.
-            get_run_logger().warning("%s: cached artifacts missing, recomputing", name)
-            state = stage_task.with_options(refresh_cache=True)(**kwargs, return_state=True)
-            out, cached = state.result(), False
-        wall = time.perf_counter() - t0
-        self.runs.append(
-            StageRun(
-                stage=name,
-                cached=cached,
-                wall_seconds=wall,
-                compute_seconds=out.compute_seconds,
-                artifacts={k: r.digest for k, r in out.artifacts.items()},
-            )
-        )
-        self.outputs[name] = out
-        report(
-            ProgressEvent(
-                self.patient_id, name, "cached" if cached else "done", index + 1, total, wall
-            )
-        )
-        return out
-
-
-def _prepare_source(
-    input_path: str,
+def prepare_source(
+    input_path: str | Path,
     *,
-    patient_id: str | None,
-    modality: str,
-    series_uid: str | None,
-    slice_thickness_mm: float | None,
-    slice_gap_mm: float | None,
+    patient_id: str | None = None,
+    modality: str = "t2",
+    series_uid: str | None = None,
+    slice_thickness_mm: float | None = None,
+    slice_gap_mm: float | None = None,
+    out_dir: str | Path | None = None,
 ) -> InputSource:
+    """Validate the user's input and identify it by content.
+
+    With ``out_dir``, also refuse (before any work) an output folder
+    ``<out_dir>/<patient_id>`` that is or contains the input.
+
+    Raises
+    ------
+    InputError
+        A missing input, unknown modality, unsafe patient id, or an output
+        folder that would replace the input.
+    """
     path = Path(input_path).expanduser()
     if not path.exists():
         raise InputError("no such file or folder", path=str(path))
     if modality not in MODALITIES:
         raise InputError(f"unknown modality {modality!r}: expected one of {', '.join(MODALITIES)}")
     pid = validate_patient_id(patient_id) if patient_id is not None else derive_patient_id(path)
+    if out_dir is not None:
+        check_output_not_input(Path(out_dir) / pid, [path])
     return InputSource(
         path=str(path.resolve()),
         name=path.name,
@@ -192,7 +150,81 @@ def _prepare_source(
     )
 
 
-@flow(name="tumor3d-patient", persist_result=False, log_prints=False)
+def run_stages(run: Any, source: InputSource, cfg: PipelineConfig, root: str) -> dict[str, Any]:
+    """The pipeline's wiring: every stage in order, each fed its inputs' references.
+
+    ``run`` is a runner whose ``run(spec, **inputs)`` executes one stage and
+    returns its :class:`~tasks.spec.StageOutput` (:class:`PrefectRunner`,
+    :class:`DirectRunner`). Returns stage name -> output.
+    """
+    S = stages.STAGES
+    scan = run.run(S["ingest-scan"], source=source, store_root=root).artifacts["scan"]
+    pre = run.run(S["preprocess"], scan=scan, config=cfg.preprocess, store_root=root)
+    enhanced, brain = pre.artifacts["enhanced"], pre.artifacts["brain_mask"]
+    det = run.run(
+        S["detect-abnormal"], enhanced=enhanced, brain_mask=brain, config=cfg.detect,
+        store_root=root,
+    ).artifacts["detection"]  # fmt: skip
+    seg = run.run(
+        S["segment-tumor"], scan=scan, enhanced=enhanced, brain_mask=brain, detection=det,
+        config=cfg.segment, store_root=root,
+    )  # fmt: skip
+    itp = run.run(
+        S["interpolate-slices"], scan=scan, tumor_mask_slices=seg.artifacts["tumor_mask_slices"],
+        config=cfg.interpolate, store_root=root,
+    )  # fmt: skip
+    surface = run.run(
+        S["extract-surface"], tumor_mask=itp.artifacts["tumor_mask"], config=cfg.surface,
+        store_root=root,
+    )  # fmt: skip
+    simple = run.run(
+        S["simplify-mesh"], mesh=surface.artifacts["mesh"], config=cfg.simplify, store_root=root
+    )
+    run.run(S["render-views"], mesh=simple.artifacts["mesh"], config=cfg.render, store_root=root)
+    run.run(
+        S["measure-volume"], scan=scan, detection=det,
+        segmentation=seg.artifacts["segmentation"], tumor_mask=itp.artifacts["tumor_mask"],
+        mesh=surface.artifacts["mesh"], mesh_simplified=simple.artifacts["mesh"], store_root=root,
+    )  # fmt: skip
+    return run.outputs
+
+
+def patient_pipeline(
+    source: InputSource,
+    out_dir: str | Path,
+    cfg: PipelineConfig,
+    store: ArtifactStore,
+    *,
+    runs: list[StageRun] | None = None,
+) -> PatientResult:
+    """Run every stage for one patient (inside a flow) and publish the results.
+
+    ``runs``, if given, is filled with each stage's :class:`StageRun` as it
+    completes (so a caller learns which stage failed).
+    """
+    t0 = time.perf_counter()
+    pid = source.patient_id
+    runner = PrefectRunner(store, pid, total=len(stages.STAGES), runs=runs)
+    outputs = run_stages(runner, source, cfg, str(store.root))
+    flow_seconds = time.perf_counter() - t0
+    notes = [NO_TUMOUR_NOTE] if outputs["extract-surface"].values["faces"] == 0 else []
+    metrics = _metrics_row(outputs, runner.runs, pid, flow_seconds, notes)
+    out_path = publish_patient(store, Path(out_dir), source, outputs, runner.runs, metrics, cfg)
+    return PatientResult(
+        patient_id=pid, output_dir=str(out_path), metrics=metrics, stages=runner.runs,
+        flow_seconds=flow_seconds, notes=notes,
+    )  # fmt: skip
+
+
+def _flow_run_name() -> str:
+    from prefect.runtime import flow_run
+
+    params = flow_run.parameters
+    pid = params.get("patient_id") or Path(str(params.get("input_path", "input"))).name
+    return f"patient-{pid}"
+
+
+@flow(name="tumor3d-patient", flow_run_name=_flow_run_name, persist_result=False, log_prints=False)
 def patient_flow(
     input_path: str,
     out_dir: str,
@@ -211,7 +243,7 @@ def patient_flow(
     input_path : str
         NIfTI file, DICOM series folder, or folder of 2-D slices with a YAML sidecar.
     out_dir : str
-        Outputs go to ``<out_dir>/<patient_id>/``.
+        Outputs go to ``<out_dir>/<patient_id>/`` (never a folder holding the input).
     patient_id : str, optional
         Folder-safe id; derived from the input's name if omitted.
     config : dict, optional
@@ -222,109 +254,20 @@ def patient_flow(
     series_uid : str, optional
         Which DICOM series to read when a folder holds several.
     store_dir : str, optional
-        Artifact store; default ``<out_dir>/.tumor3d-store``.
+        Artifact store (and Prefect's results); default ``<out_dir>/.tumor3d-store``.
     """
-    t_flow = time.perf_counter()
     cfg = parse_config(config or {}, source="config")
-    source = _prepare_source(
-        input_path,
-        patient_id=patient_id,
-        modality=modality,
-        series_uid=series_uid,
-        slice_thickness_mm=slice_thickness_mm,
-        slice_gap_mm=slice_gap_mm,
-    )
-    pid = source.patient_id
+    source = prepare_source(
+        input_path, patient_id=patient_id, modality=modality, series_uid=series_uid,
+        slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm, out_dir=out_dir,
+    )  # fmt: skip
     store = ArtifactStore(store_dir or default_store_dir(out_dir))
-    root = str(store.root)
     logger = get_run_logger()
-    logger.info("patient %s: %s", pid, source.name)
-
-    run = _StageRunner(store, pid)
-    run_stages(run, source, cfg, root)
-    flow_seconds = time.perf_counter() - t_flow
-    metrics = _metrics_row(run, pid, flow_seconds)
-    out_path = _publish(store, Path(out_dir), pid, run, metrics, cfg, source)
-    logger.info("patient %s: published %s", pid, out_path)
-    return PatientResult(
-        patient_id=pid,
-        output_dir=str(out_path),
-        metrics=metrics,
-        stages=run.runs,
-        flow_seconds=flow_seconds,
-    )
-
-
-def run_stages(run: Any, source: InputSource, cfg: PipelineConfig, root: str) -> None:
-    """The pipeline's wiring: every stage in order, each fed its inputs' references.
-
-    ``run`` is a runner whose ``run(task, **kwargs)`` executes one stage and
-    returns its :class:`StageOutput`: :class:`_StageRunner` runs the Prefect
-    tasks (cached); :class:`DirectRunner` calls their functions directly.
-    """
-    scan = run.run(stages.ingest_task, source=source, store_root=root).artifacts["scan"]
-    pre = run.run(stages.preprocess_task, scan=scan, config=cfg.preprocess, store_root=root)
-    enhanced, brain = pre.artifacts["enhanced"], pre.artifacts["brain_mask"]
-    det = run.run(
-        stages.detect_task, enhanced=enhanced, brain_mask=brain, config=cfg.detect, store_root=root
-    ).artifacts["detection"]
-    seg = run.run(
-        stages.segment_task,
-        scan=scan,
-        enhanced=enhanced,
-        brain_mask=brain,
-        detection=det,
-        config=cfg.segment,
-        store_root=root,
-    )
-    itp = run.run(
-        stages.interpolate_task,
-        scan=scan,
-        tumor_mask_slices=seg.artifacts["tumor_mask_slices"],
-        config=cfg.interpolate,
-        store_root=root,
-    )
-    surface = run.run(
-        stages.surface_task,
-        tumor_mask=itp.artifacts["tumor_mask"],
-        config=cfg.surface,
-        store_root=root,
-    )
-    simple = run.run(
-        stages.simplify_task, mesh=surface.artifacts["mesh"], config=cfg.simplify, store_root=root
-    )
-    run.run(stages.render_task, mesh=simple.artifacts["mesh"], config=cfg.render, store_root=root)
-    run.run(
-        stages.measure_task,
-        scan=scan,
-        detection=det,
-        segmentation=seg.artifacts["segmentation"],
-        tumor_mask=itp.artifacts["tumor_mask"],
-        mesh=surface.artifacts["mesh"],
-        mesh_simplified=simple.artifacts["mesh"],
-        store_root=root,
-    )
-
-
-class DirectRunner:
-    """Runs each stage's function directly, without Prefect (no caching).
-
-    For benchmarks (the peer of the flow) and in-process evaluation.
-    ``outputs`` maps stage name to :class:`StageOutput`, ``seconds`` to its
-    wall time.
-    """
-
-    def __init__(self) -> None:
-        self.outputs: dict[str, StageOutput] = {}
-        self.seconds: dict[str, float] = {}
-
-    def run(self, stage_task: Any, **kwargs: Any) -> StageOutput:
-        """Call the stage's undecorated function and time it."""
-        t0 = time.perf_counter()
-        out = stage_task.fn(**kwargs)
-        self.seconds[stage_task.name] = time.perf_counter() - t0
-        self.outputs[stage_task.name] = out
-        return out
+    digest = config_digest(cfg)[:12]
+    logger.info("patient %s: %s (config %s)", source.patient_id, source.name, digest)
+    result = patient_pipeline(source, out_dir, cfg, store)
+    logger.info("patient %s: published %s", source.patient_id, result.output_dir)
+    return result
 
 
 def run_stages_direct(
@@ -337,40 +280,42 @@ def run_stages_direct(
 ) -> DirectRunner:
     """Run every stage in this process without Prefect; artifacts go to ``store_dir``."""
     cfg = config if isinstance(config, PipelineConfig) else parse_config(config or {})
-    source = _prepare_source(
-        str(input_path),
-        patient_id=patient_id,
-        modality=modality,
-        series_uid=None,
-        slice_thickness_mm=None,
-        slice_gap_mm=None,
-    )
-    runner = DirectRunner()
+    source = prepare_source(input_path, patient_id=patient_id, modality=modality)
+    runner = DirectRunner(source.patient_id, len(stages.STAGES))
     run_stages(runner, source, cfg, str(ArtifactStore(store_dir).root))
     return runner
 
 
 def run_patient(input_path: str | Path, out_dir: str | Path, **kwargs: Any) -> PatientResult:
-    """Run :func:`patient_flow` with Prefect's results kept in the artifact store.
+    """Run :func:`patient_flow`, tagged with the configuration's digest.
 
     Keyword arguments are those of :func:`patient_flow`.
     """
-    store_dir = kwargs.pop("store_dir", None) or default_store_dir(out_dir)
-    with prefect_result_storage(store_dir):
-        return patient_flow(str(input_path), str(out_dir), store_dir=str(store_dir), **kwargs)
+    from prefect import tags
+
+    cfg = parse_config(kwargs.get("config") or {}, source="config")
+    with tags(f"config:{config_digest(cfg)[:12]}"):
+        return patient_flow(str(input_path), str(out_dir), **kwargs)
 
 
-def _metrics_row(run: _StageRunner, pid: str, flow_seconds: float) -> dict[str, Any]:
-    vol = run.outputs["measure-volume"].values
+def _metrics_row(
+    outputs: dict[str, StageOutput],
+    runs: list[StageRun],
+    pid: str,
+    flow_seconds: float,
+    notes: list[str],
+) -> dict[str, Any]:
     row: dict[str, Any] = {"patient_id": pid}
-    row.update(vol)
-    row["faces_mc"] = int(run.outputs["extract-surface"].values["faces"])
-    row["faces_simplified"] = int(run.outputs["simplify-mesh"].values["faces"])
-    row["faces_target"] = int(run.outputs["simplify-mesh"].values["faces_target"])
-    row["mesh_watertight"] = bool(run.outputs["extract-surface"].values["watertight"])
-    row["mesh_simplified_watertight"] = bool(run.outputs["simplify-mesh"].values["watertight"])
-    row["slices_between"] = int(run.outputs["interpolate-slices"].values["slices_between"])
-    for r in run.runs:
+    row.update(outputs["measure-volume"].values)
+    row["faces_mc"] = int(outputs["extract-surface"].values["faces"])
+    row["faces_simplified"] = int(outputs["simplify-mesh"].values["faces"])
+    row["faces_target"] = int(outputs["simplify-mesh"].values["faces_target"])
+    row["mesh_watertight"] = bool(outputs["extract-surface"].values["watertight"])
+    row["mesh_simplified_watertight"] = bool(outputs["simplify-mesh"].values["watertight"])
+    row["slices_between"] = int(outputs["interpolate-slices"].values["slices_between"])
+    row["tumour_found"] = row["faces_mc"] > 0
+    row["notes"] = "; ".join(notes)
+    for r in runs:
         key = r.stage.replace("-", "_")
         row[f"time_{key}_s"] = float(r.compute_seconds)
         row[f"cached_{key}"] = bool(r.cached)
@@ -378,104 +323,63 @@ def _metrics_row(run: _StageRunner, pid: str, flow_seconds: float) -> dict[str, 
     return row
 
 
-def _versions() -> dict[str, str]:
-    out = {"tumor3d": tumor3d.__version__, "python": platform.python_version()}
-    for name in _PACKAGES:
-        try:
-            out[name] = importlib_metadata.version(name)
-        except importlib_metadata.PackageNotFoundError:
-            out[name] = "not installed"
-    return out
-
-
-def _slice_table(store: ArtifactStore, run: _StageRunner) -> pd.DataFrame:
-    det = store.get_table(run.outputs["detect-abnormal"].artifacts["detection"])
-    seg = store.get_table(run.outputs["segment-tumor"].artifacts["segmentation"])
-    table = det.merge(seg, on="slice_index", how="left")
-    area = run.outputs["measure-volume"].values["pixel_area_mm2"]
-    table["tumor_area_mm2"] = table["tumor_pixels"].fillna(0) * area
-    return table
-
-
-def _publish(
+def publish_patient(
     store: ArtifactStore,
     out_dir: Path,
-    pid: str,
-    run: _StageRunner,
+    source: InputSource,
+    outputs: dict[str, StageOutput],
+    runs: list[StageRun],
     metrics: dict[str, Any],
     cfg: PipelineConfig,
-    source: InputSource,
 ) -> Path:
-    """Write the patient's outputs to a staging folder, then swap it into place."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    final = out_dir / pid
-    staging = out_dir / f".{pid}.partial-{uuid.uuid4().hex[:8]}"
-    staging.mkdir()
-    try:
-        scan_ref = run.outputs["ingest-scan"].artifacts["scan"]
-        grid = source_grid_from_metadata(scan_ref.metadata)
-        seg = run.outputs["segment-tumor"].artifacts
-        slices_mask, _ = store.get_volume(seg["tumor_mask_slices"])
+    """Write the patient's outputs to a staging folder, then swap it into ``out_dir/<id>``."""
+    pid = source.patient_id
+    check_output_not_input(out_dir / pid, [source.path])
+    scan_ref = outputs["ingest-scan"].artifacts["scan"]
+    grid = source_grid_from_metadata(scan_ref.metadata)
+    tumour_found = bool(metrics["tumour_found"])
+    with staged_folder(out_dir, pid) as staging:
+        slices_mask, _ = store.get_volume(outputs["segment-tumor"].artifacts["tumor_mask_slices"])
         (staging / "tumor_mask_slices.nii.gz").write_bytes(
             nifti.mask_to_source_nifti_bytes(slices_mask, grid)
         )
-        brain, _ = store.get_volume(run.outputs["preprocess"].artifacts["brain_mask"])
+        brain, _ = store.get_volume(outputs["preprocess"].artifacts["brain_mask"])
         (staging / "brain_mask.nii.gz").write_bytes(nifti.mask_to_source_nifti_bytes(brain, grid))
-        fine, fine_affine = store.get_volume(
-            run.outputs["interpolate-slices"].artifacts["tumor_mask"]
-        )
+        fine, fine_affine = store.get_volume(outputs["interpolate-slices"].artifacts["tumor_mask"])
         (staging / "tumor_mask.nii.gz").write_bytes(
             nifti.volume_to_source_nifti_bytes(fine, fine_affine, grid, dtype="uint8")
         )
-        (staging / "tumor.ply").write_bytes(
-            store.get_bytes(run.outputs["extract-surface"].artifacts["mesh"])
-        )
-        (staging / "tumor_simplified.ply").write_bytes(
-            store.get_bytes(run.outputs["simplify-mesh"].artifacts["mesh"])
-        )
-        for name, ref in run.outputs["render-views"].artifacts.items():
+        if tumour_found:  # no 0-vertex PLY files when there is no tumour
+            (staging / "tumor.ply").write_bytes(
+                store.get_bytes(outputs["extract-surface"].artifacts["mesh"])
+            )
+            (staging / "tumor_simplified.ply").write_bytes(
+                store.get_bytes(outputs["simplify-mesh"].artifacts["mesh"])
+            )
+        for name, ref in outputs["render-views"].artifacts.items():
             (staging / f"{name}.png").write_bytes(store.get_bytes(ref))
-        (staging / "slices.parquet").write_bytes(encode_parquet(_slice_table(store, run)))
+        table = slice_table(
+            store.get_table(outputs["detect-abnormal"].artifacts["detection"]),
+            store.get_table(outputs["segment-tumor"].artifacts["segmentation"]),
+            pixel_area_mm2=outputs["measure-volume"].values["pixel_area_mm2"],
+        )
+        (staging / "slices.parquet").write_bytes(encode_parquet(table))
         (staging / "metrics.parquet").write_bytes(encode_parquet(pd.DataFrame([metrics])))
-        provenance = {
-            "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-            "method": "Arakeri & Reddy (2013), IJSIP 6(3); see ALGORITHMS.md choices [A1]-[A29]",
-            "versions": _versions(),
-            "input": {
-                "name": source.name,
-                "digest_sha256": source.digest,
-                "modality": source.modality,
-                "patient_id": pid,
+        rule = str(metrics.get("eq7_slice_rule", "segmented"))
+        provenance = build_provenance(
+            input_info={
+                "name": source.name, "digest_sha256": source.digest,
+                "modality": source.modality, "patient_id": pid,
             },  # fmt: skip
-            "config": json.loads(canonical_dumps(cfg.model_dump(mode="json"))),
-            "volume_methods": VOLUME_METHODS,
-            "stages": [
-                {**r.model_dump(), "code_sha256": code_digest(stages.stage_modules(r.stage))}
-                for r in run.runs
+            config=cfg.model_dump(mode="json"),
+            config_digest=config_digest(cfg),
+            stages=[
+                {**r.model_dump(), "code_sha256": stages.STAGES[r.stage].code_digest}
+                for r in runs
             ],
-        }
+            volume_methods=VOLUME_METHODS,
+            eq7_slice_rule={"name": rule, "definition": EQ7_SLICE_RULES[rule]},
+            notes=[n for n in str(metrics.get("notes", "")).split("; ") if n],
+        )
         (staging / "provenance.json").write_text(json.dumps(provenance, indent=2) + "\n")
-        for f in staging.iterdir():
-            with open(f, "rb") as fh:
-                os.fsync(fh.fileno())
-        _swap_into_place(staging, final)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    return final
-
-
-def _swap_into_place(staging: Path, final: Path) -> None:
-    """Replace ``final`` by ``staging`` with renames; restore the old one on failure."""
-    trash = final.with_name(f".{final.name}.old-{uuid.uuid4().hex[:8]}")
-    had_old = final.exists()
-    if had_old:
-        os.replace(final, trash)
-    try:
-        os.replace(staging, final)
-    except BaseException:
-        if had_old:
-            os.replace(trash, final)
-        raise
-    if had_old:
-        shutil.rmtree(trash, ignore_errors=True)
+    return out_dir / pid

@@ -1,25 +1,35 @@
 """Cache keys of the pipeline stages: derived here and nowhere else.
 
-A stage's key is the SHA-256 of the canonical JSON of
+A stage's key is built from three small, composable cache policies in the
+style of ``prefect/cache_policies.py`` (combined with ``+`` into Prefect's
+``CompoundCachePolicy``):
 
-* the stage name (``preprocess``, ``segment-tumor``, ...);
-* a digest of the stage's code: the source text of the core modules it
-  calls and of the task module itself, plus :data:`STORE_FORMAT_VERSION`;
-* the stage's inputs: artifact references contribute their content digest
-  only (which covers dtype, shape, spacing and affine), pydantic configs
-  their canonical JSON, plain values themselves. Inputs listed in
+* :class:`StageCode` -- the stage name, :data:`ARTIFACT_FORMAT_VERSION` and
+  the source text of every project module the stage's adapter imports,
+  directly or transitively (:func:`module_closure`, an AST walk over
+  ``tumor3d/``, ``storage/`` and ``tasks/``, computed once per process);
+* :class:`StageConfig` -- the canonical JSON of the stage's configuration
+  (the ``config`` parameter, a pydantic model);
+* :class:`InputArtifacts` -- every other input: artifact references by their
+  content digest only (which covers dtype, shape, spacing and affine),
+  pydantic models by their fields, plain values as they are. Parameters in
   :data:`IGNORED_INPUTS` (the store location) do not count.
 
 The flow run id is *not* part of the key, so a result computed by any earlier
-run is reused. Prefect's default policy would key on the run id and its
-``TASK_SOURCE`` ignores the core functions a task calls; see
-``prefect/cache_policies.py``.
+run is reused; Prefect's default policy would key on the run id, and its
+``TASK_SOURCE`` ignores the core functions a task calls.
+
+The sources of the artifact store's own codecs (``storage/store.py``,
+``storage/formats.py``, :data:`FORMAT_MODULES`) are not hashed: the on-disk
+form of artifacts is covered by :data:`ARTIFACT_FORMAT_VERSION`, bumped by
+hand when it changes. The modules they import are walked and hashed as any
+other (``storage/nifti.py``, ``tumor3d/scan.py``, ...).
 """
 
 from __future__ import annotations
 
+import ast
 import hashlib
-import importlib.util
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -31,37 +41,149 @@ from pydantic import BaseModel
 from storage.store import ArtifactRef, canonical_dumps
 
 __all__ = [
+    "ARTIFACT_FORMAT_VERSION",
+    "FORMAT_MODULES",
     "IGNORED_INPUTS",
-    "STORE_FORMAT_VERSION",
-    "StageCachePolicy",
+    "PROJECT_PACKAGES",
+    "PROJECT_ROOT",
+    "InputArtifacts",
+    "StageCode",
+    "StageConfig",
     "code_digest",
     "fingerprint",
-    "stage_cache_key",
+    "module_closure",
+    "stage_cache_policy",
 ]
 
-#: Bump when the on-disk form of artifacts changes incompatibly.
-STORE_FORMAT_VERSION = "1"
+#: Bump when the on-disk form of any artifact (NIfTI/PLY/parquet/PNG/JSON
+#: encoding, metadata layout, digest rule) changes incompatibly.
+ARTIFACT_FORMAT_VERSION = "1"
 
 #: Task parameters that locate things but do not change the result.
 IGNORED_INPUTS = frozenset({"store_root"})
 
+#: Top-level packages whose modules enter code digests.
+PROJECT_PACKAGES = ("tumor3d", "storage", "tasks")
+
+#: The store's codecs: covered by :data:`ARTIFACT_FORMAT_VERSION`, their source not hashed.
+FORMAT_MODULES = frozenset({"storage.store", "storage.formats"})
+
+#: The folder holding the project packages (this repository's root).
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _module_file(name: str, root: Path) -> Path | None:
+    """The source file of project module ``name`` under ``root``, if any."""
+    base = root.joinpath(*name.split("."))
+    if (base / "__init__.py").is_file():
+        return base / "__init__.py"
+    if base.with_suffix(".py").is_file():
+        return base.with_suffix(".py")
+    return None
+
+
+def _with_parents(name: str) -> list[str]:
+    """``a.b.c`` -> ``[a, a.b, a.b.c]``: importing a module runs its packages."""
+    parts = name.split(".")
+    return [".".join(parts[: i + 1]) for i in range(len(parts))]
+
+
+def _imports_of(name: str, path: Path, root: Path) -> set[str]:
+    """Project modules named by the import statements of one module (any depth)."""
+    return set(_parse_imports(name, str(path), str(root), path.read_bytes()))
+
 
 @cache
-def code_digest(modules: tuple[str, ...]) -> str:
-    """SHA-256 of the source files of ``modules`` (dotted names), in order.
+def _parse_imports(name: str, path_str: str, root_str: str, source: bytes) -> frozenset[str]:
+    path, root = Path(path_str), Path(root_str)
+    tree = ast.parse(source, filename=path_str)
+    is_package = path.name == "__init__.py"
+    package = name if is_package else name.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                anchor = package.split(".") if package else []
+                anchor = anchor[: len(anchor) - (node.level - 1)] if node.level > 1 else anchor
+                base = ".".join([*anchor, *([node.module] if node.module else [])])
+            else:
+                base = node.module or ""
+            found.add(base)
+            # ``from pkg import mod`` imports the submodule ``pkg.mod``
+            for alias in node.names:
+                if _module_file(f"{base}.{alias.name}", root) is not None:
+                    found.add(f"{base}.{alias.name}")
+    out: set[str] = set()
+    for mod in found:
+        if mod.split(".")[0] in PROJECT_PACKAGES:
+            out.update(m for m in _with_parents(mod) if _module_file(m, root) is not None)
+    return frozenset(out)
+
+
+@cache
+def module_closure(roots: tuple[str, ...], root: str | None = None) -> tuple[str, ...]:
+    """All project modules that importing ``roots`` executes, sorted.
+
+    An AST walk over the import statements (top level and inside functions)
+    of the project packages :data:`PROJECT_PACKAGES`; third-party imports are
+    ignored. Cached: computed once per process.
 
     Parameters
     ----------
-    modules : tuple of str
-        Importable module names, e.g. ``("tumor3d.segment", "tasks.stages")``.
+    roots : tuple of str
+        Dotted module names, e.g. ``("tasks.surface",)``.
+    root : str, optional
+        Folder holding the packages; default :data:`PROJECT_ROOT` (a test may
+        point it at a temporary copy).
+
+    Returns
+    -------
+    tuple of str
+        Dotted module names, the roots and their parent packages included.
+
+    Raises
+    ------
+    ValueError
+        If a root module has no source file under ``root``.
     """
-    h = hashlib.sha256(f"format={STORE_FORMAT_VERSION}\0".encode())
-    for name in modules:
-        spec = importlib.util.find_spec(name)
-        if spec is None or spec.origin is None:
-            raise ValueError(f"cannot locate the source of module {name!r}")
+    base = Path(root) if root is not None else PROJECT_ROOT
+    seen: set[str] = set()
+    todo: list[str] = []
+    for name in roots:
+        if _module_file(name, base) is None:
+            raise ValueError(f"cannot locate the source of module {name!r} under {base}")
+        todo.extend(_with_parents(name))
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        path = _module_file(name, base)
+        if path is None:
+            continue
+        seen.add(name)
+        todo.extend(_imports_of(name, path, base) - seen)
+    return tuple(sorted(seen))
+
+
+@cache
+def code_digest(roots: tuple[str, ...], root: str | None = None) -> str:
+    """SHA-256 of :data:`ARTIFACT_FORMAT_VERSION` and the sources of the closure of ``roots``.
+
+    Store codecs in :data:`FORMAT_MODULES` contribute only through the format
+    version. Cached: computed once per process.
+    """
+    base = Path(root) if root is not None else PROJECT_ROOT
+    h = hashlib.sha256(f"artifact-format={ARTIFACT_FORMAT_VERSION}\0".encode())
+    for name in module_closure(roots, root):
+        if name in FORMAT_MODULES:
+            continue
+        path = _module_file(name, base)
+        assert path is not None  # the closure holds only located modules
         h.update(name.encode() + b"\0")
-        h.update(Path(spec.origin).read_bytes())
+        h.update(path.read_bytes())
+        h.update(b"\0")
     return h.hexdigest()
 
 
@@ -69,10 +191,15 @@ def fingerprint(value: Any) -> Any:
     """The JSON-able identity of a task input, as it enters a cache key.
 
     Artifact references are reduced to their content digest; pydantic models
-    to their JSON dump (``ArtifactRef`` fields nested in them included);
+    to their fields (``ArtifactRef`` fields nested in them included);
     mappings and sequences recursively. A model may list fields that do not
     identify its content (such as a file location) in a ``__cache_exclude__``
     class attribute.
+
+    Raises
+    ------
+    TypeError
+        For any other type (arrays must never enter a key).
     """
     if isinstance(value, ArtifactRef):
         return {"artifact": value.digest}
@@ -95,29 +222,70 @@ def fingerprint(value: Any) -> Any:
     raise TypeError(f"cannot fingerprint a task input of type {type(value).__name__}")
 
 
-def stage_cache_key(stage: str, modules: tuple[str, ...], inputs: dict[str, Any]) -> str:
-    """The cache key of one stage run (see the module docstring)."""
-    document = {
-        "stage": stage,
-        "code": code_digest(modules),
-        "inputs": {k: fingerprint(v) for k, v in sorted(inputs.items()) if k not in IGNORED_INPUTS},
-    }
-    return f"{stage}-{hashlib.sha256(canonical_dumps(document).encode()).hexdigest()}"
+def _sha(document: Any) -> str:
+    return hashlib.sha256(canonical_dumps(document).encode()).hexdigest()
 
 
 @dataclass
-class StageCachePolicy(CachePolicy):
-    """Prefect cache policy that delegates to :func:`stage_cache_key`."""
+class StageCode(CachePolicy):
+    """Key part: stage name, artifact format version and the stage's code closure.
+
+    Parameters
+    ----------
+    stage : str
+        Stage name.
+    modules : tuple of str
+        Root modules of the closure (the stage's adapter module).
+    root : str, optional
+        Source folder (tests only); default :data:`PROJECT_ROOT`.
+    """
 
     stage: str = ""
     modules: tuple[str, ...] = field(default_factory=tuple)
+    root: str | None = None
 
     def compute_key(
-        self,
-        task_ctx: Any,
-        inputs: dict[str, Any],
-        flow_parameters: dict[str, Any],
-        **kwargs: Any,
+        self, task_ctx: Any, inputs: dict[str, Any], flow_parameters: dict[str, Any], **kw: Any
     ) -> str | None:
-        """Return the stage's content-derived key."""
-        return stage_cache_key(self.stage, self.modules, inputs)
+        """Digest of the stage's name and code."""
+        return _sha({"stage": self.stage, "code": code_digest(self.modules, self.root)})
+
+
+@dataclass
+class StageConfig(CachePolicy):
+    """Key part: the stage's configuration model (input ``config``), if it has one."""
+
+    parameter: str = "config"
+
+    def compute_key(
+        self, task_ctx: Any, inputs: dict[str, Any], flow_parameters: dict[str, Any], **kw: Any
+    ) -> str | None:
+        """Digest of the configuration's fields; None when the stage takes none."""
+        if self.parameter not in inputs:
+            return None
+        return _sha({"config": fingerprint(inputs[self.parameter])})
+
+
+@dataclass
+class InputArtifacts(CachePolicy):
+    """Key part: every input except the configuration and :data:`IGNORED_INPUTS`."""
+
+    exclude: frozenset[str] = frozenset({"config"}) | IGNORED_INPUTS
+
+    def compute_key(
+        self, task_ctx: Any, inputs: dict[str, Any], flow_parameters: dict[str, Any], **kw: Any
+    ) -> str | None:
+        """Digest of the input references and values."""
+        kept = {k: fingerprint(v) for k, v in sorted(inputs.items()) if k not in self.exclude}
+        return _sha({"inputs": kept})
+
+
+def stage_cache_policy(
+    stage: str, modules: tuple[str, ...], *, root: str | None = None
+) -> CachePolicy:
+    """The cache policy of one stage: code + configuration + input artifacts.
+
+    The single place where a stage's key is defined; a key is
+    ``policy.compute_key(None, inputs, {})``.
+    """
+    return StageCode(stage=stage, modules=modules, root=root) + StageConfig() + InputArtifacts()

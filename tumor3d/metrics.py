@@ -6,7 +6,9 @@
 * :func:`volume_voxel_mm3` -- voxel counting on any grid;
 * :func:`voxel_volume_mm3` -- the volume of one voxel of an affine;
 * :func:`relative_error_percent` -- Eq. 9, ``|est - truth| / truth * 100``;
-* :func:`mm3_to_ml` -- unit conversion.
+* :func:`mm3_to_ml` -- unit conversion;
+* :func:`measure_volumes` -- the measure stage: every volume of one patient,
+  with the rule of which slices Eq. 7 sums (:data:`EQ7_SLICE_RULES`).
 
 Mesh volume and area are in :mod:`tumor3d.surface`.
 """
@@ -14,12 +16,19 @@ Mesh volume and area are in :mod:`tumor3d.surface`.
 from __future__ import annotations
 
 import math
+from dataclasses import asdict, dataclass
+from typing import Any, Literal
 
 import numpy as np
 
 from tumor3d.errors import InputError
+from tumor3d.mesh import Mesh
+from tumor3d.surface import mesh_volume_mm3
 
 __all__ = [
+    "EQ7_SLICE_RULES",
+    "VolumeMeasurement",
+    "measure_volumes",
     "mm3_to_ml",
     "relative_error_percent",
     "volume_eq7_mm3",
@@ -218,3 +227,160 @@ def mm3_to_ml(volume_mm3: float) -> float:
     2.5
     """
     return _finite(volume_mm3, "volume_mm3") / 1000.0
+
+
+#: Which acquired slices Eq. 7 sums, by rule name.
+EQ7_SLICE_RULES: dict[str, str] = {
+    "segmented": (
+        "every acquired slice with segmented tumour: the slices detection flagged "
+        "abnormal plus the tumour's end slices that segmentation found beyond them"
+    ),
+    "abnormal": "only the slices detection flagged abnormal (the paper read literally)",
+}
+
+Eq7SliceRule = Literal["segmented", "abnormal"]
+
+
+@dataclass(frozen=True)
+class VolumeMeasurement:
+    """Every volume estimate of one patient (spec section 8).
+
+    Attributes
+    ----------
+    volume_eq7_mm3 : float
+        Eq. 7 over the slices selected by ``eq7_slice_rule``.
+    volume_voxel_mm3 : float
+        Voxels of the interpolated 3-D mask times the voxel volume.
+    volume_mesh_mm3, volume_mesh_simplified_mm3 : float
+        Volume enclosed by the marching-cubes and the simplified mesh (0 when
+        there is no mesh).
+    n_slices : int
+        Acquired slices.
+    n_abnormal_slices : int
+        Slices detection flagged abnormal.
+    n_tumor_slices : int
+        Acquired slices with at least one segmented tumour pixel.
+    n_eq7_slices : int
+        Slices Eq. 7 summed.
+    eq7_slice_rule : str
+        A key of :data:`EQ7_SLICE_RULES`.
+    slab_height_mm : float
+        Slice thickness + gap (mm).
+    pixel_area_mm2 : float
+        ``dx * dy`` (mm^2).
+    """
+
+    volume_eq7_mm3: float
+    volume_voxel_mm3: float
+    volume_mesh_mm3: float
+    volume_mesh_simplified_mm3: float
+    n_slices: int
+    n_abnormal_slices: int
+    n_tumor_slices: int
+    n_eq7_slices: int
+    eq7_slice_rule: str
+    slab_height_mm: float
+    pixel_area_mm2: float
+
+    def to_row(self) -> dict[str, Any]:
+        """A flat record: every field, plus each ``*_mm3`` volume again in mL (``*_ml``)."""
+        row: dict[str, Any] = {}
+        for key, value in asdict(self).items():
+            row[key] = value
+            if key.startswith("volume_"):
+                row[key.replace("_mm3", "_ml")] = mm3_to_ml(value)
+        return row
+
+
+def measure_volumes(
+    tumor_pixels: np.ndarray,
+    abnormal: np.ndarray,
+    fine_mask: np.ndarray,
+    fine_affine: np.ndarray,
+    *,
+    pixel_area_mm2: float,
+    slab_height_mm: float,
+    mesh: Mesh | None = None,
+    mesh_simplified: Mesh | None = None,
+    eq7_slices: Eq7SliceRule = "segmented",
+) -> VolumeMeasurement:
+    r"""Every volume of one patient: Eq. 7, voxel count and mesh volumes.
+
+    Eq. 7 (:func:`volume_eq7_mm3`) sums ``N_i`` over the slices chosen by
+    ``eq7_slices``:
+
+    * ``"segmented"`` (default): :math:`\{i : a_i \lor N_i > 0\}`, the slices
+      flagged abnormal and those where segmentation found the tumour's tip
+      beyond them (a slice holding tumour is abnormal by definition);
+    * ``"abnormal"``: :math:`\{i : a_i\}`, the flags alone (the paper's text).
+
+    Parameters
+    ----------
+    tumor_pixels : (n_slices,) array_like of int
+        Tumour pixels ``N_i`` per acquired slice.
+    abnormal : (n_slices,) array_like of bool
+        Detection's abnormal flags ``a_i``.
+    fine_mask : (z, y, x) ndarray of bool
+        The interpolated 3-D mask.
+    fine_affine : (4, 4) ndarray
+        Its affine (``(x, y, z, 1)`` -> RAS mm).
+    pixel_area_mm2 : float
+        ``dx * dy`` of the acquired slices, > 0.
+    slab_height_mm : float
+        Thickness + gap, > 0.
+    mesh, mesh_simplified : Mesh, optional
+        Closed surfaces; an absent or empty mesh has volume 0.
+    eq7_slices : {"segmented", "abnormal"}
+        The Eq. 7 slice rule (see above and :data:`EQ7_SLICE_RULES`).
+
+    Returns
+    -------
+    VolumeMeasurement
+
+    Raises
+    ------
+    InputError
+        On an unknown rule or invalid counts, flags or geometry.
+
+    Examples
+    --------
+    >>> m = measure_volumes([0, 4, 2], [False, True, False], np.zeros((1, 1, 1), bool),
+    ...                     np.eye(4), pixel_area_mm2=1.0, slab_height_mm=5.0)
+    >>> m.volume_eq7_mm3, m.n_eq7_slices
+    (30.0, 2)
+    """
+    if eq7_slices not in EQ7_SLICE_RULES:
+        raise InputError(
+            f"eq7_slices must be one of {', '.join(EQ7_SLICE_RULES)}, got {eq7_slices!r}"
+        )
+    counts = np.asarray(tumor_pixels)
+    flags = np.asarray(abnormal)
+    if flags.dtype != np.bool_:
+        raise InputError(f"abnormal must be a boolean array, got dtype {flags.dtype}")
+    if flags.shape != counts.shape:
+        raise InputError(
+            f"abnormal must have the shape of tumor_pixels {counts.shape}, got {flags.shape}"
+        )
+    summed = flags | (counts > 0) if eq7_slices == "segmented" else flags
+    eq7 = volume_eq7_mm3(
+        counts, summed, pixel_area_mm2=pixel_area_mm2, slab_height_mm=slab_height_mm
+    )
+    voxel = volume_voxel_mm3(fine_mask, voxel_volume_mm3=voxel_volume_mm3(fine_affine))
+    mesh_volumes = []
+    for m in (mesh, mesh_simplified):
+        if m is not None and not isinstance(m, Mesh):
+            raise TypeError(f"mesh must be a tumor3d.mesh.Mesh or None, got {type(m).__name__}")
+        mesh_volumes.append(0.0 if m is None or m.is_empty else float(mesh_volume_mm3(m)))
+    return VolumeMeasurement(
+        volume_eq7_mm3=float(eq7),
+        volume_voxel_mm3=float(voxel),
+        volume_mesh_mm3=mesh_volumes[0],
+        volume_mesh_simplified_mm3=mesh_volumes[1],
+        n_slices=int(counts.size),
+        n_abnormal_slices=int(np.count_nonzero(flags)),
+        n_tumor_slices=int(np.count_nonzero(counts)),
+        n_eq7_slices=int(np.count_nonzero(summed)),
+        eq7_slice_rule=eq7_slices,
+        slab_height_mm=float(slab_height_mm),
+        pixel_area_mm2=float(pixel_area_mm2),
+    )

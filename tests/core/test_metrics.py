@@ -151,3 +151,70 @@ def test_mm3_to_ml():
     assert mm3_to_ml(0.0) == 0.0
     with pytest.raises(InputError, match="volume_mm3 must be finite"):
         mm3_to_ml(float("inf"))
+
+
+# -- measure_volumes: the measure stage's rules -------------------------------
+
+
+def _cube_mesh(side: float):
+    """A closed, outward cube of edge ``side`` mm (volume side**3)."""
+    from tumor3d.mesh import Mesh
+
+    v = np.array([[x, y, z] for x in (0, side) for y in (0, side) for z in (0, side)], float)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    faces = [f for a, b, c, d in quads for f in ((a, b, c), (a, c, d))]
+    return Mesh(v, np.array(faces))
+
+
+def test_measure_volumes_slice_rules():
+    from tumor3d.metrics import measure_volumes
+
+    counts = np.array([3, 10, 20, 4, 0])
+    flags = np.array([False, True, True, False, True])
+    fine = np.zeros((4, 2, 2), bool)
+    fine[1:3, :, :1] = True  # 4 voxels
+    kw = dict(pixel_area_mm2=0.5, slab_height_mm=5.0)
+    seg = measure_volumes(counts, flags, fine, np.diag([1.0, 1.0, 2.0, 1.0]), **kw)
+    lit = measure_volumes(
+        counts, flags, fine, np.diag([1.0, 1.0, 2.0, 1.0]), eq7_slices="abnormal", **kw
+    )
+    # independent: the segmented rule counts every tumour pixel, the literal only flagged ones
+    assert seg.volume_eq7_mm3 == pytest.approx(5.0 * 0.5 * (3 + 10 + 20 + 4))
+    assert lit.volume_eq7_mm3 == pytest.approx(5.0 * 0.5 * (10 + 20))
+    assert (seg.n_eq7_slices, lit.n_eq7_slices) == (5, 3)
+    assert (seg.n_abnormal_slices, seg.n_tumor_slices, seg.n_slices) == (3, 4, 5)
+    assert seg.volume_voxel_mm3 == pytest.approx(4 * 2.0)
+    assert seg.volume_mesh_mm3 == seg.volume_mesh_simplified_mm3 == 0.0
+    row = seg.to_row()
+    assert row["volume_eq7_ml"] == pytest.approx(row["volume_eq7_mm3"] / 1000)
+    assert row["eq7_slice_rule"] == "segmented"
+
+
+def test_measure_volumes_meshes_and_validation():
+    from tumor3d.metrics import measure_volumes
+    from tumor3d.pipeline import empty_mesh
+
+    one = np.zeros((1, 1, 1), bool)
+    m = measure_volumes([0], [False], one, np.eye(4), pixel_area_mm2=1.0, slab_height_mm=1.0,
+                        mesh=_cube_mesh(3.0), mesh_simplified=empty_mesh())  # fmt: skip
+    assert m.volume_mesh_mm3 == pytest.approx(27.0)
+    assert m.volume_mesh_simplified_mm3 == 0.0
+    with pytest.raises(InputError, match="eq7_slices"):
+        measure_volumes([0], [False], one, np.eye(4), pixel_area_mm2=1.0, slab_height_mm=1.0,
+                        eq7_slices="all")  # fmt: skip
+    with pytest.raises(InputError, match="boolean"):
+        measure_volumes([0], [0], one, np.eye(4), pixel_area_mm2=1.0, slab_height_mm=1.0)
+    with pytest.raises(TypeError, match="Mesh"):
+        measure_volumes([0], [False], one, np.eye(4), pixel_area_mm2=1.0, slab_height_mm=1.0,
+                        mesh="tumor.ply")  # fmt: skip
+
+
+def test_tumour_surface_empty_mask_gives_empty_mesh_and_closed_check():
+    from tumor3d.pipeline import is_closed_surface, tumour_surface
+
+    empty = tumour_surface(np.zeros((3, 4, 4), bool), np.eye(4))
+    assert empty.is_empty and not is_closed_surface(empty)
+    mask = np.zeros((5, 6, 6), bool)
+    mask[1:4, 2:5, 2:5] = True
+    mesh = tumour_surface(mask, np.eye(4))
+    assert not mesh.is_empty and is_closed_surface(mesh)

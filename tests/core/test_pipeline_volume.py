@@ -1,10 +1,11 @@
 """Volume accuracy of the whole core chain on the project phantom (no Prefect).
 
-The chain is called exactly as the task layer (``tasks/stages.py``) calls it
-with ``PipelineConfig()`` defaults: preprocess, detect, segment, interpolate
-(automatic slice count, tapered end caps), marching cubes, and Eq. 7 over the
-abnormal slices plus the slices where segmentation found the tumour's tip.
-The truth is the phantom's exact ``true_volume_mm3``.
+The chain calls the same core entry points as the stage adapters
+(``tasks/<stage>.py``) with ``PipelineConfig()`` defaults: preprocess, detect,
+segment, interpolate (automatic slice count resolved by the core, tapered end
+caps), the tumour surface, and :func:`tumor3d.metrics.measure_volumes` (the
+Eq. 7 slice rule lives there, not here). The truth is the phantom's exact
+``true_volume_mm3``.
 """
 
 from __future__ import annotations
@@ -16,13 +17,14 @@ import pytest
 
 from tumor3d.config import PipelineConfig
 from tumor3d.detect import SliceDetection, detect_abnormal_slices
-from tumor3d.interpolate import InterpolatedStack, interpolate_stack, slices_between_auto
+from tumor3d.interpolate import InterpolatedStack, interpolate_stack
 from tumor3d.mesh import Mesh
-from tumor3d.metrics import volume_eq7_mm3, volume_voxel_mm3, voxel_volume_mm3
+from tumor3d.metrics import VolumeMeasurement, measure_volumes
 from tumor3d.phantom import PhantomPatient, make_phantom_patient
+from tumor3d.pipeline import tumour_surface
 from tumor3d.preprocess import preprocess_volume
 from tumor3d.segment import SegmentationResult, segment_tumor
-from tumor3d.surface import extract_surface, is_watertight, mesh_volume_mm3
+from tumor3d.surface import is_watertight, mesh_volume_mm3
 
 TUMOUR_SEEDS = [0, 1, 2, 3, 4]
 TUMOUR_FREE_SEEDS = [0, 1]
@@ -45,27 +47,27 @@ def _run_chain(patient: PhantomPatient, cfg: PipelineConfig) -> ChainRun:
     seg = segment_tumor(
         pre.enhanced, pre.brain_mask, det, modality=scan.modality, **cfg.segment.model_dump()
     )
-    m = cfg.interpolate.slices_between
-    if m is None:
-        m = slices_between_auto(scan.slice_step_mm, scan.pixel_spacing_mm)
     stack = interpolate_stack(
         seg.tumor_mask,
-        method=cfg.interpolate.method,
-        slices_between=m,
-        end_caps=cfg.interpolate.end_caps,
+        **cfg.interpolate.model_dump(),
+        slice_step_mm=scan.slice_step_mm,
+        pixel_spacing_mm=scan.pixel_spacing_mm,
     )
     return ChainRun(patient, det, seg, stack, stack.fine_affine(scan.affine))
 
 
-def _eq7_mm3(run: ChainRun) -> float:
-    """Eq. 7 as the measure task computes it (tips found by segmentation count)."""
+def _measure(run: ChainRun, mesh: Mesh | None = None) -> VolumeMeasurement:
+    """The measure stage's core call."""
     scan = run.patient.scan
-    pixels = run.segmentation.tumor_pixels
-    return volume_eq7_mm3(
-        pixels,
-        run.detection.abnormal | (pixels > 0),
+    return measure_volumes(
+        run.segmentation.tumor_pixels,
+        run.detection.abnormal,
+        run.stack.mask,
+        run.fine_affine,
         pixel_area_mm2=scan.pixel_area_mm2,
         slab_height_mm=scan.slab_height_mm,
+        mesh=mesh,
+        mesh_simplified=mesh,
     )
 
 
@@ -78,7 +80,7 @@ def tumour_run(request) -> tuple[ChainRun, Mesh]:
     """One phantom and one chain run per seed for the whole module."""
     cfg = PipelineConfig()
     run = _run_chain(make_phantom_patient(request.param), cfg)
-    mesh = extract_surface(run.stack.mask, run.fine_affine, **cfg.surface.model_dump())
+    mesh = tumour_surface(run.stack.mask, run.fine_affine, **cfg.surface.model_dump())
     return run, mesh
 
 
@@ -86,13 +88,15 @@ def test_eq7_volume_within_10_percent(tumour_run):
     run, _ = tumour_run
     truth = run.patient.true_volume_mm3
     assert truth > 0
-    err = _error_percent(_eq7_mm3(run), truth)
+    err = _error_percent(_measure(run).volume_eq7_mm3, truth)
     assert abs(err) < 10.0, f"Eq. 7 volume error {err:+.2f} %"
 
 
 def test_mesh_volume_within_10_percent(tumour_run):
     run, mesh = tumour_run
-    err = _error_percent(mesh_volume_mm3(mesh), run.patient.true_volume_mm3)
+    measured = _measure(run, mesh)
+    assert measured.volume_mesh_mm3 == mesh_volume_mm3(mesh)
+    err = _error_percent(measured.volume_mesh_mm3, run.patient.true_volume_mm3)
     assert abs(err) < 10.0, f"mesh volume error {err:+.2f} %"
 
 
@@ -103,7 +107,7 @@ def test_mesh_is_watertight(tumour_run):
 
 def test_mesh_volume_agrees_with_voxel_volume(tumour_run):
     run, mesh = tumour_run
-    voxel = volume_voxel_mm3(run.stack.mask, voxel_volume_mm3=voxel_volume_mm3(run.fine_affine))
+    voxel = _measure(run).volume_voxel_mm3
     assert voxel > 0
     err = _error_percent(mesh_volume_mm3(mesh), voxel)
     assert abs(err) < 3.0, f"mesh vs voxel volume {err:+.2f} %"
@@ -127,4 +131,7 @@ def test_tumour_free_patient_gets_no_tumour_voxel(seed):
     run = _run_chain(patient, PipelineConfig())
     assert run.segmentation.tumor_pixels.tolist() == [0] * patient.scan.n_slices
     assert not run.stack.mask.any()
-    assert _eq7_mm3(run) == 0.0
+    mesh = tumour_surface(run.stack.mask, run.fine_affine)
+    assert mesh.is_empty
+    measured = _measure(run, mesh)
+    assert measured.volume_eq7_mm3 == measured.volume_voxel_mm3 == measured.volume_mesh_mm3 == 0.0

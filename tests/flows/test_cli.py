@@ -104,3 +104,34 @@ def test_phantom_command_rejects_more_normal_than_total(tmp_path):
     result = runner.invoke(app, ["phantom", "--out", str(tmp_path), "--n", "1", "--normal", "2"])
     assert result.exit_code == 2
     assert "--normal" in result.output
+
+
+def test_run_refuses_an_output_folder_that_holds_the_input(tmp_path):
+    """Issue 12: `--out O --patient-id pat1` with the input in O/pat1 must not delete it."""
+    rng = np.random.default_rng(1)
+    (tmp_path / "O" / "pat1").mkdir(parents=True)
+    image = _nifti(tmp_path / "O" / "pat1" / "t2.nii.gz", rng.random((12, 12, 4)) + 1)
+    result = runner.invoke(app, ["run", str(image), "--out", str(tmp_path / "O"),
+                                 "--patient-id", "pat1"])  # fmt: skip
+    assert result.exit_code == 2
+    assert "would delete the input" in result.output
+    assert image.is_file()
+
+
+def test_run_refuses_a_dicom_folder_replaced_by_its_own_output(tmp_path):
+    series = tmp_path / "D"
+    series.mkdir()
+    (series / "slice1.dcm").write_bytes(b"not really dicom")
+    # the patient id defaults to the folder name: OUT/D would be the input folder itself
+    result = runner.invoke(app, ["run", str(series), "--out", str(tmp_path)])
+    assert result.exit_code == 2
+    assert "would delete the input" in result.output
+    assert (series / "slice1.dcm").is_file()
+
+
+def test_user_strings_with_brackets_are_not_read_as_markup(tmp_path):
+    missing = tmp_path / "scan[/]x[bold]2.nii.gz"
+    result = runner.invoke(app, ["run", str(missing), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2
+    assert "scan[/]x[bold]2.nii.gz" in result.output
+    assert "MarkupError" not in result.output

@@ -125,6 +125,56 @@ def test_second_run_is_all_cache_hits(first_run, nifti_input):
         assert second.metrics[key] == first.metrics[key]
 
 
+def test_tampered_cached_result_is_detected_and_recomputed(first_run, nifti_input):
+    """A digit changed in the cached measure result is caught by its digest, not published."""
+    out, first = first_run
+    value = first.metrics["volume_eq7_mm3"]
+    needle = f'volume_eq7_mm3\\": {value!r}'
+    results = out / ".tumor3d-store" / "prefect-results"
+    hits = [f for f in results.iterdir() if f.is_file() and needle in f.read_text()]
+    assert hits, "the measure stage's cached result was not found"
+    for f in hits:
+        text = f.read_text()
+        first_digit = needle[-len(repr(value))]
+        tampered = needle[: -len(repr(value))] + str((int(first_digit) + 1) % 10) + repr(value)[1:]
+        f.write_text(text.replace(needle, tampered))
+    again = run_patient(nifti_input, out, patient_id="flowpat")
+    measure = again.stages[-1]
+    assert measure.stage == "measure-volume" and not measure.cached
+    assert "digest" in measure.repaired
+    assert all(again.cache_hits[:-1])
+    for key in VOLUME_METHODS:
+        assert again.metrics[key] == first.metrics[key]
+    published = pd.read_parquet(out / "flowpat" / "metrics.parquet").iloc[0]
+    assert published["volume_eq7_mm3"] == value
+    prov = json.loads((out / "flowpat" / "provenance.json").read_text())
+    assert "digest" in prov["stages"][-1]["repaired"]
+    # the repair rewrote the cached result: the next run is all hits again
+    assert all(run_patient(nifti_input, out, patient_id="flowpat").cache_hits)
+
+
+def test_output_folder_holding_the_input_is_refused(tmp_path, phantom):
+    image = write_phantom_patient(phantom, tmp_path / "O" / "pat1").image
+    with pytest.raises(InputError, match="would delete the input"):
+        run_patient(image, tmp_path / "O", patient_id="pat1")
+    assert image.is_file()
+    assert sorted(p.name for p in (tmp_path / "O").iterdir()) == ["pat1"]
+
+
+def test_tumour_free_patient_writes_no_empty_mesh_and_says_so(tmp_path):
+    patient = make_phantom_patient(1, tumor=False, patient_id="clear1", n_slices=16)
+    image = write_phantom_patient(patient, tmp_path / "in").image
+    result = run_patient(image, tmp_path / "out", patient_id="clear1")
+    folder = tmp_path / "out" / "clear1"
+    assert not list(folder.glob("*.ply")) and not list(folder.glob("*.png"))
+    assert (folder / "tumor_mask.nii.gz").is_file()
+    metrics = pd.read_parquet(folder / "metrics.parquet").iloc[0]
+    assert metrics["volume_eq7_mm3"] == 0.0 and not metrics["tumour_found"]
+    assert "no tumour found" in metrics["notes"]
+    assert "no tumour found" in json.loads((folder / "provenance.json").read_text())["notes"][0]
+    assert result.notes and "no tumour found" in result.notes[0]
+
+
 @pytest.mark.parametrize(
     ("config", "first_changed"),
     [

@@ -1,0 +1,285 @@
+"""Cohort flow: the single-patient pipeline for every manifest row, N patients at a time.
+
+Wiring only. :func:`cohort_flow` runs :func:`flows.patient.patient_pipeline`
+for each row in a pool of ``workers`` lanes; each lane submits its stages to
+the flow's task runner (threads, ``workers`` wide), so N patients compute at
+once and a different task runner (Dask) can be given to the flow with
+``cohort_flow.with_options(task_runner=...)`` without touching the stages.
+
+Failure isolation: a patient that fails (unreadable image, no brain found,
+any exception) is recorded with its status, the failing stage and a one-line
+error; the others finish and are published. Nothing is half-written under any
+patient's final folder (:mod:`storage.publish`). ``DIR/cohort.parquet`` and
+``DIR/cohort.md`` summarise the cohort (:mod:`storage.cohort_report`).
+"""
+
+from __future__ import annotations
+
+import contextvars
+import dataclasses
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from prefect import flow, get_run_logger, tags
+from prefect.task_runners import ThreadPoolTaskRunner
+from pydantic import BaseModel, ConfigDict, Field
+
+from flows.patient import (
+    VOLUME_LABELS,
+    config_digest,
+    patient_pipeline,
+    prepare_source,
+)
+from storage.cohort_report import cohort_markdown, cohort_table, write_cohort_outputs
+from storage.manifest import ManifestRow, read_manifest
+from storage.publish import check_output_not_input
+from storage.store import ArtifactStore
+from tasks import stages
+from tasks.progress import ProgressEvent, report
+from tasks.runner import StageRun
+from tumor3d.config import PipelineConfig, parse_config
+from tumor3d.errors import InputError
+
+__all__ = [
+    "CohortResult",
+    "PatientOutcome",
+    "cohort_flow",
+    "default_workers",
+    "one_line_error",
+    "run_cohort",
+]
+
+#: Longest error message kept per patient (characters).
+_MAX_ERROR = 300
+
+
+class PatientOutcome(BaseModel):
+    """How one manifest row went.
+
+    Parameters
+    ----------
+    patient_id : str
+    status : {"ok", "failed"}
+    failed_stage : str or None
+        The stage that raised (``prepare-input`` before the first stage,
+        ``publish`` after the last).
+    error : str or None
+        One line: exception type and message.
+    output_dir : str or None
+        ``DIR/<patient_id>`` when ok.
+    metrics : dict
+        That patient's ``metrics.parquet`` row when ok, else empty.
+    stages : list of StageRun
+        The stages that completed.
+    row : dict
+        The manifest row as given (extra columns passed through).
+    """
+
+    model_config = ConfigDict(frozen=True)
+
+    patient_id: str
+    status: str
+    failed_stage: str | None = None
+    error: str | None = None
+    output_dir: str | None = None
+    metrics: dict[str, Any] = Field(default_factory=dict)
+    stages: list[StageRun] = Field(default_factory=list)
+    row: dict[str, Any] = Field(default_factory=dict)
+
+
+class CohortResult(BaseModel):
+    """What :func:`cohort_flow` returns."""
+
+    model_config = ConfigDict(frozen=True)
+
+    patients: list[PatientOutcome]
+    out_dir: str = ""
+    workers: int = 1
+    wall_seconds: float = 0.0
+
+    @property
+    def failed(self) -> list[PatientOutcome]:
+        """The patients that failed."""
+        return [p for p in self.patients if p.status != "ok"]
+
+    @property
+    def exit_code(self) -> int:
+        """0 when every patient succeeded, 1 when some failed."""
+        return 1 if self.failed else 0
+
+
+def default_workers() -> int:
+    """Patients at a time by default: the number of CPU cores."""
+    return max(1, os.cpu_count() or 1)
+
+
+def one_line_error(exc: BaseException) -> str:
+    """``Type: first line of the message``, at most 300 characters."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    line = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+    return line if len(line) <= _MAX_ERROR else line[: _MAX_ERROR - 3] + "..."
+
+
+def _row_dict(row: ManifestRow | dict[str, Any]) -> dict[str, Any]:
+    data = dataclasses.asdict(row) if dataclasses.is_dataclass(row) else dict(row)
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in data.items()}
+
+
+def _json_row(row: dict[str, Any]) -> dict[str, Any]:
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in row.items()}
+
+
+def _run_one(
+    row: dict[str, Any], out_dir: str, cfg: PipelineConfig, store: ArtifactStore
+) -> PatientOutcome:
+    """One lane: prepare, run every stage, publish; any failure becomes an outcome."""
+    pid = str(row.get("patient_id"))
+    names = list(stages.STAGES)
+    runs: list[StageRun] = []
+    prepared = False
+    try:
+        source = prepare_source(
+            row["image"], patient_id=pid, modality=row.get("modality") or "t2",
+            series_uid=row.get("series_uid"), slice_thickness_mm=row.get("slice_thickness_mm"),
+            slice_gap_mm=row.get("slice_gap_mm"), out_dir=out_dir,
+        )  # fmt: skip
+        prepared = True
+        result = patient_pipeline(source, out_dir, cfg, store, runs=runs)
+    except Exception as exc:  # failure isolation: record and let the others finish
+        done = len(runs)
+        if not prepared:
+            stage = "prepare-input"
+        else:
+            stage = names[done] if done < len(names) else "publish"
+        report(ProgressEvent(pid, stage, "failed", done, len(names)))
+        return PatientOutcome(
+            patient_id=pid, status="failed", failed_stage=stage, error=one_line_error(exc),
+            stages=list(runs), row=_json_row(row),
+        )  # fmt: skip
+    report(ProgressEvent(pid, "published", "published", len(names), len(names)))
+    return PatientOutcome(
+        patient_id=pid, status="ok", output_dir=result.output_dir, metrics=result.metrics,
+        stages=result.stages, row=_json_row(row),
+    )  # fmt: skip
+
+
+def _cohort_run_name() -> str:
+    from prefect.runtime import flow_run
+
+    params = flow_run.parameters
+    name = Path(str(params.get("out_dir", "cohort"))).name
+    return f"cohort-{name}-{len(params.get('rows') or [])}-patients"
+
+
+@flow(name="tumor3d-cohort", flow_run_name=_cohort_run_name, persist_result=False)
+def cohort_flow(
+    rows: list[dict[str, Any]],
+    out_dir: str,
+    config: dict[str, Any] | None = None,
+    workers: int = 1,
+    store_dir: str | None = None,
+) -> CohortResult:
+    """Run the single-patient pipeline for every row, ``workers`` patients at a time.
+
+    Parameters
+    ----------
+    rows : list of dict
+        Manifest rows (``patient_id``, ``image``, ``modality``, optional
+        ``slice_thickness_mm``, ``slice_gap_mm``, ``series_uid``; other keys
+        are passed through to the outcome).
+    out_dir : str
+        ``DIR``: patients under ``DIR/<patient_id>/``, plus ``cohort.parquet``
+        and ``cohort.md``.
+    config : dict, optional
+        Pipeline configuration for every patient.
+    workers : int
+        Patients at a time (>= 1).
+    store_dir : str, optional
+        Artifact store shared by all patients; default ``DIR/.tumor3d-store``.
+    """
+    t0 = time.perf_counter()
+    cfg = parse_config(config or {}, source="config")
+    store = ArtifactStore(store_dir or Path(out_dir) / ".tumor3d-store")
+    logger = get_run_logger()
+    logger.info("cohort of %d patients, %d workers, config %s", len(rows), workers,
+                config_digest(cfg)[:12])  # fmt: skip
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="tumor3d-lane") as pool:
+        futures = [
+            pool.submit(contextvars.copy_context().run, _run_one, row, out_dir, cfg, store)
+            for row in rows
+        ]
+        outcomes = [f.result() for f in futures]
+    wall = time.perf_counter() - t0
+    table = cohort_table([o.model_dump() for o in outcomes])
+    markdown = cohort_markdown(
+        table, volume_labels=VOLUME_LABELS, stage_names=list(stages.STAGES),
+        title=f"Cohort {Path(out_dir).name}", wall_seconds=wall, workers=workers,
+    )  # fmt: skip
+    write_cohort_outputs(out_dir, table, markdown)
+    for o in outcomes:
+        if o.status != "ok":
+            logger.warning("patient %s failed at %s: %s", o.patient_id, o.failed_stage, o.error)
+    return CohortResult(patients=outcomes, out_dir=str(out_dir), workers=workers, wall_seconds=wall)
+
+
+def _validate_rows(rows: list[dict[str, Any]], out_dir: Path) -> None:
+    seen: set[str] = set()
+    for i, row in enumerate(rows, start=1):
+        pid = row.get("patient_id")
+        if not pid or "image" not in row:
+            raise InputError(f"manifest row {i}: needs patient_id and image")
+        if pid in seen:
+            raise InputError(f"manifest row {i}: duplicate patient_id {pid!r}")
+        seen.add(pid)
+        # never publish over an input (checked for every row before any work)
+        check_output_not_input(out_dir / pid, [row["image"]])
+
+
+def run_cohort(
+    manifest: str | Path | list[ManifestRow],
+    out_dir: str | Path,
+    *,
+    config: dict[str, Any] | None = None,
+    workers: int | None = None,
+    store_dir: str | Path | None = None,
+) -> CohortResult:
+    """Run :func:`cohort_flow` on a manifest CSV or a list of rows.
+
+    Parameters
+    ----------
+    manifest : path or list of ManifestRow
+        Read with :func:`storage.manifest.read_manifest` when a path.
+    out_dir : path
+        ``DIR``.
+    config : dict, optional
+        Pipeline configuration (validated first).
+    workers : int, optional
+        Patients at a time; default :func:`default_workers`.
+    store_dir : path, optional
+        Shared artifact store; default ``DIR/.tumor3d-store``.
+
+    Raises
+    ------
+    InputError
+        An invalid manifest or configuration, or an output folder holding an
+        input (before any work).
+    """
+    rows_in = read_manifest(manifest) if isinstance(manifest, str | Path) else list(manifest)
+    rows = [_row_dict(r) for r in rows_in]
+    cfg = parse_config(config or {}, source="config")
+    n = default_workers() if workers is None else workers
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise InputError(f"workers must be an integer >= 1, got {workers!r}")
+    out = Path(out_dir)
+    _validate_rows(rows, out)
+    out.mkdir(parents=True, exist_ok=True)
+    flow_fn = cohort_flow.with_options(task_runner=ThreadPoolTaskRunner(max_workers=n))
+    with tags(f"config:{config_digest(cfg)[:12]}", "cohort"):
+        return flow_fn(
+            rows=[_json_row(r) for r in rows], out_dir=str(out),
+            config=cfg.model_dump(mode="json"), workers=n,
+            store_dir=None if store_dir is None else str(store_dir),
+        )  # fmt: skip

@@ -1,0 +1,115 @@
+"""The cohort's own outputs: ``cohort.parquet`` (one row per patient) and ``cohort.md``."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from storage.formats import encode_parquet
+from storage.store import atomic_write_bytes
+
+__all__ = ["cohort_markdown", "cohort_table", "write_cohort_outputs"]
+
+_FIRST = ("patient_id", "status", "failed_stage", "error", "output_dir")
+
+
+def cohort_table(outcomes: Sequence[Mapping[str, Any]]) -> pd.DataFrame:
+    """One row per patient: id, status, failing stage, error, then every metrics column.
+
+    Parameters
+    ----------
+    outcomes : sequence of mapping
+        Each with ``patient_id``, ``status``, ``failed_stage``, ``error``,
+        ``output_dir`` and ``metrics`` (that patient's ``metrics.parquet`` row,
+        empty when it failed).
+    """
+    rows = []
+    for o in outcomes:
+        row = {k: o.get(k) for k in _FIRST}
+        row.update({k: v for k, v in dict(o.get("metrics") or {}).items() if k != "patient_id"})
+        rows.append(row)
+    table = pd.DataFrame(rows, columns=None)
+    for col in _FIRST:
+        if col not in table.columns:
+            table[col] = None
+        table[col] = table[col].astype(object)
+    return table[[*_FIRST, *[c for c in table.columns if c not in _FIRST]]]
+
+
+def _fmt(value: Any, spec: str) -> str:
+    try:
+        return format(float(value), spec)
+    except (TypeError, ValueError):
+        return "-"
+
+
+def cohort_markdown(
+    table: pd.DataFrame,
+    *,
+    volume_labels: Mapping[str, str],
+    stage_names: Sequence[str],
+    title: str,
+    wall_seconds: float,
+    workers: int,
+) -> str:
+    """A Markdown summary: volumes (mm3 and mL) per method, failures, time per stage, cache hits."""
+    ok = table[table["status"] == "ok"]
+    failed = table[table["status"] != "ok"]
+    lines = [
+        f"# {title}",
+        "",
+        f"{len(table)} patients: {len(ok)} ok, {len(failed)} failed; wall time "
+        f"{wall_seconds:.1f} s with {workers} worker(s).",
+        "",
+        "## Volumes",
+        "",
+        "| patient | " + " | ".join(f"{volume_labels[k]} (mm3) | (mL)" for k in volume_labels)
+        + " | Eq. 7 slices | note |",
+        "|---|" + "---:|---:|" * len(volume_labels) + "---:|---|",
+    ]
+    for _, r in ok.iterrows():
+        cells = []
+        for k in volume_labels:
+            cells += [_fmt(r.get(k), ",.1f"), _fmt(r.get(k.replace("_mm3", "_ml")), ".3f")]
+        lines.append(
+            f"| {r['patient_id']} | " + " | ".join(cells)
+            + f" | {r.get('eq7_slice_rule', '-')} | {r.get('notes') or ''} |"
+        )
+    lines += ["", "## Failures", ""]
+    if failed.empty:
+        lines.append("None.")
+    else:
+        lines += ["| patient | failing stage | error |", "|---|---|---|"]
+        for _, r in failed.iterrows():
+            error = str(r["error"]).replace("|", "\\|")
+            lines.append(f"| {r['patient_id']} | {r['failed_stage']} | {error} |")
+    lines += [
+        "",
+        "## Stages",
+        "",
+        "Compute time of the stages that ran (cache hits keep the time of the run that "
+        "computed them), over the patients that succeeded.",
+        "",
+        "| stage | total compute (s) | mean (s) | cache hits |",
+        "|---|---:|---:|---:|",
+    ]
+    for stage in stage_names:
+        key = stage.replace("-", "_")
+        t, c = f"time_{key}_s", f"cached_{key}"
+        if t not in ok.columns:
+            continue
+        hits = int(ok[c].astype(bool).sum()) if c in ok.columns else 0
+        lines.append(
+            f"| {stage} | {ok[t].sum():.2f} | {ok[t].mean():.2f} | {hits}/{len(ok)} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_cohort_outputs(out_dir: str | Path, table: pd.DataFrame, markdown: str) -> None:
+    """Write ``cohort.parquet`` and ``cohort.md`` atomically into ``out_dir``."""
+    out = Path(out_dir)
+    atomic_write_bytes(out / "cohort.parquet", encode_parquet(table))
+    atomic_write_bytes(out / "cohort.md", markdown.encode())

@@ -1,0 +1,39 @@
+"""Adapter of the detect-abnormal stage (spec section 2)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from storage.store import ArtifactRef, ArtifactStore
+from tasks.spec import StageOutput, StageSpec, stage_task
+from tumor3d.config import DetectConfig
+from tumor3d.detect import detect_abnormal_slices
+
+__all__ = ["SPEC", "detect_task"]
+
+
+@stage_task("detect-abnormal")
+def detect_task(
+    enhanced: ArtifactRef, brain_mask: ArtifactRef, config: DetectConfig, store_root: str
+) -> StageOutput:
+    """Abnormal-slice detection by counting histogram modes."""
+    store = ArtifactStore(store_root)
+    image, _ = store.get_volume(enhanced)
+    brain, _ = store.get_volume(brain_mask)
+    detection = detect_abnormal_slices(image, brain, **config.model_dump())
+    abnormal = np.flatnonzero(detection.abnormal)
+    return StageOutput(
+        stage="detect-abnormal",
+        artifacts={"detection": store.put_table(detection.to_records())},
+        values={"n_abnormal_slices": int(abnormal.size), "abnormal_slices": abnormal.tolist()},
+    )
+
+
+SPEC = StageSpec(
+    name="detect-abnormal",
+    task=detect_task,
+    entry=detect_abnormal_slices,
+    config_model=DetectConfig,
+    inputs={"enhanced": "image", "brain_mask": "mask"},
+    outputs={"detection": "table"},
+)

@@ -1,0 +1,45 @@
+"""Adapter of the ingest-scan stage: the user's input -> a stored `Scan`."""
+
+from __future__ import annotations
+
+from storage.readers import read_scan
+from storage.store import ArtifactStore
+from tasks.spec import InputSource, StageOutput, StageSpec, stage_task
+
+__all__ = ["SPEC", "ingest_task"]
+
+
+@stage_task("ingest-scan")
+def ingest_task(source: InputSource, store_root: str) -> StageOutput:
+    """Read the user's input (NIfTI, DICOM series, image stack) into a stored `Scan`."""
+    scan = read_scan(
+        source.path,
+        modality=source.modality,
+        patient_id=source.patient_id,
+        series_uid=source.series_uid,
+        slice_thickness_mm=source.slice_thickness_mm,
+        slice_gap_mm=source.slice_gap_mm,
+    )
+    ref = ArtifactStore(store_root).put_scan(scan)
+    return StageOutput(
+        stage="ingest-scan",
+        artifacts={"scan": ref},
+        values={
+            "n_slices": scan.n_slices,
+            "shape_zyx": list(scan.shape),
+            "pixel_spacing_mm": list(scan.pixel_spacing_mm),
+            "slice_step_mm": scan.slice_step_mm,
+            "slice_thickness_mm": scan.slice_thickness_mm,
+            "slice_gap_mm": scan.slice_gap_mm,
+        },
+    )
+
+
+SPEC = StageSpec(
+    name="ingest-scan",
+    task=ingest_task,
+    entry=read_scan,
+    config_model=None,
+    inputs={"source": "source"},
+    outputs={"scan": "scan"},
+)

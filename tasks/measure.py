@@ -1,0 +1,62 @@
+"""Adapter of the measure-volume stage (spec section 8)."""
+
+from __future__ import annotations
+
+from storage.store import ArtifactRef, ArtifactStore
+from tasks.spec import StageOutput, StageSpec, stage_task
+from tumor3d.metrics import measure_volumes
+from tumor3d.scan import slab_height_mm
+
+__all__ = ["SPEC", "measure_task"]
+
+
+@stage_task("measure-volume")
+def measure_task(
+    scan: ArtifactRef,
+    detection: ArtifactRef,
+    segmentation: ArtifactRef,
+    tumor_mask: ArtifactRef,
+    mesh: ArtifactRef,
+    mesh_simplified: ArtifactRef,
+    store_root: str,
+) -> StageOutput:
+    """Tumour volume by Eq. 7, by voxel counting and enclosed by the meshes."""
+    store = ArtifactStore(store_root)
+    meta = scan.metadata
+    det = store.get_table(detection)
+    seg = store.get_table(segmentation)
+    fine, fine_affine = store.get_volume(tumor_mask)
+    dy, dx = meta["pixel_spacing_mm"]
+    measured = measure_volumes(
+        seg["tumor_pixels"].to_numpy(),
+        det["abnormal"].to_numpy(dtype=bool),
+        fine,
+        fine_affine,
+        pixel_area_mm2=dy * dx,
+        slab_height_mm=slab_height_mm(
+            meta["slice_step_mm"], meta["slice_thickness_mm"], meta["slice_gap_mm"]
+        ),
+        mesh=store.get_mesh(mesh),
+        mesh_simplified=store.get_mesh(mesh_simplified),
+    )
+    row = measured.to_row()
+    return StageOutput(
+        stage="measure-volume", artifacts={"volumes": store.put_table([row])}, values=row
+    )
+
+
+SPEC = StageSpec(
+    name="measure-volume",
+    task=measure_task,
+    entry=measure_volumes,
+    config_model=None,
+    inputs={
+        "scan": "scan",
+        "detection": "table",
+        "segmentation": "table",
+        "tumor_mask": "mask",
+        "mesh": "mesh",
+        "mesh_simplified": "mesh",
+    },
+    outputs={"volumes": "table"},
+)

@@ -1,0 +1,38 @@
+"""Adapter of the preprocess stage (spec section 1)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from storage.store import ArtifactRef, ArtifactStore
+from tasks.spec import StageOutput, StageSpec, stage_task
+from tumor3d.config import PreprocessConfig
+from tumor3d.preprocess import preprocess_volume
+
+__all__ = ["SPEC", "preprocess_task"]
+
+
+@stage_task("preprocess")
+def preprocess_task(scan: ArtifactRef, config: PreprocessConfig, store_root: str) -> StageOutput:
+    """Median, unsharp masking, equalisation and skull removal."""
+    store = ArtifactStore(store_root)
+    image, affine = store.get_volume(scan)
+    result = preprocess_volume(image, **config.model_dump())
+    return StageOutput(
+        stage="preprocess",
+        artifacts={
+            "enhanced": store.put_volume(result.enhanced, affine, dtype="uint8"),
+            "brain_mask": store.put_volume(result.brain_mask, affine, kind="mask"),
+        },
+        values={"brain_voxels": int(np.count_nonzero(result.brain_mask))},
+    )
+
+
+SPEC = StageSpec(
+    name="preprocess",
+    task=preprocess_task,
+    entry=preprocess_volume,
+    config_model=PreprocessConfig,
+    inputs={"scan": "scan"},
+    outputs={"enhanced": "image", "brain_mask": "mask"},
+)

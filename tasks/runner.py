@@ -1,0 +1,214 @@
+"""Runners: how a flow executes one stage.
+
+A runner's ``run(spec, **inputs)`` executes the stage declared by ``spec``
+and returns its :class:`~tasks.spec.StageOutput`; :attr:`runs` records how
+each went (:class:`StageRun`).
+
+* :class:`PrefectRunner` *submits* the stage's cached Prefect task to the
+  current flow's task runner (``task.submit``, a Prefect future), so the
+  flow's task runner decides where it executes (threads by default; a Dask
+  task runner can be plugged into the flow without changing any stage). It
+  keeps Prefect's results in the artifact store's ``prefect-results`` folder
+  and repairs cache hits that cannot be trusted: a cached result whose
+  artifacts are gone from the store, or whose own digest does not match its
+  content (edited on disk), is recomputed (``refresh_cache``) and the repair
+  recorded.
+* :class:`DirectRunner` calls the adapter function in-process without
+  Prefect (no caching): benchmarks' peer and in-process evaluation.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from storage.store import ArtifactStore
+from tasks.progress import ProgressEvent, report
+from tasks.spec import StageOutput, StageSpec
+
+__all__ = ["DirectRunner", "PrefectRunner", "StageRun", "result_storage_for"]
+
+_log = logging.getLogger("tumor3d.runner")
+
+
+class StageRun(BaseModel):
+    """How one stage went in this flow run.
+
+    Parameters
+    ----------
+    stage : str
+    cached : bool
+        The result came from the cache (and passed its checks).
+    wall_seconds : float
+        Time this run spent on the stage (submission to result).
+    compute_seconds : float
+        Time of the computation when it last actually ran.
+    artifacts : dict of str to str
+        Artifact name -> content digest.
+    repaired : str or None
+        Why a cache hit was rejected and the stage recomputed, if it was.
+    """
+
+    model_config = ConfigDict(frozen=True)
+
+    stage: str
+    cached: bool
+    wall_seconds: float
+    compute_seconds: float
+    artifacts: dict[str, str] = Field(default_factory=dict, description="name -> digest")
+    repaired: str | None = None
+
+
+def result_storage_for(store_root: str | Path) -> Path:
+    """Prefect result storage inside an artifact store: ``<store>/prefect-results``.
+
+    A path (Prefect makes it a local file system), so no storage block has to
+    be registered on the server.
+    """
+    path = Path(store_root).resolve() / "prefect-results"
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+class _Recorder:
+    """Bookkeeping shared by the runners."""
+
+    def __init__(self, patient_id: str, total: int, runs: list[StageRun] | None = None) -> None:
+        self.patient_id = patient_id
+        self.total = total
+        self.runs: list[StageRun] = runs if runs is not None else []
+        self.outputs: dict[str, StageOutput] = {}
+
+    def started(self, name: str) -> None:
+        report(ProgressEvent(self.patient_id, name, "started", len(self.runs), self.total))
+
+    def finished(
+        self, out: StageOutput, *, cached: bool, wall: float, repaired: str | None = None
+    ) -> StageOutput:
+        self.runs.append(
+            StageRun(
+                stage=out.stage,
+                cached=cached,
+                wall_seconds=wall,
+                compute_seconds=out.compute_seconds,
+                artifacts={k: r.digest for k, r in out.artifacts.items()},
+                repaired=repaired,
+            )
+        )
+        self.outputs[out.stage] = out
+        status = "cached" if cached else "done"
+        report(ProgressEvent(self.patient_id, out.stage, status, len(self.runs), self.total, wall))
+        return out
+
+
+_TASKS: dict[tuple[str, Path, bool, str], Any] = {}
+_TASKS_LOCK = threading.Lock()
+
+
+def _task_for(spec: StageSpec, result_storage: Path, refresh: bool, patient_id: str) -> Any:
+    """The stage's task with this store's result storage, its runs named after the patient.
+
+    Made once per process and key (``with_options`` builds a new task).
+    """
+    key = (spec.name, result_storage, refresh, patient_id)
+    with _TASKS_LOCK:
+        task = _TASKS.get(key)
+        if task is None or task.fn is not spec.task.fn:
+            task = spec.task.with_options(
+                result_storage=result_storage,
+                refresh_cache=refresh,
+                task_run_name=f"{spec.name}-{patient_id}" if patient_id else spec.name,
+            )
+            _TASKS[key] = task
+    return task
+
+
+class PrefectRunner(_Recorder):
+    """Submit each stage's cached Prefect task from inside a flow.
+
+    Parameters
+    ----------
+    store : ArtifactStore
+        Where artifacts and Prefect's results live.
+    patient_id : str
+        For progress events.
+    total : int
+        Number of stages (for progress events).
+    runs : list of StageRun, optional
+        Filled as stages complete (default: a new list, :attr:`runs`).
+    """
+
+    def __init__(
+        self,
+        store: ArtifactStore,
+        patient_id: str,
+        total: int,
+        runs: list[StageRun] | None = None,
+    ) -> None:
+        super().__init__(patient_id, total, runs)
+        self.store = store
+        self.result_storage = result_storage_for(store.root)
+
+    def _submit(self, spec: StageSpec, *, refresh: bool, **inputs: Any) -> Any:
+        task = _task_for(spec, self.result_storage, refresh, self.patient_id)
+        future = task.submit(**inputs)
+        future.wait()
+        return future.state
+
+    def run(self, spec: StageSpec, **inputs: Any) -> StageOutput:
+        """Run one stage (cached), repairing an untrustworthy cache hit."""
+        self.started(spec.name)
+        t0 = time.perf_counter()
+        state = self._submit(spec, refresh=False, **inputs)
+        cached = state.name == "Cached"
+        repaired = None
+        try:
+            out: StageOutput = state.result()
+        except Exception as exc:
+            if not cached:
+                raise
+            out, repaired = None, f"cached result unreadable ({type(exc).__name__})"  # type: ignore[assignment]
+        if cached and repaired is None:
+            repaired = self._distrust(out)
+        if repaired is not None:
+            _log.warning("%s: %s; recomputing", spec.name, repaired)
+            out = self._submit(spec, refresh=True, **inputs).result()
+            cached = False
+        return self.finished(out, cached=cached, wall=time.perf_counter() - t0, repaired=repaired)
+
+    def _distrust(self, out: Any) -> str | None:
+        """Why a cached output cannot be used, or None if it can."""
+        if not isinstance(out, StageOutput):
+            return f"cached result is a {type(out).__name__}, not a StageOutput"
+        if not out.verify():
+            return "cached result failed its digest check (edited or corrupted)"
+        missing = [k for k, r in out.artifacts.items() if not self.store.exists(r)]
+        if missing:
+            return f"cached artifacts missing from the store: {', '.join(sorted(missing))}"
+        return None
+
+
+class DirectRunner(_Recorder):
+    """Call each stage's adapter function directly, without Prefect (no caching).
+
+    ``outputs`` maps stage name to :class:`StageOutput`, ``seconds`` to its
+    wall time.
+    """
+
+    def __init__(self, patient_id: str = "", total: int = 0) -> None:
+        super().__init__(patient_id, total)
+        self.seconds: dict[str, float] = {}
+
+    def run(self, spec: StageSpec, **inputs: Any) -> StageOutput:
+        """Call the stage's function and time it."""
+        self.started(spec.name)
+        t0 = time.perf_counter()
+        out = spec.task.fn(**inputs)
+        wall = time.perf_counter() - t0
+        self.seconds[spec.name] = wall
+        return self.finished(out, cached=False, wall=wall)

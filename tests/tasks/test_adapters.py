@@ -1,0 +1,144 @@
+"""Stage adapters called directly (``task.fn``, no Prefect): declarations and edge cases."""
+
+from __future__ import annotations
+
+import inspect
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from flows.patient import run_stages_direct
+from storage.phantom_io import write_phantom_patient
+from storage.store import ArtifactStore
+from tasks import stages
+from tasks.spec import StageOutput
+from tumor3d.config import PipelineConfig, SimplifyConfig
+from tumor3d.mesh import Mesh
+from tumor3d.phantom import make_phantom_patient
+
+
+@pytest.fixture(scope="module")
+def tumour_run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("direct")
+    patient = make_phantom_patient(2, patient_id="direct2")
+    image = write_phantom_patient(patient, tmp / "in").image
+    run = run_stages_direct(image, tmp / "store", patient_id="direct2")
+    return run, ArtifactStore(tmp / "store")
+
+
+def test_specs_match_the_adapters_signatures_and_products(tumour_run):
+    run, _ = tumour_run
+    config_fields = {
+        type(getattr(PipelineConfig(), f)): f for f in PipelineConfig.model_fields
+    }
+    for name, spec in stages.STAGES.items():
+        params = set(inspect.signature(spec.task.fn.__wrapped__).parameters) - {"store_root"}
+        declared = set(spec.inputs) | ({"config"} if spec.config_model else set())
+        assert params == declared, name
+        if spec.config_model is not None:
+            assert spec.config_model in config_fields, name
+        out = run.outputs[name]
+        assert isinstance(out, StageOutput) and out.verify(), name
+        for artifact, ref in out.artifacts.items():
+            kind = spec.outputs.get(artifact) or spec.outputs.get("render_az*")
+            assert kind == ref.kind, (name, artifact)
+    assert list(run.outputs) == list(stages.STAGES)
+
+
+def test_tumour_free_patient_completes_with_zero_volume_and_no_render(tmp_path):
+    patient = make_phantom_patient(1, tumor=False, patient_id="normal1")
+    image = write_phantom_patient(patient, tmp_path / "in").image
+    run = run_stages_direct(image, tmp_path / "store", patient_id="normal1")
+    volumes = run.outputs["measure-volume"].values
+    for key in ("volume_eq7_mm3", "volume_voxel_mm3", "volume_mesh_mm3"):
+        assert volumes[key] == 0.0
+    assert volumes["n_tumor_slices"] == 0
+    assert run.outputs["extract-surface"].values["faces"] == 0
+    assert run.outputs["render-views"].artifacts == {}
+
+
+def _tetrahedron() -> Mesh:
+    v = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]], dtype=float)
+    return Mesh(v, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+
+
+@pytest.mark.parametrize("percent", [60.0, 99.0])
+def test_mesh_too_small_to_simplify_passes_through(tmp_path, percent):
+    store = ArtifactStore(tmp_path)
+    ref = store.put_mesh(_tetrahedron())
+    out = stages.simplify_task.fn(
+        mesh=ref, config=SimplifyConfig(reduction_percent=percent), store_root=str(store.root)
+    )
+    assert out.values["simplified"] is False
+    assert out.values["faces"] == 4 and out.values["watertight"] is True
+    assert out.artifacts["mesh"].digest == ref.digest  # unchanged, same artifact
+
+
+def test_measure_stage_counts_the_tumour_tip_beyond_the_abnormal_slices(tumour_run):
+    """Eq. 7 sums a slice where segmentation found tumour that detection did not flag."""
+    run, store = tumour_run
+    outs = run.outputs
+    det = store.get_table(outs["detect-abnormal"].artifacts["detection"])
+    seg = store.get_table(outs["segment-tumor"].artifacts["segmentation"])
+    tumour = seg["tumor_pixels"].to_numpy() > 0
+    assert tumour.any()
+    # Un-flag the first tumour slice: it becomes a tip that only segmentation saw.
+    tip = int(np.flatnonzero(tumour)[0])
+    det = det.copy()
+    det.loc[det["slice_index"] == tip, "abnormal"] = False
+    scan = outs["ingest-scan"].artifacts["scan"]
+    kwargs = dict(
+        scan=scan, detection=store.put_table(det),
+        segmentation=outs["segment-tumor"].artifacts["segmentation"],
+        tumor_mask=outs["interpolate-slices"].artifacts["tumor_mask"],
+        mesh=outs["extract-surface"].artifacts["mesh"],
+        mesh_simplified=outs["simplify-mesh"].artifacts["mesh"], store_root=str(store.root),
+    )  # fmt: skip
+    got = stages.measure_task.fn(**kwargs).values
+    dy, dx = scan.metadata["pixel_spacing_mm"]
+    slab = got["slab_height_mm"]
+    # independent expectation: every segmented tumour pixel counts once
+    expected = slab * dy * dx * int(seg["tumor_pixels"].sum())
+    assert got["volume_eq7_mm3"] == pytest.approx(expected, rel=1e-12)
+    assert got["eq7_slice_rule"] == "segmented"
+    assert got["n_eq7_slices"] == int((det["abnormal"].to_numpy(bool) | tumour).sum())
+    assert got["n_abnormal_slices"] == int(det["abnormal"].sum())
+    assert got["volume_eq7_ml"] == pytest.approx(got["volume_eq7_mm3"] / 1000.0)
+    tip_mm3 = slab * dy * dx * int(seg.loc[seg["slice_index"] == tip, "tumor_pixels"].iloc[0])
+    assert tip_mm3 > 0  # so the tip really matters to the assertion above
+
+
+def test_stage_outputs_are_sealed_and_detect_edits(tumour_run):
+    run, _ = tumour_run
+    out = run.outputs["measure-volume"]
+    assert out.verify()
+    edited = out.model_copy(
+        update={"values": {**out.values, "volume_eq7_mm3": out.values["volume_eq7_mm3"] / 10}}
+    )
+    assert not edited.verify()
+    assert not out.model_copy(update={"digest": ""}).verify()
+    assert edited.sealed().verify()
+
+
+def test_interpolate_stage_resolves_the_automatic_slice_count_in_the_core(tumour_run):
+    from tumor3d.interpolate import slices_between_auto
+
+    run, _ = tumour_run
+    scan = run.outputs["ingest-scan"].values
+    expected = slices_between_auto(scan["slice_step_mm"], tuple(scan["pixel_spacing_mm"]))
+    assert run.outputs["interpolate-slices"].values["slices_between"] == expected
+
+
+def test_slice_table_rows_match_detection(tumour_run):
+    from storage.slice_table import slice_table
+
+    run, store = tumour_run
+    det = store.get_table(run.outputs["detect-abnormal"].artifacts["detection"])
+    seg = store.get_table(run.outputs["segment-tumor"].artifacts["segmentation"])
+    table = slice_table(det, seg, pixel_area_mm2=0.5)
+    assert len(table) == len(det)
+    pd.testing.assert_series_equal(
+        table["tumor_area_mm2"], table["tumor_pixels"].fillna(0).astype(float) * 0.5,
+        check_names=False,
+    )  # fmt: skip

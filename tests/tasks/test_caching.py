@@ -1,0 +1,219 @@
+"""Cache keys: the real code closure, composable policies, blind to locations and run ids."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from storage.store import ArtifactRef
+from tasks.caching import (
+    FORMAT_MODULES,
+    PROJECT_PACKAGES,
+    PROJECT_ROOT,
+    InputArtifacts,
+    StageCode,
+    StageConfig,
+    _module_file,
+    code_digest,
+    fingerprint,
+    module_closure,
+    stage_cache_policy,
+)
+from tasks.spec import InputSource
+from tasks.stages import STAGES
+from tumor3d.config import SimplifyConfig
+
+MODULES = ("tasks.simplify",)
+
+
+def _key(stage, inputs, modules=MODULES, root=None):
+    return stage_cache_policy(stage, modules, root=root).compute_key(None, inputs, {})
+
+
+def _ref(digest_char: str, relpath: str = "objects/aa/x.nii.gz") -> ArtifactRef:
+    return ArtifactRef(kind="mask", digest=digest_char * 64, relpath=relpath, metadata={})
+
+
+# -- the code closure ---------------------------------------------------------
+
+
+_PROBE = """
+import importlib, json, sys
+packages = tuple(sys.argv[1].split(","))
+out = {}
+for module in sys.argv[2:]:
+    for name in [m for m in sys.modules if m.split(".")[0] in packages]:
+        del sys.modules[name]
+    importlib.import_module(module)
+    out[module] = sorted(m for m in sys.modules if m.split(".")[0] in packages)
+print(json.dumps(out))
+"""
+
+
+@pytest.fixture(scope="module")
+def runtime_imports() -> dict[str, set[str]]:
+    """Per adapter, the project modules a fresh import of it loads (a separate interpreter)."""
+    adapters = [spec.adapter_module for spec in STAGES.values()]
+    out = subprocess.run(
+        [sys.executable, "-c", _PROBE, ",".join(PROJECT_PACKAGES), *adapters],
+        capture_output=True, text=True, check=True, cwd=PROJECT_ROOT,
+        env={"PYTHONPATH": str(PROJECT_ROOT), "PATH": "/usr/bin:/bin",
+             "HOME": os.environ.get("PREFECT_HOME", "/tmp"),
+             "PREFECT_HOME": os.environ.get("PREFECT_HOME", "/tmp/tumor3d-probe-prefect")},
+    )  # fmt: skip
+    return {k: set(v) for k, v in json.loads(out.stdout.strip().splitlines()[-1]).items()}
+
+
+@pytest.mark.parametrize("stage", list(STAGES))
+def test_closure_holds_every_module_the_adapter_imports(stage, runtime_imports):
+    spec = STAGES[stage]
+    closure = set(spec.code_modules)
+    loaded = runtime_imports[spec.adapter_module]
+    assert spec.adapter_module in loaded and spec.entry.__module__ in loaded
+    assert loaded <= closure, f"imported but not in the digest: {sorted(loaded - closure)}"
+    assert "tasks.stages" not in closure
+
+
+def test_closure_follows_the_imports_the_old_table_missed():
+    assert "tumor3d.scan" in STAGES["extract-surface"].code_modules  # zyx_index_to_ras
+    assert "tumor3d.scan" in STAGES["simplify-mesh"].code_modules
+    assert "tumor3d.scan" in STAGES["measure-volume"].code_modules
+    for stage in STAGES.values():  # every volume write goes through it
+        assert "storage.nifti" in stage.code_modules, stage.name
+
+
+def test_closure_rejects_unknown_module():
+    with pytest.raises(ValueError, match="cannot locate"):
+        module_closure(("tasks.no_such_adapter",))
+
+
+@pytest.fixture
+def package_copy(tmp_path):
+    """A temporary copy of the project packages, with a helper to edit one file."""
+    for pkg in PROJECT_PACKAGES:
+        shutil.copytree(PROJECT_ROOT / pkg, tmp_path / pkg,
+                        ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
+    yield tmp_path
+    module_closure.cache_clear()
+    code_digest.cache_clear()
+
+
+def _keys(root) -> dict[str, str]:
+    module_closure.cache_clear()
+    code_digest.cache_clear()
+    inputs = {"mesh": _ref("a"), "config": SimplifyConfig(), "store_root": "/s"}
+    return {
+        name: _key(name, inputs, (spec.adapter_module,), root=str(root))
+        for name, spec in STAGES.items()
+    }
+
+
+@pytest.mark.parametrize(
+    "module",
+    ["tumor3d.scan", "tumor3d.simplify.qem", "storage.nifti", "tumor3d.metrics",
+     "tasks.surface", "tumor3d.detect", "storage.readers", "tumor3d.errors"],
+)  # fmt: skip
+def test_editing_a_module_changes_exactly_the_keys_whose_closure_holds_it(package_copy, module):
+    before = _keys(package_copy)
+    target = _module_file(module, package_copy)
+    target.write_text(target.read_text() + "\n# a comment edit\n")
+    after = _keys(package_copy)
+    changed = {n for n in STAGES if before[n] != after[n]}
+    expected = {
+        n for n, spec in STAGES.items()
+        if module in module_closure((spec.adapter_module,), str(package_copy))
+    }  # fmt: skip
+    assert expected, f"no stage imports {module}?"
+    assert changed == expected
+
+
+def test_a_comment_in_one_adapter_invalidates_only_that_stage(package_copy):
+    before = _keys(package_copy)
+    f = package_copy / "tasks" / "render.py"
+    f.write_text(f.read_text() + "\n# only a comment\n")
+    after = _keys(package_copy)
+    assert {n for n in STAGES if before[n] != after[n]} == {"render-views"}
+
+
+@pytest.mark.parametrize("module", sorted(FORMAT_MODULES))
+def test_store_codecs_enter_keys_through_the_format_version_only(package_copy, module, monkeypatch):
+    before = _keys(package_copy)
+    f = package_copy.joinpath(*module.split(".")).with_suffix(".py")
+    f.write_text(f.read_text() + "\n# codec comment\n")
+    assert _keys(package_copy) == before
+    import tasks.caching as caching
+
+    monkeypatch.setattr(caching, "ARTIFACT_FORMAT_VERSION", "999")
+    bumped = _keys(package_copy)
+    assert all(bumped[n] != before[n] for n in STAGES)
+
+
+def test_closure_is_computed_once_per_process():
+    module_closure.cache_clear()
+    module_closure(("tasks.measure",))
+    module_closure(("tasks.measure",))
+    assert module_closure.cache_info().hits >= 1
+
+
+# -- the composable policies ---------------------------------------------------
+
+
+def test_key_is_deterministic_and_ignores_store_location():
+    inputs = {"mesh": _ref("a"), "config": SimplifyConfig(), "store_root": "/tmp/one"}
+    assert _key("simplify-mesh", inputs) == _key(
+        "simplify-mesh", {**inputs, "store_root": "/elsewhere"}
+    )
+
+
+def test_key_changes_with_config_input_digest_and_stage():
+    base = {"mesh": _ref("a"), "config": SimplifyConfig(), "store_root": "/s"}
+    k = _key("simplify-mesh", base)
+    assert _key("simplify-mesh", {**base, "config": SimplifyConfig(reduction_percent=40)}) != k
+    assert _key("simplify-mesh", {**base, "mesh": _ref("b")}) != k
+    assert _key("render-views", base) != k
+
+
+def test_each_policy_sees_only_its_part():
+    base = {"mesh": _ref("a"), "config": SimplifyConfig(), "store_root": "/s"}
+    other_cfg = {**base, "config": SimplifyConfig(reduction_percent=40)}
+    other_mesh = {**base, "mesh": _ref("b")}
+    code = StageCode(stage="simplify-mesh", modules=MODULES)
+    cfg, art = StageConfig(), InputArtifacts()
+    assert code.compute_key(None, base, {}) == code.compute_key(None, other_cfg, {})
+    assert cfg.compute_key(None, base, {}) != cfg.compute_key(None, other_cfg, {})
+    assert cfg.compute_key(None, base, {}) == cfg.compute_key(None, other_mesh, {})
+    assert art.compute_key(None, base, {}) != art.compute_key(None, other_mesh, {})
+    assert art.compute_key(None, base, {}) == art.compute_key(None, other_cfg, {})
+    assert cfg.compute_key(None, {"mesh": _ref("a")}, {}) is None  # a stage without config
+
+
+def test_artifact_identity_is_its_digest_not_its_path():
+    assert fingerprint(_ref("c", "objects/x/1.ply")) == fingerprint(_ref("c", "elsewhere/2.ply"))
+
+
+def test_input_source_location_is_not_part_of_the_key():
+    a = InputSource(path="/data/a/flair.nii.gz", name="flair.nii.gz", digest="d" * 64,
+                    modality="flair", patient_id="p1")  # fmt: skip
+    b = a.model_copy(update={"path": "/moved/flair.nii.gz"})
+    c = a.model_copy(update={"digest": "e" * 64})
+    mods = ("tasks.ingest",)
+    assert _key("ingest-scan", {"source": a}, mods) == _key("ingest-scan", {"source": b}, mods)
+    assert _key("ingest-scan", {"source": a}, mods) != _key("ingest-scan", {"source": c}, mods)
+
+
+def test_arrays_cannot_sneak_into_keys():
+    with pytest.raises(TypeError, match="ndarray"):
+        fingerprint(np.zeros(3))
+
+
+def test_every_stage_task_uses_the_single_policy_factory():
+    inputs = {"mesh": _ref("a"), "config": SimplifyConfig(), "store_root": "/s"}
+    for name, spec in STAGES.items():
+        expected = _key(name, inputs, (spec.adapter_module,))
+        assert spec.task.cache_policy.compute_key(None, inputs, {}) == expected, name
