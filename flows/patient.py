@@ -434,7 +434,7 @@ def _publish(
             store.get_bytes(run.outputs["simplify-mesh"].artifacts["mesh"])
         )
         for name, ref in run.outputs["render-views"].artifacts.items():
-            (staging / f"{name}.png").write_bytes(store.get_bytes(ref))
+            (staging / f"{name}{Path(ref.relpath).suffix}").write_bytes(store.get_bytes(ref))
         (staging / "slices.parquet").write_bytes(encode_parquet(_slice_table(store, run)))
         (staging / "metrics.parquet").write_bytes(encode_parquet(pd.DataFrame([metrics])))
         provenance = {

@@ -327,20 +327,27 @@ _MIN_SIMPLIFIED_FACES = 4
 
 @_stage_task("render-views")
 def render_task(mesh: ArtifactRef, config: RenderConfig, store_root: str) -> StageOutput:
-    """Shaded offscreen renders of the surface from several azimuths (spec section 7)."""
-    from tumor3d.render import render_views
+    """Shaded renders of the surface: anatomical views, cut-aways, turntable (spec section 7)."""
+    from tumor3d.render import render_views, turntable_gif
 
     store = ArtifactStore(store_root)
     surface = store.get_mesh(mesh)
     artifacts: dict[str, ArtifactRef] = {}
+    values: dict[str, Any] = {"n_views": 0}
     if not surface.is_empty:
-        images = render_views(surface, **config.model_dump())
-        for azimuth, rgb in zip(config.azimuths_deg, images, strict=True):
-            name = f"render_az{int(round(azimuth)) % 360:03d}"
-            artifacts[name] = store.put_png(rgb, extra={"azimuth_deg": float(azimuth)})
-    return StageOutput(
-        stage="render-views", artifacts=artifacts, values={"n_views": len(artifacts)}
-    )
+        result = render_views(surface, **config.model_dump())
+        for name, rgb in result.images.items():
+            artifacts[f"render_{name}"] = store.put_png(rgb, extra={"view": name})
+        if result.turntable:
+            artifacts["render_turntable"] = store.put_bytes(
+                turntable_gif(result.turntable), kind="gif", suffix=".gif"
+            )
+        values = {
+            "n_views": len(artifacts),
+            "renderer": result.info["renderer"],
+            "fallback_reason": result.info["fallback_reason"],
+        }
+    return StageOutput(stage="render-views", artifacts=artifacts, values=values)
 
 
 @_stage_task("measure-volume")
