@@ -138,19 +138,38 @@ def test_renders_are_not_blank_and_background_is_exact(scene_plain):
         assert not (fg[:3].any() or fg[-3:].any() or fg[:, :3].any() or fg[:, -3:].any()), name
 
 
-def test_tumour_appears_where_its_projected_centroid_says(scene_plain, tumor_mesh):
-    centroid = _surface_centroid(tumor_mesh)
-    for name in (*ANATOMICAL_VIEWS, "cut_axial", "cut_coronal", "cut_sagittal"):
+#: Image-right and image-up world axes of each view: (axis, sign), RAS axes 0, 1, 2.
+EXPECTED_AXES = {
+    "anterior": ((0, -1), (2, 1)),
+    "posterior": ((0, 1), (2, 1)),
+    "right": ((1, 1), (2, 1)),
+    "left": ((1, -1), (2, 1)),
+    "superior": ((0, 1), (1, 1)),
+    "inferior": ((0, -1), (1, 1)),
+    "cut_axial": ((0, 1), (1, 1)),
+    "cut_coronal": ((0, -1), (2, 1)),
+    "cut_sagittal": ((1, 1), (2, 1)),
+}
+
+
+def test_tumour_appears_where_its_projected_centroid_says(scene_plain):
+    # independent of Camera.project: the brain is centred on the origin, so the
+    # tumour centre projects to image centre + (its right, -its up) x scale
+    for name, ((ax_r, sg_r), (ax_u, sg_u)) in EXPECTED_AXES.items():
         img = scene_plain.images[name]
-        col, row, _ = scene_plain.cameras[name].project(centroid[None])[0]
+        scale = scene_plain.cameras[name].pixels_per_mm
+        col = (W - 1) / 2 + sg_r * TUMOR_CENTRE[ax_r] * scale
+        row = (H - 1) / 2 - sg_u * TUMOR_CENTRE[ax_u] * scale
         red = _reddish(img)
         assert red.sum() > 100, name
         rows, cols = np.nonzero(red)
-        assert abs(cols.mean() - col) < 2.0, (name, cols.mean(), col)
-        assert abs(rows.mean() - row) < 2.0, (name, rows.mean(), row)
+        assert abs(cols.mean() - col) < 1.5, (name, cols.mean(), col)
+        assert abs(rows.mean() - row) < 1.5, (name, rows.mean(), row)
         # and it has the projected size: a 7 mm ball, 14 mm across
-        diameter_px = 14.0 * scene_plain.cameras[name].pixels_per_mm
-        assert abs(np.ptp(cols) + 1 - diameter_px) < 3.0, name
+        assert abs(np.ptp(cols) + 1 - 14.0 * scale) < 3.0, name
+        # Camera.project agrees
+        c2, r2, _ = scene_plain.cameras[name].project(np.array([TUMOR_CENTRE]))[0]
+        assert abs(c2 - col) < 1e-6 and abs(r2 - row) < 1e-6
 
 
 def test_anatomical_directions(scene_plain, tumor_mesh):
@@ -295,6 +314,40 @@ def test_phong_value_where_the_surface_faces_the_camera(sphere_mesh, ka, kd, ks)
     dist = ndi.distance_transform_edt(fg)
     lum = img.astype(float).mean(axis=2)
     assert lum[fg & (dist <= 2)].mean() < lum[dist >= 0.6 * dist.max()].mean() - 20
+
+
+def _uv_sphere(radius, n_lat=90, n_lon=180):
+    lat = np.linspace(0, np.pi, n_lat + 1)[1:-1]
+    lon = np.linspace(0, 2 * np.pi, n_lon, endpoint=False)
+    la, lo = np.meshgrid(lat, lon, indexing="ij")
+    ring = np.stack([np.sin(la) * np.cos(lo), np.sin(la) * np.sin(lo), np.cos(la)], -1)
+    v = np.vstack([[0, 0, 1], ring.reshape(-1, 3), [0, 0, -1]]) * radius
+    idx = 1 + np.arange((n_lat - 1) * n_lon).reshape(n_lat - 1, n_lon)
+    nxt = np.roll(idx, -1, axis=1)
+    faces = [np.stack([np.zeros(n_lon, int), idx[0], nxt[0]], 1)]
+    for i in range(n_lat - 2):
+        faces.append(np.stack([idx[i], idx[i + 1], nxt[i + 1]], 1))
+        faces.append(np.stack([idx[i], nxt[i + 1], nxt[i]], 1))
+    last = len(v) - 1
+    faces.append(np.stack([np.full(n_lon, last), nxt[-1], idx[-1]], 1))
+    return Mesh(v, np.concatenate(faces))
+
+
+def test_phong_profile_matches_the_formula():
+    sphere = _uv_sphere(10.0)
+    assert vertex_normals(sphere)[0] @ [0, 0, 1] > 0.999
+    ka, kd, ks, s = 0.15, 0.7, 0.3, 32.0
+    res = _render(sphere, views=("anterior",), cutaways=(), annotate=False)
+    img = res.images["anterior"].astype(float) / 255
+    scale = res.cameras["anterior"].pixels_per_mm
+    row = int(round((H - 1) / 2))
+    cols = np.arange(W)
+    rho = np.abs(cols - (W - 1) / 2) / scale  # mm from the axis, in the image row
+    inside = rho < 0.95 * 10.0
+    nl = np.sqrt(1 - (rho[inside] / 10.0) ** 2)  # N.L on a sphere, headlight
+    want = np.array(COLOR)[None] * (ka + kd * nl)[:, None]
+    want = want + (ks * np.clip(2 * nl**2 - 1, 0, None) ** s)[:, None]
+    np.testing.assert_allclose(img[row, cols[inside]], np.clip(want, 0, 1), atol=0.02)
 
 
 def test_numpy_renders_are_deterministic(tumor_mesh, brain_mesh, scene):
