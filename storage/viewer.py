@@ -110,8 +110,10 @@ def viewer_html(
             raise InputError(f"the {name} mesh is empty: nothing to view")
     if not isinstance(title, str):
         raise InputError(f"title must be a string, got {type(title).__name__}")
-    if isinstance(brain_opacity, bool) or not isinstance(brain_opacity, (int, float)) or not (
-        0.0 < brain_opacity <= 1.0
+    if (
+        isinstance(brain_opacity, bool)
+        or not isinstance(brain_opacity, (int, float))
+        or not (0.0 < brain_opacity <= 1.0)
     ):
         raise InputError(f"brain_opacity must lie in (0, 1], got {brain_opacity!r}")
     if isinstance(decimals, bool) or not isinstance(decimals, int) or not 0 <= decimals <= 6:
@@ -119,8 +121,13 @@ def viewer_html(
     traces = [_trace(tumor, "tumour", _rgb_css(tumor_color_rgb, "tumor_color_rgb"), 1.0, decimals)]
     if brain is not None:
         traces.append(
-            _trace(brain, "brain", _rgb_css(brain_color_rgb, "brain_color_rgb"),
-                   float(brain_opacity), decimals)  # fmt: skip
+            _trace(
+                brain,
+                "brain",
+                _rgb_css(brain_color_rgb, "brain_color_rgb"),
+                float(brain_opacity),
+                decimals,
+            )
         )
     fig = go.Figure(traces)
     buttons = [
@@ -143,8 +150,16 @@ def viewer_html(
             "camera": {"eye": {"x": 0.0, "y": 2.0, "z": 0.6}, "up": {"x": 0, "y": 0, "z": 1}},
         },
         updatemenus=(
-            [{"type": "buttons", "direction": "right", "x": 0.99, "xanchor": "right", "y": 1.08,
-              "buttons": buttons}]  # fmt: skip
+            [
+                {
+                    "type": "buttons",
+                    "direction": "right",
+                    "x": 0.99,
+                    "xanchor": "right",
+                    "y": 1.08,
+                    "buttons": buttons,
+                }
+            ]
             if brain is not None
             else []
         ),

@@ -176,17 +176,23 @@ def overlay_mosaic(
                 raise InputError(f"abnormal_slices as booleans must have shape ({nz},)")
             flags = ab.copy()
         else:
-            if ab.size and (not np.issubdtype(ab.dtype, np.integer) or ab.min() < 0
-                            or ab.max() >= nz):  # fmt: skip
+            if ab.size and (
+                not np.issubdtype(ab.dtype, np.integer) or ab.min() < 0 or ab.max() >= nz
+            ):
                 raise InputError(f"abnormal_slices must be slice indices in [0, {nz})")
             flags[ab.astype(np.int64).ravel()] = True
     rgb = np.asarray(contour_rgb)
-    if rgb.shape != (3,) or not np.issubdtype(rgb.dtype, np.integer) or rgb.min() < 0 or (
-        rgb.max() > 255
+    if (
+        rgb.shape != (3,)
+        or not np.issubdtype(rgb.dtype, np.integer)
+        or rgb.min() < 0
+        or (rgb.max() > 255)
     ):
         raise InputError(f"contour_rgb must be 3 integers in [0, 255], got {contour_rgb!r}")
-    if isinstance(tile_px, bool) or not isinstance(tile_px, (int, np.integer)) or not (
-        32 <= tile_px <= 1024
+    if (
+        isinstance(tile_px, bool)
+        or not isinstance(tile_px, (int, np.integer))
+        or not (32 <= tile_px <= 1024)
     ):
         raise InputError(f"tile_px must be an integer in [32, 1024], got {tile_px!r}")
     if columns is None:
@@ -195,8 +201,9 @@ def overlay_mosaic(
         raise InputError(f"columns must be a positive integer, got {columns!r}")
     if title is not None and not isinstance(title, str):
         raise InputError(f"title must be a string, got {type(title).__name__}")
-    mosaic, layout = _compose(img, m, aff, flags, tuple(int(c) for c in rgb), int(tile_px),
-                              int(columns), title)  # fmt: skip
+    mosaic, layout = _compose(
+        img, m, aff, flags, tuple(int(c) for c in rgb), int(tile_px), int(columns), title
+    )
     return (mosaic, layout) if return_layout else mosaic
 
 
@@ -277,8 +284,7 @@ def _compose(
         ink = _ABNORMAL_RGB if flags[k] else _TEXT_RGB
         draw.text((c0, r0 - frame - 1), labels[k], fill=ink, font=font, anchor="lb")
     if title:
-        draw.text((_GAP_PX, _GAP_PX + header // 2), title, fill=_TEXT_RGB, font=font,
-                  anchor="lm")  # fmt: skip
+        draw.text((_GAP_PX, _GAP_PX + header // 2), title, fill=_TEXT_RGB, font=font, anchor="lm")
     layout = MosaicLayout(
         tiles=tuple(tiles),
         labels=tuple(labels),

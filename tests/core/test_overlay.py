@@ -46,15 +46,17 @@ def test_contour_is_the_mask_boundary_in_the_right_tile():
 
 def test_abnormal_slices_are_framed_and_labelled():
     img, mask, aff = _volume()
-    mosaic, layout = overlay_mosaic(img, mask, aff, abnormal_slices=[1, 2], tile_px=120,
-                                    return_layout=True)  # fmt: skip
+    mosaic, layout = overlay_mosaic(
+        img, mask, aff, abnormal_slices=[1, 2], tile_px=120, return_layout=True
+    )
     orange = _is(mosaic, (255, 170, 0))
     for k, (_r0, c0, r1, c1) in enumerate(layout.tiles):
         framed = orange[r1 : r1 + 2, c0:c1].all()  # the frame below the tile
         assert framed == (k in (1, 2)), k
         assert layout.labels[k].endswith("abn.") == (k in (1, 2))
-    same = overlay_mosaic(img, mask, aff, abnormal_slices=np.isin(np.arange(5), [1, 2]),
-                          tile_px=120)  # fmt: skip
+    same = overlay_mosaic(
+        img, mask, aff, abnormal_slices=np.isin(np.arange(5), [1, 2]), tile_px=120
+    )
     assert np.array_equal(mosaic, same)
 
 
@@ -81,8 +83,9 @@ def test_brain_mask_leak_is_visible():
     brain = np.zeros(img.shape, dtype=bool)
     brain[:, 5:35, 10:50] = True
     brain[4] = True
-    mosaic, layout = overlay_mosaic(img, brain, aff, contour_rgb=(0, 200, 255), tile_px=120,
-                                    return_layout=True)  # fmt: skip
+    mosaic, layout = overlay_mosaic(
+        img, brain, aff, contour_rgb=(0, 200, 255), tile_px=120, return_layout=True
+    )
     cyan = _is(mosaic, (0, 200, 255))
     r0, c0, r1, c1 = layout.tiles[4]
     tile = cyan[r0:r1, c0:c1]

@@ -206,10 +206,15 @@ def test_scale_is_exact_in_every_view(scene_plain):
 
 def test_translucent_brain_tints_the_tumour(tumor_mesh, brain_mesh):
     alone = _render(tumor_mesh, views=("anterior",), cutaways=(), annotate=False)
-    within = _render(tumor_mesh, brain=brain_mesh, views=("anterior",), cutaways=(),
-                     annotate=False)  # fmt: skip
-    opaque = _render(tumor_mesh, brain=brain_mesh, views=("anterior",), cutaways=(),
-                     annotate=False, brain_opacity=1.0)  # fmt: skip
+    within = _render(tumor_mesh, brain=brain_mesh, views=("anterior",), cutaways=(), annotate=False)
+    opaque = _render(
+        tumor_mesh,
+        brain=brain_mesh,
+        views=("anterior",),
+        cutaways=(),
+        annotate=False,
+        brain_opacity=1.0,
+    )
     # the same framing is used when the brain is given: compare at the tumour's place
     cam = within.cameras["anterior"]
     col, row, _ = np.rint(cam.project(_surface_centroid(tumor_mesh)[None])[0]).astype(int)
@@ -227,8 +232,15 @@ def test_translucent_brain_tints_the_tumour(tumor_mesh, brain_mesh):
 
 
 def test_cutaway_reveals_the_tumour_and_the_interior(tumor_mesh, brain_mesh):
-    res = _render(tumor_mesh, brain=brain_mesh, views=("superior",), cutaways=("axial",),
-                  annotate=False, brain_opacity=1.0, specular=0.0)  # fmt: skip
+    res = _render(
+        tumor_mesh,
+        brain=brain_mesh,
+        views=("superior",),
+        cutaways=("axial",),
+        annotate=False,
+        brain_opacity=1.0,
+        specular=0.0,
+    )
     uncut, cut = res.images["superior"], res.images["cut_axial"]
     # opaque brain hides the tumour; the axial cut through its centroid shows it
     assert _reddish(uncut).sum() == 0
@@ -267,6 +279,7 @@ def test_clip_by_plane_is_exact(sphere_mesh):
     cv, cn, cf = _clip_by_plane(v, n, f, point, normal)
     assert np.all(cv[:, 2] <= 2.5 + 1e-9)
     assert np.allclose(np.linalg.norm(cn, axis=1), 1.0)
+
     # the area below the plane is kept exactly: compare with a naive per-face clip
     def area(vv, ff):
         t = vv[ff]
@@ -301,8 +314,15 @@ def test_clip_by_plane_is_exact(sphere_mesh):
 
 @pytest.mark.parametrize(("ka", "kd", "ks"), [(0.15, 0.7, 0.3), (0.3, 0.5, 0.0)])
 def test_phong_value_where_the_surface_faces_the_camera(sphere_mesh, ka, kd, ks):
-    res = _render(sphere_mesh, views=("anterior",), cutaways=(), annotate=False,
-                  ambient=ka, diffuse=kd, specular=ks)  # fmt: skip
+    res = _render(
+        sphere_mesh,
+        views=("anterior",),
+        cutaways=(),
+        annotate=False,
+        ambient=ka,
+        diffuse=kd,
+        specular=ks,
+    )
     img = res.images["anterior"]
     cam = res.cameras["anterior"]
     col, row, _ = np.rint(cam.project(np.array([[0.0, 10.0, 0.0]]))[0]).astype(int)
@@ -481,8 +501,14 @@ def test_turntable_frames_and_gif(sphere_mesh):
 
 @pytest.fixture(scope="module")
 def open3d_scene(tumor_mesh, brain_mesh):
-    return _render(tumor_mesh, brain=brain_mesh, views=("anterior", "right", "superior"),
-                   cutaways=("axial",), renderer="open3d", annotate=False)  # fmt: skip
+    return _render(
+        tumor_mesh,
+        brain=brain_mesh,
+        views=("anterior", "right", "superior"),
+        cutaways=("axial",),
+        renderer="open3d",
+        annotate=False,
+    )
 
 
 def test_open3d_renders_the_same_layout(open3d_scene, scene_plain, tumor_mesh):
@@ -502,8 +528,14 @@ def test_open3d_renders_the_same_layout(open3d_scene, scene_plain, tumor_mesh):
 
 def test_open3d_from_a_worker_thread_is_deterministic(open3d_scene, tumor_mesh, brain_mesh):
     def again():
-        return _render(tumor_mesh, brain=brain_mesh, views=("anterior", "right", "superior"),
-                       cutaways=("axial",), renderer="open3d", annotate=False)  # fmt: skip
+        return _render(
+            tumor_mesh,
+            brain=brain_mesh,
+            views=("anterior", "right", "superior"),
+            cutaways=("axial",),
+            renderer="open3d",
+            annotate=False,
+        )
 
     with ThreadPoolExecutor(max_workers=1) as pool:
         res = pool.submit(again).result()

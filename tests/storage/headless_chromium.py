@@ -75,8 +75,9 @@ def _run(args: list[str], profile: Path, timeout: float) -> subprocess.Completed
     )
 
 
-def open_page(html_path: Path, tmp_path: Path, *, size=(900, 700), budget_ms=15000,
-              timeout=180.0) -> PageResult:  # fmt: skip
+def open_page(
+    html_path: Path, tmp_path: Path, *, size=(900, 700), budget_ms=15000, timeout=180.0
+) -> PageResult:
     """Load ``html_path`` (a copy with the error hook) and return what the browser shows."""
     text = Path(html_path).read_text(encoding="utf-8")
     head = re.search(r"<head[^>]*>", text, flags=re.IGNORECASE)
@@ -100,6 +101,9 @@ def open_page(html_path: Path, tmp_path: Path, *, size=(900, 700), budget_ms=150
 
 def serious_console_messages(console: list[str]) -> list[str]:
     """Console lines that report a failure (uncaught errors, failed loads)."""
-    bad = re.compile(r"Uncaught|TypeError|ReferenceError|SyntaxError|Failed to load|"
-                     r"net::ERR_", re.IGNORECASE)  # fmt: skip
+    bad = re.compile(
+        r"Uncaught|TypeError|ReferenceError|SyntaxError|Failed to load|"
+        r"net::ERR_",
+        re.IGNORECASE,
+    )
     return [ln for ln in console if bad.search(ln)]

@@ -93,8 +93,10 @@ def test_viewer_loads_in_headless_chromium_and_shows_the_mesh(meshes, tmp_path):
 def test_browser_check_catches_a_broken_page(tmp_path):
     # the test harness itself can fail: a page whose script throws
     path = tmp_path / "broken.html"
-    path.write_text("<html><head></head><body><script>undefinedFunction();</script>"
-                    "</body></html>", encoding="utf-8")  # fmt: skip
+    path.write_text(
+        "<html><head></head><body><script>undefinedFunction();</script></body></html>",
+        encoding="utf-8",
+    )
     page = open_page(path, tmp_path, budget_ms=2000)
     assert page.js_errors and "undefinedFunction" in page.js_errors[0]
     assert not _colourful(page.screenshot).any()
