@@ -656,3 +656,39 @@ def test_importing_render_does_not_import_open3d():
 
     code = "import sys, tumor3d.render; sys.exit('open3d' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
+
+
+# ---------------------------------------------------------------------------
+# the brain surface from a thick-slice brain mask
+# ---------------------------------------------------------------------------
+
+
+def test_brain_surface_from_thick_slices_matches_the_ellipsoid():
+    from tumor3d.render import brain_surface
+    from tumor3d.surface import is_watertight, mesh_volume_mm3
+
+    radii = np.array([40.0, 48.0, 36.0])  # x, y, z mm
+    # acquired slices: 1 mm pixels, 5 mm slice step, LPS-like flipped in-plane axes
+    nz, ny, nx = 19, 110, 90
+    z = (np.arange(nz) - (nz - 1) / 2) * 5.0
+    y = -(np.arange(ny) - (ny - 1) / 2)
+    x = -(np.arange(nx) - (nx - 1) / 2)
+    q = (x[None, None, :] / radii[0]) ** 2 + (y[None, :, None] / radii[1]) ** 2
+    mask = q + (z[:, None, None] / radii[2]) ** 2 <= 1.0
+    aff = np.diag([-1.0, -1.0, 5.0, 1.0])
+    aff[:3, 3] = ((nx - 1) / 2, (ny - 1) / 2, -(nz - 1) / 2 * 5.0)
+    brain = brain_surface(mask, aff, spacing_mm=2.0)
+    assert is_watertight(brain)
+    want = 4 / 3 * np.pi * radii.prod()
+    assert mesh_volume_mm3(brain) == pytest.approx(want, rel=0.04)
+    # every vertex lies near the analytic surface (within a voxel and a bit)
+    r = np.linalg.norm(brain.vertices / radii, axis=1)
+    assert np.abs(r - 1).max() < 0.09
+    # between slices the shape is interpolated, not a 5 mm staircase (which would put
+    # vertices at z = 32.5 mm at the radius of slice 30 or 35, r - 1 ~ +-0.2); the ends
+    # are flat at the last slices holding brain (z = +-35 mm)
+    assert brain.vertices[:, 2].max() == pytest.approx(35.0, abs=0.5)
+    mid = np.abs(brain.vertices[:, 2] - 32.5) < 0.6
+    assert mid.sum() > 20 and np.abs(r[mid] - 1).max() < 0.06
+    with pytest.raises(InputError, match="brain_mask is empty"):
+        brain_surface(np.zeros((3, 4, 4), bool), aff)
