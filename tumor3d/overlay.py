@@ -9,8 +9,12 @@ out (the caller writes the PNG).
 
 Tile geometry
 -------------
-Each slice is shown as stored, row ``y`` down and column ``x`` to the right
-(no reorientation), resampled by nearest neighbour to ``tile_px`` pixels
+Each slice is shown in radiological orientation, whatever the storage
+order: a voxel axis whose dominant world component points to R, A or S is
+flipped, so that image columns run towards the patient's left (axial,
+coronal) or posterior (sagittal) and image rows towards posterior (axial)
+or inferior (coronal, sagittal); an RAS- and an LPS-stored volume give the
+same mosaic. The slice is then resampled by nearest neighbour to ``tile_px`` pixels
 along its longer side with the in-plane pixel spacing honoured (the column
 lengths of the affine), so non-square pixels do not distort the anatomy.
 The intensity window is the 0.5-99.5 percentile range of the whole volume
@@ -201,6 +205,13 @@ def overlay_mosaic(
         raise InputError(f"columns must be a positive integer, got {columns!r}")
     if title is not None and not isinstance(title, str):
         raise InputError(f"title must be a string, got {type(title).__name__}")
+    # radiological display: flip in-plane voxel axes that point to R, A or S
+    flip_x = aff[int(np.argmax(np.abs(aff[:3, 0]))), 0] > 0
+    flip_y = aff[int(np.argmax(np.abs(aff[:3, 1]))), 1] > 0
+    if flip_x:
+        img, m = img[:, :, ::-1], m[:, :, ::-1]
+    if flip_y:
+        img, m = img[:, ::-1, :], m[:, ::-1, :]
     mosaic, layout = _compose(
         img, m, aff, flags, tuple(int(c) for c in rgb), int(tile_px), int(columns), title
     )

@@ -25,8 +25,8 @@ All views are **orthographic** and share one scale (pixels per mm), so the
 scale bar is exact everywhere in the image and the views can be compared
 side by side. The scene is framed on the brain when one is given (else the
 tumour): its bounding-box centre ``c`` is the image centre of every view
-and its bounding sphere about ``c`` fits the smaller image side with the
-margin ``1 / _FRAME_FILL``. A view is the unit vector ``forward`` along
+and the bounding sphere of brain and tumour about ``c`` fits the smaller
+image side with the margin ``1 / _FRAME_FILL``. A view is the unit vector ``forward`` along
 which the camera looks and the image ``up`` vector; the image right is
 ``forward x up``. The anterior view looks along ``-A`` with ``+S`` up, so
 the patient's right is on the image's left (radiological display); the
@@ -737,8 +737,8 @@ def _build_scene(
     centre = 0.5 * (fv.min(axis=0) + fv.max(axis=0))
     all_v = [_used_vertices(tumor), fv]
     radius = max(float(np.linalg.norm(np.concatenate(all_v) - centre, axis=1).max()), 1e-6)
-    frame_radius = max(float(np.linalg.norm(fv - centre, axis=1).max()), 1e-6)
-    px_mm = _FRAME_FILL * min(width, height) / 2.0 / frame_radius
+    # the bounding sphere of everything about the brain's centre fits the image
+    px_mm = _FRAME_FILL * min(width, height) / 2.0 / radius
     cut_point = _surface_centroid(tumor)
 
     geoms: list[dict[str, Any]] = []

@@ -35,13 +35,25 @@ def test_contour_is_the_mask_boundary_in_the_right_tile():
     assert (r1 - r0, c1 - c0) == (80, 120)  # 60 x 40 pixels of 0.5 mm: aspect kept, x2
     inside = red[r0:r1, c0:c1]
     assert red.sum() == inside.sum()  # contour only on slice 2
-    # independent expectation: the rectangle rows 10-19, cols 30-49 scaled x2 -> its outline
+    # independent expectation: the rectangle rows 10-19, cols 30-49, shown radiologically
+    # (the RAS-stored x and y axes flipped: rows 20-29, cols 10-29), scaled x2 -> its outline
     rows, cols = np.nonzero(inside)
-    assert (rows.min(), rows.max(), cols.min(), cols.max()) == (20, 39, 60, 99)
+    assert (rows.min(), rows.max(), cols.min(), cols.max()) == (40, 59, 20, 59)
     want = np.zeros((80, 120), dtype=bool)
-    want[20:40, 60:100] = True
-    want[21:39, 61:99] = False
+    want[40:60, 20:60] = True
+    want[41:59, 21:59] = False
     assert np.array_equal(inside, want)
+
+
+def test_ras_and_lps_storage_give_the_same_mosaic():
+    img, mask, aff = _volume()
+    nz, ny, nx = img.shape
+    # the same voxels stored with x and y reversed (LPS): index i -> n - 1 - i
+    lps = aff @ np.array([[-1, 0, 0, nx - 1], [0, -1, 0, ny - 1], [0, 0, 1, 0], [0, 0, 0, 1]])
+    a = overlay_mosaic(img, mask, aff, abnormal_slices=[2])
+    b = overlay_mosaic(img[:, ::-1, ::-1], mask[:, ::-1, ::-1], lps, abnormal_slices=[2])
+    assert np.array_equal(a, b)
+    assert lps[0, 0] < 0 < aff[0, 0]  # the two storage orders really differ
 
 
 def test_abnormal_slices_are_framed_and_labelled():
@@ -102,10 +114,11 @@ def test_image_is_not_modified_and_greys_are_windowed():
     assert np.array_equal(img, before)
     r0, c0, r1, c1 = layout.tiles[2]
     tile = mosaic[r0:r1, c0:c1]
-    assert np.all(tile[15, 40] == 255)  # the bright rectangle saturates the window
+    # radiological flips of both in-plane axes: voxel (y, x) -> tile (ny - 1 - y, nx - 1 - x)
+    assert np.all(tile[40 - 1 - 15, 60 - 1 - 40] == 255)  # the bright rectangle saturates
     # one window for the volume: 0.5-99.5 percentiles mapped to 0-255
     lo, hi = np.percentile(img, [0.5, 99.5])
-    want = np.clip(np.rint((img[2, 2, 2] - lo) / (hi - lo) * 255), 0, 255)
+    want = np.clip(np.rint((img[2, 40 - 1 - 2, 60 - 1 - 2] - lo) / (hi - lo) * 255), 0, 255)
     assert abs(int(tile[2, 2, 0]) - want) <= 1
 
 
