@@ -49,6 +49,7 @@ __all__ = [
     "cohort_report_html",
     "patient_report_html",
     "patient_report_markdown",
+    "patient_summary_table",
 ]
 
 #: Volume estimators: key -> (label, definition).
@@ -343,6 +344,46 @@ def patient_report_markdown(data: Mapping[str, Any]) -> str:
         for stage, s in secs.items():
             lines.append(f"| {md(stage)} | {_fmt(_number(s, f'stage_seconds.{stage}'), 2)} |")
     return "\n".join(lines).rstrip() + "\n"
+
+
+def patient_summary_table(data: Mapping[str, Any]) -> list[dict[str, str]]:
+    """The summary as table rows, for a Prefect table artifact.
+
+    Parameters
+    ----------
+    data : mapping
+        As for :func:`patient_report_html`.
+
+    Returns
+    -------
+    list of dict
+        Rows ``{"quantity": ..., "value": ..., "unit": ...}``: each volume in
+        mm³ and mL, slice and face counts, stage times.
+    """
+    data = _check_mapping(data, "report data")
+    rows = [{"quantity": "patient", "value": _patient_id(data), "unit": ""}]
+    rows.append({"quantity": "status", "value": str(data.get("status", "ok")), "unit": ""})
+    for _key, label, v in _volumes(data):
+        rows.append({"quantity": f"volume, {label}", "value": _fmt(v), "unit": "mm³"})
+        ml = None if v is None else v / 1000.0
+        rows.append({"quantity": f"volume, {label}", "value": _fmt(ml, 3), "unit": "mL"})
+    for label, value in _check_mapping(data.get("measurements", {}), "measurements").items():
+        rows.append({"quantity": str(label), "value": str(value), "unit": ""})
+    abnormal = _abnormal(data)
+    if "n_slices" in data:
+        rows.append({"quantity": "acquired slices", "value": str(data["n_slices"]), "unit": ""})
+    if "abnormal_slices" in data:
+        rows.append({"quantity": "abnormal slices", "value": str(len(abnormal)), "unit": ""})
+    for key, label in (
+        ("faces_before", "faces, marching cubes"),
+        ("faces_after", "faces, simplified"),
+    ):
+        if key in data:
+            rows.append({"quantity": label, "value": str(data[key]), "unit": ""})
+    for stage, sec in _check_mapping(data.get("stage_seconds", {}), "stage_seconds").items():
+        v = _number(sec, f"stage_seconds.{stage}")
+        rows.append({"quantity": f"time, {stage}", "value": _fmt(v, 2), "unit": "s"})
+    return rows
 
 
 # ---------------------------------------------------------------------------

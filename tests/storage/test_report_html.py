@@ -15,6 +15,7 @@ from storage.report_html import (
     cohort_report_html,
     patient_report_html,
     patient_report_markdown,
+    patient_summary_table,
 )
 from tumor3d.errors import InputError
 from tumor3d.render import render_views, turntable_gif
@@ -97,6 +98,16 @@ def test_markdown_summary_has_the_same_numbers():
     assert "| Voxel count | 12,000.0 | 12.000 |" in md
     assert "Abnormal slices: 3 (9, 10, 11)" in md
     assert "| render-views | 0.75 |" in md
+
+
+def test_summary_table_rows():
+    rows = patient_summary_table(_data())
+    table = {(r["quantity"], r["unit"]): r["value"] for r in rows}
+    assert table[("volume, Eq. 7 (slices)", "mm³")] == "12,345.6"
+    assert table[("volume, Eq. 7 (slices)", "mL")] == "12.346"
+    assert table[("abnormal slices", "")] == "3"
+    assert table[("time, segment", "s")] == "1.25"
+    assert all(set(r) == {"quantity", "value", "unit"} for r in rows)
 
 
 def test_missing_values_and_nan_show_as_na():
