@@ -197,8 +197,8 @@ class RenderConfig(_StageConfig):
     The fields are the keywords of :func:`tumor3d.render.render_views`.
     ``renderer`` defaults to the numba z-buffer renderer: on this project's
     reference machine (llvmpipe, no GPU) it renders 8 views of a
-    100,000-face tumour with a 170,000-face brain ~40x faster than Open3D's
-    Filament (see ``benchmarks/bench_render.py``); ``auto`` uses Open3D and
+    100,000-face tumour with a 170,000-face brain ~70x faster than Open3D's
+    Filament (1.7 s against 123 s, ``benchmarks/bench_render.py``); ``auto`` uses Open3D and
     falls back to numpy, ``open3d`` insists on Open3D.
     """
 

@@ -67,13 +67,14 @@ Renderers and fallback
 process (see below). ``renderer="numpy"``: a z-buffer rasteriser in this
 process (numba-compiled scan conversion, numpy deferred Phong shading),
 no graphics driver needed; the default, because on a machine without a GPU
-it is much faster than Filament on llvmpipe (measured: 8 views of a
-100,000-face tumour in a 170,000-face brain at 640x480, ~1.6 s against
-~75 s, see ``benchmarks/bench_render.py``). ``renderer="auto"`` tries Open3D
+it is much faster than Filament on llvmpipe (measured on the project's
+2-core machine at load average ~10: 8 views of a 101,900-face tumour in a
+170,492-face brain at 640x480, 1.70 s against 122.7 s, see
+``benchmarks/bench_render.py``). ``renderer="auto"`` tries Open3D
 and falls back to numpy when the child cannot start or render (no Open3D,
 no Vulkan/Mesa driver, crash or timeout); ``RenderResult.info["renderer"]``
 names the renderer used and ``info["fallback_reason"]`` why Open3D was not,
-for the provenance record. Both renderers give the same image bytes for the
+for the provenance record. Each renderer gives the same image bytes for the
 same input (no anti-aliasing, no post-processing, deterministic order).
 
 Design: one subprocess per call

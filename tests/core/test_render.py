@@ -222,7 +222,11 @@ def test_translucent_brain_tints_the_tumour(tumor_mesh, brain_mesh):
     o = opaque.images["anterior"][row, col].astype(float)
     assert a[0] - a[1] > 30  # still red through the translucent brain
     assert abs(o[0] - o[1]) < 10  # hidden behind an opaque brain
-    # blending follows out = (1 - alpha) under + alpha brain (numpy renderer, one layer)
+    # one translucent layer (numpy renderer): out = (1 - a) tumour + a brain, so the
+    # tinted pixel lies between the bare tumour's and the opaque brain's
+    # behind that pixel the tumour faces the camera: Phong gives color (k_a + k_d) + k_s
+    t = 255 * np.clip(np.array(COLOR) * 0.85 + 0.3, 0, 1)
+    np.testing.assert_allclose(a, 0.75 * t + 0.25 * o, atol=4.0)
     assert _reddish(alone.images["anterior"]).sum() > 100
 
 
