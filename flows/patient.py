@@ -162,7 +162,7 @@ def run_stages(run: Any, source: InputSource, cfg: PipelineConfig, root: str) ->
     pre = run.run(S["preprocess"], scan=scan, config=cfg.preprocess, store_root=root)
     enhanced, brain = pre.artifacts["enhanced"], pre.artifacts["brain_mask"]
     det = run.run(
-        S["detect-abnormal"], enhanced=enhanced, brain_mask=brain, config=cfg.detect,
+        S["detect-abnormal"], scan=scan, enhanced=enhanced, brain_mask=brain, config=cfg.detect,
         store_root=root,
     ).artifacts["detection"]  # fmt: skip
     seg = run.run(
@@ -180,10 +180,15 @@ def run_stages(run: Any, source: InputSource, cfg: PipelineConfig, root: str) ->
     simple = run.run(
         S["simplify-mesh"], mesh=surface.artifacts["mesh"], config=cfg.simplify, store_root=root
     )
-    run.run(S["render-views"], mesh=simple.artifacts["mesh"], config=cfg.render, store_root=root)
+    run.run(
+        S["render-views"], mesh=simple.artifacts["mesh"], brain_mask=brain, config=cfg.render,
+        store_root=root,
+    )  # fmt: skip
     run.run(
         S["measure-volume"], scan=scan, detection=det,
-        segmentation=seg.artifacts["segmentation"], tumor_mask=itp.artifacts["tumor_mask"],
+        segmentation=seg.artifacts["segmentation"],
+        tumor_mask_slices=seg.artifacts["tumor_mask_slices"],
+        tumor_mask=itp.artifacts["tumor_mask"],
         mesh=surface.artifacts["mesh"], mesh_simplified=simple.artifacts["mesh"], store_root=root,
     )  # fmt: skip
     return run.outputs
@@ -357,7 +362,7 @@ def publish_patient(
                 store.get_bytes(outputs["simplify-mesh"].artifacts["mesh"])
             )
         for name, ref in outputs["render-views"].artifacts.items():
-            (staging / f"{name}.png").write_bytes(store.get_bytes(ref))
+            (staging / f"{name}{Path(ref.relpath).suffix}").write_bytes(store.get_bytes(ref))
         table = slice_table(
             store.get_table(outputs["detect-abnormal"].artifacts["detection"]),
             store.get_table(outputs["segment-tumor"].artifacts["segmentation"]),

@@ -14,13 +14,19 @@ __all__ = ["SPEC", "detect_task"]
 
 @stage_task("detect-abnormal")
 def detect_task(
-    enhanced: ArtifactRef, brain_mask: ArtifactRef, config: DetectConfig, store_root: str
+    scan: ArtifactRef,
+    enhanced: ArtifactRef,
+    brain_mask: ArtifactRef,
+    config: DetectConfig,
+    store_root: str,
 ) -> StageOutput:
-    """Abnormal-slice detection by counting histogram modes."""
+    """Abnormal-slice detection (histogram modes, or the patient's lesion model)."""
     store = ArtifactStore(store_root)
     image, _ = store.get_volume(enhanced)
     brain, _ = store.get_volume(brain_mask)
-    detection = detect_abnormal_slices(image, brain, **config.model_dump())
+    detection = detect_abnormal_slices(
+        image, brain, modality=scan.metadata["modality"], **config.model_dump()
+    )
     abnormal = np.flatnonzero(detection.abnormal)
     return StageOutput(
         stage="detect-abnormal",
@@ -34,6 +40,6 @@ SPEC = StageSpec(
     task=detect_task,
     entry=detect_abnormal_slices,
     config_model=DetectConfig,
-    inputs={"enhanced": "image", "brain_mask": "mask"},
+    inputs={"scan": "scan", "enhanced": "image", "brain_mask": "mask"},
     outputs={"detection": "table"},
 )

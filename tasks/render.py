@@ -2,28 +2,44 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from storage.store import ArtifactRef, ArtifactStore
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.config import RenderConfig
-from tumor3d.render import render_views
+from tumor3d.render import brain_surface, render_views, turntable_gif
 
 __all__ = ["SPEC", "render_task"]
 
+#: Grid spacing of the translucent brain surface (a context surface, not a measurement).
+BRAIN_SURFACE_SPACING_MM = 2.0
+
 
 @stage_task("render-views")
-def render_task(mesh: ArtifactRef, config: RenderConfig, store_root: str) -> StageOutput:
-    """Shaded offscreen renders of the surface from several azimuths (none without tumour)."""
+def render_task(
+    mesh: ArtifactRef, brain_mask: ArtifactRef, config: RenderConfig, store_root: str
+) -> StageOutput:
+    """Anatomical views, cut-aways and a turntable of the tumour in its brain (none if no tumour)."""
     store = ArtifactStore(store_root)
     surface = store.get_mesh(mesh)
     artifacts: dict[str, ArtifactRef] = {}
+    values: dict[str, Any] = {"n_views": 0, "renderer": None, "fallback_reason": None}
     if not surface.is_empty:
-        images = render_views(surface, **config.model_dump())
-        for azimuth, rgb in zip(config.azimuths_deg, images, strict=True):
-            name = f"render_az{int(round(azimuth)) % 360:03d}"
-            artifacts[name] = store.put_png(rgb, extra={"azimuth_deg": float(azimuth)})
-    return StageOutput(
-        stage="render-views", artifacts=artifacts, values={"n_views": len(artifacts)}
-    )
+        brain_zyx, affine = store.get_volume(brain_mask)
+        brain = brain_surface(brain_zyx, affine, spacing_mm=BRAIN_SURFACE_SPACING_MM)
+        result = render_views(surface, brain=brain, **config.model_dump())
+        for name, rgb in result.images.items():
+            artifacts[f"render_{name}"] = store.put_png(rgb, extra={"view": name})
+        if result.turntable:
+            artifacts["render_turntable"] = store.put_bytes(
+                turntable_gif(result.turntable), kind="gif", suffix=".gif"
+            )
+        values = {
+            "n_views": len(artifacts),
+            "renderer": result.info["renderer"],
+            "fallback_reason": result.info["fallback_reason"],
+        }
+    return StageOutput(stage="render-views", artifacts=artifacts, values=values)
 
 
 SPEC = StageSpec(
@@ -31,6 +47,6 @@ SPEC = StageSpec(
     task=render_task,
     entry=render_views,
     config_model=RenderConfig,
-    inputs={"mesh": "mesh"},
-    outputs={"render_az*": "png"},
+    inputs={"mesh": "mesh", "brain_mask": "mask"},
+    outputs={"render_*": "png", "render_turntable": "gif"},
 )

@@ -40,6 +40,7 @@ from tumor3d.errors import InputError
 
 __all__ = [
     "CavalieriPrecision",
+    "clinical_measures",
     "LinearMeasures",
     "cavalieri_alpha",
     "cavalieri_precision",
@@ -348,3 +349,58 @@ def max_diameter_mm(vertices: np.ndarray) -> float:
     if not np.all(np.isfinite(pts)):
         raise InputError("vertices must be finite")
     return _diameter(pts)[0]
+
+
+def clinical_measures(
+    tumor_mask_slices: np.ndarray,
+    *,
+    pixel_spacing_mm: tuple[float, float],
+    slab_height_mm: float,
+    mesh_vertices: np.ndarray | None = None,
+    smoothness: float = 1.0,
+) -> dict[str, float | int]:
+    """The columns a clinician compares, for ``metrics.parquet``.
+
+    The predicted precision of the Eq. 7 volume (:func:`cavalieri_precision`
+    on the tumour areas of the acquired slices), the RANO diameters
+    (:func:`rano_diameters`) and the 3-D diameter of the surface
+    (:func:`max_diameter_mm`, 0 without a surface).
+
+    Parameters
+    ----------
+    tumor_mask_slices : (z, y, x) array_like of bool
+        The tumour on the acquired slices.
+    pixel_spacing_mm : (dy, dx)
+        In-plane spacing, mm.
+    slab_height_mm : float
+        Thickness + gap, mm.
+    mesh_vertices : (n, 3) array_like, optional
+        The surface's vertices (RAS mm).
+    smoothness : float
+        ``q`` of the Cavalieri prediction.
+
+    Examples
+    --------
+    >>> m = np.zeros((3, 8, 8), bool); m[1, 2:6, 2:6] = True
+    >>> c = clinical_measures(m, pixel_spacing_mm=(1.0, 1.0), slab_height_mm=5.0)
+    >>> c["volume_eq7_ce"], c["rano_longest_mm"], c["rano_perpendicular_mm"]
+    (0.0, 5.656854249492381, 4.0)
+    """
+    mask = np.asarray(tumor_mask_slices).astype(bool)
+    dy, dx = (float(s) for s in pixel_spacing_mm)
+    areas = mask.sum(axis=(1, 2)) * dy * dx
+    cav = cavalieri_precision(areas, slab_height_mm, smoothness=smoothness)
+    rano = rano_diameters(mask, (dy, dx))
+    diameter = 0.0
+    if mesh_vertices is not None and len(mesh_vertices) >= 2:
+        diameter = max_diameter_mm(mesh_vertices)
+    return {
+        "volume_eq7_ce": cav.ce,
+        "volume_eq7_ci95_low_mm3": cav.ci95_low_mm3,
+        "volume_eq7_ci95_high_mm3": cav.ci95_high_mm3,
+        "rano_slice_index": rano.slice_index,
+        "rano_longest_mm": rano.longest_diameter_mm,
+        "rano_perpendicular_mm": rano.perpendicular_diameter_mm,
+        "rano_product_mm2": rano.product_mm2,
+        "max_diameter_3d_mm": diameter,
+    }

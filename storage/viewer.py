@@ -1,0 +1,176 @@
+"""A self-contained interactive 3-D viewer page (``viewer.html``) of the tumour and brain.
+
+:func:`viewer_html` returns one HTML document with plotly.js embedded
+(``include_plotlyjs=True``, ~4.7 MB): it opens from disk with no network.
+The tumour (opaque) and the brain (translucent) are two ``Mesh3d`` traces in
+RAS millimetres; drag rotates, the wheel zooms, clicking a legend entry
+(or the buttons above the plot) shows or hides a surface. Axes are labelled
+with their anatomical directions and drawn at equal scale
+(``aspectmode="data"``). The same meshes give the same bytes (fixed div id,
+no timestamps).
+
+Shading uses plotly's own Phong-like ``lighting`` (ambient, diffuse,
+specular, roughness) with the light at the camera, close to the offscreen
+renders of :mod:`tumor3d.render`.
+"""
+
+from __future__ import annotations
+
+import html
+from collections.abc import Sequence
+
+import numpy as np
+
+from tumor3d.errors import InputError
+from tumor3d.mesh import Mesh
+
+__all__ = ["viewer_html"]
+
+_DIV_ID = "tumor3d-viewer"
+
+
+def _rgb_css(rgb: Sequence[float], name: str) -> str:
+    arr = np.asarray(rgb, dtype=np.float64)
+    if arr.shape != (3,) or not np.all((arr >= 0) & (arr <= 1)):
+        raise InputError(f"{name} must be 3 numbers in [0, 1], got {rgb!r}")
+    r, g, b = (int(round(255 * c)) for c in arr)
+    return f"rgb({r},{g},{b})"
+
+
+def _trace(mesh: Mesh, name: str, color: str, opacity: float, decimals: int):  # noqa: ANN202
+    import plotly.graph_objects as go
+
+    v = np.round(mesh.vertices, decimals).astype(np.float32)
+    f = mesh.faces.astype(np.int32)
+    return go.Mesh3d(
+        x=v[:, 0],
+        y=v[:, 1],
+        z=v[:, 2],
+        i=f[:, 0],
+        j=f[:, 1],
+        k=f[:, 2],
+        name=name,
+        color=color,
+        opacity=opacity,
+        flatshading=False,
+        showlegend=True,
+        hoverinfo="name",
+        lighting={"ambient": 0.35, "diffuse": 0.7, "specular": 0.3, "roughness": 0.5},
+        lightposition={"x": 0, "y": 1e5, "z": 0},
+    )
+
+
+def viewer_html(
+    tumor: Mesh,
+    brain: Mesh | None = None,
+    *,
+    title: str = "tumor3d viewer",
+    tumor_color_rgb: Sequence[float] = (0.85, 0.35, 0.3),
+    brain_color_rgb: Sequence[float] = (0.78, 0.78, 0.82),
+    brain_opacity: float = 0.25,
+    decimals: int = 2,
+) -> str:
+    """The interactive viewer page as an HTML string.
+
+    Parameters
+    ----------
+    tumor : Mesh
+        Non-empty tumour surface, RAS mm.
+    brain : Mesh, optional
+        Brain surface in the same frame, drawn translucent.
+    title : str
+        Page and plot title (HTML-escaped).
+    tumor_color_rgb, brain_color_rgb : sequence of 3 float
+        Colours, components in [0, 1].
+    brain_opacity : float
+        Brain opacity in (0, 1].
+    decimals : int
+        Vertex coordinates are rounded to this many decimals of a mm (0-6)
+        to keep the page small.
+
+    Returns
+    -------
+    str
+        A complete HTML document (UTF-8 text) with plotly.js embedded.
+
+    Raises
+    ------
+    InputError
+        On an empty or non-mesh input or a bad parameter.
+    """
+    import plotly.graph_objects as go
+    import plotly.io as pio
+
+    for mesh, name in ((tumor, "tumor"), (brain, "brain")):
+        if name == "brain" and mesh is None:
+            continue
+        if not isinstance(mesh, Mesh):
+            raise InputError(f"{name} must be a tumor3d.mesh.Mesh, got {type(mesh).__name__}")
+        if mesh.is_empty:
+            raise InputError(f"the {name} mesh is empty: nothing to view")
+    if not isinstance(title, str):
+        raise InputError(f"title must be a string, got {type(title).__name__}")
+    if (
+        isinstance(brain_opacity, bool)
+        or not isinstance(brain_opacity, (int, float))
+        or not (0.0 < brain_opacity <= 1.0)
+    ):
+        raise InputError(f"brain_opacity must lie in (0, 1], got {brain_opacity!r}")
+    if isinstance(decimals, bool) or not isinstance(decimals, int) or not 0 <= decimals <= 6:
+        raise InputError(f"decimals must be an integer in [0, 6], got {decimals!r}")
+    traces = [_trace(tumor, "tumour", _rgb_css(tumor_color_rgb, "tumor_color_rgb"), 1.0, decimals)]
+    if brain is not None:
+        traces.append(
+            _trace(
+                brain,
+                "brain",
+                _rgb_css(brain_color_rgb, "brain_color_rgb"),
+                float(brain_opacity),
+                decimals,
+            )
+        )
+    fig = go.Figure(traces)
+    buttons = [
+        {"label": "tumour + brain", "method": "restyle", "args": ["visible", [True, True]]},
+        {"label": "tumour only", "method": "restyle", "args": ["visible", [True, False]]},
+        {"label": "brain only", "method": "restyle", "args": ["visible", [False, True]]},
+    ]
+    axis = {"showbackground": False, "gridcolor": "#ddd", "zerolinecolor": "#bbb"}
+    fig.update_layout(
+        title={"text": html.escape(title)},
+        template="plotly_white",
+        margin={"l": 0, "r": 0, "t": 60, "b": 0},
+        legend={"itemclick": "toggle", "x": 0.01, "y": 0.95},
+        scene={
+            "aspectmode": "data",
+            "xaxis": {**axis, "title": {"text": "L  ← x (mm) →  R"}},
+            "yaxis": {**axis, "title": {"text": "P  ← y (mm) →  A"}},
+            "zaxis": {**axis, "title": {"text": "I  ← z (mm) →  S"}},
+            # anterior view, slightly from above: the patient's right on the left
+            "camera": {"eye": {"x": 0.0, "y": 2.0, "z": 0.6}, "up": {"x": 0, "y": 0, "z": 1}},
+        },
+        updatemenus=(
+            [
+                {
+                    "type": "buttons",
+                    "direction": "right",
+                    "x": 0.99,
+                    "xanchor": "right",
+                    "y": 1.08,
+                    "buttons": buttons,
+                }
+            ]
+            if brain is not None
+            else []
+        ),
+    )
+    page = pio.to_html(
+        fig,
+        include_plotlyjs=True,
+        full_html=True,
+        div_id=_DIV_ID,
+        config={"displaylogo": False, "responsive": True},
+        default_width="100%",
+        default_height="95vh",
+    )
+    return page.replace("<head>", f"<head>\n    <title>{html.escape(title)}</title>", 1)

@@ -1,0 +1,238 @@
+"""Tests of storage.report_html: patient report, markdown summary, cohort page."""
+
+from __future__ import annotations
+
+import re
+from html.parser import HTMLParser
+
+import numpy as np
+import pytest
+from headless_chromium import needs_chromium, open_page, serious_console_messages
+
+from storage.formats import encode_png
+from storage.report_html import (
+    VOLUME_DEFINITIONS,
+    cohort_report_html,
+    patient_report_html,
+    patient_report_markdown,
+    patient_summary_table,
+)
+from tumor3d.errors import InputError
+from tumor3d.render import render_views, turntable_gif
+from tumor3d.surface import extract_surface
+
+
+def _data(**extra):
+    data = {
+        "patient_id": "pat<01>",
+        "status": "ok",
+        "volumes_mm3": {"eq7": 12345.6, "voxel": 12000.0, "mesh": 11890.25},
+        "measurements": {"longest diameter": "31.2 mm"},
+        "n_slices": 24,
+        "abnormal_slices": [9, 10, 11],
+        "slab_height_mm": 6.5,
+        "faces_before": 25000,
+        "faces_after": 10000,
+        "stage_seconds": {"segment": 1.25, "render-views": 0.75},
+        "renders": {"anterior": "render_anterior.png", "cut_axial": "render_cut_axial.png"},
+        "turntable": "render_turntable.gif",
+        "overlays": {"tumour contour": "overlay_tumor.png"},
+        "viewer": "viewer.html",
+        "provenance": {"renderer": "numpy", "versions": {"tumor3d": "0.1.0"}},
+    }
+    data.update(extra)
+    return data
+
+
+class _Collector(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.tags, self.imgs, self.links, self.text = [], [], [], []
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append(tag)
+        a = dict(attrs)
+        if tag == "img":
+            self.imgs.append(a["src"])
+        if tag == "a":
+            self.links.append(a["href"])
+
+    def handle_data(self, data):
+        self.text.append(data)
+
+
+def _parse(page):
+    c = _Collector()
+    c.feed(page)
+    return c, " ".join(c.text)
+
+
+def test_patient_report_contents():
+    page = patient_report_html(_data())
+    c, text = _parse(page)
+    assert "script" not in c.tags  # no JavaScript
+    assert "pat<01>" in text and "<01>" not in page  # escaped
+    # the three estimators in mm3 and mL, with their definitions
+    assert "12,345.6" in text and "12.346" in text
+    assert "12,000.0" in text and "12.000" in text
+    assert "11,890.2" in text or "11,890.3" in text
+    for key in ("eq7", "voxel", "mesh"):
+        assert VOLUME_DEFINITIONS[key][1] in text
+    assert "3 (9, 10, 11)" in text and "24" in text
+    assert "25000" in text and "10000" in text
+    assert "2.00" in text  # total stage time
+    assert c.imgs == [
+        "render_anterior.png",
+        "render_cut_axial.png",
+        "render_turntable.gif",
+        "overlay_tumor.png",
+    ]
+    assert c.links == ["viewer.html"]
+    assert '"renderer": "numpy"' in text
+
+
+def test_markdown_summary_has_the_same_numbers():
+    md = patient_report_markdown(_data())
+    assert md.startswith("# Tumour reconstruction: pat<01>")
+    assert "| Eq. 7 (slices) | 12,345.6 | 12.346 |" in md
+    assert "| Voxel count | 12,000.0 | 12.000 |" in md
+    assert "Abnormal slices: 3 (9, 10, 11)" in md
+    assert "| render-views | 0.75 |" in md
+
+
+def test_summary_table_rows():
+    rows = patient_summary_table(_data())
+    table = {(r["quantity"], r["unit"]): r["value"] for r in rows}
+    assert table[("volume, Eq. 7 (slices)", "mm³")] == "12,345.6"
+    assert table[("volume, Eq. 7 (slices)", "mL")] == "12.346"
+    assert table[("abnormal slices", "")] == "3"
+    assert table[("time, segment", "s")] == "1.25"
+    assert all(set(r) == {"quantity", "value", "unit"} for r in rows)
+
+
+def test_missing_values_and_nan_show_as_na():
+    page = patient_report_html({"patient_id": "p", "volumes_mm3": {"eq7": float("nan")}})
+    _, text = _parse(page)
+    assert "n/a" in text
+
+
+@pytest.mark.parametrize(
+    ("data", "match"),
+    [
+        ({"patient_id": ""}, "patient_id"),
+        (_data(volumes_mm3={"bogus": 1.0}), "unknown estimator"),
+        (_data(volumes_mm3={"eq7": "big"}), "volumes_mm3.eq7 must be a number"),
+        (_data(renders={"a": "../../etc/passwd"}), "relative path inside"),
+        (_data(viewer="javascript:alert(1)"), "relative path inside"),
+        (_data(abnormal_slices=[-1]), "non-negative integers"),
+        (_data(provenance={"x": object()}), "JSON-able"),
+    ],
+)
+def test_patient_report_validation(data, match):
+    with pytest.raises(InputError, match=match):
+        patient_report_html(data)
+
+
+def _rows():
+    return [
+        {
+            "patient_id": f"p{k}",
+            "status": "ok" if k != 2 else "failed: no brain",
+            "volumes_mm3": {"eq7": 1000.0 * (k + 1), "voxel": 900.0 * (k + 1)},
+            "thumbnail": f"p{k}/render_anterior.png",
+            "report": f"p{k}/report.html",
+        }
+        for k in range(4)
+    ]
+
+
+def test_cohort_page_rows_links_and_plot():
+    page = cohort_report_html(_rows(), title="test cohort")
+    c, text = _parse(page)
+    assert "4 patient(s)" in text
+    assert c.imgs == [f"p{k}/render_anterior.png" for k in range(4)]
+    assert c.links == [f"p{k}/report.html" for k in range(4)]
+    assert "failed: no brain" in text
+    # the distribution plot has one dot per patient, at x proportional to the volume
+    cx = [float(x) for x in re.findall(r'<circle cx="([0-9.]+)"', page)]
+    assert len(cx) == 4
+    steps = np.diff(cx)
+    np.testing.assert_allclose(steps, steps[0], rtol=1e-2)  # volumes 1, 2, 3, 4 mL
+    assert "4.000" in text  # p3's Eq. 7 volume in mL in the table
+
+
+def test_cohort_validation():
+    with pytest.raises(InputError, match="sequence of per-patient mappings"):
+        cohort_report_html({"patient_id": "p"})
+    with pytest.raises(InputError, match="patient_id"):
+        cohort_report_html([{"status": "ok"}])
+
+
+@pytest.fixture(scope="module")
+def rendered_folder(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("patient")
+    size, c = 48, 23.5
+    z, y, x = np.ogrid[:size, :size, :size]
+    aff = np.eye(4)
+    aff[:3, 3] = -c
+    tumor = extract_surface((x - c - 5) ** 2 + (y - c) ** 2 + (z - c) ** 2 <= 36, aff)
+    brain = extract_surface(
+        ((x - c) / 20) ** 2 + ((y - c) / 22) ** 2 + ((z - c) / 17) ** 2 <= 1, aff
+    )
+    res = render_views(
+        tumor,
+        brain=brain,
+        width=240,
+        height=180,
+        views=("anterior",),
+        cutaways=("axial",),
+        turntable_frames=4,
+        renderer="numpy",
+    )
+    (folder / "render_anterior.png").write_bytes(encode_png(res.images["anterior"]))
+    (folder / "render_cut_axial.png").write_bytes(encode_png(res.images["cut_axial"]))
+    (folder / "render_turntable.gif").write_bytes(turntable_gif(res.turntable))
+    (folder / "overlay_tumor.png").write_bytes(encode_png(np.full((40, 80, 3), 90, np.uint8)))
+    (folder / "viewer.html").write_text("<html><body>viewer</body></html>")
+    return folder
+
+
+@needs_chromium
+def test_report_loads_in_headless_chromium_and_shows_the_renders(rendered_folder, tmp_path):
+    path = rendered_folder / "report.html"
+    path.write_text(patient_report_html(_data()), encoding="utf-8")
+    page = open_page(path, tmp_path, size=(1000, 1400), budget_ms=3000)
+    assert page.js_errors == []
+    assert serious_console_messages(page.console) == []
+    shot = page.screenshot.astype(int)
+    red = (shot[..., 0] > shot[..., 1] + 40) & (shot[..., 0] > shot[..., 2] + 40)
+    assert red.sum() > 300  # the tumour in the renders is on screen
+    # every image loaded (a broken image would be reported as a load error)
+    assert "Volume" in page.dom and "render_anterior.png" in page.dom
+
+
+@needs_chromium
+def test_a_missing_image_is_caught(rendered_folder, tmp_path):
+    path = rendered_folder / "report_missing.html"
+    path.write_text(patient_report_html(_data(renders={"x": "no_such.png"})), encoding="utf-8")
+    page = open_page(path, tmp_path, budget_ms=2000)
+    assert any("no_such.png" in e for e in page.js_errors)
+
+
+@needs_chromium
+def test_cohort_page_loads_in_headless_chromium(rendered_folder, tmp_path):
+    rows = [
+        {
+            "patient_id": "p0",
+            "status": "ok",
+            "volumes_mm3": {"eq7": 900.0},
+            "thumbnail": "render_anterior.png",
+            "report": "report.html",
+        }
+    ]
+    path = rendered_folder / "cohort.html"
+    path.write_text(cohort_report_html(rows), encoding="utf-8")
+    page = open_page(path, tmp_path, budget_ms=2000)
+    assert page.js_errors == [] and serious_console_messages(page.console) == []
+    shot = page.screenshot.astype(int)
+    assert ((shot[..., 0] > shot[..., 1] + 40) & (shot[..., 0] > shot[..., 2] + 40)).sum() > 50

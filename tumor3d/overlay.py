@@ -1,0 +1,305 @@
+"""Slice overlays: a mosaic of the acquired slices with a mask contour drawn over them.
+
+:func:`overlay_mosaic` lays the slices of a ``(z, y, x)`` volume out on a
+grid of tiles, draws the boundary of a mask (the tumour, or the brain mask
+of skull removal) over each, frames the slices flagged abnormal, and labels
+every tile with its index and its position in mm, so that a segmentation or
+skull-removal failure is visible at a glance. Pure: arrays in, an RGB array
+out (the caller writes the PNG).
+
+Tile geometry
+-------------
+Each slice is shown in radiological orientation, whatever the storage
+order: a voxel axis whose dominant world component points to R, A or S is
+flipped, so that image columns run towards the patient's left (axial,
+coronal) or posterior (sagittal) and image rows towards posterior (axial)
+or inferior (coronal, sagittal); an RAS- and an LPS-stored volume give the
+same mosaic. The slice is then resampled by nearest neighbour to ``tile_px`` pixels
+along its longer side with the in-plane pixel spacing honoured (the column
+lengths of the affine), so non-square pixels do not distort the anatomy.
+The intensity window is the 0.5-99.5 percentile range of the whole volume
+(one window for all slices, so slices can be compared).
+
+The contour is the inner boundary of the mask *at tile resolution*: tile
+pixels inside the resampled mask with a 4-neighbour outside it, drawn in
+``contour_rgb``. Slice position: the RAS coordinate of the slice centre
+along the world axis closest to the slice normal, written with that axis's
+letter, e.g. ``S +12.5 mm`` for axial slices.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from tumor3d.errors import InputError
+
+__all__ = ["MosaicLayout", "overlay_mosaic", "slice_positions_mm"]
+
+_HEADER_FRACTION = 0.12
+_GAP_PX = 4
+_ABNORMAL_RGB = (255, 170, 0)
+_BACKGROUND_RGB = (24, 24, 24)
+_TEXT_RGB = (235, 235, 235)
+
+
+@dataclass(frozen=True)
+class MosaicLayout:
+    """Where each slice went in the mosaic.
+
+    Attributes
+    ----------
+    tiles : tuple of (int, int, int, int)
+        Per slice, the image box ``(row0, col0, row1, col1)`` (end
+        exclusive) of the slice picture, below its header.
+    labels : tuple of str
+        Per slice, the header text (index, position, ``abnormal`` mark).
+    positions_mm : tuple of float
+        Per slice, the signed position along the labelled axis in mm.
+    axis_letter : str
+        The letter of that axis (``R``, ``A`` or ``S``).
+    """
+
+    tiles: tuple[tuple[int, int, int, int], ...]
+    labels: tuple[str, ...]
+    positions_mm: tuple[float, ...]
+    axis_letter: str
+
+
+def slice_positions_mm(affine: np.ndarray, shape_zyx: Sequence[int]) -> tuple[str, np.ndarray]:
+    """Position of each slice centre along the world axis nearest the slice normal.
+
+    Parameters
+    ----------
+    affine : (4, 4) array_like
+        Voxel index ``(x, y, z, 1)`` -> RAS mm.
+    shape_zyx : sequence of 3 int
+        Volume shape ``(z, y, x)``.
+
+    Returns
+    -------
+    letter : str
+        ``R``, ``A`` or ``S``: the world axis with the largest component of
+        the slice normal (the affine's z column).
+    positions_mm : (z,) float64 ndarray
+        RAS coordinate of each slice centre along that axis, in mm.
+    """
+    aff = _check_affine(affine)
+    nz, ny, nx = (int(s) for s in shape_zyx)
+    axis = int(np.argmax(np.abs(aff[:3, 2])))
+    k = np.arange(nz, dtype=np.float64)
+    centre = np.stack(
+        [np.full(nz, (nx - 1) / 2.0), np.full(nz, (ny - 1) / 2.0), k, np.ones(nz)], axis=1
+    )
+    ras = centre @ aff.T
+    return "RAS"[axis], ras[:, axis]
+
+
+def _check_affine(affine: np.ndarray) -> np.ndarray:
+    try:
+        aff = np.asarray(affine, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"affine must be a 4x4 numeric array, got {affine!r}") from None
+    if aff.shape != (4, 4) or not np.all(np.isfinite(aff)):
+        raise InputError(f"affine must be a finite 4x4 array, got shape {aff.shape}")
+    if abs(np.linalg.det(aff[:3, :3])) < 1e-12:
+        raise InputError("affine is singular (its 3x3 part has zero determinant)")
+    return aff
+
+
+def overlay_mosaic(
+    image: np.ndarray,
+    mask: np.ndarray,
+    affine: np.ndarray,
+    *,
+    abnormal_slices: Sequence[int] | np.ndarray | None = None,
+    contour_rgb: Sequence[int] = (255, 40, 40),
+    tile_px: int = 192,
+    columns: int | None = None,
+    title: str | None = None,
+    return_layout: bool = False,
+) -> np.ndarray | tuple[np.ndarray, MosaicLayout]:
+    """Mosaic of the slices with the mask's contour, abnormal slices framed.
+
+    Parameters
+    ----------
+    image : (z, y, x) array_like of real numbers
+        The (preprocessed) slices.
+    mask : (z, y, x) array_like of bool or 0/1
+        The mask whose boundary is drawn (tumour or brain), same shape.
+    affine : (4, 4) array_like
+        Voxel index ``(x, y, z, 1)`` -> RAS mm; gives the pixel aspect and
+        the slice positions.
+    abnormal_slices : sequence of int or (z,) bool array, optional
+        Slices flagged abnormal (indices, or a per-slice boolean); they get
+        an orange frame and ``abnormal`` in their header.
+    contour_rgb : sequence of 3 int
+        Contour colour, 0-255.
+    tile_px : int
+        Longer side of a slice picture in pixels (32-1024).
+    columns : int, optional
+        Tiles per mosaic row; default ``ceil(sqrt(z))``.
+    title : str, optional
+        A line of text above the mosaic (e.g. the patient and mask name).
+    return_layout : bool
+        Also return the :class:`MosaicLayout`.
+
+    Returns
+    -------
+    mosaic : (H, W, 3) uint8 ndarray
+    layout : MosaicLayout
+        Only with ``return_layout=True``.
+
+    Raises
+    ------
+    InputError
+        On mismatched shapes, a non-3-D image, bad indices or parameters.
+    """
+    img = np.asarray(image)
+    if img.ndim != 3 or img.size == 0:
+        raise InputError(f"image must be a non-empty (z, y, x) volume, got shape {img.shape}")
+    if not (np.issubdtype(img.dtype, np.number) and not np.iscomplexobj(img)):
+        raise InputError(f"image must be real-valued, got dtype {img.dtype}")
+    m = np.asarray(mask)
+    if m.shape != img.shape:
+        raise InputError(f"mask shape {m.shape} does not match image shape {img.shape}")
+    if m.dtype != bool:
+        if not np.issubdtype(m.dtype, np.number) or not np.isin(m, (0, 1)).all():
+            raise InputError("mask must be boolean or contain only 0 and 1")
+        m = m.astype(bool)
+    aff = _check_affine(affine)
+    nz = img.shape[0]
+    flags = np.zeros(nz, dtype=bool)
+    if abnormal_slices is not None:
+        ab = np.asarray(abnormal_slices)
+        if ab.dtype == bool:
+            if ab.shape != (nz,):
+                raise InputError(f"abnormal_slices as booleans must have shape ({nz},)")
+            flags = ab.copy()
+        else:
+            if ab.size and (
+                not np.issubdtype(ab.dtype, np.integer) or ab.min() < 0 or ab.max() >= nz
+            ):
+                raise InputError(f"abnormal_slices must be slice indices in [0, {nz})")
+            flags[ab.astype(np.int64).ravel()] = True
+    rgb = np.asarray(contour_rgb)
+    if (
+        rgb.shape != (3,)
+        or not np.issubdtype(rgb.dtype, np.integer)
+        or rgb.min() < 0
+        or (rgb.max() > 255)
+    ):
+        raise InputError(f"contour_rgb must be 3 integers in [0, 255], got {contour_rgb!r}")
+    if (
+        isinstance(tile_px, bool)
+        or not isinstance(tile_px, (int, np.integer))
+        or not (32 <= tile_px <= 1024)
+    ):
+        raise InputError(f"tile_px must be an integer in [32, 1024], got {tile_px!r}")
+    if columns is None:
+        columns = math.ceil(math.sqrt(nz))
+    elif isinstance(columns, bool) or not isinstance(columns, (int, np.integer)) or columns < 1:
+        raise InputError(f"columns must be a positive integer, got {columns!r}")
+    if title is not None and not isinstance(title, str):
+        raise InputError(f"title must be a string, got {type(title).__name__}")
+    # radiological display: flip in-plane voxel axes that point to R, A or S
+    flip_x = aff[int(np.argmax(np.abs(aff[:3, 0]))), 0] > 0
+    flip_y = aff[int(np.argmax(np.abs(aff[:3, 1]))), 1] > 0
+    if flip_x:
+        img, m = img[:, :, ::-1], m[:, :, ::-1]
+    if flip_y:
+        img, m = img[:, ::-1, :], m[:, ::-1, :]
+    mosaic, layout = _compose(
+        img, m, aff, flags, tuple(int(c) for c in rgb), int(tile_px), int(columns), title
+    )
+    return (mosaic, layout) if return_layout else mosaic
+
+
+def _window(img: np.ndarray) -> np.ndarray:
+    vals = img[np.isfinite(img)] if np.issubdtype(img.dtype, np.floating) else img.ravel()
+    if vals.size == 0:
+        return np.zeros(img.shape, dtype=np.uint8)
+    lo, hi = np.percentile(vals, [0.5, 99.5])
+    if hi <= lo:
+        hi = lo + 1.0
+    out = np.clip((np.nan_to_num(img.astype(np.float64), nan=lo) - lo) / (hi - lo), 0.0, 1.0)
+    return np.rint(out * 255.0).astype(np.uint8)
+
+
+def _inner_boundary(mask: np.ndarray) -> np.ndarray:
+    """Pixels of a 2-D mask with a 4-neighbour outside it (the image border is outside)."""
+    p = np.pad(mask, 1, constant_values=False)
+    inner = p[1:-1, :-2] & p[1:-1, 2:] & p[:-2, 1:-1] & p[2:, 1:-1]
+    return mask & ~inner
+
+
+def _compose(
+    img: np.ndarray,
+    mask: np.ndarray,
+    aff: np.ndarray,
+    flags: np.ndarray,
+    contour_rgb: tuple[int, int, int],
+    tile_px: int,
+    columns: int,
+    title: str | None,
+) -> tuple[np.ndarray, MosaicLayout]:
+    from PIL import Image, ImageDraw
+
+    from tumor3d.render import _font
+
+    nz, ny, nx = img.shape
+    dx = float(np.linalg.norm(aff[:3, 0]))
+    dy = float(np.linalg.norm(aff[:3, 1]))
+    width_mm, height_mm = nx * dx, ny * dy
+    scale = tile_px / max(width_mm, height_mm)
+    tw = max(1, int(round(width_mm * scale)))
+    th = max(1, int(round(height_mm * scale)))
+    # nearest-neighbour sample positions (pixel centres)
+    src_c = np.minimum(((np.arange(tw) + 0.5) / tw * nx).astype(np.int64), nx - 1)
+    src_r = np.minimum(((np.arange(th) + 0.5) / th * ny).astype(np.int64), ny - 1)
+    header = max(12, int(round(_HEADER_FRACTION * tile_px)))
+    rows = math.ceil(nz / columns)
+    title_h = header + _GAP_PX if title else 0
+    cell_w, cell_h = tw + _GAP_PX, th + header + _GAP_PX
+    big_w = columns * cell_w + _GAP_PX
+    big_h = title_h + rows * cell_h + _GAP_PX
+    out = np.empty((big_h, big_w, 3), dtype=np.uint8)
+    out[:] = _BACKGROUND_RGB
+    gray = _window(img)
+    letter, pos = slice_positions_mm(aff, img.shape)
+    tiles = []
+    labels = []
+    frame = max(2, tile_px // 64)
+    for k in range(nz):
+        r0 = title_h + _GAP_PX + (k // columns) * cell_h + header
+        c0 = _GAP_PX + (k % columns) * cell_w
+        g = gray[k][np.ix_(src_r, src_c)]
+        tile = np.repeat(g[:, :, None], 3, axis=2)
+        edge = _inner_boundary(mask[k][np.ix_(src_r, src_c)])
+        tile[edge] = contour_rgb
+        out[r0 : r0 + th, c0 : c0 + tw] = tile
+        if flags[k]:
+            out[r0 - frame : r0, c0 - frame : c0 + tw + frame] = _ABNORMAL_RGB
+            out[r0 + th : r0 + th + frame, c0 - frame : c0 + tw + frame] = _ABNORMAL_RGB
+            out[r0 : r0 + th, c0 - frame : c0] = _ABNORMAL_RGB
+            out[r0 : r0 + th, c0 + tw : c0 + tw + frame] = _ABNORMAL_RGB
+        tiles.append((r0, c0, r0 + th, c0 + tw))
+        labels.append(f"#{k} {letter} {pos[k]:+.1f} mm" + (" abn." if flags[k] else ""))
+    pil = Image.fromarray(out)
+    draw = ImageDraw.Draw(pil)
+    font = _font(max(8, int(header * 0.6)))
+    for k, (r0, c0, _, _) in enumerate(tiles):
+        ink = _ABNORMAL_RGB if flags[k] else _TEXT_RGB
+        draw.text((c0, r0 - frame - 1), labels[k], fill=ink, font=font, anchor="lb")
+    if title:
+        draw.text((_GAP_PX, _GAP_PX + header // 2), title, fill=_TEXT_RGB, font=font, anchor="lm")
+    layout = MosaicLayout(
+        tiles=tuple(tiles),
+        labels=tuple(labels),
+        positions_mm=tuple(float(p) for p in pos),
+        axis_letter=letter,
+    )
+    return np.asarray(pil, dtype=np.uint8).copy(), layout
