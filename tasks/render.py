@@ -19,7 +19,7 @@ BRAIN_SURFACE_SPACING_MM = 2.0
 def render_task(
     mesh: ArtifactRef, brain_mask: ArtifactRef, config: RenderConfig, store_root: str
 ) -> StageOutput:
-    """Anatomical views, cut-aways and a turntable of the tumour in its brain (none if no tumour)."""
+    """Anatomical views, cut-aways and a turntable of the tumour in its brain (if any)."""
     store = ArtifactStore(store_root)
     surface = store.get_mesh(mesh)
     artifacts: dict[str, ArtifactRef] = {}
