@@ -19,10 +19,8 @@
    ``DIR/evaluation_slices.parquet`` (per acquired slice), the Bland-Altman
    plots and ``DIR/REPORT.md`` (:mod:`storage.evaluation_report`).
 
-The cohort runner is ``flows.cohort.run_cohort`` (the cohort flow). Until it
-exists on this branch, :func:`_run_cohort_fallback` runs the patients one
-after another with :func:`flows.patient.run_patient` and gives the same
-result shape (FALLBACK: switch to ``run_cohort`` when it is merged).
+The patients run through :func:`flows.cohort.run_cohort` (the cohort flow:
+``--workers`` patients at a time, failures isolated per patient).
 """
 
 from __future__ import annotations
@@ -31,7 +29,6 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -128,53 +125,9 @@ def _load_configs(specs: dict[str, str | None]) -> dict[str, dict[str, Any]]:
 # --------------------------------------------------------------------------- cohort
 
 
-def _run_cohort_fallback(
-    rows: list[ManifestRow],
-    out_dir: Path,
-    *,
-    config: dict[str, Any] | None = None,
-    workers: int | None = None,
-    store_dir: str | Path | None = None,
-) -> Any:
-    """FALLBACK for ``flows.cohort.run_cohort``: the patients one by one, same result shape.
-
-    Returns an object with ``.patients``: list of objects with
-    ``patient_id, status ("ok"|"failed"), failed_stage, error, output_dir, metrics``.
-    """
-    from flows.patient import run_patient
-
-    del workers  # sequential
-    outcomes = []
-    for row in rows:
-        try:
-            res = run_patient(
-                row.image, out_dir, patient_id=row.patient_id, config=config,
-                modality=row.modality, slice_thickness_mm=row.slice_thickness_mm,
-                slice_gap_mm=row.slice_gap_mm,
-                store_dir=None if store_dir is None else str(store_dir),
-            )  # fmt: skip
-            outcomes.append(
-                SimpleNamespace(
-                    patient_id=row.patient_id, status="ok", failed_stage=None, error=None,
-                    output_dir=res.output_dir, metrics=dict(res.metrics),
-                )  # fmt: skip
-            )
-        except Exception as exc:  # failure isolation: record and go on
-            outcomes.append(
-                SimpleNamespace(
-                    patient_id=row.patient_id, status="failed", failed_stage=None,
-                    error=f"{type(exc).__name__}: {exc}".splitlines()[0], output_dir=None,
-                    metrics={},
-                )  # fmt: skip
-            )
-    return SimpleNamespace(patients=outcomes)
-
-
 def _run_cohort(rows, out_dir, *, config, workers, store_dir) -> Any:
-    try:
-        from flows.cohort import run_cohort  # the STAGE helper's cohort flow
-    except ImportError:
-        run_cohort = _run_cohort_fallback
+    from flows.cohort import run_cohort
+
     return run_cohort(rows, out_dir, config=config, workers=workers, store_dir=store_dir)
 
 
