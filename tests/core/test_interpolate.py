@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import heapq
 import math
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from hypothesis.extra import numpy as hnp
-from scipy import ndimage as ndi
 
 from tumor3d.config import InterpolateConfig
 from tumor3d.errors import InputError
@@ -61,63 +58,6 @@ def random_blob(rng, shape, n_ellipses=3):
     return out
 
 
-def dijkstra_chamfer(mask):
-    """Exact chamfer metric: shortest paths in the 8-neighbour graph (weights 1, sqrt2).
-
-    Sources: every pixel outside the mask and a one-pixel frame beyond the border.
-    """
-    h, w = mask.shape
-    big = np.zeros((h + 2, w + 2), dtype=bool)
-    big[1:-1, 1:-1] = mask
-    dist = np.full(big.shape, np.inf)
-    heap = []
-    for y, x in np.argwhere(~big):
-        dist[y, x] = 0.0
-        heap.append((0.0, int(y), int(x)))
-    heapq.heapify(heap)
-    steps = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    while heap:
-        d, y, x = heapq.heappop(heap)
-        if d > dist[y, x]:
-            continue
-        for dy, dx in steps:
-            yy, xx = y + dy, x + dx
-            if 0 <= yy < h + 2 and 0 <= xx < w + 2:
-                nd = d + (SQRT2 if dy and dx else 1.0)
-                if nd < dist[yy, xx]:
-                    dist[yy, xx] = nd
-                    heapq.heappush(heap, (nd, yy, xx))
-    return dist[1:-1, 1:-1]
-
-
-def brute_signed_distance(mask, metric):
-    """Closed-form metric, min over all pixels of the other set (plus the frame inside)."""
-
-    def pair_metric(dy, dx):
-        dy, dx = np.abs(dy), np.abs(dx)
-        if metric == "taxicab":
-            return dy + dx
-        return np.maximum(dy, dx) + (SQRT2 - 1.0) * np.minimum(dy, dx)
-
-    h, w = mask.shape
-    big = np.zeros((h + 2, w + 2), dtype=bool)
-    big[1:-1, 1:-1] = mask
-    background = np.argwhere(~big) - 1  # includes the frame beyond the border
-    objects = np.argwhere(mask)
-    out = np.empty(mask.shape)
-    for y in range(h):
-        for x in range(w):
-            if mask[y, x]:
-                d = pair_metric(background[:, 0] - y, background[:, 1] - x).min()
-                out[y, x] = d - 0.5
-            elif len(objects):
-                d = pair_metric(objects[:, 0] - y, objects[:, 1] - x).min()
-                out[y, x] = -(d - 0.5)
-            else:
-                out[y, x] = -np.inf
-    return out
-
-
 def drifting_sphere(radius_mm=20.0, drift=0.93, dz_mm=5.0, shape=(64, 96)):
     """Sphere sampled every dz (1 mm pixels) whose centre moves by ``drift`` mm in x per mm of z.
 
@@ -139,76 +79,6 @@ def sphere_segment_volume(radius, z_lo, z_hi):
         return radius**2 * z - z**3 / 3.0
 
     return math.pi * (f(z_hi) - f(z_lo))
-
-
-# --------------------------------------------------------------------------
-# distance transforms
-
-
-def test_chamfer_distance_matches_dijkstra_on_random_masks():
-    rng = np.random.default_rng(20130601)
-    cases = [np.ones((7, 9), dtype=bool), np.ones((1, 1), dtype=bool), np.zeros((4, 3), bool)]
-    for _ in range(40):
-        shape = tuple(rng.integers(1, 14, size=2))
-        density = rng.uniform(0.3, 0.95)
-        cases.append(rng.random(shape) < density)
-    for mask in cases:
-        got = chamfer_distance(mask)
-        np.testing.assert_allclose(got, dijkstra_chamfer(mask), rtol=0, atol=1e-12)
-        assert np.all(got[~mask] == 0.0)
-
-
-def test_chamfer_distance_of_disk_is_within_chamfer_bound_of_euclidean():
-    mask = disk((81, 81), (40.0, 40.0), 34.0)
-    got = chamfer_distance(mask)
-    # Euclidean distance to the nearest background pixel (the frame counts as background)
-    edt = ndi.distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1]
-    inside = mask
-    ratio = got[inside] / edt[inside]
-    assert ratio.min() >= 1.0 - 1e-12
-    assert ratio.max() <= CHAMFER_MAX_RATIO + 1e-12
-    # not the Euclidean transform: the 22.5-degree overestimate shows up
-    assert ratio.max() > 1.04
-    # at the centre both are close to the radius (34 plus the half pixel to the background)
-    assert abs(got[40, 40] - 35.0) < 0.08 * 35.0
-
-
-@pytest.mark.parametrize("metric", ["chamfer", "taxicab"])
-def test_signed_distance_matches_brute_force(metric):
-    rng = np.random.default_rng(7)
-    masks = [
-        rng.random(tuple(rng.integers(1, 12, size=2))) < rng.uniform(0.1, 0.9) for _ in range(25)
-    ]
-    masks += [np.ones((5, 6), dtype=bool), np.zeros((5, 6), dtype=bool)]
-    for mask in masks:
-        got = signed_distance(mask, metric=metric)
-        ref = brute_signed_distance(mask, metric)
-        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
-
-
-@settings(max_examples=60, deadline=None)
-@given(
-    mask=hnp.arrays(bool, hnp.array_shapes(min_dims=2, max_dims=2, max_side=16)),
-    metric=st.sampled_from(["chamfer", "taxicab"]),
-)
-def test_signed_distance_zero_level_halfway_and_gives_mask_back(mask, metric):
-    d = signed_distance(mask, metric=metric)
-    np.testing.assert_array_equal(d >= 0, mask)
-    assert np.all(d[mask] >= 0.5)
-    assert np.all(d[~mask] <= -0.5)
-
-
-def test_signed_distance_examples_and_empty_mask():
-    row = np.array([[0, 1, 1, 1, 0, 0]], dtype=bool)
-    # the rows beyond the border are background for the inside part, so a
-    # one-row object is one pixel deep; outside, the border is not object
-    np.testing.assert_allclose(signed_distance(row), [[-0.5, 0.5, 0.5, 0.5, -0.5, -1.5]])
-    block = np.zeros((5, 7), dtype=bool)
-    block[:, 1:6] = True
-    np.testing.assert_allclose(signed_distance(block)[2], [-0.5, 0.5, 1.5, 2.5, 1.5, 0.5, -0.5])
-    assert np.all(signed_distance(np.zeros((3, 4), bool)) == -np.inf)
-    # numeric 0/1 input is accepted
-    np.testing.assert_array_equal(signed_distance(row.astype(np.uint8)), signed_distance(row))
 
 
 # --------------------------------------------------------------------------
