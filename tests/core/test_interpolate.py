@@ -14,6 +14,7 @@ from tumor3d.errors import InputError
 from tumor3d.interpolate import (
     InterpolatedStack,
     chamfer_distance,
+    interpolate_gray_slices,
     interpolate_pair,
     interpolate_stack,
     interpolation_error_percent,
@@ -22,7 +23,9 @@ from tumor3d.interpolate import (
     slices_between_auto,
 )
 
-METHODS = ("enhanced", "shape", "linear")
+METHODS = ("enhanced", "enhanced-edt", "shape", "shape-edt", "linear")
+#: Algorithm 1 of the paper, literally
+SE = {"method": "enhanced", "parts": "whole"}
 SQRT2 = math.sqrt(2.0)
 # max of chamfer(1, sqrt2) / Euclidean, reached at 22.5 degrees
 CHAMFER_MAX_RATIO = math.cos(math.pi / 8) + (SQRT2 - 1.0) * math.sin(math.pi / 8)
@@ -100,15 +103,17 @@ def test_identical_masks_far_from_centre_are_not_clipped():
     mask[0:3, :] = True
     mask[:, 0:3] = True
     for t in (0.2, 0.5, 0.9):
-        np.testing.assert_array_equal(interpolate_pair(mask, mask, t), mask)
+        for method in METHODS:
+            np.testing.assert_array_equal(interpolate_pair(mask, mask, t, method=method), mask)
 
 
 @pytest.mark.parametrize("centre", [(47.5, 47.5), (40.3, 51.7)])
 @pytest.mark.parametrize(("r1", "r2"), [(8.0, 24.0), (5.0, 30.0), (12.0, 16.0)])
 @pytest.mark.parametrize("t", [0.25, 0.5, 0.75])
-def test_concentric_disks_give_disk_of_interpolated_radius(centre, r1, r2, t):
+@pytest.mark.parametrize("method", ["enhanced", "shape-edt", "enhanced-edt"])
+def test_concentric_disks_give_disk_of_interpolated_radius(centre, r1, r2, t, method):
     shape = (96, 96)
-    out = interpolate_pair(disk(shape, centre, r1), disk(shape, centre, r2), t)
+    out = interpolate_pair(disk(shape, centre, r1), disk(shape, centre, r2), t, method=method)
     r_t = (1 - t) * r1 + t * r2
     yy, xx = np.mgrid[: shape[0], : shape[1]]
     rho = np.hypot(yy - centre[0], xx - centre[1])
@@ -130,7 +135,7 @@ def test_displaced_disks_enhanced_keeps_disk_while_so_shrinks(displacement):
     a = disk(shape, (40.2, 30.6), r)
     b = disk(shape, (40.2 + displacement[0], 30.6 + displacement[1]), r)
     assert math.hypot(*displacement) > r
-    enhanced = interpolate_pair(a, b, t)
+    enhanced = interpolate_pair(a, b, t, **SE)
     so = interpolate_pair(a, b, t, method="shape")
     c_z = (1 - t) * centroid(a) + t * centroid(b)
     assert abs(enhanced.sum() - a.sum()) <= 0.03 * a.sum()
@@ -147,7 +152,7 @@ def test_centroid_follows_interpolated_path():
         a = ellipse(shape, rng.uniform(25, 55, 2), rng.uniform(4, 14, 2), rng.uniform(0, 3))
         b = ellipse(shape, rng.uniform(25, 55, 2), rng.uniform(4, 14, 2), rng.uniform(0, 3))
         t = float(rng.uniform(0.05, 0.95))
-        out = interpolate_pair(a, b, t)
+        out = interpolate_pair(a, b, t, **SE)
         assert out.any()
         c_z = (1 - t) * centroid(a) + t * centroid(b)
         assert np.all(np.abs(centroid(out) - c_z) <= 0.5 + 1e-9)
@@ -188,8 +193,8 @@ def test_zero_fill_shift_never_wraps_around(axis):
         b = ellipse(shape, centres[1], rng.uniform(2, 15, 2), rng.uniform(0, math.pi))
         if not (a.any() and b.any()):
             continue
-        out = interpolate_pair(a, b, 0.5)
-        big = interpolate_pair(np.pad(a, widths), np.pad(b, widths), 0.5)
+        out = interpolate_pair(a, b, 0.5, **SE)
+        big = interpolate_pair(np.pad(a, widths), np.pad(b, widths), 0.5, **SE)
         np.testing.assert_array_equal(np.take(big, np.arange(pad, pad + 48), axis=axis), out)
         n_clipped += bool(np.take(big, np.arange(pad), axis=axis).any())
     assert n_clipped >= 3  # the border really cut some results
@@ -356,8 +361,11 @@ def test_enhanced_beats_shape_based_on_drifting_sphere():
         method: np.array([leave_one_out_error(masks, k, method=method) for k in interior])
         for method in METHODS
     }
+    # the paper's claim (Table 4): SE < SO < LG
     assert np.all(loo["enhanced"] < loo["shape"])
     assert loo["enhanced"].mean() < loo["shape"].mean() < loo["linear"].mean()
+    # the exact distance does at least as well as the chamfer one on a round object
+    assert loo["enhanced-edt"].mean() <= loo["enhanced"].mean() + 0.5
 
 
 def test_interpolation_error_percent_known_values():
@@ -429,7 +437,17 @@ def test_validation_unknown_method_and_metric():
     with pytest.raises(InputError, match="method must be one of"):
         interpolate_stack(np.ones((2, 4, 4), bool), method="cubic", slices_between=1)
     with pytest.raises(InputError, match="metric must be one of"):
-        signed_distance(np.ones((4, 4), bool), metric="euclidean")
+        signed_distance(np.ones((4, 4), bool), metric="manhattan")
+    with pytest.raises(InputError, match="parts must be one of"):
+        interpolate_pair(np.ones((4, 4), bool), np.ones((4, 4), bool), 0.5, parts="each")
+    with pytest.raises(InputError, match="parts must be one of"):
+        interpolate_stack(np.ones((2, 4, 4), bool), parts=None, slices_between=1)
+    with pytest.raises(InputError, match="unknown end_caps"):
+        interpolate_stack(np.ones((2, 4, 4), bool), end_caps="round", slices_between=1)
+    with pytest.raises(InputError, match="pixel_spacing_mm must hold positive"):
+        interpolate_pair(
+            np.ones((4, 4), bool), np.ones((4, 4), bool), 0.5, pixel_spacing_mm=(1.0, -1.0)
+        )
 
 
 def test_validation_slices_between():
@@ -470,3 +488,167 @@ def test_validation_stack_object():
         InterpolatedStack(np.ones((3, 4, 4), bool), 1, np.arange(2), np.zeros(3, bool))
     with pytest.raises(ValueError, match="slices_between must be >= 0"):
         InterpolatedStack(np.ones((3, 4, 4), bool), -1, np.arange(3), np.zeros(3, bool))
+
+
+# --------------------------------------------------------------------------
+# several parts per slice
+
+
+def _two_blobs(shape, c1, c2, r1, r2):
+    return disk(shape, c1, r1) | disk(shape, c2, r2)
+
+
+@pytest.mark.parametrize("method", ["enhanced", "enhanced-edt"])
+def test_parts_drifting_apart_are_each_aligned(method):
+    """Two parts moving in opposite directions: per-part alignment follows both.
+
+    The whole-slice centroid does not move, so Algorithm 1 aligns nothing and
+    interpolates two overlapping pairs as a lens each; matched parts give
+    the two disks at their interpolated centres.
+    """
+    shape, r = (80, 100), 9.0
+    a = _two_blobs(shape, (30.0, 25.0), (30.0, 70.0), r, r)
+    b = _two_blobs(shape, (46.0, 25.0), (14.0, 70.0), r, r)
+    truth = _two_blobs(shape, (38.0, 25.0), (22.0, 70.0), r, r)
+    matched = interpolate_pair(a, b, 0.5, method=method, parts="matched")
+    whole = interpolate_pair(a, b, 0.5, method=method, parts="whole")
+    e_matched = interpolation_error_percent(truth, matched)
+    e_whole = interpolation_error_percent(truth, whole)
+    assert e_matched < 12.0
+    assert e_whole > 2 * e_matched
+
+
+@pytest.mark.parametrize("method", ["enhanced", "enhanced-edt", "shape", "shape-edt"])
+def test_unmatched_part_shrinks_to_nothing(method):
+    shape = (64, 96)
+    big = disk(shape, (32.0, 30.0), 12.0)
+    small = disk(shape, (32.0, 75.0), 6.0)
+    a = big | small
+    b = big.copy()
+    areas = []
+    for t in (0.1, 0.3, 0.5, 0.7, 0.9):
+        out = interpolate_pair(a, b, t, method=method, parts="matched")
+        np.testing.assert_array_equal(out[:, :50], big[:, :50])  # the matched part stays
+        assert not (out & ~a).any()  # the lone part only erodes
+        areas.append(int(out[:, 50:].sum()))
+    assert areas[0] > 0
+    assert all(x > y for x, y in zip(areas, areas[1:], strict=False)) or areas[-1] == 0
+    assert areas[-1] <= 0.05 * small.sum()
+    # and the same in the other direction (a part that appears)
+    out = interpolate_pair(b, a, 0.9, method=method, parts="matched")
+    assert out[:, 50:].sum() == areas[0]
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), t=st.floats(0.05, 0.95))
+def test_one_part_each_matched_equals_whole(seed, t):
+    """With one overlapping part per slice the matched method is the whole-slice method."""
+    rng = np.random.default_rng(seed)
+    shape = (48, 56)
+    c = rng.uniform(18, 30, 2)
+    a = ellipse(shape, c, rng.uniform(5, 12, 2), rng.uniform(0, math.pi))
+    b = ellipse(shape, c + rng.uniform(-3, 3, 2), rng.uniform(5, 12, 2), rng.uniform(0, math.pi))
+    for method in METHODS:
+        np.testing.assert_array_equal(
+            interpolate_pair(a, b, t, method=method, parts="matched"),
+            interpolate_pair(a, b, t, method=method, parts="whole"),
+        )
+
+
+def test_part_that_splits_is_one_group():
+    """A part overlapping two parts of the next slice is interpolated with both at once."""
+    shape = (60, 80)
+    a = ellipse(shape, (30.0, 40.0), (8.0, 25.0), 0.0)
+    b = _two_blobs(shape, (30.0, 25.0), (30.0, 55.0), 8.0, 8.0)
+    for method in ("shape", "shape-edt"):
+        np.testing.assert_array_equal(
+            interpolate_pair(a, b, 0.5, method=method, parts="matched"),
+            interpolate_pair(a, b, 0.5, method=method, parts="whole"),
+        )
+
+
+def test_matching_after_alignment_for_aligned_methods():
+    """Parts that moved past each other without overlap are matched after alignment."""
+    shape = (60, 120)
+    a = _two_blobs(shape, (30.0, 20.0), (30.0, 50.0), 5.0, 5.0)
+    b = _two_blobs(shape, (30.0, 70.0), (30.0, 100.0), 5.0, 5.0)
+    truth = _two_blobs(shape, (30.0, 45.0), (30.0, 75.0), 5.0, 5.0)
+    out = interpolate_pair(a, b, 0.5, method="enhanced-edt", parts="matched")
+    assert interpolation_error_percent(truth, out) < 15.0
+    # without alignment nothing overlaps: every part shrinks in place
+    so = interpolate_pair(a, b, 0.5, method="shape-edt", parts="matched")
+    assert not (so & ~(a | b)).any()
+
+
+def test_taper_per_part_keeps_small_parts_to_the_end():
+    shape = (64, 96)
+    big = disk(shape, (32.0, 30.0), 15.0)
+    small = disk(shape, (32.0, 75.0), 4.0)
+    masks = np.array([big | small, np.zeros(shape, bool)])
+    m = 4
+    whole = interpolate_stack(masks, slices_between=m, end_caps="taper", parts="whole")
+    matched = interpolate_stack(masks, slices_between=m, end_caps="taper", parts="matched")
+    # each part is its own cone: the small one lasts as many slices as the big one
+    for j in range(1, m + 1):
+        assert matched.mask[j, :, 50:].any() and matched.mask[j, :, :50].any()
+        assert not (matched.mask[j] & ~masks[0]).any()
+    # one cone over the whole slice erodes the small part away early
+    assert not whole.mask[m, :, 50:].any()
+
+
+def test_stack_without_tumour_and_unsorted_documented():
+    empty = np.zeros((4, 10, 10), dtype=bool)
+    for method in METHODS:
+        st_ = interpolate_stack(empty, method=method, slices_between=2, end_caps="taper")
+        assert st_.mask.shape == (10, 10, 10)
+        assert not st_.mask.any() and not st_.interpolated.any()
+
+
+def test_euclidean_methods_use_the_pixel_spacing():
+    """Only the ratio dy/dx matters; anisotropic pixels change the result."""
+    shape = (40, 40)
+    a = ellipse(shape, (20.0, 14.0), (6.0, 6.0), 0.0)
+    b = ellipse(shape, (20.0, 24.0), (9.0, 5.0), 0.4)
+    for method in ("shape-edt", "enhanced-edt"):
+        unit = interpolate_pair(a, b, 0.4, method=method)
+        scaled = interpolate_pair(a, b, 0.4, method=method, pixel_spacing_mm=(0.7, 0.7))
+        np.testing.assert_array_equal(unit, scaled)
+        aniso = interpolate_pair(a, b, 0.4, method=method, pixel_spacing_mm=(0.5, 2.0))
+        assert (aniso != unit).any()
+
+
+# --------------------------------------------------------------------------
+# gray-level interpolation (LG)
+
+
+def test_gray_interpolation_is_linear_and_keeps_originals():
+    rng = np.random.default_rng(9)
+    images = rng.normal(size=(4, 6, 5))
+    m = 3
+    fine = interpolate_gray_slices(images, slices_between=m)
+    assert fine.shape == (13, 6, 5)
+    np.testing.assert_array_equal(fine[::4], images)
+    for k in range(3):
+        for j in range(1, 4):
+            t = j / 4
+            np.testing.assert_allclose(
+                fine[4 * k + j], (1 - t) * images[k] + t * images[k + 1], rtol=1e-12
+            )
+    np.testing.assert_array_equal(interpolate_gray_slices(images, slices_between=0), images)
+    # the mask variant is the thresholded gray interpolation of 0/1 images
+    masks = _stack_with_gaps()[:3]  # three non-empty slices
+    np.testing.assert_array_equal(
+        interpolate_gray_slices(masks.astype(float), slices_between=2) >= 0.5,
+        interpolate_stack(masks, method="linear", slices_between=2).mask,
+    )
+
+
+def test_gray_interpolation_validation():
+    with pytest.raises(InputError, match="images must be a non-empty"):
+        interpolate_gray_slices(np.zeros((3, 4)), slices_between=1)
+    with pytest.raises(InputError, match="finite numbers"):
+        interpolate_gray_slices(np.full((2, 3, 3), np.nan), slices_between=1)
+    with pytest.raises(InputError, match="slices_between must be >= 0"):
+        interpolate_gray_slices(np.zeros((2, 3, 3)), slices_between=-2)
+    with pytest.raises(InputError, match="slices_between must be an integer"):
+        interpolate_gray_slices(np.zeros((2, 3, 3)), slices_between=1.5)
