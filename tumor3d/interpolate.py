@@ -295,6 +295,12 @@ def _parts(mask: np.ndarray) -> tuple[np.ndarray, int]:
     return labels, int(n)
 
 
+def _pairs(i: np.ndarray, j: np.ndarray, nb: int) -> set[tuple[int, int]]:
+    """The distinct label pairs ``(i, j)`` of two aligned label arrays."""
+    keys = np.unique(i.astype(np.int64) * (nb + 1) + j)
+    return {(int(k // (nb + 1)), int(k % (nb + 1))) for k in keys}
+
+
 def _match_parts(
     la: np.ndarray, na: int, lb: np.ndarray, nb: int, align: bool
 ) -> tuple[list[tuple[list[int], list[int]]], list[int], list[int]]:
@@ -307,7 +313,7 @@ def _match_parts(
     centroids (Algorithm 1's alignment).
     """
     both = (la > 0) & (lb > 0)
-    edges = {(int(i), int(j)) for i, j in zip(la[both], lb[both], strict=True)}
+    edges = _pairs(la[both], lb[both], nb)
     if align:
         yb, xb = np.nonzero(lb)
         ya, xa = np.nonzero(la)
@@ -317,7 +323,7 @@ def _match_parts(
         hit_a = la[yy[keep], xx[keep]]
         hit_b = lb[yb[keep], xb[keep]]
         sel = hit_a > 0
-        edges |= {(int(i), int(j)) for i, j in zip(hit_a[sel], hit_b[sel], strict=True)}
+        edges |= _pairs(hit_a[sel], hit_b[sel], nb)
     # union-find over a-nodes 1..na and b-nodes na+1..na+nb
     parent = list(range(na + nb + 1))
 
@@ -344,7 +350,10 @@ def _match_parts(
 
 
 def _select(labels: np.ndarray, pix: Pixels, wanted: list[int]) -> Pixels:
-    sel = np.isin(labels[pix], wanted)
+    """The pixels of ``pix`` whose label is in ``wanted``."""
+    lut = np.zeros(int(labels.max()) + 1, dtype=bool)
+    lut[wanted] = True
+    sel = lut[labels[pix]]
     return pix[0][sel], pix[1][sel]
 
 
@@ -378,14 +387,21 @@ def _interpolate_gap(
             )
         ]
     else:
-        la, na = _parts(mask_a)
-        lb, nb = _parts(mask_b)
+        # work on the bounding box of both masks (labelling is the cost); box
+        # coordinates + lo = grid coordinates (shifts are translation invariant)
+        rows = np.flatnonzero((mask_a | mask_b).any(axis=1))
+        cols = np.flatnonzero((mask_a | mask_b).any(axis=0))
+        lo = np.array([rows[0], cols[0]])
+        box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        la, na = _parts(mask_a[box])
+        lb, nb = _parts(mask_b[box])
         pa = np.nonzero(la)
         pb = np.nonzero(lb)
         groups, lone_a, lone_b = _match_parts(la, na, lb, nb, align)
+        c_box = centre - lo
         pieces = [
             _interp_group(
-                _select(la, pa, ga), _select(lb, pb, gb), ts, metric, align, centre, spacing
+                _select(la, pa, ga), _select(lb, pb, gb), ts, metric, align, c_box, spacing
             )
             for ga, gb in groups
         ]
@@ -394,6 +410,7 @@ def _interpolate_gap(
         pieces += [
             _shrink(_select(lb, pb, [j]), [1.0 - t for t in ts], metric, spacing) for j in lone_b
         ]
+        pieces = [[(pix, off + lo) for pix, off in piece] for piece in pieces]
     for piece in pieces:
         for sl, ((ry, rx), offset) in zip(out, piece, strict=True):
             _paint(sl, ry, rx, offset)

@@ -149,6 +149,22 @@ def test_euclidean_signed_distance_matches_brute_force_in_mm(spacing):
         assert np.all(inside[~mask] == 0.0)
 
 
+def test_euclidean_distance_matches_scipy_on_large_masks():
+    rng = np.random.default_rng(77)
+    for _ in range(10):
+        shape = tuple(rng.integers(20, 90, size=2))
+        spacing = tuple(rng.uniform(0.3, 2.5, size=2))
+        mask = ndi.binary_opening(rng.random(shape) < 0.6)
+        ref = ndi.distance_transform_edt(np.pad(mask, 1), sampling=spacing)[1:-1, 1:-1]
+        got = euclidean_distance_mm(mask, spacing_mm=spacing)
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-9)
+        if mask.any():
+            outside = ndi.distance_transform_edt(~mask, sampling=spacing)
+            d = signed_distance(mask, metric="euclidean", spacing_mm=spacing)
+            half = 0.5 * min(spacing)
+            np.testing.assert_allclose(d[~mask], half - outside[~mask], atol=1e-9)
+
+
 def test_cityblock_distance_is_the_taxicab_inside_part():
     rng = np.random.default_rng(5)
     for _ in range(20):
