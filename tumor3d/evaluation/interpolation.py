@@ -37,9 +37,11 @@ References
 
 from __future__ import annotations
 
+import contextlib
 import math
 import numbers
-from collections.abc import Callable, Mapping, Sequence
+import warnings
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -83,13 +85,28 @@ _ITK_HINT = (
 # the ITK peer
 
 
+@contextlib.contextmanager
+def _quiet_swig() -> Iterator[None]:
+    """Silence SWIG's DeprecationWarnings while ITK loads and runs.
+
+    ITK's SWIG wrappers warn ("builtin type SwigPyPacked has no __module__
+    attribute") while its modules load lazily; with warnings turned into
+    errors (``-W error``, pytest's ``filterwarnings = error``) the exception
+    inside the module initialisation crashes the interpreter (segfault).
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        yield
+
+
 def itk_available() -> bool:
     """True when ITK's MorphologicalContourInterpolator can be imported."""
-    try:
-        import itk  # noqa: F401
-    except ImportError:
-        return False
-    return hasattr(itk, "MorphologicalContourInterpolator")
+    with _quiet_swig():
+        try:
+            import itk
+        except ImportError:
+            return False
+        return hasattr(itk, "MorphologicalContourInterpolator")
 
 
 def itk_contour_interpolate(sparse_zyx: np.ndarray) -> np.ndarray:
@@ -120,13 +137,14 @@ def itk_contour_interpolate(sparse_zyx: np.ndarray) -> np.ndarray:
     mask = as_mask(sparse_zyx, "sparse_zyx", 3)
     if not itk_available():
         raise ImportError(_ITK_HINT)
-    import itk
+    with _quiet_swig():
+        import itk
 
-    image = itk.image_from_array(np.ascontiguousarray(mask, dtype=np.uint8))
-    filt = itk.MorphologicalContourInterpolator.New(image)
-    filt.SetAxis(2)
-    filt.Update()
-    return itk.array_from_image(filt.GetOutput()) > 0
+        image = itk.image_from_array(np.ascontiguousarray(mask, dtype=np.uint8))
+        filt = itk.MorphologicalContourInterpolator.New(image)
+        filt.SetAxis(2)
+        filt.Update()
+        return itk.array_from_image(filt.GetOutput()) > 0
 
 
 # --------------------------------------------------------------------------
