@@ -652,3 +652,30 @@ def test_gray_interpolation_validation():
         interpolate_gray_slices(np.zeros((2, 3, 3)), slices_between=-2)
     with pytest.raises(InputError, match="slices_between must be an integer"):
         interpolate_gray_slices(np.zeros((2, 3, 3)), slices_between=1.5)
+
+
+def test_paper_yaml_is_algorithm_1_and_default_is_the_measured_choice():
+    from pathlib import Path
+
+    from tumor3d.config import parse_config
+
+    configs = Path(__file__).resolve().parents[2] / "configs"
+    paper = parse_config((configs / "paper.yaml").read_text(), source="paper.yaml").interpolate
+    assert (paper.method, paper.parts, paper.end_caps) == ("enhanced", "whole", "none")
+    default = InterpolateConfig()
+    assert (default.method, default.parts, default.end_caps) == ("shape-edt", "matched", "taper")
+    with pytest.raises(ValueError, match="parts"):
+        InterpolateConfig(parts="each")
+
+
+@pytest.mark.parametrize("method", ["shape", "shape-edt", "linear"])
+def test_reversed_slice_order_gives_the_reversed_stack(method):
+    """Order is not checked (masks carry no z); the documented result for reversed input.
+
+    The unaligned methods are symmetric in (a, b, t) <-> (b, a, 1 - t), so the
+    stack of reversed slices is the reversed stack, up to floating-point ties.
+    """
+    masks = _stack_with_gaps()
+    fwd = interpolate_stack(masks, method=method, slices_between=3, end_caps="taper").mask
+    rev = interpolate_stack(masks[::-1], method=method, slices_between=3, end_caps="taper").mask
+    assert np.count_nonzero(fwd != rev[::-1]) <= 1e-3 * fwd.size
