@@ -162,18 +162,59 @@ def test_unknown_method_and_missing_itk(monkeypatch):
 # every k-th slice
 
 
-def test_kth_slice_reconstructs_a_prism_exactly():
-    """A shape constant along z is rebuilt exactly by every method (and by ITK)."""
-    n, k = 21, 5  # kept slices 0, 5, 10, 15, 20 cover the whole prism
+@pytest.mark.parametrize("slab", ["centred", "flush"])
+def test_kth_slice_reconstructs_a_prism_exactly(slab):
+    """A shape constant along z is rebuilt exactly by every method (and by ITK).
+
+    Centred slabs at 0, 5, .., 20 cover thin slices 0-20; flush slabs (thin
+    slices 0-1, 5-6, .., 15-16, centres 0.5 .. 15.5) cover thin slices 1-15.
+    """
+    n, k = 21, 5
+    z = slice(0, n) if slab == "centred" else slice(1, 16)
     prism = np.zeros((n, 30, 30), bool)
-    prism[:, 8:20, 5:25] = True
-    prism[:, 20:26, 5:10] = True
+    prism[z, 8:20, 5:25] = True
+    prism[z, 20:26, 5:10] = True
     methods = list(METHODS) + (["ITK"] if itk_available() else [])
-    rows = kth_slice_rows(prism, case="prism", steps=(k,), methods=methods, end_caps=("taper",))
+    rows = kth_slice_rows(
+        prism, case="prism", steps=(k,), methods=methods, end_caps=("taper",), slab=slab
+    )
     assert {r["method"] for r in rows} == set(methods)
     for row in rows:
         assert row["dice"] == 1.0, row
         assert row["hd95_mm"] == 0.0 and row["volume_error_percent"] == 0.0
+
+
+def test_flush_slabs_are_the_evaluation_flow_rule():
+    rng = np.random.default_rng(8)
+    lab = rng.random((23, 5, 6)) < 0.4
+    for k, m, phase in [(5, 2, 0), (3, 1, 2), (4, 3, 1)]:
+        thick, centres = emulate_thick_labels(
+            lab, step_slices=k, thickness_slices=m, phase=phase, slab="flush"
+        )
+        starts = list(range(phase, 23 - m + 1, k))
+        np.testing.assert_allclose(centres, np.array(starts) + (m - 1) / 2)
+        for j, a in enumerate(starts):
+            np.testing.assert_array_equal(thick[j], lab[a : a + m].mean(axis=0) >= 0.5)
+    with pytest.raises(InputError, match="whole thickness_slices"):
+        emulate_thick_labels(lab, step_slices=5, thickness_slices=2.5, slab="flush")
+    with pytest.raises(InputError, match="slab must be"):
+        emulate_thick_labels(lab, step_slices=5, slab="middle")
+
+
+def test_flush_reconstruction_lands_on_the_thin_grid():
+    """Half-step centres: the thin slice midway between two thick ones is their t = 1/2 mask."""
+    lab = drifting_tumour_phantom(5, shape=(50, 64, 64))
+    thick, centres = emulate_thick_labels(lab, step_slices=5, slab="flush")
+    out = ev._reconstruct(
+        thick, centres, 50, "SO-EDT", end_caps="none", pixel_spacing_mm=(1.0, 1.0)
+    )
+    assert not out[0].any()  # before the first centre (0.5)
+    for j in range(len(thick) - 1):
+        if thick[j].any() and thick[j + 1].any():
+            # thin slice c_j + 2.5 is t = 1/2 of the gap
+            mid = int(centres[j] + 2.5)
+            est = interpolate_pair(thick[j], thick[j + 1], 0.5, method="shape-edt", parts="whole")
+            np.testing.assert_array_equal(out[mid], est)
 
 
 def test_kth_slice_rows_layout_and_scores():

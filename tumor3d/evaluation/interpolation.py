@@ -158,7 +158,12 @@ def _check_int(value: object, name: str, low: int) -> int:
 
 
 def emulate_thick_labels(
-    label_zyx: np.ndarray, *, step_slices: int, thickness_slices: float = 2.0, phase: int = 0
+    label_zyx: np.ndarray,
+    *,
+    step_slices: int,
+    thickness_slices: float = 2.0,
+    phase: int = 0,
+    slab: str = "centred",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Emulate thick acquired slices from a thin-slice label volume.
 
@@ -172,6 +177,14 @@ def emulate_thick_labels(
     thick slices on thin ones puts every fraction ``t = j / step`` of the
     reconstruction on a thin slice of the reference.
 
+    ``slab="flush"`` is the rule of the evaluation flow
+    (``tumor3d.evaluation.emulate``): thick slice ``j`` is the plain mean of
+    the ``m = T`` whole thin slices ``phase + j step, ..., phase + j step + m -
+    1`` (``T`` an integer ``<= step``; thin slices after the last complete
+    thick slice are dropped), centred at ``c_j = phase + j step + (m - 1)/2``.
+    With ``m = 2`` the label is the union of the two thin labels and the
+    centres fall halfway between thin slices.
+
     Parameters
     ----------
     label_zyx : (z, y, x) array_like of bool
@@ -181,14 +194,17 @@ def emulate_thick_labels(
     thickness_slices : float
         Slab thickness ``T`` in thin slices, ``0 < T <= 2 step`` (2 = 2 mm).
     phase : int
-        Index of the first thick slice's centre, ``0 <= phase < step``.
+        Index of the first thick slice's centre (``"flush"``: of its first
+        thin slice), ``0 <= phase < step``.
+    slab : {"centred", "flush"}
+        Where the slab lies, see above.
 
     Returns
     -------
     thick : (n, y, x) bool ndarray
         The emulated thick-slice labels.
-    centres : (n,) int64 ndarray
-        ``c_j``, the thin index of each thick slice's centre.
+    centres : (n,) float64 ndarray
+        ``c_j``, the (thin index) position of each thick slice's centre.
 
     Raises
     ------
@@ -201,7 +217,10 @@ def emulate_thick_labels(
     >>> lab = np.zeros((7, 1, 1), bool); lab[2:4] = True
     >>> thick, c = emulate_thick_labels(lab, step_slices=3)
     >>> c.tolist(), thick[:, 0, 0].tolist()
-    ([0, 3, 6], [False, True, False])
+    ([0.0, 3.0, 6.0], [False, True, False])
+    >>> thick, c = emulate_thick_labels(lab, step_slices=3, slab="flush")
+    >>> c.tolist(), thick[:, 0, 0].tolist()
+    ([0.5, 3.5], [False, True])
     """
     lab = as_mask(label_zyx, "label_zyx", 3)
     k = _check_int(step_slices, "step_slices", 1)
@@ -215,8 +234,19 @@ def emulate_thick_labels(
     if not (0.0 < thick_t <= 2 * k):
         raise InputError(f"thickness_slices must be in (0, 2 step] = (0, {2 * k}], got {thick_t}")
     n_thin = lab.shape[0]
-    centres = np.arange(ph, n_thin, k, dtype=np.int64)
     f = lab.astype(np.float64)
+    if slab == "flush":
+        m = round(thick_t)
+        if abs(m - thick_t) > 1e-9 or not (1 <= m <= k):
+            raise InputError(
+                f"slab='flush' needs a whole thickness_slices in [1, step = {k}], got {thick_t}"
+            )
+        starts = np.arange(ph, n_thin - m + 1, k)
+        flush = np.array([f[a : a + m].mean(axis=0) >= 0.5 for a in starts], dtype=bool)
+        return flush.reshape((len(starts),) + lab.shape[1:]), starts + (m - 1) / 2.0
+    if slab != "centred":
+        raise InputError(f"slab must be 'centred' or 'flush', got {slab!r}")
+    centres = np.arange(ph, n_thin, k, dtype=np.int64)
     out = np.zeros((len(centres),) + lab.shape[1:], dtype=bool)
     half = thick_t / 2.0
     for j, c in enumerate(centres):
@@ -229,7 +259,7 @@ def emulate_thick_labels(
                 total += w * f[i]
                 weight += w
         out[j] = total >= 0.5 * weight - 1e-12
-    return out, centres
+    return out, centres.astype(np.float64)
 
 
 # --------------------------------------------------------------------------
@@ -373,7 +403,7 @@ def table4_rows(
                     "case": case,
                     "method": name,
                     "slices": f"{i + 1}-{i + 3}",
-                    "z_thin": int(centres[i + 1]),
+                    "z_thin": float(centres[i + 1]),
                     "area_px": int(truth.sum()),
                     "epsilon_percent": interpolation_error_percent(truth, estimate),
                 }
@@ -390,20 +420,39 @@ def _reconstruct(
     end_caps: str,
     pixel_spacing_mm: Sequence[float],
 ) -> np.ndarray:
-    """Thin-slice reconstruction of a thick-slice label stack with one method."""
-    k = int(centres[1] - centres[0]) if len(centres) > 1 else 1
-    out = np.zeros((n_thin,) + thick.shape[1:], dtype=bool)
+    """Thin-slice reconstruction of a thick-slice label stack with one method.
+
+    Centres on thin slices: ``k - 1`` slices per gap land on the thin grid.
+    Centres halfway between thin slices (``slab="flush"``): the stack is
+    interpolated to half the thin step (``2k - 1`` per gap) and the fine
+    slices on thin positions are kept.
+    """
+    k = round(centres[1] - centres[0]) if len(centres) > 1 else 1
+    frac = float(centres[0] - math.floor(centres[0]))
+    sub = 1 if frac == 0.0 else 2  # fine slices per thin slice
+    if sub == 2 and abs(frac - 0.5) > 1e-9:
+        raise InputError(
+            f"thick-slice centres must be whole or half thin indices, got {centres[0]}"
+        )
+    n_fine = (len(thick) - 1) * k * sub + 1
     if name == ITK_METHOD:
-        out[centres] = thick
-        return itk_contour_interpolate(out)
-    fine = interpolate_stack(
-        thick,
-        slices_between=k - 1,
-        end_caps=end_caps,  # type: ignore[arg-type]
-        pixel_spacing_mm=pixel_spacing_mm,
-        **METHODS[name],  # type: ignore[arg-type]
-    ).mask
-    out[centres[0] : centres[0] + fine.shape[0]] = fine
+        sparse = np.zeros((n_fine,) + thick.shape[1:], dtype=bool)
+        sparse[:: k * sub] = thick
+        fine = itk_contour_interpolate(sparse)
+    else:
+        fine = interpolate_stack(
+            thick,
+            slices_between=k * sub - 1,
+            end_caps=end_caps,  # type: ignore[arg-type]
+            pixel_spacing_mm=pixel_spacing_mm,
+            **METHODS[name],  # type: ignore[arg-type]
+        ).mask
+    # fine slice f lies at thin position centres[0] + f / sub
+    out = np.zeros((n_thin,) + thick.shape[1:], dtype=bool)
+    first = math.ceil(centres[0])
+    f0 = round((first - centres[0]) * sub)
+    taken = fine[f0::sub]
+    out[first : first + len(taken)] = taken[: n_thin - first]
     return out
 
 
@@ -418,6 +467,7 @@ def kth_slice_rows(
     methods: Sequence[str] | None = None,
     include_itk: bool = True,
     end_caps: Sequence[str] = ("taper",),
+    slab: str = "centred",
     extra: Mapping[str, Callable[[np.ndarray, np.ndarray, int], np.ndarray]] | None = None,
 ) -> list[dict[str, Any]]:
     """Keep every ``k``-th thin slice, reconstruct the rest, score against the full reference.
@@ -449,6 +499,8 @@ def kth_slice_rows(
         Add ITK's interpolator when it is installed.
     end_caps : sequence of {"taper", "none"}
         End caps to run our methods with (ITK always ends flat).
+    slab : {"centred", "flush"}
+        Thick-slice emulation, see :func:`emulate_thick_labels`.
     extra : mapping, optional
         More methods: name -> ``f(thick, centres, n_thin) -> (z, y, x) bool``.
 
@@ -456,7 +508,7 @@ def kth_slice_rows(
     -------
     list of dict
         One row per step, phase, method and end cap: ``case``, ``k``,
-        ``phase``, ``method``, ``end_caps``, ``n_kept`` (slices with tumour),
+        ``phase``, ``slab``, ``method``, ``end_caps``, ``n_kept`` (slices with tumour),
         ``dice``, ``hd95_mm``, ``volume_error_percent``.
 
     Raises
@@ -478,7 +530,7 @@ def kth_slice_rows(
         kk = _check_int(k, "step", 2)
         for ph in range(kk) if phases is None else phases:
             thick, centres = emulate_thick_labels(
-                ref, step_slices=kk, thickness_slices=thickness_slices, phase=ph
+                ref, step_slices=kk, thickness_slices=thickness_slices, phase=ph, slab=slab
             )
             runs: list[tuple[str, str, np.ndarray]] = []
             for name in names:
@@ -501,6 +553,7 @@ def kth_slice_rows(
                         "case": case,
                         "k": kk,
                         "phase": int(ph),
+                        "slab": slab,
                         "method": name,
                         "end_caps": cap,
                         "n_kept": int(thick.reshape(len(thick), -1).any(axis=1).sum()),
