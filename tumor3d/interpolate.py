@@ -142,7 +142,6 @@ _DEFAULT_PARTS = "matched"
 _EIGHT = np.ones((3, 3), dtype=bool)
 
 
-
 # --------------------------------------------------------------------------
 # validation helpers
 
