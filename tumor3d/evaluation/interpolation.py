@@ -100,13 +100,21 @@ def _quiet_swig() -> Iterator[None]:
 
 
 def itk_available() -> bool:
-    """True when ITK's MorphologicalContourInterpolator can be imported."""
-    with _quiet_swig():
-        try:
-            import itk
-        except ImportError:
-            return False
-        return hasattr(itk, "MorphologicalContourInterpolator")
+    """True when ITK and its MorphologicalContourInterpolator module are installed.
+
+    Checks the installed distributions without importing ITK (importing it
+    is slow, and its teardown has crashed the interpreter at exit).
+    """
+    import importlib.metadata
+    import importlib.util
+
+    if importlib.util.find_spec("itk") is None:
+        return False
+    try:
+        importlib.metadata.version("itk-morphologicalcontourinterpolation")
+    except importlib.metadata.PackageNotFoundError:
+        return False
+    return True
 
 
 def itk_contour_interpolate(sparse_zyx: np.ndarray) -> np.ndarray:
