@@ -2,21 +2,19 @@
 
 from __future__ import annotations
 
-import heapq
 import math
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from hypothesis.extra import numpy as hnp
-from scipy import ndimage as ndi
 
 from tumor3d.config import InterpolateConfig
 from tumor3d.errors import InputError
 from tumor3d.interpolate import (
     InterpolatedStack,
     chamfer_distance,
+    interpolate_gray_slices,
     interpolate_pair,
     interpolate_stack,
     interpolation_error_percent,
@@ -25,7 +23,9 @@ from tumor3d.interpolate import (
     slices_between_auto,
 )
 
-METHODS = ("enhanced", "shape", "linear")
+METHODS = ("enhanced", "enhanced-edt", "shape", "shape-edt", "linear")
+#: Algorithm 1 of the paper, literally
+SE = {"method": "enhanced", "parts": "whole"}
 SQRT2 = math.sqrt(2.0)
 # max of chamfer(1, sqrt2) / Euclidean, reached at 22.5 degrees
 CHAMFER_MAX_RATIO = math.cos(math.pi / 8) + (SQRT2 - 1.0) * math.sin(math.pi / 8)
@@ -61,63 +61,6 @@ def random_blob(rng, shape, n_ellipses=3):
     return out
 
 
-def dijkstra_chamfer(mask):
-    """Exact chamfer metric: shortest paths in the 8-neighbour graph (weights 1, sqrt2).
-
-    Sources: every pixel outside the mask and a one-pixel frame beyond the border.
-    """
-    h, w = mask.shape
-    big = np.zeros((h + 2, w + 2), dtype=bool)
-    big[1:-1, 1:-1] = mask
-    dist = np.full(big.shape, np.inf)
-    heap = []
-    for y, x in np.argwhere(~big):
-        dist[y, x] = 0.0
-        heap.append((0.0, int(y), int(x)))
-    heapq.heapify(heap)
-    steps = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    while heap:
-        d, y, x = heapq.heappop(heap)
-        if d > dist[y, x]:
-            continue
-        for dy, dx in steps:
-            yy, xx = y + dy, x + dx
-            if 0 <= yy < h + 2 and 0 <= xx < w + 2:
-                nd = d + (SQRT2 if dy and dx else 1.0)
-                if nd < dist[yy, xx]:
-                    dist[yy, xx] = nd
-                    heapq.heappush(heap, (nd, yy, xx))
-    return dist[1:-1, 1:-1]
-
-
-def brute_signed_distance(mask, metric):
-    """Closed-form metric, min over all pixels of the other set (plus the frame inside)."""
-
-    def pair_metric(dy, dx):
-        dy, dx = np.abs(dy), np.abs(dx)
-        if metric == "taxicab":
-            return dy + dx
-        return np.maximum(dy, dx) + (SQRT2 - 1.0) * np.minimum(dy, dx)
-
-    h, w = mask.shape
-    big = np.zeros((h + 2, w + 2), dtype=bool)
-    big[1:-1, 1:-1] = mask
-    background = np.argwhere(~big) - 1  # includes the frame beyond the border
-    objects = np.argwhere(mask)
-    out = np.empty(mask.shape)
-    for y in range(h):
-        for x in range(w):
-            if mask[y, x]:
-                d = pair_metric(background[:, 0] - y, background[:, 1] - x).min()
-                out[y, x] = d - 0.5
-            elif len(objects):
-                d = pair_metric(objects[:, 0] - y, objects[:, 1] - x).min()
-                out[y, x] = -(d - 0.5)
-            else:
-                out[y, x] = -np.inf
-    return out
-
-
 def drifting_sphere(radius_mm=20.0, drift=0.93, dz_mm=5.0, shape=(64, 96)):
     """Sphere sampled every dz (1 mm pixels) whose centre moves by ``drift`` mm in x per mm of z.
 
@@ -142,76 +85,6 @@ def sphere_segment_volume(radius, z_lo, z_hi):
 
 
 # --------------------------------------------------------------------------
-# distance transforms
-
-
-def test_chamfer_distance_matches_dijkstra_on_random_masks():
-    rng = np.random.default_rng(20130601)
-    cases = [np.ones((7, 9), dtype=bool), np.ones((1, 1), dtype=bool), np.zeros((4, 3), bool)]
-    for _ in range(40):
-        shape = tuple(rng.integers(1, 14, size=2))
-        density = rng.uniform(0.3, 0.95)
-        cases.append(rng.random(shape) < density)
-    for mask in cases:
-        got = chamfer_distance(mask)
-        np.testing.assert_allclose(got, dijkstra_chamfer(mask), rtol=0, atol=1e-12)
-        assert np.all(got[~mask] == 0.0)
-
-
-def test_chamfer_distance_of_disk_is_within_chamfer_bound_of_euclidean():
-    mask = disk((81, 81), (40.0, 40.0), 34.0)
-    got = chamfer_distance(mask)
-    # Euclidean distance to the nearest background pixel (the frame counts as background)
-    edt = ndi.distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1]
-    inside = mask
-    ratio = got[inside] / edt[inside]
-    assert ratio.min() >= 1.0 - 1e-12
-    assert ratio.max() <= CHAMFER_MAX_RATIO + 1e-12
-    # not the Euclidean transform: the 22.5-degree overestimate shows up
-    assert ratio.max() > 1.04
-    # at the centre both are close to the radius (34 plus the half pixel to the background)
-    assert abs(got[40, 40] - 35.0) < 0.08 * 35.0
-
-
-@pytest.mark.parametrize("metric", ["chamfer", "taxicab"])
-def test_signed_distance_matches_brute_force(metric):
-    rng = np.random.default_rng(7)
-    masks = [
-        rng.random(tuple(rng.integers(1, 12, size=2))) < rng.uniform(0.1, 0.9) for _ in range(25)
-    ]
-    masks += [np.ones((5, 6), dtype=bool), np.zeros((5, 6), dtype=bool)]
-    for mask in masks:
-        got = signed_distance(mask, metric=metric)
-        ref = brute_signed_distance(mask, metric)
-        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
-
-
-@settings(max_examples=60, deadline=None)
-@given(
-    mask=hnp.arrays(bool, hnp.array_shapes(min_dims=2, max_dims=2, max_side=16)),
-    metric=st.sampled_from(["chamfer", "taxicab"]),
-)
-def test_signed_distance_zero_level_halfway_and_gives_mask_back(mask, metric):
-    d = signed_distance(mask, metric=metric)
-    np.testing.assert_array_equal(d >= 0, mask)
-    assert np.all(d[mask] >= 0.5)
-    assert np.all(d[~mask] <= -0.5)
-
-
-def test_signed_distance_examples_and_empty_mask():
-    row = np.array([[0, 1, 1, 1, 0, 0]], dtype=bool)
-    # the rows beyond the border are background for the inside part, so a
-    # one-row object is one pixel deep; outside, the border is not object
-    np.testing.assert_allclose(signed_distance(row), [[-0.5, 0.5, 0.5, 0.5, -0.5, -1.5]])
-    block = np.zeros((5, 7), dtype=bool)
-    block[:, 1:6] = True
-    np.testing.assert_allclose(signed_distance(block)[2], [-0.5, 0.5, 1.5, 2.5, 1.5, 0.5, -0.5])
-    assert np.all(signed_distance(np.zeros((3, 4), bool)) == -np.inf)
-    # numeric 0/1 input is accepted
-    np.testing.assert_array_equal(signed_distance(row.astype(np.uint8)), signed_distance(row))
-
-
-# --------------------------------------------------------------------------
 # interpolate_pair
 
 
@@ -230,15 +103,17 @@ def test_identical_masks_far_from_centre_are_not_clipped():
     mask[0:3, :] = True
     mask[:, 0:3] = True
     for t in (0.2, 0.5, 0.9):
-        np.testing.assert_array_equal(interpolate_pair(mask, mask, t), mask)
+        for method in METHODS:
+            np.testing.assert_array_equal(interpolate_pair(mask, mask, t, method=method), mask)
 
 
 @pytest.mark.parametrize("centre", [(47.5, 47.5), (40.3, 51.7)])
 @pytest.mark.parametrize(("r1", "r2"), [(8.0, 24.0), (5.0, 30.0), (12.0, 16.0)])
 @pytest.mark.parametrize("t", [0.25, 0.5, 0.75])
-def test_concentric_disks_give_disk_of_interpolated_radius(centre, r1, r2, t):
+@pytest.mark.parametrize("method", ["enhanced", "shape-edt", "enhanced-edt"])
+def test_concentric_disks_give_disk_of_interpolated_radius(centre, r1, r2, t, method):
     shape = (96, 96)
-    out = interpolate_pair(disk(shape, centre, r1), disk(shape, centre, r2), t)
+    out = interpolate_pair(disk(shape, centre, r1), disk(shape, centre, r2), t, method=method)
     r_t = (1 - t) * r1 + t * r2
     yy, xx = np.mgrid[: shape[0], : shape[1]]
     rho = np.hypot(yy - centre[0], xx - centre[1])
@@ -260,7 +135,7 @@ def test_displaced_disks_enhanced_keeps_disk_while_so_shrinks(displacement):
     a = disk(shape, (40.2, 30.6), r)
     b = disk(shape, (40.2 + displacement[0], 30.6 + displacement[1]), r)
     assert math.hypot(*displacement) > r
-    enhanced = interpolate_pair(a, b, t)
+    enhanced = interpolate_pair(a, b, t, **SE)
     so = interpolate_pair(a, b, t, method="shape")
     c_z = (1 - t) * centroid(a) + t * centroid(b)
     assert abs(enhanced.sum() - a.sum()) <= 0.03 * a.sum()
@@ -277,7 +152,7 @@ def test_centroid_follows_interpolated_path():
         a = ellipse(shape, rng.uniform(25, 55, 2), rng.uniform(4, 14, 2), rng.uniform(0, 3))
         b = ellipse(shape, rng.uniform(25, 55, 2), rng.uniform(4, 14, 2), rng.uniform(0, 3))
         t = float(rng.uniform(0.05, 0.95))
-        out = interpolate_pair(a, b, t)
+        out = interpolate_pair(a, b, t, **SE)
         assert out.any()
         c_z = (1 - t) * centroid(a) + t * centroid(b)
         assert np.all(np.abs(centroid(out) - c_z) <= 0.5 + 1e-9)
@@ -318,8 +193,8 @@ def test_zero_fill_shift_never_wraps_around(axis):
         b = ellipse(shape, centres[1], rng.uniform(2, 15, 2), rng.uniform(0, math.pi))
         if not (a.any() and b.any()):
             continue
-        out = interpolate_pair(a, b, 0.5)
-        big = interpolate_pair(np.pad(a, widths), np.pad(b, widths), 0.5)
+        out = interpolate_pair(a, b, 0.5, **SE)
+        big = interpolate_pair(np.pad(a, widths), np.pad(b, widths), 0.5, **SE)
         np.testing.assert_array_equal(np.take(big, np.arange(pad, pad + 48), axis=axis), out)
         n_clipped += bool(np.take(big, np.arange(pad), axis=axis).any())
     assert n_clipped >= 3  # the border really cut some results
@@ -486,8 +361,11 @@ def test_enhanced_beats_shape_based_on_drifting_sphere():
         method: np.array([leave_one_out_error(masks, k, method=method) for k in interior])
         for method in METHODS
     }
+    # the paper's claim (Table 4): SE < SO < LG
     assert np.all(loo["enhanced"] < loo["shape"])
     assert loo["enhanced"].mean() < loo["shape"].mean() < loo["linear"].mean()
+    # the exact distance does at least as well as the chamfer one on a round object
+    assert loo["enhanced-edt"].mean() <= loo["enhanced"].mean() + 0.5
 
 
 def test_interpolation_error_percent_known_values():
@@ -559,7 +437,17 @@ def test_validation_unknown_method_and_metric():
     with pytest.raises(InputError, match="method must be one of"):
         interpolate_stack(np.ones((2, 4, 4), bool), method="cubic", slices_between=1)
     with pytest.raises(InputError, match="metric must be one of"):
-        signed_distance(np.ones((4, 4), bool), metric="euclidean")
+        signed_distance(np.ones((4, 4), bool), metric="manhattan")
+    with pytest.raises(InputError, match="parts must be one of"):
+        interpolate_pair(np.ones((4, 4), bool), np.ones((4, 4), bool), 0.5, parts="each")
+    with pytest.raises(InputError, match="parts must be one of"):
+        interpolate_stack(np.ones((2, 4, 4), bool), parts=None, slices_between=1)
+    with pytest.raises(InputError, match="unknown end_caps"):
+        interpolate_stack(np.ones((2, 4, 4), bool), end_caps="round", slices_between=1)
+    with pytest.raises(InputError, match="pixel_spacing_mm must hold positive"):
+        interpolate_pair(
+            np.ones((4, 4), bool), np.ones((4, 4), bool), 0.5, pixel_spacing_mm=(1.0, -1.0)
+        )
 
 
 def test_validation_slices_between():
@@ -600,3 +488,194 @@ def test_validation_stack_object():
         InterpolatedStack(np.ones((3, 4, 4), bool), 1, np.arange(2), np.zeros(3, bool))
     with pytest.raises(ValueError, match="slices_between must be >= 0"):
         InterpolatedStack(np.ones((3, 4, 4), bool), -1, np.arange(3), np.zeros(3, bool))
+
+
+# --------------------------------------------------------------------------
+# several parts per slice
+
+
+def _two_blobs(shape, c1, c2, r1, r2):
+    return disk(shape, c1, r1) | disk(shape, c2, r2)
+
+
+@pytest.mark.parametrize("method", ["enhanced", "enhanced-edt"])
+def test_parts_drifting_apart_are_each_aligned(method):
+    """Two parts moving in opposite directions: per-part alignment follows both.
+
+    The whole-slice centroid does not move, so Algorithm 1 aligns nothing and
+    interpolates two overlapping pairs as a lens each; matched parts give
+    the two disks at their interpolated centres.
+    """
+    shape, r = (80, 100), 9.0
+    a = _two_blobs(shape, (30.0, 25.0), (30.0, 70.0), r, r)
+    b = _two_blobs(shape, (46.0, 25.0), (14.0, 70.0), r, r)
+    truth = _two_blobs(shape, (38.0, 25.0), (22.0, 70.0), r, r)
+    matched = interpolate_pair(a, b, 0.5, method=method, parts="matched")
+    whole = interpolate_pair(a, b, 0.5, method=method, parts="whole")
+    e_matched = interpolation_error_percent(truth, matched)
+    e_whole = interpolation_error_percent(truth, whole)
+    assert e_matched < 12.0
+    assert e_whole > 2 * e_matched
+
+
+@pytest.mark.parametrize("method", ["enhanced", "enhanced-edt", "shape", "shape-edt"])
+def test_unmatched_part_shrinks_to_nothing(method):
+    shape = (64, 96)
+    big = disk(shape, (32.0, 30.0), 12.0)
+    small = disk(shape, (32.0, 75.0), 6.0)
+    a = big | small
+    b = big.copy()
+    areas = []
+    for t in (0.1, 0.3, 0.5, 0.7, 0.9):
+        out = interpolate_pair(a, b, t, method=method, parts="matched")
+        np.testing.assert_array_equal(out[:, :50], big[:, :50])  # the matched part stays
+        assert not (out & ~a).any()  # the lone part only erodes
+        areas.append(int(out[:, 50:].sum()))
+    assert areas[0] > 0
+    assert all(x > y for x, y in zip(areas, areas[1:], strict=False)) or areas[-1] == 0
+    assert areas[-1] <= 0.05 * small.sum()
+    # and the same in the other direction (a part that appears)
+    out = interpolate_pair(b, a, 0.9, method=method, parts="matched")
+    assert out[:, 50:].sum() == areas[0]
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), t=st.floats(0.05, 0.95))
+def test_one_part_each_matched_equals_whole(seed, t):
+    """With one overlapping part per slice the matched method is the whole-slice method."""
+    rng = np.random.default_rng(seed)
+    shape = (48, 56)
+    c = rng.uniform(18, 30, 2)
+    a = ellipse(shape, c, rng.uniform(5, 12, 2), rng.uniform(0, math.pi))
+    b = ellipse(shape, c + rng.uniform(-3, 3, 2), rng.uniform(5, 12, 2), rng.uniform(0, math.pi))
+    for method in METHODS:
+        np.testing.assert_array_equal(
+            interpolate_pair(a, b, t, method=method, parts="matched"),
+            interpolate_pair(a, b, t, method=method, parts="whole"),
+        )
+
+
+def test_part_that_splits_is_one_group():
+    """A part overlapping two parts of the next slice is interpolated with both at once."""
+    shape = (60, 80)
+    a = ellipse(shape, (30.0, 40.0), (8.0, 25.0), 0.0)
+    b = _two_blobs(shape, (30.0, 25.0), (30.0, 55.0), 8.0, 8.0)
+    for method in ("shape", "shape-edt"):
+        np.testing.assert_array_equal(
+            interpolate_pair(a, b, 0.5, method=method, parts="matched"),
+            interpolate_pair(a, b, 0.5, method=method, parts="whole"),
+        )
+
+
+def test_matching_after_alignment_for_aligned_methods():
+    """Parts that moved past each other without overlap are matched after alignment."""
+    shape = (60, 120)
+    a = _two_blobs(shape, (30.0, 20.0), (30.0, 50.0), 5.0, 5.0)
+    b = _two_blobs(shape, (30.0, 70.0), (30.0, 100.0), 5.0, 5.0)
+    truth = _two_blobs(shape, (30.0, 45.0), (30.0, 75.0), 5.0, 5.0)
+    out = interpolate_pair(a, b, 0.5, method="enhanced-edt", parts="matched")
+    assert interpolation_error_percent(truth, out) < 15.0
+    # without alignment nothing overlaps: every part shrinks in place
+    so = interpolate_pair(a, b, 0.5, method="shape-edt", parts="matched")
+    assert not (so & ~(a | b)).any()
+
+
+def test_taper_per_part_keeps_small_parts_to_the_end():
+    shape = (64, 96)
+    big = disk(shape, (32.0, 30.0), 15.0)
+    small = disk(shape, (32.0, 75.0), 4.0)
+    masks = np.array([big | small, np.zeros(shape, bool)])
+    m = 4
+    whole = interpolate_stack(masks, slices_between=m, end_caps="taper", parts="whole")
+    matched = interpolate_stack(masks, slices_between=m, end_caps="taper", parts="matched")
+    # each part is its own cone: the small one lasts as many slices as the big one
+    for j in range(1, m + 1):
+        assert matched.mask[j, :, 50:].any() and matched.mask[j, :, :50].any()
+        assert not (matched.mask[j] & ~masks[0]).any()
+    # one cone over the whole slice erodes the small part away early
+    assert not whole.mask[m, :, 50:].any()
+
+
+def test_stack_without_tumour_and_unsorted_documented():
+    empty = np.zeros((4, 10, 10), dtype=bool)
+    for method in METHODS:
+        st_ = interpolate_stack(empty, method=method, slices_between=2, end_caps="taper")
+        assert st_.mask.shape == (10, 10, 10)
+        assert not st_.mask.any() and not st_.interpolated.any()
+
+
+def test_euclidean_methods_use_the_pixel_spacing():
+    """Only the ratio dy/dx matters; anisotropic pixels change the result."""
+    shape = (40, 40)
+    a = ellipse(shape, (20.0, 14.0), (6.0, 6.0), 0.0)
+    b = ellipse(shape, (20.0, 24.0), (9.0, 5.0), 0.4)
+    for method in ("shape-edt", "enhanced-edt"):
+        unit = interpolate_pair(a, b, 0.4, method=method)
+        scaled = interpolate_pair(a, b, 0.4, method=method, pixel_spacing_mm=(0.7, 0.7))
+        np.testing.assert_array_equal(unit, scaled)
+        aniso = interpolate_pair(a, b, 0.4, method=method, pixel_spacing_mm=(0.5, 2.0))
+        assert (aniso != unit).any()
+
+
+# --------------------------------------------------------------------------
+# gray-level interpolation (LG)
+
+
+def test_gray_interpolation_is_linear_and_keeps_originals():
+    rng = np.random.default_rng(9)
+    images = rng.normal(size=(4, 6, 5))
+    m = 3
+    fine = interpolate_gray_slices(images, slices_between=m)
+    assert fine.shape == (13, 6, 5)
+    np.testing.assert_array_equal(fine[::4], images)
+    for k in range(3):
+        for j in range(1, 4):
+            t = j / 4
+            np.testing.assert_allclose(
+                fine[4 * k + j], (1 - t) * images[k] + t * images[k + 1], rtol=1e-12
+            )
+    np.testing.assert_array_equal(interpolate_gray_slices(images, slices_between=0), images)
+    # the mask variant is the thresholded gray interpolation of 0/1 images
+    masks = _stack_with_gaps()[:3]  # three non-empty slices
+    np.testing.assert_array_equal(
+        interpolate_gray_slices(masks.astype(float), slices_between=2) >= 0.5,
+        interpolate_stack(masks, method="linear", slices_between=2).mask,
+    )
+
+
+def test_gray_interpolation_validation():
+    with pytest.raises(InputError, match="images must be a non-empty"):
+        interpolate_gray_slices(np.zeros((3, 4)), slices_between=1)
+    with pytest.raises(InputError, match="finite numbers"):
+        interpolate_gray_slices(np.full((2, 3, 3), np.nan), slices_between=1)
+    with pytest.raises(InputError, match="slices_between must be >= 0"):
+        interpolate_gray_slices(np.zeros((2, 3, 3)), slices_between=-2)
+    with pytest.raises(InputError, match="slices_between must be an integer"):
+        interpolate_gray_slices(np.zeros((2, 3, 3)), slices_between=1.5)
+
+
+def test_paper_yaml_is_algorithm_1_and_default_is_the_measured_choice():
+    from pathlib import Path
+
+    from tumor3d.config import parse_config
+
+    configs = Path(__file__).resolve().parents[2] / "configs"
+    paper = parse_config((configs / "paper.yaml").read_text(), source="paper.yaml").interpolate
+    assert (paper.method, paper.parts, paper.end_caps) == ("enhanced", "whole", "none")
+    default = InterpolateConfig()
+    assert (default.method, default.parts, default.end_caps) == ("shape-edt", "matched", "taper")
+    with pytest.raises(ValueError, match="parts"):
+        InterpolateConfig(parts="each")
+
+
+@pytest.mark.parametrize("method", ["shape", "shape-edt", "linear"])
+def test_reversed_slice_order_gives_the_reversed_stack(method):
+    """Order is not checked (masks carry no z); the documented result for reversed input.
+
+    The unaligned methods are symmetric in (a, b, t) <-> (b, a, 1 - t), so the
+    stack of reversed slices is the reversed stack, up to floating-point ties.
+    """
+    masks = _stack_with_gaps()
+    fwd = interpolate_stack(masks, method=method, slices_between=3, end_caps="taper").mask
+    rev = interpolate_stack(masks[::-1], method=method, slices_between=3, end_caps="taper").mask
+    assert np.count_nonzero(fwd != rev[::-1]) <= 1e-3 * fwd.size
