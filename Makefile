@@ -60,6 +60,7 @@ evaluate: setup
 	TUMOR3D_DATA_DIR="$(TUMOR3D_DATA_DIR)" $(BIN)/python -m flows.cli evaluate \
 	    configs/evaluation/real_cases.csv --phantoms 10 \
 	    --config default=configs/default.yaml --config paper=configs/paper.yaml \
+	    --config peer_multiotsu=configs/peer_multiotsu.yaml \
 	    --out $(EVAL_OUT); rc=$$?; [ $$rc -le 1 ] || exit $$rc
 	mkdir -p reports && cp $(EVAL_OUT)/REPORT.md reports/REPORT.md
 	rm -f reports/bland_altman_*.png && cp $(EVAL_OUT)/bland_altman_*.png reports/

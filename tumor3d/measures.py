@@ -381,10 +381,15 @@ def clinical_measures(
 
     Examples
     --------
+    A 4 x 4 mm square on one slice: both diameters are its diagonals; a single
+    section has CE sqrt(3 C0 T^2 / 240) / (T C0^(1/2)) = sqrt(3/240) / 1 = 0.112:
+
     >>> m = np.zeros((3, 8, 8), bool); m[1, 2:6, 2:6] = True
     >>> c = clinical_measures(m, pixel_spacing_mm=(1.0, 1.0), slab_height_mm=5.0)
-    >>> c["volume_eq7_ce"], c["rano_longest_mm"], c["rano_perpendicular_mm"]
-    (0.0, 5.656854249492381, 4.0)
+    >>> round(c["volume_eq7_ce"], 3), round(c["rano_longest_mm"], 3)
+    (0.112, 5.657)
+    >>> round(c["rano_perpendicular_mm"], 3)
+    5.657
     """
     mask = np.asarray(tumor_mask_slices).astype(bool)
     dy, dx = (float(s) for s in pixel_spacing_mm)
