@@ -361,6 +361,8 @@ def publish_patient(
             (staging / "tumor_simplified.ply").write_bytes(
                 store.get_bytes(outputs["simplify-mesh"].artifacts["mesh"])
             )
+            _write_viewer_files(staging, store, outputs, pid, cfg)
+        _write_overlays(staging, store, outputs)
         for name, ref in outputs["render-views"].artifacts.items():
             (staging / f"{name}{Path(ref.relpath).suffix}").write_bytes(store.get_bytes(ref))
         table = slice_table(
@@ -388,3 +390,46 @@ def publish_patient(
         )
         (staging / "provenance.json").write_text(json.dumps(provenance, indent=2) + "\n")
     return out_dir / pid
+
+
+def _write_viewer_files(
+    staging: Path,
+    store: ArtifactStore,
+    outputs: dict[str, StageOutput],
+    pid: str,
+    cfg: PipelineConfig,
+) -> None:
+    """``tumor_lps.vtk`` (ITK-SNAP, ParaView) and the self-contained ``viewer.html``."""
+    from storage.formats import encode_vtk_polydata
+    from storage.viewer import viewer_html
+
+    tumour = store.get_mesh(outputs["extract-surface"].artifacts["mesh"])
+    (staging / "tumor_lps.vtk").write_bytes(encode_vtk_polydata(tumour, space="LPS"))
+    simplified = store.get_mesh(outputs["simplify-mesh"].artifacts["mesh"])
+    brain_ref = outputs["render-views"].artifacts.get("brain_mesh")
+    brain = store.get_mesh(brain_ref) if brain_ref is not None else None
+    html = viewer_html(
+        simplified, brain, title=f"tumor3d: {pid}", tumor_color_rgb=cfg.render.color_rgb,
+        brain_color_rgb=cfg.render.brain_color_rgb, brain_opacity=cfg.render.brain_opacity,
+    )  # fmt: skip
+    (staging / "viewer.html").write_text(html, encoding="utf-8")
+
+
+def _write_overlays(staging: Path, store: ArtifactStore, outputs: dict[str, StageOutput]) -> None:
+    """Slice mosaics: the tumour and the brain-mask contours over the preprocessed slices."""
+    import numpy as np
+
+    from storage.formats import encode_png
+    from tumor3d.overlay import overlay_mosaic
+
+    image, affine = store.get_volume(outputs["preprocess"].artifacts["enhanced"])
+    brain, _ = store.get_volume(outputs["preprocess"].artifacts["brain_mask"])
+    tumour, _ = store.get_volume(outputs["segment-tumor"].artifacts["tumor_mask_slices"])
+    det = store.get_table(outputs["detect-abnormal"].artifacts["detection"])
+    abnormal = det.loc[det["abnormal"].astype(bool), "slice_index"].to_numpy(dtype=np.int64)
+    for name, mask, title in (
+        ("overlay_tumor.png", tumour, "tumour contour (abnormal slices framed)"),
+        ("overlay_brain.png", brain, "brain mask contour"),
+    ):
+        rgb = overlay_mosaic(image, mask, affine, abnormal_slices=abnormal, title=title)
+        (staging / name).write_bytes(encode_png(rgb))

@@ -28,6 +28,7 @@ def render_task(
         brain_zyx, affine = store.get_volume(brain_mask)
         brain = brain_surface(brain_zyx, affine, spacing_mm=BRAIN_SURFACE_SPACING_MM)
         result = render_views(surface, brain=brain, **config.model_dump())
+        artifacts["brain_mesh"] = store.put_mesh(brain)
         for name, rgb in result.images.items():
             artifacts[f"render_{name}"] = store.put_png(rgb, extra={"view": name})
         if result.turntable:
@@ -35,7 +36,7 @@ def render_task(
                 turntable_gif(result.turntable), kind="gif", suffix=".gif"
             )
         values = {
-            "n_views": len(artifacts),
+            "n_views": len(result.images),
             "renderer": result.info["renderer"],
             "fallback_reason": result.info["fallback_reason"],
         }
@@ -48,5 +49,5 @@ SPEC = StageSpec(
     entry=render_views,
     config_model=RenderConfig,
     inputs={"mesh": "mesh", "brain_mask": "mask"},
-    outputs={"render_*": "png", "render_turntable": "gif"},
+    outputs={"render_*": "png", "render_turntable": "gif", "brain_mesh": "mesh"},
 )

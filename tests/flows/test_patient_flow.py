@@ -32,7 +32,9 @@ from tumor3d.surface import is_watertight, mesh_volume_mm3
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
 
 STAGE_NAMES = list(STAGES)
-SECRET = {"PatientName": "Zzyzx^Quintessa^Private", "PatientID": "PHI-99331177",
+# Every name component is searched for on its own, so none may be a common word
+# (the embedded plotly.js of viewer.html contains "Private", for example).
+SECRET = {"PatientName": "Zzyzx^Quintessa^Vexqorit", "PatientID": "PHI-99331177",
           "PatientBirthDate": "19531207"}  # fmt: skip
 
 
@@ -62,12 +64,32 @@ def test_first_run_computes_every_stage_and_publishes_all_outputs(first_run, pha
                  "provenance.json"):  # fmt: skip
         assert (folder / name).is_file(), name
     assert (folder / "render_anterior.png").is_file()
+    for name in ("tumor_lps.vtk", "viewer.html", "overlay_tumor.png", "overlay_brain.png",
+                 "brain_mesh.ply", "render_turntable.gif"):  # fmt: skip
+        assert (folder / name).is_file(), name
+    html = (folder / "viewer.html").read_text()
+    assert "<script" in html and 'src="http' not in html  # plotly.js embedded: no network
+    # the LPS VTK surface is the RAS PLY surface with x and y negated
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    from storage.formats import decode_ply
+
+    reader = vtk.vtkPolyDataReader()
+    reader.SetFileName(str(folder / "tumor_lps.vtk"))
+    reader.Update()
+    lps = vtk_to_numpy(reader.GetOutput().GetPoints().GetData())
+    ras = decode_ply((folder / "tumor.ply").read_bytes()).vertices
+    assert lps.shape == ras.shape
+    assert np.allclose(lps, ras * np.array([-1.0, -1.0, 1.0]), atol=1e-4)
     # nothing half-written or staged is left beside the outputs
     assert not [p for p in out.iterdir() if p.name.startswith(".flowpat")]
 
     metrics = pd.read_parquet(folder / "metrics.parquet")
     required = {"patient_id", "volume_eq7_mm3", "volume_voxel_mm3", "volume_mesh_mm3",
-                "n_slices", "n_abnormal_slices", "faces_mc", "faces_simplified"}  # fmt: skip
+                "n_slices", "n_abnormal_slices", "faces_mc", "faces_simplified",
+                "volume_eq7_ce", "volume_eq7_ci95_low_mm3", "volume_eq7_ci95_high_mm3",
+                "rano_longest_mm", "rano_perpendicular_mm", "max_diameter_3d_mm"}  # fmt: skip
     assert required <= set(metrics.columns)
     assert {f"time_{s.replace('-', '_')}_s" for s in STAGE_NAMES} <= set(metrics.columns)
     row = metrics.iloc[0]
@@ -166,8 +188,10 @@ def test_tumour_free_patient_writes_no_empty_mesh_and_says_so(tmp_path):
     image = write_phantom_patient(patient, tmp_path / "in").image
     result = run_patient(image, tmp_path / "out", patient_id="clear1")
     folder = tmp_path / "out" / "clear1"
-    assert not list(folder.glob("*.ply")) and not list(folder.glob("*.png"))
+    assert not list(folder.glob("*.ply")) and not list(folder.glob("render_*"))
     assert (folder / "tumor_mask.nii.gz").is_file()
+    # the slice overlays are written all the same: they show what was (not) found
+    assert (folder / "overlay_brain.png").is_file() and (folder / "overlay_tumor.png").is_file()
     metrics = pd.read_parquet(folder / "metrics.parquet").iloc[0]
     assert metrics["volume_eq7_mm3"] == 0.0 and not metrics["tumour_found"]
     assert "no tumour found" in metrics["notes"]
