@@ -266,6 +266,13 @@ def run(
     store: Annotated[
         Path | None, typer.Option(help="Artifact store (default OUT/.tumor3d-store).")
     ] = None,
+    skip_unreadable_dicom: Annotated[
+        bool,
+        typer.Option(
+            help="Skip DICOM files that cannot be read (named in the summary) instead of "
+            "stopping."
+        ),
+    ] = False,
     verbose: Verbose = False,
 ) -> None:
     """Reconstruct one patient's tumour: masks, meshes, renders and volumes under OUT/<id>/."""
@@ -275,6 +282,7 @@ def run(
             "series_uid": series_uid,
             "slice_thickness_mm": slice_thickness_mm,
             "slice_gap_mm": slice_gap_mm,
+            "skip_unreadable": skip_unreadable_dicom,
         }
         _preflight(input_path, out, patient_id, modality, **read_kw)
         result = _run_with_progress(

@@ -117,6 +117,7 @@ def prepare_source(
     series_uid: str | None = None,
     slice_thickness_mm: float | None = None,
     slice_gap_mm: float | None = None,
+    skip_unreadable: bool = False,
     out_dir: str | Path | None = None,
 ) -> InputSource:
     """Validate the user's input and identify it by content.
@@ -147,6 +148,7 @@ def prepare_source(
         series_uid=series_uid,
         slice_thickness_mm=slice_thickness_mm,
         slice_gap_mm=slice_gap_mm,
+        skip_unreadable=bool(skip_unreadable),
     )
 
 
@@ -213,6 +215,9 @@ def patient_pipeline(
     outputs = run_stages(runner, source, cfg, str(store.root))
     flow_seconds = time.perf_counter() - t0
     notes = [NO_TUMOUR_NOTE] if outputs["extract-surface"].values["faces"] == 0 else []
+    skipped = outputs["ingest-scan"].values.get("skipped_files") or []
+    if skipped:
+        notes.append(f"skipped {len(skipped)} unreadable file(s): {', '.join(skipped)}")
     metrics = _metrics_row(outputs, runner.runs, pid, flow_seconds, notes)
     out_path = publish_patient(store, Path(out_dir), source, outputs, runner.runs, metrics, cfg)
     return PatientResult(
@@ -240,6 +245,7 @@ def patient_flow(
     slice_gap_mm: float | None = None,
     series_uid: str | None = None,
     store_dir: str | None = None,
+    skip_unreadable: bool = False,
 ) -> PatientResult:
     """Reconstruct one patient's tumour and publish masks, meshes, renders and metrics.
 
@@ -260,11 +266,15 @@ def patient_flow(
         Which DICOM series to read when a folder holds several.
     store_dir : str, optional
         Artifact store (and Prefect's results); default ``<out_dir>/.tumor3d-store``.
+    skip_unreadable : bool
+        Skip DICOM files that cannot be read instead of stopping; they are
+        named in the summary's notes, ``metrics.parquet`` and provenance.
     """
     cfg = parse_config(config or {}, source="config")
     source = prepare_source(
         input_path, patient_id=patient_id, modality=modality, series_uid=series_uid,
-        slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm, out_dir=out_dir,
+        slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm,
+        skip_unreadable=skip_unreadable, out_dir=out_dir,
     )  # fmt: skip
     store = ArtifactStore(store_dir or default_store_dir(out_dir))
     logger = get_run_logger()

@@ -19,6 +19,7 @@ def ingest_task(source: InputSource, store_root: str) -> StageOutput:
         series_uid=source.series_uid,
         slice_thickness_mm=source.slice_thickness_mm,
         slice_gap_mm=source.slice_gap_mm,
+        skip_unreadable=source.skip_unreadable,
     )
     ref = ArtifactStore(store_root).put_scan(scan)
     return StageOutput(
@@ -31,6 +32,7 @@ def ingest_task(source: InputSource, store_root: str) -> StageOutput:
             "slice_step_mm": scan.slice_step_mm,
             "slice_thickness_mm": scan.slice_thickness_mm,
             "slice_gap_mm": scan.slice_gap_mm,
+            "skipped_files": list(scan.skipped_files),
         },
     )
 

@@ -84,6 +84,8 @@ class InputSource(BaseModel):
     series_uid: str | None = None
     slice_thickness_mm: float | None = None
     slice_gap_mm: float | None = None
+    #: Skip DICOM files that cannot be read (listed in the scan) instead of stopping.
+    skip_unreadable: bool = False
 
     #: Where the input lives does not change what it is.
     __cache_exclude__: ClassVar[frozenset[str]] = frozenset({"path"})

@@ -13,6 +13,7 @@ import gzip
 import io
 import json
 import logging
+from pathlib import Path
 
 import nibabel as nib
 import numpy as np
@@ -297,3 +298,21 @@ def test_failure_inside_the_flow_publishes_nothing(tmp_path):
         run_patient(bad, out, patient_id="p1")
     assert not (out / "p1").exists()
     assert not [p for p in out.iterdir() if p.name.startswith(".p1")]
+
+
+def test_unreadable_dicom_file_stops_the_run_unless_skipped_and_then_is_named(tmp_path):
+    patient = make_phantom_patient(3, patient_id="dcmskip")
+    series = tmp_path / "series"
+    _write_dicom_series(patient, series)
+    # a file of random bytes among the slices (sorted last by name: an end slice)
+    (series / "zz_corrupt.dcm").write_bytes(np.random.default_rng(0).bytes(4096))
+    with pytest.raises(InputError, match="zz_corrupt.dcm"):
+        run_patient(series, tmp_path / "out")
+    assert not (tmp_path / "out" / "series").exists()
+    result = run_patient(series, tmp_path / "out", skip_unreadable=True)
+    assert result.metrics["n_slices"] == patient.scan.n_slices  # every real slice read
+    assert any("zz_corrupt.dcm" in n for n in result.notes), result.notes
+    metrics = pd.read_parquet(Path(result.output_dir) / "metrics.parquet").iloc[0]
+    assert "zz_corrupt.dcm" in metrics["notes"]
+    provenance = json.loads((Path(result.output_dir) / "provenance.json").read_text())
+    assert any("zz_corrupt.dcm" in n for n in provenance["notes"])
