@@ -1,13 +1,20 @@
 """A self-contained interactive 3-D viewer page (``viewer.html``) of the tumour and brain.
 
 :func:`viewer_html` returns one HTML document with plotly.js embedded
-(``include_plotlyjs=True``, ~4.7 MB): it opens from disk with no network.
+(``include_plotlyjs=True``): it opens from disk with no network.
 The tumour (opaque) and the brain (translucent) are two ``Mesh3d`` traces in
 RAS millimetres; drag rotates, the wheel zooms, clicking a legend entry
 (or the buttons above the plot) shows or hides a surface. Axes are labelled
 with their anatomical directions and drawn at equal scale
 (``aspectmode="data"``). The same meshes give the same bytes (fixed div id,
 no timestamps).
+
+Size: plotly.js itself is 4.8 MB (plotly 7.1); the meshes travel as base64
+typed arrays (float32 vertices, uint16 face indices when the mesh has fewer
+than 65,536 vertices). The pipeline gives the viewer the simplified tumour
+and the brain reduced to 8,000 faces (``tasks/brain_surface.py``): about
+4.95 MB in all for the demo phantom, against 5.88 MB with the full
+37,596-face brain and int32 indices (``reports/benchmarks.md``).
 
 Shading uses plotly's own Phong-like ``lighting`` (ambient, diffuse,
 specular, roughness) with the light at the camera, close to the offscreen
@@ -41,7 +48,9 @@ def _trace(mesh: Mesh, name: str, color: str, opacity: float, decimals: int):  #
     import plotly.graph_objects as go
 
     v = np.round(mesh.vertices, decimals).astype(np.float32)
-    f = mesh.faces.astype(np.int32)
+    # plotly encodes arrays as base64 typed arrays of their own dtype: the
+    # smallest index type that fits halves the face data of most meshes
+    f = mesh.faces.astype(np.uint16 if mesh.n_vertices <= 65535 else np.uint32)
     return go.Mesh3d(
         x=v[:, 0],
         y=v[:, 1],
