@@ -219,6 +219,9 @@ def test_tumour_free_patient_writes_no_empty_mesh_and_says_so(tmp_path):
     [
         ({"simplify": {"reduction_percent": 40}}, "simplify-mesh"),
         ({"interpolate": {"method": "shape"}}, "interpolate-slices"),
+        # the brain surface is its own stage, before the renders: a new render
+        # setting reuses it (it used to be recomputed inside every render)
+        ({"render": {"width": 320, "turntable_frames": 4}}, "render-views"),
     ],
 )
 def test_config_change_recomputes_that_stage_and_later_only(
@@ -230,8 +233,13 @@ def test_config_change_recomputes_that_stage_and_later_only(
     hits = result.cache_hits
     assert all(hits[:k]), "stages before the changed one must be cache hits"
     assert not hits[k], "the changed stage must recompute"
-    # stages after it see new inputs (measure-volume always depends on the mesh)
-    assert not hits[-1]
+    assert hits[STAGE_NAMES.index("extract-brain-surface")], "the brain surface is reused"
+    if first_changed == "render-views":
+        assert hits[-1]  # the volumes do not depend on the renders
+    else:
+        assert not hits[STAGE_NAMES.index("render-views")]  # a new tumour surface
+        # stages after it see new inputs (measure-volume always depends on the mesh)
+        assert not hits[-1]
 
 
 def _write_dicom_series(patient, folder):
