@@ -9,12 +9,12 @@ with their anatomical directions and drawn at equal scale
 (``aspectmode="data"``). The same meshes give the same bytes (fixed div id,
 no timestamps).
 
-Size: plotly.js itself is 4.8 MB (plotly 7.1); the meshes travel as base64
-typed arrays (float32 vertices, uint16 face indices when the mesh has fewer
-than 65,536 vertices). The pipeline gives the viewer the simplified tumour
-and the brain reduced to 8,000 faces (``tasks/brain_surface.py``): about
-4.95 MB in all for the demo phantom, against 5.88 MB with the full
-37,596-face brain and int32 indices (``reports/benchmarks.md``).
+Size: plotly.js itself is 4.82 MB (plotly 7.1); the meshes travel as base64
+typed arrays (float32 vertices, uint16 face indices when the mesh has at
+most 65,536 vertices). The pipeline gives the viewer the simplified tumour
+and the brain reduced to 8,000 faces (``tasks/brain_surface.py``): 5.04 MB
+for the demo phantom, against 5.88 MB with the full 37,596-face brain and
+int32 indices (``benchmarks/bench_viewer.py``, ``reports/benchmarks.md``).
 
 Shading uses plotly's own Phong-like ``lighting`` (ambient, diffuse,
 specular, roughness) with the light at the camera, close to the offscreen
@@ -44,13 +44,18 @@ def _rgb_css(rgb: Sequence[float], name: str) -> str:
     return f"rgb({r},{g},{b})"
 
 
+def _index_dtype(n_vertices: int) -> type:
+    """The smallest unsigned type that holds every vertex index."""
+    return np.uint16 if n_vertices <= 65536 else np.uint32
+
+
 def _trace(mesh: Mesh, name: str, color: str, opacity: float, decimals: int):  # noqa: ANN202
     import plotly.graph_objects as go
 
     v = np.round(mesh.vertices, decimals).astype(np.float32)
     # plotly encodes arrays as base64 typed arrays of their own dtype: the
     # smallest index type that fits halves the face data of most meshes
-    f = mesh.faces.astype(np.uint16 if mesh.n_vertices <= 65535 else np.uint32)
+    f = mesh.faces.astype(_index_dtype(mesh.n_vertices))
     return go.Mesh3d(
         x=v[:, 0],
         y=v[:, 1],

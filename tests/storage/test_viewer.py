@@ -43,6 +43,8 @@ def test_page_is_self_contained_and_deterministic(meshes):
     # both surfaces are there, toggle buttons too
     assert '"name":"tumour"' in page and '"name":"brain"' in page
     assert "tumour only" in page
+    # face indices as uint16 typed arrays (the meshes have < 65,536 vertices), not int32
+    assert page.count('"dtype":"u2"') == 6 and '"dtype":"i4"' not in page
 
 
 def test_tumour_only_page(meshes):
