@@ -116,11 +116,13 @@ def brain_surface(brain_mask: np.ndarray, affine: np.ndarray, *, spacing_mm: flo
 def display_mesh(mesh: Mesh, max_faces: int) -> Mesh:
     """``mesh`` reduced to at most ``max_faces`` faces, for display only.
 
-    Lindstrom-Turk memoryless edge collapse (:func:`tumor3d.simplify.simplify_mesh`,
-    ``method="memoryless"``: the enclosed volume is kept and the surface stays
-    a closed manifold). A mesh already within the budget is returned as is;
-    the collapse engine may stop a few faces above the budget when no legal
-    collapse is left.
+    Quadric edge collapse (QSlim, :func:`tumor3d.simplify.simplify_mesh` with
+    ``method="qem"``, the ``fast-simplification`` package): some 25x faster
+    than the volume-exact memoryless collapse on a 37,596-face brain (0.17 s
+    against 4.1 s, 8,000 faces), which matters for a context surface that no
+    measurement uses; the volume changes by a fraction of a percent, and the
+    manifold checks of the other methods are not needed to draw it. A mesh
+    already within the budget is returned as is.
 
     Parameters
     ----------
@@ -153,4 +155,4 @@ def display_mesh(mesh: Mesh, max_faces: int) -> Mesh:
     # P such that floor(F0 * (1 - P/100)) <= max_faces
     percent = 100.0 * (1.0 - max_faces / mesh.n_faces)
     percent = min(99.9, math.ceil(percent * 1000.0) / 1000.0)
-    return simplify_mesh(mesh, method="memoryless", reduction_percent=percent)
+    return simplify_mesh(mesh, method="qem", reduction_percent=percent)

