@@ -4,7 +4,10 @@ Wiring only: :func:`run_stages` orders the stages of :mod:`tasks.stages`
 and feeds each its inputs' references; a runner (:mod:`tasks.runner`)
 executes them; :func:`publish_patient` hands the results to
 :mod:`storage.publish` (staging folder, fsync, rename swap),
-:mod:`storage.slice_table` and :mod:`storage.provenance`.
+:mod:`storage.slice_table`, :mod:`storage.provenance` and
+:mod:`storage.patient_outputs` (overlays, viewer files, ``report.html``);
+:func:`patient_flow` puts the report's summary on its flow run
+(:mod:`flows.artifacts`).
 
 :func:`patient_pipeline` is the whole single-patient pipeline inside a
 running flow; :func:`patient_flow` is the Prefect flow around it and
