@@ -419,17 +419,14 @@ def publish_patient(
         put("slices.parquet", encode_parquet(table))
         put("metrics.parquet", encode_parquet(pd.DataFrame([metrics])))
         rule = str(metrics.get("eq7_slice_rule", "segmented"))
+        input_info = {"name": source.name, "digest_sha256": source.digest}
+        input_info.update(modality=source.modality, patient_id=pid)
+        code = {name: spec.code_digest for name, spec in stages.STAGES.items()}
         provenance = build_provenance(
-            input_info={
-                "name": source.name, "digest_sha256": source.digest,
-                "modality": source.modality, "patient_id": pid,
-            },  # fmt: skip
+            input_info=input_info,
             config=cfg.model_dump(mode="json"),
             config_digest=config_digest(cfg),
-            stages=[
-                {**r.model_dump(), "code_sha256": stages.STAGES[r.stage].code_digest}
-                for r in runs
-            ],
+            stages=[{**r.model_dump(), "code_sha256": code[r.stage]} for r in runs],
             volume_methods=VOLUME_METHODS,
             eq7_slice_rule={"name": rule, "definition": EQ7_SLICE_RULES[rule]},
             notes=[n for n in str(metrics.get("notes", "")).split("; ") if n],
