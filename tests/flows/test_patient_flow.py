@@ -373,11 +373,15 @@ def test_published_report_loads_in_headless_chromium(first_run, tmp_path):
     out, _ = first_run
     moved = tmp_path / "moved" / "flowpat"
     shutil.copytree(out / "flowpat", moved)
-    page = open_page(moved / "report.html", tmp_path, size=(1100, 1600), budget_ms=5000)
+    page = open_page(moved / "report.html", tmp_path, size=(1100, 2400), budget_ms=5000)
     assert page.js_errors == []
     assert serious_console_messages(page.console) == []
     assert len(page.images) == 11  # 8 renders, the turntable, two overlays
     assert all(width > 0 for _, width in page.images), page.images
+    # the renders are on screen: the red tumour shows
+    shot = page.screenshot.astype(int)
+    red = (shot[..., 0] > shot[..., 1] + 40) & (shot[..., 0] > shot[..., 2] + 40)
+    assert red.sum() > 500, red.sum()
 
 
 def test_summary_artifacts_are_on_the_patient_flow_run(first_run):
