@@ -11,7 +11,10 @@ into the viewer in four ways:
 * ``viewer brain``: the brain reduced to
   :data:`tasks.brain_surface.VIEWER_BRAIN_MAX_FACES` faces (what the
   pipeline publishes);
-* ``tumour only`` and an empty plotly page (plotly.js alone).
+* ``tumour only`` and an empty plotly page (plotly.js alone), all with
+  plotly.js embedded as plain script;
+* ``viewer brain, plotly.js gzip``: what the pipeline publishes, plotly.js
+  embedded gzip-compressed and unpacked by the browser.
 
 Also reported: the time to reduce the brain (once per brain mask, in the
 extract-brain-surface stage) and what int16-quantised vertex coordinates
@@ -65,13 +68,13 @@ def main() -> int:
     plotly_only = len(pio.to_html(go.Figure(), include_plotlyjs=True, full_html=True).encode())
     sizes = {}
 
-    def size(t, b, *, int32=False):
+    def size(t, b, *, int32=False, compress=False):
         if not int32:
-            return len(viewer_html(t, b).encode())
+            return len(viewer_html(t, b, compress_plotlyjs=compress).encode())
         saved = viewer_mod._index_dtype
         viewer_mod._index_dtype = lambda n: np.int32  # the earlier face indices
         try:
-            return len(viewer_html(t, b).encode())
+            return len(viewer_html(t, b, compress_plotlyjs=False).encode())
         finally:
             viewer_mod._index_dtype = saved
 
@@ -80,15 +83,16 @@ def main() -> int:
     sizes["viewer brain"] = size(tumour, light)
     sizes["tumour only"] = size(tumour, None)
     sizes["plotly.js alone (empty figure)"] = plotly_only
+    sizes["viewer brain, plotly.js gzip (published)"] = size(tumour, light, compress=True)
     print(
         f"plotly {plotly.__version__}; tumour {tumour.n_faces} faces / {tumour.n_vertices} "
         f"vertices; brain {brain.n_faces} faces, viewer brain {light.n_faces} faces "
         f"(reduced in {reduce_s:.2f} s)"
     )
-    ref = sizes["viewer brain"]
-    print(f"{'page':<34}{'bytes':>12}{'MB':>8}{'vs published':>14}")
+    ref = sizes["viewer brain, plotly.js gzip (published)"]
+    print(f"{'page':<44}{'bytes':>12}{'MB':>8}{'vs published':>14}")
     for name, n in sizes.items():
-        print(f"{name:<34}{n:>12,}{n / 1e6:>8.2f}{n / ref:>14.3f}")
+        print(f"{name:<44}{n:>12,}{n / 1e6:>8.2f}{n / ref:>14.3f}")
     n_v = tumour.n_vertices + light.n_vertices
     saved = n_v * 3 * 2 * 4 / 3  # float32 -> int16, base64
     print(f"int16 vertex coordinates would save a further {saved / 1e3:.0f} kB")
