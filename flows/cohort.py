@@ -27,6 +27,7 @@ from prefect import flow, get_run_logger, tags
 from prefect.task_runners import ThreadPoolTaskRunner
 from pydantic import BaseModel, ConfigDict, Field
 
+from flows.artifacts import publish_cohort_artifacts
 from flows.patient import (
     VOLUME_LABELS,
     config_digest,
@@ -219,6 +220,7 @@ def cohort_flow(
         title=f"Cohort {Path(out_dir).name}", wall_seconds=wall, workers=workers,
     )  # fmt: skip
     write_cohort_outputs(out_dir, table, markdown)
+    publish_cohort_artifacts(table, name=Path(out_dir).name)
     for o in outcomes:
         if o.status != "ok":
             logger.warning("patient %s failed at %s: %s", o.patient_id, o.failed_stage, o.error)

@@ -4,7 +4,10 @@ Wiring only: :func:`run_stages` orders the stages of :mod:`tasks.stages`
 and feeds each its inputs' references; a runner (:mod:`tasks.runner`)
 executes them; :func:`publish_patient` hands the results to
 :mod:`storage.publish` (staging folder, fsync, rename swap),
-:mod:`storage.slice_table` and :mod:`storage.provenance`.
+:mod:`storage.slice_table`, :mod:`storage.provenance` and
+:mod:`storage.patient_outputs` (overlays, viewer files, ``report.html``);
+:func:`patient_flow` puts the report's summary on its flow run
+(:mod:`flows.artifacts`).
 
 :func:`patient_pipeline` is the whole single-patient pipeline inside a
 running flow; :func:`patient_flow` is the Prefect flow around it and
@@ -26,9 +29,16 @@ import pandas as pd
 from prefect import flow, get_run_logger
 from pydantic import BaseModel, ConfigDict
 
+from flows.artifacts import publish_patient_artifacts
 from storage import nifti
 from storage.formats import encode_parquet
 from storage.inputs import input_digest
+from storage.patient_outputs import (
+    patient_report_data,
+    write_overlays,
+    write_report,
+    write_surface_files,
+)
 from storage.provenance import build_provenance
 from storage.publish import check_output_not_input, staged_folder
 from storage.readers import derive_patient_id
@@ -92,6 +102,8 @@ class PatientResult(BaseModel):
     stages: list[StageRun]
     flow_seconds: float
     notes: list[str] = []
+    #: The content of ``report.html`` (:func:`storage.patient_outputs.patient_report_data`).
+    report: dict[str, Any] = {}
 
     @property
     def cache_hits(self) -> list[bool]:
@@ -182,9 +194,10 @@ def run_stages(run: Any, source: InputSource, cfg: PipelineConfig, root: str) ->
     simple = run.run(
         S["simplify-mesh"], mesh=surface.artifacts["mesh"], config=cfg.simplify, store_root=root
     )
+    brain_mesh = run.run(S["extract-brain-surface"], brain_mask=brain, store_root=root)
     run.run(
-        S["render-views"], mesh=simple.artifacts["mesh"], brain_mask=brain, config=cfg.render,
-        store_root=root,
+        S["render-views"], mesh=simple.artifacts["mesh"],
+        brain_mesh=brain_mesh.artifacts["brain_mesh"], config=cfg.render, store_root=root,
     )  # fmt: skip
     run.run(
         S["measure-volume"], scan=scan, detection=det,
@@ -219,10 +232,12 @@ def patient_pipeline(
     if skipped:
         notes.append(f"skipped {len(skipped)} unreadable file(s): {', '.join(skipped)}")
     metrics = _metrics_row(outputs, runner.runs, pid, flow_seconds, notes)
-    out_path = publish_patient(store, Path(out_dir), source, outputs, runner.runs, metrics, cfg)
+    out_path, report = publish_patient(
+        store, Path(out_dir), source, outputs, runner.runs, metrics, cfg
+    )
     return PatientResult(
         patient_id=pid, output_dir=str(out_path), metrics=metrics, stages=runner.runs,
-        flow_seconds=flow_seconds, notes=notes,
+        flow_seconds=flow_seconds, notes=notes, report=report,
     )  # fmt: skip
 
 
@@ -248,6 +263,9 @@ def patient_flow(
     skip_unreadable: bool = False,
 ) -> PatientResult:
     """Reconstruct one patient's tumour and publish masks, meshes, renders and metrics.
+
+    The summary also goes onto the flow run as a markdown and a table
+    artifact (:mod:`flows.artifacts`).
 
     Parameters
     ----------
@@ -281,6 +299,7 @@ def patient_flow(
     digest = config_digest(cfg)[:12]
     logger.info("patient %s: %s (config %s)", source.patient_id, source.name, digest)
     result = patient_pipeline(source, out_dir, cfg, store)
+    publish_patient_artifacts(result.report)
     logger.info("patient %s: published %s", source.patient_id, result.output_dir)
     return result
 
@@ -346,100 +365,79 @@ def publish_patient(
     runs: list[StageRun],
     metrics: dict[str, Any],
     cfg: PipelineConfig,
-) -> Path:
-    """Write the patient's outputs to a staging folder, then swap it into ``out_dir/<id>``."""
+) -> tuple[Path, dict[str, Any]]:
+    """Write the patient's outputs to a staging folder, then swap it into ``out_dir/<id>``.
+
+    Returns the folder and the report's content (:func:`storage.patient_outputs.
+    patient_report_data`, also the Prefect artifacts' source).
+    """
     pid = source.patient_id
     check_output_not_input(out_dir / pid, [source.path])
     scan_ref = outputs["ingest-scan"].artifacts["scan"]
     grid = source_grid_from_metadata(scan_ref.metadata)
     tumour_found = bool(metrics["tumour_found"])
+    art = {name: out.artifacts for name, out in outputs.items()}
     with staged_folder(out_dir, pid) as staging:
-        slices_mask, _ = store.get_volume(outputs["segment-tumor"].artifacts["tumor_mask_slices"])
-        (staging / "tumor_mask_slices.nii.gz").write_bytes(
-            nifti.mask_to_source_nifti_bytes(slices_mask, grid)
-        )
-        brain, _ = store.get_volume(outputs["preprocess"].artifacts["brain_mask"])
-        (staging / "brain_mask.nii.gz").write_bytes(nifti.mask_to_source_nifti_bytes(brain, grid))
-        fine, fine_affine = store.get_volume(outputs["interpolate-slices"].artifacts["tumor_mask"])
-        (staging / "tumor_mask.nii.gz").write_bytes(
-            nifti.volume_to_source_nifti_bytes(fine, fine_affine, grid, dtype="uint8")
+        files: list[str] = []
+
+        def put(name: str, data: bytes) -> None:
+            (staging / name).write_bytes(data)
+            files.append(name)
+
+        slices_mask, _ = store.get_volume(art["segment-tumor"]["tumor_mask_slices"])
+        put("tumor_mask_slices.nii.gz", nifti.mask_to_source_nifti_bytes(slices_mask, grid))
+        brain, _ = store.get_volume(art["preprocess"]["brain_mask"])
+        put("brain_mask.nii.gz", nifti.mask_to_source_nifti_bytes(brain, grid))
+        fine, fine_affine = store.get_volume(art["interpolate-slices"]["tumor_mask"])
+        put(
+            "tumor_mask.nii.gz",
+            nifti.volume_to_source_nifti_bytes(fine, fine_affine, grid, dtype="uint8"),
         )
         if tumour_found:  # no 0-vertex PLY files when there is no tumour
-            (staging / "tumor.ply").write_bytes(
-                store.get_bytes(outputs["extract-surface"].artifacts["mesh"])
-            )
-            (staging / "tumor_simplified.ply").write_bytes(
-                store.get_bytes(outputs["simplify-mesh"].artifacts["mesh"])
-            )
-            _write_viewer_files(staging, store, outputs, pid, cfg)
-        _write_overlays(staging, store, outputs)
-        for name, ref in outputs["render-views"].artifacts.items():
-            (staging / f"{name}{Path(ref.relpath).suffix}").write_bytes(store.get_bytes(ref))
+            put("tumor.ply", store.get_bytes(art["extract-surface"]["mesh"]))
+            put("tumor_simplified.ply", store.get_bytes(art["simplify-mesh"]["mesh"]))
+        files += write_surface_files(
+            staging,
+            tumour=store.get_mesh(art["extract-surface"]["mesh"]),
+            simplified=store.get_mesh(art["simplify-mesh"]["mesh"]),
+            brain=store.get_mesh(art["extract-brain-surface"]["brain_mesh"]),
+            brain_viewer=store.get_mesh(art["extract-brain-surface"]["brain_mesh_viewer"]),
+            title=f"tumor3d: {pid}", tumor_color_rgb=cfg.render.color_rgb,
+            brain_color_rgb=cfg.render.brain_color_rgb, brain_opacity=cfg.render.brain_opacity,
+        )  # fmt: skip
+        det = store.get_table(art["detect-abnormal"]["detection"])
+        abnormal = det.loc[det["abnormal"].astype(bool), "slice_index"].astype(int).tolist()
+        image, affine = store.get_volume(art["preprocess"]["enhanced"])
+        files += write_overlays(staging, image, affine, brain, slices_mask, abnormal)
+        for name, ref in art["render-views"].items():
+            put(f"{name}{Path(ref.relpath).suffix}", store.get_bytes(ref))
         table = slice_table(
-            store.get_table(outputs["detect-abnormal"].artifacts["detection"]),
-            store.get_table(outputs["segment-tumor"].artifacts["segmentation"]),
+            det,
+            store.get_table(art["segment-tumor"]["segmentation"]),
             pixel_area_mm2=outputs["measure-volume"].values["pixel_area_mm2"],
         )
-        (staging / "slices.parquet").write_bytes(encode_parquet(table))
-        (staging / "metrics.parquet").write_bytes(encode_parquet(pd.DataFrame([metrics])))
+        put("slices.parquet", encode_parquet(table))
+        put("metrics.parquet", encode_parquet(pd.DataFrame([metrics])))
         rule = str(metrics.get("eq7_slice_rule", "segmented"))
+        input_info = {"name": source.name, "digest_sha256": source.digest}
+        input_info.update(modality=source.modality, patient_id=pid)
+        code = {name: spec.code_digest for name, spec in stages.STAGES.items()}
         provenance = build_provenance(
-            input_info={
-                "name": source.name, "digest_sha256": source.digest,
-                "modality": source.modality, "patient_id": pid,
-            },  # fmt: skip
+            input_info=input_info,
             config=cfg.model_dump(mode="json"),
             config_digest=config_digest(cfg),
-            stages=[
-                {**r.model_dump(), "code_sha256": stages.STAGES[r.stage].code_digest}
-                for r in runs
-            ],
+            stages=[{**r.model_dump(), "code_sha256": code[r.stage]} for r in runs],
             volume_methods=VOLUME_METHODS,
             eq7_slice_rule={"name": rule, "definition": EQ7_SLICE_RULES[rule]},
             notes=[n for n in str(metrics.get("notes", "")).split("; ") if n],
         )
+        render = outputs["render-views"].values
+        provenance["render"] = {k: render.get(k) for k in ("renderer", "fallback_reason")}
         (staging / "provenance.json").write_text(json.dumps(provenance, indent=2) + "\n")
-    return out_dir / pid
-
-
-def _write_viewer_files(
-    staging: Path,
-    store: ArtifactStore,
-    outputs: dict[str, StageOutput],
-    pid: str,
-    cfg: PipelineConfig,
-) -> None:
-    """``tumor_lps.vtk`` (ITK-SNAP, ParaView) and the self-contained ``viewer.html``."""
-    from storage.formats import encode_vtk_polydata
-    from storage.viewer import viewer_html
-
-    tumour = store.get_mesh(outputs["extract-surface"].artifacts["mesh"])
-    (staging / "tumor_lps.vtk").write_bytes(encode_vtk_polydata(tumour, space="LPS"))
-    simplified = store.get_mesh(outputs["simplify-mesh"].artifacts["mesh"])
-    brain_ref = outputs["render-views"].artifacts.get("brain_mesh")
-    brain = store.get_mesh(brain_ref) if brain_ref is not None else None
-    html = viewer_html(
-        simplified, brain, title=f"tumor3d: {pid}", tumor_color_rgb=cfg.render.color_rgb,
-        brain_color_rgb=cfg.render.brain_color_rgb, brain_opacity=cfg.render.brain_opacity,
-    )  # fmt: skip
-    (staging / "viewer.html").write_text(html, encoding="utf-8")
-
-
-def _write_overlays(staging: Path, store: ArtifactStore, outputs: dict[str, StageOutput]) -> None:
-    """Slice mosaics: the tumour and the brain-mask contours over the preprocessed slices."""
-    import numpy as np
-
-    from storage.formats import encode_png
-    from tumor3d.overlay import overlay_mosaic
-
-    image, affine = store.get_volume(outputs["preprocess"].artifacts["enhanced"])
-    brain, _ = store.get_volume(outputs["preprocess"].artifacts["brain_mask"])
-    tumour, _ = store.get_volume(outputs["segment-tumor"].artifacts["tumor_mask_slices"])
-    det = store.get_table(outputs["detect-abnormal"].artifacts["detection"])
-    abnormal = det.loc[det["abnormal"].astype(bool), "slice_index"].to_numpy(dtype=np.int64)
-    for name, mask, title in (
-        ("overlay_tumor.png", tumour, "tumour contour (abnormal slices framed)"),
-        ("overlay_brain.png", brain, "brain mask contour"),
-    ):
-        rgb = overlay_mosaic(image, mask, affine, abnormal_slices=abnormal, title=title)
-        (staging / name).write_bytes(encode_png(rgb))
+        files.append("provenance.json")
+        report = patient_report_data(
+            metrics, stage_runs=[r.model_dump() for r in runs], abnormal_slices=abnormal,
+            files=files, provenance=provenance,
+        )  # fmt: skip
+        write_report(staging, report)
+    return out_dir / pid, report

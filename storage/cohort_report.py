@@ -1,4 +1,13 @@
-"""The cohort's own outputs: ``cohort.parquet`` (one row per patient) and ``cohort.md``."""
+"""The cohort's outputs: ``cohort.parquet`` (one row per patient), ``cohort.md`` and ``.html``.
+
+``cohort.html`` (:func:`cohort_page_rows` + :func:`storage.report_html.cohort_report_html`)
+sits beside ``cohort.parquet``: one row per patient with its anterior render
+as thumbnail, its volumes, its status (the failing stage and error of a
+failed patient) and a link to its ``report.html``, and a distribution plot of
+the Eq. 7 volumes. Links are relative (``<patient_id>/report.html``) and made
+only to files that exist, and never to a failed patient's folder (which may
+hold an earlier run's results), so the cohort folder can be moved as a whole.
+"""
 
 from __future__ import annotations
 
@@ -9,9 +18,10 @@ from typing import Any
 import pandas as pd
 
 from storage.formats import encode_parquet
+from storage.report_html import cohort_report_html
 from storage.store import atomic_write_bytes
 
-__all__ = ["cohort_markdown", "cohort_table", "write_cohort_outputs"]
+__all__ = ["cohort_markdown", "cohort_page_rows", "cohort_table", "write_cohort_outputs"]
 
 _FIRST = ("patient_id", "status", "failed_stage", "error", "output_dir")
 
@@ -66,7 +76,8 @@ def cohort_markdown(
         "",
         "## Volumes",
         "",
-        "| patient | " + " | ".join(f"{volume_labels[k]} (mm3) | (mL)" for k in volume_labels)
+        "| patient | "
+        + " | ".join(f"{volume_labels[k]} (mm3) | (mL)" for k in volume_labels)
         + " | Eq. 7 slices | note |",
         "|---|" + "---:|---:|" * len(volume_labels) + "---:|---|",
     ]
@@ -75,7 +86,8 @@ def cohort_markdown(
         for k in volume_labels:
             cells += [_fmt(r.get(k), ",.1f"), _fmt(r.get(k.replace("_mm3", "_ml")), ".3f")]
         lines.append(
-            f"| {r['patient_id']} | " + " | ".join(cells)
+            f"| {r['patient_id']} | "
+            + " | ".join(cells)
             + f" | {r.get('eq7_slice_rule', '-')} | {r.get('notes') or ''} |"
         )
     lines += ["", "## Failures", ""]
@@ -102,14 +114,59 @@ def cohort_markdown(
         if t not in ok.columns:
             continue
         hits = int(ok[c].astype(bool).sum()) if c in ok.columns else 0
-        lines.append(
-            f"| {stage} | {ok[t].sum():.2f} | {ok[t].mean():.2f} | {hits}/{len(ok)} |"
-        )
+        lines.append(f"| {stage} | {ok[t].sum():.2f} | {ok[t].mean():.2f} | {hits}/{len(ok)} |")
     return "\n".join(lines) + "\n"
 
 
+def _finite(value: Any) -> float | None:
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        return None
+    return f if f == f and abs(f) != float("inf") else None
+
+
+def cohort_page_rows(table: pd.DataFrame, out_dir: str | Path) -> list[dict[str, Any]]:
+    """The rows of ``cohort.html``: per patient its status, volumes and relative links.
+
+    Parameters
+    ----------
+    table : DataFrame
+        :func:`cohort_table`'s table.
+    out_dir : path
+        The cohort folder (``cohort.html``'s folder); links are relative to it
+        and made only to files that exist there.
+    """
+    out = Path(out_dir)
+    rows = []
+    for r in table.to_dict(orient="records"):
+        pid = str(r["patient_id"])
+        ok = r.get("status") == "ok"
+        if ok:
+            found = r.get("tumour_found")
+            status = "ok" if found is None or bool(found) else "ok: no tumour found"
+        else:
+            status = f"failed at {r.get('failed_stage') or '?'}: {r.get('error') or ''}".strip()
+        vols = {
+            key: _finite(r.get(f"volume_{key}_mm3"))
+            for key in ("eq7", "voxel", "mesh", "mesh_simplified")
+            if f"volume_{key}_mm3" in r
+        }
+        row: dict[str, Any] = {"patient_id": pid, "status": status}
+        if ok:
+            row["volumes_mm3"] = vols
+            if (out / pid / "render_anterior.png").is_file():
+                row["thumbnail"] = f"{pid}/render_anterior.png"
+            if (out / pid / "report.html").is_file():
+                row["report"] = f"{pid}/report.html"
+        rows.append(row)
+    return rows
+
+
 def write_cohort_outputs(out_dir: str | Path, table: pd.DataFrame, markdown: str) -> None:
-    """Write ``cohort.parquet`` and ``cohort.md`` atomically into ``out_dir``."""
+    """Write ``cohort.parquet``, ``cohort.md`` and ``cohort.html`` atomically into ``out_dir``."""
     out = Path(out_dir)
     atomic_write_bytes(out / "cohort.parquet", encode_parquet(table))
     atomic_write_bytes(out / "cohort.md", markdown.encode())
+    page = cohort_report_html(cohort_page_rows(table, out), title=f"tumor3d cohort {out.name}")
+    atomic_write_bytes(out / "cohort.html", page.encode("utf-8"))

@@ -15,13 +15,18 @@ A mapping with the keys (all but ``patient_id`` optional)::
     status            str, e.g. "ok" or "no tumour found"
     volumes_mm3       {"eq7": float, "voxel": float, "mesh": float,
                        "mesh_simplified": float}  (any subset; None = n/a)
+    eq7_precision     {"ce": float, "ci95_low_mm3": float, "ci95_high_mm3": float}
+                      (the predicted coefficient of error of Eq. 7 and its 95 % interval)
     measurements      {label: value-with-unit str or number}  (e.g. RANO diameters)
+    notes             list of str
     n_slices          int
     abnormal_slices   list of int (0-based slice indices)
     slab_height_mm    float
     faces_before      int   (marching cubes)
     faces_after       int   (after simplification)
     stage_seconds     {stage name: seconds}
+    stage_cached      {stage name: bool}  (the stage was a cache hit this run)
+    slice_counts      {label: int}  (e.g. slices with tumour, slices Eq. 7 summed)
     renders           {view name: relative PNG path}  (e.g. "render_anterior.png")
     turntable         relative GIF path
     overlays          {caption: relative PNG path}  (tumour and brain-mask mosaics)
@@ -45,6 +50,7 @@ from urllib.parse import quote
 from tumor3d.errors import InputError
 
 __all__ = [
+    "EQ7_PRECISION_DEFINITION",
     "VOLUME_DEFINITIONS",
     "cohort_report_html",
     "patient_report_html",
@@ -74,6 +80,15 @@ VOLUME_DEFINITIONS: dict[str, tuple[str, str]] = {
         "Volume enclosed by the simplified surface (same formula).",
     ),
 }
+
+#: What the Eq. 7 precision means (shown under the volume table).
+EQ7_PRECISION_DEFINITION = (
+    "Eq. 7 is the Cavalieri estimator with the slab height as sampling interval; its "
+    "coefficient of error (CE) is predicted from the per-slice tumour areas (Gundersen and "
+    "Jensen 1987; Garcia-Finana and Cruz-Orive 2000), and the 95 % interval is "
+    "V (1 ± 1.96 CE). It is the error of sampling the tumour with slices, not of the "
+    "segmentation."
+)
 
 _CSS = """
 body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,sans-serif;margin:1.5rem;color:#222}
@@ -146,6 +161,38 @@ def _volumes(data: Mapping[str, Any]) -> list[tuple[str, str, float | None]]:
     ]
 
 
+def _precision(data: Mapping[str, Any]) -> tuple[float, float, float] | None:
+    """(CE, 95 % low, 95 % high in mm3) from ``eq7_precision``, or None."""
+    if data.get("eq7_precision") is None:
+        return None
+    p = _check_mapping(data["eq7_precision"], "eq7_precision")
+    vals = [_number(p.get(k), f"eq7_precision.{k}") for k in _PRECISION_KEYS]
+    if any(v is None for v in vals):
+        return None
+    ce, lo, hi = (float(v) for v in vals)  # type: ignore[arg-type]
+    if ce < 0 or lo > hi:
+        raise InputError(f"eq7_precision must have CE >= 0 and low <= high, got {dict(p)}")
+    return ce, lo, hi
+
+
+_PRECISION_KEYS = ("ce", "ci95_low_mm3", "ci95_high_mm3")
+
+
+def _precision_text(prec: tuple[float, float, float]) -> str:
+    ce, lo, hi = prec
+    return (
+        f"CE {100 * ce:.1f} %, 95 % interval {_fmt(lo)} to {_fmt(hi)} mm³ "
+        f"({_fmt(lo / 1000, 3)} to {_fmt(hi / 1000, 3)} mL)"
+    )
+
+
+def _notes(data: Mapping[str, Any]) -> list[str]:
+    notes = data.get("notes", [])
+    if isinstance(notes, str) or not isinstance(notes, Sequence):
+        raise InputError(f"notes must be a list of strings, got {notes!r}")
+    return [str(n) for n in notes if str(n)]
+
+
 def _patient_id(data: Mapping[str, Any]) -> str:
     pid = data.get("patient_id")
     if not isinstance(pid, str) or not pid:
@@ -154,7 +201,8 @@ def _patient_id(data: Mapping[str, Any]) -> str:
 
 
 def _status_class(status: str) -> str:
-    return "status-ok" if status.lower() in ("ok", "done", "completed", "success") else "status-bad"
+    ok = status.lower().split(":")[0].strip() in ("ok", "done", "completed", "success")
+    return "status-ok" if ok else "status-bad"
 
 
 def _abnormal(data: Mapping[str, Any]) -> list[int]:
@@ -203,19 +251,34 @@ def patient_report_html(data: Mapping[str, Any]) -> str:
         f"<h1>Tumour reconstruction: {_e(pid)}</h1>",
         f'<p>Status: <strong class="{_status_class(status)}">{_e(status)}</strong></p>',
     ]
+    notes = _notes(data)
+    if notes:
+        parts.append("<ul>" + "".join(f"<li>{_e(n)}</li>" for n in notes) + "</ul>")
     vols = _volumes(data)
+    prec = _precision(data)
     if vols:
         parts.append(
             "<h2>Volume</h2><table><tr><th>Estimator</th><th>mm³</th><th>mL</th>"
-            "<th>Definition</th></tr>"
+            "<th>95 % interval (mm³)</th><th>Definition</th></tr>"
         )
         for key, label, v in vols:
+            interval = (
+                f"{_fmt(prec[1])} to {_fmt(prec[2])} (CE {100 * prec[0]:.1f} %)"
+                if key == "eq7" and prec is not None
+                else ""
+            )
             parts.append(
                 f"<tr><td>{_e(label)}</td><td class='num'>{_fmt(v)}</td>"
                 f"<td class='num'>{_fmt(None if v is None else v / 1000.0, 3)}</td>"
+                f"<td class='num'>{interval}</td>"
                 f"<td>{_e(VOLUME_DEFINITIONS[key][1])}</td></tr>"
             )
         parts.append("</table>")
+        if prec is not None:
+            parts.append(
+                f"<p>Eq. 7 precision: {_e(_precision_text(prec))}. "
+                f"{_e(EQ7_PRECISION_DEFINITION)}</p>"
+            )
     meas = _check_mapping(data.get("measurements", {}), "measurements")
     if meas:
         parts.append("<h2>Measurements</h2><table>")
@@ -229,6 +292,8 @@ def patient_report_html(data: Mapping[str, Any]) -> str:
     if "abnormal_slices" in data:
         shown = ", ".join(str(k) for k in abnormal) if abnormal else "none"
         rows.append(("Abnormal slices", f"{len(abnormal)} ({_e(shown)})"))
+    for label, count in _check_mapping(data.get("slice_counts", {}), "slice_counts").items():
+        rows.append((_e(label), _e(count)))
     if "slab_height_mm" in data:
         rows.append(
             ("Slab height", f"{_fmt(_number(data['slab_height_mm'], 'slab_height_mm'), 2)} mm")
@@ -242,14 +307,29 @@ def patient_report_html(data: Mapping[str, Any]) -> str:
         parts += [f"<tr><th>{k}</th><td class='num'>{v}</td></tr>" for k, v in rows]
         parts.append("</table>")
     secs = _check_mapping(data.get("stage_seconds", {}), "stage_seconds")
+    cached = _check_mapping(data.get("stage_cached", {}), "stage_cached")
     if secs:
         total = 0.0
-        parts.append("<h2>Time per stage</h2><table><tr><th>Stage</th><th>s</th></tr>")
+        head = "<th>this run</th>" if cached else ""
+        parts.append(
+            f"<h2>Time per stage</h2><table><tr><th>Stage</th><th>compute (s)</th>{head}</tr>"
+        )
         for stage, s in secs.items():
             v = _number(s, f"stage_seconds.{stage}")
             total += v or 0.0
-            parts.append(f"<tr><td>{_e(stage)}</td><td class='num'>{_fmt(v, 2)}</td></tr>")
-        parts.append(f"<tr><th>total</th><th class='num'>{_fmt(total, 2)}</th></tr></table>")
+            hit = ""
+            if cached:
+                hit = f"<td>{'cache hit' if cached.get(stage) else 'computed'}</td>"
+            parts.append(f"<tr><td>{_e(stage)}</td><td class='num'>{_fmt(v, 2)}</td>{hit}</tr>")
+        parts.append(
+            f"<tr><th>total</th><th class='num'>{_fmt(total, 2)}</th>"
+            f"{'<th></th>' if cached else ''}</tr></table>"
+        )
+        if cached:
+            parts.append(
+                "<p>Compute time is that of the run that computed the stage (kept on cache "
+                "hits).</p>"
+            )
     renders = _check_mapping(data.get("renders", {}), "renders")
     if renders or data.get("turntable") or data.get("viewer"):
         parts.append("<h2>3-D renders</h2>")
@@ -320,10 +400,17 @@ def patient_report_markdown(data: Mapping[str, Any]) -> str:
         for _key, label, v in vols:
             lines.append(f"| {label} | {_fmt(v)} | {_fmt(None if v is None else v / 1000, 3)} |")
         lines.append("")
+        prec = _precision(data)
+        if prec is not None:
+            lines += [f"Eq. 7 precision: {_precision_text(prec)}.", ""]
         lines += [
             f"- **{VOLUME_DEFINITIONS[k][0]}**: {VOLUME_DEFINITIONS[k][1]}" for k, _, _ in vols
         ]
+        if prec is not None:
+            lines.append(f"- **Eq. 7 precision**: {EQ7_PRECISION_DEFINITION}")
         lines.append("")
+    for note in _notes(data):
+        lines.append(f"- Note: {md(note)}")
     for label, value in _check_mapping(data.get("measurements", {}), "measurements").items():
         lines.append(f"- {md(label)}: {md(value)}")
     abnormal = _abnormal(data)
@@ -333,16 +420,25 @@ def patient_report_markdown(data: Mapping[str, Any]) -> str:
         lines.append(
             f"- Abnormal slices: {len(abnormal)} ({', '.join(map(str, abnormal)) or 'none'})"
         )
+    for label, count in _check_mapping(data.get("slice_counts", {}), "slice_counts").items():
+        lines.append(f"- {md(label)}: {md(count)}")
     if "faces_before" in data or "faces_after" in data:
         lines.append(
             f"- Faces: {md(data.get('faces_before', 'n/a'))} (marching cubes), "
             f"{md(data.get('faces_after', 'n/a'))} (simplified)"
         )
     secs = _check_mapping(data.get("stage_seconds", {}), "stage_seconds")
+    cached = _check_mapping(data.get("stage_cached", {}), "stage_cached")
     if secs:
-        lines += ["", "| Stage | s |", "|---|---:|"]
+        if cached:
+            lines += ["", "| Stage | s | this run |", "|---|---:|---|"]
+        else:
+            lines += ["", "| Stage | s |", "|---|---:|"]
         for stage, s in secs.items():
-            lines.append(f"| {md(stage)} | {_fmt(_number(s, f'stage_seconds.{stage}'), 2)} |")
+            hit = ""
+            if cached:
+                hit = f" {'cache hit' if cached.get(stage) else 'computed'} |"
+            lines.append(f"| {md(stage)} | {_fmt(_number(s, f'stage_seconds.{stage}'), 2)} |{hit}")
     return "\n".join(lines).rstrip() + "\n"
 
 
@@ -367,6 +463,15 @@ def patient_summary_table(data: Mapping[str, Any]) -> list[dict[str, str]]:
         rows.append({"quantity": f"volume, {label}", "value": _fmt(v), "unit": "mm³"})
         ml = None if v is None else v / 1000.0
         rows.append({"quantity": f"volume, {label}", "value": _fmt(ml, 3), "unit": "mL"})
+    prec = _precision(data)
+    if prec is not None:
+        rows.append(
+            {"quantity": "Eq. 7 coefficient of error", "value": f"{prec[0]:.4f}", "unit": ""}
+        )
+        rows.append({"quantity": "Eq. 7 95 % interval, low", "value": _fmt(prec[1]), "unit": "mm³"})
+        rows.append(
+            {"quantity": "Eq. 7 95 % interval, high", "value": _fmt(prec[2]), "unit": "mm³"}
+        )
     for label, value in _check_mapping(data.get("measurements", {}), "measurements").items():
         rows.append({"quantity": str(label), "value": str(value), "unit": ""})
     abnormal = _abnormal(data)
@@ -374,6 +479,8 @@ def patient_summary_table(data: Mapping[str, Any]) -> list[dict[str, str]]:
         rows.append({"quantity": "acquired slices", "value": str(data["n_slices"]), "unit": ""})
     if "abnormal_slices" in data:
         rows.append({"quantity": "abnormal slices", "value": str(len(abnormal)), "unit": ""})
+    for label, count in _check_mapping(data.get("slice_counts", {}), "slice_counts").items():
+        rows.append({"quantity": str(label), "value": str(count), "unit": ""})
     for key, label in (
         ("faces_before", "faces, marching cubes"),
         ("faces_after", "faces, simplified"),

@@ -8,12 +8,23 @@ stage's code digest.
 
 from __future__ import annotations
 
-from tasks import detect, ingest, interpolate, measure, preprocess, render, segment, simplify
+from tasks import (
+    brain_surface,
+    detect,
+    ingest,
+    interpolate,
+    measure,
+    preprocess,
+    render,
+    segment,
+    simplify,
+)
 from tasks import surface as surface_adapter
 from tasks.spec import InputSource, StageOutput, StageSpec
 
 __all__ = [
     "STAGES",
+    "brain_surface_task",
     "InputSource",
     "StageOutput",
     "StageSpec",
@@ -40,6 +51,7 @@ STAGES: dict[str, StageSpec] = {
         interpolate.SPEC,
         surface_adapter.SPEC,
         simplify.SPEC,
+        brain_surface.SPEC,
         render.SPEC,
         measure.SPEC,
     )
@@ -52,6 +64,7 @@ segment_task = segment.segment_task
 interpolate_task = interpolate.interpolate_task
 surface_task = surface_adapter.surface_task
 simplify_task = simplify.simplify_task
+brain_surface_task = brain_surface.brain_surface_task
 render_task = render.render_task
 measure_task = measure.measure_task
 

@@ -125,6 +125,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from tumor3d.brain_surface import brain_surface
 from tumor3d.errors import InputError
 from tumor3d.mesh import Mesh
 
@@ -401,92 +402,6 @@ def _clip_by_plane(
     used[faces.reshape(-1)] = True
     remap = np.cumsum(used) - 1
     return verts[used], norms[used], remap[faces]
-
-
-def brain_surface(brain_mask: np.ndarray, affine: np.ndarray, *, spacing_mm: float = 2.0) -> Mesh:
-    """The brain surface for rendering, from the (thick-slice) brain mask.
-
-    Shape-based interpolation (Raya and Udupa 1990; the paper reconstructs
-    the brain surface too): each acquired slice's mask becomes its in-plane
-    signed distance ``d_k`` in mm (negative inside), ``d`` is interpolated
-    trilinearly onto an isotropic grid of ``spacing_mm`` covering the same
-    extent, and the brain is ``{d < 0}``; its surface is
-    :func:`tumor3d.surface.extract_surface` of that grid. At 2 mm a brain
-    gives some 30,000-60,000 faces, plenty for a translucent context surface
-    and cheap to render. Only the largest connected component is kept. An
-    empty slice counts as far outside, so the surface ends flat at the
-    first and last slices holding brain (as the paper's reconstruction
-    does).
-
-    Parameters
-    ----------
-    brain_mask : (z, y, x) array_like of bool
-        The brain mask on the acquired slices (e.g. ``PreprocessResult.brain_mask``).
-    affine : (4, 4) array_like
-        Voxel index ``(x, y, z, 1)`` -> RAS mm of that grid.
-    spacing_mm : float
-        Grid spacing of the surface extraction, in (0.25, 10] mm.
-
-    Returns
-    -------
-    Mesh
-        Closed outward surface in RAS mm.
-
-    Raises
-    ------
-    InputError
-        On a non-3-D or empty mask, a bad affine or spacing.
-    """
-    from scipy import ndimage as ndi
-
-    from tumor3d.surface import extract_surface
-
-    mask = np.asarray(brain_mask)
-    if mask.ndim != 3 or mask.dtype != bool and not np.isin(mask, (0, 1)).all():
-        raise InputError(f"brain_mask must be a (z, y, x) boolean volume, got shape {mask.shape}")
-    mask = mask.astype(bool)
-    if not mask.any():
-        raise InputError("brain_mask is empty: no brain surface to extract")
-    aff = np.asarray(affine, dtype=np.float64)
-    if (
-        aff.shape != (4, 4)
-        or not np.all(np.isfinite(aff))
-        or abs(np.linalg.det(aff[:3, :3])) < 1e-12
-    ):
-        raise InputError("affine must be a finite, invertible 4x4 array")
-    step = _check_number(spacing_mm, "spacing_mm", 0.25, 10.0, closed=True)
-    if step == 0.25:
-        raise InputError("spacing_mm must be larger than 0.25 mm")
-    labels, n = ndi.label(mask)
-    if n > 1:
-        mask = labels == 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
-    dx, dy, dz = (float(np.linalg.norm(aff[:3, k])) for k in range(3))
-    nz, ny, nx = mask.shape
-    half_px = 0.5 * min(dx, dy)  # the mask boundary lies half a pixel outside its pixels
-    sd = np.empty(mask.shape, dtype=np.float32)
-    for k in range(nz):
-        sl = mask[k]
-        if not sl.any():
-            sd[k] = 1e3  # far outside
-            continue
-        out = ndi.distance_transform_edt(~sl, sampling=(dy, dx))
-        inside = ndi.distance_transform_edt(sl, sampling=(dy, dx))
-        sd[k] = np.where(sl, half_px - inside, out - half_px)
-    # pad one empty slice at both ends so the surface closes beyond the end slices
-    sd = np.concatenate(
-        [np.full((1, ny, nx), 1e3, np.float32), sd, np.full((1, ny, nx), 1e3, np.float32)]
-    )
-    # new grid: index i along each axis <-> old voxel coordinate i * step / d
-    shape_new = [
-        max(2, int(np.floor((n_old - 1) * d / step)) + 1)
-        for n_old, d in ((nz + 2, dz), (ny, dy), (nx, dx))
-    ]
-    zz, yy, xx = np.meshgrid(*(np.arange(m) * step for m in shape_new), indexing="ij", sparse=True)
-    coords = np.broadcast_arrays(zz / dz, yy / dy, xx / dx)
-    fine = ndi.map_coordinates(sd, coords, order=1, mode="nearest") < 0.0
-    scale = np.diag([step / dx, step / dy, step / dz, 1.0])
-    scale[2, 3] = -1.0  # the padded first slice sits at old index -1
-    return extract_surface(fine, aff @ scale)
 
 
 # ---------------------------------------------------------------------------

@@ -13,12 +13,20 @@ import gzip
 import io
 import json
 import logging
+import shutil
 from pathlib import Path
 
 import nibabel as nib
 import numpy as np
 import pandas as pd
 import pytest
+from headless_chromium import (
+    local_links,
+    needs_chromium,
+    open_page,
+    serious_console_messages,
+    unresolved_links,
+)
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import ExplicitVRLittleEndian, MRImageStorage, generate_uid
 
@@ -189,8 +197,14 @@ def test_tumour_free_patient_writes_no_empty_mesh_and_says_so(tmp_path):
     image = write_phantom_patient(patient, tmp_path / "in").image
     result = run_patient(image, tmp_path / "out", patient_id="clear1")
     folder = tmp_path / "out" / "clear1"
-    assert not list(folder.glob("*.ply")) and not list(folder.glob("render_*"))
+    assert not list(folder.glob("tumor*.ply")) and not list(folder.glob("render_*"))
+    assert not (folder / "viewer.html").exists()  # nothing to view
+    assert (folder / "brain_mesh.ply").is_file()  # the brain is there all the same
     assert (folder / "tumor_mask.nii.gz").is_file()
+    # the report says so, shows the overlays and links nothing that is not there
+    page = (folder / "report.html").read_text()
+    assert "no tumour found" in page and "overlay_brain.png" in page
+    assert unresolved_links(folder / "report.html") == []
     # the slice overlays are written all the same: they show what was (not) found
     assert (folder / "overlay_brain.png").is_file() and (folder / "overlay_tumor.png").is_file()
     metrics = pd.read_parquet(folder / "metrics.parquet").iloc[0]
@@ -205,6 +219,9 @@ def test_tumour_free_patient_writes_no_empty_mesh_and_says_so(tmp_path):
     [
         ({"simplify": {"reduction_percent": 40}}, "simplify-mesh"),
         ({"interpolate": {"method": "shape"}}, "interpolate-slices"),
+        # the brain surface is its own stage, before the renders: a new render
+        # setting reuses it (it used to be recomputed inside every render)
+        ({"render": {"width": 320, "turntable_frames": 4}}, "render-views"),
     ],
 )
 def test_config_change_recomputes_that_stage_and_later_only(
@@ -216,8 +233,13 @@ def test_config_change_recomputes_that_stage_and_later_only(
     hits = result.cache_hits
     assert all(hits[:k]), "stages before the changed one must be cache hits"
     assert not hits[k], "the changed stage must recompute"
-    # stages after it see new inputs (measure-volume always depends on the mesh)
-    assert not hits[-1]
+    assert hits[STAGE_NAMES.index("extract-brain-surface")], "the brain surface is reused"
+    if first_changed == "render-views":
+        assert hits[-1]  # the volumes do not depend on the renders
+    else:
+        assert not hits[STAGE_NAMES.index("render-views")]  # a new tumour surface
+        # stages after it see new inputs (measure-volume always depends on the mesh)
+        assert not hits[-1]
 
 
 def _write_dicom_series(patient, folder):
@@ -316,3 +338,65 @@ def test_unreadable_dicom_file_stops_the_run_unless_skipped_and_then_is_named(tm
     assert "zz_corrupt.dcm" in metrics["notes"]
     provenance = json.loads((Path(result.output_dir) / "provenance.json").read_text())
     assert any("zz_corrupt.dcm" in n for n in provenance["notes"])
+
+
+def test_report_links_only_files_beside_it_and_shows_the_metrics(first_run, tmp_path):
+    out, result = first_run
+    folder = out / "flowpat"
+    # relative links: the folder still works after a move
+    moved = tmp_path / "elsewhere" / "flowpat"
+    shutil.copytree(folder, moved)
+    assert unresolved_links(moved / "report.html") == []
+    targets = set(local_links(folder / "report.html"))
+    expected = {f"render_{v}.png" for v in ("anterior", "posterior", "right", "left",
+                                              "superior", "inferior", "cut_axial",
+                                              "cut_coronal")}  # fmt: skip
+    expected |= {"render_turntable.gif", "overlay_tumor.png", "overlay_brain.png", "viewer.html"}
+    assert targets == expected
+    page = (folder / "report.html").read_text()
+    row = pd.read_parquet(folder / "metrics.parquet").iloc[0]
+    for key in ("volume_eq7", "volume_voxel", "volume_mesh"):
+        assert f"{row[key + '_mm3']:,.1f}" in page and f"{row[key + '_ml']:,.3f}" in page
+    lo, hi = row["volume_eq7_ci95_low_mm3"], row["volume_eq7_ci95_high_mm3"]
+    assert lo < row["volume_eq7_mm3"] < hi
+    assert f"{lo:,.1f} to {hi:,.1f} (CE {100 * row['volume_eq7_ce']:.1f} %)" in page
+    assert f"{row['rano_longest_mm']:.1f} mm" in page
+    assert f"<td class='num'>{int(row['faces_mc'])}</td>" in page
+    assert f"<td class='num'>{int(row['faces_simplified'])}</td>" in page
+    # the report in the result is what the page was built from
+    assert result.report["patient_id"] == "flowpat"
+    assert result.report["volumes_mm3"]["eq7"] == pytest.approx(row["volume_eq7_mm3"])
+
+
+@needs_chromium
+def test_published_report_loads_in_headless_chromium(first_run, tmp_path):
+    out, _ = first_run
+    moved = tmp_path / "moved" / "flowpat"
+    shutil.copytree(out / "flowpat", moved)
+    page = open_page(moved / "report.html", tmp_path, size=(1100, 2400), budget_ms=5000)
+    assert page.js_errors == []
+    assert serious_console_messages(page.console) == []
+    assert len(page.images) == 11  # 8 renders, the turntable, two overlays
+    assert all(width > 0 for _, width in page.images), page.images
+    # the renders are on screen: the red tumour shows
+    shot = page.screenshot.astype(int)
+    red = (shot[..., 0] > shot[..., 1] + 40) & (shot[..., 0] > shot[..., 2] + 40)
+    assert red.sum() > 500, red.sum()
+
+
+def test_summary_artifacts_are_on_the_patient_flow_run(first_run):
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+
+    out, _ = first_run
+    keys = ["tumor3d-flowpat-summary", "tumor3d-flowpat-table"]
+    with get_client(sync_client=True) as client:
+        arts = client.read_artifacts(
+            artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=keys))
+        )
+        assert {a.key for a in arts} == set(keys)
+        for art in arts:
+            assert client.read_flow_run(art.flow_run_id).name == "patient-flowpat"
+    md = next(a for a in arts if a.key == keys[0]).data
+    row = pd.read_parquet(out / "flowpat" / "metrics.parquet").iloc[0]
+    assert f"| Eq. 7 (slices) | {row['volume_eq7_mm3']:,.1f} | {row['volume_eq7_ml']:.3f} |" in md

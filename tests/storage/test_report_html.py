@@ -7,10 +7,16 @@ from html.parser import HTMLParser
 
 import numpy as np
 import pytest
-from headless_chromium import needs_chromium, open_page, serious_console_messages
+from headless_chromium import (
+    needs_chromium,
+    open_page,
+    serious_console_messages,
+    unresolved_links,
+)
 
 from storage.formats import encode_png
 from storage.report_html import (
+    EQ7_PRECISION_DEFINITION,
     VOLUME_DEFINITIONS,
     cohort_report_html,
     patient_report_html,
@@ -89,6 +95,29 @@ def test_patient_report_contents():
     ]
     assert c.links == ["viewer.html"]
     assert '"renderer": "numpy"' in text
+
+
+def test_precision_cache_hits_counts_and_notes():
+    data = _data(
+        eq7_precision={"ce": 0.0412, "ci95_low_mm3": 11348.9, "ci95_high_mm3": 13342.3},
+        stage_cached={"segment": True, "render-views": False},
+        slice_counts={"Slices summed by Eq. 7": 5},
+        notes=["skipped 1 unreadable file(s): x.dcm"],
+    )
+    c, text = _parse(patient_report_html(data))
+    assert "11,348.9 to 13,342.3 (CE 4.1 %)" in text  # in the Eq. 7 row
+    assert "11.349 to 13.342 mL" in text
+    assert EQ7_PRECISION_DEFINITION in text
+    assert "cache hit" in text and "computed" in text
+    assert "Slices summed by Eq. 7" in text and "x.dcm" in text
+    md = patient_report_markdown(data)
+    assert "CE 4.1 %, 95 % interval 11,348.9 to 13,342.3 mm³" in md
+    assert "| segment | 1.25 | cache hit |" in md and "| render-views | 0.75 | computed |" in md
+    rows = {r["quantity"]: r["value"] for r in patient_summary_table(data)}
+    assert rows["Eq. 7 coefficient of error"] == "0.0412"
+    assert rows["Eq. 7 95 % interval, high"] == "13,342.3"
+    with pytest.raises(InputError, match="low <= high"):
+        patient_report_html(_data(eq7_precision={"ce": 0.1, "ci95_low_mm3": 2, "ci95_high_mm3": 1}))
 
 
 def test_markdown_summary_has_the_same_numbers():
@@ -207,8 +236,13 @@ def test_report_loads_in_headless_chromium_and_shows_the_renders(rendered_folder
     shot = page.screenshot.astype(int)
     red = (shot[..., 0] > shot[..., 1] + 40) & (shot[..., 0] > shot[..., 2] + 40)
     assert red.sum() > 300  # the tumour in the renders is on screen
-    # every image loaded (a broken image would be reported as a load error)
+    # every image loaded and has pixels, every link resolves to a file beside the page
     assert "Volume" in page.dom and "render_anterior.png" in page.dom
+    assert sorted(src for src, _ in page.images) == sorted(
+        ["render_anterior.png", "render_cut_axial.png", "render_turntable.gif", "overlay_tumor.png"]
+    )
+    assert all(width > 0 for _, width in page.images), page.images
+    assert unresolved_links(path) == []
 
 
 @needs_chromium
@@ -217,6 +251,10 @@ def test_a_missing_image_is_caught(rendered_folder, tmp_path):
     path.write_text(patient_report_html(_data(renders={"x": "no_such.png"})), encoding="utf-8")
     page = open_page(path, tmp_path, budget_ms=2000)
     assert any("no_such.png" in e for e in page.js_errors)
+    # the checks the published-report tests rely on see it too
+    assert dict(page.images)["no_such.png"] == 0
+    assert dict(page.images)["render_turntable.gif"] > 0
+    assert unresolved_links(path) == ["no_such.png"]
 
 
 @needs_chromium
@@ -236,3 +274,5 @@ def test_cohort_page_loads_in_headless_chromium(rendered_folder, tmp_path):
     assert page.js_errors == [] and serious_console_messages(page.console) == []
     shot = page.screenshot.astype(int)
     assert ((shot[..., 0] > shot[..., 1] + 40) & (shot[..., 0] > shot[..., 2] + 40)).sum() > 50
+    assert page.images == [("render_anterior.png", 240)]
+    assert unresolved_links(path) == []

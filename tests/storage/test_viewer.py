@@ -43,6 +43,25 @@ def test_page_is_self_contained_and_deterministic(meshes):
     # both surfaces are there, toggle buttons too
     assert '"name":"tumour"' in page and '"name":"brain"' in page
     assert "tumour only" in page
+    # face indices as uint16 typed arrays (the meshes have < 65,536 vertices), not int32
+    assert page.count('"dtype":"u2"') == 6 and '"dtype":"i4"' not in page
+
+
+def test_plotlyjs_is_embedded_compressed_and_unpacks_to_plotlyjs(meshes):
+    import base64
+    import gzip
+
+    from plotly.offline import get_plotlyjs
+
+    page = viewer_html(*meshes)
+    packed = re.search(r'<script type="application/octet-stream" id="t3d-plotlyjs">([^<]+)<', page)
+    assert packed is not None
+    assert gzip.decompress(base64.b64decode(packed.group(1))).decode() == get_plotlyjs()
+    plain = viewer_html(*meshes, compress_plotlyjs=False)
+    assert get_plotlyjs() in plain and "t3d-plotlyjs" not in plain
+    assert len(page) < 0.5 * len(plain)
+    # the figure is the same in both: only the way plotly.js travels differs
+    assert re.search(r"Plotly\.newPlot\(", page) and re.search(r"Plotly\.newPlot\(", plain)
 
 
 def test_tumour_only_page(meshes):
@@ -72,10 +91,11 @@ def _colourful(img):
 
 
 @needs_chromium
-def test_viewer_loads_in_headless_chromium_and_shows_the_mesh(meshes, tmp_path):
+@pytest.mark.parametrize("compress", [True, False])
+def test_viewer_loads_in_headless_chromium_and_shows_the_mesh(meshes, tmp_path, compress):
     tumor, brain = meshes
     path = tmp_path / "viewer.html"
-    path.write_text(viewer_html(tumor, brain), encoding="utf-8")
+    path.write_text(viewer_html(tumor, brain, compress_plotlyjs=compress), encoding="utf-8")
     page = open_page(path, tmp_path)
     assert page.js_errors == []
     assert serious_console_messages(page.console) == []
@@ -100,3 +120,16 @@ def test_browser_check_catches_a_broken_page(tmp_path):
     page = open_page(path, tmp_path, budget_ms=2000)
     assert page.js_errors and "undefinedFunction" in page.js_errors[0]
     assert not _colourful(page.screenshot).any()
+
+
+@needs_chromium
+def test_a_browser_without_decompression_says_so(meshes, tmp_path):
+    page = viewer_html(*meshes).replace(
+        "<head>", "<head><script>window.DecompressionStream = undefined;</script>", 1
+    )
+    path = tmp_path / "old_browser.html"
+    path.write_text(page, encoding="utf-8")
+    shown = open_page(path, tmp_path, budget_ms=3000)
+    assert shown.js_errors == []
+    assert "cannot unpack the embedded 3-D viewer" in shown.dom
+    assert not _colourful(shown.screenshot).any()  # no plot, and not a silent blank either

@@ -1,6 +1,6 @@
 """Open a local HTML file in headless Chromium: screenshot, DOM and JavaScript errors.
 
-Used by the viewer and report tests. Debian's ``chromium`` (installed by
+Used by the viewer, report and published-folder tests. Debian's ``chromium`` (installed by
 ``scripts/system-deps.sh``) runs with a fresh profile, no network services
 and software WebGL (SwiftShader, opted in with ``--enable-unsafe-swiftshader``
 because the page is our own). JavaScript errors are collected by an
@@ -12,11 +12,14 @@ returned too.
 
 from __future__ import annotations
 
+import html
 import re
 import shutil
 import subprocess
 from dataclasses import dataclass
+from html.parser import HTMLParser
 from pathlib import Path
+from urllib.parse import unquote
 
 import numpy as np
 import pytest
@@ -53,7 +56,11 @@ _HOOK = (
     "window.addEventListener('unhandledrejection',function(e){errs.push('rejection: '+e.reason);"
     "show();});var ce=console.error;console.error=function(){errs.push('console.error: '+"
     "Array.prototype.join.call(arguments,' '));show();return ce.apply(console,arguments);};"
-    "document.addEventListener('DOMContentLoaded',show);})();</script>"
+    "document.addEventListener('DOMContentLoaded',show);"
+    "window.addEventListener('load',function(){var p=document.createElement('pre');"
+    "p.id='t3d-images';var out=[];for(var i=0;i<document.images.length;i++){"
+    "var im=document.images[i];out.push(im.naturalWidth+' '+im.getAttribute('src'));}"
+    "p.textContent=out.join('\\n');document.body.appendChild(p);});})();</script>"
 )
 
 
@@ -63,6 +70,8 @@ class PageResult:
     dom: str
     js_errors: list[str]
     console: list[str]
+    #: (src attribute, naturalWidth) of every <img> once the page has loaded
+    images: list[tuple[str, int]]
 
 
 def _run(args: list[str], profile: Path, timeout: float) -> subprocess.CompletedProcess:
@@ -96,7 +105,45 @@ def open_page(
     match = re.search(r'<pre id="t3d-js-errors">(.*?)</pre>', dom, flags=re.DOTALL)
     errors = [e for e in (match.group(1).splitlines() if match else []) if e.strip()]
     console = [ln for ln in (r1.stderr + r2.stderr).splitlines() if "CONSOLE" in ln]
-    return PageResult(screenshot=pixels, dom=dom, js_errors=errors, console=console)
+    match = re.search(r'<pre id="t3d-images">(.*?)</pre>', dom, flags=re.DOTALL)
+    images = []
+    for line in match.group(1).splitlines() if match else []:
+        width, _, src = line.partition(" ")
+        images.append((html.unescape(src), int(width)))
+    return PageResult(screenshot=pixels, dom=dom, js_errors=errors, console=console, images=images)
+
+
+class _Links(HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.targets: list[str] = []
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag in ("img", "script") and a.get("src"):
+            self.targets.append(a["src"])
+        if tag in ("a", "link") and a.get("href"):
+            self.targets.append(a["href"])
+
+
+def local_links(html_path: Path) -> list[str]:
+    """Every src/href of the page (images, scripts, links)."""
+    parser = _Links()
+    parser.feed(Path(html_path).read_text(encoding="utf-8"))
+    return parser.targets
+
+
+def unresolved_links(html_path: Path) -> list[str]:
+    """Links that are not relative paths to existing files beside the page."""
+    bad = []
+    root = Path(html_path).parent
+    for target in local_links(html_path):
+        path = unquote(target.split("#")[0])
+        if not path or "://" in target or target.startswith(("/", "data:", "javascript:")):
+            bad.append(target)
+        elif not (root / path).is_file():
+            bad.append(target)
+    return bad
 
 
 def serious_console_messages(console: list[str]) -> list[str]:

@@ -1,0 +1,209 @@
+"""Writers of a patient's derived outputs: overlays, viewer files and ``report.html``.
+
+Called by :func:`flows.patient.publish_patient` with what it read from the
+artifact store; every file goes into the publishing staging folder (so
+nothing is half-written under the final name). The report's content is
+assembled by :func:`patient_report_data` from the metrics row, the stage
+runs and the list of files actually written, so every link of
+``report.html`` points at a file beside it (relative links: the folder can
+be moved).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from storage.formats import encode_ply, encode_png, encode_vtk_polydata
+from storage.report_html import patient_report_html
+from storage.viewer import viewer_html
+from tumor3d.mesh import Mesh
+from tumor3d.overlay import overlay_mosaic
+
+__all__ = [
+    "OVERLAYS",
+    "RENDER_ORDER",
+    "patient_report_data",
+    "write_overlays",
+    "write_report",
+    "write_surface_files",
+]
+
+#: Overlay files and their captions.
+OVERLAYS: dict[str, str] = {
+    "overlay_tumor.png": "tumour contour over the preprocessed slices (abnormal slices framed)",
+    "overlay_brain.png": "brain-mask contour (skull removal) over the preprocessed slices",
+}
+
+#: Render images in the order the report shows them.
+RENDER_ORDER = (
+    "anterior", "posterior", "right", "left", "superior", "inferior",
+    "cut_axial", "cut_coronal", "cut_sagittal",
+)  # fmt: skip
+
+
+def write_overlays(
+    folder: Path,
+    image_zyx: np.ndarray,
+    affine: np.ndarray,
+    brain_zyx: np.ndarray,
+    tumour_zyx: np.ndarray,
+    abnormal_slices: Sequence[int],
+) -> list[str]:
+    """Slice mosaics with the tumour and the brain-mask contours; returns the file names."""
+    abnormal = np.asarray(list(abnormal_slices), dtype=np.int64)
+    masks = {"overlay_tumor.png": tumour_zyx, "overlay_brain.png": brain_zyx}
+    titles = {
+        "overlay_tumor.png": "tumour contour (abnormal slices framed)",
+        "overlay_brain.png": "brain mask contour",
+    }
+    for name, mask in masks.items():
+        rgb = overlay_mosaic(image_zyx, mask, affine, abnormal_slices=abnormal, title=titles[name])
+        (folder / name).write_bytes(encode_png(rgb))
+    return list(masks)
+
+
+def write_surface_files(
+    folder: Path,
+    *,
+    tumour: Mesh,
+    simplified: Mesh,
+    brain: Mesh,
+    brain_viewer: Mesh,
+    title: str,
+    tumor_color_rgb: Sequence[float],
+    brain_color_rgb: Sequence[float],
+    brain_opacity: float,
+) -> list[str]:
+    """``brain_mesh.ply``, ``tumor_lps.vtk`` and ``viewer.html``; returns the file names.
+
+    The viewer shows the simplified tumour and ``brain_viewer`` (the brain
+    reduced for the browser). Without a tumour only the brain surface is
+    written (there is nothing to view).
+    """
+    written = []
+    if not brain.is_empty:
+        (folder / "brain_mesh.ply").write_bytes(encode_ply(brain))
+        written.append("brain_mesh.ply")
+    if tumour.is_empty:
+        return written
+    (folder / "tumor_lps.vtk").write_bytes(encode_vtk_polydata(tumour, space="LPS"))
+    html = viewer_html(
+        simplified, None if brain_viewer.is_empty else brain_viewer, title=title,
+        tumor_color_rgb=tumor_color_rgb, brain_color_rgb=brain_color_rgb,
+        brain_opacity=brain_opacity,
+    )  # fmt: skip
+    (folder / "viewer.html").write_text(html, encoding="utf-8")
+    return [*written, "tumor_lps.vtk", "viewer.html"]
+
+
+def _num(row: Mapping[str, Any], key: str) -> float | None:
+    v = row.get(key)
+    if v is None or isinstance(v, bool):
+        return None
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return None
+    return f if np.isfinite(f) else None
+
+
+def patient_report_data(
+    metrics: Mapping[str, Any],
+    *,
+    stage_runs: Iterable[Mapping[str, Any]],
+    abnormal_slices: Sequence[int],
+    files: Iterable[str],
+    provenance: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The input of :func:`storage.report_html.patient_report_html` for one patient.
+
+    Parameters
+    ----------
+    metrics : mapping
+        The patient's ``metrics.parquet`` row.
+    stage_runs : iterable of mapping
+        Per stage ``stage``, ``compute_seconds``, ``cached`` (``StageRun`` dumps).
+    abnormal_slices : sequence of int
+        0-based indices of the slices detection flagged abnormal.
+    files : iterable of str
+        Names of the files published beside the report (links are made only
+        to these).
+    provenance : mapping, optional
+        The ``provenance.json`` record.
+    """
+    present = set(files)
+    found = bool(metrics.get("tumour_found", True))
+    vols = {
+        key: _num(metrics, f"volume_{key}_mm3")
+        for key in ("eq7", "voxel", "mesh", "mesh_simplified")
+        if f"volume_{key}_mm3" in metrics
+    }
+    data: dict[str, Any] = {
+        "patient_id": str(metrics["patient_id"]),
+        "status": "ok" if found else "no tumour found",
+        "volumes_mm3": vols,
+        "notes": [n for n in str(metrics.get("notes") or "").split("; ") if n],
+        "n_slices": int(metrics.get("n_slices", 0)),
+        "abnormal_slices": [int(k) for k in abnormal_slices],
+    }
+    ce = _num(metrics, "volume_eq7_ce")
+    lo, hi = _num(metrics, "volume_eq7_ci95_low_mm3"), _num(metrics, "volume_eq7_ci95_high_mm3")
+    if found and ce is not None and lo is not None and hi is not None:
+        data["eq7_precision"] = {"ce": ce, "ci95_low_mm3": lo, "ci95_high_mm3": hi}
+    meas: dict[str, str] = {}
+    if found:
+        for key, label in (
+            ("rano_longest_mm", "RANO longest in-plane diameter"),
+            ("rano_perpendicular_mm", "RANO perpendicular diameter"),
+        ):
+            if _num(metrics, key) is not None:
+                meas[label] = f"{_num(metrics, key):.1f} mm"
+        if _num(metrics, "rano_product_mm2") is not None:
+            meas["RANO product"] = f"{_num(metrics, 'rano_product_mm2'):,.1f} mm²"
+        if metrics.get("rano_slice_index") is not None:
+            meas["RANO slice (0-based)"] = str(int(metrics["rano_slice_index"]))
+        if _num(metrics, "max_diameter_3d_mm") is not None:
+            meas["largest 3-D diameter of the surface"] = (
+                f"{_num(metrics, 'max_diameter_3d_mm'):.1f} mm"
+            )
+    data["measurements"] = meas
+    counts = {}
+    for key, label in (
+        ("n_tumor_slices", "Slices with segmented tumour"),
+        ("n_eq7_slices", "Slices summed by Eq. 7"),
+    ):
+        if metrics.get(key) is not None:
+            counts[label] = int(metrics[key])
+    if metrics.get("eq7_slice_rule"):
+        counts["Eq. 7 slice rule"] = str(metrics["eq7_slice_rule"])
+    data["slice_counts"] = counts
+    if _num(metrics, "slab_height_mm") is not None:
+        data["slab_height_mm"] = _num(metrics, "slab_height_mm")
+    if metrics.get("faces_mc") is not None:
+        data["faces_before"] = int(metrics["faces_mc"])
+    if metrics.get("faces_simplified") is not None:
+        data["faces_after"] = int(metrics["faces_simplified"])
+    runs = list(stage_runs)
+    data["stage_seconds"] = {str(r["stage"]): float(r["compute_seconds"]) for r in runs}
+    data["stage_cached"] = {str(r["stage"]): bool(r["cached"]) for r in runs}
+    data["renders"] = {
+        name: f"render_{name}.png" for name in RENDER_ORDER if f"render_{name}.png" in present
+    }
+    if "render_turntable.gif" in present:
+        data["turntable"] = "render_turntable.gif"
+    data["overlays"] = {cap: name for name, cap in OVERLAYS.items() if name in present}
+    if "viewer.html" in present:
+        data["viewer"] = "viewer.html"
+    if provenance is not None:
+        data["provenance"] = dict(provenance)
+    return data
+
+
+def write_report(folder: Path, data: Mapping[str, Any]) -> str:
+    """``report.html`` from :func:`patient_report_data`; returns its name."""
+    (folder / "report.html").write_text(patient_report_html(data), encoding="utf-8")
+    return "report.html"

@@ -1,0 +1,78 @@
+"""Tests of storage.patient_outputs and the cohort page rows: links only to what exists."""
+
+from __future__ import annotations
+
+import pandas as pd
+
+from storage.cohort_report import cohort_page_rows, write_cohort_outputs
+from storage.patient_outputs import patient_report_data
+from storage.report_html import patient_report_html
+
+METRICS = {
+    "patient_id": "p1", "volume_eq7_mm3": 21774.9, "volume_eq7_ml": 21.7749,
+    "volume_voxel_mm3": 21060.4, "volume_mesh_mm3": 21022.4,
+    "volume_mesh_simplified_mm3": 21022.4, "volume_eq7_ce": 0.02,
+    "volume_eq7_ci95_low_mm3": 20921.3, "volume_eq7_ci95_high_mm3": 22628.5,
+    "rano_longest_mm": 41.25, "rano_perpendicular_mm": 30.0, "rano_product_mm2": 1237.5,
+    "rano_slice_index": 12, "max_diameter_3d_mm": 44.0, "n_slices": 31,
+    "n_tumor_slices": 9, "n_eq7_slices": 9, "eq7_slice_rule": "segmented",
+    "faces_mc": 12000, "faces_simplified": 4800, "slab_height_mm": 5.0,
+    "tumour_found": True, "notes": "",
+}  # fmt: skip
+RUNS = [
+    {"stage": "segment-tumor", "compute_seconds": 0.5, "cached": True},
+    {"stage": "render-views", "compute_seconds": 1.5, "cached": False},
+]
+
+
+def test_report_links_only_the_files_that_were_written():
+    files = ["render_anterior.png", "render_cut_axial.png", "overlay_tumor.png", "metrics.parquet"]
+    data = patient_report_data(METRICS, stage_runs=RUNS, abnormal_slices=[10, 11], files=files)
+    assert data["renders"] == {
+        "anterior": "render_anterior.png",
+        "cut_axial": "render_cut_axial.png",
+    }
+    assert list(data["overlays"].values()) == ["overlay_tumor.png"]
+    assert "viewer" not in data and "turntable" not in data
+    assert data["eq7_precision"] == {"ce": 0.02, "ci95_low_mm3": 20921.3, "ci95_high_mm3": 22628.5}
+    assert data["measurements"]["RANO longest in-plane diameter"] == "41.2 mm"  # 41.25 rounds even
+    assert data["stage_cached"] == {"segment-tumor": True, "render-views": False}
+    page = patient_report_html(data)
+    assert "21,774.9" in page and "21.775" in page and "20,921.3 to 22,628.5" in page
+
+
+def test_tumour_free_report_has_no_interval_and_says_so():
+    metrics = {**METRICS, "tumour_found": False, "volume_eq7_mm3": 0.0, "volume_eq7_ce": 0.0,
+               "volume_eq7_ci95_low_mm3": 0.0, "volume_eq7_ci95_high_mm3": 0.0,
+               "notes": "no tumour found: no mesh and no render written"}  # fmt: skip
+    data = patient_report_data(metrics, stage_runs=RUNS, abnormal_slices=[], files=[])
+    assert data["status"] == "no tumour found" and "eq7_precision" not in data
+    assert data["measurements"] == {} and data["renders"] == {}
+    assert "no mesh and no render written" in patient_report_html(data)
+
+
+def test_cohort_rows_link_existing_files_of_published_patients_only(tmp_path):
+    for pid in ("a", "b"):
+        (tmp_path / pid).mkdir()
+        (tmp_path / pid / "report.html").write_text("<html></html>")
+    (tmp_path / "a" / "render_anterior.png").write_bytes(b"png")
+    table = pd.DataFrame(
+        [
+            {"patient_id": "a", "status": "ok", "failed_stage": None, "error": None,
+             "volume_eq7_mm3": 1500.0, "tumour_found": True},
+            {"patient_id": "b", "status": "failed", "failed_stage": "segment-tumor",
+             "error": "RuntimeError: boom", "volume_eq7_mm3": float("nan"), "tumour_found": None},
+            {"patient_id": "c", "status": "ok", "failed_stage": None, "error": None,
+             "volume_eq7_mm3": 0.0, "tumour_found": False},
+        ]
+    )  # fmt: skip
+    rows = cohort_page_rows(table, tmp_path)
+    assert rows[0] == {"patient_id": "a", "status": "ok", "volumes_mm3": {"eq7": 1500.0},
+                       "thumbnail": "a/render_anterior.png", "report": "a/report.html"}  # fmt: skip
+    # b failed this time: its folder (an earlier run's) is not linked
+    assert rows[1] == {"patient_id": "b", "status": "failed at segment-tumor: RuntimeError: boom"}
+    assert rows[2]["status"] == "ok: no tumour found" and "report" not in rows[2]
+    write_cohort_outputs(tmp_path, table, "# md\n")
+    page = (tmp_path / "cohort.html").read_text()
+    assert 'href="a/report.html"' in page and 'href="b/report.html"' not in page
+    assert (tmp_path / "cohort.parquet").is_file() and (tmp_path / "cohort.md").is_file()
