@@ -443,6 +443,8 @@ def detect_abnormal_slices(
     lesion_boundary_rings: int = 3,
     lesion_floor_sigmas: float = 1.0,
     lesion_min_slice_pixels: int = 20,
+    spacing_mm: tuple[float, float, float] | None = None,
+    lr_axis: int | None = None,
 ) -> SliceDetection:
     """Flag the abnormal slices of a patient (specification section 2).
 
@@ -498,6 +500,14 @@ def detect_abnormal_slices(
     lesion_min_slice_pixels : int
         Robust method: a slice is abnormal when it holds at least this many
         lesion pixels (the lesion itself must be significant elsewhere).
+    spacing_mm : (3,) tuple of float, optional
+        Voxel spacing ``(slice step, row, column)`` in mm (robust method: the
+        depth rule of :mod:`tumor3d.lesion`); None = isotropic. The adapter
+        passes the scan's.
+    lr_axis : {1, 2} or None
+        Robust method: the left-right array axis (symmetry rule of
+        :mod:`tumor3d.lesion`, :func:`tumor3d.lesion.left_right_axis` of the
+        scan's affine); None skips the rule. The adapter passes it.
 
     Returns
     -------
@@ -561,6 +571,8 @@ def detect_abnormal_slices(
             min_slices=int(lesion_min_slices),
             boundary_rings=int(lesion_boundary_rings),
             floor_sigmas=float(lesion_floor_sigmas),
+            spacing_mm=(1.0, 1.0, 1.0) if spacing_mm is None else tuple(spacing_mm),
+            lr_axis=lr_axis,
         )
         flagged = lesion.mask.sum(axis=(1, 2)) >= int(lesion_min_slice_pixels)
     abnormal = flagged & (brain_pixels >= int(min_brain_pixels))

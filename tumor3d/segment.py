@@ -645,6 +645,8 @@ def segment_tumor(
     lesion_floor_sigmas: float = 1.0,
     lesion_fill_core: bool = True,
     multiotsu_classes: int = 4,
+    spacing_mm: tuple[float, float, float] | None = None,
+    lr_axis: int | None = None,
 ) -> SegmentationResult:
     """Segment the tumour of a patient's slices (specification section 3).
 
@@ -696,6 +698,14 @@ def segment_tumor(
         Robust method: fill the enclosed necrotic core / cavities.
     multiotsu_classes : int
         Peer: number of multi-Otsu classes (2-6).
+    spacing_mm : (3,) tuple of float, optional
+        Voxel spacing ``(slice step, row, column)`` in mm (robust method: the
+        depth rule of :mod:`tumor3d.lesion`); None = isotropic. The adapter
+        passes the scan's.
+    lr_axis : {1, 2} or None
+        Robust method: the left-right array axis (symmetry rule of
+        :mod:`tumor3d.lesion`, :func:`tumor3d.lesion.left_right_axis` of the
+        scan's affine); None skips the rule. The adapter passes it.
 
     Returns
     -------
@@ -771,6 +781,8 @@ def segment_tumor(
             refine_boundary=bool(refine_boundary),
             fill_core=bool(lesion_fill_core),
             allowed_slices=detection.abnormal,
+            spacing_mm=(1.0, 1.0, 1.0) if spacing_mm is None else tuple(spacing_mm),
+            lr_axis=lr_axis,
         )
         tumor = res.mask
         how = "lesion"
