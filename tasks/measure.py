@@ -47,9 +47,7 @@ def measure_task(
     slices_mask, _ = store.get_volume(tumor_mask_slices)
     row.update(
         clinical_measures(
-            slices_mask,
-            pixel_spacing_mm=(dy, dx),
-            slab_height_mm=slab_mm,
+            slices_mask, pixel_spacing_mm=(dy, dx), slab_height_mm=slab_mm,
             mesh_vertices=None if surface.is_empty else surface.vertices,
         )  # fmt: skip
     )
