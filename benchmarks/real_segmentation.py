@@ -217,13 +217,15 @@ def main(argv=None) -> int:
     ap.add_argument("--native", action="store_true", help="run the 1 mm slices (no emulation)")
     ap.add_argument("--offset", type=int, default=2, help="first thin slice of slab 0")
     ap.add_argument("--brain-mask", action="store_true", help="pass BraTS brainmask.nii.gz")
+    ap.add_argument("--no-tumor-modality", default="t1c", choices=("t1c", "t2", "flair"),
+                    help="modality of the no_tumor volumes (default t1c, as in the manifest)")
     args = ap.parse_args(argv)
     data = Path(os.environ.get("TUMOR3D_DATA_DIR", ROOT / ".." / "shared" / "data"))
     if not (data / "brats2013_pat0003").is_dir():
         print(f"real data not found under {data} (set TUMOR3D_DATA_DIR): skipped")
         return 0
     configs = args.config or [ROOT / "configs" / "default.yaml"]
-    cases = _cases(data)
+    cases = _cases(data, args.no_tumor_modality)
     if args.cases:
         cases = [c for c in cases if any(s in c.name for s in args.cases)]
     for cpath in configs:

@@ -101,6 +101,11 @@ _MAD_TO_SIGMA = 1.4826  # sigma of a normal distribution = 1.4826 MAD
 #: median / MAD model (breakdown point 50 %): no lesion is reported.
 MAX_BRAIN_FRACTION = 0.5
 
+#: Step 3c: mirrored seeds (bilateral-looking) within this in-plane distance of the kept
+#: asymmetric core are regained: chosen by leave-one-case-out from {5, 10, 15, 20, 30, inf}
+#: (see ``reports/segmentation.md``).
+SYMMETRIC_REGAIN_MM = 20.0
+
 #: Step 3c: mirror tolerance (head roll / yaw of a few degrees, anatomical asymmetry), mm.
 SYMMETRY_TOLERANCE_MM = 5.0
 
@@ -265,6 +270,20 @@ def _asymmetric_seeds(
     footprint = np.ones((1, 2 * half[0] + 1, 2 * half[1] + 1), dtype=bool)
     mirrored = ndi.binary_dilation(_mirror(seeds, axis, centre), structure=footprint)
     return seeds & ~mirrored
+
+
+def _within_mm(mask: np.ndarray, radius_mm: float, voxel_mm) -> np.ndarray:
+    """In-plane: voxels within ``radius_mm`` of ``mask`` (per slice, Euclidean)."""
+    out = np.zeros_like(mask)
+    for z in np.flatnonzero(mask.any(axis=(1, 2))):
+        d = ndi.distance_transform_edt(~mask[z], sampling=(voxel_mm[1], voxel_mm[2]))
+        out[z] = d <= radius_mm
+    return out
+
+
+def _mirrored(mask: np.ndarray, brain: np.ndarray, axis: int, voxel_mm) -> np.ndarray:
+    """Voxels of ``mask`` whose mirror position (within the tolerance) is in ``mask``."""
+    return mask & ~_asymmetric_seeds(mask, brain, axis, voxel_mm)
 
 
 def _fill_enclosed(
@@ -481,6 +500,11 @@ def _segment_box(
     sm = _smooth_in_brain(img, b, float(smoothing_px))
     model = normal_model(sm, img, b, seed_sigmas, modality)
     not_csf = img < model.csf_threshold
+    if lr_axis is not None and not not_csf.all():
+        # CSF is bilateral (ventricles, sulci, cisterns); fluid-bright voxels without a
+        # fluid-bright mirror are a cyst or necrosis of the lesion, not CSF
+        csf = b & ~not_csf
+        not_csf = ~_mirrored(csf, b, int(lr_axis), voxel_mm) | ~csf
     seeds = b & (sm > model.seed_threshold) & not_csf
     full_seeds = seeds
     if lr_axis is not None and seeds.any():
@@ -493,7 +517,8 @@ def _segment_box(
         # is the full seed component holding that core (a tumour's part lying within
         # the tolerance of its own mirror, near the midline, stays in)
         core0 = np.isin(labels, ids[:1] if keep_largest else ids)
-        flab, _ = ndi.label(full_seeds, structure=np.ones((3, 3, 3), dtype=bool))
+        near = _within_mm(core0, SYMMETRIC_REGAIN_MM, voxel_mm)
+        flab, _ = ndi.label(full_seeds & (seeds | near), structure=np.ones((3, 3, 3), dtype=bool))
         keep = np.unique(flab[core0])
         labels = np.where(np.isin(flab, keep[keep > 0]), 1, 0)
         ids = np.array([1])
