@@ -1,0 +1,118 @@
+"""Patient-level lesion decision of tumor3d.lesion (steps 3b, 3c, 6 of its docstring).
+
+Synthetic volumes: an ellipsoidal brain of one tissue with noise, a bright
+structure planted where the rule under test applies. Each rule is checked both
+ways: the planted normal structure gives nothing with the rule and is found
+without it (so the rule, not something else, rejects it), and a lesion that
+the rule must keep is kept.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage as ndi
+
+from tumor3d.errors import InputError
+from tumor3d.lesion import left_right_axis, segment_hyperintense_lesion
+
+SHAPE = (16, 96, 96)  # (z, y, x); x runs left-right
+SPACING = (3.0, 1.0, 1.0)  # mm: 3 mm slices, 1 mm pixels
+CENTRE = np.array([7.5, 47.5, 47.5])
+RADII_MM = np.array([22.0, 40.0, 34.0])  # brain half-axes (z, y, x)
+
+
+def _grid_mm() -> tuple[np.ndarray, ...]:
+    z, y, x = np.indices(SHAPE).astype(np.float64)
+    return tuple((a - c) * d for a, c, d in zip((z, y, x), CENTRE, SPACING, strict=True))
+
+
+def _brain() -> np.ndarray:
+    z, y, x = _grid_mm()
+    return (z / RADII_MM[0]) ** 2 + (y / RADII_MM[1]) ** 2 + (x / RADII_MM[2]) ** 2 <= 1.0
+
+
+def _ball(centre_mm, radius_mm) -> np.ndarray:
+    z, y, x = _grid_mm()
+    d2 = (z - centre_mm[0]) ** 2 + (y - centre_mm[1]) ** 2 + (x - centre_mm[2]) ** 2
+    return d2 <= radius_mm**2
+
+
+def _image(brain: np.ndarray, bright: list[tuple[np.ndarray, float]], seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    # tissue texture (in-plane correlated, SD 8) plus white noise (SD 6): the smoothed
+    # normal tissue keeps a realistic spread, as real parenchyma does
+    texture = ndi.gaussian_filter(rng.normal(0.0, 1.0, SHAPE), (0, 3, 3))
+    img = 100.0 + 8.0 * texture / texture.std() + rng.normal(0.0, 6.0, SHAPE)
+    for region, gray in bright:
+        img[region] = gray + rng.normal(0.0, 6.0, int(region.sum()))
+    return np.where(brain, np.clip(np.rint(img), 0, 255), 0).astype(np.uint8)
+
+
+def _segment(img, brain, *, modality="flair", **kw):
+    return segment_hyperintense_lesion(img, brain, modality=modality, spacing_mm=SPACING, **kw).mask
+
+
+def test_left_right_axis_from_the_affine():
+    lps = np.diag([-1.0, -1.0, 1.0, 1.0])  # BraTS: index x runs R->L
+    assert left_right_axis(lps) == 2
+    coronal_x_is_y = np.array([[0, 2.0, 0, 0], [0, 0, 3.0, 0], [2.0, 0, 0, 0], [0, 0, 0, 1]])
+    assert left_right_axis(coronal_x_is_y) == 1  # index y runs along R
+    sagittal = np.array([[0, 0, 4.0, 0], [1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 0, 1]])
+    assert left_right_axis(sagittal) is None  # left-right is the slice axis
+
+
+def test_bilateral_bright_structures_are_no_lesion():
+    # two deep bright blobs mirrored across the midline (ventricles of a CSF-bright image)
+    brain = _brain()
+    pair = _ball((0, 0, -11), 7) | _ball((0, 0, 11), 7)
+    img = _image(brain, [(pair, 200.0)])
+    assert not _segment(img, brain, lr_axis=2).any()
+    found = _segment(img, brain, lr_axis=None)  # without the symmetry rule: a "lesion"
+    assert (found & pair).sum() > 0.9 * pair.sum() / 2  # one blob (the largest is kept)
+
+
+def test_unilateral_lesion_next_to_the_midline_is_kept_whole():
+    brain = _brain()
+    lesion = _ball((0, 5, 8), 10)  # crosses x = 0 by 2 mm: its medial part is self-mirrored
+    img = _image(brain, [(lesion, 200.0)])
+    mask = _segment(img, brain, lr_axis=2)
+    dice = 2 * (mask & lesion).sum() / (mask.sum() + lesion.sum())
+    assert dice > 0.9
+
+
+def test_superficial_bright_shell_is_no_lesion():
+    # a bright layer along one side of the brain's surface (scalp fat left by the
+    # brain extraction), asymmetric so that only the depth rule can reject it
+    brain = _brain()
+    z, y, x = _grid_mm()
+    r = RADII_MM - 5.0
+    inner = (z / r[0]) ** 2 + (y / r[1]) ** 2 + (x / r[2]) ** 2
+    shell = brain & (inner > 1.0) & (x > 8.0)
+    img = _image(brain, [(shell, 200.0)])
+    assert not _segment(img, brain, lr_axis=2).any()
+    found = _segment(img, brain, lr_axis=2, reject_superficial=False)
+    assert (found & shell).sum() > 0.5 * shell.sum()
+
+
+def test_t2_asymmetric_fluid_cyst_stays_in_the_lesion_and_ventricles_stay_out():
+    brain = _brain()
+    ventricles = _ball((0, -6, -6), 4) | _ball((0, -6, 6), 4)  # CSF, the brightest T2 tissue
+    oedema = _ball((0, 14, -16), 11)
+    cyst = _ball((0, 14, -16), 6)  # fluid as bright as CSF, inside the lesion
+    img = _image(brain, [(ventricles, 240.0), (oedema & ~cyst, 170.0), (cyst, 240.0)])
+    mask = _segment(img, brain, modality="t2", lr_axis=2, fill_core=False)
+    assert (mask & cyst).sum() > 0.9 * cyst.sum()
+    assert (mask & ventricles).sum() < 0.05 * ventricles.sum()
+    # without the left-right axis every CSF-bright voxel is CSF: the cyst is cut out
+    no_axis = _segment(img, brain, modality="t2", lr_axis=None, fill_core=False)
+    assert (no_axis & cyst).sum() < 0.5 * cyst.sum()
+
+
+def test_bad_lr_axis_and_spacing_are_errors():
+    brain = _brain()
+    img = _image(brain, [(_ball((0, 5, 12), 8), 200.0)])
+    with pytest.raises(InputError, match="lr_axis"):
+        _segment(img, brain, lr_axis=0)
+    with pytest.raises(InputError, match="spacing_mm"):
+        segment_hyperintense_lesion(img, brain, modality="flair", spacing_mm=(0.0, 1.0, 1.0))
