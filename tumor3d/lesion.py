@@ -101,13 +101,15 @@ _MAD_TO_SIGMA = 1.4826  # sigma of a normal distribution = 1.4826 MAD
 #: median / MAD model (breakdown point 50 %): no lesion is reported.
 MAX_BRAIN_FRACTION = 0.5
 
-#: Step 3c: mirrored seeds (bilateral-looking) within this in-plane distance of the kept
-#: asymmetric core are regained: chosen by leave-one-case-out from {5, 10, 15, 20, 30, inf}
-#: (see ``reports/segmentation.md``).
-SYMMETRIC_REGAIN_MM = 20.0
-
 #: Step 3c: mirror tolerance (head roll / yaw of a few degrees, anatomical asymmetry), mm.
 SYMMETRY_TOLERANCE_MM = 5.0
+
+#: Step 3c: mirrored seeds within this in-plane distance of the kept asymmetric core are
+#: regained. A tumour's own part removed by the mirror test lies in the band where a
+#: voxel and its mirror are within the tolerance, so the tolerance is the distance
+#: (not fitted; 10-20 mm measured better on two real cases and worse on the phantoms,
+#: see ``reports/segmentation.md``).
+SYMMETRIC_REGAIN_MM = SYMMETRY_TOLERANCE_MM
 
 
 @dataclass(frozen=True)
@@ -478,6 +480,54 @@ def _bounding_box(b: np.ndarray, pad: int) -> tuple[slice, ...]:
     return tuple(out)
 
 
+def _candidates(
+    model,
+    sm,
+    img,
+    b,
+    smoothing_px,
+    min_region_pixels,
+    min_slices,
+    keep_largest,
+    spacing_mm,
+    lr_axis,
+    voxel_mm,
+):
+    """Steps 2, 3, 3b, 3c and 6: (not-CSF mask, labels, significant kept ids)."""
+    not_csf = img < model.csf_threshold
+    if lr_axis is not None and not not_csf.all():
+        # CSF is bilateral (ventricles, sulci, cisterns); fluid-bright voxels without a
+        # fluid-bright mirror are a cyst or necrosis of the lesion, not CSF
+        csf = b & ~not_csf
+        not_csf = ~_mirrored(csf, b, int(lr_axis), voxel_mm) | ~csf
+    seeds = b & (sm > model.seed_threshold) & not_csf
+    if not not_csf.all():
+        # the smoothed seeds within the blur's reach (2 sigma) of CSF owe their
+        # brightness to the CSF (partial volume, blur): no seeds
+        reach = max(1, int(round(2 * float(smoothing_px))))
+        halo = ndi.binary_dilation(
+            ~not_csf & b, structure=np.ones((1, 3, 3), bool), iterations=reach
+        )
+        seeds &= ~halo
+    full_seeds = seeds
+    if lr_axis is not None and seeds.any():
+        seeds = _asymmetric_seeds(seeds, b, int(lr_axis), voxel_mm)
+    labels, ids = _significant_components(seeds, min_region_pixels, min_slices)
+    if ids.size and spacing_mm is not None:
+        ids = _deep_components(labels, ids, b, spacing_mm)
+    if ids.size and lr_axis is not None:
+        # the asymmetric seeds decide whether (and where) there is a lesion; the lesion
+        # is the full seed component holding that core (a tumour's part lying within
+        # the tolerance of its own mirror, near the midline, stays in)
+        core0 = np.isin(labels, ids[:1] if keep_largest else ids)
+        near = _within_mm(core0, SYMMETRIC_REGAIN_MM, voxel_mm)
+        flab, _ = ndi.label(full_seeds & (seeds | near), structure=np.ones((3, 3, 3), dtype=bool))
+        keep = np.unique(flab[core0])
+        labels = np.where(np.isin(flab, keep[keep > 0]), 1, 0)
+        ids = np.array([1])
+    return not_csf, labels, ids
+
+
 def _segment_box(
     img,
     b,
@@ -499,29 +549,17 @@ def _segment_box(
     """:func:`segment_hyperintense_lesion` on the brain's bounding box."""
     sm = _smooth_in_brain(img, b, float(smoothing_px))
     model = normal_model(sm, img, b, seed_sigmas, modality)
-    not_csf = img < model.csf_threshold
-    if lr_axis is not None and not not_csf.all():
-        # CSF is bilateral (ventricles, sulci, cisterns); fluid-bright voxels without a
-        # fluid-bright mirror are a cyst or necrosis of the lesion, not CSF
-        csf = b & ~not_csf
-        not_csf = ~_mirrored(csf, b, int(lr_axis), voxel_mm) | ~csf
-    seeds = b & (sm > model.seed_threshold) & not_csf
-    full_seeds = seeds
-    if lr_axis is not None and seeds.any():
-        seeds = _asymmetric_seeds(seeds, b, int(lr_axis), voxel_mm)
-    labels, ids = _significant_components(seeds, min_region_pixels, min_slices)
-    if ids.size and spacing_mm is not None:
-        ids = _deep_components(labels, ids, b, spacing_mm)
-    if ids.size and lr_axis is not None:
-        # the asymmetric seeds decide whether (and where) there is a lesion; the lesion
-        # is the full seed component holding that core (a tumour's part lying within
-        # the tolerance of its own mirror, near the midline, stays in)
-        core0 = np.isin(labels, ids[:1] if keep_largest else ids)
-        near = _within_mm(core0, SYMMETRIC_REGAIN_MM, voxel_mm)
-        flab, _ = ndi.label(full_seeds & (seeds | near), structure=np.ones((3, 3, 3), dtype=bool))
-        keep = np.unique(flab[core0])
-        labels = np.where(np.isin(flab, keep[keep > 0]), 1, 0)
-        ids = np.array([1])
+    args = (sm, img, b, smoothing_px, min_region_pixels, min_slices, keep_largest)
+    not_csf, labels, ids = _candidates(model, *args, spacing_mm, lr_axis, voxel_mm)
+    if ids.size and np.isfinite(model.csf_threshold):
+        # step 6, second pass: a voxel is CSF when it is nearer the CSF level than the
+        # lesion's own gray (partial-volume midpoint), now that the lesion gray is known;
+        # a lesion brighter than the seed level moves the threshold up
+        lesion_gray0 = float(np.median(img[np.isin(labels, ids[:1])]))
+        csf_t = max(model.csf_threshold, _csf_threshold(img, b, lesion_gray0))
+        if csf_t > model.csf_threshold:
+            model = NormalModel(model.median, model.sigma, model.seed_threshold, csf_t)
+            not_csf, labels, ids = _candidates(model, *args, spacing_mm, lr_axis, voxel_mm)
     if ids.size == 0:
         return LesionResult(np.zeros(b.shape, bool), model, float("nan"), float("nan"), 0)
     core = np.isin(labels, ids[:1] if keep_largest else ids)
