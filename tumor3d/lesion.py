@@ -274,6 +274,44 @@ def _asymmetric_seeds(
     return seeds & ~mirrored
 
 
+def _asymmetric_cavity(
+    mask: np.ndarray,
+    sm: np.ndarray,
+    brain: np.ndarray,
+    model: NormalModel,
+    sigmas: float,
+    gap_px: int,
+    axis: int,
+    voxel_mm: tuple[float, ...],
+) -> np.ndarray:
+    """Step 5b: dark asymmetric fluid (a necrotic cavity) next to the lesion joins it.
+
+    Dark = smoothed gray below ``mu - sigmas sigma`` (the seed rule mirrored:
+    fluid or necrosis on FLAIR / T1c); asymmetric = no dark voxel at the mirror
+    position (the ventricles and sulci are bilateral). A 3-D component of it
+    within ``gap_px`` (the blur's reach) of the lesion and smaller than the
+    lesion joins it, with the partial-volume ring between the two.
+    """
+    dark = brain & (sm < model.median - float(sigmas) * model.sigma)
+    if not dark.any():
+        return mask
+    asym = _asymmetric_seeds(dark, brain, axis, voxel_mm)
+    lab, n = ndi.label(asym, structure=np.ones((3, 3, 3), dtype=bool))
+    if n == 0:
+        return mask
+    ring = np.ones((1, 3, 3), dtype=bool)
+    near = ndi.binary_dilation(mask, structure=ring, iterations=gap_px)
+    touch = np.unique(lab[near])
+    touch = touch[touch > 0]
+    sizes = np.bincount(lab.ravel())
+    touch = touch[sizes[touch] < np.count_nonzero(mask)]
+    if touch.size == 0:
+        return mask
+    cavity = np.isin(lab, touch)
+    bridge = near & ndi.binary_dilation(cavity, structure=ring, iterations=gap_px) & brain
+    return mask | cavity | bridge
+
+
 def _within_mm(mask: np.ndarray, radius_mm: float, voxel_mm) -> np.ndarray:
     """In-plane: voxels within ``radius_mm`` of ``mask`` (per slice, Euclidean)."""
     out = np.zeros_like(mask)
@@ -582,6 +620,13 @@ def _segment_box(
             mask = _grow_local(mask, img, b & not_csf, model, floor_sigmas, boundary_rings)
     if fill_core:
         mask = _fill_enclosed(mask, b, img, model.median)
+        if lr_axis is not None and modality != "t2" and mask.any():
+            # on T2 the fluid is bright (step 6); on FLAIR / T1c it is dark
+            reach = max(1, int(round(2 * float(smoothing_px))))
+            mask = _asymmetric_cavity(
+                mask, sm, b, model, seed_sigmas, reach, int(lr_axis), voxel_mm
+            )
+            mask = _fill_enclosed(mask, b, img, model.median)
     mask &= b
     if np.count_nonzero(mask) > MAX_BRAIN_FRACTION * np.count_nonzero(b):
         # the model's premise (the lesion is a minority of the brain, so the median and
