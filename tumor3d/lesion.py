@@ -283,28 +283,31 @@ def _asymmetric_cavity(
     gap_px: int,
     axis: int,
     voxel_mm: tuple[float, ...],
+    min_pixels: int,
+    min_slices: int,
 ) -> np.ndarray:
     """Step 5b: dark asymmetric fluid (a necrotic cavity) next to the lesion joins it.
 
     Dark = smoothed gray below ``mu - sigmas sigma`` (the seed rule mirrored:
     fluid or necrosis on FLAIR / T1c); asymmetric = no dark voxel at the mirror
     position (the ventricles and sulci are bilateral). A 3-D component of it
-    within ``gap_px`` (the blur's reach) of the lesion and smaller than the
-    lesion joins it, with the partial-volume ring between the two.
+    within ``gap_px`` (the blur's reach) of the lesion, smaller than the
+    lesion and significant as a seed component is (``min_pixels`` on
+    ``min_slices`` consecutive slices) joins it, with the partial-volume ring between the two.
     """
     dark = brain & (sm < model.median - float(sigmas) * model.sigma)
     if not dark.any():
         return mask
     asym = _asymmetric_seeds(dark, brain, axis, voxel_mm)
-    lab, n = ndi.label(asym, structure=np.ones((3, 3, 3), dtype=bool))
-    if n == 0:
+    lab, ids = _significant_components(asym, min_pixels, min_slices)
+    if ids.size == 0:
         return mask
     ring = np.ones((1, 3, 3), dtype=bool)
     near = ndi.binary_dilation(mask, structure=ring, iterations=gap_px)
     touch = np.unique(lab[near])
     touch = touch[touch > 0]
     sizes = np.bincount(lab.ravel())
-    touch = touch[sizes[touch] < np.count_nonzero(mask)]
+    touch = touch[np.isin(touch, ids) & (sizes[touch] < np.count_nonzero(mask))]
     if touch.size == 0:
         return mask
     cavity = np.isin(lab, touch)
@@ -624,9 +627,17 @@ def _segment_box(
             # on T2 the fluid is bright (step 6); on FLAIR / T1c it is dark
             reach = max(1, int(round(2 * float(smoothing_px))))
             mask = _asymmetric_cavity(
-                mask, sm, b, model, seed_sigmas, reach, int(lr_axis), voxel_mm
+                mask,
+                sm,
+                b,
+                model,
+                seed_sigmas,
+                reach,
+                int(lr_axis),
+                voxel_mm,
+                min_region_pixels,
+                min_slices,
             )
-            mask = _fill_enclosed(mask, b, img, model.median)
     mask &= b
     if np.count_nonzero(mask) > MAX_BRAIN_FRACTION * np.count_nonzero(b):
         # the model's premise (the lesion is a minority of the brain, so the median and
