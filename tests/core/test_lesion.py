@@ -155,3 +155,24 @@ def test_robust_on_a_t2_phantom_finds_the_tumour_brighter_than_the_csf_threshold
 def test_robust_on_a_tumour_free_t2_phantom_is_empty():
     _, det, res = _t2_phantom_robust(2, tumor=False)
     assert not det.abnormal.any() and res.tumor_pixels.sum() == 0
+
+
+def test_auto_on_t2_takes_the_paper_method_only_where_its_premise_holds():
+    from tumor3d.detect import SliceDetection
+    from tumor3d.segment import resolve_method
+
+    def det(n_modes):
+        nz = len(n_modes)
+        return SliceDetection(
+            n_modes=n_modes,
+            abnormal=np.zeros(nz, bool),
+            peaks_gray=tuple(np.zeros(k) for k in n_modes),
+            brain_pixels=np.full(nz, 5000),
+        )
+
+    three_everywhere = det([3] * 19 + [4])  # the phantoms: every slice shows WM, GM, CSF
+    half = det([3] * 10 + [2] * 10)  # real thick slices: 46-79 % with three modes
+    assert resolve_method("auto", "t2", three_everywhere) == "paper"
+    assert resolve_method("auto", "t2", half) == "robust"
+    assert resolve_method("auto", "flair", three_everywhere) == "robust"
+    assert resolve_method("paper", "t2", half) == "paper"
