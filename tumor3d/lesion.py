@@ -41,18 +41,18 @@ its modes to be counted. This module uses what a single slice cannot:
    model fails without any lesion is at the brain's surface: extracerebral
    tissue left by an imperfect brain extraction (scalp fat on T1), the
    cortical ribbon, and slices cutting the vertex or the base obliquely
-   (partial volume with CSF). A candidate component is kept only if its
-   median depth (3-D Euclidean distance to the outside of the brain mask, in
-   mm, through the voxel spacing) is at least the median depth of the brain
-   itself. Reason: the grey-matter mantle is about half of the brain's
-   volume and forms its outer layer, so the outer half of the brain by depth
-   is cortex and surface; a glioma's whole tumour (tumour and oedema) is
-   white-matter based and its median voxel lies deeper. The rule is
-   scale-free (it compares two depths of the same brain), not fitted:
-   measured at 2 mm / 5 mm, tumour components have 1.3-1.7 times the brain's
-   median depth, the false candidates of the tumour-free volumes 0.3-0.6
-   times (``reports/segmentation.md``). A superficial (cortical or
-   extra-axial) lesion is not found: documented limitation.
+   (partial volume with CSF). A candidate component is kept only if at
+   least a quarter of it lies in the inner half of the brain: its 75th
+   percentile of depth (3-D Euclidean distance to the outside of the brain
+   mask, in mm, through the voxel spacing) reaches the median depth of the
+   brain itself. Reason: the grey-matter mantle is about half of the
+   brain's volume and forms its outer layer, so the outer half of the brain
+   by depth is cortex and surface; a glioma's whole tumour (tumour and
+   oedema) is white-matter based and reaches deeper, even where it opens
+   onto the surface. The rule is scale-free (it compares two depths of the
+   same brain), not fitted (``reports/segmentation.md`` gives the measured
+   depths). A purely superficial (cortical or extra-axial) lesion is not
+   found: documented limitation.
 3c. **Is there a lesion at all: asymmetric, not bilateral anatomy.** Normal
    anatomy is left-right symmetric, a tumour breaks the symmetry. When the
    left-right array axis is known (``lr_axis``, from the scan's affine), a
@@ -103,6 +103,9 @@ MAX_BRAIN_FRACTION = 0.5
 
 #: Step 3c: mirror tolerance (head roll / yaw of a few degrees, anatomical asymmetry), mm.
 SYMMETRY_TOLERANCE_MM = 5.0
+
+#: Step 3c: asymmetric candidates examined, largest first.
+MAX_CANDIDATES = 8
 
 #: Step 3c: mirrored seeds within this in-plane distance of the kept asymmetric core are
 #: regained. A tumour's own part removed by the mirror test lies in the band where a
@@ -220,14 +223,18 @@ def _significant_components(
 def _deep_components(
     labels: np.ndarray, ids: np.ndarray, brain: np.ndarray, spacing_mm: tuple[float, ...]
 ) -> np.ndarray:
-    """Step 3b: the ids (order kept) whose median depth is >= the brain's median depth."""
+    """Step 3b: the ids (order kept) of which at least a quarter lies in the inner half.
+
+    Inner half of the brain = deeper than the brain's median depth; a
+    component passes when its 75th depth percentile reaches that depth.
+    """
     if any(not (np.isfinite(v) and v > 0) for v in spacing_mm):
         raise InputError(f"spacing_mm must be three positive numbers, got {spacing_mm}")
     # the brain touching the volume's edge continues beyond it: no distance there
     depth = ndi.distance_transform_edt(brain, sampling=spacing_mm)
     brain_median = float(np.median(depth[brain]))
-    med = np.asarray(ndi.median(depth, labels=labels, index=ids), dtype=np.float64)
-    return ids[med >= brain_median]
+    keep = [i for i in ids if np.percentile(depth[labels == i], 75) >= brain_median]
+    return np.asarray(keep, dtype=ids.dtype)
 
 
 def left_right_axis(affine: np.ndarray) -> int | None:
@@ -556,18 +563,34 @@ def _candidates(
     if lr_axis is not None and seeds.any():
         seeds = _asymmetric_seeds(seeds, b, int(lr_axis), voxel_mm)
     labels, ids = _significant_components(seeds, min_region_pixels, min_slices)
-    if ids.size and spacing_mm is not None:
-        ids = _deep_components(labels, ids, b, spacing_mm)
-    if ids.size and lr_axis is not None:
+    if ids.size and lr_axis is None:
+        if spacing_mm is not None:
+            ids = _deep_components(labels, ids, b, spacing_mm)
+    elif ids.size:
         # the asymmetric seeds decide whether (and where) there is a lesion; the lesion
-        # is the full seed component holding that core (a tumour's part lying within
-        # the tolerance of its own mirror, near the midline, stays in)
-        core0 = np.isin(labels, ids[:1] if keep_largest else ids)
-        near = _within_mm(core0, SYMMETRIC_REGAIN_MM, voxel_mm)
-        flab, _ = ndi.label(full_seeds & (seeds | near), structure=np.ones((3, 3, 3), dtype=bool))
-        keep = np.unique(flab[core0])
-        labels = np.where(np.isin(flab, keep[keep > 0]), 1, 0)
-        ids = np.array([1])
+        # is the seed component holding that core, with the mirrored seeds within
+        # SYMMETRIC_REGAIN_MM of it (a tumour's part near the midline or next to a
+        # bilateral structure); the depth rule (3b) judges that whole lesion
+        s26 = np.ones((3, 3, 3), dtype=bool)
+        out = np.zeros(labels.shape, dtype=np.int64)
+        n_out = 0
+        for i in ids[:MAX_CANDIDATES]:
+            core0 = labels == i
+            if out[core0].any():
+                continue  # already part of a kept lesion
+            near = _within_mm(core0, SYMMETRIC_REGAIN_MM, voxel_mm)
+            flab, _ = ndi.label(full_seeds & (seeds | near), structure=s26)
+            keep = np.unique(flab[core0])
+            comp = np.isin(flab, keep[keep > 0])
+            if spacing_mm is not None:
+                one = np.array([1])
+                if not _deep_components(comp.astype(np.int64), one, b, spacing_mm).size:
+                    continue
+            n_out += 1
+            out[comp & (out == 0)] = n_out
+            if keep_largest:
+                break
+        labels, ids = out, np.arange(1, n_out + 1)
     return not_csf, labels, ids
 
 
