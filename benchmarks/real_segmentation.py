@@ -8,7 +8,12 @@ relative to the repository root):
 - ``brats_t2_algoseg/t2w.nii.gz`` with ``seg_algorithm.nii.gz`` (an
   **algorithm's** label, not an expert's), modality T2;
 - ``no_tumor/*`` (no label: slices flagged and tumour volume only), run at
-  their native slices as T2.
+  their native slices as T1c, the evaluation manifest's modality
+  (``--no-tumor-modality`` for another).
+
+Detect and segment get the scan's voxel spacing and left-right axis
+(:func:`tumor3d.lesion.left_right_axis` of its affine), as the stage adapters
+pass them.
 
 Thick-slice emulation (the paper's 2 mm slices every 5 mm): slab ``i`` is the
 mean of the two adjacent 1 mm slices ``5 i + o`` and ``5 i + o + 1``
