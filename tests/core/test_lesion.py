@@ -176,3 +176,19 @@ def test_auto_on_t2_takes_the_paper_method_only_where_its_premise_holds():
     assert resolve_method("auto", "t2", half) == "robust"
     assert resolve_method("auto", "flair", three_everywhere) == "robust"
     assert resolve_method("paper", "t2", half) == "paper"
+
+
+def test_flair_dark_cavity_next_to_the_lesion_joins_it_and_the_ventricles_do_not():
+    # a FLAIR lesion with a dark necrotic cavity beside it that opens onto the brain
+    # surface (no hole of the mask), and dark ventricles (CSF) mirrored across the midline
+    brain = _brain()
+    ventricles = _ball((0, -6, -7), 5) | _ball((0, -6, 7), 5)
+    oedema = _ball((0, 12, -18), 12) & ~_ball((0, 12, -30), 9)
+    cavity = _ball((0, 12, -30), 9) & brain
+    img = _image(brain, [(oedema, 190.0), (cavity, 20.0), (ventricles, 20.0)])
+    mask = _segment(img, brain, lr_axis=2)
+    assert (mask & cavity).sum() > 0.8 * cavity.sum()
+    assert (mask & ventricles).sum() == 0
+    # without the left-right axis the open cavity is not recognised as the lesion's
+    no_axis = _segment(img, brain, lr_axis=None)
+    assert (no_axis & cavity).sum() < 0.5 * cavity.sum()
