@@ -220,18 +220,28 @@ def _significant_components(
     return labels, ok[np.argsort(-sizes[ok], kind="stable")]
 
 
+def _depth_mm(brain: np.ndarray, spacing_mm: tuple[float, ...]) -> np.ndarray:
+    """3-D distance (mm) of each brain voxel to the outside of the brain mask."""
+    if any(not (np.isfinite(v) and v > 0) for v in spacing_mm):
+        raise InputError(f"spacing_mm must be three positive numbers, got {spacing_mm}")
+    # the brain touching the volume's edge continues beyond it: no distance there
+    return ndi.distance_transform_edt(brain, sampling=spacing_mm)
+
+
 def _deep_components(
-    labels: np.ndarray, ids: np.ndarray, brain: np.ndarray, spacing_mm: tuple[float, ...]
+    labels: np.ndarray,
+    ids: np.ndarray,
+    brain: np.ndarray,
+    spacing_mm: tuple[float, ...],
+    depth: np.ndarray | None = None,
 ) -> np.ndarray:
     """Step 3b: the ids (order kept) of which at least a quarter lies in the inner half.
 
     Inner half of the brain = deeper than the brain's median depth; a
     component passes when its 75th depth percentile reaches that depth.
     """
-    if any(not (np.isfinite(v) and v > 0) for v in spacing_mm):
-        raise InputError(f"spacing_mm must be three positive numbers, got {spacing_mm}")
-    # the brain touching the volume's edge continues beyond it: no distance there
-    depth = ndi.distance_transform_edt(brain, sampling=spacing_mm)
+    if depth is None:
+        depth = _depth_mm(brain, spacing_mm)
     brain_median = float(np.median(depth[brain]))
     keep = [i for i in ids if np.percentile(depth[labels == i], 75) >= brain_median]
     return np.asarray(keep, dtype=ids.dtype)
@@ -572,6 +582,7 @@ def _candidates(
         # SYMMETRIC_REGAIN_MM of it (a tumour's part near the midline or next to a
         # bilateral structure); the depth rule (3b) judges that whole lesion
         s26 = np.ones((3, 3, 3), dtype=bool)
+        depth = None if spacing_mm is None else _depth_mm(b, spacing_mm)
         out = np.zeros(labels.shape, dtype=np.int64)
         n_out = 0
         for i in ids[:MAX_CANDIDATES]:
@@ -584,7 +595,7 @@ def _candidates(
             comp = np.isin(flab, keep[keep > 0])
             if spacing_mm is not None:
                 one = np.array([1])
-                if not _deep_components(comp.astype(np.int64), one, b, spacing_mm).size:
+                if not _deep_components(comp.astype(np.int64), one, b, spacing_mm, depth).size:
                     continue
             n_out += 1
             out[comp & (out == 0)] = n_out
