@@ -277,6 +277,16 @@ def _mirror(a: np.ndarray, axis: int, centre: float) -> np.ndarray:
     return out
 
 
+def _box_dilate(mask: np.ndarray, half_y: int, half_x: int) -> np.ndarray:
+    """In-plane dilation by a ``(2 half_y + 1) x (2 half_x + 1)`` box (separable, fast).
+
+    Equal to ``half`` iterations of a 3 x 3 binary dilation when both halves agree.
+    """
+    size = (1, 2 * int(half_y) + 1, 2 * int(half_x) + 1)
+    grown = ndi.maximum_filter(mask.view(np.uint8), size=size, mode="constant", cval=0)
+    return grown > 0
+
+
 def _asymmetric_seeds(
     seeds: np.ndarray, brain: np.ndarray, axis: int, voxel_mm: tuple[float, ...]
 ) -> np.ndarray:
@@ -287,8 +297,7 @@ def _asymmetric_seeds(
     profile = brain.sum(axis=other).astype(np.float64)
     centre = float((np.arange(profile.size) * profile).sum() / profile.sum())
     half = [int(round(SYMMETRY_TOLERANCE_MM / float(voxel_mm[ax]))) for ax in (1, 2)]
-    footprint = np.ones((1, 2 * half[0] + 1, 2 * half[1] + 1), dtype=bool)
-    mirrored = ndi.binary_dilation(_mirror(seeds, axis, centre), structure=footprint)
+    mirrored = _box_dilate(_mirror(seeds, axis, centre), half[0], half[1])
     return seeds & ~mirrored
 
 
@@ -320,8 +329,7 @@ def _asymmetric_cavity(
     lab, ids = _significant_components(asym, min_pixels, min_slices)
     if ids.size == 0:
         return mask
-    ring = np.ones((1, 3, 3), dtype=bool)
-    near = ndi.binary_dilation(mask, structure=ring, iterations=gap_px)
+    near = _box_dilate(mask, gap_px, gap_px)
     touch = np.unique(lab[near])
     touch = touch[touch > 0]
     sizes = np.bincount(lab.ravel())
@@ -330,7 +338,7 @@ def _asymmetric_cavity(
         return mask
     # a cavity of the lesion lies on the lesion's slices (in-plane next to it)
     cavity = np.isin(lab, touch) & mask.any(axis=(1, 2))[:, None, None]
-    bridge = near & ndi.binary_dilation(cavity, structure=ring, iterations=gap_px) & brain
+    bridge = near & _box_dilate(cavity, gap_px, gap_px) & brain
     return mask | cavity | bridge
 
 
@@ -565,9 +573,7 @@ def _candidates(
         # the smoothed seeds within the blur's reach (2 sigma) of CSF owe their
         # brightness to the CSF (partial volume, blur): no seeds
         reach = max(1, int(round(2 * float(smoothing_px))))
-        halo = ndi.binary_dilation(
-            ~not_csf & b, structure=np.ones((1, 3, 3), bool), iterations=reach
-        )
+        halo = _box_dilate(~not_csf & b, reach, reach)
         seeds &= ~halo
     full_seeds = seeds
     if lr_axis is not None and seeds.any():
@@ -648,7 +654,7 @@ def _segment_box(
         # the lesion may continue onto the slice just beyond its seeds (its tip, too
         # small or too partial-volumed for a seed): the zone reaches one slice further
         zone = ndi.binary_dilation(core, structure=np.ones((3, 1, 1), bool)) if tips else core
-        zone = ndi.binary_dilation(zone, structure=np.ones((1, 3, 3), bool), iterations=reach)
+        zone = _box_dilate(zone, reach, reach)
         # the smoothed seeds only locate the lesion: every pixel is decided by the
         # partial-volume rule, so the blur halo of the seeds does not stay in
         cand = b & zone & not_csf & (img > grow_t)
