@@ -8,7 +8,12 @@ relative to the repository root):
 - ``brats_t2_algoseg/t2w.nii.gz`` with ``seg_algorithm.nii.gz`` (an
   **algorithm's** label, not an expert's), modality T2;
 - ``no_tumor/*`` (no label: slices flagged and tumour volume only), run at
-  their native slices as T2.
+  their native slices as T1c, the evaluation manifest's modality
+  (``--no-tumor-modality`` for another).
+
+Detect and segment get the scan's voxel spacing and left-right axis
+(:func:`tumor3d.lesion.left_right_axis` of its affine), as the stage adapters
+pass them.
 
 Thick-slice emulation (the paper's 2 mm slices every 5 mm): slab ``i`` is the
 mean of the two adjacent 1 mm slices ``5 i + o`` and ``5 i + o + 1``
@@ -59,6 +64,7 @@ from storage.readers import read_scan  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.detect import detect_abnormal_slices  # noqa: E402
 from tumor3d.interpolate import interpolate_stack  # noqa: E402
+from tumor3d.lesion import left_right_axis  # noqa: E402
 from tumor3d.preprocess import preprocess_volume  # noqa: E402
 from tumor3d.segment import segment_tumor  # noqa: E402
 
@@ -74,7 +80,7 @@ class Case:
     brainmask: str | None = None
 
 
-def _cases(data: Path) -> list[Case]:
+def _cases(data: Path, no_tumor_modality: str = "t1c") -> list[Case]:
     out = []
     for p in ("pat0003", "pat0004", "pat0005"):
         d = data / f"brats2013_{p}"
@@ -83,7 +89,8 @@ def _cases(data: Path) -> list[Case]:
     d = data / "brats_t2_algoseg"
     out.append(Case("t2_algoseg", str(d / "t2w.nii.gz"), str(d / "seg_algorithm.nii.gz"), "t2"))
     for f in ("KmeansTest_T1UCharRaw.nii.gz", "aniso_vox.nii.gz"):
-        out.append(Case("no_tumor/" + f.split(".")[0], str(data / "no_tumor" / f), None, "t2"))
+        out.append(Case("no_tumor/" + f.split(".")[0], str(data / "no_tumor" / f), None,
+                        no_tumor_modality))
     return out
 
 
@@ -101,18 +108,18 @@ def emulate_thick(vol: np.ndarray, offset: int) -> np.ndarray:
     return 0.5 * (vol[idx].astype(np.float64) + vol[idx + 1].astype(np.float64))
 
 
-def run_pipeline(image, cfg, modality, brain_mask=None):
+def run_pipeline(image, cfg, modality, brain_mask=None, spacing_mm=None, lr_axis=None):
     t = {}
     t0 = time.perf_counter()
     pre = preprocess_volume(image, **cfg.preprocess.model_dump(), brain_mask=brain_mask)
     t["preprocess"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     det = detect_abnormal_slices(pre.enhanced, pre.brain_mask, modality=modality,
-                                 **cfg.detect.model_dump())
+                                 spacing_mm=spacing_mm, lr_axis=lr_axis, **cfg.detect.model_dump())
     t["detect"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     seg = segment_tumor(pre.enhanced, pre.brain_mask, det, modality=modality,
-                        **cfg.segment.model_dump())
+                        spacing_mm=spacing_mm, lr_axis=lr_axis, **cfg.segment.model_dump())
     t["segment"] = time.perf_counter() - t0
     return pre, det, seg, t
 
@@ -133,7 +140,9 @@ def evaluate(case: Case, cfg, *, native: bool, offset: int, use_mask: bool) -> d
         ref = emulate_thick(label, offset)
         bm_t = None if bm is None else emulate_thick(bm, offset) >= 0.5
         step_mm = STEP * scan.slice_step_mm
-    pre, det, seg, t = run_pipeline(thick, cfg, case.modality, bm_t)
+    spacing = (step_mm, *scan.pixel_spacing_mm)
+    pre, det, seg, t = run_pipeline(thick, cfg, case.modality, bm_t, spacing,
+                                    left_right_axis(scan.affine))
     mask = seg.tumor_mask
     px_mm2 = float(np.prod(scan.pixel_spacing_mm))
     vol_eq7 = step_mm * px_mm2 * float(mask.sum())
@@ -213,13 +222,15 @@ def main(argv=None) -> int:
     ap.add_argument("--native", action="store_true", help="run the 1 mm slices (no emulation)")
     ap.add_argument("--offset", type=int, default=2, help="first thin slice of slab 0")
     ap.add_argument("--brain-mask", action="store_true", help="pass BraTS brainmask.nii.gz")
+    ap.add_argument("--no-tumor-modality", default="t1c", choices=("t1c", "t2", "flair"),
+                    help="modality of the no_tumor volumes (default t1c, as in the manifest)")
     args = ap.parse_args(argv)
     data = Path(os.environ.get("TUMOR3D_DATA_DIR", ROOT / ".." / "shared" / "data"))
     if not (data / "brats2013_pat0003").is_dir():
         print(f"real data not found under {data} (set TUMOR3D_DATA_DIR): skipped")
         return 0
     configs = args.config or [ROOT / "configs" / "default.yaml"]
-    cases = _cases(data)
+    cases = _cases(data, args.no_tumor_modality)
     if args.cases:
         cases = [c for c in cases if any(s in c.name for s in args.cases)]
     for cpath in configs:

@@ -8,8 +8,15 @@ from storage.store import ArtifactRef, ArtifactStore
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.config import DetectConfig
 from tumor3d.detect import detect_abnormal_slices
+from tumor3d.lesion import left_right_axis
 
 __all__ = ["SPEC", "detect_task"]
+
+
+def _spacing(scan: ArtifactRef) -> tuple[float, float, float]:
+    """(slice step, row, column) voxel spacing in mm from the scan's metadata."""
+    dy, dx = scan.metadata["pixel_spacing_mm"]
+    return (float(scan.metadata["slice_step_mm"]), float(dy), float(dx))
 
 
 @stage_task("detect-abnormal")
@@ -22,10 +29,15 @@ def detect_task(
 ) -> StageOutput:
     """Abnormal-slice detection (histogram modes, or the patient's lesion model)."""
     store = ArtifactStore(store_root)
-    image, _ = store.get_volume(enhanced)
+    image, affine = store.get_volume(enhanced)
     brain, _ = store.get_volume(brain_mask)
     detection = detect_abnormal_slices(
-        image, brain, modality=scan.metadata["modality"], **config.model_dump()
+        image,
+        brain,
+        modality=scan.metadata["modality"],
+        spacing_mm=_spacing(scan),
+        lr_axis=left_right_axis(affine),
+        **config.model_dump(),
     )
     abnormal = np.flatnonzero(detection.abnormal)
     return StageOutput(

@@ -8,9 +8,16 @@ from storage.store import ArtifactRef, ArtifactStore
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.config import SegmentConfig
 from tumor3d.detect import SliceDetection
+from tumor3d.lesion import left_right_axis
 from tumor3d.segment import segment_tumor
 
 __all__ = ["SPEC", "segment_task"]
+
+
+def _spacing(scan: ArtifactRef) -> tuple[float, float, float]:
+    """(slice step, row, column) voxel spacing in mm from the scan's metadata."""
+    dy, dx = scan.metadata["pixel_spacing_mm"]
+    return (float(scan.metadata["slice_step_mm"]), float(dy), float(dx))
 
 
 @stage_task("segment-tumor")
@@ -28,7 +35,13 @@ def segment_task(
     brain, _ = store.get_volume(brain_mask)
     det = SliceDetection.from_records(store.get_table(detection).to_dict("records"))
     result = segment_tumor(
-        image, brain, det, modality=scan.metadata["modality"], **config.model_dump()
+        image,
+        brain,
+        det,
+        modality=scan.metadata["modality"],
+        spacing_mm=_spacing(scan),
+        lr_axis=left_right_axis(affine),
+        **config.model_dump(),
     )
     return StageOutput(
         stage="segment-tumor",

@@ -128,7 +128,8 @@ class DetectConfig(_StageConfig):
         "auto",
         description="robust = slices holding a patient-level lesion (tumor3d.lesion); "
         "histogram = the paper's mode count ([A5], [A6]); auto = robust on FLAIR/T1c, "
-        "histogram on T2 or without modality.",
+        "on T2 histogram where >= 95 % of the slices show 3 modes (the paper's premise) "
+        "and robust otherwise, histogram without modality.",
     )
     lesion_smoothing_px: float = Field(
         2.0,
@@ -178,7 +179,8 @@ class SegmentConfig(_StageConfig):
         "auto",
         description="robust = patient-pooled lesion model (tumor3d.lesion); paper = wavelet + "
         "histogram FCM per slice ([A7], [A8]); multiotsu = peer (brightest of 4 classes); "
-        "auto = robust on FLAIR/T1c, paper on T2.",
+        "auto = robust on FLAIR/T1c; on T2 paper where >= 95 % of the slices show 3 "
+        "histogram modes (the paper's premise), robust otherwise.",
     )
     wavelet: Literal["haar"] = "haar"
     fuzziness: float = Field(2.0, gt=1.0, le=5.0, description="FCM exponent m.")
