@@ -10,9 +10,10 @@ each went (:class:`StageRun`).
   task runner can be plugged into the flow without changing any stage). It
   keeps Prefect's results in the artifact store's ``prefect-results`` folder
   and repairs cache hits that cannot be trusted: a cached result whose
-  artifacts are gone from the store, or whose own digest does not match its
-  content (edited on disk), is recomputed (``refresh_cache``) and the repair
-  recorded.
+  artifacts are gone from the store or fail their digest check
+  (:meth:`~storage.store.ArtifactStore.verify`, which quarantines a corrupted
+  object), or whose own digest does not match its content (edited on disk),
+  is recomputed (``refresh_cache``) and the repair recorded.
 * :class:`DirectRunner` calls the adapter function in-process without
   Prefect (no caching): benchmarks' peer and in-process evaluation.
 """
@@ -187,9 +188,14 @@ class PrefectRunner(_Recorder):
             return f"cached result is a {type(out).__name__}, not a StageOutput"
         if not out.verify():
             return "cached result failed its digest check (edited or corrupted)"
-        missing = [k for k, r in out.artifacts.items() if not self.store.exists(r)]
-        if missing:
-            return f"cached artifacts missing from the store: {', '.join(sorted(missing))}"
+        # verify(): present AND content matching its digest; a corrupted object is
+        # quarantined by the store, so recomputing the stage writes it afresh
+        bad = [k for k, r in out.artifacts.items() if not self.store.verify(r)]
+        if bad:
+            return (
+                "cached artifacts missing or corrupted in the store (quarantined): "
+                f"{', '.join(sorted(bad))}"
+            )
         return None
 
 
