@@ -231,12 +231,18 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
 
 
 def _preflight(
-    input_path: Path, out: Path, patient_id: str | None, modality: str, **read_kw: Any
+    input_path: Path,
+    out: Path,
+    patient_id: str | None,
+    modality: str,
+    store: Path | None = None,
+    **read_kw: Any,
 ) -> None:
-    """Check the destination and read the input once before starting Prefect.
+    """Check the destination, read the input and open the store before starting Prefect.
 
-    Bad input then fails in a second, and an output folder that is or holds
-    the input is refused before any work.
+    Bad input then fails in a second, an output folder that is or holds the
+    input is refused before any work, and a store that is a file or cannot
+    be created is named before a temporary server is started for nothing.
     """
     from storage.publish import check_output_not_input
     from storage.readers import derive_patient_id, read_scan
@@ -247,6 +253,10 @@ def _preflight(
         pid = validate_patient_id(patient_id) if patient_id else derive_patient_id(input_path)
         check_output_not_input(out / pid, [input_path])
     read_scan(input_path, modality=modality, patient_id=patient_id, **read_kw)
+    from storage.store import ArtifactStore
+
+    # flows.patient.default_store_dir, without importing Prefect for it
+    ArtifactStore(store if store is not None else out / ".tumor3d-store")
 
 
 def _check_out_dir(out: Path) -> None:
@@ -264,12 +274,40 @@ def _starting_prefect_note() -> None:
     )
 
 
+class _NoFailureTracebacks:
+    """Console filter: drop Prefect's own ERROR records of failed flow and task runs.
+
+    They repeat, with a traceback, the error the command prints as one line;
+    they still reach the Prefect server (its API handler is not filtered), and
+    ``--verbose`` shows them.
+    """
+
+    def filter(self, record: Any) -> bool:
+        name = record.name
+        ours = name.startswith(("prefect.flow_runs", "prefect.task_runs"))
+        return not (ours and record.levelno >= 40)
+
+
+def _quiet_prefect_failures() -> None:
+    import logging
+
+    from prefect.logging.configuration import ensure_logging_setup
+
+    if "--verbose" in sys.argv or "-v" in sys.argv:
+        return
+    ensure_logging_setup()
+    for handler in logging.getLogger().handlers:
+        if not any(isinstance(f, _NoFailureTracebacks) for f in handler.filters):
+            handler.addFilter(_NoFailureTracebacks())
+
+
 @contextmanager
 def _prefect() -> Iterator[str]:
     """PREFECT_API_URL, else the background server, else a temporary one (see flows.server)."""
     from flows.server import prefect_api
 
     with prefect_api(on_temporary_start=_starting_prefect_note) as api_url:
+        _quiet_prefect_failures()
         yield api_url
 
 
@@ -345,7 +383,7 @@ def run(
             "skip_unreadable": skip_unreadable_dicom,
             "max_voxels": max_voxels,
         }
-        _preflight(input_path, out, patient_id, modality, **read_kw)
+        _preflight(input_path, out, patient_id, modality, store, **read_kw)
         result = _run_with_progress(
             input_path=input_path,
             out_dir=out,

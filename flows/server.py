@@ -317,7 +317,7 @@ def _drain_prefect_workers() -> None:
 
 
 @contextlib.contextmanager
-def _use_api(api_url: str) -> Iterator[None]:
+def _use_api(api_url: str, *, drain: bool) -> Iterator[None]:
     import prefect.context
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
@@ -332,7 +332,8 @@ def _use_api(api_url: str) -> Iterator[None]:
             try:
                 yield
             finally:
-                _drain_prefect_workers()
+                if drain:  # a temporary server stops next: send what is buffered first
+                    _drain_prefect_workers()
 
 
 @contextlib.contextmanager
@@ -348,7 +349,8 @@ def prefect_api(on_temporary_start: Callable[[], None] | None = None) -> Iterato
         return
     status = server_status()
     if status.state == "running" and status.info is not None:
-        with _use_api(status.info.api_url):
+        # its clients were made for this URL: they drain at exit on their own
+        with _use_api(status.info.api_url, drain=False):
             yield status.info.api_url
         return
     if on_temporary_start is not None:
@@ -358,7 +360,7 @@ def prefect_api(on_temporary_start: Callable[[], None] | None = None) -> Iterato
     proc = _spawn(port, parent=os.getpid(), ephemeral=True, log=None)
     try:
         _wait_healthy(proc, api_url, _startup_timeout_s())
-        with _use_api(api_url):
+        with _use_api(api_url, drain=True):
             yield api_url
     finally:
         _terminate(proc.pid, grace_s=5.0)
