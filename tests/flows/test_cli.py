@@ -227,3 +227,27 @@ def test_exit_codes_are_documented_in_the_cli_docstring_and_readme():
     assert "3 -- environment error" in cli.__doc__
     readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
     assert "| 3 |" in readme and "environment" in readme
+
+
+def test_console_entry_keeps_exit_codes_and_flushes_output(tmp_path):
+    """main() ends with os._exit after the exit handlers: codes and piped output survive."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(root), "TUMOR3D_HOME": str(tmp_path / "home")}
+
+    def cli(*args):
+        return subprocess.run(
+            [sys.executable, "-m", "flows.cli", *args],
+            env=env, capture_output=True, text=True, timeout=300, cwd=str(root),
+        )  # fmt: skip
+
+    missing = cli("run", str(tmp_path / "absent.nii.gz"), "--out", str(tmp_path / "o"))
+    assert missing.returncode == 2 and "absent.nii.gz: no such file" in missing.stderr
+    status = cli("server", "status")
+    assert status.returncode == 1 and "no tumor3d Prefect server running" in status.stdout
+    helped = cli("--help")
+    assert helped.returncode == 0 and "Usage" in helped.stdout
