@@ -251,3 +251,18 @@ def test_console_entry_keeps_exit_codes_and_flushes_output(tmp_path):
     assert status.returncode == 1 and "no tumor3d Prefect server running" in status.stdout
     helped = cli("--help")
     assert helped.returncode == 0 and "Usage" in helped.stdout
+
+
+def test_commands_run_without_flow_heartbeats_unless_asked(monkeypatch):
+    """The heartbeat thread's join cost ~0.9 s per command; the user's setting wins."""
+    from prefect.settings import get_current_settings
+
+    import flows.cli as cli
+
+    monkeypatch.delenv("PREFECT_FLOWS_HEARTBEAT_FREQUENCY", raising=False)
+    with cli._no_heartbeats():
+        assert get_current_settings().flows.heartbeat_frequency is None
+    monkeypatch.setenv("PREFECT_FLOWS_HEARTBEAT_FREQUENCY", "60")
+    before = get_current_settings().flows.heartbeat_frequency
+    with cli._no_heartbeats():
+        assert get_current_settings().flows.heartbeat_frequency == before
