@@ -2,15 +2,26 @@
 
 Commands: ``run`` (one patient), ``cohort`` (every patient of a manifest,
 N at a time), ``demo`` (a built-in phantom patient end to end), ``phantom``
-(write synthetic patients and a cohort manifest).
+(write synthetic patients and a cohort manifest), ``server start|stop|status``
+(one local Prefect server in the background, which later commands use; see
+:mod:`flows.server`).
 
-Errors a user can cause (a missing or unreadable file, an unsafe patient id,
-an invalid configuration, an output folder that holds the input) are printed
-as one line naming the file and the problem, with exit code 2; nothing is
-published under the final names. ``cohort`` exits 1 when some patients
-failed (the summary names them). User-supplied strings are escaped before
-Rich prints them. When stdout is not a terminal, progress is one plain line
-per stage instead of a progress bar.
+Exit codes (every error is one line on stderr naming the file and the
+problem, never a traceback; nothing is published under the final names):
+
+* 0 -- success;
+* 1 -- ``cohort``/``evaluate``: some patients failed (the summary names them;
+  a manifest row whose image is missing is such a failure);
+* 2 -- bad input: a missing or unreadable file, an unsafe patient id, an
+  invalid configuration or manifest, an output folder that holds the input
+  or is a file, more voxels than ``--max-voxels``;
+* 3 -- environment error: the artifact store or an output folder cannot be
+  written (a full disk, a read-only mount, no permission), a corrupted store
+  object that could not be repaired, a Prefect server that cannot be started
+  or reached (:data:`EXIT_ENVIRONMENT`).
+
+User-supplied strings are escaped before Rich prints them. When stdout is not
+a terminal, progress is one plain line per stage instead of a progress bar.
 """
 
 from __future__ import annotations
@@ -36,6 +47,7 @@ from rich.markup import escape  # noqa: E402
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: E402
 from rich.table import Table  # noqa: E402
 
+from tumor3d.constants import MAX_VOXELS_DEFAULT  # noqa: E402
 from tumor3d.errors import Tumor3DError  # noqa: E402
 
 app = typer.Typer(
@@ -50,9 +62,34 @@ console = Console()
 err_console = Console(stderr=True)
 
 
+#: Exit code of bad input (a file, option, configuration or manifest the user gave).
+EXIT_INPUT = 2
+#: Exit code of environment errors: store or output not writable, server unavailable.
+EXIT_ENVIRONMENT = 3
+
+
+def _error_line(exc: BaseException) -> tuple[str, int]:
+    """The one-line message and the exit code of an error that ends a command."""
+    if isinstance(exc, OSError):
+        from tumor3d.errors import os_error_text
+
+        where = f"{exc.filename}: " if exc.filename else ""
+        return f"{where}{os_error_text(exc)}", EXIT_ENVIRONMENT
+    from flows.server import ServerError
+    from storage.store import StoreError
+
+    code = EXIT_ENVIRONMENT if isinstance(exc, StoreError | ServerError) else EXIT_INPUT
+    return str(exc) or type(exc).__name__, code
+
+
 def _fail(exc: BaseException) -> typer.Exit:
-    err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
-    return typer.Exit(code=2)
+    text, code = _error_line(exc)
+    err_console.print(f"[bold red]error:[/] {escape(text)}", highlight=False, soft_wrap=True)
+    return typer.Exit(code=code)
+
+
+#: What the commands catch and turn into one line (anything else is a bug: traceback).
+_HANDLED = (Tumor3DError, OSError)
 
 
 def _load_config(path: Path | None) -> dict[str, Any]:
@@ -142,9 +179,7 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     from flows.patient import VOLUME_LABELS, VOLUME_METHODS
 
     m = result.metrics
-    table = Table(
-        title=f"Tumour volume, patient {escape(result.patient_id)}", title_justify="left"
-    )
+    table = Table(title=f"Tumour volume, patient {escape(result.patient_id)}", title_justify="left")
     table.add_column("method")
     table.add_column("volume (mm3)", justify="right")
     table.add_column("volume (mL)", justify="right")
@@ -196,29 +231,101 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
 
 
 def _preflight(
-    input_path: Path, out: Path, patient_id: str | None, modality: str, **read_kw: Any
+    input_path: Path,
+    out: Path,
+    patient_id: str | None,
+    modality: str,
+    store: Path | None = None,
+    **read_kw: Any,
 ) -> None:
-    """Check the destination and read the input once before starting Prefect.
+    """Check the destination, read the input and open the store before starting Prefect.
 
-    Bad input then fails in a second, and an output folder that is or holds
-    the input is refused before any work.
+    Bad input then fails in a second, an output folder that is or holds the
+    input is refused before any work, and a store that is a file or cannot
+    be created is named before a temporary server is started for nothing.
     """
     from storage.publish import check_output_not_input
     from storage.readers import derive_patient_id, read_scan
     from tumor3d.scan import validate_patient_id
 
+    _check_out_dir(out)
     if input_path.exists():
         pid = validate_patient_id(patient_id) if patient_id else derive_patient_id(input_path)
         check_output_not_input(out / pid, [input_path])
     read_scan(input_path, modality=modality, patient_id=patient_id, **read_kw)
+    from storage.store import ArtifactStore
+
+    # flows.patient.default_store_dir, without importing Prefect for it
+    ArtifactStore(store if store is not None else out / ".tumor3d-store")
+
+
+def _check_out_dir(out: Path) -> None:
+    """An output folder that exists as a file is bad input (exit 2), found before any work."""
+    from tumor3d.errors import InputError
+
+    if out.exists() and not out.is_dir():
+        raise InputError("the output folder (--out) is a file, not a folder", str(out))
 
 
 def _starting_prefect_note() -> None:
-    if not os.environ.get("PREFECT_API_URL"):
-        console.print(
-            "[dim]starting Prefect (a temporary local server unless PREFECT_API_URL is set; "
-            "10-20 s)...[/]"
-        )
+    console.print(
+        "[dim]starting Prefect: a temporary local server for this command (10-20 s; "
+        "`tumor3d server start` keeps one running for fast repeated runs)...[/]"
+    )
+
+
+class _NoFailureTracebacks:
+    """Console filter: drop Prefect's own ERROR records of failed flow and task runs.
+
+    They repeat, with a traceback, the error the command prints as one line;
+    they still reach the Prefect server (its API handler is not filtered), and
+    ``--verbose`` shows them.
+    """
+
+    def filter(self, record: Any) -> bool:
+        name = record.name
+        ours = name.startswith(("prefect.flow_runs", "prefect.task_runs"))
+        return not (ours and record.levelno >= 40)
+
+
+def _quiet_prefect_failures() -> None:
+    import logging
+
+    from prefect.logging.configuration import ensure_logging_setup
+
+    if "--verbose" in sys.argv or "-v" in sys.argv:
+        return
+    ensure_logging_setup()
+    for handler in logging.getLogger().handlers:
+        if not any(isinstance(f, _NoFailureTracebacks) for f in handler.filters):
+            handler.addFilter(_NoFailureTracebacks())
+
+
+@contextmanager
+def _no_heartbeats() -> Iterator[None]:
+    """Flow-run heartbeats off for a command, unless PREFECT_FLOWS_HEARTBEAT_FREQUENCY is set.
+
+    Prefect's heartbeat thread sleeps in 1 s steps and the flow engine joins
+    it when the run ends: about 0.9 s of every command, for a signal that
+    only a server automation (not set up by default) would use.
+    """
+    if os.environ.get("PREFECT_FLOWS_HEARTBEAT_FREQUENCY"):
+        yield
+        return
+    from prefect.settings import temporary_settings
+
+    with temporary_settings(updates={"flows.heartbeat_frequency": None}):
+        yield
+
+
+@contextmanager
+def _prefect() -> Iterator[str]:
+    """PREFECT_API_URL, else the background server, else a temporary one (see flows.server)."""
+    from flows.server import prefect_api
+
+    with prefect_api(on_temporary_start=_starting_prefect_note) as api_url, _no_heartbeats():
+        _quiet_prefect_failures()
+        yield api_url
 
 
 @contextmanager
@@ -237,12 +344,20 @@ def _reporting(make_reporter: Any) -> Iterator[None]:
 def _run_with_progress(**kwargs: Any) -> Any:
     from flows.patient import run_patient
 
-    _starting_prefect_note()
-    with _reporting(_ProgressReporter):
+    with _prefect(), _reporting(_ProgressReporter):
         return run_patient(**kwargs)
 
 
 Verbose = Annotated[bool, typer.Option("--verbose", "-v", help="Show Prefect's own logs.")]
+MaxVoxels = Annotated[
+    int,
+    typer.Option(
+        "--max-voxels",
+        min=1,
+        help="Refuse an input whose header declares more voxels than this, before reading it "
+        "(default 512 million, far above any MR series).",
+    ),
+]
 
 
 @app.command()
@@ -269,10 +384,10 @@ def run(
     skip_unreadable_dicom: Annotated[
         bool,
         typer.Option(
-            help="Skip DICOM files that cannot be read (named in the summary) instead of "
-            "stopping."
+            help="Skip DICOM files that cannot be read (named in the summary) instead of stopping."
         ),
     ] = False,
+    max_voxels: MaxVoxels = MAX_VOXELS_DEFAULT,
     verbose: Verbose = False,
 ) -> None:
     """Reconstruct one patient's tumour: masks, meshes, renders and volumes under OUT/<id>/."""
@@ -283,8 +398,9 @@ def run(
             "slice_thickness_mm": slice_thickness_mm,
             "slice_gap_mm": slice_gap_mm,
             "skip_unreadable": skip_unreadable_dicom,
+            "max_voxels": max_voxels,
         }
-        _preflight(input_path, out, patient_id, modality, **read_kw)
+        _preflight(input_path, out, patient_id, modality, store, **read_kw)
         result = _run_with_progress(
             input_path=input_path,
             out_dir=out,
@@ -294,7 +410,7 @@ def run(
             store_dir=None if store is None else str(store),
             **read_kw,
         )
-    except Tumor3DError as exc:
+    except _HANDLED as exc:
         raise _fail(exc) from None
     print_summary(result)
 
@@ -310,25 +426,28 @@ def cohort(
     store: Annotated[
         Path | None, typer.Option(help="Artifact store (default OUT/.tumor3d-store).")
     ] = None,
+    max_voxels: MaxVoxels = MAX_VOXELS_DEFAULT,
     verbose: Verbose = False,
 ) -> None:
     """Run every patient of a manifest, N at a time: OUT/<id>/, OUT/cohort.parquet, OUT/cohort.md.
 
     Exit code 0 when every patient succeeded, 1 when some failed (named in the
-    summary), 2 for an invalid manifest or configuration.
+    summary; a row whose image is missing fails alone), 2 for an invalid
+    manifest or configuration, 3 for an environment error.
     """
     from flows.cohort import run_cohort
     from storage.manifest import read_manifest
 
     try:
         cfg = _load_config(config)
-        rows = read_manifest(manifest)
-        _starting_prefect_note()
-        with _reporting(lambda progress: _CohortReporter(progress, len(rows))):
+        _check_out_dir(out)
+        rows = read_manifest(manifest, require_files=False)
+        with _prefect(), _reporting(lambda progress: _CohortReporter(progress, len(rows))):
             result = run_cohort(
-                rows, out, config=cfg, workers=workers, store_dir=None if store is None else store
-            )
-    except Tumor3DError as exc:
+                rows, out, config=cfg, workers=workers, max_voxels=max_voxels,
+                store_dir=None if store is None else store,
+            )  # fmt: skip
+    except _HANDLED as exc:
         raise _fail(exc) from None
     print_cohort_summary(result)
     raise typer.Exit(code=result.exit_code)
@@ -380,6 +499,7 @@ def demo(
 
     try:
         cfg = _load_config(config)
+        _check_out_dir(out)
         console.print(f"generating phantom patient (seed {seed})...")
         patient = make_phantom_patient(seed, patient_id=f"demo{seed:03d}")
         row = write_phantom_patient(patient, out / "inputs")
@@ -390,7 +510,7 @@ def demo(
             input_path=row.image, out_dir=out, patient_id=row.patient_id, config=cfg,
             modality=row.modality,
         )  # fmt: skip
-    except Tumor3DError as exc:
+    except _HANDLED as exc:
         raise _fail(exc) from None
     print_summary(result, truth_mm3=truth)
 
@@ -413,6 +533,7 @@ def phantom(
     if normal > n:
         raise _fail(ValueError(f"--normal ({normal}) cannot exceed --n ({n})"))
     try:
+        _check_out_dir(out)
         patients = []
         with _progress() as progress:
             bar = progress.add_task("generating phantoms", total=n)
@@ -429,12 +550,72 @@ def phantom(
                 )
                 progress.advance(bar)
         manifest = write_phantom_cohort(patients, out)
-    except Tumor3DError as exc:
+    except _HANDLED as exc:
         raise _fail(exc) from None
     console.print(
         f"wrote {n} patients ({normal} without tumour) and manifest "
         f"[bold]{escape(str(manifest))}[/]"
     )
+
+
+server_app = typer.Typer(
+    help="One local Prefect server in the background, used by every later command "
+    "(fast repeated runs; the runs appear in its UI). State in $TUMOR3D_HOME "
+    "(default ~/.tumor3d): server.json, server.log.",
+    no_args_is_help=True,
+)
+app.add_typer(server_app, name="server")
+
+
+@server_app.command("start")
+def server_start(
+    port: Annotated[
+        int | None, typer.Option(min=1, max=65535, help="Port (default: a free one).")
+    ] = None,
+) -> None:
+    """Start the background Prefect server (or report the one already running)."""
+    from flows.server import start_server
+
+    try:
+        info, started = start_server(port=port)
+    except _HANDLED as exc:
+        raise _fail(exc) from None
+    what = "started" if started else "already running"
+    console.print(
+        f"Prefect server {what}: pid {info.pid}, API {escape(info.api_url)}, "
+        f"UI {escape(info.api_url.removesuffix('/api'))}, log {escape(info.log)}",
+        soft_wrap=True,
+    )
+
+
+@server_app.command("stop")
+def server_stop() -> None:
+    """Stop the background Prefect server (a stale state file is removed)."""
+    from flows.server import stop_server
+
+    try:
+        before = stop_server()
+    except _HANDLED as exc:
+        raise _fail(exc) from None
+    if before.state in ("running", "unhealthy") and before.info is not None:
+        console.print(f"stopped the Prefect server (pid {before.info.pid})")
+    elif before.state == "stale":
+        console.print(f"no server was running; removed the {escape(before.line)}", soft_wrap=True)
+    else:
+        console.print("no tumor3d Prefect server was running")
+
+
+@server_app.command("status")
+def server_status_cmd() -> None:
+    """Say whether the background server runs, where, and whether it is healthy.
+
+    Exit code 0 when it is running and healthy, 1 otherwise.
+    """
+    from flows.server import server_status
+
+    status = server_status()
+    console.print(escape(status.line), soft_wrap=True, highlight=False)
+    raise typer.Exit(code=0 if status.state == "running" else 1)
 
 
 # ----------------------------------------------------------------- evaluate (EVAL helper's block)
@@ -484,16 +665,14 @@ def evaluate(
         _load_configs(specs)  # fail fast on a bad configuration
         for m in manifest:
             read_manifest_rows(m)  # fail fast on a bad manifest (header, missing file)
-        console.print(
-            "[dim]starting Prefect (a temporary local server unless PREFECT_API_URL is set; "
-            "10-20 s)...[/]"
-        )
         command = "tumor3d " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-        result = run_evaluation(
-            manifest, out, config_files=specs, workers=workers,
-            store_dir=None if store is None else str(store), phantoms=phantoms, command=command,
-        )  # fmt: skip
-    except Tumor3DError as exc:
+        with _prefect():
+            result = run_evaluation(
+                manifest, out, config_files=specs, workers=workers,
+                store_dir=None if store is None else str(store), phantoms=phantoms,
+                command=command,
+            )  # fmt: skip
+    except _HANDLED as exc:
         raise _fail(exc) from None
     for s in result.skipped:
         tag = "skipped (file absent)" if s["missing_file"] else "invalid row"
@@ -503,6 +682,7 @@ def evaluate(
     for col in ("config", "patient", "status", "slice Dice", "3-D Dice", "HD95 mm", "Eq. 7 err"):
         table.add_column(col)
     for _, r in df.iterrows():
+
         def cell(key: str, fmt: str, _r: Any = r) -> str:
             v = _r.get(key)
             return "-" if v is None or v != v else fmt.format(v)
@@ -522,8 +702,31 @@ def evaluate(
 
 
 def main() -> None:  # pragma: no cover - console entry
-    """Entry point."""
-    app()
+    """Entry point (``tumor3d``, ``python -m flows.cli``): run the command, then exit fast.
+
+    Once the command has finished and every exit handler has run (Prefect
+    sends its buffered logs and events, ``logging`` flushes its handlers),
+    the process ends with :func:`os._exit`: tearing down the interpreter with
+    Prefect, scipy, numba and VTK loaded takes another 1.2-1.6 s and does
+    nothing useful. Every output is written and closed before this point.
+    """
+    import atexit
+
+    code: int | str | None = 0
+    try:
+        app()
+    except SystemExit as exc:
+        code = exc.code
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    if isinstance(code, str):  # sys.exit("message") prints it and exits 1
+        print(code, file=sys.stderr, flush=True)
+        code = 1
+    os._exit(int(code or 0))
 
 
 if __name__ == "__main__":  # pragma: no cover

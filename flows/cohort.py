@@ -42,6 +42,7 @@ from tasks import stages
 from tasks.progress import ProgressEvent, report
 from tasks.runner import StageRun
 from tumor3d.config import PipelineConfig, parse_config
+from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
 
 __all__ = [
@@ -134,7 +135,11 @@ def _json_row(row: dict[str, Any]) -> dict[str, Any]:
 
 
 def _run_one(
-    row: dict[str, Any], out_dir: str, cfg: PipelineConfig, store: ArtifactStore
+    row: dict[str, Any],
+    out_dir: str,
+    cfg: PipelineConfig,
+    store: ArtifactStore,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
 ) -> PatientOutcome:
     """One lane: prepare, run every stage, publish; any failure becomes an outcome."""
     pid = str(row.get("patient_id"))
@@ -145,7 +150,7 @@ def _run_one(
         source = prepare_source(
             row["image"], patient_id=pid, modality=row.get("modality") or "t2",
             series_uid=row.get("series_uid"), slice_thickness_mm=row.get("slice_thickness_mm"),
-            slice_gap_mm=row.get("slice_gap_mm"), out_dir=out_dir,
+            slice_gap_mm=row.get("slice_gap_mm"), max_voxels=max_voxels, out_dir=out_dir,
         )  # fmt: skip
         prepared = True
         result = patient_pipeline(source, out_dir, cfg, store, runs=runs)
@@ -182,6 +187,7 @@ def cohort_flow(
     config: dict[str, Any] | None = None,
     workers: int = 1,
     store_dir: str | None = None,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
 ) -> CohortResult:
     """Run the single-patient pipeline for every row, ``workers`` patients at a time.
 
@@ -200,6 +206,8 @@ def cohort_flow(
         Patients at a time (>= 1).
     store_dir : str, optional
         Artifact store shared by all patients; default ``DIR/.tumor3d-store``.
+    max_voxels : int
+        Refuse an input whose header declares more voxels (that row fails).
     """
     t0 = time.perf_counter()
     cfg = parse_config(config or {}, source="config")
@@ -209,7 +217,9 @@ def cohort_flow(
                 config_digest(cfg)[:12])  # fmt: skip
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="tumor3d-lane") as pool:
         futures = [
-            pool.submit(contextvars.copy_context().run, _run_one, row, out_dir, cfg, store)
+            pool.submit(
+                contextvars.copy_context().run, _run_one, row, out_dir, cfg, store, max_voxels
+            )
             for row in rows
         ]
         outcomes = [f.result() for f in futures]
@@ -247,13 +257,15 @@ def run_cohort(
     config: dict[str, Any] | None = None,
     workers: int | None = None,
     store_dir: str | Path | None = None,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
 ) -> CohortResult:
     """Run :func:`cohort_flow` on a manifest CSV or a list of rows.
 
     Parameters
     ----------
     manifest : path or list of ManifestRow
-        Read with :func:`storage.manifest.read_manifest` when a path.
+        Read with :func:`storage.manifest.read_manifest` when a path (a row
+        whose image is absent is kept and fails alone).
     out_dir : path
         ``DIR``.
     config : dict, optional
@@ -262,6 +274,8 @@ def run_cohort(
         Patients at a time; default :func:`default_workers`.
     store_dir : path, optional
         Shared artifact store; default ``DIR/.tumor3d-store``.
+    max_voxels : int
+        Refuse an input whose header declares more voxels (that row fails).
 
     Raises
     ------
@@ -269,7 +283,11 @@ def run_cohort(
         An invalid manifest or configuration, or an output folder holding an
         input (before any work).
     """
-    rows_in = read_manifest(manifest) if isinstance(manifest, str | Path) else list(manifest)
+    rows_in = (
+        read_manifest(manifest, require_files=False)
+        if isinstance(manifest, str | Path)
+        else list(manifest)
+    )
     rows = [_row_dict(r) for r in rows_in]
     cfg = parse_config(config or {}, source="config")
     n = default_workers() if workers is None else workers
@@ -283,5 +301,5 @@ def run_cohort(
         return flow_fn(
             rows=[_json_row(r) for r in rows], out_dir=str(out),
             config=cfg.model_dump(mode="json"), workers=n,
-            store_dir=None if store_dir is None else str(store_dir),
+            store_dir=None if store_dir is None else str(store_dir), max_voxels=int(max_voxels),
         )  # fmt: skip

@@ -48,6 +48,7 @@ from tasks import stages
 from tasks.runner import DirectRunner, PrefectRunner, StageRun
 from tasks.spec import InputSource, StageOutput
 from tumor3d.config import PipelineConfig, parse_config
+from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
 from tumor3d.metrics import EQ7_SLICE_RULES
 from tumor3d.scan import MODALITIES, validate_patient_id
@@ -130,6 +131,7 @@ def prepare_source(
     slice_thickness_mm: float | None = None,
     slice_gap_mm: float | None = None,
     skip_unreadable: bool = False,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
     out_dir: str | Path | None = None,
 ) -> InputSource:
     """Validate the user's input and identify it by content.
@@ -161,6 +163,7 @@ def prepare_source(
         slice_thickness_mm=slice_thickness_mm,
         slice_gap_mm=slice_gap_mm,
         skip_unreadable=bool(skip_unreadable),
+        max_voxels=int(max_voxels),
     )
 
 
@@ -261,6 +264,7 @@ def patient_flow(
     series_uid: str | None = None,
     store_dir: str | None = None,
     skip_unreadable: bool = False,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
 ) -> PatientResult:
     """Reconstruct one patient's tumour and publish masks, meshes, renders and metrics.
 
@@ -287,12 +291,14 @@ def patient_flow(
     skip_unreadable : bool
         Skip DICOM files that cannot be read instead of stopping; they are
         named in the summary's notes, ``metrics.parquet`` and provenance.
+    max_voxels : int
+        Refuse an input whose header declares more voxels (before reading it).
     """
     cfg = parse_config(config or {}, source="config")
     source = prepare_source(
         input_path, patient_id=patient_id, modality=modality, series_uid=series_uid,
         slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm,
-        skip_unreadable=skip_unreadable, out_dir=out_dir,
+        skip_unreadable=skip_unreadable, max_voxels=max_voxels, out_dir=out_dir,
     )  # fmt: skip
     store = ArtifactStore(store_dir or default_store_dir(out_dir))
     logger = get_run_logger()

@@ -189,13 +189,18 @@ class RowProblem:
     missing_file: bool = False
 
 
-def read_manifest(path: str | os.PathLike[str]) -> list[ManifestRow]:
+def read_manifest(path: str | os.PathLike[str], *, require_files: bool = True) -> list[ManifestRow]:
     """Read and validate a cohort manifest CSV; the first bad row is an error.
 
     Parameters
     ----------
     path : str or path-like
         The CSV file (UTF-8, optional BOM).
+    require_files : bool
+        Whether an image or reference path that does not exist is an error of
+        the manifest. ``tumor3d cohort`` passes False: such a row is kept
+        (every other column still validated) and fails alone when its
+        patient runs, so the other patients still run.
 
     Returns
     -------
@@ -208,17 +213,17 @@ def read_manifest(path: str | os.PathLike[str]) -> list[ManifestRow]:
         Missing file, missing or unknown column, no data rows, or a row with
         an empty required value, an unsafe or duplicate ``patient_id``, an
         unknown modality, a non-numeric or negative thickness or gap, a bad
-        label list, bad emulation values or reference kind, or an
-        image/reference path that does not exist.
+        label list, bad emulation values or reference kind, or (with
+        ``require_files``) an image/reference path that does not exist.
     """
-    rows, problems = read_manifest_rows(path)
+    rows, problems = read_manifest_rows(path, require_files=require_files)
     if problems:
         raise InputError(problems[0].message)
     return rows
 
 
 def read_manifest_rows(
-    path: str | os.PathLike[str],
+    path: str | os.PathLike[str], *, require_files: bool = True
 ) -> tuple[list[ManifestRow], list[RowProblem]]:
     """Read a cohort manifest, keeping the good rows and listing the bad ones.
 
@@ -226,6 +231,9 @@ def read_manifest_rows(
     ----------
     path : str or path-like
         The CSV file (UTF-8, optional BOM).
+    require_files : bool
+        Whether a row naming an absent image or reference is a problem
+        (default); see :func:`read_manifest`.
 
     Returns
     -------
@@ -266,7 +274,7 @@ def read_manifest_rows(
     for index, (line, rec) in enumerate(records, start=1):
         pid = ((rec.get("patient_id") or "") if isinstance(rec, dict) else "").strip() or None
         try:
-            rows.append(_parse_row(index, line, rec, header, base, seen, where))
+            rows.append(_parse_row(index, line, rec, header, base, seen, where, require_files))
         except _RowError as exc:
             problems.append(
                 RowProblem(index, pid, exc.column, str(exc), missing_file=exc.missing_file)
@@ -289,6 +297,7 @@ def _parse_row(
     base: Path,
     seen: dict[str, int],
     where: str,
+    require_files: bool = True,
 ) -> ManifestRow:
     def fail(column: str, problem: str, missing: bool = False) -> _RowError:
         return _RowError(
@@ -315,12 +324,12 @@ def _parse_row(
             f"unknown modality {cells['modality']!r}: expected one of {', '.join(MODALITIES)}",
         )
     image = _resolve(base, cells["image"])
-    if not image.exists():
+    if require_files and not image.exists():
         raise fail("image", f"{image} does not exist", missing=True)
     reference = None
     if cells.get("reference"):
         reference = _resolve(base, cells["reference"])
-        if not reference.exists():
+        if require_files and not reference.exists():
             raise fail("reference", f"{reference} does not exist", missing=True)
     labels = None
     if cells.get("reference_labels"):

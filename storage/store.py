@@ -170,7 +170,10 @@ class ArtifactStore:
     Raises
     ------
     InputError
-        If ``root`` is a file or cannot be created (one line naming it).
+        If ``root`` is a file or lies below one (one line naming it).
+    StoreError
+        If it cannot be created for another reason: no permission, a
+        read-only mount, a full disk (an environment error).
     """
 
     def __init__(self, root: str | os.PathLike[str]) -> None:
@@ -179,10 +182,15 @@ class ArtifactStore:
             raise InputError("the artifact store must be a folder, but this is a file", self.root)
         try:
             (self.root / "objects").mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
+        except (NotADirectoryError, FileExistsError) as exc:  # a path component is a file
             raise InputError(
                 f"cannot create the artifact store ({os_error_text(exc)})",
                 os_error_path(exc, self.root),
+            ) from None
+        except OSError as exc:  # no permission, a read-only mount, a full disk
+            raise StoreError(
+                f"{os_error_path(exc, self.root)}: cannot create the artifact store "
+                f"({os_error_text(exc)})"
             ) from None
         self.repairs: list[Repair] = []
         """Repairs made through this instance (also in ``<root>/repairs.jsonl``)."""

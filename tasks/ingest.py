@@ -20,6 +20,7 @@ def ingest_task(source: InputSource, store_root: str) -> StageOutput:
         slice_thickness_mm=source.slice_thickness_mm,
         slice_gap_mm=source.slice_gap_mm,
         skip_unreadable=source.skip_unreadable,
+        max_voxels=source.max_voxels,
     )
     ref = ArtifactStore(store_root).put_scan(scan)
     return StageOutput(

@@ -10,9 +10,10 @@ each went (:class:`StageRun`).
   task runner can be plugged into the flow without changing any stage). It
   keeps Prefect's results in the artifact store's ``prefect-results`` folder
   and repairs cache hits that cannot be trusted: a cached result whose
-  artifacts are gone from the store, or whose own digest does not match its
-  content (edited on disk), is recomputed (``refresh_cache``) and the repair
-  recorded.
+  artifacts are gone from the store or fail their digest check
+  (:meth:`~storage.store.ArtifactStore.verify`, which quarantines a corrupted
+  object), or whose own digest does not match its content (edited on disk),
+  is recomputed (``refresh_cache``) and the repair recorded.
 * :class:`DirectRunner` calls the adapter function in-process without
   Prefect (no caching): benchmarks' peer and in-process evaluation.
 """
@@ -160,13 +161,27 @@ class PrefectRunner(_Recorder):
         future.wait()
         return future.state
 
+    def _record_bytes(self, spec: StageSpec, inputs: dict[str, Any]) -> bytes | None:
+        """The cached result record this stage's key names, if present (before submitting)."""
+        try:
+            key = spec.task.cache_policy.compute_key(None, inputs, {})
+            return (self.result_storage / key).read_bytes() if key else None
+        except Exception:  # diagnostics only: never fail a stage for it
+            return None
+
     def run(self, spec: StageSpec, **inputs: Any) -> StageOutput:
         """Run one stage (cached), repairing an untrustworthy cache hit."""
         self.started(spec.name)
         t0 = time.perf_counter()
+        record = self._record_bytes(spec, inputs)
         state = self._submit(spec, refresh=False, **inputs)
         cached = state.name == "Cached"
-        repaired = None
+        repaired = missed = None
+        if not cached and record is not None:
+            # Issue 6's intermittent miss: Prefect's ResultStore.exists() swallows any
+            # error reading a record and reports a miss; name it instead of nothing.
+            missed = _why_prefect_missed(record)
+            _log.warning("%s: recomputed although its cache record existed: %s", spec.name, missed)
         try:
             out: StageOutput = state.result()
         except Exception as exc:
@@ -179,7 +194,8 @@ class PrefectRunner(_Recorder):
             _log.warning("%s: %s; recomputing", spec.name, repaired)
             out = self._submit(spec, refresh=True, **inputs).result()
             cached = False
-        return self.finished(out, cached=cached, wall=time.perf_counter() - t0, repaired=repaired)
+        wall = time.perf_counter() - t0
+        return self.finished(out, cached=cached, wall=wall, repaired=repaired or missed)
 
     def _distrust(self, out: Any) -> str | None:
         """Why a cached output cannot be used, or None if it can."""
@@ -187,10 +203,28 @@ class PrefectRunner(_Recorder):
             return f"cached result is a {type(out).__name__}, not a StageOutput"
         if not out.verify():
             return "cached result failed its digest check (edited or corrupted)"
-        missing = [k for k, r in out.artifacts.items() if not self.store.exists(r)]
-        if missing:
-            return f"cached artifacts missing from the store: {', '.join(sorted(missing))}"
+        # verify(): present AND content matching its digest; a corrupted object is
+        # quarantined by the store, so recomputing the stage writes it afresh
+        bad = [k for k, r in out.artifacts.items() if not self.store.verify(r)]
+        if bad:
+            return (
+                "cached artifacts missing or corrupted in the store (quarantined): "
+                f"{', '.join(sorted(bad))}"
+            )
         return None
+
+
+def _why_prefect_missed(record: bytes) -> str:
+    """Why Prefect may have ignored a present result record (it hides the reason)."""
+    from prefect.results import ResultRecord
+
+    try:
+        rec = ResultRecord.deserialize(record)
+    except Exception as exc:
+        first = (str(exc).strip().splitlines() or [""])[0][:200]
+        return f"cache record present but unreadable by Prefect ({type(exc).__name__}: {first})"
+    expiration = getattr(rec.metadata, "expiration", None)
+    return f"cache record present and readable (expiration {expiration}); Prefect missed it"
 
 
 class DirectRunner(_Recorder):

@@ -23,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from storage.store import ArtifactRef, canonical_dumps
 from tasks.caching import code_digest, module_closure, stage_cache_policy
+from tumor3d.constants import MAX_VOXELS_DEFAULT
 
 __all__ = ["InputSource", "StageOutput", "StageSpec", "stage_task"]
 
@@ -86,6 +87,8 @@ class InputSource(BaseModel):
     slice_gap_mm: float | None = None
     #: Skip DICOM files that cannot be read (listed in the scan) instead of stopping.
     skip_unreadable: bool = False
+    #: Refuse an input whose header declares more voxels (checked before reading).
+    max_voxels: int = MAX_VOXELS_DEFAULT
 
     #: Where the input lives does not change what it is.
     __cache_exclude__: ClassVar[frozenset[str]] = frozenset({"path"})

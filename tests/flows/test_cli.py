@@ -135,3 +135,134 @@ def test_user_strings_with_brackets_are_not_read_as_markup(tmp_path):
     assert result.exit_code == 2
     assert "scan[/]x[bold]2.nii.gz" in result.output
     assert "MarkupError" not in result.output
+
+
+# ---------------------------------------------------------------- issue 12 remainder (harden)
+
+
+def test_max_voxels_flag_refuses_a_large_input_before_any_work(tmp_path):
+    good = _nifti(tmp_path / "big.nii.gz", np.random.default_rng(2).random((12, 12, 4)) + 1)
+    out = tmp_path / "out"
+    result = runner.invoke(app, ["run", str(good), "--out", str(out), "--max-voxels", "100"])
+    assert result.exit_code == 2, result.output
+    # the reader's own message: declared size, the limit given, the option
+    assert "12 x 12 x 4 = 576 voxels" in result.output and "100" in result.output
+    assert "--max-voxels" in result.output and "big.nii.gz" in result.output
+    assert "Traceback" not in result.output
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_max_voxels_appears_in_the_help_of_run_and_cohort():
+    for command in ("run", "cohort"):
+        result = runner.invoke(app, [command, "--help"])
+        assert "--max-voxels" in result.output
+
+
+@pytest.mark.parametrize("command", ["run", "cohort", "phantom", "demo"])
+def test_an_output_folder_that_is_a_file_is_bad_input(tmp_path, command):
+    out = tmp_path / "out.txt"
+    out.write_text("a file, not a folder")
+    good = _nifti(tmp_path / "good.nii.gz", np.random.default_rng(3).random((12, 12, 4)) + 1)
+    manifest = tmp_path / "m.csv"
+    manifest.write_text(f"patient_id,image,modality\np1,{good},t2\n")
+    args = {
+        "run": ["run", str(good)],
+        "cohort": ["cohort", str(manifest)],
+        "phantom": ["phantom", "--n", "1"],
+        "demo": ["demo"],
+    }[command]
+    result = runner.invoke(app, [*args, "--out", str(out)])
+    assert result.exit_code == 2, result.output
+    assert "out.txt: the output folder (--out) is a file" in result.output
+    assert "Traceback" not in result.output
+    assert out.read_text() == "a file, not a folder"
+
+
+def _raiser(exc):
+    def run(**kwargs):
+        raise exc
+
+    return run
+
+
+@pytest.mark.parametrize(
+    ("exc", "expected"),
+    [
+        (
+            "store",
+            "/s/objects/ab/x.nii.gz: cannot write the artifact (no space left on device (ENOSPC))",
+        ),
+        ("oserror", "/o/p1/tumor.ply: read-only file system (EROFS)"),
+        ("server", "the Prefect server did not answer"),
+    ],
+)
+def test_environment_errors_are_one_line_with_exit_code_3(tmp_path, monkeypatch, exc, expected):
+    import errno
+
+    import flows.cli as cli
+    from flows.server import ServerError
+    from storage.store import StoreError
+
+    error = {
+        "store": StoreError(
+            "/s/objects/ab/x.nii.gz: cannot write the artifact (no space left on device (ENOSPC))"
+        ),
+        "oserror": OSError(errno.EROFS, "Read-only file system", "/o/p1/tumor.ply"),
+        "server": ServerError("the Prefect server did not answer http://x/api/health in 9 s"),
+    }[exc]
+    monkeypatch.setattr(cli, "_run_with_progress", _raiser(error))
+    good = _nifti(tmp_path / "good.nii.gz", np.random.default_rng(4).random((12, 12, 4)) + 1)
+    result = runner.invoke(app, ["run", str(good), "--out", str(tmp_path / "out")])
+    assert result.exit_code == cli.EXIT_ENVIRONMENT == 3, result.output
+    assert expected in result.output
+    assert "Traceback" not in result.output
+    assert len(result.output.strip().splitlines()) == 1
+
+
+def test_exit_codes_are_documented_in_the_cli_docstring_and_readme():
+    from pathlib import Path
+
+    import flows.cli as cli
+
+    assert "3 -- environment error" in cli.__doc__
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    assert "| 3 |" in readme and "environment" in readme
+
+
+def test_console_entry_keeps_exit_codes_and_flushes_output(tmp_path):
+    """main() ends with os._exit after the exit handlers: codes and piped output survive."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(root), "TUMOR3D_HOME": str(tmp_path / "home")}
+
+    def cli(*args):
+        return subprocess.run(
+            [sys.executable, "-m", "flows.cli", *args],
+            env=env, capture_output=True, text=True, timeout=300, cwd=str(root),
+        )  # fmt: skip
+
+    missing = cli("run", str(tmp_path / "absent.nii.gz"), "--out", str(tmp_path / "o"))
+    assert missing.returncode == 2 and "absent.nii.gz: no such file" in missing.stderr
+    status = cli("server", "status")
+    assert status.returncode == 1 and "no tumor3d Prefect server running" in status.stdout
+    helped = cli("--help")
+    assert helped.returncode == 0 and "Usage" in helped.stdout
+
+
+def test_commands_run_without_flow_heartbeats_unless_asked(monkeypatch):
+    """The heartbeat thread's join cost ~0.9 s per command; the user's setting wins."""
+    from prefect.settings import get_current_settings
+
+    import flows.cli as cli
+
+    monkeypatch.delenv("PREFECT_FLOWS_HEARTBEAT_FREQUENCY", raising=False)
+    with cli._no_heartbeats():
+        assert get_current_settings().flows.heartbeat_frequency is None
+    monkeypatch.setenv("PREFECT_FLOWS_HEARTBEAT_FREQUENCY", "60")
+    before = get_current_settings().flows.heartbeat_frequency
+    with cli._no_heartbeats():
+        assert get_current_settings().flows.heartbeat_frequency == before

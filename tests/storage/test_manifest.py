@@ -248,3 +248,21 @@ def test_data_dir_variable_in_paths(cohort, monkeypatch, tmp_path):
     monkeypatch.delenv("TUMOR3D_DATA_DIR")
     rows, problems = read_manifest_rows(p)  # default ../shared/data: absent here, or present
     assert len(rows) + len(problems) == 1
+
+
+def test_missing_image_is_kept_for_a_cohort_but_other_problems_are_not(cohort):
+    """Issue 12/6: a cohort row whose image is absent fails alone; the manifest is not invalid."""
+    p = write_csv(
+        cohort,
+        "patient_id,image,modality\np1,images/p1.nii.gz,t2\nghost,images/ghost.nii.gz,t2\n",
+    )
+    with pytest.raises(InputError, match=r"data row 2 .*'image': .*ghost\.nii\.gz does not exist"):
+        read_manifest(p)  # the default (evaluate, python callers): an error
+    rows = read_manifest(p, require_files=False)
+    assert [r.patient_id for r in rows] == ["p1", "ghost"]
+    assert rows[1].image == (cohort / "images" / "ghost.nii.gz").resolve()
+    assert not rows[1].image.exists()
+    # every other column is still validated
+    bad = write_csv(cohort, "patient_id,image,modality\nghost,images/ghost.nii.gz,x-ray\n", "b.csv")
+    with pytest.raises(InputError, match=r"unknown modality 'x-ray'"):
+        read_manifest(bad, require_files=False)

@@ -1,0 +1,560 @@
+"""Replay issue 12's catalogue of hostile inputs and faults; print behaved-well / total.
+
+    python benchmarks/hostile_catalogue.py [--out reports/hostile_catalogue.md] [--skip-slow]
+
+Each item sets up its case in a temporary folder, runs the ``tumor3d``
+command line in this process (``typer.testing.CliRunner``; the flows use the
+background server of ``tumor3d server start`` if it runs, else one temporary
+server for the whole script) or a child process where the item needs one
+(``kill -9``), and checks what a careful user expects: exit code, one line
+naming the file, no traceback, nothing half-written, inputs intact, correct
+numbers. A fault the machine cannot produce for real (a full disk) is
+simulated by making the store's writer raise the OS error, and marked so.
+The report lists every item with its verdict and detail.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import gzip
+import importlib.util
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault("PREFECT_LOGGING_LEVEL", "ERROR")
+
+import nibabel as nib  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from typer.testing import CliRunner  # noqa: E402
+
+from flows.cli import app  # noqa: E402
+
+CLI = CliRunner()
+
+
+@dataclass
+class Verdict:
+    item: str
+    group: str
+    ok: bool
+    detail: str
+    simulated: bool = False
+
+
+ITEMS: list[tuple[str, str, Callable[[Path], tuple[bool, str]], bool, bool]] = []
+
+
+def item(group: str, *, slow: bool = False, simulated: bool = False):
+    def deco(fn):
+        ITEMS.append((fn.__name__, group, fn, slow, simulated))
+        return fn
+
+    return deco
+
+
+def _cli(*args: str):
+    return CLI.invoke(app, [str(a) for a in args])
+
+
+def _one_line_error(res, code: int, *needles: str) -> tuple[bool, str]:
+    out = res.output
+    lines = [line for line in out.strip().splitlines() if line.strip()]
+    checks = {
+        f"exit {code}": res.exit_code == code,
+        "no traceback": "Traceback" not in out,
+        "one line": len(lines) == 1,
+        **{f"names {n!r}": n in out for n in needles},
+    }
+    bad = [k for k, v in checks.items() if not v]
+    first = lines[0][:160] if lines else ""
+    prefix = f"failed: {', '.join(bad)}; " if bad else ""
+    return not bad, f"{prefix}exit {res.exit_code}: {first}"
+
+
+def _nifti(path: Path, data=None, affine=None) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if data is None:
+        data = np.random.default_rng(0).random((12, 12, 4)) + 1
+    affine = np.diag([1.0, 1.0, 5.0, 1.0]) if affine is None else affine
+    nib.save(nib.Nifti1Image(np.asarray(data, dtype=np.float32), affine), str(path))
+    return path
+
+
+def _dicom_factory():
+    spec = importlib.util.spec_from_file_location(
+        "dicom_factory", ROOT / "tests" / "storage" / "dicom_factory.py"
+    )
+    mod = importlib.util.module_from_spec(spec)
+    assert spec.loader is not None
+    sys.modules["dicom_factory"] = mod  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+_PHANTOM: dict[str, object] = {}
+
+
+def _phantom_run(tmp: Path):
+    """One small phantom run, cold, shared by the store and cache items: (image, out, result)."""
+    if "out" not in _PHANTOM:
+        from storage.phantom_io import write_phantom_patient
+        from tumor3d.phantom import make_phantom_patient
+
+        folder = tmp / "shared-phantom"
+        row = write_phantom_patient(
+            make_phantom_patient(3, patient_id="cat3", n_slices=16), folder / "in"
+        )
+        out = folder / "out"
+        res = _cli("run", row.image, "--out", out, "--patient-id", "cat3")
+        assert res.exit_code == 0, res.output
+        _PHANTOM.update(image=row.image, out=out, truth_dir=row.image.parent)
+    return _PHANTOM["image"], _PHANTOM["out"]
+
+
+def _metrics(out: Path, pid: str = "cat3") -> pd.Series:
+    return pd.read_parquet(out / pid / "metrics.parquet").iloc[0]
+
+
+# ---------------------------------------------------------------- data loss, silent wrong numbers
+
+
+@item("data loss")
+def nifti_input_inside_the_output_folder(tmp: Path):
+    image = _nifti(tmp / "O" / "pat1" / "t2.nii.gz")
+    res = _cli("run", image, "--out", tmp / "O", "--patient-id", "pat1")
+    ok, detail = _one_line_error(res, 2, "would delete the input")
+    return ok and image.is_file(), detail
+
+
+@item("data loss")
+def dicom_folder_replaced_by_its_own_output(tmp: Path):
+    factory = _dicom_factory()
+    series = tmp / "D"
+    factory.write_series(series, n_slices=4)
+    before = sorted(p.name for p in series.iterdir())
+    res = _cli("run", series, "--out", tmp)
+    ok, detail = _one_line_error(res, 2, "would delete the input")
+    return ok and sorted(p.name for p in series.iterdir()) == before, detail
+
+
+@item("silent wrong number")
+def sheared_affine_slab_height_is_the_plane_spacing(tmp: Path):
+    from storage.readers import read_scan
+
+    affine = np.diag([1.0, 1.0, 5.0, 1.0])
+    affine[0, 2] = 3.0  # the slice-axis column is 5.83 mm long, the planes 5 mm apart
+    scan = read_scan(_nifti(tmp / "sheared.nii.gz", affine=affine))
+    ok = abs(scan.slice_step_mm - 5.0) < 1e-6
+    return ok, f"slice step {scan.slice_step_mm:.3f} mm (plane spacing 5.000, column 5.831)"
+
+
+@item("silent wrong number")
+def tampered_cached_measure_result_is_recomputed(tmp: Path):
+    image, out = _phantom_run(tmp)
+    before = _metrics(out)
+    results = out / ".tumor3d-store" / "prefect-results"
+    value = repr(float(before["volume_eq7_mm3"]))
+    needle = f'volume_eq7_mm3\\": {value}'  # the record holds the output as escaped JSON
+    tampered = 0
+    for f in results.iterdir():
+        text = f.read_text(errors="ignore")
+        if needle in text:  # change the first digit: 10160.2 -> 20160.2
+            wrong = str((int(value[0]) + 1) % 10) + value[1:]
+            f.write_text(text.replace(needle, needle[: -len(value)] + wrong))
+            tampered += 1
+    res = _cli("run", image, "--out", out, "--patient-id", "cat3")
+    after = _metrics(out)
+    same = after["volume_eq7_mm3"] == before["volume_eq7_mm3"]
+    return (res.exit_code == 0 and same and tampered > 0), (
+        f"{tampered} cached record(s) edited; Eq. 7 {after['volume_eq7_mm3']:.1f} mm3 after, "
+        f"{before['volume_eq7_mm3']:.1f} before; exit {res.exit_code}"
+    )
+
+
+@item("silent wrong number")
+def corrupt_dicom_file_in_the_middle_is_named(tmp: Path):
+    factory = _dicom_factory()
+    s = factory.write_series(tmp / "case", n_slices=7)
+    victim = s.files[3]
+    victim.write_bytes(np.random.default_rng(1).integers(0, 256, 4000, np.uint8).tobytes())
+    return _one_line_error(_cli("run", tmp / "case", "--out", tmp / "o"), 2, victim.name)
+
+
+@item("silent wrong number")
+def corrupt_dicom_file_at_the_top_is_named(tmp: Path):
+    factory = _dicom_factory()
+    s = factory.write_series(tmp / "case", n_slices=7)
+    victim = s.files[-1]
+    victim.write_bytes(np.random.default_rng(2).integers(0, 256, 4000, np.uint8).tobytes())
+    return _one_line_error(_cli("run", tmp / "case", "--out", tmp / "o"), 2, victim.name)
+
+
+# ---------------------------------------------------------------- a store that heals
+
+
+@item("store heals")
+def flipped_artifact_bytes_are_repaired(tmp: Path):
+    image, out = _phantom_run(tmp)
+    before = _metrics(out)
+    objects = sorted((out / ".tumor3d-store" / "objects").rglob("*.nii.gz"))
+    victim = max(objects, key=lambda p: p.stat().st_size)
+    data = bytearray(victim.read_bytes())
+    data[len(data) // 2 : len(data) // 2 + 8] = bytes(8)
+    victim.write_bytes(bytes(data))  # same size, 8 bytes changed
+    res = _cli("run", image, "--out", out, "--patient-id", "cat3")
+    again = _cli("run", image, "--out", out, "--patient-id", "cat3")
+    after = _metrics(out)
+    quarantined = list((out / ".tumor3d-store" / "quarantine").glob("*"))
+    ok = (
+        res.exit_code == 0
+        and again.exit_code == 0
+        and bool(quarantined)
+        and after["volume_voxel_mm3"] == before["volume_voxel_mm3"]
+    )
+    return ok, f"runs exit {res.exit_code}/{again.exit_code}; {len(quarantined)} quarantined"
+
+
+@item("store heals")
+def partial_folders_of_a_killed_publish_are_cleaned(tmp: Path):
+    image, out = _phantom_run(tmp)
+    stale = out / ".cat3.partial-999999-0123abcd"  # pid 999999: not running
+    stale.mkdir(exist_ok=True)
+    (stale / "half.ply").write_bytes(b"ply")
+    res = _cli("run", image, "--out", out, "--patient-id", "cat3")
+    return (res.exit_code == 0 and not stale.exists()), f"exit {res.exit_code}"
+
+
+# ---------------------------------------------------------------- resource limits
+
+
+@item("resource limits")
+def yaml_alias_bomb_in_the_config(tmp: Path):
+    lines = ["l0: &l0 [" + ", ".join(["0"] * 10) + "]"]
+    for i in range(1, 8):
+        lines.append(f"l{i}: &l{i} [" + ", ".join([f"*l{i - 1}"] * 10) + "]")
+    lines.append("render: {azimuths_deg: *l7}")
+    cfg = tmp / "bomb.yaml"
+    cfg.write_text("\n".join(lines) + "\n")
+    t0 = time.perf_counter()
+    res = _cli("run", _nifti(tmp / "x.nii.gz"), "--out", tmp / "o", "--config", cfg)
+    ok, detail = _one_line_error(res, 2, "bomb.yaml")
+    return ok and time.perf_counter() - t0 < 10, f"{detail} ({len(cfg.read_bytes())} bytes)"
+
+
+@item("resource limits")
+def gzip_bomb_declaring_2048x2048x300(tmp: Path):
+    header = nib.Nifti1Header()
+    header.set_data_dtype(np.int16)
+    header.set_data_shape((2048, 2048, 300))
+    header.set_sform(np.diag([1.0, 1.0, 5.0, 1.0]), code=1)
+    bomb = tmp / "bomb.nii.gz"
+    bomb.write_bytes(gzip.compress(header.binaryblock + b"\0" * 1028))
+    t0 = time.perf_counter()
+    res = _cli("run", bomb, "--out", tmp / "o")
+    ok, detail = _one_line_error(res, 2, "bomb.nii.gz", "--max-voxels")
+    return ok and time.perf_counter() - t0 < 10, detail
+
+
+@item("resource limits")
+def max_voxels_flag(tmp: Path):
+    res = _cli("run", _nifti(tmp / "x.nii.gz"), "--out", tmp / "o", "--max-voxels", "100")
+    return _one_line_error(res, 2, "576 voxels", "100")
+
+
+@item("resource limits", slow=True)
+def kill_9_leaves_no_temporary_server(tmp: Path):
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
+    env.update(TUMOR3D_HOME=str(tmp / "home"), PREFECT_HOME=str(tmp / "ph"), PYTHONPATH=str(ROOT))
+    env.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "240")
+    image = _nifti(tmp / "x.nii.gz", np.random.default_rng(0).random((32, 32, 6)) + 1)
+    run = subprocess.Popen(
+        [sys.executable, "-m", "flows.cli", "run", str(image), "--out", str(tmp / "o")],
+        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=str(ROOT),
+    )  # fmt: skip
+    child = None
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and run.poll() is None and child is None:
+        for task in Path(f"/proc/{run.pid}/task").glob("*"):
+            with contextlib.suppress(OSError):
+                for kid in (task / "children").read_text().split():
+                    if b"flows.server" in Path(f"/proc/{kid}/cmdline").read_bytes():
+                        child = int(kid)
+        time.sleep(0.3)
+    if child is None:
+        run.kill()
+        return False, "no temporary server seen"
+    time.sleep(5)
+    run.send_signal(signal.SIGKILL)
+    run.wait()
+    for _ in range(100):
+        try:
+            os.kill(child, 0)
+            state = Path(f"/proc/{child}/stat").read_text().split(") ")[-1][0]
+            if state == "Z":
+                break
+        except (ProcessLookupError, FileNotFoundError):
+            break
+        time.sleep(0.2)
+    else:
+        os.kill(child, signal.SIGKILL)
+        return False, f"server {child} outlived the killed run"
+    return True, f"server {child} stopped after the run's kill -9"
+
+
+# ---------------------------------------------------------------- one-line errors
+
+
+@item("one-line errors")
+def out_is_a_file(tmp: Path):
+    f = tmp / "out.txt"
+    f.write_text("x")
+    return _one_line_error(_cli("run", _nifti(tmp / "x.nii.gz"), "--out", f), 2, "out.txt")
+
+
+@item("one-line errors")
+def phantom_out_is_a_file(tmp: Path):
+    f = tmp / "out.txt"
+    f.write_text("x")
+    return _one_line_error(_cli("phantom", "--out", f, "--n", "1"), 2, "out.txt")
+
+
+@item("one-line errors")
+def store_is_a_file(tmp: Path):
+    f = tmp / "store.bin"
+    f.write_text("x")
+    image, out = _phantom_run(tmp)
+    res = _cli("run", image, "--out", tmp / "o2", "--store", f)
+    return _one_line_error(res, 2, "store.bin")
+
+
+@item("one-line errors")
+def unwritable_output_folder_under_proc(tmp: Path):
+    res = _cli("run", _nifti(tmp / "x.nii.gz"), "--out", "/proc/tumor3d-nowhere")
+    ok, detail = _one_line_error(res, 3, "/proc/tumor3d-nowhere")
+    return ok, detail
+
+
+_FULL_DISK = """
+import errno, sys
+import storage.store as store
+
+def full(path, data):
+    raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+store.atomic_write_bytes = full
+from flows.cli import app
+sys.argv = ["tumor3d", *sys.argv[1:]]
+app()
+"""
+
+
+@dataclass
+class _Res:
+    exit_code: int
+    output: str
+
+
+@item("one-line errors", simulated=True)
+def full_disk_while_writing_the_store(tmp: Path):
+    """In a child process (a real console, where Prefect's own error logs would show)."""
+    from prefect.settings import PREFECT_API_URL
+
+    image = _nifti(tmp / "x.nii.gz", np.random.default_rng(5).random((24, 24, 6)) + 1)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PREFECT_API_URL": PREFECT_API_URL.value()}
+    proc = subprocess.run(
+        [sys.executable, "-c", _FULL_DISK, "run", str(image), "--out", str(tmp / "o")],
+        env=env, capture_output=True, text=True, timeout=600, cwd=str(ROOT),
+    )  # fmt: skip
+    res = _Res(proc.returncode, proc.stderr)
+    ok, detail = _one_line_error(res, 3, "no space left on device")
+    ok = ok and "Traceback" not in proc.stdout
+    return ok and not (tmp / "o" / "x").exists(), detail
+
+
+@item("one-line errors")
+def brackets_in_a_file_name_are_not_markup(tmp: Path):
+    res = _cli("run", tmp / "scan[/]x.nii.gz", "--out", tmp / "o")
+    ok, detail = _one_line_error(res, 2, "scan[/]x.nii.gz")
+    return ok and "MarkupError" not in res.output, detail
+
+
+@item("one-line errors")
+def bold_markup_in_a_file_name_is_printed_verbatim(tmp: Path):
+    res = _cli("run", tmp / "scan[bold]2.nii.gz", "--out", tmp / "o")
+    return _one_line_error(res, 2, "scan[bold]2.nii.gz")
+
+
+@item("one-line errors")
+def several_dicom_series_name_the_flag(tmp: Path):
+    factory = _dicom_factory()
+    folder = tmp / "two"
+    factory.write_series(folder, n_slices=4, description="T2 AX", seed=1, prefix="A")
+    factory.write_series(folder, n_slices=3, description="FLAIR", seed=2, prefix="B")
+    res = _cli("run", folder, "--out", tmp / "o")
+    ok, detail = _one_line_error(res, 2, "--series-uid")
+    # the flag comes first; "(series_uid=...)" after it names the Python argument
+    text = res.output
+    python_name = text.find("series_uid=")
+    flag_first = "--series-uid" in text and (
+        python_name < 0 or text.index("--series-uid") < python_name
+    )
+    return ok and flag_first, detail
+
+
+@item("one-line errors")
+def stack_yaml_missing_spacing_keeps_its_brackets(tmp: Path):
+    from PIL import Image
+
+    folder = tmp / "stack"
+    folder.mkdir()
+    for k in range(2):
+        Image.fromarray((np.arange(64).reshape(8, 8) + k).astype(np.uint8)).save(
+            folder / f"s{k}.png"
+        )
+    (folder / "stack.yaml").write_text("slice_thickness_mm: 2\nslice_gap_mm: 0\n")
+    res = _cli("run", folder, "--out", tmp / "o")
+    ok, detail = _one_line_error(res, 2, "pixel_spacing_mm")
+    return ok and "( in mm)" not in res.output, detail
+
+
+# ---------------------------------------------------------------- everyday use
+
+
+@item("everyday use")
+def second_run_is_all_cache_hits_and_piped_output_is_plain(tmp: Path):
+    image, out = _phantom_run(tmp)
+    t0 = time.perf_counter()
+    res = _cli("run", image, "--out", out, "--patient-id", "cat3")
+    wall = time.perf_counter() - t0
+    hits = res.output.count("\tcache hit")
+    return (res.exit_code == 0 and hits == 9), (
+        f"{hits}/9 plain 'cache hit' lines; {wall:.1f} s in-process (imports excluded)"
+    )
+
+
+@item("everyday use")
+def flow_runs_are_named_after_the_patient(tmp: Path):
+    _phantom_run(tmp)
+    from prefect import get_client
+
+    with get_client(sync_client=True) as client:
+        names = [r.name for r in client.read_flow_runs(limit=200)]
+    return ("patient-cat3" in names), f"{sum(n == 'patient-cat3' for n in names)} run(s) named"
+
+
+@item("everyday use")
+def no_empty_meshes_without_tumour(tmp: Path):
+    from storage.phantom_io import write_phantom_patient
+    from tumor3d.phantom import make_phantom_patient
+
+    row = write_phantom_patient(
+        make_phantom_patient(4, patient_id="free4", n_slices=12, tumor=False), tmp / "in"
+    )
+    res = _cli("run", row.image, "--out", tmp / "o", "--patient-id", "free4")
+    ok = res.exit_code == 0 and not (tmp / "o" / "free4" / "tumor.ply").exists()
+    ok = ok and "no tumour found" in res.output
+    return ok, f"exit {res.exit_code}; tumor.ply absent: {ok}"
+
+
+@item("everyday use")
+def nrrd_and_metaimage_inputs(tmp: Path):
+    import SimpleITK as sitk
+
+    from storage.readers import read_scan
+
+    data = (np.random.default_rng(0).random((4, 12, 12)) * 100 + 1).astype(np.float32)
+    shapes = []
+    for suffix in (".nrrd", ".mha"):
+        img = sitk.GetImageFromArray(data)
+        img.SetSpacing((1.0, 1.0, 5.0))
+        sitk.WriteImage(img, str(tmp / f"v{suffix}"))
+        shapes.append(read_scan(tmp / f"v{suffix}").shape)
+    return all(s == (4, 12, 12) for s in shapes), f"shapes {shapes}"
+
+
+@item("everyday use")
+def meshes_for_every_viewer_and_eq7_named(tmp: Path):
+    _, out = _phantom_run(tmp)
+    folder = out / "cat3"
+    files = [n for n in ("tumor.ply", "tumor_lps.vtk") if (folder / n).is_file()]
+    rule = _metrics(out).get("eq7_slice_rule")
+    return (len(files) == 2 and bool(rule)), f"{files}; Eq. 7 rule {rule!r}"
+
+
+@item("everyday use")
+def cohort_row_with_a_missing_image_fails_alone(tmp: Path):
+    image, out = _phantom_run(tmp)
+    manifest = tmp / "m.csv"
+    manifest.write_text(
+        f"patient_id,image,modality\ncat3,{image},t2\nghost,{tmp / 'ghost.nii.gz'},t2\n"
+    )
+    res = _cli("cohort", manifest, "--out", out, "--workers", "1")
+    table = pd.read_parquet(out / "cohort.parquet").set_index("patient_id")
+    ok = res.exit_code == 1 and list(table["status"]) == ["ok", "failed"]
+    return ok, f"exit {res.exit_code}; statuses {list(table['status'])}"
+
+
+# ---------------------------------------------------------------- driver
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=None, help="Markdown report to write.")
+    parser.add_argument("--skip-slow", action="store_true", help="Skip the kill -9 item.")
+    args = parser.parse_args(argv)
+
+    from flows.server import prefect_api
+
+    verdicts: list[Verdict] = []
+    tmp_root = Path(tempfile.mkdtemp(prefix="tumor3d-hostile-"))
+    t0 = time.perf_counter()
+    try:
+        with prefect_api(on_temporary_start=lambda: print("starting a temporary Prefect server")):
+            for name, group, fn, slow, simulated in ITEMS:
+                if slow and args.skip_slow:
+                    continue
+                tmp = tmp_root / name
+                tmp.mkdir()
+                try:
+                    ok, detail = fn(tmp)
+                except Exception as exc:  # the harness must survive any item
+                    ok = False
+                    detail = f"harness error: {type(exc).__name__}: {exc}".splitlines()[0]
+                    traceback.print_exc()
+                v = Verdict(name, group, bool(ok), detail, simulated)
+                verdicts.append(v)
+                print(f"{'ok ' if v.ok else 'BAD'} {group:20s} {name}: {detail}", flush=True)
+    finally:
+        shutil.rmtree(tmp_root, ignore_errors=True)
+    good = sum(v.ok for v in verdicts)
+    line = f"{good}/{len(verdicts)} behaved well ({time.perf_counter() - t0:.0f} s)"
+    print(line)
+    if args.out:
+        rows = "\n".join(
+            f"| {v.group} | {v.item.replace('_', ' ')}{' (simulated)' if v.simulated else ''} "
+            f"| {'ok' if v.ok else '**BAD**'} | {v.detail.replace('|', '/')} |"
+            for v in verdicts
+        )
+        args.out.write_text(
+            "# Issue 12 catalogue rerun\n\n"
+            f"`python benchmarks/hostile_catalogue.py --out {args.out}`: **{line}**.\n\n"
+            "| group | item | verdict | detail |\n|---|---|---|---|\n" + rows + "\n"
+        )
+    return 0 if good == len(verdicts) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

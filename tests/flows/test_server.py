@@ -1,0 +1,187 @@
+"""`tumor3d server start|stop|status` and the temporary server that never outlives its command.
+
+Issue 12: after ``kill -9`` of a run that started a temporary Prefect server,
+that server kept running (re-parented to PID 1). These tests start real
+servers (10-30 s each on a busy machine) with their own state folder
+(``TUMOR3D_HOME``) and Prefect home.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+import flows.server as server
+from flows.cli import app
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parents[2]
+STARTUP_S = 240
+
+
+@pytest.fixture
+def home(tmp_path, monkeypatch):
+    """A private state folder and Prefect home; no configured API URL."""
+    monkeypatch.setenv("TUMOR3D_HOME", str(tmp_path / "t3d-home"))
+    monkeypatch.setenv("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", str(STARTUP_S))
+    # the session's test harness may have set PREFECT_API_URL in Prefect's settings
+    monkeypatch.setattr(server, "_configured_api_url", lambda: None)
+    return tmp_path / "t3d-home"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    stat = Path(f"/proc/{pid}/stat")
+    return not (stat.exists() and stat.read_text().split(") ")[-1].startswith("Z"))
+
+
+def _wait_gone(pid: int, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if not _alive(pid):
+            return True
+        time.sleep(0.2)
+    return False
+
+
+def test_start_status_use_stop_and_a_stale_state_file(home):
+    cli = CliRunner()
+    assert server.server_status().state == "stopped"
+    status = cli.invoke(app, ["server", "status"])
+    assert status.exit_code == 1 and "no tumor3d Prefect server running" in status.output
+
+    started = cli.invoke(app, ["server", "start"])
+    assert started.exit_code == 0, started.output
+    info = json.loads((home / "server.json").read_text())
+    try:
+        assert "started" in started.output and info["api_url"] in started.output
+        assert server.healthy(info["api_url"])
+        status = cli.invoke(app, ["server", "status"])
+        assert status.exit_code == 0 and "running and healthy" in status.output
+        assert str(info["pid"]) in status.output
+        # a second start finds it
+        again = cli.invoke(app, ["server", "start"])
+        assert again.exit_code == 0 and "already running" in again.output
+        assert json.loads((home / "server.json").read_text())["pid"] == info["pid"]
+        # later commands use it, and say nothing about starting Prefect
+        notes = []
+        with server.prefect_api(on_temporary_start=lambda: notes.append("temporary")) as url:
+            from prefect.settings import PREFECT_API_URL
+
+            assert url == info["api_url"] == PREFECT_API_URL.value()
+        assert notes == []
+        # it survives the end of the command that started it (its own session)
+        assert os.getsid(info["pid"]) == info["pid"]
+    finally:
+        stopped = cli.invoke(app, ["server", "stop"])
+    assert stopped.exit_code == 0 and f"pid {info['pid']}" in stopped.output
+    assert _wait_gone(info["pid"], 15)
+    assert not (home / "server.json").exists()
+    assert server.server_status().state == "stopped"
+
+    # a state file naming a dead process: reported stale, removed by stop
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (home / "server.json").write_text(
+        json.dumps({"pid": dead.pid, "port": 1, "api_url": "http://127.0.0.1:1/api"})
+    )
+    status = cli.invoke(app, ["server", "status"])
+    assert status.exit_code == 1 and "stale state file" in status.output
+    stopped = cli.invoke(app, ["server", "stop"])
+    assert stopped.exit_code == 0 and "removed the stale state file" in stopped.output
+    assert not (home / "server.json").exists()
+
+
+def _server_children(pid: int) -> list[int]:
+    """Live processes whose parent is ``pid`` and that run the server module."""
+    found = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            kids = (task / "children").read_text().split()
+        except OSError:
+            continue
+        for kid in kids:
+            try:
+                cmd = Path(f"/proc/{kid}/cmdline").read_bytes()
+            except OSError:
+                continue
+            if server.SERVER_MODULE.encode() in cmd.split(b"\0"):
+                found.append(int(kid))
+    return found
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc")
+def test_kill_9_of_a_run_leaves_no_temporary_server(home, tmp_path):
+    import nibabel as nib
+    import numpy as np
+
+    image = tmp_path / "scan.nii.gz"
+    data = np.random.default_rng(0).random((32, 32, 6)).astype(np.float32) + 1
+    nib.save(nib.Nifti1Image(data, np.diag([1.0, 1.0, 5.0, 1.0])), image)
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
+    env.update(
+        TUMOR3D_HOME=str(home),
+        PREFECT_HOME=str(tmp_path / "prefect-home"),
+        PYTHONPATH=str(ROOT),
+        PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS=str(STARTUP_S),
+    )
+    log = open(tmp_path / "run.log", "wb")  # noqa: SIM115
+    run = subprocess.Popen(
+        [sys.executable, "-m", "flows.cli", "run", str(image), "--out", str(tmp_path / "out")],
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        cwd=str(ROOT),
+    )
+    try:
+        deadline = time.monotonic() + STARTUP_S
+        child = None
+        while time.monotonic() < deadline and run.poll() is None:
+            kids = _server_children(run.pid)
+            if kids:
+                child = kids[0]
+                cmd = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
+                port = int(cmd[cmd.index(b"--port") + 1])
+                if server.healthy(f"http://127.0.0.1:{port}/api", timeout_s=1.0):
+                    break
+            time.sleep(0.3)
+        assert child is not None, (tmp_path / "run.log").read_text()
+        assert server.healthy(f"http://127.0.0.1:{port}/api"), "the server never came up"
+        # the message is printed because a temporary server really started
+        assert "starting Prefect" in (tmp_path / "run.log").read_text()
+        run.send_signal(signal.SIGKILL)
+        run.wait()
+        assert _wait_gone(child, 20), f"temporary server {child} outlived its command"
+    finally:
+        if run.poll() is None:
+            run.kill()
+        log.close()
+        for pid in _server_children(1):  # never leave ours behind, even if the test fails
+            try:
+                ours = str(tmp_path).encode() in Path(f"/proc/{pid}/environ").read_bytes()
+            except OSError:
+                continue
+            if ours:
+                os.kill(pid, signal.SIGKILL)
+
+
+def test_a_temporary_server_is_stopped_when_its_command_ends(home):
+    notes = []
+    with server.prefect_api(on_temporary_start=lambda: notes.append("temporary")) as url:
+        assert notes == ["temporary"]
+        assert server.healthy(url)
+        port = int(url.rsplit(":", 1)[1].split("/")[0])
+    assert not server.healthy(f"http://127.0.0.1:{port}/api", timeout_s=1.0)
+    assert server.server_status().state == "stopped"  # no state file for a temporary one
