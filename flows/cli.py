@@ -243,6 +243,14 @@ def _run_with_progress(**kwargs: Any) -> Any:
 
 
 Verbose = Annotated[bool, typer.Option("--verbose", "-v", help="Show Prefect's own logs.")]
+DaskAddress = Annotated[
+    str | None,
+    typer.Option(help="Run the stages on an existing Dask scheduler, tcp://HOST:PORT."),
+]
+DaskWorkers = Annotated[
+    int | None,
+    typer.Option(min=1, help="Run the stages on a temporary local Dask cluster of N workers."),
+]
 
 
 @app.command()
@@ -308,30 +316,92 @@ def cohort(
         int | None, typer.Option(min=1, help="Patients at a time (default: the CPU cores).")
     ] = None,
     store: Annotated[
-        Path | None, typer.Option(help="Artifact store (default OUT/.tumor3d-store).")
+        str | None,
+        typer.Option(
+            help="Artifact store: a folder or s3://bucket/prefix (default OUT/.tumor3d-store)."
+        ),
     ] = None,
+    dask_address: DaskAddress = None,
+    dask_workers: DaskWorkers = None,
     verbose: Verbose = False,
 ) -> None:
     """Run every patient of a manifest, N at a time: OUT/<id>/, OUT/cohort.parquet, OUT/cohort.md.
 
     Exit code 0 when every patient succeeded, 1 when some failed (named in the
-    summary), 2 for an invalid manifest or configuration.
+    summary), 2 for an invalid manifest or configuration, or an unreachable
+    Dask scheduler or store.
     """
     from flows.cohort import run_cohort
+    from flows.dask_runner import DaskSpec
     from storage.manifest import read_manifest
 
     try:
         cfg = _load_config(config)
         rows = read_manifest(manifest)
+        dask = DaskSpec(dask_address, dask_workers)
         _starting_prefect_note()
         with _reporting(lambda progress: _CohortReporter(progress, len(rows))):
-            result = run_cohort(
-                rows, out, config=cfg, workers=workers, store_dir=None if store is None else store
-            )
+            result = run_cohort(rows, out, config=cfg, workers=workers, store_dir=store, dask=dask)
     except Tumor3DError as exc:
         raise _fail(exc) from None
     print_cohort_summary(result)
     raise typer.Exit(code=result.exit_code)
+
+
+@app.command()
+def serve(
+    manifest: Annotated[
+        Path, typer.Argument(help="Cohort manifest CSV, re-read by every scheduled run.")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
+    cron: Annotated[str, typer.Option(help='Cron schedule, e.g. "0 2 * * *" (02:00 every day).')],
+    name: Annotated[
+        str, typer.Option(help="Deployment name (shown in the Prefect UI).")
+    ] = "tumor3d-cohort-nightly",
+    timezone: Annotated[str, typer.Option(help="Time zone of the cron schedule.")] = "UTC",
+    config: Annotated[
+        Path | None, typer.Option(help="YAML configuration file, re-read by every run.")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(min=1, help="Patients at a time (default: the CPU cores).")
+    ] = None,
+    store: Annotated[
+        str | None,
+        typer.Option(
+            help="Artifact store: a folder or s3://bucket/prefix (default OUT/.tumor3d-store)."
+        ),
+    ] = None,
+    dask_address: DaskAddress = None,
+    dask_workers: DaskWorkers = None,
+    verbose: Verbose = False,
+) -> None:
+    """Serve the cohort flow as a Prefect deployment on a cron schedule (blocks).
+
+    Each run re-reads the manifest: new or changed inputs compute, unchanged
+    ones come from the cache, patients no longer listed are reported in
+    OUT/cohort.md (their folders are kept). Runs can also be triggered from the
+    Prefect UI. Set PREFECT_API_URL to a persistent Prefect server (see README).
+    """
+    from flows.serve import cohort_deployment, serve_cohort
+
+    try:
+        deployment = cohort_deployment(
+            manifest, out, cron=cron, name=name, config_path=config, workers=workers,
+            store_dir=store, dask_address=dask_address, dask_workers=dask_workers,
+            timezone=timezone,
+        )  # fmt: skip
+    except Tumor3DError as exc:
+        raise _fail(exc) from None
+    if not os.environ.get("PREFECT_API_URL"):
+        console.print(
+            "[yellow]PREFECT_API_URL is not set: serving against a temporary local Prefect "
+            "server that stops with this command (see README, Scheduled reprocessing).[/]"
+        )
+    console.print(
+        f"serving deployment [bold]tumor3d-scheduled-cohort/{escape(name)}[/] "
+        f"(cron {escape(cron)} {escape(timezone)}); Ctrl-C to stop"
+    )
+    serve_cohort(deployment)
 
 
 def print_cohort_summary(result: Any) -> None:
@@ -356,6 +426,12 @@ def print_cohort_summary(result: Any) -> None:
         console.print(
             f"[red]failed[/] {escape(p.patient_id)} at {escape(str(p.failed_stage))}: "
             f"{escape(str(p.error))}",
+            soft_wrap=True,
+        )
+    if result.removed:
+        console.print(
+            f"[yellow]no longer in the manifest[/] (published earlier, folders kept): "
+            f"{escape(', '.join(result.removed))}",
             soft_wrap=True,
         )
     console.print(
@@ -503,6 +579,7 @@ def evaluate(
     for col in ("config", "patient", "status", "slice Dice", "3-D Dice", "HD95 mm", "Eq. 7 err"):
         table.add_column(col)
     for _, r in df.iterrows():
+
         def cell(key: str, fmt: str, _r: Any = r) -> str:
             v = _r.get(key)
             return "-" if v is None or v != v else fmt.format(v)

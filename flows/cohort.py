@@ -24,16 +24,21 @@ from pathlib import Path
 from typing import Any
 
 from prefect import flow, get_run_logger, tags
-from prefect.task_runners import ThreadPoolTaskRunner
 from pydantic import BaseModel, ConfigDict, Field
 
+from flows.dask_runner import DaskSpec, check_scheduler, cohort_task_runner
 from flows.patient import (
     VOLUME_LABELS,
     config_digest,
     patient_pipeline,
     prepare_source,
 )
-from storage.cohort_report import cohort_markdown, cohort_table, write_cohort_outputs
+from storage.cohort_report import (
+    cohort_markdown,
+    cohort_table,
+    published_patient_ids,
+    write_cohort_outputs,
+)
 from storage.manifest import ManifestRow, read_manifest
 from storage.publish import check_output_not_input
 from storage.store import ArtifactStore
@@ -96,6 +101,9 @@ class CohortResult(BaseModel):
     model_config = ConfigDict(frozen=True)
 
     patients: list[PatientOutcome]
+    removed: list[str] = Field(default_factory=list)
+    """Patients published in ``out_dir`` by an earlier run but no longer in the manifest
+    (reported, their folders kept)."""
     out_dir: str = ""
     workers: int = 1
     wall_seconds: float = 0.0
@@ -206,6 +214,11 @@ def cohort_flow(
     logger = get_run_logger()
     logger.info("cohort of %d patients, %d workers, config %s", len(rows), workers,
                 config_digest(cfg)[:12])  # fmt: skip
+    listed = {str(r.get("patient_id")) for r in rows}
+    removed = [pid for pid in published_patient_ids(out_dir) if pid not in listed]
+    if removed:
+        logger.warning("%d published patient(s) no longer in the manifest, kept: %s",
+                       len(removed), ", ".join(removed))  # fmt: skip
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="tumor3d-lane") as pool:
         futures = [
             pool.submit(contextvars.copy_context().run, _run_one, row, out_dir, cfg, store)
@@ -217,12 +230,16 @@ def cohort_flow(
     markdown = cohort_markdown(
         table, volume_labels=VOLUME_LABELS, stage_names=list(stages.STAGES),
         title=f"Cohort {Path(out_dir).name}", wall_seconds=wall, workers=workers,
+        removed=removed,
     )  # fmt: skip
     write_cohort_outputs(out_dir, table, markdown)
     for o in outcomes:
         if o.status != "ok":
             logger.warning("patient %s failed at %s: %s", o.patient_id, o.failed_stage, o.error)
-    return CohortResult(patients=outcomes, out_dir=str(out_dir), workers=workers, wall_seconds=wall)
+    return CohortResult(
+        patients=outcomes, removed=removed, out_dir=str(out_dir), workers=workers,
+        wall_seconds=wall,
+    )  # fmt: skip
 
 
 def _validate_rows(rows: list[dict[str, Any]], out_dir: Path) -> None:
@@ -245,6 +262,7 @@ def run_cohort(
     config: dict[str, Any] | None = None,
     workers: int | None = None,
     store_dir: str | Path | None = None,
+    dask: DaskSpec | None = None,
 ) -> CohortResult:
     """Run :func:`cohort_flow` on a manifest CSV or a list of rows.
 
@@ -257,26 +275,39 @@ def run_cohort(
     config : dict, optional
         Pipeline configuration (validated first).
     workers : int, optional
-        Patients at a time; default :func:`default_workers`.
+        Patients at a time; default :func:`default_workers`, or with Dask the
+        cluster's number of workers.
     store_dir : path, optional
         Shared artifact store; default ``DIR/.tumor3d-store``.
+    dask : DaskSpec, optional
+        Run the stages on a Dask cluster (:mod:`flows.dask_runner`) instead of
+        the default local threads.
 
     Raises
     ------
     InputError
         An invalid manifest or configuration, or an output folder holding an
         input (before any work).
+    ClusterError
+        A Dask scheduler that does not answer (before any work).
     """
     rows_in = read_manifest(manifest) if isinstance(manifest, str | Path) else list(manifest)
     rows = [_row_dict(r) for r in rows_in]
     cfg = parse_config(config or {}, source="config")
-    n = default_workers() if workers is None else workers
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+    if workers is not None and (
+        isinstance(workers, bool) or not isinstance(workers, int) or workers < 1
+    ):
         raise InputError(f"workers must be an integer >= 1, got {workers!r}")
     out = Path(out_dir)
     _validate_rows(rows, out)
+    n = default_workers() if workers is None else workers
+    if dask is not None and dask.address:
+        n_cluster = check_scheduler(dask.address)  # one line, before any patient starts
+        n = max(1, n_cluster) if workers is None else workers
+    elif dask is not None and dask.n_workers and workers is None:
+        n = dask.n_workers
     out.mkdir(parents=True, exist_ok=True)
-    flow_fn = cohort_flow.with_options(task_runner=ThreadPoolTaskRunner(max_workers=n))
+    flow_fn = cohort_flow.with_options(task_runner=cohort_task_runner(n, dask))
     with tags(f"config:{config_digest(cfg)[:12]}", "cohort"):
         return flow_fn(
             rows=[_json_row(r) for r in rows], out_dir=str(out),
