@@ -40,6 +40,7 @@ from storage.cohort_report import (
     write_cohort_outputs,
 )
 from storage.manifest import ManifestRow, read_manifest
+from storage.objectstore import ObjectStore, is_url, open_store
 from storage.publish import check_output_not_input
 from storage.store import ArtifactStore
 from tasks import stages
@@ -210,7 +211,7 @@ def cohort_flow(
     """
     t0 = time.perf_counter()
     cfg = parse_config(config or {}, source="config")
-    store = ArtifactStore(store_dir or Path(out_dir) / ".tumor3d-store")
+    store = open_store(store_dir or Path(out_dir) / ".tumor3d-store")
     logger = get_run_logger()
     logger.info("cohort of %d patients, %d workers, config %s", len(rows), workers,
                 config_digest(cfg)[:12])  # fmt: skip
@@ -298,8 +299,17 @@ def run_cohort(
         isinstance(workers, bool) or not isinstance(workers, int) or workers < 1
     ):
         raise InputError(f"workers must be an integer >= 1, got {workers!r}")
+    if is_url(out_dir):
+        raise InputError(
+            f"--out {out_dir}: outputs are published to a folder (a local or shared file "
+            "system); an object store is supported for the artifact store (--store s3://...)"
+        )
     out = Path(out_dir)
     _validate_rows(rows, out)
+    if store_dir is not None and is_url(store_dir):
+        store = open_store(str(store_dir))
+        assert isinstance(store, ObjectStore)
+        store.check()  # one line naming the URL, before any patient starts
     n = default_workers() if workers is None else workers
     if dask is not None and dask.address:
         n_cluster = check_scheduler(dask.address)  # one line, before any patient starts

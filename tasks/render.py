@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from storage.store import ArtifactRef, ArtifactStore
+from storage.objectstore import open_store
+from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.config import RenderConfig
 from tumor3d.render import brain_surface, render_views, turntable_gif
@@ -20,7 +21,7 @@ def render_task(
     mesh: ArtifactRef, brain_mask: ArtifactRef, config: RenderConfig, store_root: str
 ) -> StageOutput:
     """Anatomical views, cut-aways and a turntable of the tumour in its brain (if any)."""
-    store = ArtifactStore(store_root)
+    store = open_store(store_root)
     surface = store.get_mesh(mesh)
     artifacts: dict[str, ArtifactRef] = {}
     values: dict[str, Any] = {"n_views": 0, "renderer": None, "fallback_reason": None}
