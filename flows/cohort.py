@@ -4,7 +4,13 @@ Wiring only. :func:`cohort_flow` runs :func:`flows.patient.patient_pipeline`
 for each row in a pool of ``workers`` lanes; each lane submits its stages to
 the flow's task runner (threads, ``workers`` wide), so N patients compute at
 once and a different task runner (Dask) can be given to the flow with
-``cohort_flow.with_options(task_runner=...)`` without touching the stages.
+``cohort_flow.with_options(task_runner=...)`` without touching the stages:
+:func:`run_cohort` does so for ``dask=DaskSpec(...)``
+(:mod:`flows.dask_runner`). The store may be a folder or an object-store URL
+(:mod:`storage.objectstore`); either is checked before any patient starts.
+
+Patients published in ``DIR`` by an earlier run but no longer in the rows are
+reported (``CohortResult.removed``, ``cohort.md``), never deleted.
 
 Failure isolation: a patient that fails (unreadable image, no brain found,
 any exception) is recorded with its status, the failing stage and a one-line

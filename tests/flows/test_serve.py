@@ -114,3 +114,22 @@ def test_a_triggered_run_computes_only_the_added_patient_and_reports_removed(tmp
     assert (out / "srv0" / "metrics.parquet").is_file()
     md = (out / "cohort.md").read_text()
     assert "## Removed from the manifest" in md and "srv0, srv2" in md
+
+
+def test_cli_serve_builds_the_deployment_and_hands_it_to_prefect(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    import flows.serve
+    from flows.cli import app
+
+    manifest = write_manifest([_row(0, tmp_path)], tmp_path / "m.csv")
+    served = []
+    monkeypatch.setattr(flows.serve, "serve_cohort", served.append)
+    args = ["serve", str(manifest), "--out", str(tmp_path / "o"), "--name", "n1"]
+    ok = CliRunner().invoke(app, [*args, "--cron", "30 1 * * 1-5", "--workers", "2"])
+    assert ok.exit_code == 0, ok.output
+    assert [d.name for d in served] == ["n1"]
+    assert served[0].schedules[0].schedule.cron == "30 1 * * 1-5"
+    assert served[0].parameters["workers"] == 2
+    bad = CliRunner().invoke(app, [*args, "--cron", "every night"])
+    assert bad.exit_code == 2 and "invalid --cron" in bad.output and len(served) == 1
