@@ -297,6 +297,9 @@ def run_cohort(
         input (before any work).
     ClusterError
         A Dask scheduler that does not answer (before any work).
+    StoreError
+        An object store whose endpoint, bucket or credentials do not work
+        (before any work).
     """
     rows_in = read_manifest(manifest) if isinstance(manifest, str | Path) else list(manifest)
     rows = [_row_dict(r) for r in rows_in]

@@ -19,6 +19,8 @@ URL) and import this project (same code, same ``PYTHONPATH``).
 
 from __future__ import annotations
 
+import logging
+import os
 from typing import Any
 
 from tumor3d.errors import InputError, Tumor3DError
@@ -163,6 +165,12 @@ def cohort_task_runner(workers: int, spec: DaskSpec | None = None) -> Any:
     if spec is None or not spec.enabled:
         return ThreadPoolTaskRunner(max_workers=workers)
     runner_cls = _dask_runner_class()
+    # distributed logs every client connection at INFO (prefect-dask opens one per
+    # task on the workers): keep them out of the progress display; -v/--verbose
+    # or DASK_LOGGING__DISTRIBUTED=info brings them back
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+    if os.environ.get("PREFECT_LOGGING_LEVEL", "").upper() in ("WARNING", "ERROR", "CRITICAL"):
+        logging.getLogger("distributed").setLevel(logging.WARNING)
     if spec.address:
         return runner_cls(address=spec.address)
     return runner_cls(

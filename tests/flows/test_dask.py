@@ -94,3 +94,68 @@ def test_cohort_on_a_two_worker_cluster_matches_the_local_runner(tmp_path):
     # the same store re-run with the local runner: every stage a cache hit
     again = run_cohort(rows, tmp_path / "dask", workers=1)
     assert all(s.cached for p in again.patients for s in p.stages)
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_worker_killed_mid_stage_the_cohort_finishes_and_a_rerun_completes(tmp_path):
+    """SIGKILL the worker process running a render: Dask reruns the stage elsewhere.
+
+    Worker *processes* here (a killed thread is not a killed worker); the
+    nanny restarts the killed one. Whatever happens to the patient whose
+    stage was lost (retried, or recorded as failed), the cohort ends, nothing
+    is half-written, and a local re-run on the same store completes every
+    patient with the stages that finished before the kill as cache hits.
+    """
+    import os
+    import signal
+    import threading
+
+    from tasks.progress import use_reporter
+
+    rows = _rows(tmp_path / "in", [0, 1, 2])
+    out = tmp_path / "out"
+    killed: dict[str, object] = {}
+    lock = threading.Lock()
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster, distributed.Client(cluster) as client:  # fmt: skip
+        pids = client.run(os.getpid)
+
+        def reporter(event):
+            if event.stage != "render-views" or event.status != "started":
+                return
+            with lock:
+                if killed:
+                    return
+                deadline = time.monotonic() + 20
+                while time.monotonic() < deadline:
+                    busy = [a for a, keys in client.processing().items() if keys]
+                    if busy:
+                        os.kill(pids[busy[0]], signal.SIGKILL)
+                        killed.update(worker=busy[0], patient=event.patient_id)
+                        return
+                    time.sleep(0.05)
+
+        with use_reporter(reporter):
+            result = run_cohort(rows, out, dask=DaskSpec(address=cluster.scheduler_address))
+    assert killed, "no worker was killed: the test did not exercise anything"
+    assert len(result.patients) == 3
+    for p in result.patients:
+        if p.status == "ok":  # published as a whole
+            assert (out / p.patient_id / "metrics.parquet").is_file()
+        else:
+            assert p.error and "\n" not in p.error
+            assert not (out / p.patient_id).exists()
+    assert not [q for q in out.iterdir() if ".partial-" in q.name or ".old-" in q.name]
+    objects = out / ".tumor3d-store" / "objects"
+    assert not [f for f in objects.rglob("*") if f.name.startswith(".")]  # no temp files
+    ok_before = {p.patient_id for p in result.patients if p.status == "ok"}
+
+    again = run_cohort(rows, out, workers=1)
+    assert again.exit_code == 0
+    for p in again.patients:
+        if p.patient_id in ok_before:
+            assert all(s.cached for s in p.stages), p.patient_id
+        else:  # the stages before the lost render come from the cache
+            assert p.stages[0].cached, p.patient_id
