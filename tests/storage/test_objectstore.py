@@ -208,3 +208,20 @@ def test_cohort_with_an_s3_store_matches_a_local_store_and_reruns_from_cache(s3_
     assert [p.metrics["volume_eq7_mm3"] for p in again.patients] == [
         p.metrics["volume_eq7_mm3"] for p in first.patients
     ]
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_dask_worker_processes_share_the_s3_store_and_its_cache(s3_endpoint, tmp_path):
+    """Two Dask worker *processes* (--dask-workers 2): the store, the Prefect result
+    block and the endpoint from the environment reach them; a re-run is all hits."""
+    pytest.importorskip("prefect_dask", reason="prefect-dask not installed")
+    from flows.dask_runner import DaskSpec
+
+    rows = _rows(tmp_path / "in", [0, 1])
+    url = f"s3://{BUCKET}/dask"
+    first = run_cohort(rows, tmp_path / "o1", store_dir=url, dask=DaskSpec(n_workers=2))
+    assert [p.status for p in first.patients] == ["ok", "ok"], [p.error for p in first.patients]
+    assert not (tmp_path / "o1" / ".tumor3d-store").exists()
+    again = run_cohort(rows, tmp_path / "o2", store_dir=url, dask=DaskSpec(n_workers=2))
+    assert all(s.cached for p in again.patients for s in p.stages)
