@@ -75,10 +75,12 @@ def _error_line(exc: BaseException) -> tuple[str, int]:
 
         where = f"{exc.filename}: " if exc.filename else ""
         return f"{where}{os_error_text(exc)}", EXIT_ENVIRONMENT
+    from flows.dask_runner import ClusterError
     from flows.server import ServerError
     from storage.store import StoreError
 
-    code = EXIT_ENVIRONMENT if isinstance(exc, StoreError | ServerError) else EXIT_INPUT
+    environment = StoreError | ServerError | ClusterError
+    code = EXIT_ENVIRONMENT if isinstance(exc, environment) else EXIT_INPUT
     return str(exc) or type(exc).__name__, code
 
 
@@ -358,6 +360,14 @@ MaxVoxels = Annotated[
         "(default 512 million, far above any MR series).",
     ),
 ]
+DaskAddress = Annotated[
+    str | None,
+    typer.Option(help="Run the stages on an existing Dask scheduler, tcp://HOST:PORT."),
+]
+DaskWorkers = Annotated[
+    int | None,
+    typer.Option(min=1, help="Run the stages on a temporary local Dask cluster of N workers."),
+]
 
 
 @app.command()
@@ -424,33 +434,106 @@ def cohort(
         int | None, typer.Option(min=1, help="Patients at a time (default: the CPU cores).")
     ] = None,
     store: Annotated[
-        Path | None, typer.Option(help="Artifact store (default OUT/.tumor3d-store).")
+        str | None,
+        typer.Option(
+            help="Artifact store: a folder or s3://bucket/prefix (default OUT/.tumor3d-store)."
+        ),
     ] = None,
     max_voxels: MaxVoxels = MAX_VOXELS_DEFAULT,
+    dask_address: DaskAddress = None,
+    dask_workers: DaskWorkers = None,
     verbose: Verbose = False,
 ) -> None:
     """Run every patient of a manifest, N at a time: OUT/<id>/, OUT/cohort.parquet, OUT/cohort.md.
 
     Exit code 0 when every patient succeeded, 1 when some failed (named in the
     summary; a row whose image is missing fails alone), 2 for an invalid
-    manifest or configuration, 3 for an environment error.
+    manifest or configuration, 3 for an environment error (an unwritable
+    output, an unreachable Dask scheduler or object store, a Prefect server
+    that cannot start).
     """
     from flows.cohort import run_cohort
+    from flows.dask_runner import DaskSpec
     from storage.manifest import read_manifest
 
     try:
         cfg = _load_config(config)
         _check_out_dir(out)
         rows = read_manifest(manifest, require_files=False)
+        dask = DaskSpec(dask_address, dask_workers)
         with _prefect(), _reporting(lambda progress: _CohortReporter(progress, len(rows))):
             result = run_cohort(
                 rows, out, config=cfg, workers=workers, max_voxels=max_voxels,
-                store_dir=None if store is None else store,
+                store_dir=store, dask=dask,
             )  # fmt: skip
     except _HANDLED as exc:
         raise _fail(exc) from None
     print_cohort_summary(result)
     raise typer.Exit(code=result.exit_code)
+
+
+@app.command()
+def serve(
+    manifest: Annotated[
+        Path, typer.Argument(help="Cohort manifest CSV, re-read by every scheduled run.")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
+    cron: Annotated[str, typer.Option(help='Cron schedule, e.g. "0 2 * * *" (02:00 every day).')],
+    name: Annotated[
+        str, typer.Option(help="Deployment name (shown in the Prefect UI).")
+    ] = "tumor3d-cohort-nightly",
+    timezone: Annotated[str, typer.Option(help="Time zone of the cron schedule.")] = "UTC",
+    config: Annotated[
+        Path | None, typer.Option(help="YAML configuration file, re-read by every run.")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(min=1, help="Patients at a time (default: the CPU cores).")
+    ] = None,
+    store: Annotated[
+        str | None,
+        typer.Option(
+            help="Artifact store: a folder or s3://bucket/prefix (default OUT/.tumor3d-store)."
+        ),
+    ] = None,
+    dask_address: DaskAddress = None,
+    dask_workers: DaskWorkers = None,
+    verbose: Verbose = False,
+) -> None:
+    """Serve the cohort flow as a Prefect deployment on a cron schedule (blocks).
+
+    Each run re-reads the manifest: new or changed inputs compute, unchanged
+    ones come from the cache, patients no longer listed are reported in
+    OUT/cohort.md (their folders are kept). Runs can also be triggered from the
+    Prefect UI. Set PREFECT_API_URL to a persistent Prefect server (see README).
+    """
+    from flows.serve import cohort_deployment, serve_cohort
+
+    try:
+        deployment = cohort_deployment(
+            manifest, out, cron=cron, name=name, config_path=config, workers=workers,
+            store_dir=store, dask_address=dask_address, dask_workers=dask_workers,
+            timezone=timezone,
+        )  # fmt: skip
+    except _HANDLED as exc:
+        raise _fail(exc) from None
+    from flows.server import prefect_api
+
+    def temporary_note() -> None:
+        console.print(
+            "[yellow]no Prefect server configured (PREFECT_API_URL) or running (`tumor3d server "
+            "start`): serving against a temporary local server that stops with this command "
+            "(see README, Scheduled reprocessing).[/]"
+        )
+
+    try:
+        with prefect_api(on_temporary_start=temporary_note) as api_url:
+            console.print(
+                f"serving deployment [bold]tumor3d-scheduled-cohort/{escape(name)}[/] "
+                f"(cron {escape(cron)} {escape(timezone)}) on {escape(api_url)}; Ctrl-C to stop"
+            )
+            serve_cohort(deployment)
+    except _HANDLED as exc:
+        raise _fail(exc) from None
 
 
 def print_cohort_summary(result: Any) -> None:
@@ -475,6 +558,12 @@ def print_cohort_summary(result: Any) -> None:
         console.print(
             f"[red]failed[/] {escape(p.patient_id)} at {escape(str(p.failed_stage))}: "
             f"{escape(str(p.error))}",
+            soft_wrap=True,
+        )
+    if result.removed:
+        console.print(
+            f"[yellow]no longer in the manifest[/] (published earlier, folders kept): "
+            f"{escape(', '.join(result.removed))}",
             soft_wrap=True,
         )
     console.print(

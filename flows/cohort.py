@@ -4,7 +4,13 @@ Wiring only. :func:`cohort_flow` runs :func:`flows.patient.patient_pipeline`
 for each row in a pool of ``workers`` lanes; each lane submits its stages to
 the flow's task runner (threads, ``workers`` wide), so N patients compute at
 once and a different task runner (Dask) can be given to the flow with
-``cohort_flow.with_options(task_runner=...)`` without touching the stages.
+``cohort_flow.with_options(task_runner=...)`` without touching the stages:
+:func:`run_cohort` does so for ``dask=DaskSpec(...)``
+(:mod:`flows.dask_runner`). The store may be a folder or an object-store URL
+(:mod:`storage.objectstore`); either is checked before any patient starts.
+
+Patients published in ``DIR`` by an earlier run but no longer in the rows are
+reported (``CohortResult.removed``, ``cohort.md``), never deleted.
 
 Failure isolation: a patient that fails (unreadable image, no brain found,
 any exception) is recorded with its status, the failing stage and a one-line
@@ -24,18 +30,24 @@ from pathlib import Path
 from typing import Any
 
 from prefect import flow, get_run_logger, tags
-from prefect.task_runners import ThreadPoolTaskRunner
 from pydantic import BaseModel, ConfigDict, Field
 
 from flows.artifacts import publish_cohort_artifacts
+from flows.dask_runner import DaskSpec, check_scheduler, cohort_task_runner
 from flows.patient import (
     VOLUME_LABELS,
     config_digest,
     patient_pipeline,
     prepare_source,
 )
-from storage.cohort_report import cohort_markdown, cohort_table, write_cohort_outputs
+from storage.cohort_report import (
+    cohort_markdown,
+    cohort_table,
+    published_patient_ids,
+    write_cohort_outputs,
+)
 from storage.manifest import ManifestRow, read_manifest
+from storage.objectstore import ObjectStore, is_url, open_store
 from storage.publish import check_output_not_input
 from storage.store import ArtifactStore
 from tasks import stages
@@ -98,6 +110,9 @@ class CohortResult(BaseModel):
     model_config = ConfigDict(frozen=True)
 
     patients: list[PatientOutcome]
+    removed: list[str] = Field(default_factory=list)
+    """Patients published in ``out_dir`` by an earlier run but no longer in the manifest
+    (reported, their folders kept)."""
     out_dir: str = ""
     workers: int = 1
     wall_seconds: float = 0.0
@@ -211,10 +226,15 @@ def cohort_flow(
     """
     t0 = time.perf_counter()
     cfg = parse_config(config or {}, source="config")
-    store = ArtifactStore(store_dir or Path(out_dir) / ".tumor3d-store")
+    store = open_store(store_dir or Path(out_dir) / ".tumor3d-store")
     logger = get_run_logger()
     logger.info("cohort of %d patients, %d workers, config %s", len(rows), workers,
                 config_digest(cfg)[:12])  # fmt: skip
+    listed = {str(r.get("patient_id")) for r in rows}
+    removed = [pid for pid in published_patient_ids(out_dir) if pid not in listed]
+    if removed:
+        logger.warning("%d published patient(s) no longer in the manifest, kept: %s",
+                       len(removed), ", ".join(removed))  # fmt: skip
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="tumor3d-lane") as pool:
         futures = [
             pool.submit(
@@ -228,13 +248,17 @@ def cohort_flow(
     markdown = cohort_markdown(
         table, volume_labels=VOLUME_LABELS, stage_names=list(stages.STAGES),
         title=f"Cohort {Path(out_dir).name}", wall_seconds=wall, workers=workers,
+        removed=removed,
     )  # fmt: skip
     write_cohort_outputs(out_dir, table, markdown)
     publish_cohort_artifacts(table, name=Path(out_dir).name)
     for o in outcomes:
         if o.status != "ok":
             logger.warning("patient %s failed at %s: %s", o.patient_id, o.failed_stage, o.error)
-    return CohortResult(patients=outcomes, out_dir=str(out_dir), workers=workers, wall_seconds=wall)
+    return CohortResult(
+        patients=outcomes, removed=removed, out_dir=str(out_dir), workers=workers,
+        wall_seconds=wall,
+    )  # fmt: skip
 
 
 def _validate_rows(rows: list[dict[str, Any]], out_dir: Path) -> None:
@@ -258,6 +282,7 @@ def run_cohort(
     workers: int | None = None,
     store_dir: str | Path | None = None,
     max_voxels: int = MAX_VOXELS_DEFAULT,
+    dask: DaskSpec | None = None,
 ) -> CohortResult:
     """Run :func:`cohort_flow` on a manifest CSV or a list of rows.
 
@@ -271,17 +296,26 @@ def run_cohort(
     config : dict, optional
         Pipeline configuration (validated first).
     workers : int, optional
-        Patients at a time; default :func:`default_workers`.
+        Patients at a time; default :func:`default_workers`, or with Dask the
+        cluster's number of workers.
     store_dir : path, optional
         Shared artifact store; default ``DIR/.tumor3d-store``.
     max_voxels : int
         Refuse an input whose header declares more voxels (that row fails).
+    dask : DaskSpec, optional
+        Run the stages on a Dask cluster (:mod:`flows.dask_runner`) instead of
+        the default local threads.
 
     Raises
     ------
     InputError
         An invalid manifest or configuration, or an output folder holding an
         input (before any work).
+    ClusterError
+        A Dask scheduler that does not answer (before any work).
+    StoreError
+        An object store whose endpoint, bucket or credentials do not work
+        (before any work).
     """
     rows_in = (
         read_manifest(manifest, require_files=False)
@@ -290,13 +324,29 @@ def run_cohort(
     )
     rows = [_row_dict(r) for r in rows_in]
     cfg = parse_config(config or {}, source="config")
-    n = default_workers() if workers is None else workers
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+    if workers is not None and (
+        isinstance(workers, bool) or not isinstance(workers, int) or workers < 1
+    ):
         raise InputError(f"workers must be an integer >= 1, got {workers!r}")
+    if is_url(out_dir):
+        raise InputError(
+            f"--out {out_dir}: outputs are published to a folder (a local or shared file "
+            "system); an object store is supported for the artifact store (--store s3://...)"
+        )
     out = Path(out_dir)
     _validate_rows(rows, out)
+    if store_dir is not None and is_url(store_dir):
+        store = open_store(str(store_dir))
+        assert isinstance(store, ObjectStore)
+        store.check()  # one line naming the URL, before any patient starts
+    n = default_workers() if workers is None else workers
+    if dask is not None and dask.address:
+        n_cluster = check_scheduler(dask.address)  # one line, before any patient starts
+        n = max(1, n_cluster) if workers is None else workers
+    elif dask is not None and dask.n_workers and workers is None:
+        n = dask.n_workers
     out.mkdir(parents=True, exist_ok=True)
-    flow_fn = cohort_flow.with_options(task_runner=ThreadPoolTaskRunner(max_workers=n))
+    flow_fn = cohort_flow.with_options(task_runner=cohort_task_runner(n, dask))
     with tags(f"config:{config_digest(cfg)[:12]}", "cohort"):
         return flow_fn(
             rows=[_json_row(r) for r in rows], out_dir=str(out),

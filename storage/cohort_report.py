@@ -21,7 +21,13 @@ from storage.formats import encode_parquet
 from storage.report_html import cohort_report_html
 from storage.store import atomic_write_bytes
 
-__all__ = ["cohort_markdown", "cohort_page_rows", "cohort_table", "write_cohort_outputs"]
+__all__ = [
+    "cohort_markdown",
+    "cohort_page_rows",
+    "cohort_table",
+    "published_patient_ids",
+    "write_cohort_outputs",
+]
 
 _FIRST = ("patient_id", "status", "failed_stage", "error", "output_dir")
 
@@ -64,8 +70,14 @@ def cohort_markdown(
     title: str,
     wall_seconds: float,
     workers: int,
+    removed: Sequence[str] = (),
 ) -> str:
-    """A Markdown summary: volumes (mm3 and mL) per method, failures, time per stage, cache hits."""
+    """A Markdown summary: volumes (mm3 and mL) per method, failures, time per stage, cache hits.
+
+    ``removed`` names patients published in the output folder by an earlier
+    run but no longer in the manifest: listed in a section of their own (their
+    folders are kept, never deleted).
+    """
     ok = table[table["status"] == "ok"]
     failed = table[table["status"] != "ok"]
     lines = [
@@ -98,6 +110,14 @@ def cohort_markdown(
         for _, r in failed.iterrows():
             error = str(r["error"]).replace("|", "\\|")
             lines.append(f"| {r['patient_id']} | {r['failed_stage']} | {error} |")
+    if removed:
+        lines += [
+            "",
+            "## Removed from the manifest",
+            "",
+            f"{len(removed)} patient(s) published by an earlier run are no longer in the "
+            "manifest; their folders are kept (not deleted): " + ", ".join(removed) + ".",
+        ]
     lines += [
         "",
         "## Stages",
@@ -161,6 +181,21 @@ def cohort_page_rows(table: pd.DataFrame, out_dir: str | Path) -> list[dict[str,
                 row["report"] = f"{pid}/report.html"
         rows.append(row)
     return rows
+
+
+def published_patient_ids(out_dir: str | Path) -> list[str]:
+    """Patients already published in ``out_dir``: sub-folders holding ``metrics.parquet``, sorted.
+
+    Hidden folders (staging, trash, the artifact store) are not patients.
+    """
+    out = Path(out_dir)
+    if not out.is_dir():
+        return []
+    return sorted(
+        p.name
+        for p in out.iterdir()
+        if not p.name.startswith(".") and p.is_dir() and (p / "metrics.parquet").is_file()
+    )
 
 
 def write_cohort_outputs(out_dir: str | Path, table: pd.DataFrame, markdown: str) -> None:

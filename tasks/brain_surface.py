@@ -7,7 +7,8 @@ render setting nor a new tumour surface recomputes it.
 
 from __future__ import annotations
 
-from storage.store import ArtifactRef, ArtifactStore
+from storage.objectstore import open_store
+from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.brain_surface import brain_surface, display_mesh
 from tumor3d.pipeline import empty_mesh
@@ -24,7 +25,7 @@ VIEWER_BRAIN_MAX_FACES = 8000
 @stage_task("extract-brain-surface")
 def brain_surface_task(brain_mask: ArtifactRef, store_root: str) -> StageOutput:
     """The brain surface for the renders and a lighter copy for the viewer (empty if no brain)."""
-    store = ArtifactStore(store_root)
+    store = open_store(store_root)
     mask, affine = store.get_volume(brain_mask)
     if mask.any():
         brain = brain_surface(mask, affine, spacing_mm=BRAIN_SURFACE_SPACING_MM)

@@ -19,8 +19,9 @@ The flow run id is *not* part of the key, so a result computed by any earlier
 run is reused; Prefect's default policy would key on the run id, and its
 ``TASK_SOURCE`` ignores the core functions a task calls.
 
-The sources of the artifact store's own codecs (``storage/store.py``,
-``storage/formats.py``, :data:`FORMAT_MODULES`) are not hashed: the on-disk
+The sources of the artifact store's own codecs and back-ends
+(``storage/store.py``, ``storage/formats.py``, ``storage/objectstore.py``,
+:data:`FORMAT_MODULES`) are not hashed: the on-disk
 form of artifacts is covered by :data:`ARTIFACT_FORMAT_VERSION`, bumped by
 hand when it changes. The modules they import are walked and hashed as any
 other (``storage/nifti.py``, ``tumor3d/scan.py``, ...).
@@ -66,7 +67,7 @@ IGNORED_INPUTS = frozenset({"store_root"})
 PROJECT_PACKAGES = ("tumor3d", "storage", "tasks")
 
 #: The store's codecs: covered by :data:`ARTIFACT_FORMAT_VERSION`, their source not hashed.
-FORMAT_MODULES = frozenset({"storage.store", "storage.formats"})
+FORMAT_MODULES = frozenset({"storage.store", "storage.formats", "storage.objectstore"})
 
 #: The folder holding the project packages (this repository's root).
 PROJECT_ROOT = Path(__file__).resolve().parents[1]

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from storage.store import ArtifactRef, ArtifactStore
+from storage.objectstore import open_store
+from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.config import DetectConfig
 from tumor3d.detect import detect_abnormal_slices
@@ -28,7 +29,7 @@ def detect_task(
     store_root: str,
 ) -> StageOutput:
     """Abnormal-slice detection (histogram modes, or the patient's lesion model)."""
-    store = ArtifactStore(store_root)
+    store = open_store(store_root)
     image, affine = store.get_volume(enhanced)
     brain, _ = store.get_volume(brain_mask)
     detection = detect_abnormal_slices(

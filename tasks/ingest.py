@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from storage.objectstore import open_store
 from storage.readers import read_scan
-from storage.store import ArtifactStore
 from tasks.spec import InputSource, StageOutput, StageSpec, stage_task
 
 __all__ = ["SPEC", "ingest_task"]
@@ -22,7 +22,7 @@ def ingest_task(source: InputSource, store_root: str) -> StageOutput:
         skip_unreadable=source.skip_unreadable,
         max_voxels=source.max_voxels,
     )
-    ref = ArtifactStore(store_root).put_scan(scan)
+    ref = open_store(store_root).put_scan(scan)
     return StageOutput(
         stage="ingest-scan",
         artifacts={"scan": ref},

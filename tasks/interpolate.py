@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from storage.store import ArtifactRef, ArtifactStore
+from storage.objectstore import open_store
+from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.config import InterpolateConfig
 from tumor3d.interpolate import interpolate_stack
@@ -21,7 +22,7 @@ def interpolate_task(
     ``slices_between=None`` (automatic, [A10]) is resolved by the core from
     the scan's slice step and pixel spacing.
     """
-    store = ArtifactStore(store_root)
+    store = open_store(store_root)
     masks, affine = store.get_volume(tumor_mask_slices)
     stack = interpolate_stack(
         masks,

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from storage.store import ArtifactRef, ArtifactStore
+from storage.objectstore import open_store
+from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.measures import clinical_measures
 from tumor3d.metrics import measure_volumes
@@ -23,7 +24,7 @@ def measure_task(
     store_root: str,
 ) -> StageOutput:
     """Tumour volume by Eq. 7 (with its predicted error), voxels and meshes; RANO diameters."""
-    store = ArtifactStore(store_root)
+    store = open_store(store_root)
     meta = scan.metadata
     det = store.get_table(detection)
     seg = store.get_table(segmentation)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from storage.store import ArtifactRef, ArtifactStore
+from storage.objectstore import open_store
+from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.config import PreprocessConfig
 from tumor3d.preprocess import preprocess_volume
@@ -15,7 +16,7 @@ __all__ = ["SPEC", "preprocess_task"]
 @stage_task("preprocess")
 def preprocess_task(scan: ArtifactRef, config: PreprocessConfig, store_root: str) -> StageOutput:
     """Median, unsharp masking, equalisation and skull removal."""
-    store = ArtifactStore(store_root)
+    store = open_store(store_root)
     image, affine = store.get_volume(scan)
     result = preprocess_volume(image, **config.model_dump())
     return StageOutput(

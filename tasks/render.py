@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from storage.store import ArtifactRef, ArtifactStore
+from storage.objectstore import open_store
+from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.config import RenderConfig
 from tumor3d.render import render_views, turntable_gif
@@ -21,7 +22,7 @@ def render_task(
     ``brain_mesh`` is the surface of the extract-brain-surface stage (empty:
     the tumour is rendered alone).
     """
-    store = ArtifactStore(store_root)
+    store = open_store(store_root)
     surface = store.get_mesh(mesh)
     artifacts: dict[str, ArtifactRef] = {}
     values: dict[str, Any] = {"n_views": 0, "renderer": None, "fallback_reason": None}

@@ -20,6 +20,7 @@ each went (:class:`StageRun`).
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import threading
 import time
@@ -65,15 +66,42 @@ class StageRun(BaseModel):
     repaired: str | None = None
 
 
-def result_storage_for(store_root: str | Path) -> Path:
+def result_storage_for(store: ArtifactStore | str | Path) -> Any:
     """Prefect result storage inside an artifact store: ``<store>/prefect-results``.
 
-    A path (Prefect makes it a local file system), so no storage block has to
-    be registered on the server.
+    For a local store, a path (Prefect makes it a local file system), so no
+    storage block has to be registered on the server. For an object store
+    (:class:`storage.objectstore.ObjectStore`), a Prefect ``RemoteFileSystem``
+    block on ``<url>/prefect-results``, saved on the Prefect server once per
+    process as ``tumor3d-results-<hash of the URL>`` (Prefect requires result
+    storage blocks to be saved, and every Dask worker then reads the same
+    cache).
     """
-    path = Path(store_root).resolve() / "prefect-results"
+    url = getattr(store, "url", None)
+    if url is not None:
+        return _remote_result_storage(url, store.storage_options)  # type: ignore[union-attr]
+    root = store.root if isinstance(store, ArtifactStore) else store
+    path = Path(root).resolve() / "prefect-results"
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+_REMOTE_STORAGE: dict[str, Any] = {}
+
+
+def _remote_result_storage(url: str, options: dict[str, Any]) -> Any:
+    from prefect.filesystems import RemoteFileSystem
+    from prefect.settings import PREFECT_API_URL
+
+    key = f"{PREFECT_API_URL.value()}|{url}"  # saved on this server
+    with _TASKS_LOCK:
+        block = _REMOTE_STORAGE.get(key)
+        if block is None:
+            block = RemoteFileSystem(basepath=f"{url}/prefect-results", settings=options)
+            name = "tumor3d-results-" + hashlib.sha256(url.encode()).hexdigest()[:16]
+            block.save(name, overwrite=True)
+            _REMOTE_STORAGE[key] = block
+    return block
 
 
 class _Recorder:
@@ -107,16 +135,19 @@ class _Recorder:
         return out
 
 
-_TASKS: dict[tuple[str, Path, bool, str], Any] = {}
+_TASKS: dict[tuple[str, str, bool, str], Any] = {}
 _TASKS_LOCK = threading.Lock()
 
 
-def _task_for(spec: StageSpec, result_storage: Path, refresh: bool, patient_id: str) -> Any:
+def _task_for(spec: StageSpec, result_storage: Any, refresh: bool, patient_id: str) -> Any:
     """The stage's task with this store's result storage, its runs named after the patient.
 
-    Made once per process and key (``with_options`` builds a new task).
+    ``result_storage`` is a folder, or a Prefect file-system block for an
+    object store. Made once per process and key (``with_options`` builds a
+    new task).
     """
-    key = (spec.name, result_storage, refresh, patient_id)
+    where = str(getattr(result_storage, "basepath", result_storage))
+    key = (spec.name, where, refresh, patient_id)
     with _TASKS_LOCK:
         task = _TASKS.get(key)
         if task is None or task.fn is not spec.task.fn:
@@ -153,7 +184,7 @@ class PrefectRunner(_Recorder):
     ) -> None:
         super().__init__(patient_id, total, runs)
         self.store = store
-        self.result_storage = result_storage_for(store.root)
+        self.result_storage = result_storage_for(store)
 
     def _submit(self, spec: StageSpec, *, refresh: bool, **inputs: Any) -> Any:
         task = _task_for(spec, self.result_storage, refresh, self.patient_id)

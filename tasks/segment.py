@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from storage.store import ArtifactRef, ArtifactStore
+from storage.objectstore import open_store
+from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.config import SegmentConfig
 from tumor3d.detect import SliceDetection
@@ -30,7 +31,7 @@ def segment_task(
     store_root: str,
 ) -> StageOutput:
     """Wavelet + histogram fuzzy c-means tumour segmentation."""
-    store = ArtifactStore(store_root)
+    store = open_store(store_root)
     image, affine = store.get_volume(enhanced)
     brain, _ = store.get_volume(brain_mask)
     det = SliceDetection.from_records(store.get_table(detection).to_dict("records"))

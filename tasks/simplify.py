@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from storage.store import ArtifactRef, ArtifactStore
+from storage.objectstore import open_store
+from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.config import SimplifyConfig
 from tumor3d.pipeline import is_closed_surface
@@ -23,7 +24,7 @@ def simplify_task(mesh: ArtifactRef, config: SimplifyConfig, store_root: str) ->
     A mesh too small to simplify (F_target below 4 faces) is passed through
     unchanged and flagged, rather than failing the patient.
     """
-    store = ArtifactStore(store_root)
+    store = open_store(store_root)
     source = store.get_mesh(mesh)
     target = target_face_count(source.n_faces, config.reduction_percent)
     values: dict[str, Any] = {"faces_target": target, "simplified": False}

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from storage.store import ArtifactRef, ArtifactStore
+from storage.objectstore import open_store
+from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.config import SurfaceConfig
 from tumor3d.pipeline import is_closed_surface, tumour_surface
@@ -13,7 +14,7 @@ __all__ = ["SPEC", "surface_task"]
 @stage_task("extract-surface")
 def surface_task(tumor_mask: ArtifactRef, config: SurfaceConfig, store_root: str) -> StageOutput:
     """Marching cubes on the zero-padded interpolated mask (empty mesh when no tumour)."""
-    store = ArtifactStore(store_root)
+    store = open_store(store_root)
     mask, affine = store.get_volume(tumor_mask)
     mesh = tumour_surface(mask, affine, **config.model_dump())
     return StageOutput(

@@ -1,0 +1,161 @@
+"""The cohort flow on Dask: a 2-worker LocalCluster, and an unreachable scheduler.
+
+The cluster is a ``distributed.LocalCluster(n_workers=2, processes=False)``
+(worker threads in the test process: seconds to start instead of two fresh
+interpreters importing numba); the flow connects to it by address, exactly as
+``--dask-address`` does. Its task stream shows where each stage ran. The
+results must equal those of the default local runner on the same inputs.
+``--dask-workers N`` (worker processes) is exercised by benchmarks/bench_dask.py.
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import pytest
+from typer.testing import CliRunner
+
+from flows.cli import app
+from flows.cohort import run_cohort
+from flows.dask_runner import ClusterError, DaskSpec
+from storage.manifest import write_manifest
+from storage.phantom_io import write_phantom_patient
+from tasks.stages import STAGES
+from tumor3d.errors import InputError
+from tumor3d.phantom import make_phantom_patient
+
+distributed = pytest.importorskip("distributed", reason="Dask extra not installed")
+pytest.importorskip("prefect_dask", reason="prefect-dask not installed")
+
+
+def _rows(folder, seeds):
+    out = []
+    for s in seeds:
+        patient = make_phantom_patient(s, patient_id=f"dsk{s}", n_slices=16)
+        out.append(write_phantom_patient(patient, folder / f"dsk{s}"))
+    return out
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_unreachable_scheduler_is_one_line_before_any_patient(tmp_path):
+    rows = _rows(tmp_path / "in", [0])
+    address = f"tcp://127.0.0.1:{_free_port()}"  # nothing listens there
+    out = tmp_path / "out"
+    t0 = time.perf_counter()
+    with pytest.raises(ClusterError, match=f"Dask scheduler {address}: cannot connect") as exc:
+        run_cohort(rows, out, workers=1, dask=DaskSpec(address=address))
+    assert "\n" not in str(exc.value)
+    assert time.perf_counter() - t0 < 30
+    assert not out.exists()  # nothing started, nothing written
+    manifest = write_manifest(rows, tmp_path / "m.csv")
+    res = CliRunner().invoke(
+        app, ["cohort", str(manifest), "--out", str(out), "--dask-address", address]
+    )
+    assert res.exit_code == 3, res.output  # an environment error
+    assert "cannot connect" in res.output and "Traceback" not in res.output
+    assert not out.exists()
+
+
+def test_dask_options_are_exclusive():
+    with pytest.raises(InputError, match="either --dask-address or --dask-workers"):
+        DaskSpec(address="tcp://127.0.0.1:8786", n_workers=2)
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_cohort_on_a_two_worker_cluster_matches_the_local_runner(tmp_path):
+    rows = _rows(tmp_path / "in", [0, 1, 2])
+    local = run_cohort(rows, tmp_path / "local", workers=2)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster, distributed.Client(cluster) as client:  # fmt: skip
+        with distributed.get_task_stream(client) as stream:
+            on_dask = run_cohort(
+                rows, tmp_path / "dask", dask=DaskSpec(address=cluster.scheduler_address)
+            )
+        workers = set(cluster.scheduler.workers)
+    assert on_dask.workers == 2  # lanes = the cluster's workers
+    assert on_dask.exit_code == 0
+    # every stage of every patient ran on the cluster, spread over both workers
+    assert len(stream.data) == len(STAGES) * len(rows)
+    assert {t["worker"] for t in stream.data} == workers and len(workers) == 2
+    for a, b in zip(local.patients, on_dask.patients, strict=True):
+        assert a.patient_id == b.patient_id and b.status == "ok"
+        assert a.metrics["volume_eq7_mm3"] == b.metrics["volume_eq7_mm3"]
+        assert a.metrics["volume_mesh_mm3"] == b.metrics["volume_mesh_mm3"]
+        assert [s.artifacts for s in a.stages] == [s.artifacts for s in b.stages]
+        assert not any(s.cached for s in b.stages)  # its own store: computed afresh
+    # the same store re-run with the local runner: every stage a cache hit
+    again = run_cohort(rows, tmp_path / "dask", workers=1)
+    assert all(s.cached for p in again.patients for s in p.stages)
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_worker_killed_mid_stage_the_cohort_finishes_and_a_rerun_completes(tmp_path):
+    """SIGKILL the worker process running a render: Dask reruns the stage elsewhere.
+
+    Worker *processes* here (a killed thread is not a killed worker); the
+    nanny restarts the killed one. Whatever happens to the patient whose
+    stage was lost (retried, or recorded as failed), the cohort ends, nothing
+    is half-written, and a local re-run on the same store completes every
+    patient with the stages that finished before the kill as cache hits.
+    """
+    import os
+    import signal
+    import threading
+
+    from tasks.progress import use_reporter
+
+    rows = _rows(tmp_path / "in", [0, 1, 2])
+    out = tmp_path / "out"
+    killed: dict[str, object] = {}
+    lock = threading.Lock()
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster, distributed.Client(cluster) as client:  # fmt: skip
+        pids = client.run(os.getpid)
+
+        def reporter(event):
+            if event.stage != "render-views" or event.status != "started":
+                return
+            with lock:
+                if killed:
+                    return
+                deadline = time.monotonic() + 20
+                while time.monotonic() < deadline:
+                    busy = [a for a, keys in client.processing().items() if keys]
+                    if busy:
+                        os.kill(pids[busy[0]], signal.SIGKILL)
+                        killed.update(worker=busy[0], patient=event.patient_id)
+                        return
+                    time.sleep(0.05)
+
+        with use_reporter(reporter):
+            result = run_cohort(rows, out, dask=DaskSpec(address=cluster.scheduler_address))
+    assert killed, "no worker was killed: the test did not exercise anything"
+    assert len(result.patients) == 3
+    for p in result.patients:
+        if p.status == "ok":  # published as a whole
+            assert (out / p.patient_id / "metrics.parquet").is_file()
+        else:
+            assert p.error and "\n" not in p.error
+            assert not (out / p.patient_id).exists()
+    assert not [q for q in out.iterdir() if ".partial-" in q.name or ".old-" in q.name]
+    objects = out / ".tumor3d-store" / "objects"
+    assert not [f for f in objects.rglob("*") if f.name.startswith(".")]  # no temp files
+    ok_before = {p.patient_id for p in result.patients if p.status == "ok"}
+
+    again = run_cohort(rows, out, workers=1)
+    assert again.exit_code == 0
+    for p in again.patients:
+        if p.patient_id in ok_before:
+            assert all(s.cached for s in p.stages), p.patient_id
+        else:  # the stages before the lost render come from the cache
+            assert p.stages[0].cached, p.patient_id

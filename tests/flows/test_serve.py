@@ -1,0 +1,135 @@
+"""Scheduled reprocessing: the deployment's schedule and parameters, and what a run recomputes.
+
+The deployment object is built without serving (``cohort_deployment``); a
+run triggered through the Prefect API after a patient is added to the manifest
+is executed the way Prefect's runner executes it (``python -m prefect.engine``
+with the flow run's id: the flow is loaded from the deployment's entrypoint
+and parameters) and computes only the new patient. A patient dropped from the
+manifest is reported, its folder kept.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+
+from flows.serve import cohort_deployment, scheduled_cohort_flow
+from storage.manifest import write_manifest
+from storage.phantom_io import write_phantom_patient
+from tasks.stages import STAGES
+from tumor3d.errors import InputError
+from tumor3d.phantom import make_phantom_patient
+
+
+def _row(seed: int, folder):
+    patient = make_phantom_patient(seed, patient_id=f"srv{seed}", n_slices=16)
+    return write_phantom_patient(patient, folder / f"srv{seed}")
+
+
+def test_deployment_carries_the_cron_schedule_and_parameters(tmp_path):
+    manifest = write_manifest([_row(0, tmp_path)], tmp_path / "m.csv")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("simplify: {reduction_percent: 50}\n")
+    dep = cohort_deployment(
+        manifest, tmp_path / "out", cron="0 2 * * *", name="nightly", config_path=cfg, workers=3
+    )
+    assert dep.name == "nightly"
+    assert [s.schedule.cron for s in dep.schedules] == ["0 2 * * *"]
+    assert dep.schedules[0].schedule.timezone == "UTC"
+    assert dep.parameters == {
+        "manifest": str(manifest.resolve()),
+        "out_dir": str((tmp_path / "out").resolve()),
+        "config_path": str(cfg.resolve()),
+        "workers": 3,
+        "store_dir": None,
+        "dask_address": None,
+        "dask_workers": None,
+    }
+    assert dep.entrypoint == "flows.serve.scheduled_cohort_flow"
+    assert dep.flow_name == "tumor3d-scheduled-cohort"
+
+
+def test_deployment_refuses_a_bad_cron_or_a_missing_manifest(tmp_path):
+    manifest = write_manifest([_row(0, tmp_path)], tmp_path / "m.csv")
+    with pytest.raises(InputError, match="invalid --cron '61 2 \\* \\* \\*'"):
+        cohort_deployment(manifest, tmp_path / "out", cron="61 2 * * *")
+    with pytest.raises(InputError, match="absent.csv"):
+        cohort_deployment(tmp_path / "absent.csv", tmp_path / "out", cron="0 2 * * *")
+
+
+def _trigger_and_execute(dep) -> None:
+    """Register the deployment, create a run through the API, execute it like a runner."""
+    from prefect.client.orchestration import get_client
+    from prefect.settings import PREFECT_API_URL
+
+    deployment_id = dep.apply()
+    with get_client(sync_client=True) as client:
+        flow_run = client.create_flow_run_from_deployment(deployment_id)
+    env = {**os.environ, "PREFECT__FLOW_RUN_ID": str(flow_run.id),
+           "PREFECT_API_URL": PREFECT_API_URL.value()}  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "prefect.engine"], env=env, capture_output=True, text=True,
+        timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    with get_client(sync_client=True) as client:
+        state = client.read_flow_run(flow_run.id).state
+    assert state is not None and state.is_completed(), state
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_triggered_run_computes_only_the_added_patient_and_reports_removed(tmp_path):
+    inputs, out = tmp_path / "in", tmp_path / "out"
+    rows = [_row(0, inputs), _row(1, inputs)]
+    manifest = write_manifest(rows, tmp_path / "manifest.csv")
+    dep = cohort_deployment(manifest, out, cron="0 2 * * *", workers=1)
+
+    first = scheduled_cohort_flow(**dep.parameters)
+    assert [p.status for p in first.patients] == ["ok", "ok"]
+    assert not any(s.cached for p in first.patients for s in p.stages)
+
+    # a patient is added to the manifest; the scheduled run re-reads it
+    write_manifest([*rows, _row(2, inputs)], manifest)
+    _trigger_and_execute(dep)
+    table = pd.read_parquet(out / "cohort.parquet").set_index("patient_id")
+    cached = [f"cached_{s.replace('-', '_')}" for s in STAGES]
+    assert list(table.index) == ["srv0", "srv1", "srv2"]
+    assert (table["status"] == "ok").all()
+    assert table.loc[["srv0", "srv1"], cached].astype(bool).all(axis=None)
+    assert not table.loc["srv2", cached].astype(bool).any()
+    for pid in ("srv0", "srv1"):  # same numbers as the run that computed them
+        before = next(p for p in first.patients if p.patient_id == pid)
+        assert table.loc[pid, "volume_eq7_mm3"] == before.metrics["volume_eq7_mm3"]
+
+    # a patient is removed: reported, its published folder kept
+    write_manifest([rows[1]], manifest)
+    third = scheduled_cohort_flow(**dep.parameters)
+    assert [p.patient_id for p in third.patients] == ["srv1"]
+    assert third.removed == ["srv0", "srv2"]
+    assert (out / "srv0" / "metrics.parquet").is_file()
+    md = (out / "cohort.md").read_text()
+    assert "## Removed from the manifest" in md and "srv0, srv2" in md
+
+
+def test_cli_serve_builds_the_deployment_and_hands_it_to_prefect(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    import flows.serve
+    from flows.cli import app
+
+    manifest = write_manifest([_row(0, tmp_path)], tmp_path / "m.csv")
+    served = []
+    monkeypatch.setattr(flows.serve, "serve_cohort", served.append)
+    args = ["serve", str(manifest), "--out", str(tmp_path / "o"), "--name", "n1"]
+    ok = CliRunner().invoke(app, [*args, "--cron", "30 1 * * 1-5", "--workers", "2"])
+    assert ok.exit_code == 0, ok.output
+    assert [d.name for d in served] == ["n1"]
+    assert served[0].schedules[0].schedule.cron == "30 1 * * 1-5"
+    assert served[0].parameters["workers"] == 2
+    bad = CliRunner().invoke(app, [*args, "--cron", "every night"])
+    assert bad.exit_code == 2 and "invalid --cron" in bad.output and len(served) == 1

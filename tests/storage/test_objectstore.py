@@ -1,0 +1,227 @@
+"""The S3 artifact store against a local S3 server (moto in server mode on 127.0.0.1).
+
+Independent expectations: the local ``ArtifactStore`` on the same data (same
+digests, same object names, same bytes), boto3's own view of the bucket
+(no temporary or partial keys), and the cohort run on a local store (same
+volumes). Skipped, with the reason, when moto or s3fs is not installed.
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+pytest.importorskip("s3fs", reason="s3fs not installed (pip install 'tumor3d[s3]')")
+moto_server = pytest.importorskip(
+    "moto.server", reason="moto[server] not installed (pip install 'moto[server]')"
+)
+
+from flows.cli import app  # noqa: E402
+from flows.cohort import run_cohort  # noqa: E402
+from storage.manifest import write_manifest  # noqa: E402
+from storage.objectstore import ObjectStore, open_store  # noqa: E402
+from storage.phantom_io import write_phantom_patient  # noqa: E402
+from storage.store import ArtifactStore, CorruptArtifactError, StoreError  # noqa: E402
+from tasks.caching import stage_cache_policy  # noqa: E402
+from tumor3d.mesh import Mesh  # noqa: E402
+from tumor3d.phantom import make_phantom_patient  # noqa: E402
+
+BUCKET = "tumor3d-test"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def s3_endpoint():
+    """A moto S3 server on 127.0.0.1 for this module, with one bucket."""
+    port = _free_port()
+    server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server.start()
+    endpoint = f"http://127.0.0.1:{port}"
+    mp = pytest.MonkeyPatch()
+    for k, v in {
+        "AWS_ENDPOINT_URL": endpoint,
+        "AWS_ACCESS_KEY_ID": "testing",
+        "AWS_SECRET_ACCESS_KEY": "testing",
+        "AWS_DEFAULT_REGION": "us-east-1",
+        "AWS_REGION": "us-east-1",
+    }.items():
+        mp.setenv(k, v)
+    import boto3
+
+    client = boto3.client("s3", endpoint_url=endpoint, region_name="us-east-1")
+    client.create_bucket(Bucket=BUCKET)
+    yield client
+    mp.undo()
+    server.stop()
+
+
+def _keys(client, prefix: str) -> list[str]:
+    pages = client.get_paginator("list_objects_v2").paginate(Bucket=BUCKET, Prefix=prefix)
+    return sorted(o["Key"] for page in pages for o in page.get("Contents", []))
+
+
+def _mesh() -> Mesh:
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=np.float64)
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], dtype=np.int64)
+    return Mesh(vertices=v, faces=f)
+
+
+def test_same_digests_names_and_bytes_as_the_local_store(s3_endpoint, tmp_path):
+    s3 = open_store(f"s3://{BUCKET}/same")
+    local = ArtifactStore(tmp_path / "local")
+    assert isinstance(s3, ObjectStore) and type(local) is ArtifactStore
+    vol = np.random.default_rng(0).random((3, 4, 5)).astype(np.float32)
+    affine = np.diag([0.9, 0.9, 5.0, 1.0])
+    mask = vol > 0.5
+    pairs = [
+        (s3.put_volume(vol, affine), local.put_volume(vol, affine)),
+        (s3.put_volume(mask, affine, kind="mask"), local.put_volume(mask, affine, kind="mask")),
+        (s3.put_mesh(_mesh()), local.put_mesh(_mesh())),
+        (s3.put_table([{"a": 1, "b": 2.5}]), local.put_table([{"a": 1, "b": 2.5}])),
+        (s3.put_json({"x": [1, 2]}), local.put_json({"x": [1, 2]})),
+    ]  # fmt: skip
+    for r_s3, r_local in pairs:
+        assert r_s3 == r_local  # digest, relpath, metadata
+        body = s3_endpoint.get_object(Bucket=BUCKET, Key=f"same/{r_s3.relpath}")["Body"].read()
+        assert body == local.path(r_local).read_bytes()
+    back, back_affine = s3.get_volume(pairs[0][0])
+    assert np.array_equal(back, vol) and np.allclose(back_affine, affine)
+    assert s3.get_mesh(pairs[2][0]).n_faces == 4
+    assert s3.get_json(pairs[4][0]) == {"x": [1, 2]}
+    # every key is a final object: no temporary key left behind
+    assert all(k.startswith("same/objects/") for k in _keys(s3_endpoint, "same/"))
+
+
+def test_cache_keys_do_not_depend_on_the_store_location():
+    policy = stage_cache_policy("preprocess", ("tasks.preprocess",))
+    ref = {"kind": "scan", "digest": "a" * 64, "relpath": "objects/aa/x.nii.gz"}
+    from storage.store import ArtifactRef
+
+    inputs = {"scan": ArtifactRef(**ref), "store_root": "/srv/store"}
+    local_key = policy.compute_key(None, inputs, {})
+    s3_key = policy.compute_key(None, {**inputs, "store_root": f"s3://{BUCKET}/p"}, {})
+    assert local_key == s3_key
+
+
+def test_a_write_interrupted_before_the_copy_leaves_no_object(s3_endpoint, monkeypatch):
+    store = ObjectStore(f"s3://{BUCKET}/crash")
+
+    def killed(*args, **kwargs):
+        raise ConnectionError("worker killed between the temporary write and the copy")
+
+    monkeypatch.setattr(store.fs, "copy", killed)
+    with pytest.raises(StoreError, match="cannot write the artifact") as exc:
+        store.put_json({"half": True})
+    assert "\n" not in str(exc.value)
+    assert not [k for k in _keys(s3_endpoint, "crash/") if k.startswith("crash/objects/")]
+    monkeypatch.undo()
+    ref = store.put_json({"half": True})
+    assert store.get_json(ref) == {"half": True}
+    assert _keys(s3_endpoint, "crash/") == [f"crash/{ref.relpath}"]
+
+
+def test_a_corrupted_object_is_quarantined_and_rewritten(s3_endpoint):
+    store = ObjectStore(f"s3://{BUCKET}/heal")
+    ref = store.put_json({"v": 1})
+    key = f"heal/{ref.relpath}"
+    good = s3_endpoint.get_object(Bucket=BUCKET, Key=key)["Body"].read()
+    s3_endpoint.put_object(Bucket=BUCKET, Key=key, Body=good.replace(b"1", b"2"))
+    assert not store.verify(ref)  # digest checked on read: quarantined
+    assert key not in _keys(s3_endpoint, "heal/")
+    assert [k for k in _keys(s3_endpoint, "heal/quarantine/")]
+    with pytest.raises(StoreError, match="is missing"):
+        store.get_bytes(ref)
+    assert store.put_json({"v": 1}) == ref and store.get_json(ref) == {"v": 1}
+    s3_endpoint.put_object(Bucket=BUCKET, Key=key, Body=good.replace(b"1", b"3"))
+    with pytest.raises(CorruptArtifactError):
+        store.get_bytes(ref)
+    actions = [r.action for r in ObjectStore(f"s3://{BUCKET}/heal").read_repairs()]
+    assert actions == ["quarantined", "quarantined"]
+
+
+def _rows(folder, seeds):
+    rows = []
+    for s in seeds:
+        patient = make_phantom_patient(s, patient_id=f"s3p{s}", n_slices=16)
+        rows.append(write_phantom_patient(patient, folder / f"s3p{s}"))
+    return rows
+
+
+def test_an_unreachable_endpoint_fails_in_one_line_before_any_patient(
+    s3_endpoint, tmp_path, monkeypatch
+):
+    monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://127.0.0.1:{_free_port()}")
+    rows = _rows(tmp_path / "in", [0])
+    out = tmp_path / "out"
+    t0 = time.perf_counter()
+    with pytest.raises(StoreError, match="cannot reach the artifact store") as exc:
+        run_cohort(rows, out, workers=1, store_dir=f"s3://{BUCKET}/down")
+    assert "\n" not in str(exc.value) and f"s3://{BUCKET}/down" in str(exc.value)
+    assert time.perf_counter() - t0 < 60
+    assert not out.exists()
+    manifest = write_manifest(rows, tmp_path / "m.csv")
+    res = CliRunner().invoke(
+        app, ["cohort", str(manifest), "--out", str(out), "--store", f"s3://{BUCKET}/down"]
+    )
+    assert res.exit_code == 3 and "cannot reach the artifact store" in res.output
+    assert not out.exists()
+
+
+def test_a_missing_bucket_and_an_s3_out_are_refused(s3_endpoint, tmp_path):
+    rows = _rows(tmp_path / "in", [0])
+    with pytest.raises(StoreError, match="bucket 'no-such-bucket' does not exist"):
+        run_cohort(rows, tmp_path / "o", workers=1, store_dir="s3://no-such-bucket/p")
+    with pytest.raises(Exception, match="outputs are published to a folder"):
+        run_cohort(rows, f"s3://{BUCKET}/out", workers=1)
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_cohort_with_an_s3_store_matches_a_local_store_and_reruns_from_cache(s3_endpoint, tmp_path):
+    rows = _rows(tmp_path / "in", [0, 1])
+    local = run_cohort(rows, tmp_path / "local", workers=2)
+    url = f"s3://{BUCKET}/cohort"
+    first = run_cohort(rows, tmp_path / "out", workers=2, store_dir=url)
+    assert first.exit_code == 0
+    for a, b in zip(local.patients, first.patients, strict=True):
+        assert b.metrics["volume_eq7_mm3"] == a.metrics["volume_eq7_mm3"]
+        assert b.metrics["volume_mesh_mm3"] == a.metrics["volume_mesh_mm3"]
+        assert [s.artifacts for s in b.stages] == [s.artifacts for s in a.stages]
+    keys = _keys(s3_endpoint, "cohort/")
+    digests = {d for p in first.patients for s in p.stages for d in s.artifacts.values()}
+    stored = {k.rsplit("/", 1)[-1].split(".")[0] for k in keys if "/objects/" in k}
+    assert digests <= stored  # every artifact is on S3 ...
+    assert any(k.startswith("cohort/prefect-results/") for k in keys)  # ... and the cache
+    assert not [k for k in keys if k.startswith("cohort/tmp/")]
+    assert not (tmp_path / "out" / ".tumor3d-store").exists()  # nothing kept locally
+    again = run_cohort(rows, tmp_path / "out2", workers=2, store_dir=url)
+    assert all(s.cached for p in again.patients for s in p.stages)
+    assert [p.metrics["volume_eq7_mm3"] for p in again.patients] == [
+        p.metrics["volume_eq7_mm3"] for p in first.patients
+    ]
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_dask_worker_processes_share_the_s3_store_and_its_cache(s3_endpoint, tmp_path):
+    """Two Dask worker *processes* (--dask-workers 2): the store, the Prefect result
+    block and the endpoint from the environment reach them; a re-run is all hits."""
+    pytest.importorskip("prefect_dask", reason="prefect-dask not installed")
+    from flows.dask_runner import DaskSpec
+
+    rows = _rows(tmp_path / "in", [0, 1])
+    url = f"s3://{BUCKET}/dask"
+    first = run_cohort(rows, tmp_path / "o1", store_dir=url, dask=DaskSpec(n_workers=2))
+    assert [p.status for p in first.patients] == ["ok", "ok"], [p.error for p in first.patients]
+    assert not (tmp_path / "o1" / ".tumor3d-store").exists()
+    again = run_cohort(rows, tmp_path / "o2", store_dir=url, dask=DaskSpec(n_workers=2))
+    assert all(s.cached for p in again.patients for s in p.stages)
