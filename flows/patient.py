@@ -178,13 +178,15 @@ def run_stages(run: Any, source: InputSource, cfg: PipelineConfig, root: str) ->
     scan = run.run(S["ingest-scan"], source=source, store_root=root).artifacts["scan"]
     pre = run.run(S["preprocess"], scan=scan, config=cfg.preprocess, store_root=root)
     enhanced, brain = pre.artifacts["enhanced"], pre.artifacts["brain_mask"]
-    det = run.run(
+    detected = run.run(
         S["detect-abnormal"], scan=scan, enhanced=enhanced, brain_mask=brain, config=cfg.detect,
         store_root=root,
-    ).artifacts["detection"]  # fmt: skip
+    )  # fmt: skip
+    # the detect stage computes the patient lesion model once; segment reuses its mask
+    det, lesion = detected.artifacts["detection"], detected.artifacts["lesion"]
     seg = run.run(
         S["segment-tumor"], scan=scan, enhanced=enhanced, brain_mask=brain, detection=det,
-        config=cfg.segment, store_root=root,
+        lesion=lesion, config=cfg.segment, store_root=root,
     )  # fmt: skip
     itp = run.run(
         S["interpolate-slices"], scan=scan, tumor_mask_slices=seg.artifacts["tumor_mask_slices"],

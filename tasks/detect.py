@@ -1,6 +1,17 @@
-"""Adapter of the detect-abnormal stage (spec section 2)."""
+"""Adapter of the detect-abnormal stage (spec section 2).
+
+The robust detection computes the patient lesion model
+(:func:`tumor3d.lesion.segment_hyperintense_lesion`); its mask and scalars
+are stored as the ``lesion`` artifact, which the segment stage reuses (the
+model runs once per patient). Without the robust detection the artifact
+holds an empty mask marked ``computed: false`` and the lesion parameters,
+so that a robust segmentation computes the model itself.
+"""
 
 from __future__ import annotations
+
+import math
+from typing import Any
 
 import numpy as np
 
@@ -9,15 +20,37 @@ from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.config import DetectConfig
 from tumor3d.detect import detect_abnormal_slices
-from tumor3d.lesion import left_right_axis
+from tumor3d.lesion import LesionResult, left_right_axis
 
-__all__ = ["SPEC", "detect_task"]
+__all__ = ["SPEC", "detect_task", "lesion_metadata"]
 
 
 def _spacing(scan: ArtifactRef) -> tuple[float, float, float]:
     """(slice step, row, column) voxel spacing in mm from the scan's metadata."""
     dy, dx = scan.metadata["pixel_spacing_mm"]
     return (float(scan.metadata["slice_step_mm"]), float(dy), float(dx))
+
+
+def _num(v: float) -> float | None:
+    """JSON-able float: None for NaN and infinities."""
+    return float(v) if math.isfinite(float(v)) else None
+
+
+def lesion_metadata(lesion: LesionResult | None, params: dict[str, Any]) -> dict[str, Any]:
+    """The ``lesion`` artifact's metadata: whether it was computed, its scalars, its params."""
+    meta: dict[str, Any] = {"computed": lesion is not None, "params": dict(params)}
+    if lesion is not None:
+        m = lesion.model
+        meta.update(
+            median=_num(m.median),
+            sigma=_num(m.sigma),
+            seed_threshold=_num(m.seed_threshold),
+            csf_threshold=_num(m.csf_threshold),
+            lesion_gray=_num(lesion.lesion_gray),
+            grow_threshold=_num(lesion.grow_threshold),
+            n_components=int(lesion.n_components),
+        )
+    return meta
 
 
 @stage_task("detect-abnormal")
@@ -41,10 +74,20 @@ def detect_task(
         **config.model_dump(),
     )
     abnormal = np.flatnonzero(detection.abnormal)
+    lesion = detection.lesion
+    mask = lesion.mask if lesion is not None else np.zeros(image.shape, dtype=bool)
+    meta = lesion_metadata(lesion, config.lesion.model_dump())
     return StageOutput(
         stage="detect-abnormal",
-        artifacts={"detection": store.put_table(detection.to_records())},
-        values={"n_abnormal_slices": int(abnormal.size), "abnormal_slices": abnormal.tolist()},
+        artifacts={
+            "detection": store.put_table(detection.to_records()),
+            "lesion": store.put_volume(mask, affine, kind="mask", extra={"lesion": meta}),
+        },
+        values={
+            "n_abnormal_slices": int(abnormal.size),
+            "abnormal_slices": abnormal.tolist(),
+            "lesion_computed": lesion is not None,
+        },
     )
 
 
@@ -54,5 +97,5 @@ SPEC = StageSpec(
     entry=detect_abnormal_slices,
     config_model=DetectConfig,
     inputs={"scan": "scan", "enhanced": "image", "brain_mask": "mask"},
-    outputs={"detection": "table"},
+    outputs={"detection": "table", "lesion": "mask"},
 )

@@ -1,6 +1,15 @@
-"""Adapter of the segment-tumor stage (spec section 3)."""
+"""Adapter of the segment-tumor stage (spec section 3).
+
+The robust method reuses the lesion model of the detect stage (its
+``lesion`` artifact: mask and scalars); when the detection did not compute
+it (histogram detection), the model is computed here with the parameters
+that artifact records (``detect.lesion``).
+"""
 
 from __future__ import annotations
+
+import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -9,10 +18,10 @@ from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, stage_task
 from tumor3d.config import SegmentConfig
 from tumor3d.detect import SliceDetection
-from tumor3d.lesion import left_right_axis
+from tumor3d.lesion import LesionResult, NormalModel, left_right_axis
 from tumor3d.segment import segment_tumor
 
-__all__ = ["SPEC", "segment_task"]
+__all__ = ["SPEC", "lesion_from_artifact", "segment_task"]
 
 
 def _spacing(scan: ArtifactRef) -> tuple[float, float, float]:
@@ -21,20 +30,49 @@ def _spacing(scan: ArtifactRef) -> tuple[float, float, float]:
     return (float(scan.metadata["slice_step_mm"]), float(dy), float(dx))
 
 
+def _f(v: Any, missing: float = float("nan")) -> float:
+    return missing if v is None else float(v)
+
+
+def lesion_from_artifact(mask: np.ndarray, meta: dict[str, Any]) -> LesionResult | None:
+    """The :class:`LesionResult` stored by the detect stage; None if it was not computed."""
+    if not meta.get("computed"):
+        return None
+    model = NormalModel(
+        _f(meta["median"]),
+        _f(meta["sigma"]),
+        _f(meta["seed_threshold"]),
+        _f(meta["csf_threshold"], float("inf")),
+    )
+    return LesionResult(
+        np.asarray(mask, dtype=bool),
+        model,
+        _f(meta["lesion_gray"]),
+        _f(meta["grow_threshold"]),
+        int(meta["n_components"]),
+    )
+
+
 @stage_task("segment-tumor")
 def segment_task(
     scan: ArtifactRef,
     enhanced: ArtifactRef,
     brain_mask: ArtifactRef,
     detection: ArtifactRef,
+    lesion: ArtifactRef,
     config: SegmentConfig,
     store_root: str,
 ) -> StageOutput:
-    """Wavelet + histogram fuzzy c-means tumour segmentation."""
+    """Tumour segmentation: the lesion model (robust), wavelet + histogram FCM, or the peer."""
     store = open_store(store_root)
     image, affine = store.get_volume(enhanced)
     brain, _ = store.get_volume(brain_mask)
     det = SliceDetection.from_records(store.get_table(detection).to_dict("records"))
+    meta = lesion.metadata["lesion"]
+    needs_lesion = config.method in ("auto", "robust")
+    if needs_lesion and meta.get("computed"):
+        lesion_mask, _ = store.get_volume(lesion)
+        det = dataclasses.replace(det, lesion=lesion_from_artifact(lesion_mask, meta))
     result = segment_tumor(
         image,
         brain,
@@ -42,6 +80,7 @@ def segment_task(
         modality=scan.metadata["modality"],
         spacing_mm=_spacing(scan),
         lr_axis=left_right_axis(affine),
+        lesion=meta["params"],
         **config.model_dump(),
     )
     return StageOutput(
@@ -62,6 +101,12 @@ SPEC = StageSpec(
     task=segment_task,
     entry=segment_tumor,
     config_model=SegmentConfig,
-    inputs={"scan": "scan", "enhanced": "image", "brain_mask": "mask", "detection": "table"},
+    inputs={
+        "scan": "scan",
+        "enhanced": "image",
+        "brain_mask": "mask",
+        "detection": "table",
+        "lesion": "mask",
+    },
     outputs={"tumor_mask_slices": "mask", "segmentation": "table"},
 )

@@ -25,6 +25,7 @@ from tumor3d.validation import short_repr
 __all__ = [
     "DetectConfig",
     "InterpolateConfig",
+    "LesionConfig",
     "PipelineConfig",
     "PreprocessConfig",
     "RenderConfig",
@@ -99,6 +100,76 @@ class PreprocessConfig(_StageConfig):
         return self
 
 
+class LesionConfig(_StageConfig):
+    """The patient lesion model of the robust method (:mod:`tumor3d.lesion`).
+
+    One section, ``detect.lesion``: the detect stage computes the model once
+    (its slices flag the abnormal slices) and the segment stage reuses its
+    mask. The fields are the keywords of
+    :func:`tumor3d.lesion.segment_hyperintense_lesion`.
+    """
+
+    smoothing_px: float = Field(
+        2.0,
+        ge=0.0,
+        le=20.0,
+        description="In-plane Gaussian sigma (pixels) of the spatial regularisation "
+        "before the patient-pooled normal-tissue model.",
+    )
+    seed_sigmas: float = Field(
+        2.0,
+        gt=0.0,
+        le=10.0,
+        description="Lesion seeds lie this many robust SDs (1.4826 MAD) above the "
+        "median of the smoothed brain (chosen by leave-one-case-out).",
+    )
+    min_region_pixels: int = Field(
+        50, ge=1, description="Smallest significant lesion cross-section on a slice, px."
+    )
+    min_slices: int = Field(
+        2,
+        ge=1,
+        le=100,
+        description="Consecutive slices on which a lesion must reach that cross-section.",
+    )
+    keep_largest: bool = Field(True, description="Keep only the largest lesion (one tumour).")
+    refine_boundary: bool = Field(
+        True, description="Partial-volume boundary (lesion fraction > 1/2) at the border."
+    )
+    fill_core: bool = Field(
+        True, description="Fill the enclosed (necrotic) core and cavities at the rim."
+    )
+    boundary_rings: int = Field(
+        3,
+        ge=0,
+        le=20,
+        description="Rings of partial-volume growth against the local lesion gray.",
+    )
+    floor_sigmas: float = Field(
+        1.0,
+        ge=0.0,
+        le=10.0,
+        description="That growth never goes below median + this many robust SDs "
+        "(chosen by leave-one-case-out).",
+    )
+
+
+#: Keys of the lesion model that lived in ``detect`` and ``segment`` before
+#: ``detect.lesion`` (old name -> field of :class:`LesionConfig`).
+_MOVED_LESION_KEYS = {f"lesion_{name}": name for name in LesionConfig.model_fields}
+
+
+def _refuse_moved_lesion_keys(section: str, data: Any) -> Any:
+    if isinstance(data, dict):
+        for key in data:
+            if key in _MOVED_LESION_KEYS:
+                raise ValueError(
+                    f"{section}.{key} moved to detect.lesion.{_MOVED_LESION_KEYS[key]} "
+                    "(one lesion model, computed by the detect stage and reused by segment)"
+                )
+    return data
+
+
 class DetectConfig(_StageConfig):
     """Abnormal-slice detection by histogram mode counting (spec section 2, [A5], [A6]).
 
@@ -131,49 +202,31 @@ class DetectConfig(_StageConfig):
         "on T2 histogram where >= 95 % of the slices show 3 modes (the paper's premise) "
         "and robust otherwise, histogram without modality.",
     )
-    lesion_smoothing_px: float = Field(
-        2.0,
-        ge=0.0,
-        le=20.0,
-        description="robust: in-plane Gaussian sigma (pixels) of the spatial regularisation "
-        "before the patient-pooled normal-tissue model.",
-    )
-    lesion_seed_sigmas: float = Field(
-        2.0,
-        gt=0.0,
-        le=10.0,
-        description="robust: lesion seeds lie this many robust SDs (1.4826 MAD) above the "
-        "median of the smoothed brain (chosen by leave-one-case-out).",
-    )
-    lesion_min_region_pixels: int = Field(
-        50, ge=1, description="robust: smallest significant lesion cross-section on a slice, px."
-    )
-    lesion_min_slices: int = Field(
-        2,
-        ge=1,
-        le=100,
-        description="robust: consecutive slices on which a lesion must reach that cross-section.",
-    )
-    lesion_boundary_rings: int = Field(
-        3,
-        ge=0,
-        le=20,
-        description="robust: rings of partial-volume growth against the local lesion gray.",
-    )
-    lesion_floor_sigmas: float = Field(
-        1.0,
-        ge=0.0,
-        le=10.0,
-        description="robust: that growth never goes below median + this many robust SDs "
-        "(chosen by leave-one-case-out).",
+    lesion: LesionConfig = Field(
+        default_factory=lambda: LesionConfig(),
+        description="robust: the patient lesion model (tumor3d.lesion), computed once by the "
+        "detect stage and reused by the segment stage.",
     )
     lesion_min_slice_pixels: int = Field(
         20, ge=1, description="robust: a slice holding this many lesion pixels is abnormal."
     )
 
+    @model_validator(mode="before")
+    @classmethod
+    def _moved_keys(cls, data: Any) -> Any:
+        return _refuse_moved_lesion_keys("detect", data)
+
 
 class SegmentConfig(_StageConfig):
-    """Tumour segmentation (spec section 3): robust default, the paper's method, a peer."""
+    """Tumour segmentation (spec section 3): robust default, the paper's method, a peer.
+
+    The robust method's lesion model is configured in ``detect.lesion``
+    (:class:`LesionConfig`): the detect stage computes it once and this stage
+    keeps its mask on the abnormal slices. ``keep_largest_3d_component``,
+    ``refine_boundary`` and ``min_tumor_slices`` here are the paper method's
+    (the lesion model has its own ``keep_largest`` and ``refine_boundary``);
+    ``min_tumor_pixels`` applies to every method.
+    """
 
     method: Literal["auto", "robust", "paper", "multiotsu"] = Field(
         "auto",
@@ -223,46 +276,12 @@ class SegmentConfig(_StageConfig):
         description="With keep_largest_3d_component: the kept tumour must span "
         "at least this many acquired slices (drops isolated partial-volume slices).",
     )
-    lesion_smoothing_px: float = Field(
-        2.0,
-        ge=0.0,
-        le=20.0,
-        description="robust: in-plane Gaussian sigma (pixels) of the spatial regularisation "
-        "before the patient-pooled normal-tissue model.",
-    )
-    lesion_seed_sigmas: float = Field(
-        2.0,
-        gt=0.0,
-        le=10.0,
-        description="robust: lesion seeds lie this many robust SDs (1.4826 MAD) above the "
-        "median of the smoothed brain (chosen by leave-one-case-out).",
-    )
-    lesion_min_region_pixels: int = Field(
-        50, ge=1, description="robust: smallest significant lesion cross-section on a slice, px."
-    )
-    lesion_min_slices: int = Field(
-        2,
-        ge=1,
-        le=100,
-        description="robust: consecutive slices on which a lesion must reach that cross-section.",
-    )
-    lesion_boundary_rings: int = Field(
-        3,
-        ge=0,
-        le=20,
-        description="robust: rings of partial-volume growth against the local lesion gray.",
-    )
-    lesion_floor_sigmas: float = Field(
-        1.0,
-        ge=0.0,
-        le=10.0,
-        description="robust: that growth never goes below median + this many robust SDs "
-        "(chosen by leave-one-case-out).",
-    )
-    lesion_fill_core: bool = Field(
-        True, description="robust: fill the enclosed (necrotic) core and cavities at the rim."
-    )
     multiotsu_classes: int = Field(4, ge=2, le=6, description="multiotsu peer: classes.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _moved_keys(cls, data: Any) -> Any:
+        return _refuse_moved_lesion_keys("segment", data)
 
 
 class InterpolateConfig(_StageConfig):

@@ -9,13 +9,15 @@ section 3.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError
-from tumor3d.lesion import segment_hyperintense_lesion
+from tumor3d.lesion import LesionResult, lesion_params, segment_hyperintense_lesion
 from tumor3d.scan import MODALITIES
 
 __all__ = [
@@ -66,12 +68,18 @@ class SliceDetection:
         Peak gray levels of each slice: the FCM seeds of section 3.
     brain_pixels : (z,) ndarray of int64
         Number of brain-mask pixels of each slice.
+    lesion : LesionResult or None
+        The patient lesion model when the robust method ran (its mask over
+        all slices, before the abnormal-slice restriction); reused by
+        :func:`tumor3d.segment.segment_tumor`'s robust method so that the
+        model runs once. Not part of :meth:`to_records`.
     """
 
     n_modes: np.ndarray
     abnormal: np.ndarray
     peaks_gray: tuple[np.ndarray, ...]
     brain_pixels: np.ndarray
+    lesion: LesionResult | None = None
 
     def __post_init__(self) -> None:
         n_modes = np.array(self.n_modes, dtype=np.int64).reshape(-1)
@@ -85,6 +93,12 @@ class SliceDetection:
                 f"{nz} n_modes, {abnormal.size} abnormal, {len(peaks)} peaks_gray, "
                 f"{brain_pixels.size} brain_pixels"
             )
+        if self.lesion is not None and (
+            not isinstance(self.lesion, LesionResult)
+            or np.ndim(self.lesion.mask) != 3
+            or np.shape(self.lesion.mask)[0] != nz
+        ):
+            raise InputError(f"SliceDetection.lesion must be a LesionResult with {nz} slices")
         for arr in (n_modes, abnormal, brain_pixels):
             arr.setflags(write=False)
         object.__setattr__(self, "n_modes", n_modes)
@@ -461,12 +475,7 @@ def detect_abnormal_slices(
     min_brain_pixels: int = 500,
     method: str = "auto",
     modality: str | None = None,
-    lesion_smoothing_px: float = 2.0,
-    lesion_seed_sigmas: float = 2.0,
-    lesion_min_region_pixels: int = 50,
-    lesion_min_slices: int = 2,
-    lesion_boundary_rings: int = 3,
-    lesion_floor_sigmas: float = 1.0,
+    lesion: Mapping[str, Any] | None = None,
     lesion_min_slice_pixels: int = 20,
     spacing_mm: tuple[float, float, float] | None = None,
     lr_axis: int | None = None,
@@ -488,10 +497,11 @@ def detect_abnormal_slices(
     patient: the normal-tissue intensity model is learned across all
     slices (median / MAD of the smoothed brain), a region is abnormal when
     it falls above it over a significant cross-section on at least
-    ``lesion_min_slices`` consecutive slices (consistency between
-    neighbours). Measured on BraTS FLAIR at 2 mm / 5 mm: recall and
-    specificity in ``reports/segmentation.md``; the histogram method flags
-    7-27 % of the tumour slices there.
+    ``lesion["min_slices"]`` consecutive slices (consistency between
+    neighbours). The lesion is returned in ``SliceDetection.lesion``.
+    Measured on BraTS FLAIR at 2 mm / 5 mm: recall and specificity in
+    ``reports/segmentation.md``; the histogram method flags 7-27 % of the
+    tumour slices there.
 
     ``method="histogram"``: the paper's mode count. For every slice ``z``
     the histogram of ``enhanced[z]`` over
@@ -519,11 +529,11 @@ def detect_abnormal_slices(
         Sequence (robust method only): on T2 the CSF-bright voxels are
         excluded from the lesion. None = no CSF rule (FLAIR, T1c). The
         adapter passes the scan's modality.
-    lesion_smoothing_px, lesion_seed_sigmas, lesion_min_region_pixels, lesion_min_slices,
-    lesion_boundary_rings, lesion_floor_sigmas
-        Robust method: ``smoothing_px``, ``seed_sigmas``,
-        ``min_region_pixels`` and ``min_slices`` of
-        :func:`tumor3d.lesion.segment_hyperintense_lesion`.
+    lesion : mapping, optional
+        Robust method: keywords of
+        :func:`tumor3d.lesion.segment_hyperintense_lesion` (the fields of
+        ``tumor3d.config.LesionConfig``, ``detect.lesion`` of the pipeline);
+        None or missing keys = :data:`tumor3d.lesion.LESION_DEFAULTS`.
     lesion_min_slice_pixels : int
         Robust method: a slice is abnormal when it holds at least this many
         lesion pixels (the lesion itself must be significant elsewhere).
@@ -577,40 +587,27 @@ def detect_abnormal_slices(
             method = "robust"
         else:
             method = "histogram"
+    model = None
     if method == "histogram":
         flagged = n_modes >= int(abnormal_min_modes)
     else:
         mod = modality.strip().lower() if isinstance(modality, str) else "flair"
         if mod not in MODALITIES:
             raise InputError(f"unknown modality {modality!r}: expected one of {MODALITIES}")
-        from tumor3d.segment import _check_lesion_params
-
-        _check_lesion_params(
-            lesion_smoothing_px,
-            lesion_seed_sigmas,
-            lesion_min_region_pixels,
-            lesion_min_slices,
-            lesion_boundary_rings,
-            lesion_floor_sigmas,
-        )
-        lesion = segment_hyperintense_lesion(
+        model = segment_hyperintense_lesion(
             img,
             mask,
             modality=mod,
-            smoothing_px=float(lesion_smoothing_px),
-            seed_sigmas=float(lesion_seed_sigmas),
-            min_region_pixels=int(lesion_min_region_pixels),
-            min_slices=int(lesion_min_slices),
-            boundary_rings=int(lesion_boundary_rings),
-            floor_sigmas=float(lesion_floor_sigmas),
             spacing_mm=(1.0, 1.0, 1.0) if spacing_mm is None else tuple(spacing_mm),
             lr_axis=lr_axis,
+            **lesion_params(lesion),
         )
-        flagged = lesion.mask.sum(axis=(1, 2)) >= int(lesion_min_slice_pixels)
+        flagged = model.mask.sum(axis=(1, 2)) >= int(lesion_min_slice_pixels)
     abnormal = flagged & (brain_pixels >= int(min_brain_pixels))
     return SliceDetection(
         n_modes=n_modes,
         abnormal=abnormal,
         peaks_gray=tuple(m.peaks_gray for m in modes),
         brain_pixels=brain_pixels,
+        lesion=model,
     )

@@ -85,7 +85,9 @@ others have the physical reasons given above.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -93,7 +95,14 @@ from skimage.morphology import disk
 
 from tumor3d.errors import InputError
 
-__all__ = ["LesionResult", "NormalModel", "left_right_axis", "segment_hyperintense_lesion"]
+__all__ = [
+    "LESION_DEFAULTS",
+    "LesionResult",
+    "NormalModel",
+    "left_right_axis",
+    "lesion_params",
+    "segment_hyperintense_lesion",
+]
 
 _MAD_TO_SIGMA = 1.4826  # sigma of a normal distribution = 1.4826 MAD
 
@@ -161,6 +170,61 @@ class LesionResult:
     lesion_gray: float
     grow_threshold: float
     n_components: int
+
+
+#: The configurable keywords of :func:`segment_hyperintense_lesion` and their defaults
+#: (``tumor3d.config.LesionConfig`` holds the same, the pipeline's ``detect.lesion``).
+LESION_DEFAULTS: dict[str, float | int | bool] = {
+    "smoothing_px": 2.0,
+    "seed_sigmas": 2.0,
+    "min_region_pixels": 50,
+    "min_slices": 2,
+    "keep_largest": True,
+    "refine_boundary": True,
+    "fill_core": True,
+    "boundary_rings": 3,
+    "floor_sigmas": 1.0,
+}
+
+
+def lesion_params(lesion: Mapping[str, Any] | None) -> dict[str, Any]:
+    """Checked keywords of the lesion model: ``lesion`` over :data:`LESION_DEFAULTS`.
+
+    Raises
+    ------
+    InputError
+        On an unknown key or an out-of-range value (naming it).
+    """
+    given = dict(lesion or {})
+    unknown = sorted(set(given) - set(LESION_DEFAULTS))
+    if unknown:
+        raise InputError(
+            f"unknown lesion parameter(s) {unknown}: expected {sorted(LESION_DEFAULTS)}"
+        )
+    p = {**LESION_DEFAULTS, **given}
+    if not 0.0 <= float(p["smoothing_px"]) <= 20.0:
+        raise InputError(f"lesion smoothing_px must lie in [0, 20], got {p['smoothing_px']}")
+    if not float(p["seed_sigmas"]) > 0.0:
+        raise InputError(f"lesion seed_sigmas must be > 0, got {p['seed_sigmas']}")
+    if int(p["min_region_pixels"]) < 1:
+        raise InputError(f"lesion min_region_pixels must be >= 1, got {p['min_region_pixels']}")
+    if int(p["min_slices"]) < 1:
+        raise InputError(f"lesion min_slices must be >= 1, got {p['min_slices']}")
+    if int(p["boundary_rings"]) < 0:
+        raise InputError(f"lesion boundary_rings must be >= 0, got {p['boundary_rings']}")
+    if not float(p["floor_sigmas"]) >= 0.0:
+        raise InputError(f"lesion floor_sigmas must be >= 0, got {p['floor_sigmas']}")
+    return {
+        "smoothing_px": float(p["smoothing_px"]),
+        "seed_sigmas": float(p["seed_sigmas"]),
+        "min_region_pixels": int(p["min_region_pixels"]),
+        "min_slices": int(p["min_slices"]),
+        "keep_largest": bool(p["keep_largest"]),
+        "refine_boundary": bool(p["refine_boundary"]),
+        "fill_core": bool(p["fill_core"]),
+        "boundary_rings": int(p["boundary_rings"]),
+        "floor_sigmas": float(p["floor_sigmas"]),
+    }
 
 
 def _smooth_in_brain(img: np.ndarray, brain: np.ndarray, sigma_px: float) -> np.ndarray:

@@ -20,7 +20,9 @@ specification ([A7], [A8]):
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pywt
@@ -38,7 +40,7 @@ from tumor3d.fcm import (
     fcm_memberships,
     fuzzy_cmeans_histogram,
 )
-from tumor3d.lesion import segment_hyperintense_lesion
+from tumor3d.lesion import lesion_params, segment_hyperintense_lesion
 from tumor3d.scan import MODALITIES
 
 __all__ = [
@@ -646,14 +648,8 @@ def segment_tumor(
     max_brain_fraction: float = 0.5,
     refine_boundary: bool = True,
     min_tumor_slices: int = 2,
-    lesion_smoothing_px: float = 2.0,
-    lesion_seed_sigmas: float = 2.0,
-    lesion_min_region_pixels: int = 50,
-    lesion_min_slices: int = 2,
-    lesion_boundary_rings: int = 3,
-    lesion_floor_sigmas: float = 1.0,
-    lesion_fill_core: bool = True,
     multiotsu_classes: int = 4,
+    lesion: Mapping[str, Any] | None = None,
     spacing_mm: tuple[float, float, float] | None = None,
     lr_axis: int | None = None,
 ) -> SegmentationResult:
@@ -668,9 +664,10 @@ def segment_tumor(
       patient-pooled normal-tissue model, in-plane smoothing as spatial
       regularisation, 3-D connectivity across slices, partial-volume
       boundary, enclosed core filled; restricted to the slices ``detection``
-      flags. Uses ``lesion_*``, ``refine_boundary``,
-      ``keep_largest_3d_component`` and ``min_tumor_pixels`` (slices with
-      fewer tumour pixels are cleared).
+      flags. The lesion model runs once: ``detection.lesion`` (computed by
+      the robust detection) is reused when present, otherwise the model is
+      computed here with the keywords ``lesion``. Uses
+      ``min_tumor_pixels`` (slices with fewer tumour pixels are cleared).
     - ``"paper"``: the wavelet + histogram FCM of the paper, slice by slice
       (:func:`_segment_paper`, whose docstring lists its steps and the
       robustness deviations controlled by ``rim_px``, ``max_brain_fraction``,
@@ -701,15 +698,13 @@ def segment_tumor(
     component_tolerance_px, rim_px, max_brain_fraction, refine_boundary, min_tumor_slices
         Paper-method parameters (see :func:`_segment_paper`); the robust
         method uses the last three listed above.
-    lesion_smoothing_px, lesion_seed_sigmas, lesion_min_region_pixels, lesion_min_slices,
-    lesion_boundary_rings, lesion_floor_sigmas
-        Robust method, see :func:`tumor3d.lesion.segment_hyperintense_lesion`
-        (``smoothing_px``, ``seed_sigmas``, ``min_region_pixels``,
-        ``min_slices``).
-    lesion_fill_core : bool
-        Robust method: fill the enclosed necrotic core / cavities.
     multiotsu_classes : int
         Peer: number of multi-Otsu classes (2-6).
+    lesion : mapping, optional
+        Robust method without ``detection.lesion``: keywords of
+        :func:`tumor3d.lesion.segment_hyperintense_lesion` (the fields of
+        ``tumor3d.config.LesionConfig``); None = its defaults. Ignored when
+        the detection carries the lesion (it was computed with them).
     spacing_mm : (3,) tuple of float, optional
         Voxel spacing ``(slice step, row, column)`` in mm (robust method: the
         depth rule of :mod:`tumor3d.lesion`); None = isotropic. The adapter
@@ -773,32 +768,22 @@ def segment_tumor(
         center = np.full(nz, np.nan)
         ref = np.full(3, np.nan)
     else:
-        _check_lesion_params(
-            lesion_smoothing_px,
-            lesion_seed_sigmas,
-            lesion_min_region_pixels,
-            lesion_min_slices,
-            lesion_boundary_rings,
-            lesion_floor_sigmas,
-        )
-        res = segment_hyperintense_lesion(
-            img,
-            brain,
-            modality=mod,
-            smoothing_px=float(lesion_smoothing_px),
-            seed_sigmas=float(lesion_seed_sigmas),
-            min_region_pixels=int(lesion_min_region_pixels),
-            min_slices=int(lesion_min_slices),
-            boundary_rings=int(lesion_boundary_rings),
-            floor_sigmas=float(lesion_floor_sigmas),
-            keep_largest=bool(keep_largest_3d_component),
-            refine_boundary=bool(refine_boundary),
-            fill_core=bool(lesion_fill_core),
-            allowed_slices=detection.abnormal,
-            spacing_mm=(1.0, 1.0, 1.0) if spacing_mm is None else tuple(spacing_mm),
-            lr_axis=lr_axis,
-        )
-        tumor = res.mask
+        res = detection.lesion
+        if res is None:
+            res = segment_hyperintense_lesion(
+                img,
+                brain,
+                modality=mod,
+                spacing_mm=(1.0, 1.0, 1.0) if spacing_mm is None else tuple(spacing_mm),
+                lr_axis=lr_axis,
+                **lesion_params(lesion),
+            )
+        elif res.mask.shape != img.shape:
+            raise InputError(
+                f"detection.lesion has shape {res.mask.shape} but enhanced has {img.shape}"
+            )
+        # the lesion on the abnormal slices only (a copy: the detection's mask is kept)
+        tumor = res.mask & np.asarray(detection.abnormal, dtype=bool)[:, None, None]
         how = "lesion"
         center = np.full(nz, res.lesion_gray)
         ref = np.array([res.model.median, res.model.sigma, res.model.seed_threshold])
@@ -814,23 +799,6 @@ def segment_tumor(
         tumor_center_gray=center,
         selection=selection.astype(str),
     )
-
-
-def _check_lesion_params(
-    smoothing_px, seed_sigmas, min_region_pixels, min_slices, boundary_rings=0, floor_sigmas=0.0
-) -> None:
-    if int(boundary_rings) < 0:
-        raise InputError(f"lesion_boundary_rings must be >= 0, got {boundary_rings}")
-    if not float(floor_sigmas) >= 0.0:
-        raise InputError(f"lesion_floor_sigmas must be >= 0, got {floor_sigmas}")
-    if not 0.0 <= float(smoothing_px) <= 20.0:
-        raise InputError(f"lesion_smoothing_px must lie in [0, 20], got {smoothing_px}")
-    if not float(seed_sigmas) > 0.0:
-        raise InputError(f"lesion_seed_sigmas must be > 0, got {seed_sigmas}")
-    if int(min_region_pixels) < 1:
-        raise InputError(f"lesion_min_region_pixels must be >= 1, got {min_region_pixels}")
-    if int(min_slices) < 1:
-        raise InputError(f"lesion_min_slices must be >= 1, got {min_slices}")
 
 
 def multiotsu_peer(img: np.ndarray, brain: np.ndarray, *, classes: int = 4) -> np.ndarray:

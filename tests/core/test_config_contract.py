@@ -16,6 +16,7 @@ import pytest
 from tumor3d.config import (
     DetectConfig,
     InterpolateConfig,
+    LesionConfig,
     PipelineConfig,
     PreprocessConfig,
     RenderConfig,
@@ -25,7 +26,9 @@ from tumor3d.config import (
     parse_config,
 )
 from tumor3d.detect import detect_abnormal_slices
+from tumor3d.errors import ConfigError
 from tumor3d.interpolate import interpolate_stack
+from tumor3d.lesion import LESION_DEFAULTS, segment_hyperintense_lesion
 from tumor3d.preprocess import preprocess_volume
 from tumor3d.render import render_views
 from tumor3d.segment import segment_tumor
@@ -35,6 +38,7 @@ from tumor3d.surface import extract_surface
 PAIRS = [
     (PreprocessConfig, preprocess_volume),
     (DetectConfig, detect_abnormal_slices),
+    (LesionConfig, segment_hyperintense_lesion),
     (SegmentConfig, segment_tumor),
     (InterpolateConfig, interpolate_stack),
     (SurfaceConfig, extract_surface),
@@ -46,6 +50,8 @@ PAIRS = [
 DIFFERENT_DEFAULTS = {
     ("interpolate_stack", "end_caps"): "the core default is the paper's flat caps; "
     "the pipeline default (taper) is a measured improvement",
+    ("detect_abnormal_slices", "lesion"): "None = LESION_DEFAULTS (checked against "
+    "LesionConfig below)",
 }
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
@@ -80,3 +86,17 @@ def test_paper_yaml_is_valid_and_turns_the_extensions_off():
     assert not paper.segment.keep_largest_3d_component
     assert paper.segment.rim_px == 0 and not paper.segment.refine_boundary
     assert paper.interpolate.end_caps == "none"
+
+
+def test_lesion_defaults_are_the_lesion_config():
+    assert LESION_DEFAULTS == LesionConfig().model_dump()
+
+
+@pytest.mark.parametrize("section", ["detect", "segment"])
+def test_an_old_lesion_key_names_its_new_place(section):
+    with pytest.raises(
+        ConfigError,
+        match=rf"{section}\.lesion_seed_sigmas moved to detect\.lesion"
+        r"\.seed_sigmas",
+    ):
+        parse_config(f"{section}:\n  lesion_seed_sigmas: 2.5\n", source="old.yaml")

@@ -192,3 +192,70 @@ def test_flair_dark_cavity_next_to_the_lesion_joins_it_and_the_ventricles_do_not
     # without the left-right axis the open cavity is not recognised as the lesion's
     no_axis = _segment(img, brain, lr_axis=None)
     assert (no_axis & cavity).sum() < 0.5 * cavity.sum()
+
+
+# --------------------------------------------------------------------------- the model runs once
+
+
+def _counting(monkeypatch, module):
+    """Count the calls of ``module.segment_hyperintense_lesion`` (still computing)."""
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(kwargs)
+        return segment_hyperintense_lesion(*args, **kwargs)
+
+    monkeypatch.setattr(module, "segment_hyperintense_lesion", counted)
+    return calls
+
+
+def test_segment_reuses_the_lesion_of_the_robust_detection(monkeypatch):
+    import dataclasses
+
+    import tumor3d.detect as detect_mod
+    import tumor3d.segment as segment_mod
+    from tumor3d.detect import detect_abnormal_slices
+    from tumor3d.segment import segment_tumor
+
+    brain = _brain()
+    lesion = _ball((6, 5, 12), 10)
+    img = _image(brain, [(lesion, 190.0)])
+    geo = dict(modality="flair", spacing_mm=SPACING, lr_axis=2)
+    params = {"seed_sigmas": 2.5, "boundary_rings": 2}
+    det_calls = _counting(monkeypatch, detect_mod)
+    seg_calls = _counting(monkeypatch, segment_mod)
+    det = detect_abnormal_slices(img, brain, method="robust", lesion=params, **geo)
+    assert len(det_calls) == 1 and det.lesion is not None
+    assert det_calls[0]["seed_sigmas"] == 2.5 and det_calls[0]["boundary_rings"] == 2
+    reused = segment_tumor(img, brain, det, method="robust", **geo)
+    assert seg_calls == []  # the detection's model, not a second run
+    # independent expectation: the model computed from scratch with the same parameters
+    fresh = segment_tumor(
+        img, brain, dataclasses.replace(det, lesion=None), method="robust", lesion=params, **geo
+    )
+    assert len(seg_calls) == 1
+    assert np.array_equal(reused.tumor_mask, fresh.tumor_mask)
+    np.testing.assert_array_equal(reused.tumor_center_gray, fresh.tumor_center_gray)
+    assert (reused.tumor_mask & lesion).sum() > 0.8 * lesion.sum()
+    # only the abnormal slices keep it, and the detection's own mask is not changed
+    assert not reused.tumor_mask[~det.abnormal].any()
+    assert det.lesion.mask.sum() >= reused.tumor_mask.sum()
+
+
+def test_histogram_detection_leaves_the_lesion_model_to_segment():
+    from tumor3d.detect import detect_abnormal_slices
+
+    brain = _brain()
+    img = _image(brain, [(_ball((6, 5, 12), 10), 190.0)])
+    det = detect_abnormal_slices(img, brain, method="histogram", modality="flair")
+    assert det.lesion is None
+
+
+def test_bad_lesion_parameters_are_errors_naming_them():
+    from tumor3d.lesion import lesion_params
+
+    with pytest.raises(InputError, match="seed_sigmas"):
+        lesion_params({"seed_sigmas": 0.0})
+    with pytest.raises(InputError, match="smoothing"):
+        lesion_params({"smoothing": 2.0})
+    assert lesion_params(None)["min_region_pixels"] == 50

@@ -30,9 +30,7 @@ def tumour_run(tmp_path_factory):
 
 def test_specs_match_the_adapters_signatures_and_products(tumour_run):
     run, _ = tumour_run
-    config_fields = {
-        type(getattr(PipelineConfig(), f)): f for f in PipelineConfig.model_fields
-    }
+    config_fields = {type(getattr(PipelineConfig(), f)): f for f in PipelineConfig.model_fields}
     for name, spec in stages.STAGES.items():
         params = set(inspect.signature(spec.task.fn.__wrapped__).parameters) - {"store_root"}
         declared = set(spec.inputs) | ({"config"} if spec.config_model else set())
@@ -146,3 +144,54 @@ def test_slice_table_rows_match_detection(tumour_run):
         table["tumor_area_mm2"], table["tumor_pixels"].fillna(0).astype(float) * 0.5,
         check_names=False,
     )  # fmt: skip
+
+
+def _count_lesion_runs(monkeypatch):
+    import tumor3d.detect as detect_mod
+    import tumor3d.segment as segment_mod
+    from tumor3d.lesion import segment_hyperintense_lesion
+
+    calls: list[str] = []
+    for mod in (detect_mod, segment_mod):
+
+        def counted(*args, _name=mod.__name__, **kwargs):
+            calls.append((_name, kwargs["seed_sigmas"]))
+            return segment_hyperintense_lesion(*args, **kwargs)
+
+        monkeypatch.setattr(mod, "segment_hyperintense_lesion", counted)
+    return calls
+
+
+def test_the_lesion_model_runs_once_in_detect_and_segment_keeps_its_mask(tmp_path, monkeypatch):
+    calls = _count_lesion_runs(monkeypatch)
+    patient = make_phantom_patient(2, patient_id="once2")
+    image = write_phantom_patient(patient, tmp_path / "in").image
+    cfg = {"detect": {"method": "robust"}, "segment": {"method": "robust"}}
+    run = run_stages_direct(image, tmp_path / "store", config=cfg, patient_id="once2")
+    assert calls == [("tumor3d.detect", 2.0)]
+    store = ArtifactStore(tmp_path / "store")
+    det_out = run.outputs["detect-abnormal"]
+    assert det_out.values["lesion_computed"] is True
+    lesion, _ = store.get_volume(det_out.artifacts["lesion"])
+    tumour, _ = store.get_volume(run.outputs["segment-tumor"].artifacts["tumor_mask_slices"])
+    abnormal = np.zeros(lesion.shape[0], bool)
+    abnormal[det_out.values["abnormal_slices"]] = True
+    assert tumour.any()
+    # independent expectation: the detect stage's lesion on the flagged slices
+    assert np.array_equal(tumour, lesion & abnormal[:, None, None])
+
+
+def test_histogram_detection_then_robust_segment_uses_the_detect_lesion_params(
+    tmp_path, monkeypatch
+):
+    calls = _count_lesion_runs(monkeypatch)
+    patient = make_phantom_patient(2, patient_id="hist2")
+    image = write_phantom_patient(patient, tmp_path / "in").image
+    cfg = {
+        "detect": {"method": "histogram", "lesion": {"seed_sigmas": 2.5}},
+        "segment": {"method": "robust"},
+    }
+    run = run_stages_direct(image, tmp_path / "store", config=cfg, patient_id="hist2")
+    assert calls == [("tumor3d.segment", 2.5)]
+    assert run.outputs["detect-abnormal"].values["lesion_computed"] is False
+    assert run.outputs["segment-tumor"].values["tumor_pixels_total"] > 0
