@@ -356,3 +356,66 @@ def test_dask_worker_processes_share_the_s3_store_and_its_cache(s3_endpoint, tmp
     assert not (tmp_path / "o1" / ".tumor3d-store").exists()
     again = run_cohort(rows, tmp_path / "o2", store_dir=url, dask=DaskSpec(n_workers=2))
     assert all(s.cached for p in again.patients for s in p.stages)
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patients(
+    s3_endpoint, tmp_path, monkeypatch
+):
+    """``--out s3://``: every patient's objects are the bytes of its local staging folder
+    (captured as handed to the uploader), the same files and deterministic bytes as a
+    local ``--out``, a marker per patient and for the cohort files; a re-run without a
+    patient reports it removed (a prefix without a marker is no patient)."""
+    import flows.patient as patient_mod
+
+    staged: dict[str, dict[str, bytes]] = {}
+    real = patient_mod.publish_folder
+
+    def spy(folder, url):
+        staged[url] = {
+            p.relative_to(folder).as_posix(): p.read_bytes()
+            for p in folder.rglob("*")
+            if p.is_file()
+        }
+        return real(folder, url)
+
+    monkeypatch.setattr(patient_mod, "publish_folder", spy)
+    rows = _rows(tmp_path / "in", [0, 1])
+    local = run_cohort(rows, tmp_path / "local", workers=2)
+    url = f"s3://{BUCKET}/outs"
+    first = run_cohort(rows, url, workers=2)
+    assert first.exit_code == 0, [p.error for p in first.patients]
+    assert [p.output_dir for p in first.patients] == [f"{url}/s3p0", f"{url}/s3p1"]
+    out = RemoteFolder(url)
+    assert published_names(out) == ["s3p0", "s3p1"]
+    for p_local, p_s3 in zip(local.patients, first.patients, strict=True):
+        pid = p_s3.patient_id
+        files = staged[f"{url}/{pid}"]
+        keys = _keys(s3_endpoint, f"outs/{pid}/")
+        assert keys == sorted([f"outs/{pid}/{r}" for r in files] + [f"outs/{pid}/{MARKER}"])
+        for rel, data in files.items():
+            assert _body(s3_endpoint, f"outs/{pid}/{rel}") == data, rel
+        assert verify_folder(out, pid) == []
+        local_dir = tmp_path / "local" / pid
+        local_files = {
+            p.relative_to(local_dir).as_posix() for p in local_dir.rglob("*") if p.is_file()
+        }
+        assert set(files) == local_files
+        for rel in ("tumor_mask.nii.gz", "tumor_mask_slices.nii.gz", "tumor.ply", "slices.parquet"):
+            assert files[rel] == (local_dir / rel).read_bytes(), rel
+        assert p_s3.metrics["volume_eq7_mm3"] == p_local.metrics["volume_eq7_mm3"]
+    root = _keys(s3_endpoint, "outs/")
+    for name in ("cohort.parquet", "cohort.md", "cohort.html", MARKER):
+        assert f"outs/{name}" in root
+    assert verify_folder(out, "") == []
+    assert b"s3p0/report.html" in _body(s3_endpoint, "outs/cohort.html")  # link to a published file
+    assert any(k.startswith("outs/.tumor3d-store/objects/") for k in root)  # default store on S3
+    assert not [k for k in root if k.startswith("outs/.tumor3d-tmp/")]
+    # a prefix without a marker (an interrupted publish) is not a published patient
+    s3_endpoint.put_object(Bucket=BUCKET, Key="outs/ghost/metrics.parquet", Body=b"half")
+    again = run_cohort(rows[:1], url, workers=1)
+    assert again.removed == ["s3p1"] and all(s.cached for s in again.patients[0].stages)
+    md = _body(s3_endpoint, "outs/cohort.md").decode()
+    assert "Removed from the manifest" in md and "s3p1" in md
+    assert f"outs/s3p1/{MARKER}" in _keys(s3_endpoint, "outs/s3p1/")  # reported, not deleted
