@@ -428,7 +428,7 @@ def run(
 @app.command()
 def cohort(
     manifest: Annotated[Path, typer.Argument(help="Cohort manifest CSV (patient_id, image, ...).")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
+    out: Annotated[str, typer.Option("--out", "-o", help="Output folder, or s3://bucket/prefix.")],
     config: Annotated[Path | None, typer.Option(help="YAML configuration file.")] = None,
     workers: Annotated[
         int | None, typer.Option(min=1, help="Patients at a time (default: the CPU cores).")
@@ -455,10 +455,12 @@ def cohort(
     from flows.cohort import run_cohort
     from flows.dask_runner import DaskSpec
     from storage.manifest import read_manifest
+    from storage.objectstore import is_url
 
     try:
         cfg = _load_config(config)
-        _check_out_dir(out)
+        if not is_url(out):  # an object-store URL is checked by run_cohort
+            _check_out_dir(Path(out))
         rows = read_manifest(manifest, require_files=False)
         dask = DaskSpec(dask_address, dask_workers)
         with _prefect(), _reporting(lambda progress: _CohortReporter(progress, len(rows))):

@@ -8,6 +8,10 @@ once and a different task runner (Dask) can be given to the flow with
 :func:`run_cohort` does so for ``dask=DaskSpec(...)``
 (:mod:`flows.dask_runner`). The store may be a folder or an object-store URL
 (:mod:`storage.objectstore`); either is checked before any patient starts.
+So may ``DIR``: with ``s3://bucket/prefix`` each patient is staged locally and
+published to ``<url>/<patient_id>/`` with a completion marker written last
+(:mod:`storage.remote_publish`); the store then defaults to
+``<url>/.tumor3d-store``.
 
 Patients published in ``DIR`` by an earlier run but no longer in the rows are
 reported (``CohortResult.removed``, ``cohort.md``), never deleted.
@@ -42,6 +46,7 @@ from flows.patient import (
 )
 from storage.cohort_report import (
     cohort_markdown,
+    cohort_output_files,
     cohort_table,
     published_patient_ids,
     write_cohort_outputs,
@@ -49,6 +54,7 @@ from storage.cohort_report import (
 from storage.manifest import ManifestRow, read_manifest
 from storage.objectstore import ObjectStore, is_url, open_store
 from storage.publish import check_output_not_input
+from storage.remote_publish import RemoteFolder, publish_files, published_names
 from storage.store import ArtifactStore
 from tasks import stages
 from tasks.progress import ProgressEvent, report
@@ -226,12 +232,14 @@ def cohort_flow(
     """
     t0 = time.perf_counter()
     cfg = parse_config(config or {}, source="config")
-    store = open_store(store_dir or Path(out_dir) / ".tumor3d-store")
+    store = open_store(store_dir or _default_store(out_dir))
     logger = get_run_logger()
     logger.info("cohort of %d patients, %d workers, config %s", len(rows), workers,
                 config_digest(cfg)[:12])  # fmt: skip
     listed = {str(r.get("patient_id")) for r in rows}
-    removed = [pid for pid in published_patient_ids(out_dir) if pid not in listed]
+    remote = RemoteFolder(out_dir) if is_url(out_dir) else None
+    published = published_patient_ids(out_dir) if remote is None else published_names(remote)
+    removed = [pid for pid in published if pid not in listed]
     if removed:
         logger.warning("%d published patient(s) no longer in the manifest, kept: %s",
                        len(removed), ", ".join(removed))  # fmt: skip
@@ -250,7 +258,15 @@ def cohort_flow(
         title=f"Cohort {Path(out_dir).name}", wall_seconds=wall, workers=workers,
         removed=removed,
     )  # fmt: skip
-    write_cohort_outputs(out_dir, table, markdown)
+    if remote is None:
+        write_cohort_outputs(out_dir, table, markdown)
+    else:  # temporary keys, copy, read-back digests, marker last (storage.remote_publish)
+        done = set(published_names(remote))
+        files = cohort_output_files(
+            table, markdown, out_dir, name=Path(out_dir).name,
+            exists=lambda rel: rel.split("/", 1)[0] in done and remote.exists(rel),
+        )  # fmt: skip
+        publish_files(remote, "", files, exclusive=False)
     publish_cohort_artifacts(table, name=Path(out_dir).name)
     for o in outcomes:
         if o.status != "ok":
@@ -261,7 +277,14 @@ def cohort_flow(
     )  # fmt: skip
 
 
-def _validate_rows(rows: list[dict[str, Any]], out_dir: Path) -> None:
+def _default_store(out_dir: str | Path) -> str | Path:
+    """``DIR/.tumor3d-store``, or ``<url>/.tumor3d-store`` for an object-store ``--out``."""
+    if is_url(out_dir):
+        return f"{str(out_dir).rstrip('/')}/.tumor3d-store"
+    return Path(out_dir) / ".tumor3d-store"
+
+
+def _validate_rows(rows: list[dict[str, Any]], out_dir: Path | None) -> None:
     seen: set[str] = set()
     for i, row in enumerate(rows, start=1):
         pid = row.get("patient_id")
@@ -270,8 +293,10 @@ def _validate_rows(rows: list[dict[str, Any]], out_dir: Path) -> None:
         if pid in seen:
             raise InputError(f"manifest row {i}: duplicate patient_id {pid!r}")
         seen.add(pid)
-        # never publish over an input (checked for every row before any work)
-        check_output_not_input(out_dir / pid, [row["image"]])
+        # never publish over an input (checked for every row before any work); inputs
+        # are local files, so an object-store output (out_dir None) cannot hold one
+        if out_dir is not None:
+            check_output_not_input(out_dir / pid, [row["image"]])
 
 
 def run_cohort(
@@ -328,15 +353,13 @@ def run_cohort(
         isinstance(workers, bool) or not isinstance(workers, int) or workers < 1
     ):
         raise InputError(f"workers must be an integer >= 1, got {workers!r}")
-    if is_url(out_dir):
-        raise InputError(
-            f"--out {out_dir}: outputs are published to a folder (a local or shared file "
-            "system); an object store is supported for the artifact store (--store s3://...)"
-        )
-    out = Path(out_dir)
-    _validate_rows(rows, out)
-    if store_dir is not None and is_url(store_dir):
-        store = open_store(str(store_dir))
+    out: str | Path = str(out_dir).rstrip("/") if is_url(out_dir) else Path(out_dir)
+    _validate_rows(rows, None if isinstance(out, str) else out)
+    if isinstance(out, str):
+        RemoteFolder(out).check()  # one line naming the URL, before any patient starts
+    store_at = _default_store(out) if store_dir is None else store_dir
+    if is_url(store_at):
+        store = open_store(str(store_at))
         assert isinstance(store, ObjectStore)
         store.check()  # one line naming the URL, before any patient starts
     n = default_workers() if workers is None else workers
@@ -345,7 +368,8 @@ def run_cohort(
         n = max(1, n_cluster) if workers is None else workers
     elif dask is not None and dask.n_workers and workers is None:
         n = dask.n_workers
-    out.mkdir(parents=True, exist_ok=True)
+    if isinstance(out, Path):
+        out.mkdir(parents=True, exist_ok=True)
     flow_fn = cohort_flow.with_options(task_runner=cohort_task_runner(n, dask))
     with tags(f"config:{config_digest(cfg)[:12]}", "cohort"):
         return flow_fn(

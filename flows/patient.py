@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,7 @@ from flows.artifacts import publish_patient_artifacts
 from storage import nifti
 from storage.formats import encode_parquet
 from storage.inputs import input_digest
+from storage.objectstore import is_url
 from storage.patient_outputs import (
     patient_report_data,
     write_overlays,
@@ -42,6 +44,7 @@ from storage.patient_outputs import (
 from storage.provenance import build_provenance
 from storage.publish import check_output_not_input, staged_folder
 from storage.readers import derive_patient_id
+from storage.remote_publish import publish_folder
 from storage.slice_table import slice_table
 from storage.store import ArtifactStore, canonical_dumps, source_grid_from_metadata
 from tasks import stages
@@ -151,7 +154,7 @@ def prepare_source(
     if modality not in MODALITIES:
         raise InputError(f"unknown modality {modality!r}: expected one of {', '.join(MODALITIES)}")
     pid = validate_patient_id(patient_id) if patient_id is not None else derive_patient_id(path)
-    if out_dir is not None:
+    if out_dir is not None and not is_url(out_dir):  # an object store holds no local input
         check_output_not_input(Path(out_dir) / pid, [path])
     return InputSource(
         path=str(path.resolve()),
@@ -237,9 +240,16 @@ def patient_pipeline(
     if skipped:
         notes.append(f"skipped {len(skipped)} unreadable file(s): {', '.join(skipped)}")
     metrics = _metrics_row(outputs, runner.runs, pid, flow_seconds, notes)
-    out_path, report = publish_patient(
-        store, Path(out_dir), source, outputs, runner.runs, metrics, cfg
-    )
+    if is_url(out_dir):  # staged locally, then uploaded (storage.remote_publish)
+        with tempfile.TemporaryDirectory(prefix="tumor3d-publish-") as tmp:
+            staged, report = publish_patient(
+                store, Path(tmp), source, outputs, runner.runs, metrics, cfg
+            )
+            out_path = publish_folder(staged, f"{str(out_dir).rstrip('/')}/{pid}")
+    else:
+        out_path, report = publish_patient(
+            store, Path(out_dir), source, outputs, runner.runs, metrics, cfg
+        )
     return PatientResult(
         patient_id=pid, output_dir=str(out_path), metrics=metrics, stages=runner.runs,
         flow_seconds=flow_seconds, notes=notes, report=report,

@@ -11,7 +11,7 @@ hold an earlier run's results), so the cohort folder can be moved as a whole.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +23,7 @@ from storage.store import atomic_write_bytes
 
 __all__ = [
     "cohort_markdown",
+    "cohort_output_files",
     "cohort_page_rows",
     "cohort_table",
     "published_patient_ids",
@@ -146,7 +147,12 @@ def _finite(value: Any) -> float | None:
     return f if f == f and abs(f) != float("inf") else None
 
 
-def cohort_page_rows(table: pd.DataFrame, out_dir: str | Path) -> list[dict[str, Any]]:
+def cohort_page_rows(
+    table: pd.DataFrame,
+    out_dir: str | Path,
+    *,
+    exists: Callable[[str], bool] | None = None,
+) -> list[dict[str, Any]]:
     """The rows of ``cohort.html``: per patient its status, volumes and relative links.
 
     Parameters
@@ -156,8 +162,13 @@ def cohort_page_rows(table: pd.DataFrame, out_dir: str | Path) -> list[dict[str,
     out_dir : path
         The cohort folder (``cohort.html``'s folder); links are relative to it
         and made only to files that exist there.
+    exists : callable, optional
+        ``exists("<patient_id>/<file>")``: whether that file is published (for
+        an object store); default: the file exists under ``out_dir``.
     """
     out = Path(out_dir)
+    if exists is None:
+        exists = lambda rel: (out / rel).is_file()  # noqa: E731
     rows = []
     for r in table.to_dict(orient="records"):
         pid = str(r["patient_id"])
@@ -175,9 +186,9 @@ def cohort_page_rows(table: pd.DataFrame, out_dir: str | Path) -> list[dict[str,
         row: dict[str, Any] = {"patient_id": pid, "status": status}
         if ok:
             row["volumes_mm3"] = vols
-            if (out / pid / "render_anterior.png").is_file():
+            if exists(f"{pid}/render_anterior.png"):
                 row["thumbnail"] = f"{pid}/render_anterior.png"
-            if (out / pid / "report.html").is_file():
+            if exists(f"{pid}/report.html"):
                 row["report"] = f"{pid}/report.html"
         rows.append(row)
     return rows
@@ -198,10 +209,30 @@ def published_patient_ids(out_dir: str | Path) -> list[str]:
     )
 
 
+def cohort_output_files(
+    table: pd.DataFrame,
+    markdown: str,
+    out_dir: str | Path,
+    *,
+    name: str | None = None,
+    exists: Callable[[str], bool] | None = None,
+) -> dict[str, bytes]:
+    """The bytes of ``cohort.parquet``, ``cohort.md`` and ``cohort.html`` (file name -> bytes).
+
+    ``name`` is the cohort's name in the page title (default ``out_dir``'s
+    name); ``exists`` as :func:`cohort_page_rows`.
+    """
+    title = f"tumor3d cohort {name if name is not None else Path(out_dir).name}"
+    page = cohort_report_html(cohort_page_rows(table, out_dir, exists=exists), title=title)
+    return {
+        "cohort.parquet": encode_parquet(table),
+        "cohort.md": markdown.encode(),
+        "cohort.html": page.encode("utf-8"),
+    }
+
+
 def write_cohort_outputs(out_dir: str | Path, table: pd.DataFrame, markdown: str) -> None:
     """Write ``cohort.parquet``, ``cohort.md`` and ``cohort.html`` atomically into ``out_dir``."""
     out = Path(out_dir)
-    atomic_write_bytes(out / "cohort.parquet", encode_parquet(table))
-    atomic_write_bytes(out / "cohort.md", markdown.encode())
-    page = cohort_report_html(cohort_page_rows(table, out), title=f"tumor3d cohort {out.name}")
-    atomic_write_bytes(out / "cohort.html", page.encode("utf-8"))
+    for fname, data in cohort_output_files(table, markdown, out).items():
+        atomic_write_bytes(out / fname, data)

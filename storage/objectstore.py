@@ -50,7 +50,7 @@ from storage.store import (
     canonical_dumps,
 )
 
-__all__ = ["ObjectStore", "is_url", "open_store"]
+__all__ = ["ObjectStore", "check_reachable", "is_url", "open_fs", "open_store"]
 
 #: Seconds to wait for an S3 endpoint to accept a connection.
 S3_CONNECT_TIMEOUT_S = 5
@@ -94,6 +94,54 @@ def _storage_options(protocol: str) -> dict[str, Any]:
     return {}
 
 
+def open_fs(url: str) -> tuple[Any, str]:
+    """The fsspec file system and root key of ``url`` (the same options as the store's).
+
+    Raises
+    ------
+    InputError
+        If the URL's scheme has no fsspec back-end installed.
+    """
+    from tumor3d.errors import InputError
+
+    try:
+        import fsspec
+    except ImportError:  # pragma: no cover - fsspec comes with Prefect
+        raise InputError("an object store needs fsspec", url) from None
+    url = url.rstrip("/")
+    protocol = url.split("://", 1)[0]
+    try:
+        fs, base = fsspec.core.url_to_fs(url, **_storage_options(protocol))
+    except (ImportError, ValueError) as exc:
+        raise InputError(
+            f"cannot open this location ({_first_line(exc)}); for s3:// install "
+            "'tumor3d[s3]' (s3fs)",
+            url,
+        ) from None
+    return fs, base.rstrip("/")
+
+
+def check_reachable(fs: Any, base: str, url: str, *, what: str = "artifact store") -> None:
+    """Contact the endpoint once: list the bucket of ``base``.
+
+    Raises
+    ------
+    StoreError
+        One line naming ``url`` when the endpoint, bucket or credentials do
+        not work (call it before any patient starts).
+    """
+    bucket = base.split("/", 1)[0]
+    try:
+        fs.ls(bucket, detail=False)  # a real request (exists() hides errors)
+    except FileNotFoundError:
+        raise StoreError(f"{url}: the bucket {bucket!r} does not exist") from None
+    except Exception as exc:  # botocore/aiohttp raise many types; all mean "unreachable"
+        raise StoreError(
+            f"{url}: cannot reach the {what} ({type(exc).__name__}: "
+            f"{_first_line(exc)[:200]}); check AWS_ENDPOINT_URL and the credentials"
+        ) from None
+
+
 class ObjectStore(ArtifactStore):
     """Content-addressed artifacts under an fsspec URL (``s3://bucket/prefix``).
 
@@ -111,23 +159,8 @@ class ObjectStore(ArtifactStore):
 
     def __init__(self, url: str) -> None:  # noqa: D107 - documented on the class
         # The local constructor (a folder, mkdir) does not apply; the attributes it sets do.
-        from tumor3d.errors import InputError
-
-        try:
-            import fsspec
-        except ImportError:  # pragma: no cover - fsspec comes with Prefect
-            raise InputError("an object store needs fsspec", url) from None
         self.url = url.rstrip("/")
-        protocol = self.url.split("://", 1)[0]
-        try:
-            self.fs, self._base = fsspec.core.url_to_fs(self.url, **_storage_options(protocol))
-        except (ImportError, ValueError) as exc:
-            raise InputError(
-                f"cannot open this store ({_first_line(exc)}); for s3:// install "
-                "'tumor3d[s3]' (s3fs)",
-                self.url,
-            ) from None
-        self._base = self._base.rstrip("/")
+        self.fs, self._base = open_fs(self.url)
         self.root = self.url  # type: ignore[assignment]  # a URL, not a Path
         self.repairs: list[Repair] = []
 
@@ -166,16 +199,7 @@ class ObjectStore(ArtifactStore):
             One line naming the URL when the endpoint, bucket or credentials
             do not work (call it before any patient starts).
         """
-        bucket = self._base.split("/", 1)[0]
-        try:
-            self.fs.ls(bucket, detail=False)  # a real request (exists() hides errors)
-        except FileNotFoundError:
-            raise StoreError(f"{self.url}: the bucket {bucket!r} does not exist") from None
-        except Exception as exc:  # botocore/aiohttp raise many types; all mean "unreachable"
-            raise StoreError(
-                f"{self.url}: cannot reach the artifact store ({type(exc).__name__}: "
-                f"{_first_line(exc)[:200]}); check AWS_ENDPOINT_URL and the credentials"
-            ) from None
+        check_reachable(self.fs, self._base, self.url)
 
     # -- healing -----------------------------------------------------------
     def _record(self, repair: Repair) -> Repair:

@@ -190,6 +190,11 @@ class PrefectRunner(_Recorder):
         task = _task_for(spec, self.result_storage, refresh, self.patient_id)
         future = task.submit(**inputs)
         future.wait()
+        wrapped = getattr(future, "wrapped_future", None)
+        if wrapped is not None and getattr(wrapped, "status", None) == "error":
+            # Dask itself gave up (KilledWorker: every worker that ran it died): the task
+            # run never finished, so its Prefect state says Pending/Running; name the cause
+            raise wrapped.exception()
         return future.state
 
     def _record_bytes(self, spec: StageSpec, inputs: dict[str, Any]) -> bytes | None:

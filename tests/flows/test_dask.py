@@ -6,6 +6,9 @@ interpreters importing numba); the flow connects to it by address, exactly as
 ``--dask-address`` does. Its task stream shows where each stage ran. The
 results must equal those of the default local runner on the same inputs.
 ``--dask-workers N`` (worker processes) is exercised by benchmarks/bench_dask.py.
+The two fault tests use worker *processes* (a killed thread is not a killed
+worker): one SIGKILLs a worker once (Dask reruns the stage), one has a stage
+that kills its worker every time (Dask gives up with ``KilledWorker``).
 """
 
 from __future__ import annotations
@@ -73,7 +76,7 @@ def test_cohort_on_a_two_worker_cluster_matches_the_local_runner(tmp_path):
     rows = _rows(tmp_path / "in", [0, 1, 2])
     local = run_cohort(rows, tmp_path / "local", workers=2)
     with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+        n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0"
     ) as cluster, distributed.Client(cluster) as client:  # fmt: skip
         with distributed.get_task_stream(client) as stream:
             on_dask = run_cohort(
@@ -118,7 +121,7 @@ def test_a_worker_killed_mid_stage_the_cohort_finishes_and_a_rerun_completes(tmp
     killed: dict[str, object] = {}
     lock = threading.Lock()
     with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
     ) as cluster, distributed.Client(cluster) as client:  # fmt: skip
         pids = client.run(os.getpid)
 
@@ -159,3 +162,61 @@ def test_a_worker_killed_mid_stage_the_cohort_finishes_and_a_rerun_completes(tmp
             assert all(s.cached for s in p.stages), p.patient_id
         else:  # the stages before the lost render come from the cache
             assert p.stages[0].cached, p.patient_id
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_stage_that_kills_its_worker_every_time_fails_that_patient_only(tmp_path):
+    """Dask gives up after ``allowed-failures`` (3) worker deaths with ``KilledWorker``.
+
+    A worker plugin (installed again on every restarted worker by the scheduler)
+    wraps Prefect's ``run_task_sync`` (what prefect-dask runs on a worker) in each
+    worker *process*: the ``preprocess`` task of patient dsk1 SIGKILLs its own
+    worker, every time it runs. Expected: dsk1 is recorded as failed at
+    ``preprocess`` with a one-line ``KilledWorker`` error and no folder; dsk0 is
+    published; the cohort ends.
+    """
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class KillOnDoomedStage(WorkerPlugin):
+        name = "tumor3d-test-killer"
+
+        def setup(self, worker):
+            import os
+            import signal
+
+            import prefect.task_engine as engine
+
+            original = engine.run_task_sync
+
+            def run_task_sync(*args, **kwargs):
+                task = kwargs.get("task")
+                if getattr(task, "task_run_name", None) == "preprocess-dsk1":
+                    os.kill(os.getpid(), signal.SIGKILL)
+                return original(*args, **kwargs)
+
+            engine.run_task_sync = run_task_sync
+
+    rows = _rows(tmp_path / "in", [0, 1])
+    out = tmp_path / "out"
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
+    ) as cluster, distributed.Client(cluster) as client:  # fmt: skip
+        client.register_plugin(KillOnDoomedStage())
+        t0 = time.perf_counter()
+        result = run_cohort(rows, out, dask=DaskSpec(address=cluster.scheduler_address))
+        wall = time.perf_counter() - t0
+    by_id = {p.patient_id: p for p in result.patients}
+    assert by_id["dsk0"].status == "ok", by_id["dsk0"].error
+    assert (out / "dsk0" / "metrics.parquet").is_file()
+    doomed = by_id["dsk1"]
+    assert doomed.status == "failed" and doomed.failed_stage == "preprocess", doomed
+    assert "KilledWorker" in doomed.error and "\n" not in doomed.error, doomed.error
+    assert not (out / "dsk1").exists()
+    assert [s.stage for s in doomed.stages] == ["ingest-scan"]
+    assert result.exit_code == 1 and wall < 600
+    print(f"dsk1: {doomed.error} (cohort {wall:.0f} s)")
+    again = run_cohort(rows, out, workers=1)  # no killer locally: completed from the cache
+    assert again.exit_code == 0
+    assert all(s.cached for s in again.patients[0].stages)
+    assert again.patients[1].stages[0].cached and not again.patients[1].stages[1].cached

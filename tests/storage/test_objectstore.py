@@ -25,6 +25,14 @@ from flows.cohort import run_cohort  # noqa: E402
 from storage.manifest import write_manifest  # noqa: E402
 from storage.objectstore import ObjectStore, open_store  # noqa: E402
 from storage.phantom_io import write_phantom_patient  # noqa: E402
+from storage.remote_publish import (  # noqa: E402
+    MARKER,
+    RemoteFolder,
+    publish_folder,
+    published_names,
+    read_marker,
+    verify_folder,
+)
 from storage.store import ArtifactStore, CorruptArtifactError, StoreError  # noqa: E402
 from tasks.caching import stage_cache_policy  # noqa: E402
 from tumor3d.mesh import Mesh  # noqa: E402
@@ -176,12 +184,135 @@ def test_an_unreachable_endpoint_fails_in_one_line_before_any_patient(
     assert not out.exists()
 
 
-def test_a_missing_bucket_and_an_s3_out_are_refused(s3_endpoint, tmp_path):
+def test_a_missing_bucket_is_refused_for_the_store_and_for_the_outputs(
+    s3_endpoint, tmp_path, monkeypatch
+):
     rows = _rows(tmp_path / "in", [0])
     with pytest.raises(StoreError, match="bucket 'no-such-bucket' does not exist"):
         run_cohort(rows, tmp_path / "o", workers=1, store_dir="s3://no-such-bucket/p")
-    with pytest.raises(Exception, match="outputs are published to a folder"):
-        run_cohort(rows, f"s3://{BUCKET}/out", workers=1)
+    with pytest.raises(StoreError, match="bucket 'no-such-bucket' does not exist") as exc:
+        run_cohort(rows, "s3://no-such-bucket/out", workers=1, store_dir=tmp_path / "st")
+    assert "s3://no-such-bucket/out" in str(exc.value)
+    monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://127.0.0.1:{_free_port()}")
+    manifest = write_manifest(rows, tmp_path / "m.csv")
+    res = CliRunner().invoke(
+        app, ["cohort", str(manifest), "--out", f"s3://{BUCKET}/down-out", "--store",
+              str(tmp_path / "st")],
+    )  # fmt: skip
+    assert res.exit_code == 3 and "cannot reach the output location" in res.output
+    assert not (tmp_path / "st").exists()  # nothing started
+
+
+# -- publishing outputs to the object store (storage.remote_publish) -------------------
+
+
+def _folder(root, files: dict[str, bytes]):
+    for rel, data in files.items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_bytes(data)
+    return root
+
+
+def _body(client, key: str) -> bytes:
+    return client.get_object(Bucket=BUCKET, Key=key)["Body"].read()
+
+
+V1 = {
+    "metrics.parquet": b"PAR1" * 100,
+    "report.html": b"<html>1</html>",
+    "views/a.png": b"\x89PNG1",
+}
+
+
+def test_a_published_folder_holds_the_staged_bytes_and_a_marker_written_last(s3_endpoint, tmp_path):
+    import hashlib
+    import json
+
+    staged = _folder(tmp_path / "v1", V1)
+    url = f"s3://{BUCKET}/pub/p1"
+    assert publish_folder(staged, url) == url
+    keys = _keys(s3_endpoint, "pub/")
+    assert keys == sorted([f"pub/p1/{r}" for r in V1] + [f"pub/p1/{MARKER}"])  # no tmp key
+    for rel, data in V1.items():
+        assert _body(s3_endpoint, f"pub/p1/{rel}") == data
+    marker = json.loads(_body(s3_endpoint, f"pub/p1/{MARKER}"))
+    assert marker["files"] == {
+        r: {"sha256": hashlib.sha256(d).hexdigest(), "size": len(d)} for r, d in V1.items()
+    }
+    out = RemoteFolder(f"s3://{BUCKET}/pub")
+    assert published_names(out) == ["p1"] and verify_folder(out, "p1") == []
+    # a new version replaces the folder as a whole: a file it lacks is gone
+    v2 = {"metrics.parquet": b"PAR1" * 50, "report.html": b"<html>2</html>"}
+    publish_folder(_folder(tmp_path / "v2", v2), url)
+    assert _keys(s3_endpoint, "pub/") == sorted([f"pub/p1/{r}" for r in v2] + [f"pub/p1/{MARKER}"])
+    assert _body(s3_endpoint, "pub/p1/report.html") == b"<html>2</html>"
+    assert verify_folder(out, "p1") == []
+
+
+def test_an_interrupted_publish_leaves_no_marker_and_a_rerun_completes_it(
+    s3_endpoint, tmp_path, monkeypatch
+):
+    url = f"s3://{BUCKET}/cut/p1"
+    out = RemoteFolder(f"s3://{BUCKET}/cut")
+    publish_folder(_folder(tmp_path / "v1", V1), url)
+    v2 = {**V1, "report.html": b"<html>v2</html>"}
+    real_copy, copies = out.fs.copy, []
+
+    def copy_then_die(src, dst, **kw):
+        if len(copies) == 1:  # the worker dies after the first file reached its final key
+            raise ConnectionError("worker killed mid-publish")
+        copies.append(dst)
+        return real_copy(src, dst, **kw)
+
+    monkeypatch.setattr(out.fs, "copy", copy_then_die)
+    with pytest.raises(StoreError, match="left unpublished") as exc:
+        publish_folder(_folder(tmp_path / "v2", v2), url)
+    assert "\n" not in str(exc.value) and copies
+    monkeypatch.undo()
+    keys = _keys(s3_endpoint, "cut/")
+    assert f"cut/p1/{MARKER}" not in keys  # the old marker went before the first copy
+    assert read_marker(out, "p1") is None and published_names(out) == []
+    assert verify_folder(out, "p1") == [f"{out.url}/p1: not published (no valid {MARKER})"]
+    assert not [k for k in keys if "/.tumor3d-tmp/" in k]
+    publish_folder(tmp_path / "v2", url)  # the re-run completes it
+    assert published_names(out) == ["p1"] and verify_folder(out, "p1") == []
+    assert _body(s3_endpoint, "cut/p1/report.html") == b"<html>v2</html>"
+    assert not [k for k in _keys(s3_endpoint, "cut/") if "/.tumor3d-tmp/" in k]
+
+
+def test_a_corrupted_object_is_detected_after_the_copy_and_after_publication(
+    s3_endpoint, tmp_path, monkeypatch
+):
+    url = f"s3://{BUCKET}/bad/p1"
+    out = RemoteFolder(f"s3://{BUCKET}/bad")
+    staged = _folder(tmp_path / "v1", V1)
+    real_copy = out.fs.copy
+
+    def corrupting_copy(src, dst, **kw):
+        real_copy(src, dst, **kw)
+        if dst.endswith("report.html"):
+            out.fs.pipe_file(dst, b"<html>X</html>")  # same size, other bytes
+
+    monkeypatch.setattr(out.fs, "copy", corrupting_copy)
+    with pytest.raises(StoreError, match="does not match the staged file's sha256"):
+        publish_folder(staged, url)
+    monkeypatch.undo()
+    assert read_marker(out, "p1") is None and published_names(out) == []
+    publish_folder(staged, url)
+    assert verify_folder(out, "p1") == []
+    s3_endpoint.put_object(Bucket=BUCKET, Key="bad/p1/views/a.png", Body=b"\x89PNG2")
+    assert verify_folder(out, "p1") == [
+        f"{out.url}/p1/views/a.png: content does not match its sha256 in {MARKER}"
+    ]
+    publish_folder(staged, url)  # same staged bytes: the corrupted object is re-published
+    assert (
+        verify_folder(out, "p1") == []
+        and _body(s3_endpoint, "bad/p1/views/a.png") == V1["views/a.png"]
+    )
+    s3_endpoint.delete_object(Bucket=BUCKET, Key="bad/p1/report.html")
+    assert read_marker(out, "p1") is None  # a listed file missing: not published
+    publish_folder(staged, url)  # a re-publish repairs it (marker no longer valid)
+    assert verify_folder(out, "p1") == []
 
 
 @pytest.mark.slow
@@ -225,3 +356,66 @@ def test_dask_worker_processes_share_the_s3_store_and_its_cache(s3_endpoint, tmp
     assert not (tmp_path / "o1" / ".tumor3d-store").exists()
     again = run_cohort(rows, tmp_path / "o2", store_dir=url, dask=DaskSpec(n_workers=2))
     assert all(s.cached for p in again.patients for s in p.stages)
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patients(
+    s3_endpoint, tmp_path, monkeypatch
+):
+    """``--out s3://``: every patient's objects are the bytes of its local staging folder
+    (captured as handed to the uploader), the same files and deterministic bytes as a
+    local ``--out``, a marker per patient and for the cohort files; a re-run without a
+    patient reports it removed (a prefix without a marker is no patient)."""
+    import flows.patient as patient_mod
+
+    staged: dict[str, dict[str, bytes]] = {}
+    real = patient_mod.publish_folder
+
+    def spy(folder, url):
+        staged[url] = {
+            p.relative_to(folder).as_posix(): p.read_bytes()
+            for p in folder.rglob("*")
+            if p.is_file()
+        }
+        return real(folder, url)
+
+    monkeypatch.setattr(patient_mod, "publish_folder", spy)
+    rows = _rows(tmp_path / "in", [0, 1])
+    local = run_cohort(rows, tmp_path / "local", workers=2)
+    url = f"s3://{BUCKET}/outs"
+    first = run_cohort(rows, url, workers=2)
+    assert first.exit_code == 0, [p.error for p in first.patients]
+    assert [p.output_dir for p in first.patients] == [f"{url}/s3p0", f"{url}/s3p1"]
+    out = RemoteFolder(url)
+    assert published_names(out) == ["s3p0", "s3p1"]
+    for p_local, p_s3 in zip(local.patients, first.patients, strict=True):
+        pid = p_s3.patient_id
+        files = staged[f"{url}/{pid}"]
+        keys = _keys(s3_endpoint, f"outs/{pid}/")
+        assert keys == sorted([f"outs/{pid}/{r}" for r in files] + [f"outs/{pid}/{MARKER}"])
+        for rel, data in files.items():
+            assert _body(s3_endpoint, f"outs/{pid}/{rel}") == data, rel
+        assert verify_folder(out, pid) == []
+        local_dir = tmp_path / "local" / pid
+        local_files = {
+            p.relative_to(local_dir).as_posix() for p in local_dir.rglob("*") if p.is_file()
+        }
+        assert set(files) == local_files
+        for rel in ("tumor_mask.nii.gz", "tumor_mask_slices.nii.gz", "tumor.ply", "slices.parquet"):
+            assert files[rel] == (local_dir / rel).read_bytes(), rel
+        assert p_s3.metrics["volume_eq7_mm3"] == p_local.metrics["volume_eq7_mm3"]
+    root = _keys(s3_endpoint, "outs/")
+    for name in ("cohort.parquet", "cohort.md", "cohort.html", MARKER):
+        assert f"outs/{name}" in root
+    assert verify_folder(out, "") == []
+    assert b"s3p0/report.html" in _body(s3_endpoint, "outs/cohort.html")  # link to a published file
+    assert any(k.startswith("outs/.tumor3d-store/objects/") for k in root)  # default store on S3
+    assert not [k for k in root if k.startswith("outs/.tumor3d-tmp/")]
+    # a prefix without a marker (an interrupted publish) is not a published patient
+    s3_endpoint.put_object(Bucket=BUCKET, Key="outs/ghost/metrics.parquet", Body=b"half")
+    again = run_cohort(rows[:1], url, workers=1)
+    assert again.removed == ["s3p1"] and all(s.cached for s in again.patients[0].stages)
+    md = _body(s3_endpoint, "outs/cohort.md").decode()
+    assert "Removed from the manifest" in md and "s3p1" in md
+    assert f"outs/s3p1/{MARKER}" in _keys(s3_endpoint, "outs/s3p1/")  # reported, not deleted
