@@ -396,9 +396,7 @@ def _publisher_code_digest() -> str:
     return h.hexdigest()
 
 
-def publish_key(
-    source: InputSource, outputs: dict[str, StageOutput], cfg: PipelineConfig
-) -> str:
+def publish_key(source: InputSource, outputs: dict[str, StageOutput], cfg: PipelineConfig) -> str:
     """SHA-256 of everything a published folder is made from.
 
     The input's identity (not its location), every stage output's content
@@ -428,9 +426,7 @@ def _current_report(
     """The report content of an up-to-date published folder, for this run's artifacts."""
     det = store.get_table(outputs["detect-abnormal"].artifacts["detection"])
     abnormal = det.loc[det["abnormal"].astype(bool), "slice_index"].astype(int).tolist()
-    files = sorted(
-        f.name for f in folder.iterdir() if f.is_file() and f.name != PUBLISH_MANIFEST
-    )
+    files = sorted(f.name for f in folder.iterdir() if f.is_file() and f.name != PUBLISH_MANIFEST)
     return patient_report_data(
         metrics, stage_runs=[r.model_dump() for r in runs], abnormal_slices=abnormal,
         files=files, provenance=json.loads((folder / "provenance.json").read_text()),
