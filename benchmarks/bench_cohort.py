@@ -9,7 +9,7 @@ Peers, in one process after a warm-up (numba compilation, Open3D start):
 * ``cohort, cached``: the same call again (every stage a cache hit; the
   published folders already hold this result, so nothing is rewritten);
 * ``cohort, cached, republished``: the same once more after deleting every
-  patient's publish manifest (``.tumor3d-published.json``), so each folder is
+  patient's publish manifest (``.tumor3d-publish-key.json``), so each folder is
   written again, as every cached re-run did before the up-to-date check.
 
 Reported:

@@ -9,7 +9,7 @@ process (imports, preflight, flow, publishing, exit), timed from outside:
 * cached, server up: the same output again (every stage a cache hit, the
   published folder up to date: nothing rewritten);
 * cached, republished: the same after deleting the folder's publish manifest
-  (``.tumor3d-published.json``), so the folder is written again as every
+  (``.tumor3d-publish-key.json``), so the folder is written again as every
   cached run did before the up-to-date check;
 * cached, temporary server: the same, after ``tumor3d server stop`` (each
   command starts and stops its own server).
@@ -63,7 +63,7 @@ def main() -> None:
         for i in range(args.repeat):
             times["cold"].append(_tumor3d("run", image, "--out", str(tmp / f"cold{i}"), env=env))
             times["cached"].append(_tumor3d("run", image, "--out", str(tmp / "warm"), env=env))
-            (tmp / "warm" / "phantom000_t2" / ".tumor3d-published.json").unlink()
+            (tmp / "warm" / "phantom000_t2" / ".tumor3d-publish-key.json").unlink()
             t = _tumor3d("run", image, "--out", str(tmp / "warm"), env=env)
             times["republished"].append(t)
         _tumor3d("server", "stop", env=env)

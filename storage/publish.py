@@ -48,7 +48,7 @@ __all__ = [
 ]
 
 #: The hidden file of a published folder that records its key and file digests.
-PUBLISH_MANIFEST = ".tumor3d-published.json"
+PUBLISH_MANIFEST = ".tumor3d-publish-key.json"
 
 _MANIFEST_FORMAT = 1
 
