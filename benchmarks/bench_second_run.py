@@ -6,7 +6,11 @@ One default phantom patient (30 slices). Each run is a fresh ``tumor3d run``
 process (imports, preflight, flow, publishing, exit), timed from outside:
 
 * cold, server up: a new output folder and store (numba's on-disk cache warm);
-* cached, server up: the same output again (every stage a cache hit);
+* cached, server up: the same output again (every stage a cache hit, the
+  published folder up to date: nothing rewritten);
+* cached, republished: the same after deleting the folder's publish manifest
+  (``.tumor3d-publish-key.json``), so the folder is written again as every
+  cached run did before the up-to-date check;
 * cached, temporary server: the same, after ``tumor3d server stop`` (each
   command starts and stops its own server).
 
@@ -49,7 +53,7 @@ def main() -> None:
         TUMOR3D_HOME=str(tmp / "home"), PREFECT_HOME=str(tmp / "prefect"), PYTHONPATH=str(ROOT)
     )
     env.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "240")
-    times: dict[str, list[float]] = {"cold": [], "cached": [], "temporary": []}
+    times: dict[str, list[float]] = {"cold": [], "cached": [], "republished": [], "temporary": []}
     try:
         _tumor3d("phantom", "--out", str(tmp / "in"), "--n", "1", env=env)
         image = str(tmp / "in" / "phantom000" / "phantom000_t2.nii.gz")
@@ -59,6 +63,9 @@ def main() -> None:
         for i in range(args.repeat):
             times["cold"].append(_tumor3d("run", image, "--out", str(tmp / f"cold{i}"), env=env))
             times["cached"].append(_tumor3d("run", image, "--out", str(tmp / "warm"), env=env))
+            (tmp / "warm" / "phantom000_t2" / ".tumor3d-publish-key.json").unlink()
+            t = _tumor3d("run", image, "--out", str(tmp / "warm"), env=env)
+            times["republished"].append(t)
         _tumor3d("server", "stop", env=env)
         for _ in range(max(1, args.repeat - 1)):
             t = _tumor3d("run", image, "--out", str(tmp / "warm"), env=env)
@@ -78,6 +85,7 @@ def main() -> None:
     labels = {
         "cold": "cold, background server up",
         "cached": "cached, background server up",
+        "republished": "cached, background server up, folder republished",
         "temporary": "cached, temporary server",
     }
     for key, label in labels.items():

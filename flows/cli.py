@@ -229,7 +229,8 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
         from tumor3d.metrics import EQ7_SLICE_RULES
 
         console.print(f"[dim]Eq. 7 slices ({eq7}): {EQ7_SLICE_RULES[eq7]}[/]")
-    console.print(f"outputs: [bold]{escape(result.output_dir)}[/]")
+    current = " (up to date: already published, nothing rewritten)" if result.up_to_date else ""
+    console.print(f"outputs: [bold]{escape(result.output_dir)}[/]{current}")
 
 
 def _preflight(

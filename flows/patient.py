@@ -41,8 +41,15 @@ from storage.patient_outputs import (
     write_report,
     write_surface_files,
 )
-from storage.provenance import build_provenance
-from storage.publish import check_output_not_input, staged_folder
+from storage.provenance import build_provenance, versions
+from storage.publish import (
+    PUBLISH_MANIFEST,
+    check_output_not_input,
+    clean_stale_staging,
+    published_is_current,
+    staged_folder,
+    write_publish_manifest,
+)
 from storage.readers import derive_patient_id
 from storage.remote_publish import publish_folder
 from storage.slice_table import slice_table
@@ -68,6 +75,7 @@ __all__ = [
     "patient_flow",
     "patient_pipeline",
     "prepare_source",
+    "publish_key",
     "publish_patient",
     "run_patient",
     "run_stages",
@@ -108,6 +116,8 @@ class PatientResult(BaseModel):
     notes: list[str] = []
     #: The content of ``report.html`` (:func:`storage.patient_outputs.patient_report_data`).
     report: dict[str, Any] = {}
+    #: The output folder already held exactly this result: nothing was rewritten.
+    up_to_date: bool = False
 
     @property
     def cache_hits(self) -> list[bool]:
@@ -242,17 +252,18 @@ def patient_pipeline(
     metrics = _metrics_row(outputs, runner.runs, pid, flow_seconds, notes)
     if is_url(out_dir):  # staged locally, then uploaded (storage.remote_publish)
         with tempfile.TemporaryDirectory(prefix="tumor3d-publish-") as tmp:
-            staged, report = publish_patient(
+            staged, report, _ = publish_patient(
                 store, Path(tmp), source, outputs, runner.runs, metrics, cfg
             )
             out_path = publish_folder(staged, f"{str(out_dir).rstrip('/')}/{pid}")
+        up_to_date = False  # publish_folder itself skips an unchanged upload
     else:
-        out_path, report = publish_patient(
+        out_path, report, up_to_date = publish_patient(
             store, Path(out_dir), source, outputs, runner.runs, metrics, cfg
         )
     return PatientResult(
         patient_id=pid, output_dir=str(out_path), metrics=metrics, stages=runner.runs,
-        flow_seconds=flow_seconds, notes=notes, report=report,
+        flow_seconds=flow_seconds, notes=notes, report=report, up_to_date=up_to_date,
     )  # fmt: skip
 
 
@@ -375,6 +386,66 @@ def _metrics_row(
     return row
 
 
+#: The modules whose code writes a published folder (with :data:`__name__`, this one).
+PUBLISHER_MODULES = (
+    "storage.formats", "storage.nifti", "storage.patient_outputs", "storage.provenance",
+    "storage.publish", "storage.slice_table",
+)  # fmt: skip
+
+
+def _publisher_code_digest() -> str:
+    """SHA-256 of the sources of this module and of :data:`PUBLISHER_MODULES`' closure.
+
+    Unlike a stage's code digest, the store codecs are included: they encode
+    published files too.
+    """
+    from tasks.caching import PROJECT_ROOT, module_closure
+
+    h = hashlib.sha256(Path(__file__).read_bytes())
+    for name in module_closure(PUBLISHER_MODULES):
+        base = PROJECT_ROOT.joinpath(*name.split("."))
+        path = base / "__init__.py" if base.is_dir() else base.with_suffix(".py")
+        h.update(b"\0" + name.encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()
+
+
+def publish_key(source: InputSource, outputs: dict[str, StageOutput], cfg: PipelineConfig) -> str:
+    """SHA-256 of everything a published folder is made from.
+
+    The input's identity (not its location), every stage output's content
+    digest (artifact digests and values), the configuration, each stage's
+    code digest, the publisher's code (:func:`_publisher_code_digest`) and
+    the recorded package versions. Equal keys mean the folder's content
+    would be the same, except the run's own times and cache flags.
+    """
+    doc = {
+        "source": source.model_dump(mode="json", exclude={"path"}),
+        "outputs": {name: out.content_digest() for name, out in sorted(outputs.items())},
+        "config_sha256": config_digest(cfg),
+        "stage_code": {name: spec.code_digest for name, spec in stages.STAGES.items()},
+        "publisher": _publisher_code_digest(),
+        "versions": versions(),
+    }
+    return hashlib.sha256(canonical_dumps(doc).encode()).hexdigest()
+
+
+def _current_report(
+    folder: Path,
+    store: ArtifactStore,
+    outputs: dict[str, StageOutput],
+    runs: list[StageRun],
+    metrics: dict[str, Any],
+) -> dict[str, Any]:
+    """The report content of an up-to-date published folder, for this run's artifacts."""
+    det = store.get_table(outputs["detect-abnormal"].artifacts["detection"])
+    abnormal = det.loc[det["abnormal"].astype(bool), "slice_index"].astype(int).tolist()
+    files = sorted(f.name for f in folder.iterdir() if f.is_file() and f.name != PUBLISH_MANIFEST)
+    return patient_report_data(
+        metrics, stage_runs=[r.model_dump() for r in runs], abnormal_slices=abnormal,
+        files=files, provenance=json.loads((folder / "provenance.json").read_text()),
+    )  # fmt: skip
+
+
 def publish_patient(
     store: ArtifactStore,
     out_dir: Path,
@@ -383,14 +454,32 @@ def publish_patient(
     runs: list[StageRun],
     metrics: dict[str, Any],
     cfg: PipelineConfig,
-) -> tuple[Path, dict[str, Any]]:
+) -> tuple[Path, dict[str, Any], bool]:
     """Write the patient's outputs to a staging folder, then swap it into ``out_dir/<id>``.
 
-    Returns the folder and the report's content (:func:`storage.patient_outputs.
-    patient_report_data`, also the Prefect artifacts' source).
+    Skipped when every stage was a cache hit (none repaired) and
+    ``out_dir/<id>`` already holds exactly this result
+    (:func:`storage.publish.published_is_current` with :func:`publish_key`:
+    same key, every file present with its published digest): the folder,
+    its ``provenance.json`` and ``metrics.parquet`` then still describe the
+    run that wrote them.
+
+    Returns the folder, the report's content (:func:`storage.patient_outputs.
+    patient_report_data`, also the Prefect artifacts' source) and whether
+    the folder was already up to date (nothing written).
     """
     pid = source.patient_id
     check_output_not_input(out_dir / pid, [source.path])
+    key = publish_key(source, outputs, cfg)
+    reused = all(r.cached and not r.repaired for r in runs)
+    if reused and published_is_current(out_dir / pid, key):
+        clean_stale_staging(out_dir, pid)
+        try:
+            report = _current_report(out_dir / pid, store, outputs, runs, metrics)
+        except (OSError, ValueError):  # changed since the check: publish again
+            pass
+        else:
+            return out_dir / pid, report, True
     scan_ref = outputs["ingest-scan"].artifacts["scan"]
     grid = source_grid_from_metadata(scan_ref.metadata)
     tumour_found = bool(metrics["tumour_found"])
@@ -458,4 +547,5 @@ def publish_patient(
             files=files, provenance=provenance,
         )  # fmt: skip
         write_report(staging, report)
-    return out_dir / pid, report
+        write_publish_manifest(staging, key)
+    return out_dir / pid, report, False

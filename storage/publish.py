@@ -14,11 +14,20 @@ Two safety rules:
 * :func:`clean_stale_staging` -- staging and trash folders left by a killed
   run (its process is gone) are removed by the next publish of that name;
   those of a live concurrent run are left alone.
+
+A re-run whose result is already published need not rewrite it:
+:func:`write_publish_manifest` records, in the staging folder, a key (the
+caller's digest of everything the folder is made from) and the SHA-256 of
+every file; :func:`published_is_current` is true only when the published
+folder holds that same key and exactly those files, each with its digest (a
+file edited, deleted or added means "not current": publish again).
 """
 
 from __future__ import annotations
 
 import errno
+import hashlib
+import json
 import os
 import re
 import shutil
@@ -29,7 +38,19 @@ from pathlib import Path
 
 from tumor3d.errors import InputError
 
-__all__ = ["check_output_not_input", "clean_stale_staging", "staged_folder"]
+__all__ = [
+    "PUBLISH_MANIFEST",
+    "check_output_not_input",
+    "clean_stale_staging",
+    "published_is_current",
+    "staged_folder",
+    "write_publish_manifest",
+]
+
+#: The hidden file of a published folder that records its key and file digests.
+PUBLISH_MANIFEST = ".tumor3d-publish-key.json"
+
+_MANIFEST_FORMAT = 1
 
 _LEFTOVER = re.compile(r"^\.(?P<name>.+)\.(?:partial|old)-(?P<pid>\d+)-[0-9a-f]{8}$")
 
@@ -167,3 +188,63 @@ def staged_folder(out_dir: str | Path, name: str) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
+
+
+def _file_digests(folder: Path) -> dict[str, str]:
+    """Relative POSIX path -> SHA-256 of every file under ``folder`` but the manifest."""
+    out: dict[str, str] = {}
+    for f in sorted(folder.rglob("*")):
+        rel = f.relative_to(folder).as_posix()
+        if rel == PUBLISH_MANIFEST or f.is_dir():
+            continue
+        if not f.is_file():  # a symlink to nowhere, a socket...: never "current"
+            raise OSError(errno.EINVAL, "not a regular file", str(f))
+        h = hashlib.sha256()
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        out[rel] = h.hexdigest()
+    return out
+
+
+def write_publish_manifest(staging: str | Path, key: str) -> str:
+    """Record ``key`` and every file's digest in ``staging`` (call last, before the swap).
+
+    Returns the manifest's file name (:data:`PUBLISH_MANIFEST`).
+    """
+    folder = Path(staging)
+    doc = {"format": _MANIFEST_FORMAT, "key": key, "files": _file_digests(folder)}
+    (folder / PUBLISH_MANIFEST).write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    return PUBLISH_MANIFEST
+
+
+def published_is_current(folder: str | Path, key: str) -> bool:
+    """True if ``folder`` was published with ``key`` and every file is as published.
+
+    False (publish again) when the folder or its manifest is missing or
+    unreadable, the key differs, or any file was changed, deleted or added
+    since. Reads every file once (a few MB for a patient).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> out = Path(tempfile.mkdtemp())
+    >>> with staged_folder(out, "p1") as tmp:
+    ...     _ = (tmp / "a.txt").write_text("x")
+    ...     _ = write_publish_manifest(tmp, "k1")
+    >>> published_is_current(out / "p1", "k1"), published_is_current(out / "p1", "k2")
+    (True, False)
+    >>> _ = (out / "p1" / "a.txt").write_text("y")
+    >>> published_is_current(out / "p1", "k1")
+    False
+    """
+    path = Path(folder)
+    try:
+        doc = json.loads((path / PUBLISH_MANIFEST).read_text())
+        if not isinstance(doc, dict) or doc.get("format") != _MANIFEST_FORMAT:
+            return False
+        if doc.get("key") != key or not isinstance(doc.get("files"), dict):
+            return False
+        return _file_digests(path) == doc["files"]
+    except (OSError, ValueError):
+        return False
