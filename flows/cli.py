@@ -231,6 +231,9 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
         console.print(f"[dim]Eq. 7 slices ({eq7}): {EQ7_SLICE_RULES[eq7]}[/]")
     current = " (up to date: already published, nothing rewritten)" if result.up_to_date else ""
     console.print(f"outputs: [bold]{escape(result.output_dir)}[/]{current}")
+    report = Path(result.output_dir) / "report.html"
+    if report.is_file():  # a local output folder (an s3:// one is not checked here)
+        console.print(f"report: [bold]{escape(str(report))}[/] (open in a browser)")
 
 
 def _preflight(
@@ -572,7 +575,7 @@ def print_cohort_summary(result: Any) -> None:
     console.print(
         f"{len(result.patients) - len(result.failed)} ok, {len(result.failed)} failed in "
         f"{result.wall_seconds:.1f} s; outputs: [bold]{escape(result.out_dir)}[/] "
-        "(cohort.parquet, cohort.md)"
+        "(cohort.parquet, cohort.md, cohort.html)"
     )
 
 
