@@ -372,6 +372,15 @@ DaskWorkers = Annotated[
     int | None,
     typer.Option(min=1, help="Run the stages on a temporary local Dask cluster of N workers."),
 ]
+Workers = Annotated[
+    int | None, typer.Option(min=1, help="Patients at a time (default: the CPU cores).")
+]
+CohortStore = Annotated[
+    str | None,
+    typer.Option(
+        help="Artifact store: a folder or s3://bucket/prefix (default OUT/.tumor3d-store)."
+    ),
+]
 
 
 @app.command()
@@ -434,15 +443,8 @@ def cohort(
     manifest: Annotated[Path, typer.Argument(help="Cohort manifest CSV (patient_id, image, ...).")],
     out: Annotated[str, typer.Option("--out", "-o", help="Output folder, or s3://bucket/prefix.")],
     config: Annotated[Path | None, typer.Option(help="YAML configuration file.")] = None,
-    workers: Annotated[
-        int | None, typer.Option(min=1, help="Patients at a time (default: the CPU cores).")
-    ] = None,
-    store: Annotated[
-        str | None,
-        typer.Option(
-            help="Artifact store: a folder or s3://bucket/prefix (default OUT/.tumor3d-store)."
-        ),
-    ] = None,
+    workers: Workers = None,
+    store: CohortStore = None,
     max_voxels: MaxVoxels = MAX_VOXELS_DEFAULT,
     dask_address: DaskAddress = None,
     dask_workers: DaskWorkers = None,
@@ -492,15 +494,8 @@ def serve(
     config: Annotated[
         Path | None, typer.Option(help="YAML configuration file, re-read by every run.")
     ] = None,
-    workers: Annotated[
-        int | None, typer.Option(min=1, help="Patients at a time (default: the CPU cores).")
-    ] = None,
-    store: Annotated[
-        str | None,
-        typer.Option(
-            help="Artifact store: a folder or s3://bucket/prefix (default OUT/.tumor3d-store)."
-        ),
-    ] = None,
+    workers: Workers = None,
+    store: CohortStore = None,
     dask_address: DaskAddress = None,
     dask_workers: DaskWorkers = None,
     verbose: Verbose = False,
