@@ -110,6 +110,9 @@ _MAD_TO_SIGMA = 1.4826  # sigma of a normal distribution = 1.4826 MAD
 #: median / MAD model (breakdown point 50 %): no lesion is reported.
 MAX_BRAIN_FRACTION = 0.5
 
+#: Step 3b: the grid spacing (mm) on which the brain's depth is computed (see _depth_mm).
+DEPTH_GRID_MM = 2.0
+
 #: Step 3c: mirror tolerance (head roll / yaw of a few degrees, anatomical asymmetry), mm.
 SYMMETRY_TOLERANCE_MM = 5.0
 
@@ -285,11 +288,25 @@ def _significant_components(
 
 
 def _depth_mm(brain: np.ndarray, spacing_mm: tuple[float, ...]) -> np.ndarray:
-    """3-D distance (mm) of each brain voxel to the outside of the brain mask."""
+    """3-D distance (mm) of each brain voxel to the outside of the brain mask.
+
+    Computed on a subgrid of about :data:`DEPTH_GRID_MM` spacing (every
+    ``k``-th voxel along an axis finer than that) and read back by nearest
+    neighbour: step 3b compares two depth percentiles of a brain some 70 mm
+    deep, which a 2 mm grid resolves, at an eighth of the cost on 1 mm voxels.
+    """
     if any(not (np.isfinite(v) and v > 0) for v in spacing_mm):
         raise InputError(f"spacing_mm must be three positive numbers, got {spacing_mm}")
+    step = [max(1, int(DEPTH_GRID_MM // float(v))) for v in spacing_mm]
+    coarse = brain[:: step[0], :: step[1], :: step[2]]
     # the brain touching the volume's edge continues beyond it: no distance there
-    return ndi.distance_transform_edt(brain, sampling=spacing_mm)
+    grid_mm = [float(v) * k for v, k in zip(spacing_mm, step, strict=True)]
+    d = ndi.distance_transform_edt(coarse, sampling=grid_mm)
+    for axis, k in enumerate(step):
+        if k > 1:
+            d = np.repeat(d, k, axis=axis)
+    d = d[: brain.shape[0], : brain.shape[1], : brain.shape[2]]
+    return np.where(brain, d, 0.0)
 
 
 def _deep_components(
@@ -587,6 +604,21 @@ def _grow_local(
     lesion tissue next to it, and outside the normal model (the floor stops
     the growth from creeping through normal tissue brighter than ``mu``).
     """
+    if int(rings) <= 0 or not mask.any():
+        return mask
+    # work on the mask's in-plane bounding box widened by the rings and the Gaussian's
+    # support: every pixel the growth can reach sees the same neighbourhood as in the
+    # whole volume (identical result), at a fraction of the cost
+    margin = int(rings) + int(4.0 * 3 + 0.5) + 1
+    zs = np.flatnonzero(mask.any(axis=(1, 2)))  # the growth is in-plane: no z support
+    box = (slice(zs[0], zs[-1] + 1), *_bounding_box(mask, margin)[1:])
+    out = mask.copy()
+    out[box] = _grow_local_box(mask[box], img[box], allowed[box], model, floor_sigmas, rings)
+    return out
+
+
+def _grow_local_box(mask, img, allowed, model, floor_sigmas, rings):
+    """:func:`_grow_local` on a box that holds the whole growth."""
     f = img.astype(np.float32)
     ring_fp = np.ones((1, 3, 3), dtype=bool)
     floor = model.median + float(floor_sigmas) * model.sigma

@@ -259,3 +259,57 @@ def test_bad_lesion_parameters_are_errors_naming_them():
     with pytest.raises(InputError, match="smoothing"):
         lesion_params({"smoothing": 2.0})
     assert lesion_params(None)["min_region_pixels"] == 50
+
+
+def _grow_local_naive(mask, img, allowed, model, floor_sigmas, rings):
+    """The growth of ``tumor3d.lesion._grow_local`` written out on the whole volume."""
+    f = img.astype(np.float32)
+    floor = model.median + floor_sigmas * model.sigma
+    for _ in range(rings):
+        m32 = mask.astype(np.float32)
+        local = ndi.gaussian_filter(f * m32, (0, 3, 3)) / np.maximum(
+            ndi.gaussian_filter(m32, (0, 3, 3)), 1e-6
+        )
+        threshold = np.maximum(floor, 0.5 * (local + model.median))
+        ring = ndi.binary_dilation(mask, structure=np.ones((1, 3, 3), bool)) & ~mask & allowed
+        mask = mask | (ring & (f > threshold))
+    return mask
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_local_growth_on_the_lesion_box_equals_the_whole_volume(seed):
+    # the growth works on the lesion's box only: it must give the same pixels as on the
+    # whole volume, also with the lesion at the volume's edge (reflecting borders)
+    from tumor3d.lesion import NormalModel, _grow_local
+
+    rng = np.random.default_rng(seed)
+    shape = (9, 80, 90)
+    img = ndi.gaussian_filter(rng.normal(120.0, 30.0, shape), (0, 1, 1)).astype(np.float32)
+    mask = np.zeros(shape, bool)
+    c = rng.integers(0, [80, 90])
+    yy, xx = np.indices(shape[1:])
+    mask[2:7] = ((yy - c[0]) ** 2 + (xx - c[1]) ** 2 <= rng.integers(36, 400))[None]
+    img[mask] += 60.0
+    halo = ndi.binary_dilation(mask, np.ones((1, 3, 3), bool), iterations=4) & ~mask
+    img[halo] += 35.0  # a partial-volume rim for the rings to take
+    allowed = rng.random(shape) > 0.05
+    model = NormalModel(120.0, 12.0, 144.0, float("inf"))
+    expected = _grow_local_naive(mask, img, allowed, model, 1.0, 3)
+    got = _grow_local(mask, img, allowed, model, 1.0, 3)
+    assert got.sum() > mask.sum()  # it grew
+    np.testing.assert_array_equal(got, expected)
+
+
+def test_depth_on_the_coarse_grid_is_within_a_grid_step_of_the_exact_depth():
+    from tumor3d.lesion import DEPTH_GRID_MM, _depth_mm
+
+    brain = _brain()
+    spacing = (1.0, 1.0, 1.0)
+    big = np.repeat(brain, 3, axis=0)  # 1 mm slices: the coarse grid steps every axis
+    exact = ndi.distance_transform_edt(big, sampling=spacing)
+    coarse = _depth_mm(big, spacing)
+    assert coarse.shape == big.shape and not coarse[~big].any()
+    inner = big & (exact > DEPTH_GRID_MM)
+    assert np.abs(coarse[inner] - exact[inner]).max() <= DEPTH_GRID_MM * np.sqrt(3)
+    # the rule's statistic, the brain's median depth, agrees to within half a grid step
+    assert abs(np.median(coarse[big]) - np.median(exact[big])) <= DEPTH_GRID_MM / 2
