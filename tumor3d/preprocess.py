@@ -18,8 +18,10 @@ choice.
 
 The volume is processed as a stack: the median filter and the unsharp
 kernel are applied to the whole ``(z, y, x)`` array with a kernel of depth 1
-(so slices never mix), the equalisation is one table look-up per slice and
-only the morphology of the skull removal loops over the (few tens of) slices.
+(so slices never mix), the equalisation is one table look-up per slice, the
+morphology (erosion, labelling, dilation, hole filling) runs on the whole
+stack with in-plane structuring elements, and only the skull removal's Otsu
+thresholds are computed slice by slice.
 """
 
 from __future__ import annotations
@@ -151,8 +153,34 @@ def _to_uint8(arr: np.ndarray, lo_p: float, hi_p: float) -> np.ndarray:
     lo, hi = np.percentile(foreground.astype(np.float64), [lo_p, hi_p])
     if not hi > lo:
         lo, hi = float(vmin), float(arr.max())
-    scaled = (arr.astype(np.float64) - lo) * (255.0 / (hi - lo))
-    return np.floor(np.clip(scaled, 0.0, 255.0) + 0.5).astype(np.uint8)
+    return _window_u8(arr, float(lo), 255.0 / (float(hi) - float(lo)))
+
+
+#: Voxels per block of :func:`_window_u8` (a 512 KiB float64 buffer that stays in cache).
+_WINDOW_BLOCK = 1 << 16
+
+
+def _window_u8(arr: np.ndarray, lo: float, scale: float) -> np.ndarray:
+    """``floor(clip((x - lo) * scale, 0, 255) + 0.5)`` as uint8, block by block.
+
+    The same float64 operations in the same order as the whole-array numpy
+    expression (hence the same bits), in place on one small reused buffer
+    instead of four volume-sized float64 temporaries.
+    """
+    flat = arr.reshape(-1)
+    out = np.empty(flat.size, dtype=np.uint8)
+    buf = np.empty(min(_WINDOW_BLOCK, flat.size), dtype=np.float64)
+    for start in range(0, flat.size, _WINDOW_BLOCK):
+        part = flat[start : start + _WINDOW_BLOCK]
+        b = buf[: part.size]
+        b[...] = part
+        b -= lo
+        b *= scale
+        np.clip(b, 0.0, 255.0, out=b)
+        b += 0.5
+        np.floor(b, out=b)
+        out[start : start + part.size] = b
+    return out.reshape(arr.shape)
 
 
 # --------------------------------------------------------------------------- filters
@@ -201,8 +229,41 @@ def _median_stack(stack: np.ndarray, size: int) -> np.ndarray:
     if box is None:
         return np.zeros_like(stack)
     out = np.zeros_like(stack)
-    out[box] = ndi.median_filter(stack[box], size=(1, size, size), mode="constant", cval=0)
+    if size == 3:
+        out[box] = _median3_in_plane(stack[box])
+    else:
+        out[box] = ndi.median_filter(stack[box], size=(1, size, size), mode="constant", cval=0)
     return out
+
+
+def _med3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Element-wise median of three arrays (exact: it returns one of the inputs)."""
+    return np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+
+
+def _median3_in_plane(stack: np.ndarray) -> np.ndarray:
+    """3 x 3 in-plane median of every slice, zero padding, without sorting.
+
+    Equals ``ndi.median_filter(stack, size=(1, 3, 3), mode="constant", cval=0)``
+    exactly: with each column of a 3 x 3 window sorted into ``lo <= mid <= hi``,
+    the median of the nine values is ``med3(max(lo), med3(mid), min(hi))`` (the
+    classic column-sort identity). Each vertical triple is sorted once and shared
+    by the three windows that contain it; only min/max of the original values
+    are taken, so any dtype gives the same result as the rank filter.
+    """
+    p = np.pad(stack, ((0, 0), (1, 1), (1, 1)))
+    a, b, c = p[:, :-2], p[:, 1:-1], p[:, 2:]
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    lo3 = np.minimum(lo, c)
+    t = np.maximum(lo, c)
+    mid3 = np.minimum(hi, t)
+    hi3 = np.maximum(hi, t)
+    del a, b, c, lo, hi, t
+    left, centre, right = slice(None, -2), slice(1, -1), slice(2, None)
+    low = np.maximum(np.maximum(lo3[..., left], lo3[..., centre]), lo3[..., right])
+    high = np.minimum(np.minimum(hi3[..., left], hi3[..., centre]), hi3[..., right])
+    med = _med3(mid3[..., left], mid3[..., centre], mid3[..., right])
+    return _med3(low, med, high)
 
 
 def _nonzero_box(stack: np.ndarray, margin: int) -> tuple[slice, ...] | None:
@@ -221,9 +282,19 @@ def _nonzero_box(stack: np.ndarray, margin: int) -> tuple[slice, ...] | None:
 
 def _unsharp_stack(stack: np.ndarray, alpha: float) -> np.ndarray:
     # MATLAB imfilter: correlation, zero padding, result rounded and saturated to uint8.
+    # Outside the non-zero box grown by the kernel's half width every output is 0, and
+    # inside it zero padding and zero pixels agree: only the box is filtered.
     kernel = unsharp_kernel(alpha)[None, :, :]
-    out = ndi.correlate(stack.astype(np.float64), kernel, mode="constant", cval=0.0)
-    return np.floor(np.clip(out, 0.0, 255.0) + 0.5).astype(np.uint8)
+    out = np.zeros_like(stack, dtype=np.uint8)
+    box = _nonzero_box(stack, 1)
+    if box is None:
+        return out
+    acc = ndi.correlate(stack[box].astype(np.float64), kernel, mode="constant", cval=0.0)
+    np.clip(acc, 0.0, 255.0, out=acc)
+    acc += 0.5
+    np.floor(acc, out=acc)
+    out[box] = acc
+    return out
 
 
 def equalize_slices(stack: np.ndarray, *, levels: int = 256) -> np.ndarray:
@@ -344,25 +415,62 @@ def remove_skull(
         raise InputError(
             f"unknown skull_threshold {threshold!r}: expected one of {SKULL_THRESHOLDS}"
         )
-    footprint = disk(radius).astype(bool) if radius > 0 else None
-    eight = np.ones((3, 3), dtype=bool)
-    mask = np.zeros(stack.shape, dtype=bool)
+    binary = np.zeros(stack.shape, dtype=bool)
     for z, sl in enumerate(stack):
-        if sl.min() == sl.max():
-            continue
-        binary = sl > _skull_threshold(sl, threshold)
-        if footprint is not None:
-            binary = ndi.binary_erosion(binary, structure=footprint)
-        labels, n = ndi.label(binary, structure=eight)
-        if n == 0:
-            continue
-        sizes = np.bincount(labels.ravel())
-        sizes[0] = 0
-        brain = labels == int(np.argmax(sizes))
-        if footprint is not None:
-            brain = ndi.binary_dilation(brain, structure=footprint)
-        mask[z] = ndi.binary_fill_holes(brain)
-    return _keep_nested_slices(mask)
+        if sl.min() != sl.max():
+            binary[z] = sl > _skull_threshold(sl, threshold)
+    mask = _opened_largest_component(binary, radius)
+    return _keep_nested_slices(fill_holes_per_slice(mask))
+
+
+def _in_plane(footprint: np.ndarray) -> np.ndarray:
+    """A 2-D footprint as a ``(1, h, w)`` structure: it never links slices."""
+    return np.asarray(footprint, dtype=bool)[None]
+
+
+def _opened_largest_component(binary: np.ndarray, radius: int) -> np.ndarray:
+    """Per slice: erode by a disk, keep the largest 8-connected component, dilate.
+
+    All slices in a few whole-stack calls, on the bounding box of ``binary``
+    grown by ``radius`` (outside it every input pixel, hence every output
+    pixel, is False; scipy's border value is False as well). A depth-1
+    structure never mixes slices. The labels of a 3-D labelling with an
+    in-plane structure run slice by slice in raster order, so each slice's
+    labels are one consecutive range and the first largest component of that
+    range is the one a per-slice ``argmax`` picks.
+    """
+    out = np.zeros(binary.shape, dtype=bool)
+    box = _true_box(binary)
+    if box is None:
+        return out
+    ny, nx = binary.shape[1:]
+    box = (
+        box[0],
+        slice(max(box[1].start - radius, 0), min(box[1].stop + radius, ny)),
+        slice(max(box[2].start - radius, 0), min(box[2].stop + radius, nx)),
+    )
+    sub = binary[box]
+    footprint = _in_plane(disk(radius)) if radius > 0 else None
+    if footprint is not None:
+        sub = ndi.binary_erosion(sub, structure=footprint)
+    eight = np.zeros((3, 3, 3), dtype=bool)
+    eight[1] = True
+    labels, n = ndi.label(sub, structure=eight)
+    if n == 0:
+        return out
+    sizes = np.bincount(labels.ravel())
+    top = labels.reshape(len(labels), -1).max(axis=1)  # last label of each slice (0: none)
+    keep = np.zeros(n + 1, dtype=bool)
+    first = 1
+    for last in top:
+        if last >= first:
+            keep[first + int(np.argmax(sizes[first : last + 1]))] = True
+            first = last + 1
+    brain = keep[labels]
+    if footprint is not None:
+        brain = ndi.binary_dilation(brain, structure=footprint)
+    out[box] = brain
+    return out
 
 
 #: Towards the top and bottom of the head a slice's brain must lie within its
@@ -385,14 +493,24 @@ def _keep_nested_slices(mask: np.ndarray) -> np.ndarray:
     if not areas.any():
         return mask
     out = mask.copy()
-    footprint = disk(_NESTING_TOLERANCE_PX).astype(bool)
+    # Until the walk stops, a slice's inner neighbour is still as in ``mask`` (only the
+    # slices beyond the stop are cleared), so all the dilations are done in one call.
+    r = _NESTING_TOLERANCE_PX
+    dilated = np.zeros_like(mask)
+    box = _true_box(mask)
+    ny, nx = mask.shape[1:]
+    box = (
+        slice(None),
+        slice(max(box[1].start - r, 0), min(box[1].stop + r, ny)),
+        slice(max(box[2].start - r, 0), min(box[2].stop + r, nx)),
+    )
+    dilated[box] = ndi.binary_dilation(mask[box], structure=_in_plane(disk(r)))
     centre = int(np.argmax(areas))
     for step in (1, -1):
         z = centre + step
         while 0 <= z < len(out):
-            inner = ndi.binary_dilation(out[z - step], structure=footprint)
-            outside = np.count_nonzero(out[z] & ~inner)
-            if outside > _NESTING_MAX_OUTSIDE * max(1, np.count_nonzero(out[z])):
+            outside = np.count_nonzero(mask[z] & ~dilated[z - step])
+            if outside > _NESTING_MAX_OUTSIDE * max(1, int(areas[z])):
                 if step > 0:
                     out[z:] = False
                 else:
@@ -427,29 +545,77 @@ def foreground_brain_mask(image: np.ndarray) -> np.ndarray:
     (z, y, x) ndarray of bool
         Empty if the volume is constant.
     """
-    arr = _check_volume(image)
+    return _foreground_brain_mask(_check_volume(image))
+
+
+def _foreground_brain_mask(arr: np.ndarray) -> np.ndarray:
     fg = arr > arr.min()
-    if not fg.any():
+    box = _true_box(fg)
+    if box is None:
         return fg
-    labels, n = ndi.label(fg, structure=np.ones((3, 3, 3), dtype=bool))
+    # Components, their sizes and their raster order (argmax's tie-break) are the same
+    # on the bounding box of the foreground as on the whole volume.
+    sub = fg[box]
+    labels, n = ndi.label(sub, structure=np.ones((3, 3, 3), dtype=bool))
     if n > 1:
         sizes = np.bincount(labels.ravel())
         sizes[0] = 0
-        fg = labels == int(np.argmax(sizes))
+        sub = labels == int(np.argmax(sizes))
+        # the largest component may have a smaller box: hole filling works on that one
+        fg = np.zeros_like(fg)
+        fg[box] = sub
     return fill_holes_per_slice(fg)
+
+
+def _true_box(mask: np.ndarray) -> tuple[slice, ...] | None:
+    """Bounding box (all three axes) of the True voxels of a 3-D mask, or None."""
+    zs = np.flatnonzero(mask.any(axis=(1, 2)))
+    if zs.size == 0:
+        return None
+    ys = np.flatnonzero(mask.any(axis=(0, 2)))
+    xs = np.flatnonzero(mask.any(axis=(0, 1)))
+    return (
+        slice(zs[0], zs[-1] + 1),
+        slice(ys[0], ys[-1] + 1),
+        slice(xs[0], xs[-1] + 1),
+    )
+
+
+#: 4-connectivity in the (y, x) plane and no link between slices.
+_IN_PLANE_4 = np.zeros((3, 3, 3), dtype=bool)
+_IN_PLANE_4[1] = ndi.generate_binary_structure(2, 1)
 
 
 def fill_holes_per_slice(mask: np.ndarray) -> np.ndarray:
     """Fill the holes of every ``(y, x)`` slice of a ``(z, y, x)`` mask in one call.
 
-    An in-plane structuring element never links slices; a zero slice padded
-    at each end keeps the first and last slices' interiors off the array
-    border (which would otherwise make every pixel of them "outside").
+    Same result as ``scipy.ndimage.binary_fill_holes`` of each slice (holes =
+    background pixels not 4-connected to the slice border). The background of
+    the mask's bounding box, framed by a one-pixel ring of background that
+    stands for everything outside the box (background on every slice, hence
+    connected to the border), is labelled once with a structuring element
+    that links 4-neighbours within a slice and never across slices; every
+    background component other than the ring's own is a hole.
+
+    Examples
+    --------
+    >>> ring = np.ones((1, 5, 5), dtype=bool); ring[0, 2, 2] = False
+    >>> bool(fill_holes_per_slice(ring)[0, 2, 2])
+    True
     """
-    in_plane = np.zeros((3, 3, 3), dtype=bool)
-    in_plane[1] = ndi.generate_binary_structure(2, 1)
-    padded = np.pad(np.asarray(mask, dtype=bool), ((1, 1), (0, 0), (0, 0)))
-    return ndi.binary_fill_holes(padded, structure=in_plane)[1:-1]
+    mask = np.asarray(mask, dtype=bool)
+    if mask.ndim != 3:
+        raise InputError("fill_holes_per_slice needs a 3-D (z, y, x) mask")
+    out = mask.copy()
+    box = _true_box(mask)
+    if box is None:
+        return out
+    background = np.pad(~mask[box], ((0, 0), (1, 1), (1, 1)), constant_values=True)
+    labels, _ = ndi.label(background, structure=_IN_PLANE_4)
+    outside = labels[:, :1, :1]  # the ring's component, one per slice
+    holes = labels[:, 1:-1, 1:-1]
+    out[box] |= (holes != outside) & (holes > 0)
+    return out
 
 
 # --------------------------------------------------------------------------- pipeline
@@ -596,7 +762,7 @@ def preprocess_volume(
         at_min = np.count_nonzero(arr == arr.min()) / arr.size
         mode = "foreground" if at_min >= float(masked_background_fraction) else "skull_strip"
     if brain_mask is None and mode == "foreground":
-        brain = foreground_brain_mask(arr)
+        brain = _foreground_brain_mask(arr)
     elif brain_mask is None:
         brain = remove_skull(
             original, opening_radius=skull_opening_radius, threshold=skull_threshold

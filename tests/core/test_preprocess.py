@@ -311,3 +311,156 @@ def test_fill_holes_per_slice_matches_slice_by_slice_filling():
     mask = rng.random((5, 40, 40)) > 0.6
     expect = np.stack([ndi.binary_fill_holes(m) for m in mask])
     assert np.array_equal(fill_holes_per_slice(mask), expect)
+
+
+# --------------------------------------------------------------------------- fast paths vs naive
+
+
+def _random_masks(rng, n):
+    for _ in range(n):
+        shape = (int(rng.integers(1, 5)), int(rng.integers(1, 25)), int(rng.integers(1, 25)))
+        yield rng.random(shape) < rng.uniform(0.2, 0.9)
+
+
+def test_fill_holes_per_slice_matches_scipy_per_slice_on_random_masks():
+    from scipy import ndimage as ndi
+
+    from tumor3d.preprocess import fill_holes_per_slice
+
+    rng = np.random.default_rng(11)
+    for mask in _random_masks(rng, 150):
+        expect = np.stack([ndi.binary_fill_holes(m) for m in mask])
+        assert np.array_equal(fill_holes_per_slice(mask), expect)
+    # a box hole that touches nothing, and one that touches the border
+    ring = np.zeros((2, 9, 9), dtype=bool)
+    ring[:, 2:7, 2:7] = True
+    ring[:, 4, 4] = False
+    ring[1, 4, 2:] = False
+    expect = np.stack([ndi.binary_fill_holes(m) for m in ring])
+    assert np.array_equal(fill_holes_per_slice(ring), expect)
+    assert not fill_holes_per_slice(np.zeros((3, 4, 4), dtype=bool)).any()
+
+
+def test_median3_fast_path_matches_scipy_rank_filter():
+    from scipy import ndimage as ndi
+
+    from tumor3d.preprocess import _median_stack
+
+    rng = np.random.default_rng(12)
+    for _ in range(150):
+        shape = (int(rng.integers(1, 4)), int(rng.integers(1, 20)), int(rng.integers(1, 20)))
+        levels = int(rng.choice([2, 3, 7, 256]))  # few levels: many ties
+        stack = rng.integers(0, levels, size=shape).astype(np.uint8)
+        stack[rng.random(shape) < 0.3] = 0
+        expect = ndi.median_filter(stack, size=(1, 3, 3), mode="constant", cval=0)
+        assert np.array_equal(_median_stack(stack, 3), expect)
+
+
+def _naive_remove_skull(stack, radius, threshold):
+    """The per-slice loop of [A3] as written in the specification (reference)."""
+    from scipy import ndimage as ndi
+    from skimage.morphology import disk
+
+    from tumor3d.preprocess import _skull_threshold
+
+    footprint = disk(radius).astype(bool) if radius > 0 else None
+    mask = np.zeros(stack.shape, dtype=bool)
+    for z, sl in enumerate(stack):
+        if sl.min() == sl.max():
+            continue
+        binary = sl > _skull_threshold(sl, threshold)
+        if footprint is not None:
+            binary = ndi.binary_erosion(binary, structure=footprint)
+        labels, n = ndi.label(binary, structure=np.ones((3, 3), dtype=bool))
+        if n == 0:
+            continue
+        sizes = np.bincount(labels.ravel())
+        sizes[0] = 0
+        brain = labels == int(np.argmax(sizes))
+        if footprint is not None:
+            brain = ndi.binary_dilation(brain, structure=footprint)
+        mask[z] = ndi.binary_fill_holes(brain)
+    return _naive_keep_nested(mask)
+
+
+def _naive_keep_nested(mask):
+    from scipy import ndimage as ndi
+    from skimage.morphology import disk
+
+    from tumor3d.preprocess import _NESTING_MAX_OUTSIDE, _NESTING_TOLERANCE_PX
+
+    areas = mask.sum(axis=(1, 2))
+    if not areas.any():
+        return mask
+    out = mask.copy()
+    footprint = disk(_NESTING_TOLERANCE_PX).astype(bool)
+    centre = int(np.argmax(areas))
+    for step in (1, -1):
+        z = centre + step
+        while 0 <= z < len(out):
+            inner = ndi.binary_dilation(out[z - step], structure=footprint)
+            outside = np.count_nonzero(out[z] & ~inner)
+            if outside > _NESTING_MAX_OUTSIDE * max(1, np.count_nonzero(out[z])):
+                if step > 0:
+                    out[z:] = False
+                else:
+                    out[: z + 1] = False
+                break
+            z += step
+    return out
+
+
+def test_remove_skull_matches_per_slice_reference_on_random_stacks():
+    from scipy import ndimage as ndi
+
+    rng = np.random.default_rng(13)
+    for _ in range(40):
+        shape = (int(rng.integers(1, 6)), int(rng.integers(3, 30)), int(rng.integers(3, 30)))
+        sigma = (0, rng.uniform(0.5, 2.0), rng.uniform(0.5, 2.0))
+        smooth = ndi.gaussian_filter(rng.random(shape), sigma)
+        stack = (255 * (smooth - smooth.min()) / (np.ptp(smooth) + 1e-12)).astype(np.uint8)
+        stack[rng.integers(0, shape[0])] = 7  # a constant slice
+        for radius in (0, 1, 2):
+            for threshold in ("otsu", "multiotsu"):
+                assert np.array_equal(
+                    remove_skull(stack, opening_radius=radius, threshold=threshold),
+                    _naive_remove_skull(stack, radius, threshold),
+                )
+
+
+def test_keep_nested_slices_matches_sequential_walk():
+    from tumor3d.preprocess import _keep_nested_slices
+
+    rng = np.random.default_rng(14)
+    yy, xx = np.mgrid[:40, :40]
+    stops = 0
+    for _ in range(100):
+        # one random disc per slice (some empty): the walk stops where a disc leaves its
+        # inner neighbour's
+        nz = int(rng.integers(1, 9))
+        mask = np.zeros((nz, 40, 40), dtype=bool)
+        for z in range(nz):
+            cy, cx, r = rng.uniform(5, 35), rng.uniform(5, 35), rng.uniform(0, 14)
+            mask[z] = (yy - cy) ** 2 + (xx - cx) ** 2 < r * r
+        expect = _naive_keep_nested(mask)
+        stops += not np.array_equal(expect, mask)
+        assert np.array_equal(_keep_nested_slices(mask), expect)
+    assert stops > 10  # the clearing branch is exercised
+
+
+def test_to_uint8_fused_window_matches_numpy_expression():
+    rng = np.random.default_rng(15)
+    for dtype in (np.float32, np.float64, np.int16, np.uint16):
+        for _ in range(10):
+            vol = rng.normal(100.0, 40.0, size=(3, 11, 13))
+            vol[rng.random(vol.shape) < 0.3] = vol.min() - 5.0  # masked background
+            vol = vol.astype(dtype)
+            lo_p, hi_p = sorted(rng.uniform(0, 100, size=2))
+            fg = vol[vol > vol.min()].astype(np.float64)
+            lo, hi = np.percentile(fg, [lo_p, hi_p])
+            if not hi > lo:
+                lo, hi = float(vol.min()), float(vol.max())
+            scaled = (vol.astype(np.float64) - lo) * (255.0 / (hi - lo))
+            expect = np.floor(np.clip(scaled, 0.0, 255.0) + 0.5).astype(np.uint8)
+            got = to_uint8(vol, window_percentiles=(lo_p, hi_p))
+            assert np.array_equal(got, expect)
