@@ -78,6 +78,8 @@ class Case:
     label: str | None
     modality: str
     brainmask: str | None = None
+    labels: tuple[int, ...] | None = None  # reference labels that count (None: every label > 0)
+    native_only: bool = False  # acquired thick: never emulated
 
 
 def _cases(data: Path, no_tumor_modality: str = "t1c") -> list[Case]:
@@ -88,6 +90,14 @@ def _cases(data: Path, no_tumor_modality: str = "t1c") -> list[Case]:
                         str(d / "brainmask.nii.gz")))
     d = data / "brats_t2_algoseg"
     out.append(Case("t2_algoseg", str(d / "t2w.nii.gz"), str(d / "seg_algorithm.nii.gz"), "t2"))
+    # T1c: the enhancing rim (label 4) with its necrotic core (label 1)
+    for p in ("pat0003", "pat0004", "pat0005"):
+        d = data / f"brats2013_{p}"
+        out.append(Case(f"{p}_t1c", str(d / "t1c.nii.gz"), str(d / "seg.nii.gz"), "t1c",
+                        str(d / "brainmask.nii.gz"), labels=(1, 4)))
+    d = data / "thick_t1c_brain2"  # clinical 6.5 mm T1c, semi-automatic label
+    out.append(Case("brain2_t1c", str(d / "image.nii.gz"), str(d / "label.nii.gz"), "t1c",
+                    native_only=True))
     for f in ("KmeansTest_T1UCharRaw.nii.gz", "aniso_vox.nii.gz"):
         out.append(Case("no_tumor/" + f.split(".")[0], str(data / "no_tumor" / f), None,
                         no_tumor_modality))
@@ -129,10 +139,11 @@ def evaluate(case: Case, cfg, *, native: bool, offset: int, use_mask: bool) -> d
     img = scan.image
     label = None
     if case.label:
-        label = read_scan(case.label).image > 0.5
+        lab = read_scan(case.label).image
+        label = np.isin(np.rint(lab), case.labels) if case.labels else lab > 0.5
     bm = read_scan(case.brainmask).image > 0.5 if (use_mask and case.brainmask) else None
     voxel_mm3 = float(np.prod(scan.pixel_spacing_mm)) * scan.slice_step_mm
-    if native or label is None:
+    if native or label is None or case.native_only:
         thick, ref, bm_t = img, (None if label is None else label.astype(np.float64)), bm
         step_mm = scan.slice_step_mm
     else:
@@ -176,7 +187,7 @@ def evaluate(case: Case, cfg, *, native: bool, offset: int, use_mask: bool) -> d
     row["ref_ml"] = ref_ml
     row["vol_err"] = 100.0 * (vol_eq7 / 1000.0 - ref_ml) / ref_ml
     t0 = time.perf_counter()
-    if native:
+    if native or case.native_only:
         row["dice3d"] = soft_dice(mask, label.astype(np.float64))
     else:
         cfg_i = cfg.interpolate

@@ -49,7 +49,8 @@ class PreparedCase:
     run_row : ManifestRow
         The row the pipeline runs on (its image is the emulated one, if any).
     reference_kind : str
-        ``expert``, ``algorithmic``, ``truth``, ``tumor_free`` or ``unspecified``.
+        ``expert``, ``semiautomatic``, ``algorithmic``, ``truth``, ``tumor_free`` or
+        ``unspecified``.
     acquisition : str
         ``"native"`` or e.g. ``"emulated 2 mm every 5 mm"``.
     emulation : dict or None

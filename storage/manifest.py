@@ -22,9 +22,11 @@ emulate_thickness_mm no       evaluation only: thickness of each emulated
                               ``emulate_step_mm``; default: the image's own
                               slice step, i.e. keep every k-th slice)
 reference_kind      no        what the reference is: ``expert``,
-                              ``algorithmic`` (made by a program), ``truth``
-                              (a phantom's), or ``tumor_free`` (no tumour:
-                              no ``reference`` file needed)
+                              ``semiautomatic`` (drawn with a program's help
+                              under a person's control), ``algorithmic``
+                              (made by a program), ``truth`` (a phantom's),
+                              or ``tumor_free`` (no tumour: no ``reference``
+                              file needed)
 ==================  ========  ==============================================
 
 Relative paths are relative to the manifest's folder; ``$VAR`` / ``${VAR}``
@@ -50,6 +52,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tumor3d.errors import InputError
+from tumor3d.evaluation.registry import REFERENCE_KINDS as CASE_REFERENCE_KINDS
 from tumor3d.scan import MODALITIES, validate_patient_id
 
 __all__ = [
@@ -75,8 +78,9 @@ MANIFEST_COLUMNS = (
     "emulate_thickness_mm",
     "reference_kind",
 )
-#: Values of the ``reference_kind`` column.
-REFERENCE_KINDS = ("expert", "algorithmic", "truth", "tumor_free")
+#: Values of the ``reference_kind`` column: the evaluation's kinds less its
+#: "unspecified" (an empty cell).
+REFERENCE_KINDS = tuple(k for k in CASE_REFERENCE_KINDS if k != "unspecified")
 #: ``${TUMOR3D_DATA_DIR}`` when the environment does not set it.
 DATA_DIR_DEFAULT = (Path(__file__).resolve().parents[1] / ".." / "shared" / "data").resolve()
 _Fail = Callable[[str, str], InputError]

@@ -399,9 +399,20 @@ def _asymmetric_cavity(
     Dark = smoothed gray below ``mu - sigmas sigma`` (the seed rule mirrored:
     fluid or necrosis on FLAIR / T1c); asymmetric = no dark voxel at the mirror
     position (the ventricles and sulci are bilateral). A 3-D component of it
-    within ``gap_px`` (the blur's reach) of the lesion, smaller than the
-    lesion and significant as a seed component is (``min_pixels`` on
-    ``min_slices`` consecutive slices) joins it, with the partial-volume ring between the two.
+    within ``gap_px`` (the blur's reach) of the lesion, significant as a seed
+    component is (``min_pixels`` on ``min_slices`` consecutive slices) and
+    *enclosed by the lesion's extent* -- at least half of its voxels inside
+    the lesion's bounding box widened by ``gap_px`` in-plane and one slice --
+    joins it whole, with the partial-volume ring between the two.
+
+    The enclosure test replaces a size test ("smaller than the lesion"): the
+    necrotic core of a ring-enhancing T1c lesion is often larger than its
+    thin enhancing rim (BraTS pat0005: the rule with the size test kept 7 of
+    41 mL, see ``reports/segmentation.md``), while a dark structure that only
+    touches the lesion (a ventricle, a sulcus) lies mostly beyond the
+    lesion's extent. The cavity joins on all its slices, not only on those of
+    the lesion: towards its poles the rim is thin and partial-volumed and
+    seeds nothing, the core continues.
     """
     dark = brain & (sm < model.median - float(sigmas) * model.sigma)
     if not dark.any():
@@ -414,11 +425,15 @@ def _asymmetric_cavity(
     touch = np.unique(lab[near])
     touch = touch[touch > 0]
     sizes = np.bincount(lab.ravel())
-    touch = touch[np.isin(touch, ids) & (sizes[touch] < np.count_nonzero(mask))]
+    extent = np.zeros_like(mask)
+    zs = np.flatnonzero(mask.any(axis=(1, 2)))
+    box = _bounding_box(mask, gap_px)
+    extent[(slice(max(zs[0] - 1, 0), zs[-1] + 2), *box[1:])] = True
+    inside = np.bincount(lab[extent], minlength=sizes.size)
+    touch = touch[np.isin(touch, ids) & (2 * inside[touch] >= sizes[touch])]
     if touch.size == 0:
         return mask
-    # a cavity of the lesion lies on the lesion's slices (in-plane next to it)
-    cavity = np.isin(lab, touch) & mask.any(axis=(1, 2))[:, None, None]
+    cavity = np.isin(lab, touch)
     bridge = near & _box_dilate(cavity, gap_px, gap_px) & brain
     return mask | cavity | bridge
 

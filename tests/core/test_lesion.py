@@ -313,3 +313,36 @@ def test_depth_on_the_coarse_grid_is_within_a_grid_step_of_the_exact_depth():
     assert np.abs(coarse[inner] - exact[inner]).max() <= DEPTH_GRID_MM * np.sqrt(3)
     # the rule's statistic, the brain's median depth, agrees to within half a grid step
     assert abs(np.median(coarse[big]) - np.median(exact[big])) <= DEPTH_GRID_MM / 2
+
+
+def test_t1c_necrotic_core_larger_than_its_rim_joins_the_lesion_beyond_the_rim_slices():
+    # a ring-enhancing T1c lesion: a thin bright rim around a dark necrotic core of
+    # larger volume, the rim absent at the poles (thin, partial-volumed) where the
+    # core goes on; the dark ventricles (bilateral) stay out
+    brain = _brain()
+    z, y, x = _grid_mm()
+    centre = (0.0, 10.0, -17.0)
+    core = _ball(centre, 11.0)
+    rim = _ball(centre, 14.0) & ~core & (np.abs(z - centre[0]) < 7.0)
+    ventricles = _ball((0, -12, -6), 5) | _ball((0, -12, 6), 5)
+    assert core.sum() > rim.sum()
+    img = _image(brain, [(rim, 230.0), (core, 25.0), (ventricles, 25.0)])
+    mask = _segment(img, brain, modality="t1c", lr_axis=2)
+    assert (mask & core).sum() > 0.8 * core.sum()
+    beyond = core & ~rim.any(axis=(1, 2))[:, None, None]  # core slices without rim
+    assert beyond.any() and (mask & beyond).sum() > 0.6 * beyond.sum()
+    assert (mask & ventricles).sum() == 0
+
+
+def test_dark_asymmetric_structure_reaching_far_beyond_the_lesion_stays_out():
+    # a unilateral dark structure (a trapped ventricle) that touches the lesion but
+    # lies mostly outside the lesion's extent is not the lesion's cavity
+    brain = _brain()
+    z, y, x = _grid_mm()
+    lesion = _ball((0.0, 14.0, -16.0), 8.0)
+    trapped = (np.abs(z) < 10.0) & (y > -34.0) & (y < 5.0) & (np.abs(x + 16.0) < 4.0) & brain
+    assert not (trapped & lesion).any()
+    img = _image(brain, [(lesion, 200.0), (trapped, 25.0)])
+    mask = _segment(img, brain, modality="t1c", lr_axis=2)
+    assert (mask & lesion).sum() > 0.8 * lesion.sum()
+    assert (mask & trapped).sum() < 0.1 * trapped.sum()

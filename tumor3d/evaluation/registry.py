@@ -50,7 +50,14 @@ EVALUATION_MODULES: tuple[str, ...] = (
 )
 
 #: Kinds of reference a case may have.
-REFERENCE_KINDS = ("expert", "algorithmic", "truth", "tumor_free", "unspecified")
+REFERENCE_KINDS = (
+    "expert",
+    "semiautomatic",
+    "algorithmic",
+    "truth",
+    "tumor_free",
+    "unspecified",
+)
 
 
 @dataclass(frozen=True, eq=False)
