@@ -121,7 +121,8 @@ def emulate_thick(vol: np.ndarray, offset: int) -> np.ndarray:
 def run_pipeline(image, cfg, modality, brain_mask=None, spacing_mm=None, lr_axis=None):
     t = {}
     t0 = time.perf_counter()
-    pre = preprocess_volume(image, **cfg.preprocess.model_dump(), brain_mask=brain_mask)
+    pre = preprocess_volume(image, **cfg.preprocess.model_dump(), brain_mask=brain_mask,
+                            spacing_mm=spacing_mm)
     t["preprocess"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     det = detect_abnormal_slices(pre.enhanced, pre.brain_mask, modality=modality,

@@ -17,18 +17,13 @@ import numpy as np
 
 from storage.objectstore import open_store
 from storage.store import ArtifactRef
-from tasks.spec import StageOutput, StageSpec, stage_task
+from tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
 from tumor3d.config import DetectConfig
 from tumor3d.detect import detect_abnormal_slices
 from tumor3d.lesion import LesionResult, left_right_axis
 
 __all__ = ["SPEC", "detect_task", "lesion_metadata"]
 
-
-def _spacing(scan: ArtifactRef) -> tuple[float, float, float]:
-    """(slice step, row, column) voxel spacing in mm from the scan's metadata."""
-    dy, dx = scan.metadata["pixel_spacing_mm"]
-    return (float(scan.metadata["slice_step_mm"]), float(dy), float(dx))
 
 
 def _num(v: float) -> float | None:
@@ -69,7 +64,7 @@ def detect_task(
         image,
         brain,
         modality=scan.metadata["modality"],
-        spacing_mm=_spacing(scan),
+        spacing_mm=scan_spacing_mm(scan),
         lr_axis=left_right_axis(affine),
         **config.model_dump(),
     )

@@ -6,7 +6,7 @@ import numpy as np
 
 from storage.objectstore import open_store
 from storage.store import ArtifactRef
-from tasks.spec import StageOutput, StageSpec, stage_task
+from tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
 from tumor3d.config import PreprocessConfig
 from tumor3d.preprocess import preprocess_volume
 
@@ -18,14 +18,17 @@ def preprocess_task(scan: ArtifactRef, config: PreprocessConfig, store_root: str
     """Median, unsharp masking, equalisation and skull removal."""
     store = open_store(store_root)
     image, affine = store.get_volume(scan)
-    result = preprocess_volume(image, **config.model_dump())
+    result = preprocess_volume(image, **config.model_dump(), spacing_mm=scan_spacing_mm(scan))
     return StageOutput(
         stage="preprocess",
         artifacts={
             "enhanced": store.put_volume(result.enhanced, affine, dtype="uint8"),
             "brain_mask": store.put_volume(result.brain_mask, affine, kind="mask"),
         },
-        values={"brain_voxels": int(np.count_nonzero(result.brain_mask))},
+        values={
+            "brain_voxels": int(np.count_nonzero(result.brain_mask)),
+            "brain_extraction": result.brain_extraction,
+        },
     )
 
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from storage.objectstore import open_store
 from storage.store import ArtifactRef
-from tasks.spec import StageOutput, StageSpec, stage_task
+from tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
 from tumor3d.config import SegmentConfig
 from tumor3d.detect import SliceDetection
 from tumor3d.lesion import LesionResult, NormalModel, left_right_axis
@@ -23,11 +23,6 @@ from tumor3d.segment import segment_tumor
 
 __all__ = ["SPEC", "lesion_from_artifact", "segment_task"]
 
-
-def _spacing(scan: ArtifactRef) -> tuple[float, float, float]:
-    """(slice step, row, column) voxel spacing in mm from the scan's metadata."""
-    dy, dx = scan.metadata["pixel_spacing_mm"]
-    return (float(scan.metadata["slice_step_mm"]), float(dy), float(dx))
 
 
 def _f(v: Any, missing: float = float("nan")) -> float:
@@ -78,7 +73,7 @@ def segment_task(
         brain,
         det,
         modality=scan.metadata["modality"],
-        spacing_mm=_spacing(scan),
+        spacing_mm=scan_spacing_mm(scan),
         lr_axis=left_right_axis(affine),
         lesion=meta["params"],
         **config.model_dump(),

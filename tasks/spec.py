@@ -25,7 +25,13 @@ from storage.store import ArtifactRef, canonical_dumps
 from tasks.caching import code_digest, module_closure, stage_cache_policy
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 
-__all__ = ["InputSource", "StageOutput", "StageSpec", "stage_task"]
+__all__ = ["InputSource", "StageOutput", "StageSpec", "scan_spacing_mm", "stage_task"]
+
+
+def scan_spacing_mm(scan: ArtifactRef) -> tuple[float, float, float]:
+    """``(slice step, row, column)`` voxel spacing in mm from a scan artifact's metadata."""
+    dy, dx = scan.metadata["pixel_spacing_mm"]
+    return (float(scan.metadata["slice_step_mm"]), float(dy), float(dx))
 
 
 class StageOutput(BaseModel):

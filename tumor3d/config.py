@@ -76,11 +76,13 @@ class PreprocessConfig(_StageConfig):
         "robust on T2) or the 2-class Otsu threshold.",
     )
     skull_opening_radius: int = Field(2, ge=0, le=10, description="[A3] disk radius, pixels.")
-    brain_extraction: Literal["auto", "skull_strip", "foreground"] = Field(
+    brain_extraction: Literal["auto", "skull_strip", "foreground", "head"] = Field(
         "auto",
         description="skull_strip = [A3] skull removal; foreground = the volume is already "
-        "skull-stripped (voxels above its constant minimum, whole brain kept); auto = "
-        "foreground when >= masked_background_fraction of the voxels equal the minimum.",
+        "skull-stripped (voxels above its constant minimum, whole brain kept); head = 3-D "
+        "brain extraction in mm for a raw clinical head whose scalp the per-slice skull "
+        "removal keeps (tumor3d.brain_extraction); auto = foreground when >= "
+        "masked_background_fraction of the voxels equal the minimum, else skull_strip.",
     )
     masked_background_fraction: float = Field(
         0.3,

@@ -101,3 +101,25 @@ def test_constant_volume_gives_empty_mask(value):
 def test_bad_input_raises(image, spacing, message):
     with pytest.raises(InputError, match=message):
         extract_brain(image, spacing)
+
+
+def test_preprocess_head_option_uses_the_extraction_and_needs_the_spacing():
+    # brain_extraction="head" of preprocess_volume is this extraction, on the
+    # 8-bit image the pipeline works on, and says so; without the spacing it is a
+    # clear error
+    from tumor3d.preprocess import preprocess_volume
+
+    spacing = (6.5, 0.8, 0.8)
+    image, brain, scalp = _head(spacing)
+    out = preprocess_volume(image, brain_extraction="head", spacing_mm=spacing)
+    assert out.brain_extraction == "head"
+    np.testing.assert_array_equal(out.brain_mask, extract_brain(out.original_u8, spacing))
+    assert _dice(out.brain_mask, brain) > 0.9 and not (out.brain_mask & scalp).any()
+    # the synthetic air is exactly 0, so the auto rule takes it for skull-stripped
+    assert preprocess_volume(image, spacing_mm=spacing).brain_extraction == "foreground"
+    strip = preprocess_volume(image, brain_extraction="skull_strip", spacing_mm=spacing)
+    assert strip.brain_extraction == "skull_strip"
+    with pytest.raises(InputError, match="'head' needs the voxel spacing"):
+        preprocess_volume(image, brain_extraction="head")
+    with pytest.raises(InputError, match="spacing_mm must be three positive numbers"):
+        preprocess_volume(image, brain_extraction="head", spacing_mm=(6.5, 0.0, 0.8))
