@@ -154,7 +154,12 @@ def write_report(
     del slices  # per-slice rows are in evaluation_slices.parquet
     names = list(configs)
     pids = [p.source.patient_id for p in prepared]
-    groups = {p.source.patient_id: f"{p.reference_kind}, {p.acquisition}" for p in prepared}
+    # one group per kind of reference, acquisition and modality: pooled figures never mix
+    # FLAIR with T1c, whose targets differ (whole tumour against rim and core)
+    groups = {
+        p.source.patient_id: f"{p.reference_kind}, {p.acquisition}, {p.source.modality}"
+        for p in prepared
+    }
     df = patients if len(patients) else pd.DataFrame(columns=["config", "patient_id", "status"])
     ok = df[df["status"] == "ok"]
     parts: list[str] = ["# Evaluation report", ""]

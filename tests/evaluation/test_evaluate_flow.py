@@ -71,6 +71,8 @@ def test_report_has_the_tables_and_plot(evaluated):
                     "## Provenance", "Bland-Altman"):  # fmt: skip
         assert heading in text
     assert "| ph0 |" in text and "gone (file absent)" in text
+    # pooled rows are per kind of reference, acquisition and modality (never FLAIR with T1c)
+    assert "| unspecified, native, 5 mm slice step, t2 |" in text
     png = out / "bland_altman_default.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
