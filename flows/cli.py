@@ -14,7 +14,8 @@ problem, never a traceback; nothing is published under the final names):
   a manifest row whose image is missing is such a failure);
 * 2 -- bad input: a missing or unreadable file, an unsafe patient id, an
   invalid configuration or manifest, an output folder that holds the input
-  or is a file, more voxels than ``--max-voxels``;
+  or is a file, more voxels than ``--max-voxels``, a ``--brain-mask`` that is
+  not on the image's grid, empty, non-finite or off the image;
 * 3 -- environment error: the artifact store or an output folder cannot be
   written (a full disk, a read-only mount, no permission), a corrupted store
   object that could not be repaired, a Prefect server that cannot be started
@@ -242,14 +243,18 @@ def _preflight(
     patient_id: str | None,
     modality: str,
     store: Path | None = None,
+    brain_mask: Path | None = None,
     **read_kw: Any,
 ) -> None:
     """Check the destination, read the input and open the store before starting Prefect.
 
     Bad input then fails in a second, an output folder that is or holds the
-    input is refused before any work, and a store that is a file or cannot
-    be created is named before a temporary server is started for nothing.
+    input (or the brain mask) is refused before any work, a given brain mask
+    is checked against the image (grid, values, overlap), and a store that
+    is a file or cannot be created is named before a temporary server is
+    started for nothing.
     """
+    from storage.brain_mask import read_given_brain_mask
     from storage.publish import check_output_not_input
     from storage.readers import derive_patient_id, read_scan
     from tumor3d.scan import validate_patient_id
@@ -257,8 +262,12 @@ def _preflight(
     _check_out_dir(out)
     if input_path.exists():
         pid = validate_patient_id(patient_id) if patient_id else derive_patient_id(input_path)
-        check_output_not_input(out / pid, [input_path])
-    read_scan(input_path, modality=modality, patient_id=patient_id, **read_kw)
+        given = [input_path] + ([] if brain_mask is None else [brain_mask])
+        check_output_not_input(out / pid, given)
+    scan = read_scan(input_path, modality=modality, patient_id=patient_id, **read_kw)
+    if brain_mask is not None:
+        limit = read_kw.get("max_voxels", MAX_VOXELS_DEFAULT)
+        read_given_brain_mask(brain_mask, scan, max_voxels=limit)
     from storage.store import ArtifactStore
 
     # flows.patient.default_store_dir, without importing Prefect for it
@@ -411,6 +420,15 @@ def run(
         ),
     ] = False,
     max_voxels: MaxVoxels = MAX_VOXELS_DEFAULT,
+    brain_mask: Annotated[
+        Path | None,
+        typer.Option(
+            "--brain-mask",
+            help="A brain mask on the input's voxel grid (same shape and affine; brain = "
+            "values > 0.5: a 0/1 or 0/255 mask or a probability map) used instead of skull "
+            "removal.",
+        ),
+    ] = None,
     verbose: Verbose = False,
 ) -> None:
     """Reconstruct one patient's tumour: masks, meshes, renders and volumes under OUT/<id>/."""
@@ -423,7 +441,7 @@ def run(
             "skip_unreadable": skip_unreadable_dicom,
             "max_voxels": max_voxels,
         }
-        _preflight(input_path, out, patient_id, modality, store, **read_kw)
+        _preflight(input_path, out, patient_id, modality, store, brain_mask, **read_kw)
         result = _run_with_progress(
             input_path=input_path,
             out_dir=out,
@@ -431,6 +449,7 @@ def run(
             config=cfg,
             modality=modality,
             store_dir=None if store is None else str(store),
+            brain_mask=None if brain_mask is None else str(brain_mask),
             **read_kw,
         )
     except _HANDLED as exc:

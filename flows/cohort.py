@@ -42,6 +42,7 @@ from flows.patient import (
     VOLUME_LABELS,
     config_digest,
     patient_pipeline,
+    prepare_brain_mask,
     prepare_source,
 )
 from storage.cohort_report import (
@@ -173,8 +174,10 @@ def _run_one(
             series_uid=row.get("series_uid"), slice_thickness_mm=row.get("slice_thickness_mm"),
             slice_gap_mm=row.get("slice_gap_mm"), max_voxels=max_voxels, out_dir=out_dir,
         )  # fmt: skip
+        mask = row.get("brain_mask")
+        given = None if not mask else prepare_brain_mask(mask, source, out_dir=out_dir)
         prepared = True
-        result = patient_pipeline(source, out_dir, cfg, store, runs=runs)
+        result = patient_pipeline(source, out_dir, cfg, store, runs=runs, brain_mask=given)
     except Exception as exc:  # failure isolation: record and let the others finish
         done = len(runs)
         if not prepared:
@@ -216,8 +219,10 @@ def cohort_flow(
     ----------
     rows : list of dict
         Manifest rows (``patient_id``, ``image``, ``modality``, optional
-        ``slice_thickness_mm``, ``slice_gap_mm``, ``series_uid``; other keys
-        are passed through to the outcome).
+        ``slice_thickness_mm``, ``slice_gap_mm``, ``series_uid``,
+        ``brain_mask``; other keys are passed through to the outcome). A row
+        whose image or brain mask is missing or bad fails alone, at
+        ``prepare-input``.
     out_dir : str
         ``DIR``: patients under ``DIR/<patient_id>/``, plus ``cohort.parquet``
         and ``cohort.md``.
@@ -296,7 +301,8 @@ def _validate_rows(rows: list[dict[str, Any]], out_dir: Path | None) -> None:
         # never publish over an input (checked for every row before any work); inputs
         # are local files, so an object-store output (out_dir None) cannot hold one
         if out_dir is not None:
-            check_output_not_input(out_dir / pid, [row["image"]])
+            given = [row["image"]] + ([row["brain_mask"]] if row.get("brain_mask") else [])
+            check_output_not_input(out_dir / pid, given)
 
 
 def run_cohort(

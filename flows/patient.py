@@ -32,6 +32,7 @@ from pydantic import BaseModel, ConfigDict
 
 from flows.artifacts import publish_patient_artifacts
 from storage import nifti
+from storage.brain_mask import GivenBrainMask, read_given_brain_mask
 from storage.formats import encode_parquet
 from storage.inputs import input_digest
 from storage.objectstore import is_url
@@ -50,10 +51,10 @@ from storage.publish import (
     staged_folder,
     write_publish_manifest,
 )
-from storage.readers import derive_patient_id
+from storage.readers import derive_patient_id, read_scan
 from storage.remote_publish import publish_folder
 from storage.slice_table import slice_table
-from storage.store import ArtifactStore, canonical_dumps, source_grid_from_metadata
+from storage.store import ArtifactRef, ArtifactStore, canonical_dumps, source_grid_from_metadata
 from tasks import stages
 from tasks.runner import DirectRunner, PrefectRunner, StageRun
 from tasks.spec import InputSource, StageOutput
@@ -70,10 +71,12 @@ __all__ = [
     "StageRun",
     "VOLUME_LABELS",
     "VOLUME_METHODS",
+    "brain_mask_note",
     "config_digest",
     "default_store_dir",
     "patient_flow",
     "patient_pipeline",
+    "prepare_brain_mask",
     "prepare_source",
     "publish_key",
     "publish_patient",
@@ -180,16 +183,62 @@ def prepare_source(
     )
 
 
-def run_stages(run: Any, source: InputSource, cfg: PipelineConfig, root: str) -> dict[str, Any]:
+def prepare_brain_mask(
+    mask_path: str | Path,
+    source: InputSource,
+    *,
+    out_dir: str | Path | None = None,
+) -> GivenBrainMask:
+    """Read a given brain mask and check it against the source's image, before any stage.
+
+    The image is read as the ingest stage reads it (same options), the mask
+    checked against its grid and content (:func:`storage.brain_mask.
+    read_given_brain_mask`). With ``out_dir``, a mask inside the output
+    folder ``<out_dir>/<patient_id>`` is refused as the input is.
+
+    Raises
+    ------
+    InputError
+        One line naming the mask file (or the image, if it is unreadable).
+    """
+    path = Path(mask_path).expanduser()
+    if out_dir is not None and not is_url(out_dir):
+        check_output_not_input(Path(out_dir) / source.patient_id, [path])
+    image = read_scan(
+        source.path, modality=source.modality, patient_id=source.patient_id,
+        series_uid=source.series_uid, slice_thickness_mm=source.slice_thickness_mm,
+        slice_gap_mm=source.slice_gap_mm, skip_unreadable=source.skip_unreadable,
+        max_voxels=source.max_voxels,
+    )  # fmt: skip
+    return read_given_brain_mask(path, image, max_voxels=source.max_voxels)
+
+
+def brain_mask_note(mask: GivenBrainMask) -> str:
+    """The note a run with a given brain mask carries (summary, metrics, provenance)."""
+    return f"brain mask given ({mask.name}, SHA-256 {mask.sha256[:12]}...): no skull removal"
+
+
+def run_stages(
+    run: Any,
+    source: InputSource,
+    cfg: PipelineConfig,
+    root: str,
+    *,
+    brain_mask: ArtifactRef | None = None,
+) -> dict[str, Any]:
     """The pipeline's wiring: every stage in order, each fed its inputs' references.
 
     ``run`` is a runner whose ``run(spec, **inputs)`` executes one stage and
     returns its :class:`~tasks.spec.StageOutput` (:class:`PrefectRunner`,
-    :class:`DirectRunner`). Returns stage name -> output.
+    :class:`DirectRunner`). ``brain_mask``, a given mask stored on the
+    scan's grid, replaces the skull removal of the preprocess stage (and
+    enters its cache key). Returns stage name -> output.
     """
     S = stages.STAGES
     scan = run.run(S["ingest-scan"], source=source, store_root=root).artifacts["scan"]
-    pre = run.run(S["preprocess"], scan=scan, config=cfg.preprocess, store_root=root)
+    pre = run.run(
+        S["preprocess"], scan=scan, config=cfg.preprocess, store_root=root, brain_mask=brain_mask
+    )
     enhanced, brain = pre.artifacts["enhanced"], pre.artifacts["brain_mask"]
     detected = run.run(
         S["detect-abnormal"], scan=scan, enhanced=enhanced, brain_mask=brain, config=cfg.detect,
@@ -234,37 +283,50 @@ def patient_pipeline(
     store: ArtifactStore,
     *,
     runs: list[StageRun] | None = None,
+    brain_mask: GivenBrainMask | None = None,
 ) -> PatientResult:
     """Run every stage for one patient (inside a flow) and publish the results.
 
     ``runs``, if given, is filled with each stage's :class:`StageRun` as it
-    completes (so a caller learns which stage failed).
+    completes (so a caller learns which stage failed). ``brain_mask``
+    (:func:`prepare_brain_mask`) replaces the skull removal; it is stored
+    as an artifact and recorded in the notes and ``provenance.json``.
     """
     t0 = time.perf_counter()
     pid = source.patient_id
     runner = PrefectRunner(store, pid, total=len(stages.STAGES), runs=runs)
-    outputs = run_stages(runner, source, cfg, str(store.root))
+    mask_ref = _store_brain_mask(store, brain_mask)
+    outputs = run_stages(runner, source, cfg, str(store.root), brain_mask=mask_ref)
     flow_seconds = time.perf_counter() - t0
     notes = [NO_TUMOUR_NOTE] if outputs["extract-surface"].values["faces"] == 0 else []
     skipped = outputs["ingest-scan"].values.get("skipped_files") or []
     if skipped:
         notes.append(f"skipped {len(skipped)} unreadable file(s): {', '.join(skipped)}")
+    if brain_mask is not None:
+        notes.append(brain_mask_note(brain_mask))
     metrics = _metrics_row(outputs, runner.runs, pid, flow_seconds, notes)
     if is_url(out_dir):  # staged locally, then uploaded (storage.remote_publish)
         with tempfile.TemporaryDirectory(prefix="tumor3d-publish-") as tmp:
             staged, report, _ = publish_patient(
-                store, Path(tmp), source, outputs, runner.runs, metrics, cfg
+                store, Path(tmp), source, outputs, runner.runs, metrics, cfg, brain_mask
             )
             out_path = publish_folder(staged, f"{str(out_dir).rstrip('/')}/{pid}")
         up_to_date = False  # publish_folder itself skips an unchanged upload
     else:
         out_path, report, up_to_date = publish_patient(
-            store, Path(out_dir), source, outputs, runner.runs, metrics, cfg
+            store, Path(out_dir), source, outputs, runner.runs, metrics, cfg, brain_mask
         )
     return PatientResult(
         patient_id=pid, output_dir=str(out_path), metrics=metrics, stages=runner.runs,
         flow_seconds=flow_seconds, notes=notes, report=report, up_to_date=up_to_date,
     )  # fmt: skip
+
+
+def _store_brain_mask(store: ArtifactStore, mask: GivenBrainMask | None) -> ArtifactRef | None:
+    """Put a given brain mask in the store (content-addressed: the same mask, the same ref)."""
+    if mask is None:
+        return None
+    return store.put_volume(mask.mask, mask.affine, kind="mask")
 
 
 def _flow_run_name() -> str:
@@ -288,6 +350,7 @@ def patient_flow(
     store_dir: str | None = None,
     skip_unreadable: bool = False,
     max_voxels: int = MAX_VOXELS_DEFAULT,
+    brain_mask: str | None = None,
 ) -> PatientResult:
     """Reconstruct one patient's tumour and publish masks, meshes, renders and metrics.
 
@@ -316,6 +379,9 @@ def patient_flow(
         named in the summary's notes, ``metrics.parquet`` and provenance.
     max_voxels : int
         Refuse an input whose header declares more voxels (before reading it).
+    brain_mask : str, optional
+        A brain mask on the input's voxel grid (brain = values > 0.5) used
+        instead of skull removal (:func:`prepare_brain_mask`).
     """
     cfg = parse_config(config or {}, source="config")
     source = prepare_source(
@@ -323,11 +389,12 @@ def patient_flow(
         slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm,
         skip_unreadable=skip_unreadable, max_voxels=max_voxels, out_dir=out_dir,
     )  # fmt: skip
+    given = None if brain_mask is None else prepare_brain_mask(brain_mask, source, out_dir=out_dir)
     store = ArtifactStore(store_dir or default_store_dir(out_dir))
     logger = get_run_logger()
     digest = config_digest(cfg)[:12]
     logger.info("patient %s: %s (config %s)", source.patient_id, source.name, digest)
-    result = patient_pipeline(source, out_dir, cfg, store)
+    result = patient_pipeline(source, out_dir, cfg, store, brain_mask=given)
     publish_patient_artifacts(result.report)
     logger.info("patient %s: published %s", source.patient_id, result.output_dir)
     return result
@@ -340,12 +407,15 @@ def run_stages_direct(
     config: dict[str, Any] | PipelineConfig | None = None,
     patient_id: str | None = None,
     modality: str = "t2",
+    brain_mask: str | Path | None = None,
 ) -> DirectRunner:
     """Run every stage in this process without Prefect; artifacts go to ``store_dir``."""
     cfg = config if isinstance(config, PipelineConfig) else parse_config(config or {})
     source = prepare_source(input_path, patient_id=patient_id, modality=modality)
+    store = ArtifactStore(store_dir)
+    given = None if brain_mask is None else prepare_brain_mask(brain_mask, source)
     runner = DirectRunner(source.patient_id, len(stages.STAGES))
-    run_stages(runner, source, cfg, str(ArtifactStore(store_dir).root))
+    run_stages(runner, source, cfg, str(store.root), brain_mask=_store_brain_mask(store, given))
     return runner
 
 
@@ -409,16 +479,22 @@ def _publisher_code_digest() -> str:
     return h.hexdigest()
 
 
-def publish_key(source: InputSource, outputs: dict[str, StageOutput], cfg: PipelineConfig) -> str:
+def publish_key(
+    source: InputSource,
+    outputs: dict[str, StageOutput],
+    cfg: PipelineConfig,
+    brain_mask: GivenBrainMask | None = None,
+) -> str:
     """SHA-256 of everything a published folder is made from.
 
     The input's identity (not its location), every stage output's content
     digest (artifact digests and values), the configuration, each stage's
     code digest, the publisher's code (:func:`_publisher_code_digest`) and
-    the recorded package versions. Equal keys mean the folder's content
+    the recorded package versions, and a given brain mask's name and
+    SHA-256 (recorded in provenance). Equal keys mean the folder's content
     would be the same, except the run's own times and cache flags.
     """
-    doc = {
+    doc: dict[str, Any] = {
         "source": source.model_dump(mode="json", exclude={"path"}),
         "outputs": {name: out.content_digest() for name, out in sorted(outputs.items())},
         "config_sha256": config_digest(cfg),
@@ -426,6 +502,8 @@ def publish_key(source: InputSource, outputs: dict[str, StageOutput], cfg: Pipel
         "publisher": _publisher_code_digest(),
         "versions": versions(),
     }
+    if brain_mask is not None:
+        doc["brain_mask"] = brain_mask.provenance()
     return hashlib.sha256(canonical_dumps(doc).encode()).hexdigest()
 
 
@@ -454,6 +532,7 @@ def publish_patient(
     runs: list[StageRun],
     metrics: dict[str, Any],
     cfg: PipelineConfig,
+    brain_mask: GivenBrainMask | None = None,
 ) -> tuple[Path, dict[str, Any], bool]:
     """Write the patient's outputs to a staging folder, then swap it into ``out_dir/<id>``.
 
@@ -469,8 +548,9 @@ def publish_patient(
     the folder was already up to date (nothing written).
     """
     pid = source.patient_id
-    check_output_not_input(out_dir / pid, [source.path])
-    key = publish_key(source, outputs, cfg)
+    inputs = [source.path] + ([] if brain_mask is None else [brain_mask.path])
+    check_output_not_input(out_dir / pid, inputs)
+    key = publish_key(source, outputs, cfg, brain_mask)
     reused = all(r.cached and not r.repaired for r in runs)
     if reused and published_is_current(out_dir / pid, key):
         clean_stale_staging(out_dir, pid)
@@ -540,6 +620,11 @@ def publish_patient(
         )
         render = outputs["render-views"].values
         provenance["render"] = {k: render.get(k) for k in ("renderer", "fallback_reason")}
+        provenance["brain_mask"] = (
+            {"given": False, "rule": "found from the image (preprocess brain_extraction)"}
+            if brain_mask is None
+            else brain_mask.provenance()
+        )
         (staging / "provenance.json").write_text(json.dumps(provenance, indent=2) + "\n")
         files.append("provenance.json")
         report = patient_report_data(

@@ -5,7 +5,10 @@
   emulation possible) and, for an emulated row, writes the thick-slice image
   ``<work_dir>/<patient_id>/<patient_id>_<modality>.nii.gz`` with a BIDS
   sidecar (``SliceThickness``, ``SpacingBetweenSlices``) that the NIfTI
-  reader honours, and returns the row the pipeline runs on;
+  reader honours, and, for a row with a ``brain_mask``, the mask emulated
+  the same way (``<patient_id>_brain_mask.nii.gz``: brain where the mean of
+  the thin mask, brain = values > 0.5, over the slab is >= 0.5, on the
+  emulated image's grid), and returns the row the pipeline runs on;
 * :func:`load_case` reads a patient's published outputs
   (``tumor_mask_slices.nii.gz``, ``tumor_mask.nii.gz``, ``slices.parquet``,
   ``metrics.parquet``, ``tumor.ply``, ``tumor_simplified.ply``) and its
@@ -26,10 +29,12 @@ from typing import Any
 import numpy as np
 
 from storage import nifti
+from storage.brain_mask import read_brain_mask_volume
 from storage.formats import decode_parquet, decode_ply
 from storage.manifest import ManifestRow
 from storage.readers import choose_slice_axis
 from storage.store import atomic_write_bytes
+from tumor3d.brain_mask import binarize_brain_mask, check_same_grid
 from tumor3d.errors import InputError
 from tumor3d.evaluation import EvaluationCase
 from tumor3d.evaluation.emulate import emulate_thick_labels, emulate_thick_slices
@@ -205,7 +210,19 @@ def prepare_case(row: ManifestRow, work_dir: str | Path) -> PreparedCase:
         folder / f"{row.patient_id}_{row.modality}.json",
         (json.dumps(sidecar, indent=2) + "\n").encode(),
     )
-    run_row = replace(row, image=out.resolve(), emulate_step_mm=None, emulate_thickness_mm=None)
+    mask_out = None
+    if row.brain_mask is not None:
+        mask_out = folder / f"{row.patient_id}_brain_mask.nii.gz"
+        brain = _thin_brain_mask(row, image, affine)
+        lab = emulate_thick_labels(
+            brain, affine, axis=axis, step_mm=row.emulate_step_mm, thickness_mm=thickness
+        )
+        atomic_write_bytes(mask_out, nifti.encode_nifti(lab.volume, lab.affine, dtype="uint8"))
+        mask_out = mask_out.resolve()
+    run_row = replace(
+        row, image=out.resolve(), emulate_step_mm=None, emulate_thickness_mm=None,
+        brain_mask=mask_out,
+    )  # fmt: skip
     emulation = {
         "step_mm": thick.step_mm,
         "thickness_mm": thick.thickness_mm,
@@ -217,6 +234,20 @@ def prepare_case(row: ManifestRow, work_dir: str | Path) -> PreparedCase:
     }
     label = f"emulated {thick.thickness_mm:g} mm every {thick.step_mm:g} mm"
     return PreparedCase(row, run_row, kind, label, emulation)
+
+
+def _thin_brain_mask(row: ManifestRow, image: np.ndarray, affine: np.ndarray) -> np.ndarray:
+    """A row's brain mask (values > 0.5) checked against its thin image, in the file's order."""
+    assert row.brain_mask is not None
+    try:
+        values, mask_affine = read_brain_mask_volume(row.brain_mask)
+        check_same_grid(values.shape, mask_affine, image.shape, affine)
+        return binarize_brain_mask(values, image)
+    except InputError as exc:
+        problem = exc.problem.removeprefix("brain mask: ")
+        raise InputError(
+            f"patient {row.patient_id}: brain mask: {problem}", exc.path or str(row.brain_mask)
+        ) from None
 
 
 def load_case(prepared: PreparedCase, output_dir: str | Path) -> EvaluationCase:

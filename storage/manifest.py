@@ -8,6 +8,12 @@ column              required  meaning
 patient_id          yes       folder-safe id, unique in the manifest
 image               yes       NIfTI file or DICOM / image-stack folder
 modality            yes       ``t2``, ``flair`` or ``t1c`` (case-insensitive)
+brain_mask          no        a brain mask on the image's voxel grid (same
+                              shape and affine; brain = values > 0.5: a 0/1
+                              or 0/255 mask or a probability map), used
+                              instead of skull removal
+                              (:mod:`storage.brain_mask`); with emulation it
+                              is emulated like the image
 reference           no        reference tumour label volume (NIfTI, any grid
                               in the same world space)
 reference_labels    no        label values forming the tumour, e.g. ``"1,2,4"``
@@ -77,6 +83,7 @@ MANIFEST_COLUMNS = (
     "emulate_step_mm",
     "emulate_thickness_mm",
     "reference_kind",
+    "brain_mask",
 )
 #: Values of the ``reference_kind`` column: the evaluation's kinds less its
 #: "unspecified" (an empty cell).
@@ -108,6 +115,8 @@ class ManifestRow:
         Thick-slice emulation for evaluation (see the module docstring).
     reference_kind : str or None
         One of :data:`REFERENCE_KINDS`, or ``None`` (not stated).
+    brain_mask : Path or None
+        Absolute path of a given brain mask on the image's grid, if any.
     """
 
     patient_id: str
@@ -120,10 +129,13 @@ class ManifestRow:
     emulate_step_mm: float | None = None
     emulate_thickness_mm: float | None = None
     reference_kind: str | None = None
+    brain_mask: Path | None = None
 
     def __post_init__(self) -> None:
         validate_patient_id(self.patient_id)
         object.__setattr__(self, "image", Path(self.image))
+        if self.brain_mask is not None:
+            object.__setattr__(self, "brain_mask", Path(self.brain_mask))
         if self.reference is not None:
             object.__setattr__(self, "reference", Path(self.reference))
         modality = self.modality.strip().lower() if isinstance(self.modality, str) else None
@@ -201,8 +213,8 @@ def read_manifest(path: str | os.PathLike[str], *, require_files: bool = True) -
     path : str or path-like
         The CSV file (UTF-8, optional BOM).
     require_files : bool
-        Whether an image or reference path that does not exist is an error of
-        the manifest. ``tumor3d cohort`` passes False: such a row is kept
+        Whether an image, brain mask or reference path that does not exist
+        is an error of the manifest. ``tumor3d cohort`` passes False: such a row is kept
         (every other column still validated) and fails alone when its
         patient runs, so the other patients still run.
 
@@ -218,7 +230,7 @@ def read_manifest(path: str | os.PathLike[str], *, require_files: bool = True) -
         an empty required value, an unsafe or duplicate ``patient_id``, an
         unknown modality, a non-numeric or negative thickness or gap, a bad
         label list, bad emulation values or reference kind, or (with
-        ``require_files``) an image/reference path that does not exist.
+        ``require_files``) an image, brain mask or reference path that does not exist.
     """
     rows, problems = read_manifest_rows(path, require_files=require_files)
     if problems:
@@ -236,7 +248,7 @@ def read_manifest_rows(
     path : str or path-like
         The CSV file (UTF-8, optional BOM).
     require_files : bool
-        Whether a row naming an absent image or reference is a problem
+        Whether a row naming an absent image, brain mask or reference is a problem
         (default); see :func:`read_manifest`.
 
     Returns
@@ -330,6 +342,11 @@ def _parse_row(
     image = _resolve(base, cells["image"])
     if require_files and not image.exists():
         raise fail("image", f"{image} does not exist", missing=True)
+    brain_mask = None
+    if cells.get("brain_mask"):
+        brain_mask = _resolve(base, cells["brain_mask"])
+        if require_files and not brain_mask.exists():
+            raise fail("brain_mask", f"{brain_mask} does not exist", missing=True)
     reference = None
     if cells.get("reference"):
         reference = _resolve(base, cells["reference"])
@@ -376,6 +393,7 @@ def _parse_row(
         emulate_step_mm=e_step,
         emulate_thickness_mm=e_thick,
         reference_kind=kind,
+        brain_mask=brain_mask,
     )
 
 
@@ -436,6 +454,7 @@ def write_manifest(rows: Iterable[ManifestRow], path: str | os.PathLike[str]) ->
                         if r.emulate_thickness_mm is None
                         else repr(float(r.emulate_thickness_mm)),
                         r.reference_kind or "",
+                        "" if r.brain_mask is None else _relative(base, r.brain_mask),
                     ]
                 )
         os.replace(tmp, p)

@@ -14,11 +14,24 @@ __all__ = ["SPEC", "preprocess_task"]
 
 
 @stage_task("preprocess")
-def preprocess_task(scan: ArtifactRef, config: PreprocessConfig, store_root: str) -> StageOutput:
-    """Median, unsharp masking, equalisation and skull removal."""
+def preprocess_task(
+    scan: ArtifactRef,
+    config: PreprocessConfig,
+    store_root: str,
+    brain_mask: ArtifactRef | None = None,
+) -> StageOutput:
+    """Median, unsharp masking, equalisation and skull removal.
+
+    ``brain_mask``, a given mask on the scan's grid (``--brain-mask``, the
+    manifest's ``brain_mask``), replaces the skull removal; as an input
+    artifact, its content enters the cache key.
+    """
     store = open_store(store_root)
     image, affine = store.get_volume(scan)
-    result = preprocess_volume(image, **config.model_dump(), spacing_mm=scan_spacing_mm(scan))
+    given = None if brain_mask is None else store.get_volume(brain_mask)[0]
+    result = preprocess_volume(
+        image, **config.model_dump(), spacing_mm=scan_spacing_mm(scan), brain_mask=given
+    )
     return StageOutput(
         stage="preprocess",
         artifacts={
@@ -37,6 +50,6 @@ SPEC = StageSpec(
     task=preprocess_task,
     entry=preprocess_volume,
     config_model=PreprocessConfig,
-    inputs={"scan": "scan"},
+    inputs={"scan": "scan", "brain_mask": "mask"},
     outputs={"enhanced": "image", "brain_mask": "mask"},
 )

@@ -99,3 +99,49 @@ def test_emulation_needs_nifti_and_no_overrides(thin, tmp_path):
     row = ManifestRow("p4", image, "t2", emulate_step_mm=5.0, slice_thickness_mm=2.0)
     with pytest.raises(InputError, match="cannot be combined with emulation"):
         prepare_case(row, tmp_path)
+
+
+def test_brain_mask_is_emulated_like_the_image_onto_the_run_grid(thin, tmp_path):
+    """Issue 7: slab = mean of its thin slices of (values > 0.5), brain where >= 0.5."""
+    from storage.brain_mask import read_given_brain_mask
+    from storage.readers import read_scan
+
+    image, seg, _, _, aff = thin
+    values = np.zeros((12, 10, 20), np.float32)
+    for z in (0, 11, 12):
+        values[2:10, 2:8, z] = 1.0
+    values[2:10, 2:8, 15] = 0.9  # a probability map: brain
+    values[2:10, 2:8, 16] = 0.05  # not brain (the mean of the values, 0.475, would drop it)
+    values[0, 0, 5] = 0.4  # never brain
+    mask = _write(tmp_path / "brain_prob.nii.gz", values, aff)
+    row = ManifestRow(
+        "p1", image, "t2", reference=seg, emulate_step_mm=5.0, emulate_thickness_mm=2.0,
+        brain_mask=mask,
+    )  # fmt: skip
+    prep = prepare_case(row, tmp_path / "emu")
+    emulated = prep.run_row.brain_mask
+    assert emulated == (tmp_path / "emu" / "p1" / "p1_brain_mask.nii.gz").resolve()
+    thick, thick_aff = nifti.read_nifti(prep.run_row.image)
+    got, got_aff = nifti.read_nifti(emulated)
+    assert got.shape == thick.shape == (12, 10, 4)
+    np.testing.assert_array_equal(got_aff, thick_aff)
+    brain = values > 0.5
+    for j in range(4):  # 2 mm every 5 mm from 1 mm: thin slices 5j and 5j + 1
+        expected = brain[:, :, [5 * j, 5 * j + 1]].mean(axis=2) >= 0.5
+        np.testing.assert_array_equal(got[:, :, j] > 0, expected, err_msg=f"thick slice {j}")
+    assert [bool(got[:, :, j].any()) for j in range(4)] == [True, False, True, True]
+    # the run's image and mask agree as the cohort checks them
+    scan = read_scan(prep.run_row.image, patient_id="p1")
+    assert read_given_brain_mask(emulated, scan).mask.sum() == got.sum()
+    # a native row keeps its own mask (checked by the cohort when the patient runs)
+    native = prepare_case(ManifestRow("p1", image, "t2", brain_mask=mask), tmp_path / "n")
+    assert native.run_row.brain_mask == mask
+
+
+def test_bad_brain_mask_of_an_emulated_row_names_the_patient_and_the_file(thin, tmp_path):
+    image, _, _, _, aff = thin
+    short = _write(tmp_path / "short_mask.nii.gz", np.ones((12, 10, 19), np.float32), aff)
+    row = ManifestRow("p9", image, "t2", emulate_step_mm=5.0, brain_mask=short)
+    with pytest.raises(InputError, match=r"short_mask\.nii\.gz: patient p9: brain mask: shape "
+                       r"\(12, 10, 19\) differs from the image's \(12, 10, 20\)"):  # fmt: skip
+        prepare_case(row, tmp_path / "emu")

@@ -266,3 +266,75 @@ def test_commands_run_without_flow_heartbeats_unless_asked(monkeypatch):
     before = get_current_settings().flows.heartbeat_frequency
     with cli._no_heartbeats():
         assert get_current_settings().flows.heartbeat_frequency == before
+
+
+# ---------------------------------------------------------------- --brain-mask (issue 7)
+
+
+def _head_and_masks(tmp):
+    """A 12x12x4 image (noisy air, a bright head block) and one mask file per bad case."""
+    rng = np.random.default_rng(4)
+    data = rng.random((12, 12, 4)) * 10
+    data[3:9, 3:9, :] += 100
+    aff = np.diag([0.9, 0.9, 5.0, 1.0])
+    nib.save(nib.Nifti1Image(data.astype(np.float32), aff), tmp / "head.nii.gz")
+    brain = np.zeros((12, 12, 4), np.float32)
+    brain[4:8, 4:8, :] = 1
+
+    def save(name, array, affine=aff):
+        nib.save(nib.Nifti1Image(np.asarray(array, np.float32), affine), tmp / name)
+        return tmp / name
+
+    shifted = aff.copy()
+    shifted[0, 3] = 4.5  # five voxels along x
+    nan = brain.copy()
+    nan[5, 5, 2] = np.nan
+    air = np.zeros_like(brain)
+    air[0:2, 0:2, :] = 1
+    return tmp / "head.nii.gz", {
+        "shape": (save("m_shape.nii.gz", brain[:, :, :3]),
+                  "shape (12, 12, 3) differs from the image's (12, 12, 4)"),
+        "affine": (save("m_affine.nii.gz", brain, shifted),
+                   "affine [0.9 0 0 4.5; 0 0.9 0 0; 0 0 5 0] differs from the image's "
+                   "[0.9 0 0 0; 0 0.9 0 0; 0 0 5 0] (voxel centres up to 5 voxels apart"),
+        "empty": (save("m_empty.nii.gz", np.zeros_like(brain)), "empty: no voxel is above 0.5"),
+        "nan": (save("m_nan.nii.gz", nan), "1 of 576 voxel values are not finite (1 NaN"),
+        "air": (save("m_air.nii.gz", air), "no overlap with the image"),
+        "missing": (tmp / "m_missing.nii.gz", "no such file"),
+    }  # fmt: skip
+
+
+@pytest.mark.parametrize("case", ["shape", "affine", "empty", "nan", "air", "missing"])
+def test_bad_brain_mask_is_one_line_naming_it_with_exit_2_before_any_work(tmp_path, case):
+    image, masks = _head_and_masks(tmp_path)
+    mask, message = masks[case]
+    out = tmp_path / "out"
+    result = runner.invoke(
+        app, ["run", str(image), "--out", str(out), "--brain-mask", str(mask)]
+    )  # fmt: skip
+    assert result.exit_code == 2, result.output
+    line = f"error: {mask}: brain mask: "
+    assert line in result.output, result.output
+    assert message in result.output
+    assert len(result.output.strip().splitlines()) == 1, result.output
+    assert "Traceback" not in result.output and "starting Prefect" not in result.output
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_brain_mask_inside_the_output_folder_is_refused(tmp_path):
+    image, _ = _head_and_masks(tmp_path)
+    inside = tmp_path / "out" / "head"
+    inside.mkdir(parents=True)
+    mask = inside / "brain.nii.gz"
+    brain = np.zeros((12, 12, 4), np.float32)
+    brain[4:8, 4:8, :] = 1
+    nib.save(nib.Nifti1Image(brain, np.diag([0.9, 0.9, 5.0, 1.0])), mask)
+    result = runner.invoke(
+        app, ["run", str(image), "--out", str(tmp_path / "out"), "--brain-mask", str(mask)]
+    )  # fmt: skip
+    assert result.exit_code == 2
+    assert "would delete the input" in result.output and mask.is_file()
+
+
+def test_brain_mask_option_is_in_the_help_of_run():
+    assert "--brain-mask" in runner.invoke(app, ["run", "--help"]).output

@@ -207,3 +207,40 @@ def test_cli_cohort_max_voxels_fails_each_too_large_row(first, inputs, tmp_path)
     assert all("more than the limit of 1,000" in e for e in table["error"])
     # the cohort outputs of the first run are still published
     assert (out / "coh0" / "metrics.parquet").is_file()
+
+
+def test_cli_cohort_brain_mask_column_and_a_bad_mask_fails_that_row_only(
+    first, inputs, tmp_path, monkeypatch
+):
+    """Issue 7: the manifest's brain_mask (relative or ${VAR} path); a bad one fails alone."""
+    import nibabel as nib
+    import numpy as np
+
+    out, _ = first
+    _, rows, _ = inputs
+    affine = nib.load(rows[2].image).affine
+    labels = make_phantom_patient(2, patient_id="coh2", n_slices=16).tissue_labels
+    brain = np.isin(labels, (3, 4, 5, 6)).transpose(2, 1, 0).astype(np.uint8)  # NIfTI order
+    nib.save(nib.Nifti1Image(brain, affine), tmp_path / "coh2_brain.nii.gz")
+    nib.save(nib.Nifti1Image(brain[:, :, :-1], affine), tmp_path / "short.nii.gz")
+    monkeypatch.setenv("MASKS", str(tmp_path))
+    manifest = tmp_path / "masks.csv"
+    manifest.write_text(
+        "patient_id,image,modality,brain_mask\n"
+        f"coh0,{rows[0].image},t2,\n"
+        f"coh1,{rows[1].image},t2,short.nii.gz\n"
+        f"coh2,{rows[2].image},t2,${{MASKS}}/coh2_brain.nii.gz\n"
+    )
+    res = CliRunner().invoke(app, ["cohort", str(manifest), "--out", str(out), "--workers", "2"])
+    assert res.exit_code == 1, res.output
+    assert "2 ok, 1 failed" in res.output
+    table = pd.read_parquet(out / "cohort.parquet").set_index("patient_id")
+    assert list(table["status"]) == ["ok", "failed", "ok"]
+    assert table.loc["coh1", "failed_stage"] == "prepare-input"
+    error = table.loc["coh1", "error"]
+    assert f"{tmp_path / 'short.nii.gz'}: brain mask: shape" in error and "\n" not in error
+    given = json.loads((out / "coh2" / "provenance.json").read_text())["brain_mask"]
+    assert given["given"] is True and given["file"] == "coh2_brain.nii.gz"
+    assert json.loads((out / "coh0" / "provenance.json").read_text())["brain_mask"] == {
+        "given": False, "rule": "found from the image (preprocess brain_extraction)",
+    }  # fmt: skip

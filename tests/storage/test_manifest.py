@@ -266,3 +266,42 @@ def test_missing_image_is_kept_for_a_cohort_but_other_problems_are_not(cohort):
     bad = write_csv(cohort, "patient_id,image,modality\nghost,images/ghost.nii.gz,x-ray\n", "b.csv")
     with pytest.raises(InputError, match=r"unknown modality 'x-ray'"):
         read_manifest(bad, require_files=False)
+
+
+def test_brain_mask_column_resolves_like_image_and_round_trips(cohort, monkeypatch, tmp_path):
+    """Issue 7: optional brain_mask, relative to the manifest or through ${VAR}."""
+    (cohort / "masks").mkdir()
+    (cohort / "masks" / "p1_brain.nii.gz").write_bytes(b"x")
+    elsewhere = tmp_path / "vault"
+    elsewhere.mkdir()
+    (elsewhere / "p2_brain.nii.gz").write_bytes(b"x")
+    monkeypatch.setenv("MASK_VAULT", str(elsewhere))
+    p = write_csv(
+        cohort,
+        "patient_id,image,modality,brain_mask\n"
+        "p1,images/p1.nii.gz,t2,masks/p1_brain.nii.gz\n"
+        "p2,images/p1.nii.gz,t2,${MASK_VAULT}/p2_brain.nii.gz\n"
+        "p3,images/p1.nii.gz,t2,\n",
+    )
+    r1, r2, r3 = read_manifest(p)
+    assert r1.brain_mask == (cohort / "masks" / "p1_brain.nii.gz").resolve()
+    assert r2.brain_mask == (elsewhere / "p2_brain.nii.gz").resolve()
+    assert r3.brain_mask is None
+    out = write_manifest([r1, r2, r3], cohort / "again.csv")
+    assert "masks/p1_brain.nii.gz" in out.read_text()
+    assert read_manifest(out) == [r1, r2, r3]
+
+
+def test_absent_brain_mask_is_a_missing_file_of_that_row(cohort):
+    p = write_csv(
+        cohort,
+        "patient_id,image,modality,brain_mask\n"
+        "p1,images/p1.nii.gz,t2,masks/none.nii.gz\n"
+        "p2,images/p1.nii.gz,t2,\n",
+    )
+    rows, problems = read_manifest_rows(p)
+    assert [r.patient_id for r in rows] == ["p2"]
+    assert [(q.row, q.column, q.missing_file) for q in problems] == [(1, "brain_mask", True)]
+    assert "none.nii.gz does not exist" in problems[0].message
+    kept = read_manifest(p, require_files=False)  # a cohort: that row fails alone when run
+    assert kept[0].brain_mask == (cohort / "masks" / "none.nii.gz").resolve()
