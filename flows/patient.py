@@ -621,7 +621,13 @@ def publish_patient(
         render = outputs["render-views"].values
         provenance["render"] = {k: render.get(k) for k in ("renderer", "fallback_reason")}
         provenance["brain_mask"] = (
-            {"given": False, "rule": "found from the image (preprocess brain_extraction)"}
+            {
+                "given": False,
+                "rule": "found from the image (preprocess brain_extraction)",
+                # the extraction that ran ("auto" resolved); absent in results cached
+                # before the stage recorded it
+                "extraction": outputs["preprocess"].values.get("brain_extraction"),
+            }
             if brain_mask is None
             else brain_mask.provenance()
         )

@@ -243,4 +243,5 @@ def test_cli_cohort_brain_mask_column_and_a_bad_mask_fails_that_row_only(
     assert given["given"] is True and given["file"] == "coh2_brain.nii.gz"
     assert json.loads((out / "coh0" / "provenance.json").read_text())["brain_mask"] == {
         "given": False, "rule": "found from the image (preprocess brain_extraction)",
+        "extraction": "skull_strip",  # a raw phantom head: the auto rule's skull removal
     }  # fmt: skip
