@@ -40,6 +40,9 @@ def preprocess_task(
         },
         values={
             "brain_voxels": int(np.count_nonzero(result.brain_mask)),
+            "brain_volume_ml": float(np.count_nonzero(result.brain_mask))
+            * float(np.prod(scan_spacing_mm(scan)))
+            / 1000.0,
             "brain_extraction": result.brain_extraction,
         },
     )

@@ -530,6 +530,33 @@ def _keep_nested_slices(mask: np.ndarray) -> np.ndarray:
 
 BRAIN_EXTRACTIONS = ("auto", "skull_strip", "foreground", "head")
 
+#: No brain mask can hold more than this (mL): the intracranial volume of adults
+#: (brain, CSF and meninges together) lies between about 1.1 and 1.9 L. A larger
+#: mask holds scalp, face or neck (measured: 2.6-3.3 L on the raw clinical heads of
+#: ``../shared/data``, where the per-slice skull removal keeps the scalp).
+MAX_INTRACRANIAL_ML = 2000.0
+
+
+def brain_volume_note(brain_volume_ml: float) -> str | None:
+    """A warning for a brain mask that holds more than any skull can, else None.
+
+    Such a mask holds scalp, face or neck, where the lesion model may find a
+    "lesion" (fat, muscle, sinus); the tumour volume is then not to be trusted.
+
+    >>> brain_volume_note(1400.0) is None
+    True
+    >>> brain_volume_note(3257.0)[:40]
+    'brain mask of 3257 mL: more than any sku'
+    """
+    v = float(brain_volume_ml)
+    if not v > MAX_INTRACRANIAL_ML:
+        return None
+    return (
+        f"brain mask of {v:.0f} mL: more than any skull holds ({MAX_INTRACRANIAL_ML:.0f} mL), "
+        "so it holds scalp or face and the tumour volume is not reliable; give the brain "
+        "mask (--brain-mask) or set preprocess.brain_extraction: head, and check overlay_brain.png"
+    )
+
 
 def foreground_brain_mask(image: np.ndarray) -> np.ndarray:
     """Brain mask of an already skull-stripped volume: its foreground.

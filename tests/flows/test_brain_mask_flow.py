@@ -15,6 +15,7 @@ import shutil
 
 import nibabel as nib
 import numpy as np
+import pandas as pd
 import pytest
 
 from flows.patient import run_patient
@@ -130,3 +131,21 @@ def test_cache_follows_the_mask_content(case, runs, tmp_path):
     after = _run(case, plain_out)
     assert all(after.cache_hits), [s.stage for s in after.stages if not s.cached]
     assert after.metrics["volume_eq7_mm3"] == plain.metrics["volume_eq7_mm3"]
+
+
+def test_a_brain_mask_larger_than_any_skull_is_named_in_the_notes(case, runs, tmp_path):
+    # the same phantom declared with 2.5 times larger pixels: its (correct) brain mask
+    # now holds about 7 L, more than any skull; the run says so instead of reporting a
+    # tumour volume silently
+    img = nib.load(case["image"])
+    affine = img.affine.copy()
+    affine[:3, :2] *= 2.5  # the in-plane voxel axes (x, y) of the NIfTI
+    big = tmp_path / "big_pixels.nii.gz"
+    nib.save(nib.Nifti1Image(np.asarray(img.dataobj), affine), big)
+    result = run_patient(big, tmp_path / "out", patient_id="bigpat", store_dir=str(tmp_path / "s"))
+    note = [n for n in result.notes if "more than any skull holds" in n]
+    assert len(note) == 1 and "--brain-mask" in note[0]
+    metrics = pd.read_parquet(tmp_path / "out" / "bigpat" / "metrics.parquet")
+    assert "more than any skull holds" in metrics.loc[0, "notes"]
+    # the run at the true pixel size has no such note
+    assert not any("more than any skull" in n for n in runs["plain"][1].notes)
