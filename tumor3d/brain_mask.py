@@ -21,6 +21,7 @@ import numpy as np
 from skimage.filters import threshold_otsu
 
 from tumor3d.errors import InputError
+from tumor3d.validation import non_finite_problem
 
 __all__ = [
     "BRAIN_THRESHOLD",
@@ -123,15 +124,9 @@ def binarize_brain_mask(values: np.ndarray, image: np.ndarray) -> np.ndarray:
         raise InputError(f"the values must be numbers, got dtype {v.dtype}")
     if v.shape != img.shape:
         raise InputError(f"shape {v.shape} differs from the image's {img.shape}")
-    if v.dtype.kind == "f":
-        finite = np.isfinite(v)
-        n_bad = int(v.size - np.count_nonzero(finite))
-        if n_bad:
-            n_nan = int(np.count_nonzero(np.isnan(v)))
-            raise InputError(
-                f"{n_bad} of {v.size} voxel values are not finite ({n_nan} NaN, "
-                f"{n_bad - n_nan} infinite)"
-            )
+    problem = non_finite_problem(v)
+    if problem:
+        raise InputError(problem)
     brain = v > BRAIN_THRESHOLD
     if not brain.any():
         top = v.max() if v.size else 0

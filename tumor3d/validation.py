@@ -23,8 +23,30 @@ __all__ = [
     "check_binary_mask",
     "check_int",
     "check_positive",
+    "non_finite_problem",
     "short_repr",
 ]
+
+
+def non_finite_problem(values: np.ndarray) -> str | None:
+    """Why ``values`` cannot be used because of NaN or infinite entries, else None.
+
+    >>> non_finite_problem(np.array([1.0, np.nan, np.inf]))
+    '2 of 3 voxel values are not finite (1 NaN, 1 infinite)'
+    >>> non_finite_problem(np.arange(3)) is None
+    True
+    """
+    v = np.asarray(values)
+    if v.dtype.kind not in "fc":
+        return None
+    n_bad = int(v.size - np.count_nonzero(np.isfinite(v)))
+    if not n_bad:
+        return None
+    n_nan = int(np.count_nonzero(np.isnan(v)))
+    return (
+        f"{n_bad} of {v.size} voxel values are not finite ({n_nan} NaN, "
+        f"{n_bad - n_nan} infinite)"
+    )
 
 
 def check_positive(

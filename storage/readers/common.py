@@ -30,7 +30,7 @@ from tumor3d.scan import (
     slice_plane_spacing_mm,
     validate_patient_id,
 )
-from tumor3d.validation import check_int, check_positive
+from tumor3d.validation import check_int, check_positive, non_finite_problem
 
 __all__ = [
     "MAX_VOXELS_DEFAULT",
@@ -299,15 +299,9 @@ def _resolve_thickness(
 
 
 def _check_volume(image: np.ndarray, where: str) -> None:
-    finite = np.isfinite(image)
-    n_bad = int(image.size - np.count_nonzero(finite))
-    if n_bad:
-        n_nan = int(np.count_nonzero(np.isnan(image)))
-        raise InputError(
-            f"{n_bad} of {image.size} voxel values are not finite ({n_nan} NaN, "
-            f"{n_bad - n_nan} infinite)",
-            where,
-        )
+    problem = non_finite_problem(image)
+    if problem:
+        raise InputError(problem, where)
     lo, hi = float(image.min()), float(image.max())
     if lo == hi:
         what = "all-zero" if lo == 0 else f"constant (every voxel = {lo:g})"
