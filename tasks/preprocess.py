@@ -29,9 +29,9 @@ def preprocess_task(
     store = open_store(store_root)
     image, affine = store.get_volume(scan)
     given = None if brain_mask is None else store.get_volume(brain_mask)[0]
-    result = preprocess_volume(
-        image, **config.model_dump(), spacing_mm=scan_spacing_mm(scan), brain_mask=given
-    )
+    spacing = scan_spacing_mm(scan)
+    result = preprocess_volume(image, **config.model_dump(), spacing_mm=spacing, brain_mask=given)
+    brain_voxels = int(np.count_nonzero(result.brain_mask))
     return StageOutput(
         stage="preprocess",
         artifacts={
@@ -39,10 +39,8 @@ def preprocess_task(
             "brain_mask": store.put_volume(result.brain_mask, affine, kind="mask"),
         },
         values={
-            "brain_voxels": int(np.count_nonzero(result.brain_mask)),
-            "brain_volume_ml": float(np.count_nonzero(result.brain_mask))
-            * float(np.prod(scan_spacing_mm(scan)))
-            / 1000.0,
+            "brain_voxels": brain_voxels,
+            "brain_volume_ml": brain_voxels * float(np.prod(spacing)) / 1000.0,
             "brain_extraction": result.brain_extraction,
         },
     )

@@ -110,6 +110,11 @@ _MAD_TO_SIGMA = 1.4826  # sigma of a normal distribution = 1.4826 MAD
 #: median / MAD model (breakdown point 50 %): no lesion is reported.
 MAX_BRAIN_FRACTION = 0.5
 
+#: Step 4: Gaussian sigma (pixels) and truncation (sigmas) of the local lesion gray of
+#: the boundary rings (_grow_local); the box the growth works on follows from both.
+LOCAL_SIGMA_PX = 3.0
+LOCAL_TRUNCATE = 4.0
+
 #: Step 3b: the grid spacing (mm) on which the brain's depth is computed (see _depth_mm).
 DEPTH_GRID_MM = 2.0
 
@@ -624,7 +629,7 @@ def _grow_local(
     # work on the mask's in-plane bounding box widened by the rings and the Gaussian's
     # support: every pixel the growth can reach sees the same neighbourhood as in the
     # whole volume (identical result), at a fraction of the cost
-    margin = int(rings) + int(4.0 * 3 + 0.5) + 1
+    margin = int(rings) + int(LOCAL_TRUNCATE * LOCAL_SIGMA_PX + 0.5) + 1
     zs = np.flatnonzero(mask.any(axis=(1, 2)))  # the growth is in-plane: no z support
     box = (slice(zs[0], zs[-1] + 1), *_bounding_box(mask, margin)[1:])
     out = mask.copy()
@@ -639,8 +644,9 @@ def _grow_local_box(mask, img, allowed, model, floor_sigmas, rings):
     floor = model.median + float(floor_sigmas) * model.sigma
     for _ in range(int(rings)):
         m32 = mask.astype(np.float32)
-        num = ndi.gaussian_filter(f * m32, (0, 3, 3))
-        den = ndi.gaussian_filter(m32, (0, 3, 3))
+        sigma = (0.0, LOCAL_SIGMA_PX, LOCAL_SIGMA_PX)
+        num = ndi.gaussian_filter(f * m32, sigma, truncate=LOCAL_TRUNCATE)
+        den = ndi.gaussian_filter(m32, sigma, truncate=LOCAL_TRUNCATE)
         local = num / np.maximum(den, 1e-6)
         threshold = np.maximum(floor, 0.5 * (local + model.median))
         ring = ndi.binary_dilation(mask, structure=ring_fp) & ~mask & allowed
