@@ -90,11 +90,17 @@ def _cases(data: Path, no_tumor_modality: str = "t1c") -> list[Case]:
                         str(d / "brainmask.nii.gz")))
     d = data / "brats_t2_algoseg"
     out.append(Case("t2_algoseg", str(d / "t2w.nii.gz"), str(d / "seg_algorithm.nii.gz"), "t2"))
+    # the same case's FLAIR and T1c: held out (never used to choose a rule or a constant)
+    out.append(Case("flair_algoseg", str(d / "t2f.nii.gz"), str(d / "seg_algorithm.nii.gz"),
+                    "flair"))
     # T1c: the enhancing rim (label 4) with its necrotic core (label 1)
     for p in ("pat0003", "pat0004", "pat0005"):
         d = data / f"brats2013_{p}"
         out.append(Case(f"{p}_t1c", str(d / "t1c.nii.gz"), str(d / "seg.nii.gz"), "t1c",
                         str(d / "brainmask.nii.gz"), labels=(1, 4)))
+    d = data / "brats_t2_algoseg"  # its labels: 1 necrosis, 2 oedema, 3 enhancing
+    out.append(Case("algoseg_t1c", str(d / "t1c.nii.gz"), str(d / "seg_algorithm.nii.gz"), "t1c",
+                    labels=(1, 3)))
     d = data / "thick_t1c_brain2"  # clinical 6.5 mm T1c, semi-automatic label
     out.append(Case("brain2_t1c", str(d / "image.nii.gz"), str(d / "label.nii.gz"), "t1c",
                     native_only=True))
