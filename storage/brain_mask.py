@@ -27,7 +27,8 @@ import numpy as np
 
 from storage.inputs import input_digest
 from storage.readers import ITK_SUFFIXES, read_scan
-from storage.readers.common import NIFTI_SUFFIXES, check_voxel_count
+from storage.readers.common import NIFTI_SUFFIXES
+from storage.readers.nifti import load_nifti_volume
 from tumor3d.brain_mask import binarize_brain_mask, check_same_grid
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError, os_error_path, os_error_text
@@ -92,29 +93,6 @@ def brain_mask_sha256(path: str | os.PathLike[str]) -> str:
     return h.hexdigest()
 
 
-def _read_nifti_values(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
-    import nibabel as nib
-
-    where = str(p)
-    try:
-        img = nib.load(where)
-    except Exception as exc:  # nibabel raises many types for a bad file
-        raise _fail(f"not a readable NIfTI image ({type(exc).__name__}: {exc})", where) from None
-    if not isinstance(img, nib.Nifti1Image | nib.Nifti2Image):
-        raise _fail(f"not a NIfTI image (nibabel read it as {type(img).__name__})", where)
-    shape = tuple(int(s) for s in img.shape)
-    check_voxel_count(shape, limit, where)
-    if len(shape) == 4 and shape[3] == 1:
-        shape = shape[:3]
-    if len(shape) != 3:
-        raise _fail(f"a {len(shape)}-D volume (shape {shape}): give a 3-D mask", where)
-    try:
-        data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32).reshape(shape)
-    except Exception as exc:
-        raise _fail(f"cannot read the voxel data ({type(exc).__name__}: {exc})", where) from None
-    return data, np.asarray(img.affine, dtype=np.float64)
-
-
 def _read_itk_values(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
     import SimpleITK as sitk
 
@@ -153,7 +131,7 @@ def read_brain_mask_volume(
     lower = p.name.lower()
     try:
         if p.is_file() and lower.endswith(NIFTI_SUFFIXES):
-            return _read_nifti_values(p, max_voxels)
+            return load_nifti_volume(p, max_voxels)
         if p.is_file() and lower.endswith(ITK_SUFFIXES):
             return _read_itk_values(p, max_voxels)
         scan = read_scan(p, max_voxels=max_voxels, patient_id="brain-mask")

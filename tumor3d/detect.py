@@ -17,7 +17,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError
-from tumor3d.lesion import LesionResult, lesion_params, segment_hyperintense_lesion
+from tumor3d.lesion import LesionResult, patient_lesion
 from tumor3d.scan import MODALITIES
 
 __all__ = [
@@ -594,13 +594,8 @@ def detect_abnormal_slices(
         mod = modality.strip().lower() if isinstance(modality, str) else "flair"
         if mod not in MODALITIES:
             raise InputError(f"unknown modality {modality!r}: expected one of {MODALITIES}")
-        model = segment_hyperintense_lesion(
-            img,
-            mask,
-            modality=mod,
-            spacing_mm=(1.0, 1.0, 1.0) if spacing_mm is None else tuple(spacing_mm),
-            lr_axis=lr_axis,
-            **lesion_params(lesion),
+        model = patient_lesion(
+            img, mask, modality=mod, lesion=lesion, spacing_mm=spacing_mm, lr_axis=lr_axis
         )
         flagged = model.mask.sum(axis=(1, 2)) >= int(lesion_min_slice_pixels)
     abnormal = flagged & (brain_pixels >= int(min_brain_pixels))

@@ -242,6 +242,31 @@ def lesion_params(lesion: Mapping[str, Any] | None) -> dict[str, Any]:
     }
 
 
+def patient_lesion(
+    enhanced: np.ndarray,
+    brain: np.ndarray,
+    *,
+    modality: str,
+    lesion: Mapping[str, Any] | None = None,
+    spacing_mm: tuple[float, float, float] | None = None,
+    lr_axis: int | None = None,
+) -> LesionResult:
+    """The lesion model as the detector and the segmenter call it.
+
+    :func:`segment_hyperintense_lesion` with ``lesion`` checked over
+    :data:`LESION_DEFAULTS` (the pipeline's ``detect.lesion`` section) and
+    ``spacing_mm`` None read as isotropic.
+    """
+    return segment_hyperintense_lesion(
+        enhanced,
+        brain,
+        modality=modality,
+        spacing_mm=(1.0, 1.0, 1.0) if spacing_mm is None else tuple(spacing_mm),
+        lr_axis=lr_axis,
+        **lesion_params(lesion),
+    )
+
+
 def _smooth_in_brain(img: np.ndarray, brain: np.ndarray, sigma_px: float) -> np.ndarray:
     """In-plane Gaussian smoothing normalised by the smoothed brain mask (no leakage)."""
     if sigma_px <= 0:

@@ -40,7 +40,7 @@ from tumor3d.fcm import (
     fcm_memberships,
     fuzzy_cmeans_histogram,
 )
-from tumor3d.lesion import lesion_params, segment_hyperintense_lesion
+from tumor3d.lesion import patient_lesion
 from tumor3d.scan import MODALITIES
 
 __all__ = [
@@ -770,13 +770,8 @@ def segment_tumor(
     else:
         res = detection.lesion
         if res is None:
-            res = segment_hyperintense_lesion(
-                img,
-                brain,
-                modality=mod,
-                spacing_mm=(1.0, 1.0, 1.0) if spacing_mm is None else tuple(spacing_mm),
-                lr_axis=lr_axis,
-                **lesion_params(lesion),
+            res = patient_lesion(
+                img, brain, modality=mod, lesion=lesion, spacing_mm=spacing_mm, lr_axis=lr_axis
             )
         elif res.mask.shape != img.shape:
             raise InputError(

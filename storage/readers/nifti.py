@@ -25,7 +25,7 @@ from tumor3d.constants import SINGULAR_DET_TOL
 from tumor3d.errors import InputError
 from tumor3d.scan import Scan, validate_patient_id
 
-__all__ = ["read_nifti_scan"]
+__all__ = ["load_nifti_volume", "read_nifti_scan"]
 
 
 def read_nifti_scan(
@@ -64,8 +64,6 @@ def read_nifti_scan(
         a singular affine, a constant or non-finite volume, or a sidecar that
         contradicts the image.
     """
-    import nibabel as nib
-
     p = Path(path)
     where = str(p)
     mod = _check_modality(modality)
@@ -75,6 +73,45 @@ def read_nifti_scan(
     limit = check_max_voxels(max_voxels)
     if not p.is_file():
         raise InputError("no such file", where)
+    data, affine = load_nifti_volume(p, limit)
+
+    return scan_from_volume(
+        data,
+        affine,
+        where=where,
+        source=f"NIfTI file {p.name}",
+        modality=mod,
+        patient_id=pid,
+        slice_thickness_mm=thickness_override,
+        slice_gap_mm=gap_override,
+        file_thickness=lambda step: _read_bids_sidecar(p, step),
+    )
+
+
+def load_nifti_volume(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
+    """The 3-D voxel values and affine of a NIfTI file, without an intensity check.
+
+    What :func:`read_nifti_scan` checks before it builds the Scan (and what a
+    given brain mask is checked for, where a constant volume is fine): a
+    NIfTI image, at most ``limit`` voxels by the header (before any voxel is
+    read), 3-D (or 4-D with one volume) with at least 2 slices, a regular
+    finite affine, readable voxel data.
+
+    Returns
+    -------
+    data : ndarray of float32, 3-D
+        Voxel values in the file's own index order.
+    affine : (4, 4) ndarray
+        Voxel index ``(i, j, k, 1)`` -> RAS mm (nibabel's ``img.affine``).
+
+    Raises
+    ------
+    InputError
+        Naming the file and the problem.
+    """
+    import nibabel as nib
+
+    where = str(p)
     try:
         img = nib.load(where)
     except Exception as exc:  # nibabel raises many types for a bad file
@@ -103,19 +140,7 @@ def read_nifti_scan(
         data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32)
     except Exception as exc:
         raise InputError(f"cannot read the voxel data ({_describe(exc)})", where) from exc
-    data = data.reshape(shape)
-
-    return scan_from_volume(
-        data,
-        affine,
-        where=where,
-        source=f"NIfTI file {p.name}",
-        modality=mod,
-        patient_id=pid,
-        slice_thickness_mm=thickness_override,
-        slice_gap_mm=gap_override,
-        file_thickness=lambda step: _read_bids_sidecar(p, step),
-    )
+    return data.reshape(shape), affine
 
 
 def _bids_sidecar_path(p: Path) -> Path:

@@ -18,6 +18,8 @@ from tumor3d.lesion import (
     _deep_components,
     _depth_mm,
     left_right_axis,
+    lesion_params,
+    patient_lesion,
     segment_hyperintense_lesion,
 )
 
@@ -233,14 +235,15 @@ def test_flair_dark_cavity_next_to_the_lesion_joins_it_and_the_ventricles_do_not
 
 
 def _counting(monkeypatch, module):
-    """Count the calls of ``module.segment_hyperintense_lesion`` (still computing)."""
+    """Count the calls of ``module.patient_lesion`` (still computing); each call's
+    model parameters as :func:`tumor3d.lesion.lesion_params` resolves them."""
     calls = []
 
     def counted(*args, **kwargs):
-        calls.append(kwargs)
-        return segment_hyperintense_lesion(*args, **kwargs)
+        calls.append(lesion_params(kwargs.get("lesion")))
+        return patient_lesion(*args, **kwargs)
 
-    monkeypatch.setattr(module, "segment_hyperintense_lesion", counted)
+    monkeypatch.setattr(module, "patient_lesion", counted)
     return calls
 
 

@@ -301,10 +301,12 @@ def _head_and_masks(tmp):
         "nan": (save("m_nan.nii.gz", nan), "1 of 576 voxel values are not finite (1 NaN"),
         "air": (save("m_air.nii.gz", air), "no overlap with the image"),
         "missing": (tmp / "m_missing.nii.gz", "no such file"),
+        "4-D": (save("m_4d.nii.gz", np.stack([brain, brain], axis=-1)),
+                "a 4-D image with 2 volumes (shape (12, 12, 4, 2)): give a single 3-D volume"),
     }  # fmt: skip
 
 
-@pytest.mark.parametrize("case", ["shape", "affine", "empty", "nan", "air", "missing"])
+@pytest.mark.parametrize("case", ["shape", "affine", "empty", "nan", "air", "missing", "4-D"])
 def test_bad_brain_mask_is_one_line_naming_it_with_exit_2_before_any_work(tmp_path, case):
     image, masks = _head_and_masks(tmp_path)
     mask, message = masks[case]

@@ -149,16 +149,16 @@ def test_slice_table_rows_match_detection(tumour_run):
 def _count_lesion_runs(monkeypatch):
     import tumor3d.detect as detect_mod
     import tumor3d.segment as segment_mod
-    from tumor3d.lesion import segment_hyperintense_lesion
+    from tumor3d.lesion import lesion_params, patient_lesion
 
     calls: list[str] = []
     for mod in (detect_mod, segment_mod):
 
         def counted(*args, _name=mod.__name__, **kwargs):
-            calls.append((_name, kwargs["seed_sigmas"]))
-            return segment_hyperintense_lesion(*args, **kwargs)
+            calls.append((_name, lesion_params(kwargs.get("lesion"))["seed_sigmas"]))
+            return patient_lesion(*args, **kwargs)
 
-        monkeypatch.setattr(mod, "segment_hyperintense_lesion", counted)
+        monkeypatch.setattr(mod, "patient_lesion", counted)
     return calls
 
 
