@@ -77,7 +77,14 @@ its modes to be counted. This module uses what a single slice cannot:
    component of ``brain & ~mask`` enclosed by ``mask | ~brain``, touching
    the lesion, whose median gray is below the normal median ``mu`` (fluid
    or necrosis, not parenchyma). On T1c this fills the necrotic core
-   inside the enhancing rim.
+   inside the enhancing rim. A dark asymmetric cavity lying mostly within
+   the lesion's extent joins it too (5b, :func:`_asymmetric_cavity`), and
+   its wall is then decided as the lesion's border was around the seeds
+   (5c, :func:`_cavity_wall`: the partial-volume rule of step 4 within the
+   blur's reach of the cavity, then the boundary rings there). The
+   enhancing rim of a necrotic T1c lesion is often too thin to seed away
+   from its thickest part; once its core is known, the rim is the bright
+   tissue around that core.
 6. **T2 and CSF.** On T2 the CSF is brighter than the lesion; voxels above
    the CSF threshold are excluded from the seeds and the
    growth (they may still be enclosed and filled).
@@ -476,6 +483,38 @@ def _asymmetric_cavity(
     return mask | cavity | bridge
 
 
+def _cavity_wall(
+    mask: np.ndarray,
+    cavity: np.ndarray,
+    img: np.ndarray,
+    allowed: np.ndarray,
+    grow_t: float,
+    reach: int,
+    model: NormalModel,
+    floor_sigmas: float,
+    rings: int,
+) -> np.ndarray:
+    """Step 5c: the wall of a joined cavity, grown as the lesion was around its seeds.
+
+    The cavity (step 5b) is now part of the lesion's core; its wall (the
+    enhancing rim of a necrotic T1c lesion, tumour on FLAIR) is decided by
+    the rules of step 4 around it: voxels within the blur's reach
+    (``reach``) of the cavity above the partial-volume threshold
+    ``grow_t`` join when connected to the lesion, then ``rings`` rings of
+    local growth, confined to the cavity's neighbourhood (the rest of the
+    lesion had its rings).
+    """
+    zone = _box_dilate(cavity, reach, reach)
+    cand = mask | (zone & allowed & (img > grow_t))
+    lab, _ = ndi.label(cand, structure=np.ones((3, 3, 3), dtype=bool))
+    keep = np.unique(lab[mask])
+    out = np.isin(lab, keep[keep > 0])
+    if rings > 0:
+        near = _box_dilate(cavity, reach + rings, reach + rings)
+        out = _grow_local(out, img, allowed & near, model, floor_sigmas, rings)
+    return out
+
+
 def _within_mm(mask: np.ndarray, radius_mm: float, voxel_mm) -> np.ndarray:
     """In-plane: voxels within ``radius_mm`` of ``mask`` (per slice, Euclidean)."""
     out = np.zeros_like(mask)
@@ -818,6 +857,7 @@ def _segment_box(
         if lr_axis is not None and modality != "t2" and mask.any():
             # on T2 the fluid is bright (step 6); on FLAIR / T1c it is dark
             reach = max(1, int(round(2 * float(smoothing_px))))
+            before = mask
             mask = _asymmetric_cavity(
                 mask,
                 sm,
@@ -830,6 +870,12 @@ def _segment_box(
                 min_region_pixels,
                 min_slices,
             )
+            cavity = mask & ~before
+            if refine_boundary and cavity.any():
+                mask = _cavity_wall(
+                    mask, cavity, img, b & not_csf, grow_t, reach, model, floor_sigmas,
+                    boundary_rings,
+                )  # fmt: skip
     mask &= b
     if np.count_nonzero(mask) > MAX_BRAIN_FRACTION * np.count_nonzero(b):
         # the model's premise (the lesion is a minority of the brain, so the median and

@@ -372,6 +372,30 @@ def test_t1c_necrotic_core_larger_than_its_rim_joins_the_lesion_beyond_the_rim_s
     assert (mask & ventricles).sum() == 0
 
 
+def test_faint_wall_of_a_joined_cavity_joins_with_it(monkeypatch):
+    # step 5c: the rim seeds on its middle slices only; around the core's poles a
+    # faint 1 mm wall (above the partial-volume threshold, too thin and faint to
+    # seed) is the lesion's too, decided by the step-4 rule once the core is known
+    import tumor3d.lesion as lesion_mod
+
+    brain = _brain()
+    z, y, x = _grid_mm()
+    centre = (0.0, 10.0, -17.0)
+    core = _ball(centre, 11.0)
+    rim = _ball(centre, 14.0) & ~core & (np.abs(z - centre[0]) < 7.0)
+    wall = _ball(centre, 12.0) & ~core & ~rim & brain
+    truth = core | rim | wall
+    img = _image(brain, [(rim, 230.0), (core, 25.0), (wall, 175.0)])
+    mask = _segment(img, brain, modality="t1c", lr_axis=2)
+    assert (mask & wall).sum() > 0.9 * wall.sum()
+    dice = 2 * (mask & truth).sum() / (mask.sum() + truth.sum())
+    # without step 5c (the wall rule replaced by "nothing joins") half the wall is lost
+    monkeypatch.setattr(lesion_mod, "_cavity_wall", lambda mask, *args: mask)
+    without = _segment(img, brain, modality="t1c", lr_axis=2)
+    assert (without & wall).sum() < 0.6 * wall.sum()
+    assert dice > 2 * (without & truth).sum() / (without.sum() + truth.sum())
+
+
 def test_dark_asymmetric_structure_reaching_far_beyond_the_lesion_stays_out():
     # a unilateral dark structure (a trapped ventricle) that touches the lesion but
     # lies mostly outside the lesion's extent is not the lesion's cavity
