@@ -7,6 +7,14 @@ relative to the repository root):
   ``seg.nii.gz`` (whole tumour = label > 0), modality FLAIR;
 - ``brats_t2_algoseg/t2w.nii.gz`` with ``seg_algorithm.nii.gz`` (an
   **algorithm's** label, not an expert's), modality T2;
+- the same case's FLAIR (``t2f.nii.gz``, labels 1-3) and T1c (``t1c.nii.gz``,
+  labels 1 + 3, necrosis and enhancing), added after the lesion model's rules
+  were chosen on the other cases: the FLAIR is **held out** (nothing was
+  changed after seeing it); the T1c was, until it exposed step 3b's depth
+  percentile (``reports/segmentation.md``);
+- the BraTS pat0003-0005 T1c volumes (labels 1 + 4, the necrotic core and
+  the enhancing rim) and the clinical 6.5 mm T1c ``thick_t1c_brain2`` (its
+  semi-automatic label, at its own slices);
 - ``no_tumor/*`` (no label: slices flagged and tumour volume only), run at
   their native slices as T1c, the evaluation manifest's modality
   (``--no-tumor-modality`` for another).

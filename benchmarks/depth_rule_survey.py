@@ -1,0 +1,117 @@
+"""Step 3b of the lesion model (``tumor3d.lesion``): how deep do candidates reach?
+
+Lists every candidate lesion of every case of ``benchmarks/real_segmentation.py``
+*before* the depth rule (steps 2, 3, 3c and 6 of ``tumor3d/lesion.py``: the
+significant asymmetric seed components, all of them, not only the largest),
+at 2 mm every 5 mm and at the native slices, with its depth percentiles
+divided by the brain's median depth, and whether it lies in the reference
+(at least half of its voxels). Then, per percentile, the smallest value of a
+case's tumour (its largest candidate in the reference) and the largest value
+of a false candidate that the rule rejects at the 75th percentile (the
+superficial ones the rule exists for). ``reports/segmentation.md`` gives the
+figures and the choice of ``tumor3d.lesion.DEPTH_PERCENTILE``.
+
+Usage::
+
+    TUMOR3D_DATA_DIR=/work/shared/data python benchmarks/depth_rule_survey.py [--list]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import real_segmentation as rs  # noqa: E402
+
+from storage.readers import read_scan  # noqa: E402
+from tumor3d import lesion as L  # noqa: E402
+from tumor3d.config import parse_config  # noqa: E402
+from tumor3d.preprocess import preprocess_volume  # noqa: E402
+
+PERCENTILES = (50, 75, 90, 95, 100)
+
+
+def survey(data: Path, cfg, native: bool) -> list[dict]:
+    rows = []
+    lp = cfg.detect.lesion
+    for case in rs._cases(data):
+        if native and (case.native_only or case.label is None):
+            continue  # the same as the thick run
+        scan = read_scan(case.image, modality=case.modality)
+        ref = None
+        if case.label:
+            lab = np.rint(read_scan(case.label).image)
+            ref = np.isin(lab, case.labels) if case.labels else lab > 0
+        if native or case.native_only or ref is None:
+            img, step = scan.image, scan.slice_step_mm
+        else:
+            img = rs.emulate_thick(scan.image, 2)
+            ref = rs.emulate_thick(ref.astype(np.float64), 2) >= 0.5
+            step = rs.STEP * scan.slice_step_mm
+        spacing = (step, *scan.pixel_spacing_mm)
+        pre = preprocess_volume(img, **cfg.preprocess.model_dump(), spacing_mm=spacing)
+        enhanced, brain = pre.enhanced, pre.brain_mask
+        sm = L._smooth_in_brain(enhanced, brain, lp.smoothing_px)
+        model = L.normal_model(sm, enhanced, brain, lp.seed_sigmas, case.modality)
+        _, labels, ids = L._candidates(
+            model, sm, enhanced, brain, lp.smoothing_px, lp.min_region_pixels, lp.min_slices,
+            False, None, L.left_right_axis(scan.affine), spacing,
+        )  # fmt: skip
+        depth = L._depth_mm(brain, spacing)
+        brain_median = float(np.median(depth[brain]))
+        for k, i in enumerate(ids):
+            comp = labels == i
+            inside = float((comp & ref).sum() / comp.sum()) if ref is not None else 0.0
+            rows.append({
+                "case": case.name + (" (1 mm)" if native else ""),
+                "rank": k,
+                "ml": float(comp.sum()) * float(np.prod(spacing)) / 1000.0,
+                "ratio": np.percentile(depth[comp], PERCENTILES) / brain_median,
+                "tumour": inside >= 0.5,
+            })  # fmt: skip
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--list", action="store_true", help="print every candidate")
+    args = ap.parse_args(argv)
+    data = Path(os.environ.get("TUMOR3D_DATA_DIR", ROOT.parent / "shared" / "data"))
+    if not data.is_dir():
+        print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
+        return 0
+    import yaml
+
+    cfg = parse_config(yaml.safe_load((ROOT / "configs" / "default.yaml").read_text()))
+    rows = survey(data, cfg, native=False) + survey(data, cfg, native=True)
+    if args.list:
+        for r in rows:
+            kind = "tumour" if r["tumour"] else "false"
+            ratios = " ".join(f"{v:4.2f}" for v in r["ratio"])
+            print(f"{r['case']:<36} #{r['rank']} {r['ml']:6.2f} mL {kind:<6} {ratios}")
+    j75 = PERCENTILES.index(75)
+    largest = [r for r in rows if r["tumour"] and r["rank"] == min(
+        q["rank"] for q in rows if q["case"] == r["case"] and q["tumour"])]  # fmt: skip
+    superficial = [r for r in rows if not r["tumour"] and r["ratio"][j75] < 1.0]
+    print(f"{len([r for r in rows if r['tumour']])} tumour candidates, "
+          f"{len([r for r in rows if not r['tumour']])} false ones "
+          f"({len(superficial)} rejected by the 75th percentile)")  # fmt: skip
+    print("| percentile | smallest ratio of a case's tumour | largest ratio of those false ones |")
+    print("|---|---|---|")
+    for j, p in enumerate(PERCENTILES):
+        t = min(largest, key=lambda r: r["ratio"][j])
+        f = max(superficial, key=lambda r: r["ratio"][j])
+        print(f"| {p} | {t['ratio'][j]:.2f} ({t['case']}) | {f['ratio'][j]:.2f} ({f['case']}) |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
