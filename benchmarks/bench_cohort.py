@@ -36,7 +36,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import re
 import subprocess
 import sys
 import tempfile
@@ -49,22 +48,14 @@ os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _cohort_bench import replace_report_section, write_phantom_cohort  # noqa: E402
+
 from flows.cohort import run_cohort  # noqa: E402
 from flows.patient import run_stages_direct  # noqa: E402
-from storage.phantom_io import write_phantom_patient  # noqa: E402
 from storage.publish import PUBLISH_MANIFEST  # noqa: E402
 from tasks import stages  # noqa: E402
-from tumor3d.phantom import make_phantom_patient  # noqa: E402
 
 SECTION = "## Cohort flow"
-
-
-def _replace_section(text: str, section: str) -> str:
-    """Replace the ``## Cohort flow`` section of a report (or append it)."""
-    pattern = re.compile(rf"^{re.escape(SECTION)}.*?(?=^## |\Z)", re.S | re.M)
-    if pattern.search(text):
-        return pattern.sub(lambda _: section, text)
-    return text.rstrip("\n") + "\n\n" + section
 
 
 def main() -> None:
@@ -78,11 +69,7 @@ def main() -> None:
 
     work = Path(tempfile.mkdtemp(prefix="tumor3d-bench-cohort-"))
     os.environ["PREFECT_HOME"] = str(work / "prefect-home")
-    rows = []
-    for seed in range(args.n):
-        patient = make_phantom_patient(seed, patient_id=f"bc{seed:03d}")
-        rows.append(write_phantom_patient(patient, work / "inputs" / patient.scan.patient_id))
-    print(f"{args.n} phantom patients written to {work / 'inputs'}")
+    rows = write_phantom_cohort(args.n, "bc", work)
 
     run_stages_direct(rows[0].image, work / "warmup", patient_id=rows[0].patient_id)
     t = time.perf_counter()
@@ -165,7 +152,7 @@ def main() -> None:
     report = args.report
     report.parent.mkdir(parents=True, exist_ok=True)
     old = report.read_text() if report.exists() else "# Benchmarks\n"
-    report.write_text(_replace_section(old, section))
+    report.write_text(replace_report_section(old, SECTION, section))
     print(section)
 
 

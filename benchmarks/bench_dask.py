@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import re
 import subprocess
 import sys
 import tempfile
@@ -43,19 +42,12 @@ os.environ["PYTHONPATH"] = os.pathsep.join(
     [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])]
 )  # Dask worker processes import this checkout
 
+from _cohort_bench import replace_report_section, write_phantom_cohort  # noqa: E402
+
 from flows.cohort import run_cohort  # noqa: E402
 from flows.dask_runner import DaskSpec  # noqa: E402
-from storage.phantom_io import write_phantom_patient  # noqa: E402
-from tumor3d.phantom import make_phantom_patient  # noqa: E402
 
 SECTION = "## Dask runner scaling"
-
-
-def _replace_section(text: str, section: str) -> str:
-    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
-    if pattern.search(text):
-        return pattern.sub(lambda _: section, text)
-    return text.rstrip("\n") + "\n\n" + section
 
 
 def _outside_stages_s(result) -> float:
@@ -75,11 +67,7 @@ def main() -> None:
 
     work = Path(tempfile.mkdtemp(prefix="tumor3d-bench-dask-"))
     os.environ["PREFECT_HOME"] = str(work / "prefect-home")
-    rows = []
-    for seed in range(args.n):
-        patient = make_phantom_patient(seed, patient_id=f"bd{seed:03d}")
-        rows.append(write_phantom_patient(patient, work / "inputs" / patient.scan.patient_id))
-    print(f"{args.n} phantom patients written to {work / 'inputs'}")
+    rows = write_phantom_cohort(args.n, "bd", work)
 
     peers = [
         ("local, 1 lane", 1, None),
@@ -136,7 +124,7 @@ def main() -> None:
     report = args.report
     report.parent.mkdir(parents=True, exist_ok=True)
     old = report.read_text() if report.exists() else "# Benchmarks\n"
-    report.write_text(_replace_section(old, section))
+    report.write_text(replace_report_section(old, SECTION, section))
     print(section)
 
 
