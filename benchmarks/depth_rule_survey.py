@@ -104,6 +104,9 @@ def main(argv=None) -> int:
     print(f"{len([r for r in rows if r['tumour']])} tumour candidates, "
           f"{len([r for r in rows if not r['tumour']])} false ones "
           f"({len(superficial)} rejected by the 75th percentile)")  # fmt: skip
+    if not largest or not superficial:
+        print("no tumour candidate or no superficial false one: nothing to compare")
+        return 0
     print("| percentile | smallest ratio of a case's tumour | largest ratio of those false ones |")
     print("|---|---|---|")
     for j, p in enumerate(PERCENTILES):

@@ -122,8 +122,9 @@ def read_brain_mask_volume(
     Raises
     ------
     InputError
-        ``"<file>: brain mask: <problem>"`` for a missing, unreadable or
-        non-3-D file, or more voxels than ``max_voxels``.
+        ``"<file>: brain mask: <problem>"`` for a missing or unreadable
+        file, one that is not 3-D (or has fewer than 2 slices), a singular or
+        non-finite affine, or more voxels than ``max_voxels``.
     """
     p = Path(path)
     if not p.exists():

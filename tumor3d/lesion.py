@@ -112,6 +112,7 @@ __all__ = [
     "NormalModel",
     "left_right_axis",
     "lesion_params",
+    "patient_lesion",
     "segment_hyperintense_lesion",
 ]
 
@@ -438,7 +439,7 @@ def _asymmetric_cavity(
     voxel_mm: tuple[float, ...],
     min_pixels: int,
     min_slices: int,
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """Step 5b: dark asymmetric fluid (a necrotic cavity) next to the lesion joins it.
 
     Dark = smoothed gray below ``mu - sigmas sigma`` (the seed rule mirrored:
@@ -458,14 +459,17 @@ def _asymmetric_cavity(
     lesion's extent. The cavity joins on all its slices, not only on those of
     the lesion: towards its poles the rim is thin and partial-volumed and
     seeds nothing, the core continues.
+
+    Returns the lesion with what joined, and the joined cavity alone (the
+    dark components, without the ring between; empty when none joined).
     """
     dark = brain & (sm < model.median - float(sigmas) * model.sigma)
     if not dark.any():
-        return mask
+        return mask, np.zeros_like(mask)
     asym = _asymmetric_seeds(dark, brain, axis, voxel_mm)
     lab, ids = _significant_components(asym, min_pixels, min_slices)
     if ids.size == 0:
-        return mask
+        return mask, np.zeros_like(mask)
     near = _box_dilate(mask, gap_px, gap_px)
     touch = np.unique(lab[near])
     touch = touch[touch > 0]
@@ -477,10 +481,10 @@ def _asymmetric_cavity(
     inside = np.bincount(lab[extent], minlength=sizes.size)
     touch = touch[np.isin(touch, ids) & (2 * inside[touch] >= sizes[touch])]
     if touch.size == 0:
-        return mask
+        return mask, np.zeros_like(mask)
     cavity = np.isin(lab, touch)
     bridge = near & _box_dilate(cavity, gap_px, gap_px) & brain
-    return mask | cavity | bridge
+    return mask | cavity | bridge, cavity
 
 
 def _cavity_wall(
@@ -502,7 +506,9 @@ def _cavity_wall(
     (``reach``) of the cavity above the partial-volume threshold
     ``grow_t`` join when connected to the lesion, then ``rings`` rings of
     local growth, confined to the cavity's neighbourhood (the rest of the
-    lesion had its rings).
+    lesion had its rings) and grown from the lesion without the cavity (its
+    dark fluid is no lesion gray to compare with). ``cavity`` holds the
+    joined dark components only.
     """
     zone = _box_dilate(cavity, reach, reach)
     cand = mask | (zone & allowed & (img > grow_t))
@@ -510,8 +516,12 @@ def _cavity_wall(
     keep = np.unique(lab[mask])
     out = np.isin(lab, keep[keep > 0])
     if rings > 0:
+        # the rings grow from the lesion's tissue above the partial-volume threshold, so
+        # that the local lesion gray they compare with is the wall's, not the dark fluid's
+        # nor that of the normal ring 5b put between lesion and cavity
         near = _box_dilate(cavity, reach + rings, reach + rings)
-        out = _grow_local(out, img, allowed & near, model, floor_sigmas, rings)
+        tissue = out & ~cavity & (img > grow_t)
+        out |= _grow_local(tissue, img, allowed & near, model, floor_sigmas, rings)
     return out
 
 
@@ -613,7 +623,8 @@ def segment_hyperintense_lesion(
     keep_largest : bool
         Keep only the largest significant component.
     refine_boundary : bool
-        Step 4 (partial-volume growth at the border).
+        Step 4 (partial-volume growth at the border) and step 5c (the same
+        around a joined cavity).
     fill_core : bool
         Step 5 (enclosed necrotic core / cavities).
     tips : bool
@@ -857,8 +868,7 @@ def _segment_box(
         if lr_axis is not None and modality != "t2" and mask.any():
             # on T2 the fluid is bright (step 6); on FLAIR / T1c it is dark
             reach = max(1, int(round(2 * float(smoothing_px))))
-            before = mask
-            mask = _asymmetric_cavity(
+            mask, cavity = _asymmetric_cavity(
                 mask,
                 sm,
                 b,
@@ -870,7 +880,6 @@ def _segment_box(
                 min_region_pixels,
                 min_slices,
             )
-            cavity = mask & ~before
             if refine_boundary and cavity.any():
                 mask = _cavity_wall(
                     mask, cavity, img, b & not_csf, grow_t, reach, model, floor_sigmas,

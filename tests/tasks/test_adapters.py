@@ -148,15 +148,22 @@ def test_slice_table_rows_match_detection(tumour_run):
 
 def _count_lesion_runs(monkeypatch):
     import tumor3d.detect as detect_mod
+    import tumor3d.lesion as lesion_mod
     import tumor3d.segment as segment_mod
-    from tumor3d.lesion import lesion_params, patient_lesion
+    from tumor3d.lesion import patient_lesion, segment_hyperintense_lesion
 
     calls: list[str] = []
     for mod in (detect_mod, segment_mod):
 
         def counted(*args, _name=mod.__name__, **kwargs):
-            calls.append((_name, lesion_params(kwargs.get("lesion"))["seed_sigmas"]))
-            return patient_lesion(*args, **kwargs)
+            # what the lesion model itself receives, not this test's reading of it
+            def seen(*a, **k):
+                calls.append((_name, k["seed_sigmas"]))
+                return segment_hyperintense_lesion(*a, **k)
+
+            with monkeypatch.context() as m:
+                m.setattr(lesion_mod, "segment_hyperintense_lesion", seen)
+                return patient_lesion(*args, **kwargs)
 
         monkeypatch.setattr(mod, "patient_lesion", counted)
     return calls
