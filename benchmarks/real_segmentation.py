@@ -98,7 +98,7 @@ def _cases(data: Path, no_tumor_modality: str = "t1c") -> list[Case]:
                         str(d / "brainmask.nii.gz")))
     d = data / "brats_t2_algoseg"
     out.append(Case("t2_algoseg", str(d / "t2w.nii.gz"), str(d / "seg_algorithm.nii.gz"), "t2"))
-    # the same case's FLAIR and T1c: held out (never used to choose a rule or a constant)
+    # the same case's FLAIR and T1c, added late (the FLAIR held out; see the docstring)
     out.append(Case("flair_algoseg", str(d / "t2f.nii.gz"), str(d / "seg_algorithm.nii.gz"),
                     "flair"))
     # T1c: the enhancing rim (label 4) with its necrotic core (label 1)
