@@ -1,0 +1,107 @@
+"""Invariances of the default pipeline on the labelled real cases (issue 7).
+
+For every labelled case of ``benchmarks/real_segmentation.py`` (2 mm every 5 mm,
+offset 2), the per-slab Dice of the segmented slabs against the slab reference
+(``mean label >= 0.5``) for the image as given and for:
+
+- **mirrored**: flipped along its left-right array axis (the label too); the
+  symmetry rule must not prefer a side: the masks should agree exactly;
+- **linear**: ``3 x + 100`` (a different scanner scale or z-scoring); the
+  8-bit windowing works on foreground percentiles, so nothing should change;
+- **bias y / bias z**: a smooth multiplicative field of +-15 % across the
+  head along the anterior-posterior / slice axis, on the intensities shifted
+  to start at 0 (background kept): what an uncorrected receive-coil bias does.
+
+Usage::
+
+    TUMOR3D_DATA_DIR=/work/shared/data python benchmarks/real_robustness.py [--cases pat0003 ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import real_segmentation as rs  # noqa: E402
+
+from storage.readers import read_scan  # noqa: E402
+from tumor3d.config import parse_config  # noqa: E402
+from tumor3d.lesion import left_right_axis  # noqa: E402
+
+BIAS = 0.15  # +- share of the multiplicative field
+
+
+def _variant(img: np.ndarray, name: str, lr_axis: int) -> np.ndarray:
+    if name == "mirrored":
+        return np.flip(img, axis=lr_axis)
+    if name == "linear":
+        return 3.0 * img + 100.0
+    lo = img.min()
+    background = img <= lo
+    axis = 1 if name == "bias y" else 0
+    coord = np.arange(img.shape[axis], dtype=np.float64)
+    g = (coord - coord.mean()) / (coord.max() - coord.mean())
+    shape = [1, 1, 1]
+    shape[axis] = -1
+    field = 1.0 + BIAS * g.reshape(shape)
+    return np.where(background, lo, (img - lo) * field + lo)
+
+
+def _dice(a: np.ndarray, b: np.ndarray) -> float:
+    s = a.sum() + b.sum()
+    return float(2.0 * (a & b).sum() / s) if s else 1.0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", nargs="*", default=None, help="case names (substring match)")
+    args = ap.parse_args(argv)
+    data = Path(os.environ.get("TUMOR3D_DATA_DIR", ROOT.parent / "shared" / "data"))
+    if not data.is_dir():
+        print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
+        return 0
+    import yaml
+
+    cfg = parse_config(yaml.safe_load((ROOT / "configs" / "default.yaml").read_text()))
+    variants = ("as given", "mirrored", "linear", "bias y", "bias z")
+    print("| case | " + " | ".join(variants) + " | mirrored masks agree |")
+    print("|---|" + "---|" * (len(variants) + 1))
+    for case in rs._cases(data):
+        if case.label is None or case.native_only:
+            continue
+        if args.cases and not any(c in case.name for c in args.cases):
+            continue
+        scan = read_scan(case.image, modality=case.modality)
+        lab = np.rint(read_scan(case.label).image)
+        ref = np.isin(lab, case.labels) if case.labels else lab > 0
+        slab_ref = rs.emulate_thick(ref.astype(np.float64), 2) >= 0.5
+        axis = left_right_axis(scan.affine)
+        spacing = (rs.STEP * scan.slice_step_mm, *scan.pixel_spacing_mm)
+        cells, masks = [], {}
+        for name in variants:
+            img = scan.image.astype(np.float64)
+            if name != "as given":
+                img = _variant(img, name, axis)
+            _, _, seg, _ = rs.run_pipeline(
+                rs.emulate_thick(img, 2), cfg, case.modality, None, spacing, axis
+            )
+            mask = seg.tumor_mask
+            if name == "mirrored":
+                mask = np.flip(mask, axis=axis)
+            masks[name] = mask
+            cells.append(f"{_dice(mask, slab_ref):.3f}")
+        agree = _dice(masks["as given"], masks["mirrored"])
+        print(f"| {case.name} | " + " | ".join(cells) + f" | {agree:.3f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
