@@ -4,12 +4,15 @@ For every labelled case of ``benchmarks/real_segmentation.py`` (2 mm every 5 mm,
 offset 2), the per-slab Dice of the segmented slabs against the slab reference
 (``mean label >= 0.5``) for the image as given and for:
 
-- **mirrored**: flipped along its left-right array axis (the label too); the
-  symmetry rule must not prefer a side: the masks should agree exactly;
+- **mirrored**: flipped along its left-right array axis, the resulting mask
+  flipped back before scoring; the symmetry rule must not prefer a side: the
+  masks should agree exactly (skipped when the affine gives no left-right
+  array axis);
 - **linear**: ``3 x + 100`` (a different scanner scale or z-scoring); the
   8-bit windowing works on foreground percentiles, so nothing should change;
 - **bias y / bias z**: a smooth multiplicative field of +-15 % across the
-  head along the anterior-posterior / slice axis, on the intensities shifted
+  head along the in-plane axis that is not left-right (anterior-posterior on
+  axial slices) / along the slices, on the intensities shifted
   to start at 0 (background kept): what an uncorrected receive-coil bias does.
 
 Usage::
@@ -46,7 +49,7 @@ def _variant(img: np.ndarray, name: str, lr_axis: int) -> np.ndarray:
         return 3.0 * img + 100.0
     lo = img.min()
     background = img <= lo
-    axis = 1 if name == "bias y" else 0
+    axis = (3 - lr_axis if lr_axis in (1, 2) else 1) if name == "bias y" else 0
     coord = np.arange(img.shape[axis], dtype=np.float64)
     g = (coord - coord.mean()) / (coord.max() - coord.mean())
     shape = [1, 1, 1]
@@ -87,6 +90,9 @@ def main(argv=None) -> int:
         spacing = (rs.STEP * scan.slice_step_mm, *scan.pixel_spacing_mm)
         cells, masks = [], {}
         for name in variants:
+            if name == "mirrored" and axis is None:
+                cells.append("–")
+                continue
             img = scan.image.astype(np.float64)
             if name != "as given":
                 img = _variant(img, name, axis)
@@ -98,8 +104,8 @@ def main(argv=None) -> int:
                 mask = np.flip(mask, axis=axis)
             masks[name] = mask
             cells.append(f"{_dice(mask, slab_ref):.3f}")
-        agree = _dice(masks["as given"], masks["mirrored"])
-        print(f"| {case.name} | " + " | ".join(cells) + f" | {agree:.3f} |")
+        agree = f"{_dice(masks['as given'], masks['mirrored']):.3f}" if "mirrored" in masks else "–"
+        print(f"| {case.name} | " + " | ".join(cells) + f" | {agree} |")
     return 0
 
 

@@ -460,8 +460,10 @@ def _asymmetric_cavity(
     the lesion: towards its poles the rim is thin and partial-volumed and
     seeds nothing, the core continues.
 
-    Returns the lesion with what joined, and the joined cavity alone (the
-    dark components, without the ring between; empty when none joined).
+    Returns the lesion with what joined, and the cavity alone: the dark
+    components that passed (without the ring between), including those step 5
+    had already filled as enclosed (5c grows the wall around them too); empty
+    when there is none.
     """
     dark = brain & (sm < model.median - float(sigmas) * model.sigma)
     if not dark.any():
@@ -506,9 +508,12 @@ def _cavity_wall(
     (``reach``) of the cavity above the partial-volume threshold
     ``grow_t`` join when connected to the lesion, then ``rings`` rings of
     local growth, confined to the cavity's neighbourhood (the rest of the
-    lesion had its rings) and grown from the lesion without the cavity (its
-    dark fluid is no lesion gray to compare with). ``cavity`` holds the
-    joined dark components only.
+    lesion had its rings) and grown from the lesion's tissue above
+    ``grow_t`` only (neither the dark fluid nor the normal ring 5b puts
+    between lesion and cavity is lesion gray to compare with). This is more
+    conservative than step 4: the rings start at the ``grow_t`` border and
+    compare with the wall's brighter gray. ``cavity`` holds the dark
+    components only.
     """
     zone = _box_dilate(cavity, reach, reach)
     cand = mask | (zone & allowed & (img > grow_t))

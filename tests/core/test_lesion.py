@@ -18,6 +18,7 @@ from tumor3d.lesion import (
     _deep_components,
     _depth_mm,
     left_right_axis,
+    lesion_params,
     patient_lesion,
     segment_hyperintense_lesion,
 )
@@ -273,7 +274,9 @@ def test_segment_reuses_the_lesion_of_the_robust_detection(monkeypatch):
     seg_calls = _counting(monkeypatch, segment_mod)
     det = detect_abnormal_slices(img, brain, method="robust", lesion=params, **geo)
     assert len(det_calls) == 1 and det.lesion is not None
-    assert det_calls[0]["seed_sigmas"] == 2.5 and det_calls[0]["boundary_rings"] == 2
+    # everything the lesion model received: the resolved parameters and the geometry
+    expected = {**lesion_params(params), "modality": "flair", "spacing_mm": SPACING, "lr_axis": 2}
+    assert det_calls[0] == expected
     reused = segment_tumor(img, brain, det, method="robust", **geo)
     assert seg_calls == []  # the detection's model, not a second run
     # independent expectation: the model computed from scratch with the same parameters

@@ -156,9 +156,12 @@ def _count_lesion_runs(monkeypatch):
     for mod in (detect_mod, segment_mod):
 
         def counted(*args, _name=mod.__name__, **kwargs):
-            # what the lesion model itself receives, not this test's reading of it
+            # what the lesion model itself receives, not this test's reading of it: the
+            # parameters and whether the scan's geometry reached it (the phantom's slices
+            # are anisotropic and its affine has a left-right axis)
             def seen(*a, **k):
-                calls.append((_name, k["seed_sigmas"]))
+                geometry = k["lr_axis"] is not None and len(set(k["spacing_mm"])) > 1
+                calls.append((_name, k["seed_sigmas"], geometry))
                 return segment_hyperintense_lesion(*a, **k)
 
             with monkeypatch.context() as m:
@@ -175,7 +178,7 @@ def test_the_lesion_model_runs_once_in_detect_and_segment_keeps_its_mask(tmp_pat
     image = write_phantom_patient(patient, tmp_path / "in").image
     cfg = {"detect": {"method": "robust"}, "segment": {"method": "robust"}}
     run = run_stages_direct(image, tmp_path / "store", config=cfg, patient_id="once2")
-    assert calls == [("tumor3d.detect", 2.0)]
+    assert calls == [("tumor3d.detect", 2.0, True)]
     store = ArtifactStore(tmp_path / "store")
     det_out = run.outputs["detect-abnormal"]
     assert det_out.values["lesion_computed"] is True
@@ -199,6 +202,6 @@ def test_histogram_detection_then_robust_segment_uses_the_detect_lesion_params(
         "segment": {"method": "robust"},
     }
     run = run_stages_direct(image, tmp_path / "store", config=cfg, patient_id="hist2")
-    assert calls == [("tumor3d.segment", 2.5)]
+    assert calls == [("tumor3d.segment", 2.5, True)]
     assert run.outputs["detect-abnormal"].values["lesion_computed"] is False
     assert run.outputs["segment-tumor"].values["tumor_pixels_total"] > 0
