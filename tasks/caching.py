@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import ast
 import hashlib
+import threading
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -94,10 +95,17 @@ def _imports_of(name: str, path: Path, root: Path) -> set[str]:
     return set(_parse_imports(name, str(path), str(root), path.read_bytes()))
 
 
+#: ``ast.parse`` is not thread-safe on CPython 3.11 (the AST constructor's recursion
+#: depth is shared state: ``SystemError: AST constructor recursion depth mismatch``,
+#: python/cpython#106905), and a cohort's lanes compute code digests concurrently.
+_AST_LOCK = threading.Lock()
+
+
 @cache
 def _parse_imports(name: str, path_str: str, root_str: str, source: bytes) -> frozenset[str]:
     path, root = Path(path_str), Path(root_str)
-    tree = ast.parse(source, filename=path_str)
+    with _AST_LOCK:
+        tree = ast.parse(source, filename=path_str)
     is_package = path.name == "__init__.py"
     package = name if is_package else name.rpartition(".")[0]
     found: set[str] = set()

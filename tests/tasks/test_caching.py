@@ -217,3 +217,32 @@ def test_every_stage_task_uses_the_single_policy_factory():
     for name, spec in STAGES.items():
         expected = _key(name, inputs, (spec.adapter_module,))
         assert spec.task.cache_policy.compute_key(None, inputs, {}) == expected, name
+
+
+def test_code_digests_parse_under_one_lock_and_agree_across_threads(package_copy, monkeypatch):
+    # ast.parse is not thread-safe on CPython 3.11 (python/cpython#106905: a cohort's
+    # lanes publishing at once failed with "AST constructor recursion depth mismatch");
+    # every parse of the closure walk must hold the module's lock
+    import ast
+    from concurrent.futures import ThreadPoolExecutor
+
+    import tasks.caching as caching
+
+    real_parse = ast.parse
+    unlocked = []
+
+    def checked(*args, **kwargs):
+        if not caching._AST_LOCK.locked():
+            unlocked.append(kwargs.get("filename"))
+        return real_parse(*args, **kwargs)
+
+    monkeypatch.setattr(caching.ast, "parse", checked)
+    caching._parse_imports.cache_clear()
+    module_closure.cache_clear()
+    code_digest.cache_clear()
+    roots = [(spec.adapter_module,) for spec in STAGES.values()]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        digests = list(pool.map(lambda r: code_digest(r, str(package_copy)), roots * 2))
+    caching._parse_imports.cache_clear()
+    assert unlocked == []
+    assert digests[: len(roots)] == digests[len(roots) :]  # the same closure, the same key
