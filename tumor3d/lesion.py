@@ -517,9 +517,7 @@ def _cavity_wall(
     """
     zone = _box_dilate(cavity, reach, reach)
     cand = mask | (zone & allowed & (img > grow_t))
-    lab, _ = ndi.label(cand, structure=np.ones((3, 3, 3), dtype=bool))
-    keep = np.unique(lab[mask])
-    out = np.isin(lab, keep[keep > 0])
+    out = _touching(cand, mask)
     if rings > 0:
         # the rings grow from the lesion's tissue above the partial-volume threshold, so
         # that the local lesion gray they compare with is the wall's, not the dark fluid's
@@ -528,6 +526,13 @@ def _cavity_wall(
         tissue = out & ~cavity & (img > grow_t)
         out |= _grow_local(tissue, img, allowed & near, model, floor_sigmas, rings)
     return out
+
+
+def _touching(cand: np.ndarray, seed: np.ndarray) -> np.ndarray:
+    """The 26-connected components of ``cand`` that hold a voxel of ``seed``."""
+    lab, _ = ndi.label(cand, structure=np.ones((3, 3, 3), dtype=bool))
+    keep = np.unique(lab[seed])
+    return np.isin(lab, keep[keep > 0])
 
 
 def _within_mm(mask: np.ndarray, radius_mm: float, voxel_mm) -> np.ndarray:
@@ -792,7 +797,6 @@ def _candidates(
         # is the seed component holding that core, with the mirrored seeds within
         # SYMMETRIC_REGAIN_MM of it (a tumour's part near the midline or next to a
         # bilateral structure); the depth rule (3b) judges that whole lesion
-        s26 = np.ones((3, 3, 3), dtype=bool)
         depth = None if spacing_mm is None else _depth_mm(b, spacing_mm)
         out = np.zeros(labels.shape, dtype=np.int64)
         n_out = 0
@@ -801,9 +805,7 @@ def _candidates(
             if out[core0].any():
                 continue  # already part of a kept lesion
             near = _within_mm(core0, SYMMETRIC_REGAIN_MM, voxel_mm)
-            flab, _ = ndi.label(full_seeds & (seeds | near), structure=s26)
-            keep = np.unique(flab[core0])
-            comp = np.isin(flab, keep[keep > 0])
+            comp = _touching(full_seeds & (seeds | near), core0)
             if spacing_mm is not None:
                 one = np.array([1])
                 if not _deep_components(comp.astype(np.int64), one, b, spacing_mm, depth).size:
@@ -863,9 +865,7 @@ def _segment_box(
         # the smoothed seeds only locate the lesion: every pixel is decided by the
         # partial-volume rule, so the blur halo of the seeds does not stay in
         cand = b & zone & not_csf & (img > grow_t)
-        lab2, _ = ndi.label(cand, structure=np.ones((3, 3, 3), dtype=bool))
-        keep = np.unique(lab2[core])
-        mask = np.isin(lab2, keep[keep > 0])
+        mask = _touching(cand, core)
         if boundary_rings > 0 and mask.any():
             mask = _grow_local(mask, img, b & not_csf, model, floor_sigmas, boundary_rings)
     if fill_core:
