@@ -19,7 +19,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -31,7 +30,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import real_segmentation as rs  # noqa: E402
 
-from storage.readers import read_scan  # noqa: E402
 from tumor3d import lesion as L  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.preprocess import preprocess_volume  # noqa: E402
@@ -45,11 +43,7 @@ def survey(data: Path, cfg, native: bool) -> list[dict]:
     for case in rs._cases(data):
         if native and (case.native_only or case.label is None):
             continue  # the same as the thick run
-        scan = read_scan(case.image, modality=case.modality)
-        ref = None
-        if case.label:
-            lab = np.rint(read_scan(case.label).image)
-            ref = np.isin(lab, case.labels) if case.labels else lab > 0
+        scan, ref = rs.read_case(case)
         if native or case.native_only or ref is None:
             img, step = scan.image, scan.slice_step_mm
         else:
@@ -84,13 +78,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--list", action="store_true", help="print every candidate")
     args = ap.parse_args(argv)
-    data = Path(os.environ.get("TUMOR3D_DATA_DIR", ROOT.parent / "shared" / "data"))
+    data = rs.data_dir()
     if not data.is_dir():
         print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
         return 0
-    import yaml
-
-    cfg = parse_config(yaml.safe_load((ROOT / "configs" / "default.yaml").read_text()))
+    cfg_path = ROOT / "configs" / "default.yaml"
+    cfg = parse_config(cfg_path.read_text(), source=str(cfg_path))
     rows = survey(data, cfg, native=False) + survey(data, cfg, native=True)
     if args.list:
         for r in rows:

@@ -23,7 +23,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -35,7 +34,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import real_segmentation as rs  # noqa: E402
 
-from storage.readers import read_scan  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.lesion import left_right_axis  # noqa: E402
 
@@ -58,22 +56,16 @@ def _variant(img: np.ndarray, name: str, lr_axis: int) -> np.ndarray:
     return np.where(background, lo, (img - lo) * field + lo)
 
 
-def _dice(a: np.ndarray, b: np.ndarray) -> float:
-    s = a.sum() + b.sum()
-    return float(2.0 * (a & b).sum() / s) if s else 1.0
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="*", default=None, help="case names (substring match)")
     args = ap.parse_args(argv)
-    data = Path(os.environ.get("TUMOR3D_DATA_DIR", ROOT.parent / "shared" / "data"))
+    data = rs.data_dir()
     if not data.is_dir():
         print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
         return 0
-    import yaml
-
-    cfg = parse_config(yaml.safe_load((ROOT / "configs" / "default.yaml").read_text()))
+    cfg_path = ROOT / "configs" / "default.yaml"
+    cfg = parse_config(cfg_path.read_text(), source=str(cfg_path))
     variants = ("as given", "mirrored", "linear", "bias y", "bias z")
     print("| case | " + " | ".join(variants) + " | mirrored masks agree |")
     print("|---|" + "---|" * (len(variants) + 1))
@@ -82,9 +74,7 @@ def main(argv=None) -> int:
             continue
         if args.cases and not any(c in case.name for c in args.cases):
             continue
-        scan = read_scan(case.image, modality=case.modality)
-        lab = np.rint(read_scan(case.label).image)
-        ref = np.isin(lab, case.labels) if case.labels else lab > 0
+        scan, ref = rs.read_case(case)
         slab_ref = rs.emulate_thick(ref.astype(np.float64), 2) >= 0.5
         axis = left_right_axis(scan.affine)
         spacing = (rs.STEP * scan.slice_step_mm, *scan.pixel_spacing_mm)
@@ -103,8 +93,12 @@ def main(argv=None) -> int:
             if name == "mirrored":
                 mask = np.flip(mask, axis=axis)
             masks[name] = mask
-            cells.append(f"{_dice(mask, slab_ref):.3f}")
-        agree = f"{_dice(masks['as given'], masks['mirrored']):.3f}" if "mirrored" in masks else "–"
+            cells.append(f"{rs.soft_dice(mask, slab_ref):.3f}")
+        agree = (
+            f"{rs.soft_dice(masks['as given'], masks['mirrored']):.3f}"
+            if "mirrored" in masks
+            else "–"
+        )
         print(f"| {case.name} | " + " | ".join(cells) + f" | {agree} |")
     return 0
 

@@ -118,6 +118,21 @@ def _cases(data: Path, no_tumor_modality: str = "t1c") -> list[Case]:
     return out
 
 
+def data_dir() -> Path:
+    """``$TUMOR3D_DATA_DIR``, default ``../shared/data`` beside the repository."""
+    return Path(os.environ.get("TUMOR3D_DATA_DIR", ROOT.parent / "shared" / "data"))
+
+
+def read_case(case: Case):
+    """The case's scan and its reference (bool, the case's labels; None without a label)."""
+    scan = read_scan(case.image, modality=case.modality)
+    label = None
+    if case.label:
+        lab = read_scan(case.label).image
+        label = np.isin(np.rint(lab), case.labels) if case.labels else lab > 0.5
+    return scan, label
+
+
 def soft_dice(pred: np.ndarray, ref: np.ndarray) -> float:
     """``2 sum(P R) / (sum P + sum R)`` with ``R`` in [0, 1]; 1 when both are empty."""
     p = pred.astype(np.float64)
@@ -150,12 +165,8 @@ def run_pipeline(image, cfg, modality, brain_mask=None, spacing_mm=None, lr_axis
 
 
 def evaluate(case: Case, cfg, *, native: bool, offset: int, use_mask: bool) -> dict:
-    scan = read_scan(case.image, modality=case.modality)
+    scan, label = read_case(case)
     img = scan.image
-    label = None
-    if case.label:
-        lab = read_scan(case.label).image
-        label = np.isin(np.rint(lab), case.labels) if case.labels else lab > 0.5
     bm = read_scan(case.brainmask).image > 0.5 if (use_mask and case.brainmask) else None
     voxel_mm3 = float(np.prod(scan.pixel_spacing_mm)) * scan.slice_step_mm
     if native or label is None or case.native_only:
@@ -251,7 +262,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-tumor-modality", default="t1c", choices=("t1c", "t2", "flair"),
                     help="modality of the no_tumor volumes (default t1c, as in the manifest)")
     args = ap.parse_args(argv)
-    data = Path(os.environ.get("TUMOR3D_DATA_DIR", ROOT / ".." / "shared" / "data"))
+    data = data_dir()
     if not (data / "brats2013_pat0003").is_dir():
         print(f"real data not found under {data} (set TUMOR3D_DATA_DIR): skipped")
         return 0
