@@ -528,6 +528,11 @@ def _cavity_wall(
     return out
 
 
+def _blur_reach(smoothing_px: float) -> int:
+    """The blur's reach in pixels: 2 sigma of the step-1 Gaussian, at least 1."""
+    return max(1, int(round(2 * float(smoothing_px))))
+
+
 def _touching(cand: np.ndarray, seed: np.ndarray) -> np.ndarray:
     """The 26-connected components of ``cand`` that hold a voxel of ``seed``."""
     lab, _ = ndi.label(cand, structure=np.ones((3, 3, 3), dtype=bool))
@@ -782,7 +787,7 @@ def _candidates(
     if not not_csf.all():
         # the smoothed seeds within the blur's reach (2 sigma) of CSF owe their
         # brightness to the CSF (partial volume, blur): no seeds
-        reach = max(1, int(round(2 * float(smoothing_px))))
+        reach = _blur_reach(smoothing_px)
         halo = _box_dilate(~not_csf & b, reach, reach)
         seeds &= ~halo
     full_seeds = seeds
@@ -857,7 +862,7 @@ def _segment_box(
     grow_t = 0.5 * (lesion_gray + model.median)
     mask = core
     if refine_boundary:
-        reach = max(1, int(round(2 * float(smoothing_px))))
+        reach = _blur_reach(smoothing_px)
         # the lesion may continue onto the slice just beyond its seeds (its tip, too
         # small or too partial-volumed for a seed): the zone reaches one slice further
         zone = ndi.binary_dilation(core, structure=np.ones((3, 1, 1), bool)) if tips else core
@@ -872,7 +877,7 @@ def _segment_box(
         mask = _fill_enclosed(mask, b, img, model.median)
         if lr_axis is not None and modality != "t2" and mask.any():
             # on T2 the fluid is bright (step 6); on FLAIR / T1c it is dark
-            reach = max(1, int(round(2 * float(smoothing_px))))
+            reach = _blur_reach(smoothing_px)
             mask, cavity = _asymmetric_cavity(
                 mask,
                 sm,
