@@ -25,7 +25,6 @@ from tumor3d.lesion import LesionResult, left_right_axis
 __all__ = ["SPEC", "detect_task", "lesion_metadata"]
 
 
-
 def _num(v: float) -> float | None:
     """JSON-able float: None for NaN and infinities."""
     return float(v) if math.isfinite(float(v)) else None
@@ -44,6 +43,13 @@ def lesion_metadata(lesion: LesionResult | None, params: dict[str, Any]) -> dict
             lesion_gray=_num(lesion.lesion_gray),
             grow_threshold=_num(lesion.grow_threshold),
             n_components=int(lesion.n_components),
+            mirror_plane=None
+            if lesion.plane is None
+            else {
+                "lr_axis": int(lesion.plane.axis),
+                "yaw_deg": float(lesion.plane.yaw_deg),
+                "offset_mm": float(lesion.plane.offset_mm),
+            },
         )
     return meta
 

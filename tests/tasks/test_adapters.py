@@ -189,6 +189,13 @@ def test_the_lesion_model_runs_once_in_detect_and_segment_keeps_its_mask(tmp_pat
     assert tumour.any()
     # independent expectation: the detect stage's lesion on the flagged slices
     assert np.array_equal(tumour, lesion & abnormal[:, None, None])
+    # the artifact records the mid-sagittal plane the symmetry rule used: the phantom's
+    # head is straight (columns run left-right) and centred on the grid's middle
+    plane = det_out.artifacts["lesion"].metadata["lesion"]["mirror_plane"]
+    assert plane["lr_axis"] == 2 and abs(plane["yaw_deg"]) <= 1.0
+    scan = patient.scan
+    middle_mm = (scan.image.shape[2] - 1) / 2 * scan.pixel_spacing_mm[1]
+    assert abs(plane["offset_mm"] - middle_mm) <= 2.0
 
 
 def test_histogram_detection_then_robust_segment_uses_the_detect_lesion_params(
