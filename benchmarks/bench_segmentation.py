@@ -5,7 +5,9 @@ volume (``$TUMOR3D_DATA_DIR/brats2013_pat0003/flair.nii.gz`` when present,
 else a smooth synthetic head of that size with a bright blob), ``--repeat``
 times each, interleaved, and prints the median seconds per stage and the
 ratio default / peer (the machine is shared and noisy: only the ratio is
-meaningful). Not a test.
+meaningful). Detect and segment get the scan's voxel spacing and left-right
+axis, as the stage adapters pass them (so the lesion model's depth and
+symmetry rules run, the mid-sagittal plane search included). Not a test.
 
 Usage::
 
@@ -15,7 +17,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import sys
 import time
@@ -28,37 +29,46 @@ sys.path.insert(0, str(ROOT))
 
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.detect import detect_abnormal_slices  # noqa: E402
+from tumor3d.lesion import left_right_axis  # noqa: E402
 from tumor3d.preprocess import preprocess_volume  # noqa: E402
 from tumor3d.segment import segment_tumor  # noqa: E402
 
 
-def _volume() -> tuple[np.ndarray, str]:
-    data = Path(os.environ.get("TUMOR3D_DATA_DIR", ROOT / ".." / "shared" / "data"))
-    f = data / "brats2013_pat0003" / "flair.nii.gz"
+def _volume() -> tuple[np.ndarray, tuple[float, float, float], int | None, str]:
+    """(image, spacing_mm (z, y, x), left-right axis, description)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from real_segmentation import data_dir
+
+    f = data_dir() / "brats2013_pat0003" / "flair.nii.gz"
     if f.is_file():
         from storage.readers import read_scan
 
-        return read_scan(f, modality="flair").image, str(f)
+        scan = read_scan(f, modality="flair")
+        spacing = (scan.slice_step_mm, *scan.pixel_spacing_mm)
+        return scan.image, spacing, left_right_axis(scan.affine), str(f)
     rng = np.random.default_rng(0)
     z, y, x = np.mgrid[:155, :240, :240].astype(np.float32)
     r = np.sqrt(((z - 77) / 70) ** 2 + ((y - 120) / 95) ** 2 + ((x - 120) / 80) ** 2)
     vol = np.where(r < 1, 100.0, 0.0) + rng.normal(0, 5, r.shape) * (r < 1)
     vol[((z - 80) ** 2 + (y - 100) ** 2 + (x - 140) ** 2) < 20**2] = 200.0
-    return vol.astype(np.float32), "synthetic 155x240x240 head"
+    return vol.astype(np.float32), (1.0, 1.0, 1.0), 2, "synthetic 155x240x240 head"
 
 
-def _run(image: np.ndarray, cfg) -> dict[str, float]:
+def _run(image: np.ndarray, spacing_mm, lr_axis, cfg) -> dict[str, float]:
     t = {}
+    geometry = {"spacing_mm": spacing_mm, "lr_axis": lr_axis}
     t0 = time.perf_counter()
-    pre = preprocess_volume(image, **cfg.preprocess.model_dump())
+    pre = preprocess_volume(image, **cfg.preprocess.model_dump(), spacing_mm=spacing_mm)
     t["preprocess"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     det = detect_abnormal_slices(
-        pre.enhanced, pre.brain_mask, modality="flair", **cfg.detect.model_dump()
+        pre.enhanced, pre.brain_mask, modality="flair", **geometry, **cfg.detect.model_dump()
     )
     t["detect"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    segment_tumor(pre.enhanced, pre.brain_mask, det, modality="flair", **cfg.segment.model_dump())
+    segment_tumor(
+        pre.enhanced, pre.brain_mask, det, modality="flair", **geometry, **cfg.segment.model_dump()
+    )
     t["segment"] = time.perf_counter() - t0
     t["total"] = sum(t.values())
     return t
@@ -68,7 +78,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args(argv)
-    image, what = _volume()
+    image, spacing_mm, lr_axis, what = _volume()
     configs = {
         "default": parse_config((ROOT / "configs" / "default.yaml").read_text()),
         "peer": parse_config((ROOT / "configs" / "peer_multiotsu.yaml").read_text()),
@@ -76,7 +86,7 @@ def main(argv=None) -> int:
     times: dict[str, list[dict[str, float]]] = {k: [] for k in configs}
     for _ in range(max(1, args.repeat)):
         for name, cfg in configs.items():
-            times[name].append(_run(image, cfg))
+            times[name].append(_run(image, spacing_mm, lr_axis, cfg))
     print(f"volume: {what}, shape {image.shape}, {args.repeat} repeats (median seconds)")
     med = {}
     for name, runs in times.items():
