@@ -18,11 +18,10 @@ from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
 from tumor3d.config import SegmentConfig
 from tumor3d.detect import SliceDetection
-from tumor3d.lesion import LesionResult, NormalModel, left_right_axis
+from tumor3d.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
 from tumor3d.segment import segment_tumor
 
 __all__ = ["SPEC", "lesion_from_artifact", "segment_task"]
-
 
 
 def _f(v: Any, missing: float = float("nan")) -> float:
@@ -39,12 +38,16 @@ def lesion_from_artifact(mask: np.ndarray, meta: dict[str, Any]) -> LesionResult
         _f(meta["seed_threshold"]),
         _f(meta["csf_threshold"], float("inf")),
     )
+    plane = meta.get("mirror_plane")
     return LesionResult(
         np.asarray(mask, dtype=bool),
         model,
         _f(meta["lesion_gray"]),
         _f(meta["grow_threshold"]),
         int(meta["n_components"]),
+        None
+        if plane is None
+        else MirrorPlane(int(plane["lr_axis"]), float(plane["yaw_deg"]), float(plane["offset_mm"])),
     )
 
 

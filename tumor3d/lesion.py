@@ -157,7 +157,8 @@ PLANE_MAX_YAW_DEG = 20.0
 #: Step 3c: the grid (mm) on which the plane search resamples the slices; half of it
 #: (1 mm) is the resolution of the plane's offset, far below the mirror tolerance.
 PLANE_GRID_MM = 2.0
-#: Step 3c: slices the plane search uses at most (the largest brain cross-sections).
+#: Step 3c: slices the plane search uses at most (of those whose brain area is at least
+#: half the largest, evenly thinned).
 PLANE_SLICES = 8
 
 #: Step 3c: mirrored seeds within this in-plane distance of the kept asymmetric core are
@@ -472,15 +473,21 @@ def symmetry_plane(
     (Tuzikov, Colliot and Bloch, *Med. Image Anal.* 7(4), 2003): over yaw
     angles within :data:`PLANE_MAX_YAW_DEG` (2 degree steps on a grid of
     twice :data:`PLANE_GRID_MM`, then 0.25 degree steps within 1 degree of the
-    best on the :data:`PLANE_GRID_MM` grid), the slices are resampled on a
+    best on the :data:`PLANE_GRID_MM` grid, or on the pixels where they are
+    coarser), the slices are resampled on a
     grid aligned with the candidate plane, and the mirror correlation of
     every offset at once is the autoconvolution of its rows (FFT). The gray
     levels are the smoothed ones clipped to the normal range ``mu +- 2
-    sigma``, so that neither the tumour nor fluid pulls the plane, and
+    sigma``, so that the tumour and fluid pull the plane no more than
+    normal tissue of the same extent would (a bright lesion still weighs:
+    on a small synthetic brain it moved the plane by up to 3 degrees), and
     shifted so that the brain is brighter than the background (its outline
-    counts). The :data:`PLANE_SLICES` largest brain cross-sections (every
-    slice whose brain area is at least half the largest, evenly thinned)
-    carry the outline and the midline best.
+    counts). The slices are those whose brain area is at least half the
+    largest (they carry the outline and the midline best), evenly thinned
+    to at most :data:`PLANE_SLICES`. A brain cut by the field of view biases
+    the estimate (its outline is no longer symmetric); so did the array's
+    middle column, the rule before. ``yaw_deg`` is in array terms (the
+    sense of ``scipy.ndimage.rotate(..., axes=(1, 2))``), not the patient's.
 
     Parameters
     ----------
@@ -494,14 +501,27 @@ def symmetry_plane(
     voxel_mm : (3,) tuple of float
         Voxel spacing ``(slice step, row, column)``, mm.
 
+    Returns
+    -------
+    MirrorPlane
+        Yaw within :data:`PLANE_MAX_YAW_DEG`; among equal scores the smallest
+        yaw. When no yaw scores at all (no structure: a score that is not
+        finite and positive), the plane through the brain's centroid at yaw 0
+        (the rule before the plane was estimated).
+
     Raises
     ------
     InputError
-        If ``axis`` is not an in-plane axis.
+        If ``axis`` is not an in-plane axis, the brain is empty or the pixel
+        spacing is not positive.
     """
     if axis not in (1, 2):
         raise InputError(f"lr_axis must be 1 or 2 (an in-plane axis), got {axis}")
     dy, dx = float(voxel_mm[1]), float(voxel_mm[2])
+    if not (np.isfinite(dy) and np.isfinite(dx) and dy > 0 and dx > 0):
+        raise InputError(f"pixel spacing must be positive, got {(dy, dx)} mm")
+    if not np.any(brain):
+        raise InputError("symmetry_plane needs a non-empty brain mask")
     area = brain.sum(axis=(1, 2))
     zs = np.flatnonzero(area >= 0.5 * area.max())
     if zs.size > PLANE_SLICES:
@@ -512,6 +532,8 @@ def symmetry_plane(
     centre = np.array([ys.mean() * dy, xs.mean() * dx])
     radius = float(np.sqrt((ys * dy - centre[0]) ** 2 + (xs * dx - centre[1]) ** 2).max())
     f = f.astype(np.float32)
+    # never finer than the pixels: the grid's size stays bounded by the array's
+    grid_mm = max(PLANE_GRID_MM, min(dy, dx))
 
     def score(yaw: float, grid_mm: float) -> tuple[float, float]:
         k = int(np.ceil(radius / grid_mm)) + 2
@@ -532,15 +554,24 @@ def symmetry_plane(
 
     # coarse: 2 degree steps on a grid twice as coarse (the score is smooth in the yaw:
     # the brain's outline and midline are large); fine: 0.25 degree steps around the best
+    # (ties go to the smallest yaw)
     coarse = np.arange(-PLANE_MAX_YAW_DEG, PLANE_MAX_YAW_DEG + 1e-9, 2.0)
-    best = max(coarse, key=lambda a: score(a, 2.0 * PLANE_GRID_MM)[0])
-    fine = [(score(a, PLANE_GRID_MM), float(a)) for a in best + np.arange(-1.0, 1.01, 0.25)]
-    (_, offset), yaw = max(fine, key=lambda sa: sa[0][0])
+    best = max(coarse, key=lambda a: (score(a, 2.0 * grid_mm)[0], -abs(a)))
+    fine = best + np.arange(-1.0, 1.01, 0.25)
+    fine = fine[np.abs(fine) <= PLANE_MAX_YAW_DEG + 1e-9]
+    scored = [(score(a, grid_mm), float(a)) for a in fine]
+    (value, offset), yaw = max(scored, key=lambda sa: (sa[0][0], -abs(sa[1])))
+    if not (np.isfinite(value) and value > 0):
+        return MirrorPlane(int(axis), 0.0, float(centre[1] if axis == 2 else centre[0]))
     return MirrorPlane(int(axis), yaw, offset)
 
 
 def _bilinear(f: np.ndarray, y: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Every slice of ``f`` sampled at the fractional pixels ``(y, x)`` (bilinear, 0 outside).
+    """Every slice of ``f`` sampled at the fractional pixels ``(y, x)`` (bilinear, zero padded).
+
+    Equal to ``scipy.ndimage.map_coordinates(order=1, mode="grid-constant",
+    cval=0)`` on each slice: beyond the last pixel centre the neighbour outside
+    counts as 0.
 
     The sample points are the same on every slice, so the four neighbours are
     gathered for all slices at once (scipy's ``map_coordinates`` would
@@ -837,8 +868,9 @@ def segment_hyperintense_lesion(
         Slices where the lesion may lie (e.g. a detection); others are cleared
         at the end.
     spacing_mm : (3,) tuple of float
-        Voxel spacing ``(slice step, row, column)`` in mm, for the depth of
-        step 3b (only the ratios matter).
+        Voxel spacing ``(slice step, row, column)`` in mm: the depth of step
+        3b (only its ratios matter there), the mirror tolerance and the
+        mid-sagittal plane of step 3c (in mm).
     reject_superficial : bool
         Step 3b: keep only candidates at least as deep as the brain's median
         depth.
@@ -856,6 +888,9 @@ def segment_hyperintense_lesion(
     b = np.asarray(brain, dtype=bool)
     if img.shape != b.shape or img.ndim != 3:
         raise InputError(f"enhanced {img.shape} and brain {b.shape} must be equal 3-D shapes")
+    sp = np.asarray(spacing_mm, dtype=np.float64).ravel()
+    if sp.size != 3 or not (np.all(np.isfinite(sp)) and np.all(sp > 0)):
+        raise InputError(f"spacing_mm must be three positive numbers (mm), got {spacing_mm}")
     empty_model = NormalModel(float("nan"), float("nan"), float("nan"), float("inf"))
     if not b.any():
         return LesionResult(np.zeros(b.shape, bool), empty_model, float("nan"), float("nan"), 0)

@@ -17,6 +17,7 @@ import tumor3d.lesion as lesion_module
 from tumor3d.errors import InputError
 from tumor3d.lesion import (
     MirrorPlane,
+    NormalModel,
     _deep_components,
     _depth_mm,
     _mirror,
@@ -107,22 +108,91 @@ def _turned_ball(yaw_deg: float, centre_mm, radius_mm) -> np.ndarray:
     return d2 <= radius_mm**2
 
 
+def _true_frame(axis: int, yaw_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """(along, normal) unit vectors in (y, x) mm of a midline turned by ``yaw_deg``.
+
+    Written independently of the module: at yaw 0 the normal is the left-right
+    array axis; turning goes from +y towards +x (axis 2) or from +x towards +y
+    (axis 1), the sense of ``scipy.ndimage.rotate(..., axes=(1, 2))``.
+    """
+    a = np.deg2rad(yaw_deg)
+    if axis == 2:
+        return np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
+    return np.array([-np.sin(a), np.cos(a)]), np.array([np.cos(a), np.sin(a)])
+
+
+def _turned_head(axis, yaw_deg, dy, dx, *, noise_seed=None, lesion=False):
+    """A 240 mm field of view holding an elliptical brain (70 x 55 mm half-axes)
+    whose midline passes through (117.3, 121.9) mm, turned by ``yaw_deg``; gray
+    levels symmetric about the midline and structured along it. Returns the
+    image, the brain, the midline's direction and a point on it (mm)."""
+    t, n = _true_frame(axis, yaw_deg)
+    centre = np.array([117.3, 121.9])
+    r, c = np.indices((int(240 / dy), int(240 / dx))).astype(np.float64)
+    p = np.stack([r * dy, c * dx], axis=-1) - centre
+    across, along = p @ n, p @ t
+    brain2 = (along / 70.0) ** 2 + (across / 55.0) ** 2 <= 1.0
+    gray = 100 + 25 * np.cos(across / 6.0) * np.exp(-(((along - 15) / 25) ** 2))
+    gray = gray + 20 * np.sin(along / 9.0)
+    img = np.repeat(gray[None], 6, axis=0)
+    if lesion:  # a bright unilateral lesion, 15 mm in radius
+        img[:, (across - 25) ** 2 + (along - 10) ** 2 <= 15**2] = 200.0
+    if noise_seed is not None:
+        img = img + np.random.default_rng(noise_seed).normal(0.0, 8.0, img.shape)
+    brain = np.repeat(brain2[None], 6, axis=0)
+    return np.where(brain, img, 0.0).astype(np.float32), brain, t, centre
+
+
+def _plane_distances(plane, t, centre) -> tuple[float, float]:
+    """Distance (mm) of the estimated plane from the true midline at the brain's centre,
+    and the largest at 60 mm along the midline on either side."""
+    n, d = plane.normal(), plane.offset_mm
+    at_centre = abs(float(n @ centre) - d)
+    at_ends = max(abs(float(n @ (centre + s * t)) - d) for s in (-60.0, 60.0))
+    return at_centre, at_ends
+
+
+@pytest.mark.parametrize("axis", [1, 2])
+@pytest.mark.parametrize("spacing", [(1.0, 1.0), (0.8, 1.3)])
 @pytest.mark.parametrize("yaw", [-15.0, 0.0, 8.0, 12.0])
-def test_symmetry_plane_follows_a_turned_head(yaw):
-    # a brain with bilateral dark structures (ventricles) and a bright unilateral lesion
-    # (which must not pull the plane), turned by `yaw`: the estimated mid-sagittal plane
-    # has the yaw and passes through the brain's centre. Tolerance: 1.5 degrees moves a
-    # point at this brain's edge (40 mm) by 1 mm, a fifth of the mirror tolerance (on a
-    # 2 mm grid over a brain this small the score is flat within about 1 degree)
-    brain = _turned_brain(yaw)
-    ventricles = _turned_ball(yaw, (0, -8, -9), 5) | _turned_ball(yaw, (0, -8, 9), 5)
-    lesion = _turned_ball(yaw, (0, 15, 14), 9)
-    img = _image(brain, [(ventricles, 40.0), (lesion, 200.0)])
+def test_symmetry_plane_follows_a_turned_head(axis, spacing, yaw):
+    # independent geometry (_true_frame): both left-right axes, square and anisotropic
+    # pixels, a midline off the array's middle. The estimate passes within 0.5 mm of the
+    # true midline at the brain's centre (the offset's resolution is 1 mm: half a grid
+    # step) and within 1 mm at 60 mm along it (a fifth of the mirror tolerance)
+    dy, dx = spacing
+    img, brain, t, centre = _turned_head(axis, yaw, dy, dx)
+    model = NormalModel(100.0, 20.0, 140.0, float("inf"))
+    plane = symmetry_plane(img, brain, model, axis, (3.0, dy, dx))
+    at_centre, at_ends = _plane_distances(plane, t, centre)
+    assert at_centre <= 0.5 and at_ends <= 1.0, (plane, at_centre, at_ends)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+@pytest.mark.parametrize("yaw", [-12.0, 8.0])
+def test_symmetry_plane_is_not_pulled_by_a_lesion(seed, yaw):
+    # the gray levels as the lesion model sees them (smoothed, noisy) with a bright
+    # unilateral lesion: the plane stays within 1.5 mm of the midline over the brain
+    img, brain, t, centre = _turned_head(2, yaw, 1.0, 1.0, noise_seed=seed, lesion=True)
     sm = _smooth_in_brain(img, brain, 2.0)
-    plane = symmetry_plane(sm, brain, normal_model(sm, img, brain, 2.0, "flair"), 2, SPACING)
-    assert abs(plane.yaw_deg - yaw) <= 1.5
-    centre_mm = CENTRE[1:] * np.asarray(SPACING[1:])
-    assert abs(float(plane.normal() @ centre_mm) - plane.offset_mm) <= 1.0
+    plane = symmetry_plane(sm, brain, normal_model(sm, img, brain, 2.0, "flair"), 2, (3, 1, 1))
+    assert max(_plane_distances(plane, t, centre)) <= 1.5, plane
+
+
+def test_symmetry_plane_of_a_structureless_or_empty_brain():
+    # no structure to mirror (sigma 0 clips every gray level to one value): the plane
+    # through the brain's centroid at yaw 0; an empty brain is refused by name
+    brain = np.zeros((3, 40, 50), dtype=bool)
+    brain[1, 10:30, 12:30] = True
+    flat = NormalModel(100.0, 0.0, 100.0, float("inf"))
+    plane = symmetry_plane(np.zeros(brain.shape, np.float32), brain, flat, 2, (1.0, 1.0, 2.0))
+    assert plane == MirrorPlane(2, 0.0, 20.5 * 2.0)
+    with pytest.raises(InputError, match="non-empty brain"):
+        symmetry_plane(np.zeros(brain.shape), np.zeros_like(brain), flat, 2, (1.0, 1.0, 1.0))
+    with pytest.raises(InputError, match="spacing"):
+        segment_hyperintense_lesion(
+            np.zeros(brain.shape, np.uint8), brain, modality="flair", spacing_mm=(1.0, 0.0, 1.0)
+        )
 
 
 def test_mirror_about_an_unturned_plane_is_the_array_flip():
@@ -164,19 +234,21 @@ def test_bilateral_structures_of_a_turned_head_are_no_lesion(monkeypatch):
 
 def test_lesion_result_plane_is_in_the_volume_frame():
     # the model works on the brain's bounding box; the plane it reports is moved back to
-    # the volume's pixel frame: it passes through the brain's centre there
-    yaw = 8.0
-    brain = _turned_brain(yaw)
-    lesion = _turned_ball(yaw, (0, 10, 12), 9)
-    img = _image(brain, [(lesion, 200.0)])
-    res = segment_hyperintense_lesion(img, brain, modality="flair", spacing_mm=SPACING,
-                                      lr_axis=2)  # fmt: skip
+    # the volume's pixel frame. Independent expectation: the plane estimated on the whole
+    # volume. The brain lies away from both array origins and the pixels are not square,
+    # so that both terms of the shift count
+    yaw, pad = 8.0, ((0, 0), (23, 5), (31, 7))
+    brain = np.pad(_turned_brain(yaw), pad)
+    img = np.pad(_image(_turned_brain(yaw), [(_turned_ball(yaw, (0, 10, 12), 9), 200.0)]), pad)
+    spacing = (3.0, 0.9, 1.2)
+    res = segment_hyperintense_lesion(img, brain, modality="flair", spacing_mm=spacing, lr_axis=2)
     assert res.mask.any() and res.plane is not None
-    centre_mm = CENTRE[1:] * np.asarray(SPACING[1:])
-    assert abs(res.plane.yaw_deg - yaw) <= 1.5
-    assert abs(float(res.plane.normal() @ centre_mm) - res.plane.offset_mm) <= 1.0
+    sm = _smooth_in_brain(img, brain, 2.0)
+    whole = symmetry_plane(sm, brain, normal_model(sm, img, brain, 2.0, "flair"), 2, spacing)
+    assert res.plane.yaw_deg == whole.yaw_deg
+    assert res.plane.offset_mm == pytest.approx(whole.offset_mm, abs=1e-6)
     assert (
-        segment_hyperintense_lesion(img, brain, modality="flair", spacing_mm=SPACING).plane is None
+        segment_hyperintense_lesion(img, brain, modality="flair", spacing_mm=spacing).plane is None
     )
 
 

@@ -212,3 +212,29 @@ def test_histogram_detection_then_robust_segment_uses_the_detect_lesion_params(
     assert calls == [("tumor3d.segment", 2.5, True)]
     assert run.outputs["detect-abnormal"].values["lesion_computed"] is False
     assert run.outputs["segment-tumor"].values["tumor_pixels_total"] > 0
+
+
+def test_the_lesion_artifact_metadata_round_trips_the_mirror_plane():
+    # what the detect stage stores is what the segment stage rebuilds: the scalars and
+    # the mid-sagittal plane (JSON-able: plain floats and ints)
+    import json
+
+    from tasks.detect import lesion_metadata
+    from tasks.segment import lesion_from_artifact
+    from tumor3d.lesion import LesionResult, MirrorPlane, NormalModel
+
+    mask = np.zeros((2, 4, 4), dtype=bool)
+    mask[1, 1:3, 1:3] = True
+    plane = MirrorPlane(2, -3.25, 117.5)
+    original = LesionResult(
+        mask, NormalModel(120.0, 20.0, 160.0, float("inf")), 200.0, 160.0, 1, plane
+    )
+    meta = json.loads(json.dumps(lesion_metadata(original, {})))
+    rebuilt = lesion_from_artifact(mask, meta)
+    assert rebuilt.plane == plane
+    assert rebuilt.model == original.model and rebuilt.n_components == 1
+    without = LesionResult(mask, original.model, 200.0, 160.0, 1)
+    assert (
+        lesion_from_artifact(mask, json.loads(json.dumps(lesion_metadata(without, {})))).plane
+        is None
+    )
