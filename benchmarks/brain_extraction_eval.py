@@ -17,7 +17,6 @@ to the repository; the script skips with a message if it is absent.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import tempfile
 import time
@@ -29,6 +28,7 @@ from scipy import ndimage as ndi
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from storage.manifest import data_dir  # noqa: E402
 from storage.readers import read_scan  # noqa: E402
 from tumor3d.brain_extraction import extract_brain  # noqa: E402
 from tumor3d.preprocess import remove_skull, to_uint8  # noqa: E402
@@ -64,7 +64,7 @@ def _tiles(image: np.ndarray, new: np.ndarray, old: np.ndarray, n: int = 8) -> n
 
 
 def main() -> None:
-    default_data = Path(os.environ.get("TUMOR3D_DATA_DIR", ROOT.parent / "shared" / "data"))
+    default_data = data_dir()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=default_data)
     parser.add_argument(

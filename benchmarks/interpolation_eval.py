@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from storage.manifest import data_dir
 from tumor3d.evaluation.interpolation import (
     ITK_METHOD,
     drifting_tumour_phantom,
@@ -54,8 +55,7 @@ LABEL_OF = {
 DEFAULT_LABEL = LABEL_OF[(_DEFAULT_METHOD, _DEFAULT_PARTS)]
 
 
-def data_dir() -> Path:
-    return Path(os.environ.get("TUMOR3D_DATA_DIR", ROOT.parent / "shared" / "data"))
+
 
 
 def load_label(case: str) -> np.ndarray | None:

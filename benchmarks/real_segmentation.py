@@ -57,7 +57,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -68,6 +67,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from storage.manifest import data_dir as manifest_data_dir  # noqa: E402
 from storage.readers import read_scan  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.detect import detect_abnormal_slices  # noqa: E402
@@ -120,7 +120,7 @@ def _cases(data: Path, no_tumor_modality: str = "t1c") -> list[Case]:
 
 def data_dir() -> Path:
     """``$TUMOR3D_DATA_DIR``, default ``../shared/data`` beside the repository."""
-    return Path(os.environ.get("TUMOR3D_DATA_DIR", ROOT.parent / "shared" / "data"))
+    return manifest_data_dir()
 
 
 def read_case(case: Case):

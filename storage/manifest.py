@@ -489,13 +489,22 @@ def _check_header(header: list[str], where: str) -> None:
         raise InputError(f"column(s) {', '.join(dup)} appear more than once", where)
 
 
+def data_dir() -> Path:
+    """The real-data folder: ``$TUMOR3D_DATA_DIR``, else :data:`DATA_DIR_DEFAULT`.
+
+    A relative ``TUMOR3D_DATA_DIR`` is relative to the working directory, as
+    any path from the environment. The manifests' ``${TUMOR3D_DATA_DIR}`` and
+    the benchmarks read the folder through this one function.
+    """
+    env = os.environ.get("TUMOR3D_DATA_DIR")
+    return Path(env).resolve() if env else DATA_DIR_DEFAULT
+
+
 def _resolve(base: Path, value: str) -> Path:
     if "TUMOR3D_DATA_DIR" in value:
-        env = os.environ.get("TUMOR3D_DATA_DIR")
-        # a relative TUMOR3D_DATA_DIR is relative to the working directory, as any env path
-        data_dir = str(Path(env).resolve()) if env else str(DATA_DIR_DEFAULT)
-        value = value.replace("${TUMOR3D_DATA_DIR}", data_dir)
-        value = value.replace("$TUMOR3D_DATA_DIR", data_dir)
+        folder = str(data_dir())
+        value = value.replace("${TUMOR3D_DATA_DIR}", folder)
+        value = value.replace("$TUMOR3D_DATA_DIR", folder)
     q = Path(os.path.expanduser(os.path.expandvars(value)))
     return (q if q.is_absolute() else base / q).resolve()
 
