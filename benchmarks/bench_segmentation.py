@@ -27,6 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from storage.manifest import data_dir  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.detect import detect_abnormal_slices  # noqa: E402
 from tumor3d.lesion import left_right_axis  # noqa: E402
@@ -36,9 +37,6 @@ from tumor3d.segment import segment_tumor  # noqa: E402
 
 def _volume() -> tuple[np.ndarray, tuple[float, float, float], int | None, str]:
     """(image, spacing_mm (z, y, x), left-right axis, description)."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from real_segmentation import data_dir
-
     f = data_dir() / "brats2013_pat0003" / "flair.nii.gz"
     if f.is_file():
         from storage.readers import read_scan

@@ -31,7 +31,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import real_segmentation as rs  # noqa: E402
 
 from tumor3d import lesion as L  # noqa: E402
-from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.preprocess import preprocess_volume  # noqa: E402
 
 PERCENTILES = (50, 75, 90, 95, 100)
@@ -78,12 +77,10 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--list", action="store_true", help="print every candidate")
     args = ap.parse_args(argv)
-    data = rs.data_dir()
-    if not data.is_dir():
-        print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
+    data = rs.real_data_or_skip()
+    if data is None:
         return 0
-    cfg_path = ROOT / "configs" / "default.yaml"
-    cfg = parse_config(cfg_path.read_text(), source=str(cfg_path))
+    cfg = rs.default_config()
     rows = survey(data, cfg, native=False) + survey(data, cfg, native=True)
     if args.list:
         for r in rows:

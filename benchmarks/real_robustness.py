@@ -44,7 +44,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import real_segmentation as rs  # noqa: E402
 
-from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.lesion import left_right_axis  # noqa: E402
 
 BIAS = 0.15  # +- share of the multiplicative field
@@ -81,12 +80,10 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="*", default=None, help="case names (substring match)")
     args = ap.parse_args(argv)
-    data = rs.data_dir()
-    if not data.is_dir():
-        print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
+    data = rs.real_data_or_skip()
+    if data is None:
         return 0
-    cfg_path = ROOT / "configs" / "default.yaml"
-    cfg = parse_config(cfg_path.read_text(), source=str(cfg_path))
+    cfg = rs.default_config()
     variants = ("as given", "mirrored", "linear", "bias y", "bias z", *YAWS)
     print("| case | " + " | ".join(variants) + " | mirrored masks agree |")
     print("|---|" + "---|" * (len(variants) + 1))

@@ -67,7 +67,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from storage.manifest import data_dir as manifest_data_dir  # noqa: E402
+from storage.manifest import data_dir  # noqa: E402  (re-exported: rs.data_dir)
 from storage.readers import read_scan  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.detect import detect_abnormal_slices  # noqa: E402
@@ -118,9 +118,19 @@ def _cases(data: Path, no_tumor_modality: str = "t1c") -> list[Case]:
     return out
 
 
-def data_dir() -> Path:
-    """``$TUMOR3D_DATA_DIR``, default ``../shared/data`` beside the repository."""
-    return manifest_data_dir()
+def real_data_or_skip() -> Path | None:
+    """The real-data folder (:func:`data_dir`), or None after saying why the run is skipped."""
+    data = data_dir()
+    if not data.is_dir():
+        print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
+        return None
+    return data
+
+
+def default_config():
+    """``configs/default.yaml``, read by the project's own loader."""
+    path = ROOT / "configs" / "default.yaml"
+    return parse_config(path.read_text(), source=str(path))
 
 
 def read_case(case: Case):

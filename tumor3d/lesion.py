@@ -535,9 +535,9 @@ def symmetry_plane(
     # never finer than the pixels: the grid's size stays bounded by the array's
     grid_mm = max(PLANE_GRID_MM, min(dy, dx))
 
-    def score(yaw: float, grid_mm: float) -> tuple[float, float]:
-        k = int(np.ceil(radius / grid_mm)) + 2
-        grid = np.arange(-k, k + 1) * grid_mm
+    def score(yaw: float, step_mm: float) -> tuple[float, float]:
+        k = int(np.ceil(radius / step_mm)) + 2
+        grid = np.arange(-k, k + 1) * step_mm
         v, u = np.meshgrid(grid, grid, indexing="ij")  # rows along the plane, columns across
         t, n = _plane_frame(axis, yaw)
         r = _bilinear(
@@ -549,7 +549,7 @@ def symmetry_plane(
         conv = scipy.fft.irfft(spec * spec, n=2 * m, axis=2).sum(axis=(0, 1))[: 2 * m - 1]
         i = int(np.argmax(conv))
         energy = float((r.astype(np.float64) ** 2).sum())
-        offset = float(n @ centre) + (i / 2.0 - k) * grid_mm
+        offset = float(n @ centre) + (i / 2.0 - k) * step_mm
         return float(conv[i]) / max(energy, 1e-12), offset
 
     # coarse: 2 degree steps on a grid twice as coarse (the score is smooth in the yaw:
@@ -562,7 +562,7 @@ def symmetry_plane(
     scored = [(score(a, grid_mm), float(a)) for a in fine]
     (value, offset), yaw = max(scored, key=lambda sa: (sa[0][0], -abs(sa[1])))
     if not (np.isfinite(value) and value > 0):
-        return MirrorPlane(int(axis), 0.0, float(centre[1] if axis == 2 else centre[0]))
+        return MirrorPlane(int(axis), 0.0, float(_plane_frame(axis, 0.0)[1] @ centre))
     return MirrorPlane(int(axis), yaw, offset)
 
 
@@ -891,6 +891,7 @@ def segment_hyperintense_lesion(
     sp = np.asarray(spacing_mm, dtype=np.float64).ravel()
     if sp.size != 3 or not (np.all(np.isfinite(sp)) and np.all(sp > 0)):
         raise InputError(f"spacing_mm must be three positive numbers (mm), got {spacing_mm}")
+    voxel_mm = tuple(float(v) for v in sp)
     empty_model = NormalModel(float("nan"), float("nan"), float("nan"), float("inf"))
     if not b.any():
         return LesionResult(np.zeros(b.shape, bool), empty_model, float("nan"), float("nan"), 0)
@@ -912,9 +913,9 @@ def segment_hyperintense_lesion(
         tips,
         boundary_rings,
         floor_sigmas,
-        tuple(float(v) for v in spacing_mm) if reject_superficial else None,
+        voxel_mm if reject_superficial else None,
         lr_axis,
-        tuple(float(v) for v in spacing_mm),
+        voxel_mm,
     )
     mask = np.zeros(b.shape, dtype=bool)
     mask[box] = res.mask
@@ -922,9 +923,7 @@ def segment_hyperintense_lesion(
         mask[~np.asarray(allowed_slices, dtype=bool)] = False
     plane = res.plane
     if plane is not None:  # from the box's pixel frame to the volume's
-        plane = _shifted_plane(
-            plane, box[1].start * float(spacing_mm[1]), box[2].start * float(spacing_mm[2])
-        )
+        plane = _shifted_plane(plane, box[1].start * voxel_mm[1], box[2].start * voxel_mm[2])
     return LesionResult(
         mask, res.model, res.lesion_gray, res.grow_threshold, res.n_components, plane
     )
