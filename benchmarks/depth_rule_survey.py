@@ -54,9 +54,11 @@ def survey(data: Path, cfg, native: bool) -> list[dict]:
         enhanced, brain = pre.enhanced, pre.brain_mask
         sm = L._smooth_in_brain(enhanced, brain, lp.smoothing_px)
         model = L.normal_model(sm, enhanced, brain, lp.seed_sigmas, case.modality)
+        axis = L.left_right_axis(scan.affine)
+        plane = None if axis is None else L.symmetry_plane(sm, brain, model, axis, spacing)
         _, labels, ids = L._candidates(
             model, sm, enhanced, brain, lp.smoothing_px, lp.min_region_pixels, lp.min_slices,
-            False, None, L.left_right_axis(scan.affine), spacing,
+            False, None, plane, spacing,
         )  # fmt: skip
         depth = L._depth_mm(brain, spacing)
         brain_median = float(np.median(depth[brain]))
