@@ -8,7 +8,8 @@ if the rule is switched off:
 - ``tumor3d.segment``: the T2 CSF pin and the populous-unmatched rule of
   ``_choose_tumor_cluster``, the brain rim of ``_tumor_component``,
   ``max_brain_fraction``, the 3-D grouping (``_largest_linked_group``),
-  the tips (``_extend_tips``) and ``_refine_boundary``;
+  the tips (``_extend_tips``: partial volume, third tissue excluded) and
+  ``_refine_boundary``;
 - ``tumor3d.interpolate.interpolate_stack(..., end_caps="taper")``.
 """
 
@@ -284,6 +285,51 @@ def test_segment_drops_distant_group_keeps_drifting_tumour_and_extends_tip():
     # without the 3-D rule the isolated group stays and no tip is added
     literal = segment_tumor(img, brain, det, modality="t2", keep_largest_3d_component=False)
     assert literal.tumor_mask[9].any() and not literal.tumor_mask[2].any()
+
+
+def test_tips_are_decided_by_partial_volume_not_by_the_nearest_cluster():
+    # a tumour on slices 3-5 (pure tumour disks in white matter); on slice 2 the
+    # lower cap of a sphere (radius R, centre d mm above slice 2's centre plane)
+    # fills part of the 2 mm slab: each pixel's gray is the white-matter /
+    # tumour mixture by the share of the slab's thickness inside the sphere.
+    # The pixel centre lies inside the sphere on the centre plane iff that share
+    # exceeds 1/2, which is the truth the partial-volume rule must recover; most
+    # of those pixels are nearer the grey-matter centre than the tumour's, so
+    # the nearest-cluster rule loses the tip.
+    nz, centre, radius_px = 8, (47.5, 36.0), 7
+    body = _disk((N_PX, N_PX), centre, radius_px)
+    img, brain, det = _synthetic_case({3: [body], 4: [body], 5: [body]}, {3, 4, 5}, nz)
+    big_r, d_mm = 7.5, 6.8
+    yy, xx = np.indices((N_PX, N_PX))
+    rho2 = (yy - centre[0]) ** 2 + (xx - centre[1]) ** 2
+    lowest = d_mm - np.sqrt(np.clip(big_r**2 - rho2, 0.0, None))  # sphere's bottom, mm
+    share = np.where(rho2 < big_r**2, np.clip((1.0 - lowest) / 2.0, 0.0, 1.0), 0.0)
+    img[2] = np.floor(WM + (TUMOUR - WM) * share + 0.5).astype(np.uint8)
+    img[2][~brain[2]] = 0
+    truth = rho2 < big_r**2 - d_mm**2  # inside the sphere on the centre plane
+    assert truth.sum() >= 25
+    ambiguous = np.abs(share - 0.5) < 0.01  # within gray-level rounding of 1/2
+    nearest_gm = truth & (np.abs(img[2].astype(float) - GM) < np.abs(img[2] - TUMOUR))
+    assert nearest_gm.sum() > truth.sum() // 2  # what the nearest-cluster rule gets wrong
+    # beyond slice 5, inside its footprint: a CSF pocket (sulcus) with a
+    # one-pixel grey matter / CSF partial-volume ring whose gray (175) is that
+    # of a mostly-tumour pixel; it is no tip
+    r_px = np.sqrt(rho2)
+    img[6][r_px <= 4.2] = (GM + CSF) // 2
+    img[6][r_px <= 3.0] = CSF
+    assert np.count_nonzero((r_px > 3.0) & (r_px <= 4.2)) >= 20
+    before = img.copy()
+
+    res = segment_tumor(img, brain, det, modality="t2")
+
+    np.testing.assert_array_equal(img, before)  # input untouched
+    assert res.selection[2] == "extended-3d"
+    tip = res.tumor_mask[2]
+    assert tip[truth & ~ambiguous].all()
+    assert not tip[~truth & ~ambiguous].any()
+    assert abs(res.tumor_center_gray[2] - TUMOUR) < 10
+    assert res.selection[6] == "" and not res.tumor_mask[6].any()
+    np.testing.assert_array_equal(res.tumor_mask[3:6], np.stack([body] * 3))
 
 
 def _pixel_fractions(shape, centre, radius, sub=20) -> np.ndarray:
