@@ -86,7 +86,8 @@ its modes to be counted. This module uses what a single slice cannot:
    the lesion, whose median gray is below the normal median ``mu`` (fluid
    or necrosis, not parenchyma). On T1c this fills the necrotic core
    inside the enhancing rim. A dark asymmetric cavity lying mostly within
-   the lesion's extent joins it too (5b, :func:`_asymmetric_cavity`), and
+   the lesion's extent joins it too (5b, :func:`_asymmetric_cavity`; with
+   its dark voxels near that asymmetric core, as in step 3c), and
    its wall is then decided as the lesion's border was around the seeds
    (5c, :func:`_cavity_wall`: the partial-volume rule of step 4 within the
    blur's reach of the cavity, then the boundary rings there). The
@@ -673,6 +674,15 @@ def _asymmetric_cavity(
     the lesion: towards its poles the rim is thin and partial-volumed and
     seeds nothing, the core continues.
 
+    What joins is the dark component holding the asymmetric core that
+    passed, with its dark voxels within ``SYMMETRIC_REGAIN_MM`` of that core
+    (step 3c's rule for the bright seeds): the part of a cavity whose mirror
+    position is dark too (it faces the contralateral ventricle or a sulcus)
+    is no bilateral structure but the same cavity. Measured (BraTS pat0005,
+    whose necrotic cavity faces the contralateral occipital horn): FLAIR
+    3-D Dice 0.757 -> 0.808 at 2 mm / 5 mm, T1c 0.622 -> 0.697; see
+    ``reports/segmentation.md``.
+
     Returns the lesion with what joined, and the cavity alone: the dark
     components that passed (without the ring between), including those step 5
     had already filled as enclosed (5c grows the wall around them too); empty
@@ -698,6 +708,12 @@ def _asymmetric_cavity(
     if touch.size == 0:
         return mask, np.zeros_like(mask)
     cavity = np.isin(lab, touch)
+    # the cavity is the dark component holding that asymmetric core, with its dark voxels
+    # within SYMMETRIC_REGAIN_MM of it, as the lesion is the seed component holding its
+    # asymmetric core (step 3c): a cavity's part whose mirror is dark too (it faces the
+    # contralateral ventricle) is still the cavity
+    near_core = _within_mm(cavity, SYMMETRIC_REGAIN_MM, voxel_mm)
+    cavity = _touching(dark & (asym | near_core), cavity)
     bridge = near & _box_dilate(cavity, gap_px, gap_px) & brain
     return mask | cavity | bridge, cavity
 

@@ -16,8 +16,11 @@ from scipy import ndimage as ndi
 import tumor3d.lesion as lesion_module
 from tumor3d.errors import InputError
 from tumor3d.lesion import (
+    SYMMETRIC_REGAIN_MM,
+    SYMMETRY_TOLERANCE_MM,
     MirrorPlane,
     NormalModel,
+    _box_dilate,
     _deep_components,
     _depth_mm,
     _mirror,
@@ -402,6 +405,56 @@ def test_flair_dark_cavity_next_to_the_lesion_joins_it_and_the_ventricles_do_not
     # without the left-right axis the open cavity is not recognised as the lesion's
     no_axis = _segment(img, brain, lr_axis=None)
     assert (no_axis & cavity).sum() < 0.5 * cavity.sum()
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_cavity_part_facing_a_contralateral_dark_structure_joins_with_the_rest(seed):
+    # the FLAIR lesion of the test above, and a small dark structure in the other
+    # hemisphere (a sulcus, the contralateral occipital horn) whose mirror image falls
+    # on the cavity's medial part: those cavity voxels have a dark mirror, yet they are
+    # the same cavity as its asymmetric rest (BraTS pat0005); the contralateral
+    # structure, far from the lesion, stays out
+    brain = _brain()
+    oedema = _ball((0, 12, -18), 12) & ~_ball((0, 12, -30), 9)
+    cavity = _ball((0, 12, -30), 9) & brain
+    contra = _ball((0, 18, 22), 4) & brain
+    ventricles = _ball((0, -10, -7), 5) | _ball((0, -10, 7), 5)
+    dark = [(cavity, 20.0), (contra, 20.0), (ventricles, 20.0)]
+    img = _image(brain, [(oedema, 190.0), *dark], seed=seed)
+    # precondition: a quarter of the cavity lies within the tolerance of the
+    # contralateral structure's mirror image (so the asymmetry rule alone drops it)
+    half = int(round(SYMMETRY_TOLERANCE_MM / SPACING[1]))
+    facing = cavity & _box_dilate(_mirror(contra, MirrorPlane(2, 0.0, 47.5), SPACING), half, half)
+    assert facing.sum() > 0.2 * cavity.sum()
+    mask = _segment(img, brain, lr_axis=2)
+    assert (mask & cavity).sum() > 0.97 * cavity.sum()
+    assert (mask & facing).sum() > 0.97 * facing.sum()
+    assert (mask & contra).sum() == 0
+    assert (mask & ventricles).sum() == 0
+
+
+def test_bilateral_dark_structure_touching_the_cavity_joins_only_near_it():
+    # the cavity's regain is bounded like step 3c's: a horn of a bilateral dark
+    # structure (mirrored by the other hemisphere's) touching the cavity joins near the
+    # cavity (its voxels within SYMMETRIC_REGAIN_MM of the asymmetric core), never its
+    # far part, and the contralateral horn never
+    brain = _brain()
+    z, y, x = _grid_mm()
+    oedema = _ball((0, 12, -18), 12) & ~_ball((0, 12, -30), 9)
+    cavity = _ball((0, 12, -30), 9) & brain
+    band = (np.abs(z) < 8) & (y > -22) & (y < 6)
+    horn = band & (np.abs(x + 25) <= 2) & brain & ~cavity
+    horn_other = band & (np.abs(x - 25) <= 2) & brain
+    assert (ndi.binary_dilation(cavity) & horn).any()  # they touch
+    dist = np.stack([ndi.distance_transform_edt(~c) if c.any() else np.full(c.shape, 1e9)
+                     for c in cavity])  # fmt: skip
+    far = horn & (dist > SYMMETRIC_REGAIN_MM + SYMMETRY_TOLERANCE_MM)
+    assert far.sum() > 0.3 * horn.sum()
+    img = _image(brain, [(oedema, 190.0), (cavity, 20.0), (horn, 20.0), (horn_other, 20.0)])
+    mask = _segment(img, brain, lr_axis=2)
+    assert (mask & cavity).sum() > 0.97 * cavity.sum()
+    assert (mask & far).sum() == 0
+    assert (mask & horn_other).sum() == 0
 
 
 # --------------------------------------------------------------------------- the model runs once
