@@ -674,9 +674,12 @@ def _asymmetric_cavity(
     the lesion: towards its poles the rim is thin and partial-volumed and
     seeds nothing, the core continues.
 
-    What joins is the dark component holding the asymmetric core that
-    passed, with its dark voxels within ``SYMMETRIC_REGAIN_MM`` of that core
-    (step 3c's rule for the bright seeds): the part of a cavity whose mirror
+    What joins is the asymmetric core that passed with the dark voxels
+    connected to it (26-connected) within ``SYMMETRIC_REGAIN_MM`` of it
+    (in-plane, on the core's slices; step 3c's rule for the bright seeds).
+    Other asymmetric dark voxels join only within that reach: a dark
+    structure that failed the tests above is not brought back through a
+    mirrored dark bridge. The part of a cavity whose mirror
     position is dark too (it faces the contralateral ventricle or a sulcus)
     is no bilateral structure but the same cavity. Measured (BraTS pat0005,
     whose necrotic cavity faces the contralateral occipital horn): FLAIR
@@ -684,9 +687,9 @@ def _asymmetric_cavity(
     ``reports/segmentation.md``.
 
     Returns the lesion with what joined, and the cavity alone: the dark
-    components that passed (without the ring between), including those step 5
-    had already filled as enclosed (5c grows the wall around them too); empty
-    when there is none.
+    voxels that joined as above (without the ring between), including those
+    step 5 had already filled as enclosed (5c grows the wall around them
+    too); empty when there is none.
     """
     dark = brain & (sm < model.median - float(sigmas) * model.sigma)
     if not dark.any():
@@ -708,12 +711,13 @@ def _asymmetric_cavity(
     if touch.size == 0:
         return mask, np.zeros_like(mask)
     cavity = np.isin(lab, touch)
-    # the cavity is the dark component holding that asymmetric core, with its dark voxels
-    # within SYMMETRIC_REGAIN_MM of it, as the lesion is the seed component holding its
-    # asymmetric core (step 3c): a cavity's part whose mirror is dark too (it faces the
-    # contralateral ventricle) is still the cavity
+    # the cavity is that asymmetric core with the dark voxels connected to it within
+    # SYMMETRIC_REGAIN_MM of it, as the lesion is its asymmetric core with the seeds near
+    # it (step 3c): a cavity's part whose mirror is dark too (it faces the contralateral
+    # ventricle) is still the cavity; asymmetric dark voxels farther away that failed the
+    # tests above do not come back through it
     near_core = _within_mm(cavity, SYMMETRIC_REGAIN_MM, voxel_mm)
-    cavity = _touching(dark & (asym | near_core), cavity)
+    cavity = _touching(dark & (cavity | near_core), cavity)
     bridge = near & _box_dilate(cavity, gap_px, gap_px) & brain
     return mask | cavity | bridge, cavity
 

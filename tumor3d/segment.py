@@ -350,10 +350,11 @@ def _segment_paper(
       re-decided by partial volume (:func:`_refine_boundary`).
     - Tips: with ``keep_largest_3d_component``, the slice just beyond each
       end of the kept tumour is searched for the tumour's tip inside the end
-      slice's mask, each pixel decided by partial volume between the end
-      slice's tumour and surround grays, a brighter third tissue (CSF on T2)
-      and its partial-volume ring excluded (``selection == "extended-3d"``;
-      see :func:`_extend_tips`).
+      slice's mask dilated by one pixel, each pixel decided by partial
+      volume between the end slice's tumour gray and the gray around that
+      mask on the tip slice, a third tissue beyond the tumour's gray (CSF on
+      T2) and its partial-volume ring excluded (``selection ==
+      "extended-3d"``; see :func:`_extend_tips`).
     - 3-D consistency (``keep_largest_3d_component``): the slice masks are
       linked across consecutive slices where they overlap once each is
       dilated in-plane by ``component_tolerance_px`` (so a drifting tumour
@@ -542,18 +543,24 @@ def _extend_tips(
     normal). Through the slice thickness a tip pixel mixes the tumour with
     the tissue around it, so it is decided by partial volume, as the border
     is (:func:`_refine_boundary`): tumour when its gray lies nearer the end
-    slice's tumour gray than that mask's surround gray. The nearest FCM
+    slice's tumour gray (its FCM centre) than the surround gray, the median
+    of the tip slice's brain pixels 2-4 pixels outside the end slice's mask
+    (:func:`_surround_gray`: what the tumour's cap mixes with is what lies
+    around it on the tip slice, which may differ from the end slice's
+    surround, e.g. a tumour abutting a CSF pool there). The nearest FCM
     centre would be wrong here: a pixel half tumour, half white matter lies
     nearer the grey-matter centre (measured on the phantoms: tips of 26-57
-    pixels lost on 3 of 10 phantoms).
+    pixels lost on 3 of 10 phantoms). Without a surround (no brain pixel
+    there) or with a surround as gray as the tumour no tip is searched.
 
-    Candidates lie inside the end slice's mask dilated by one pixel (a
-    tumour's cross-sections shrink towards its tip). A third tissue beyond
-    the tumour's gray as seen from the surround (CSF on T2, a cluster of the
-    end slice nearer which the pixel lies) imitates the mixture where it
-    meets a darker tissue (a grey matter / CSF pixel has the gray of a
-    tumour / white matter one), so its pixels and those touching them are
-    excluded. The tip is the largest 4-connected component of the rest,
+    Candidates lie inside the end slice's mask dilated by one pixel (3 x 3
+    square; a tumour's cross-sections shrink towards its tip). A third
+    tissue lying beyond the tumour's gray as seen from the surround (CSF on
+    T2 for a tumour brighter than its surround; pixels whose nearest end
+    slice cluster centre is such a tissue) imitates the mixture where it
+    meets the surround's side (a grey matter / CSF pixel has the gray of a
+    tumour / white matter one), so its pixels and those 8-adjacent to them
+    are excluded. The tip is the largest 4-connected component of the rest,
     holes filled, if it has at least ``min_pixels`` pixels. Measured on the
     phantoms: the three lost tips found, and a false 24-pixel tip at a
     sulcus (grey matter / CSF) gone.
@@ -569,7 +576,7 @@ def _extend_tips(
             continue
         v, t = centers[int(end)]
         tumor_gray = float(v[t])
-        surround = _surround_gray(tumor[end], img[end], brain[end])
+        surround = _surround_gray(tumor[end], img[nb], brain[nb])
         if surround is None or surround == tumor_gray:
             continue
         g = img[nb].astype(np.float64)

@@ -20,7 +20,6 @@ from tumor3d.lesion import (
     SYMMETRY_TOLERANCE_MM,
     MirrorPlane,
     NormalModel,
-    _box_dilate,
     _deep_components,
     _depth_mm,
     _mirror,
@@ -423,8 +422,10 @@ def test_cavity_part_facing_a_contralateral_dark_structure_joins_with_the_rest(s
     img = _image(brain, [(oedema, 190.0), *dark], seed=seed)
     # precondition: a quarter of the cavity lies within the tolerance of the
     # contralateral structure's mirror image (so the asymmetry rule alone drops it)
-    half = int(round(SYMMETRY_TOLERANCE_MM / SPACING[1]))
-    facing = cavity & _box_dilate(_mirror(contra, MirrorPlane(2, 0.0, 47.5), SPACING), half, half)
+    # (the brain is centred on the array, so its mirror is the array flipped left-right)
+    half = int(round(SYMMETRY_TOLERANCE_MM / SPACING[2]))
+    box = np.ones((1, 2 * half + 1, 2 * half + 1), dtype=bool)
+    facing = cavity & ndi.binary_dilation(np.flip(contra, axis=2), structure=box)
     assert facing.sum() > 0.2 * cavity.sum()
     mask = _segment(img, brain, lr_axis=2)
     assert (mask & cavity).sum() > 0.97 * cavity.sum()
@@ -446,15 +447,41 @@ def test_bilateral_dark_structure_touching_the_cavity_joins_only_near_it():
     horn = band & (np.abs(x + 25) <= 2) & brain & ~cavity
     horn_other = band & (np.abs(x - 25) <= 2) & brain
     assert (ndi.binary_dilation(cavity) & horn).any()  # they touch
-    dist = np.stack([ndi.distance_transform_edt(~c) if c.any() else np.full(c.shape, 1e9)
-                     for c in cavity])  # fmt: skip
-    far = horn & (dist > SYMMETRIC_REGAIN_MM + SYMMETRY_TOLERANCE_MM)
+    dist = np.stack([ndi.distance_transform_edt(~c, sampling=SPACING[1:]) if c.any()
+                     else np.full(c.shape, 1e9) for c in cavity])  # fmt: skip
+    far = horn & (dist > SYMMETRIC_REGAIN_MM)
     assert far.sum() > 0.3 * horn.sum()
     img = _image(brain, [(oedema, 190.0), (cavity, 20.0), (horn, 20.0), (horn_other, 20.0)])
     mask = _segment(img, brain, lr_axis=2)
     assert (mask & cavity).sum() > 0.97 * cavity.sum()
     assert (mask & far).sum() == 0
     assert (mask & horn_other).sum() == 0
+
+
+def test_asymmetric_dark_structure_reached_through_a_mirrored_bridge_stays_out():
+    # a unilateral dark tube (a trapped horn) running away from the cavity, linked to it
+    # by a short dark bridge whose mirror is dark too (a contralateral sulcus): the tube
+    # fails 5b's enclosure test on its own, and the regain through the bridge must not
+    # bring it back beyond SYMMETRIC_REGAIN_MM of the cavity
+    brain = _brain()
+    z, y, x = _grid_mm()
+    oedema = _ball((0, 12, -18), 12) & ~_ball((0, 12, -30), 9)
+    cavity = _ball((0, 12, -30), 9) & brain
+    column = (np.abs(z) < 8) & (np.abs(x + 24) <= 3) & brain
+    tube = column & (y > -30) & (y < 1)
+    bridge = column & (y >= 1) & (y <= 9) & ~cavity
+    contra = (np.abs(z) < 8) & (y >= 2) & (y <= 4) & (np.abs(x - 24) <= 3) & brain
+    ventricles = _ball((0, -10, -7), 4) | _ball((0, -10, 7), 4)
+    dark = [(cavity, 20.0), (tube, 20.0), (bridge, 20.0), (contra, 20.0), (ventricles, 20.0)]
+    img = _image(brain, [(oedema, 190.0), *dark])
+    dist = np.stack([ndi.distance_transform_edt(~c, sampling=SPACING[1:]) if c.any()
+                     else np.full(c.shape, 1e9) for c in cavity])  # fmt: skip
+    far = tube & (dist > SYMMETRIC_REGAIN_MM + SYMMETRY_TOLERANCE_MM)
+    assert far.sum() > 0.5 * tube.sum()
+    mask = _segment(img, brain, lr_axis=2)
+    assert (mask & cavity).sum() > 0.97 * cavity.sum()
+    assert (mask & far).sum() == 0
+    assert (mask & contra).sum() == 0
 
 
 # --------------------------------------------------------------------------- the model runs once

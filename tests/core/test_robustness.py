@@ -309,7 +309,8 @@ def test_tips_are_decided_by_partial_volume_not_by_the_nearest_cluster():
     truth = rho2 < big_r**2 - d_mm**2  # inside the sphere on the centre plane
     assert truth.sum() >= 25
     ambiguous = np.abs(share - 0.5) < 0.01  # within gray-level rounding of 1/2
-    nearest_gm = truth & (np.abs(img[2].astype(float) - GM) < np.abs(img[2] - TUMOUR))
+    gray2 = img[2].astype(np.float64)
+    nearest_gm = truth & (np.abs(gray2 - GM) < np.abs(gray2 - TUMOUR))
     assert nearest_gm.sum() > truth.sum() // 2  # what the nearest-cluster rule gets wrong
     # beyond slice 5, inside its footprint: a CSF pocket (sulcus) with a
     # one-pixel grey matter / CSF partial-volume ring whose gray (175) is that
@@ -330,6 +331,24 @@ def test_tips_are_decided_by_partial_volume_not_by_the_nearest_cluster():
     assert abs(res.tumor_center_gray[2] - TUMOUR) < 10
     assert res.selection[6] == "" and not res.tumor_mask[6].any()
     np.testing.assert_array_equal(res.tumor_mask[3:6], np.stack([body] * 3))
+
+
+def test_tip_partial_volume_is_judged_against_the_tip_slices_own_surround():
+    # on the end slice the tumour abuts a CSF pool (its surround there is CSF, brighter
+    # than the tumour); the tip on the next slice sits in white matter. A tip pixel
+    # mixes the tumour with what lies around it on the tip slice, so the white matter
+    # is its surround: the whole tip is found, nothing else
+    nz, centre = 6, (47.5, 36.0)
+    end_mask = _disk((N_PX, N_PX), centre, 7)
+    img, brain, det = _synthetic_case({2: [end_mask], 3: [end_mask]}, {2, 3}, nz)
+    pool = _disk((N_PX, N_PX), centre, 12) & ~end_mask
+    img[2][pool] = CSF
+    tip_truth = _disk((N_PX, N_PX), centre, 5)
+    img[1][tip_truth] = TUMOUR
+    res = segment_tumor(img, brain, det, modality="t2")
+    np.testing.assert_array_equal(res.tumor_mask[2], end_mask)
+    assert res.selection[1] == "extended-3d"
+    np.testing.assert_array_equal(res.tumor_mask[1], tip_truth)
 
 
 def _pixel_fractions(shape, centre, radius, sub=20) -> np.ndarray:
