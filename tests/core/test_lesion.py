@@ -390,13 +390,25 @@ def test_auto_on_t2_takes_the_paper_method_only_where_its_premise_holds():
     assert resolve_method("paper", "t2", half) == "paper"
 
 
+def _oedema_and_open_cavity(brain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A left FLAIR lesion: oedema around a dark cavity that opens onto the brain surface."""
+    oedema = _ball((0, 12, -18), 12) & ~_ball((0, 12, -30), 9)
+    cavity = _ball((0, 12, -30), 9) & brain
+    return oedema, cavity
+
+
+def _inplane_distance_mm(mask: np.ndarray) -> np.ndarray:
+    """Per slice, the in-plane distance (mm) to ``mask``; 1e9 on slices without it."""
+    return np.stack([ndi.distance_transform_edt(~m, sampling=SPACING[1:]) if m.any()
+                     else np.full(m.shape, 1e9) for m in mask])  # fmt: skip
+
+
 def test_flair_dark_cavity_next_to_the_lesion_joins_it_and_the_ventricles_do_not():
     # a FLAIR lesion with a dark necrotic cavity beside it that opens onto the brain
     # surface (no hole of the mask), and dark ventricles (CSF) mirrored across the midline
     brain = _brain()
     ventricles = _ball((0, -6, -7), 5) | _ball((0, -6, 7), 5)
-    oedema = _ball((0, 12, -18), 12) & ~_ball((0, 12, -30), 9)
-    cavity = _ball((0, 12, -30), 9) & brain
+    oedema, cavity = _oedema_and_open_cavity(brain)
     img = _image(brain, [(oedema, 190.0), (cavity, 20.0), (ventricles, 20.0)])
     mask = _segment(img, brain, lr_axis=2)
     assert (mask & cavity).sum() > 0.8 * cavity.sum()
@@ -414,8 +426,7 @@ def test_cavity_part_facing_a_contralateral_dark_structure_joins_with_the_rest(s
     # the same cavity as its asymmetric rest (BraTS pat0005); the contralateral
     # structure, far from the lesion, stays out
     brain = _brain()
-    oedema = _ball((0, 12, -18), 12) & ~_ball((0, 12, -30), 9)
-    cavity = _ball((0, 12, -30), 9) & brain
+    oedema, cavity = _oedema_and_open_cavity(brain)
     contra = _ball((0, 18, 22), 4) & brain
     ventricles = _ball((0, -10, -7), 5) | _ball((0, -10, 7), 5)
     dark = [(cavity, 20.0), (contra, 20.0), (ventricles, 20.0)]
@@ -441,14 +452,12 @@ def test_bilateral_dark_structure_touching_the_cavity_joins_only_near_it():
     # far part, and the contralateral horn never
     brain = _brain()
     z, y, x = _grid_mm()
-    oedema = _ball((0, 12, -18), 12) & ~_ball((0, 12, -30), 9)
-    cavity = _ball((0, 12, -30), 9) & brain
+    oedema, cavity = _oedema_and_open_cavity(brain)
     band = (np.abs(z) < 8) & (y > -22) & (y < 6)
     horn = band & (np.abs(x + 25) <= 2) & brain & ~cavity
     horn_other = band & (np.abs(x - 25) <= 2) & brain
     assert (ndi.binary_dilation(cavity) & horn).any()  # they touch
-    dist = np.stack([ndi.distance_transform_edt(~c, sampling=SPACING[1:]) if c.any()
-                     else np.full(c.shape, 1e9) for c in cavity])  # fmt: skip
+    dist = _inplane_distance_mm(cavity)
     far = horn & (dist > SYMMETRIC_REGAIN_MM)
     assert far.sum() > 0.3 * horn.sum()
     img = _image(brain, [(oedema, 190.0), (cavity, 20.0), (horn, 20.0), (horn_other, 20.0)])
@@ -465,8 +474,7 @@ def test_asymmetric_dark_structure_reached_through_a_mirrored_bridge_stays_out()
     # bring it back beyond SYMMETRIC_REGAIN_MM of the cavity
     brain = _brain()
     z, y, x = _grid_mm()
-    oedema = _ball((0, 12, -18), 12) & ~_ball((0, 12, -30), 9)
-    cavity = _ball((0, 12, -30), 9) & brain
+    oedema, cavity = _oedema_and_open_cavity(brain)
     column = (np.abs(z) < 8) & (np.abs(x + 24) <= 3) & brain
     tube = column & (y > -30) & (y < 1)
     bridge = column & (y >= 1) & (y <= 9) & ~cavity
@@ -474,8 +482,7 @@ def test_asymmetric_dark_structure_reached_through_a_mirrored_bridge_stays_out()
     ventricles = _ball((0, -10, -7), 4) | _ball((0, -10, 7), 4)
     dark = [(cavity, 20.0), (tube, 20.0), (bridge, 20.0), (contra, 20.0), (ventricles, 20.0)]
     img = _image(brain, [(oedema, 190.0), *dark])
-    dist = np.stack([ndi.distance_transform_edt(~c, sampling=SPACING[1:]) if c.any()
-                     else np.full(c.shape, 1e9) for c in cavity])  # fmt: skip
+    dist = _inplane_distance_mm(cavity)
     far = tube & (dist > SYMMETRIC_REGAIN_MM + SYMMETRY_TOLERANCE_MM)
     assert far.sum() > 0.5 * tube.sum()
     mask = _segment(img, brain, lr_axis=2)
