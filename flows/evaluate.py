@@ -248,6 +248,7 @@ def evaluate_flow(
                 patient_rows.append(base)
                 continue
             base.update({k: v for k, v in o.metrics.items() if k.startswith(("volume_", "n_"))})
+            base["notes"] = str(o.metrics.get("notes") or "")
             try:
                 case = load_case(p, o.output_dir)
                 for ev in evaluations.values():

@@ -300,6 +300,7 @@ def patient_pipeline(
     outputs = run_stages(runner, source, cfg, str(store.root), brain_mask=mask_ref)
     flow_seconds = time.perf_counter() - t0
     notes = [NO_TUMOUR_NOTE] if outputs["extract-surface"].values["faces"] == 0 else []
+    notes += outputs["segment-tumor"].values.get("caveats") or []
     skipped = outputs["ingest-scan"].values.get("skipped_files") or []
     if skipped:
         notes.append(f"skipped {len(skipped)} unreadable file(s): {', '.join(skipped)}")

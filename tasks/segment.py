@@ -90,6 +90,8 @@ def segment_task(
         values={
             "tumor_pixels_total": int(np.sum(result.tumor_pixels)),
             "n_tumor_slices": int(np.count_nonzero(result.tumor_pixels)),
+            # where the volume may be wrong, in words (the run's notes say them)
+            "caveats": list(result.caveats),
         },
     )
 

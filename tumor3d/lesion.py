@@ -222,6 +222,18 @@ class MirrorPlane:
         """The unit normal ``n`` (``(y, x)`` components)."""
         return _plane_frame(self.axis, self.yaw_deg)[1]
 
+    def signed_distance_mm(
+        self, shape: tuple[int, int], pixel_mm: tuple[float, float]
+    ) -> np.ndarray:
+        """``n . p - offset_mm`` of every pixel of a ``(y, x)`` slice grid, in mm.
+
+        ``pixel_mm`` is the ``(row, column)`` pixel size; the sign tells the
+        side of the plane (the same in every slice).
+        """
+        n = self.normal()
+        y, x = np.indices(shape, dtype=np.float64)
+        return (y * float(pixel_mm[0])) * n[0] + (x * float(pixel_mm[1])) * n[1] - self.offset_mm
+
 
 def _plane_frame(axis: int, yaw_deg: float) -> tuple[np.ndarray, np.ndarray]:
     """(tangent, normal) unit vectors in ``(y, x)`` of the plane at ``yaw_deg``."""
@@ -598,12 +610,10 @@ def _mirror_index(
     """Nearest pixel of each pixel's mirror image: (rows, columns, inside the grid)."""
     dy, dx = float(voxel_mm[1]), float(voxel_mm[2])
     n = plane.normal()
+    s = 2.0 * plane.signed_distance_mm(shape, (dy, dx))
     y, x = np.indices(shape, dtype=np.float64)
-    y *= dy
-    x *= dx
-    s = 2.0 * (y * n[0] + x * n[1] - plane.offset_mm)
-    iy = np.rint((y - s * n[0]) / dy).astype(np.intp)
-    ix = np.rint((x - s * n[1]) / dx).astype(np.intp)
+    iy = np.rint((y * dy - s * n[0]) / dy).astype(np.intp)
+    ix = np.rint((x * dx - s * n[1]) / dx).astype(np.intp)
     ok = (iy >= 0) & (iy < shape[0]) & (ix >= 0) & (ix < shape[1])
     return iy, ix, ok
 

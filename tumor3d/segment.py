@@ -21,7 +21,7 @@ specification ([A7], [A8]):
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -31,6 +31,7 @@ from scipy.optimize import linear_sum_assignment
 from skimage.filters import threshold_multiotsu
 from skimage.morphology import disk
 
+from tumor3d.caveats import segmentation_caveats
 from tumor3d.detect import SliceDetection, _check_pair, paper_premise_holds
 from tumor3d.errors import InputError
 from tumor3d.fcm import (
@@ -40,7 +41,7 @@ from tumor3d.fcm import (
     fcm_memberships,
     fuzzy_cmeans_histogram,
 )
-from tumor3d.lesion import patient_lesion
+from tumor3d.lesion import lesion_params, patient_lesion
 from tumor3d.scan import MODALITIES
 
 __all__ = [
@@ -85,6 +86,11 @@ class SegmentationResult:
     fcm_converged : (z,) ndarray of bool
         Whether that FCM reached ``tol`` within ``max_num_iter`` (False where
         none ran).
+    caveats : tuple of str
+        Where the mask's volume may be wrong, in words
+        (:func:`tumor3d.caveats.segmentation_caveats`): tumour on the scan's
+        first or last slice; a tumour reaching the midline (robust method).
+        Empty when there is nothing to say.
     """
 
     tumor_mask: np.ndarray
@@ -94,6 +100,7 @@ class SegmentationResult:
     selection: np.ndarray
     fcm_iterations: np.ndarray | None = None
     fcm_converged: np.ndarray | None = None
+    caveats: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         nz = int(np.asarray(self.tumor_pixels).size)
@@ -769,7 +776,7 @@ def segment_tumor(
         method, modality, detection if isinstance(detection, SliceDetection) else None
     )
     if method == "paper":
-        return _segment_paper(
+        res = _segment_paper(
             enhanced,
             brain_mask,
             detection,
@@ -786,6 +793,7 @@ def segment_tumor(
             refine_boundary=refine_boundary,
             min_tumor_slices=min_tumor_slices,
         )
+        return replace(res, caveats=segmentation_caveats(res.tumor_mask))
     img, brain = _check_pair(enhanced, brain_mask)
     if not isinstance(detection, SliceDetection):
         raise InputError("detection must be a SliceDetection")
@@ -797,6 +805,7 @@ def segment_tumor(
     if int(min_tumor_pixels) < 1:
         raise InputError(f"min_tumor_pixels must be >= 1, got {min_tumor_pixels}")
     nz = img.shape[0]
+    params = lesion_params(lesion)
     if method == "multiotsu":
         if not 2 <= int(multiotsu_classes) <= 6:
             raise InputError(f"multiotsu_classes must lie in [2, 6], got {multiotsu_classes}")
@@ -804,6 +813,7 @@ def segment_tumor(
         how = "multiotsu"
         center = np.full(nz, np.nan)
         ref = np.full(3, np.nan)
+        plane = None  # the peer has no symmetry rule
     else:
         res = detection.lesion
         if res is None:
@@ -819,6 +829,7 @@ def segment_tumor(
         how = "lesion"
         center = np.full(nz, res.lesion_gray)
         ref = np.array([res.model.median, res.model.sigma, res.model.seed_threshold])
+        plane = res.plane
     small = tumor.sum(axis=(1, 2)) < int(min_tumor_pixels)
     tumor[small] = False
     has = tumor.any(axis=(1, 2))
@@ -830,6 +841,13 @@ def segment_tumor(
         reference_centers=ref,
         tumor_center_gray=center,
         selection=selection.astype(str),
+        caveats=segmentation_caveats(
+            tumor,
+            plane=plane,
+            spacing_mm=spacing_mm,
+            min_region_pixels=params["min_region_pixels"],
+            min_slices=params["min_slices"],
+        ),
     )
 
 

@@ -214,6 +214,26 @@ def test_tumour_free_patient_writes_no_empty_mesh_and_says_so(tmp_path):
     assert result.notes and "no tumour found" in result.notes[0]
 
 
+def test_tumour_cut_by_the_end_of_the_scan_is_named_in_the_notes(tmp_path, phantom, first_run):
+    # the whole phantom's tumour lies inside its scan: nothing to say
+    assert not any("slice of the scan" in n for n in first_run[1].notes)
+    # the same phantom scanned only up to its tumour's middle slice
+    image = write_phantom_patient(phantom, tmp_path / "in").image
+    src = nib.load(image)
+    z_axis = list(np.argsort(phantom.scan.source_grid.axes)).index(2)
+    tumour_z = np.flatnonzero(phantom.slice_masks.any(axis=(1, 2)))
+    keep = int(tumour_z[0] + tumour_z[-1]) // 2 + 1
+    cut = np.take(np.asarray(src.dataobj), np.arange(keep), axis=z_axis)
+    nib.save(nib.Nifti1Image(cut, src.affine, src.header), image)
+    result = run_patient(image, tmp_path / "out", patient_id="cut1")
+    note = [n for n in result.notes if "slice of the scan" in n]
+    assert len(note) == 1 and "lower bound" in note[0]
+    assert f"(slice {keep - 1})" in note[0] or "(slice 0)" in note[0]
+    folder = tmp_path / "out" / "cut1"
+    assert note[0] in pd.read_parquet(folder / "metrics.parquet").iloc[0]["notes"]
+    assert note[0] in json.loads((folder / "provenance.json").read_text())["notes"]
+
+
 @pytest.mark.parametrize(
     ("config", "first_changed"),
     [

@@ -1,0 +1,160 @@
+"""Caveats of a segmentation (tumor3d.caveats): said exactly when their situation holds.
+
+Independent expectations: the plane's signed distance against the textbook
+point-to-line distance, the end-slice and midline situations built on
+purpose (a disc straddling the plane, the same disc 20 mm away, on one slice
+only), and the robust segmentation saying the midline caveat where the peer,
+which has no symmetry rule, does not.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tumor3d.caveats import midline_caveat, scan_end_caveat, segmentation_caveats
+from tumor3d.detect import SliceDetection
+from tumor3d.errors import InputError
+from tumor3d.lesion import SYMMETRY_TOLERANCE_MM, LesionResult, MirrorPlane, NormalModel
+from tumor3d.segment import segment_tumor
+
+SHAPE = (6, 96, 96)
+PIXEL_MM = (0.8, 0.8)
+SPACING = (5.0, *PIXEL_MM)
+
+
+def _disc(centre_yx_mm, radius_mm, slices, shape=SHAPE, pixel_mm=PIXEL_MM):
+    y, x = np.indices(shape[1:], dtype=float)
+    d = np.hypot(y * pixel_mm[0] - centre_yx_mm[0], x * pixel_mm[1] - centre_yx_mm[1])
+    m = np.zeros(shape, bool)
+    m[list(slices)] = d <= radius_mm
+    return m
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 12.5, -30.0])
+@pytest.mark.parametrize("axis", [1, 2])
+def test_signed_distance_is_the_point_to_line_distance(axis, yaw_deg):
+    plane = MirrorPlane(axis, yaw_deg, 31.7)
+    d = plane.signed_distance_mm((40, 50), (0.7, 1.1))
+    # the line n . p = offset holds the point offset * n and runs along the tangent t
+    n = plane.normal()
+    t = np.array([-n[1], n[0]])
+    a = 31.7 * n
+    rng = np.random.default_rng(0)
+    for row, col in zip(rng.integers(0, 40, 25), rng.integers(0, 50, 25), strict=True):
+        p = np.array([row * 0.7, col * 1.1])
+        # |cross(t, p - a)| with the sign of the side the normal points to
+        dist = abs(t[0] * (p - a)[1] - t[1] * (p - a)[0])
+        assert abs(d[row, col]) == pytest.approx(dist, abs=1e-9)
+        assert np.sign(d[row, col]) == np.sign(np.dot(p - a, n))
+
+
+def test_scan_end_caveat_names_the_end_slices_the_tumour_reaches():
+    m = np.zeros((5, 8, 8), bool)
+    assert scan_end_caveat(m) is None
+    m[2, 3:5, 3:5] = True
+    assert scan_end_caveat(m) is None  # inside the scanned range
+    m[0, 3, 3] = True
+    first = scan_end_caveat(m)
+    assert "first slice of the scan (slice 0)" in first and "last" not in first
+    assert "lower bound" in first
+    m[4, 3, 3] = True
+    both = scan_end_caveat(m)
+    assert "first slice" in both and "last slice of the scan (slice 4)" in both
+    one = np.ones((1, 4, 4), bool)  # a single slice is its own first and last
+    assert scan_end_caveat(one).count("slice of the scan") == 1
+
+
+def test_midline_caveat_only_for_a_significant_cross_section_at_the_plane():
+    plane = MirrorPlane(2, 0.0, 48 * PIXEL_MM[1])  # the vertical line through column 48
+    centre = (48 * PIXEL_MM[0], 48 * PIXEL_MM[1])
+    kw = {"min_region_pixels": 50, "min_slices": 2}
+    straddling = _disc(centre, 8.0, slices=(1, 2, 3))
+    note = midline_caveat(straddling, plane, SPACING, **kw)
+    assert note is not None and "slices 1-3" in note
+    # the band is +-2.5 mm: about 6 columns x 20 rows = 120 pixels a slice
+    band = np.abs(plane.signed_distance_mm(SHAPE[1:], PIXEL_MM)) <= SYMMETRY_TOLERANCE_MM / 2
+    assert 50 <= np.count_nonzero(straddling[1] & band) <= 200
+    # the same disc 20 mm to the side: no voxel within the band
+    lateral = _disc((centre[0], centre[1] + 20.0), 8.0, slices=(1, 2, 3))
+    assert midline_caveat(lateral, plane, SPACING, **kw) is None
+    # on one slice only: not significant (min_slices 2), significant with min_slices 1
+    single = _disc(centre, 8.0, slices=(2,))
+    assert midline_caveat(single, plane, SPACING, **kw) is None
+    assert midline_caveat(single, plane, SPACING, min_region_pixels=50, min_slices=1)
+    # a thin contact (fewer pixels in the band than min_region_pixels) is no cross-section
+    assert midline_caveat(straddling, plane, SPACING, min_region_pixels=500, min_slices=2) is None
+
+
+def test_midline_caveat_follows_a_turned_plane():
+    # a plane turned by 25 degrees; a disc on it far from the rows' centre lies well off
+    # the unturned plane through the same offset
+    plane = MirrorPlane(2, 25.0, 30.0)
+    n = plane.normal()
+    t = np.array([-n[1], n[0]])
+    on_plane = 30.0 * n - 45.0 * t  # a point of the line, (y, x) in mm
+    assert 10 < on_plane[0] < 70 and 10 < on_plane[1] < 70
+    disc = _disc(tuple(on_plane), 6.0, slices=(0, 1, 2, 3, 4, 5))
+    kw = {"min_region_pixels": 30, "min_slices": 2}
+    assert midline_caveat(disc, plane, SPACING, **kw) is not None
+    unturned = MirrorPlane(2, 0.0, 30.0)
+    assert midline_caveat(disc, unturned, SPACING, **kw) is None
+
+
+def test_caveats_survive_the_notes_separator():
+    # the run's notes are joined with "; " in metrics.parquet and split on it again
+    plane = MirrorPlane(2, 0.0, 48 * PIXEL_MM[1])
+    m = _disc((48 * PIXEL_MM[0], 48 * PIXEL_MM[1]), 8.0, slices=(0, 1, 2, 3, 4, 5))
+    notes = segmentation_caveats(m, plane=plane, spacing_mm=SPACING)
+    assert len(notes) == 2
+    assert "; ".join(notes).split("; ") == list(notes)
+
+
+def test_segmentation_caveats_skips_the_midline_without_a_plane():
+    plane = MirrorPlane(2, 0.0, 48 * PIXEL_MM[1])
+    m = _disc((48 * PIXEL_MM[0], 48 * PIXEL_MM[1]), 8.0, slices=(0, 1, 2))
+    both = segmentation_caveats(m, plane=plane, spacing_mm=SPACING)
+    assert len(both) == 2 and "first slice" in both[0] and "midline" in both[1]
+    assert segmentation_caveats(m, spacing_mm=SPACING) == both[:1]
+    assert segmentation_caveats(np.zeros(SHAPE, bool), plane=plane, spacing_mm=SPACING) == ()
+    with pytest.raises(InputError, match="shape"):
+        segmentation_caveats(np.zeros((4, 4), bool))
+
+
+def _detection_with_lesion(mask, plane):
+    nz = mask.shape[0]
+    model = NormalModel(100.0, 10.0, 120.0, float("inf"))
+    lesion = LesionResult(mask, model, 200.0, 150.0, 1, plane)
+    return SliceDetection(
+        n_modes=np.full(nz, 4),
+        abnormal=mask.any(axis=(1, 2)),
+        peaks_gray=tuple(np.array([100.0]) for _ in range(nz)),
+        brain_pixels=np.full(nz, 5000),
+        lesion=lesion,
+    )
+
+
+def test_robust_segmentation_says_the_midline_caveat_and_the_peer_does_not():
+    plane = MirrorPlane(2, 0.0, 48 * PIXEL_MM[1])
+    brain = np.zeros(SHAPE, bool)
+    brain[:, 8:88, 8:88] = True
+    img = np.where(brain, 100, 0).astype(np.uint8)
+    img[:, 8:30, 8:88] = 60  # four gray levels, so that the peer's multi-Otsu has 4 classes
+    img[:, 66:88, 8:88] = 140
+    straddling = _disc((48 * PIXEL_MM[0], 48 * PIXEL_MM[1]), 8.0, slices=(1, 2, 3))
+    img[straddling] = 220
+    det = _detection_with_lesion(straddling, plane)
+    robust = segment_tumor(img, brain, det, modality="flair", method="robust", spacing_mm=SPACING)
+    assert robust.tumor_mask.any()
+    assert any("midline" in c for c in robust.caveats)
+    assert not any("slice of the scan" in c for c in robust.caveats)
+    # the same lesion 20 mm to the side: nothing to say
+    lateral = _disc((48 * PIXEL_MM[0], 48 * PIXEL_MM[1] + 20.0), 8.0, slices=(1, 2, 3))
+    det = _detection_with_lesion(lateral, plane)
+    res = segment_tumor(img, brain, det, modality="flair", method="robust", spacing_mm=SPACING)
+    assert res.tumor_mask.any() and res.caveats == ()
+    # the peer has no symmetry rule: it says no midline caveat, even on the midline lesion
+    det = _detection_with_lesion(straddling, plane)
+    peer = segment_tumor(img, brain, det, modality="flair", method="multiotsu", spacing_mm=SPACING)
+    assert (peer.tumor_mask & straddling).sum() > 0.9 * straddling.sum()
+    assert not any("midline" in c for c in peer.caveats)

@@ -1,0 +1,147 @@
+"""Caveats of a segmentation: where its volume may be wrong, said in words.
+
+A volume is only as good as the mask it measures. Two situations are known
+to bias it and can be recognised from the mask alone, so the pipeline says
+so in the run's notes (summary, ``metrics.parquet``, ``provenance.json``)
+instead of reporting a number that looks as trustworthy as any other:
+
+- **The tumour reaches the first or last slice of the scan.** It may
+  continue beyond the scanned range; every volume is then a lower bound.
+- **The tumour reaches the brain's midline** (robust method). The
+  symmetry rule of :mod:`tumor3d.lesion` (step 3c) counts a bright voxel
+  as lesion only where its mirror image is not bright too: it cannot tell
+  the far side of a tumour that crosses the midline (its mirror is the
+  tumour itself) from a bilateral normal structure. Within half the
+  symmetry tolerance of the mid-sagittal plane every voxel is its own
+  mirror match, so the rule is blind there; a lesion reaching that band
+  over a significant cross-section (as a seed component must be:
+  ``min_region_pixels`` on ``min_slices`` consecutive slices) may have
+  lost a part in the other hemisphere. Measured on the real cases
+  (``reports/segmentation.md``): it is said for BraTS pat0003 FLAIR, whose
+  tumour crosses the splenium and whose 12-14 mL in the other hemisphere
+  the default misses, and for the cases whose tumour lies on the midline
+  without crossing far; not for the lateral tumours.
+
+The functions are pure: masks in, sentences out.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tumor3d.errors import InputError
+from tumor3d.lesion import SYMMETRY_TOLERANCE_MM, MirrorPlane
+
+__all__ = ["midline_caveat", "scan_end_caveat", "segmentation_caveats"]
+
+
+def _mask3d(tumor_mask: np.ndarray) -> np.ndarray:
+    m = np.asarray(tumor_mask, dtype=bool)
+    if m.ndim != 3:
+        raise InputError(f"tumor_mask must be a (z, y, x) volume, got shape {m.shape}")
+    return m
+
+
+def scan_end_caveat(tumor_mask: np.ndarray) -> str | None:
+    """The caveat for tumour on the scan's first or last slice, else None.
+
+    Parameters
+    ----------
+    tumor_mask : (z, y, x) array_like of bool
+        The segmentation, slices in acquisition order.
+
+    Examples
+    --------
+    >>> m = np.zeros((4, 3, 3), bool)
+    >>> scan_end_caveat(m) is None
+    True
+    >>> m[3, 1, 1] = True
+    >>> scan_end_caveat(m)[:46]
+    'tumour on the last slice of the scan (slice 3)'
+    """
+    m = _mask3d(tumor_mask)
+    last = m.shape[0] - 1
+    ends = [(name, z) for name, z in (("first", 0), ("last", last)) if m[z].any()]
+    if last == 0:
+        ends = ends[:1]
+    if not ends:
+        return None
+    where = " and ".join(f"{name} slice of the scan (slice {z})" for name, z in ends)
+    return (
+        f"tumour on the {where}: it may continue beyond the scanned range, so every "
+        "volume is a lower bound"
+    )
+
+
+def midline_caveat(
+    tumor_mask: np.ndarray,
+    plane: MirrorPlane,
+    spacing_mm: tuple[float, float, float],
+    *,
+    min_region_pixels: int,
+    min_slices: int,
+) -> str | None:
+    """The caveat for a tumour reaching the mid-sagittal plane, else None.
+
+    The band is the voxels within ``SYMMETRY_TOLERANCE_MM / 2`` of
+    ``plane``; the caveat is said when the mask holds at least
+    ``min_region_pixels`` band pixels on each of ``min_slices`` consecutive
+    slices (the lesion model's significance rule).
+
+    Parameters
+    ----------
+    tumor_mask : (z, y, x) array_like of bool
+        The segmentation.
+    plane : MirrorPlane
+        The mid-sagittal plane the symmetry rule used, in the mask's pixel
+        frame (``LesionResult.plane``).
+    spacing_mm : (3,) tuple of float
+        ``(slice step, row, column)`` in mm.
+    min_region_pixels, min_slices : int
+        The significance rule (``detect.lesion`` of the configuration).
+    """
+    m = _mask3d(tumor_mask)
+    if not m.any():
+        return None
+    band = np.abs(plane.signed_distance_mm(m.shape[1:], spacing_mm[1:])) <= (
+        0.5 * SYMMETRY_TOLERANCE_MM
+    )
+    per_slice = np.count_nonzero(m & band[np.newaxis], axis=(1, 2))
+    big = np.concatenate([[False], per_slice >= int(min_region_pixels), [False]])
+    # runs of consecutive slices with a big cross-section: (start, stop) pairs
+    edges = np.flatnonzero(np.diff(big.astype(np.int8)))
+    runs = [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
+    runs = [r for r in runs if r[1] - r[0] >= int(min_slices)]
+    if not runs:
+        return None
+    first, last = runs[0][0], runs[-1][1] - 1
+    return (
+        f"tumour reaches the brain's midline on slices {first}-{last} (within "
+        f"{0.5 * SYMMETRY_TOLERANCE_MM:g} mm of the mid-sagittal plane): the symmetry rule "
+        "cannot tell a tumour that crosses the midline from a bilateral normal structure, "
+        "so a part in the other hemisphere may be missing (check it)"
+    )
+
+
+def segmentation_caveats(
+    tumor_mask: np.ndarray,
+    *,
+    plane: MirrorPlane | None = None,
+    spacing_mm: tuple[float, float, float] | None = None,
+    min_region_pixels: int = 50,
+    min_slices: int = 2,
+) -> tuple[str, ...]:
+    """Every caveat of a segmentation, in a fixed order (ends, then midline).
+
+    ``plane`` is given when the symmetry rule shaped the mask (robust
+    method); None skips the midline caveat. ``spacing_mm`` None means 1 mm
+    voxels.
+    """
+    m = _mask3d(tumor_mask)
+    out = [scan_end_caveat(m)]
+    if plane is not None:
+        sp = (1.0, 1.0, 1.0) if spacing_mm is None else tuple(float(v) for v in spacing_mm)
+        out.append(
+            midline_caveat(m, plane, sp, min_region_pixels=min_region_pixels, min_slices=min_slices)
+        )
+    return tuple(c for c in out if c)
