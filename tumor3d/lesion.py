@@ -112,7 +112,6 @@ from typing import Any
 import numpy as np
 import scipy.fft
 from scipy import ndimage as ndi
-from skimage.morphology import disk
 
 from tumor3d.errors import InputError
 
@@ -798,7 +797,7 @@ def _mirrored(mask: np.ndarray, plane: MirrorPlane, voxel_mm) -> np.ndarray:
 
 
 def _fill_enclosed(
-    mask: np.ndarray, brain: np.ndarray, img: np.ndarray, dark_below: float, gap_px: int = 0
+    mask: np.ndarray, brain: np.ndarray, img: np.ndarray, dark_below: float
 ) -> np.ndarray:
     """Per slice: fill holes, and dark cavities enclosed by the mask and the brain border.
 
@@ -812,29 +811,22 @@ def _fill_enclosed(
     """
     out = mask.copy()
     four = ndi.generate_binary_structure(2, 1)
-    disk_fp = disk(max(int(gap_px), 1)).astype(bool)
     for z in np.flatnonzero(mask.any(axis=(1, 2))):
         m, b = mask[z], brain[z]
         filled = ndi.binary_fill_holes(m)
-        # gaps narrower than 2 gap_px between the lesion and the brain surface do not
-        # connect a cavity to the bulk of the brain
-        cut = ndi.binary_dilation(filled, structure=disk_fp) if gap_px > 0 else filled
-        lab, n = ndi.label(b & ~cut, structure=four)
+        lab, n = ndi.label(b & ~filled, structure=four)
         if n > 1:
             sizes = np.bincount(lab.ravel())
             sizes[0] = 0
             bulk = int(np.argmax(sizes))
-            touching = np.unique(lab[ndi.binary_dilation(cut, structure=four)])
+            touching = np.unique(lab[ndi.binary_dilation(filled, structure=four)])
             touching = touching[(touching > 0) & (touching != bulk)]
             touching = touching[sizes[touching] < np.count_nonzero(filled)]
             if touching.size:
                 med = np.asarray(ndi.median(img[z], labels=lab, index=touching))
                 keep = touching[med < dark_below]
                 if keep.size:
-                    cavity = np.isin(lab, keep)
-                    if gap_px > 0:  # the cut ring between the cavity and the lesion
-                        cavity = ndi.binary_dilation(cavity, structure=disk_fp) & cut & b
-                    filled |= cavity | (np.isin(lab, keep))
+                    filled |= np.isin(lab, keep)
         out[z] = filled
     return out
 
