@@ -6,7 +6,8 @@ so in the run's notes (summary, ``metrics.parquet``, ``provenance.json``)
 instead of reporting a number that looks as trustworthy as any other:
 
 - **The tumour reaches the first or last slice of the scan.** It may
-  continue beyond the scanned range; every volume is then a lower bound.
+  continue beyond the scanned range; every volume may then underestimate
+  it.
 - **The tumour reaches the brain's midline** (robust method). The
   symmetry rule of :mod:`tumor3d.lesion` (step 3c) counts a bright voxel
   as lesion only where its mirror image is not bright too: it cannot tell
@@ -17,10 +18,14 @@ instead of reporting a number that looks as trustworthy as any other:
   over a significant cross-section (as a seed component must be:
   ``min_region_pixels`` on ``min_slices`` consecutive slices) may have
   lost a part in the other hemisphere. Measured on the real cases
-  (``reports/segmentation.md``): it is said for BraTS pat0003 FLAIR, whose
-  tumour crosses the splenium and whose 12-14 mL in the other hemisphere
-  the default misses, and for the cases whose tumour lies on the midline
-  without crossing far; not for the lateral tumours.
+  (``reports/segmentation.md``): said on every case whose label reaches
+  more than 5 mm into the other hemisphere (BraTS pat0003 FLAIR, 12-14 mL
+  there, nearly all missed; the algoseg FLAIR and T2, about 2 mL) and on
+  two whose mask is wrong at the midline (pat0003 T1c, the clinical
+  brain2 T1c); never on a lateral tumour.
+
+Slice numbers are 0-based array indices (``slice_index`` of the run's
+``slices.parquet``).
 
 The functions are pure: masks in, sentences out.
 """
@@ -56,20 +61,23 @@ def scan_end_caveat(tumor_mask: np.ndarray) -> str | None:
     >>> scan_end_caveat(m) is None
     True
     >>> m[3, 1, 1] = True
-    >>> scan_end_caveat(m)[:46]
-    'tumour on the last slice of the scan (slice 3)'
+    >>> scan_end_caveat(m)[:57]
+    'tumour on the last slice of the scan (slice 3, 0-based): '
     """
     m = _mask3d(tumor_mask)
     last = m.shape[0] - 1
-    ends = [(name, z) for name, z in (("first", 0), ("last", last)) if m[z].any()]
-    if last == 0:
-        ends = ends[:1]
-    if not ends:
+    first_has, last_has = bool(m[0].any()), bool(m[last].any())
+    if last == 0 or not last_has:
+        where = "first slice of the scan (slice 0, 0-based)" if first_has else None
+    elif first_has:
+        where = f"first and last slices of the scan (slices 0 and {last}, 0-based)"
+    else:
+        where = f"last slice of the scan (slice {last}, 0-based)"
+    if where is None:
         return None
-    where = " and ".join(f"{name} slice of the scan (slice {z})" for name, z in ends)
     return (
         f"tumour on the {where}: it may continue beyond the scanned range, so every "
-        "volume is a lower bound"
+        "volume may underestimate it"
     )
 
 
@@ -114,12 +122,14 @@ def midline_caveat(
     runs = [r for r in runs if r[1] - r[0] >= int(min_slices)]
     if not runs:
         return None
-    first, last = runs[0][0], runs[-1][1] - 1
+    where = ", ".join(str(a) if b - a == 1 else f"{a}-{b - 1}" for a, b in runs)
+    plural = "s" if len(runs) > 1 or runs[0][1] - runs[0][0] > 1 else ""
     return (
-        f"tumour reaches the brain's midline on slices {first}-{last} (within "
+        f"tumour reaches the brain's midline on slice{plural} {where} (0-based, within "
         f"{0.5 * SYMMETRY_TOLERANCE_MM:g} mm of the mid-sagittal plane): the symmetry rule "
         "cannot tell a tumour that crosses the midline from a bilateral normal structure, "
-        "so a part in the other hemisphere may be missing (check it)"
+        "so a part in the other hemisphere may be missing (check those slices in "
+        "overlay_tumor.png)"
     )
 
 

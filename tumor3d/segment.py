@@ -751,8 +751,10 @@ def segment_tumor(
         the detection carries the lesion (it was computed with them).
     spacing_mm : (3,) tuple of float, optional
         Voxel spacing ``(slice step, row, column)`` in mm (robust method: the
-        depth rule of :mod:`tumor3d.lesion`); None = isotropic. The adapter
-        passes the scan's.
+        depth rule of :mod:`tumor3d.lesion`, and the midline caveat, whose
+        band is measured in mm from ``detection.lesion.plane``: pass the
+        spacing the detection used); None = 1 mm voxels. The adapter passes
+        the scan's.
     lr_axis : {1, 2} or None
         Robust method: the left-right array axis (symmetry rule of
         :mod:`tumor3d.lesion`, :func:`tumor3d.lesion.left_right_axis` of the

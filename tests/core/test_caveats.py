@@ -56,13 +56,16 @@ def test_scan_end_caveat_names_the_end_slices_the_tumour_reaches():
     assert scan_end_caveat(m) is None  # inside the scanned range
     m[0, 3, 3] = True
     first = scan_end_caveat(m)
-    assert "first slice of the scan (slice 0)" in first and "last" not in first
-    assert "lower bound" in first
+    assert "first slice of the scan (slice 0, 0-based)" in first and "last" not in first
+    assert "underestimate" in first
+    m[0] = False
     m[4, 3, 3] = True
-    both = scan_end_caveat(m)
-    assert "first slice" in both and "last slice of the scan (slice 4)" in both
+    last = scan_end_caveat(m)
+    assert "last slice of the scan (slice 4, 0-based)" in last and "first" not in last
+    m[0, 3, 3] = True
+    assert "first and last slices of the scan (slices 0 and 4, 0-based)" in scan_end_caveat(m)
     one = np.ones((1, 4, 4), bool)  # a single slice is its own first and last
-    assert scan_end_caveat(one).count("slice of the scan") == 1
+    assert "first slice of the scan (slice 0, 0-based)" in scan_end_caveat(one)
 
 
 def test_midline_caveat_only_for_a_significant_cross_section_at_the_plane():
@@ -84,6 +87,57 @@ def test_midline_caveat_only_for_a_significant_cross_section_at_the_plane():
     assert midline_caveat(single, plane, SPACING, min_region_pixels=50, min_slices=1)
     # a thin contact (fewer pixels in the band than min_region_pixels) is no cross-section
     assert midline_caveat(straddling, plane, SPACING, min_region_pixels=500, min_slices=2) is None
+
+
+def test_midline_caveat_names_each_run_of_slices():
+    plane = MirrorPlane(2, 0.0, 48 * PIXEL_MM[1])
+    centre = (48 * PIXEL_MM[0], 48 * PIXEL_MM[1])
+    kw = {"min_region_pixels": 50, "min_slices": 2}
+    m = np.zeros((14, 96, 96), bool)
+    m[[1, 2, 3, 9, 10]] = _disc(centre, 8.0, slices=(0,))[0]
+    note = midline_caveat(m, plane, SPACING, **kw)
+    assert "on slices 1-3, 9-10 (0-based" in note
+    # big cross-sections on slices 1 and 3 only are no run of two consecutive slices
+    m[[2, 9, 10]] = False
+    assert midline_caveat(m, plane, SPACING, **kw) is None
+    one = midline_caveat(m, plane, SPACING, min_region_pixels=50, min_slices=1)
+    assert "on slices 1, 3 (0-based" in one
+    m[3] = False
+    assert "on slice 1 (0-based" in midline_caveat(m, plane, SPACING, min_region_pixels=50,
+                                                     min_slices=1)
+
+
+@pytest.mark.parametrize("pixel_mm", [(0.8, 0.8), (0.5, 1.25), (1.25, 0.5)])
+def test_midline_band_is_half_the_symmetry_tolerance_in_mm(pixel_mm):
+    # a strip of tissue parallel to the plane at 2.0 mm is in the band, at 3.0 mm it is not
+    # (the band is +-2.5 mm, whatever the pixels' shape)
+    shape = (4, 120, 200)
+    plane = MirrorPlane(2, 0.0, 60.0)  # the vertical line x = 60 mm
+    y, x = np.indices(shape[1:], dtype=float)
+    x_mm = x * pixel_mm[1]
+    kw = {"min_region_pixels": 20, "min_slices": 2}
+    for gap_mm, said in ((2.0, True), (3.0, False)):
+        strip = (x_mm >= 60.0 + gap_mm) & (x_mm <= 60.0 + gap_mm + 10.0)
+        m = np.zeros(shape, bool)
+        m[1:3] = strip & (y * pixel_mm[0] < 40.0)
+        assert m[1].sum() >= 20
+        got = midline_caveat(m, plane, (5.0, *pixel_mm), **kw)
+        assert (got is not None) == said, (gap_mm, pixel_mm)
+
+
+def test_without_spacing_the_voxels_are_1_mm():
+    plane = MirrorPlane(2, 0.0, 48.0)
+    m = np.zeros(SHAPE, bool)
+    m[1:4, 20:70, 51:54] = True  # 3 to 5 mm from the plane at 1 mm pixels: out of the band
+    assert segmentation_caveats(m, plane=plane) == ()
+    m[1:4, 20:70, 49:52] = True  # 1 to 3 mm at 1 mm pixels: 2 columns in the band
+    assert segmentation_caveats(m, plane=plane) == segmentation_caveats(
+        m, plane=plane, spacing_mm=(1.0, 1.0, 1.0)
+    )
+    assert len(segmentation_caveats(m, plane=plane)) == 1
+    # at 0.5 mm pixels the same columns lie 0.5-2.5 mm away: all in the band, said as well
+    assert len(segmentation_caveats(m, plane=MirrorPlane(2, 0.0, 24.0),
+                                    spacing_mm=(1.0, 0.5, 0.5))) == 1
 
 
 def test_midline_caveat_follows_a_turned_plane():
@@ -153,6 +207,12 @@ def test_robust_segmentation_says_the_midline_caveat_and_the_peer_does_not():
     det = _detection_with_lesion(lateral, plane)
     res = segment_tumor(img, brain, det, modality="flair", method="robust", spacing_mm=SPACING)
     assert res.tumor_mask.any() and res.caveats == ()
+    # the significance rule is the configuration's (detect.lesion), not a constant: with
+    # min_region_pixels above the band's ~120 pixels a slice the midline lesion says nothing
+    det = _detection_with_lesion(straddling, plane)
+    strict = segment_tumor(img, brain, det, modality="flair", method="robust",
+                           spacing_mm=SPACING, lesion={"min_region_pixels": 500})
+    assert strict.tumor_mask.any() and strict.caveats == ()
     # the peer has no symmetry rule: it says no midline caveat, even on the midline lesion
     det = _detection_with_lesion(straddling, plane)
     peer = segment_tumor(img, brain, det, modality="flair", method="multiotsu", spacing_mm=SPACING)

@@ -188,6 +188,23 @@ def test_flair_with_reference_and_with_the_brightest_rule(flair_case):
         assert _dice(rule.tumor_mask[i], ph.tumor[z]) > 0.85
 
 
+def test_paper_method_says_when_the_tumour_reaches_the_end_of_the_scan(flair_case):
+    ph, pre, det = flair_case
+    whole = segment_tumor(pre.enhanced, pre.brain_mask, det, modality="flair", method="paper")
+    assert whole.tumor_mask.any() and whole.caveats == ()  # the tumour lies inside the head
+    # the same head scanned only over the tumour's large slices: it fills the first and last
+    large = np.flatnonzero(ph.tumor.sum(axis=(1, 2)) >= 100)
+    sub = SliceDetection.from_records(
+        [{**det.to_records()[z], "slice_index": i} for i, z in enumerate(large)]
+    )
+    cut = segment_tumor(
+        pre.enhanced[large], pre.brain_mask[large], sub, modality="flair", method="paper"
+    )
+    assert cut.tumor_mask[0].any() and cut.tumor_mask[-1].any()
+    assert len(cut.caveats) == 1
+    assert f"first and last slices of the scan (slices 0 and {large.size - 1}" in cut.caveats[0]
+
+
 def test_normal_slice_flagged_abnormal_gets_no_tumour(t2_case):
     ph, pre, det = t2_case
     normal = [z for z in range(len(det)) if not det.abnormal[z] and det.n_modes[z] == 3]

@@ -46,6 +46,8 @@ def test_phantoms_match_their_truth(evaluated):
     assert (df["hd95_mm"] < 3.0).all()
     assert (df["hd95_surface_mm"] < 3.0).all()  # published mesh vs the truth's surface
     assert (df["volume_eq7_error_percent"].abs() < 5.0).all()
+    # each run's notes are kept with its figures (the phantoms' tumours give none)
+    assert (df["notes"] == "").all()
     slices = pd.read_parquet(out / "evaluation_slices.parquet")
     n = slices.groupby("patient_id").size()
     assert (n == df.set_index("patient_id")["n_slices"]).all()

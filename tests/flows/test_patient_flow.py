@@ -227,8 +227,8 @@ def test_tumour_cut_by_the_end_of_the_scan_is_named_in_the_notes(tmp_path, phant
     nib.save(nib.Nifti1Image(cut, src.affine, src.header), image)
     result = run_patient(image, tmp_path / "out", patient_id="cut1")
     note = [n for n in result.notes if "slice of the scan" in n]
-    assert len(note) == 1 and "lower bound" in note[0]
-    assert f"(slice {keep - 1})" in note[0] or "(slice 0)" in note[0]
+    assert len(note) == 1 and "underestimate" in note[0]
+    assert f"last slice of the scan (slice {keep - 1}, 0-based)" in note[0]
     folder = tmp_path / "out" / "cut1"
     assert note[0] in pd.read_parquet(folder / "metrics.parquet").iloc[0]["notes"]
     assert note[0] in json.loads((folder / "provenance.json").read_text())["notes"]

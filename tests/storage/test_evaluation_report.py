@@ -1,0 +1,60 @@
+"""The evaluation report lists the notes each run said about its own result.
+
+A minimal report (one case, two configurations, no metrics) is enough: the
+notes section must name each run's notes once, under its case and
+configuration, and leave out runs that failed or said nothing.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+
+from storage.evaluation_report import write_report
+
+NOTE = "tumour on the last slice of the scan (slice 3, 0-based): it may continue"
+
+
+def _prepared(pid: str) -> SimpleNamespace:
+    source = SimpleNamespace(
+        patient_id=pid, modality="flair", image=Path("/nonexistent") / f"{pid}.nii.gz",
+        reference=None,
+    )  # fmt: skip
+    return SimpleNamespace(
+        source=source, reference_kind="expert", acquisition="native", emulation=None
+    )
+
+
+def _report(tmp_path: Path, rows: list[dict]) -> str:
+    configs = {"default": {}, "peer": {}}
+    path = write_report(
+        tmp_path, pd.DataFrame(rows), pd.DataFrame(), configs=configs,
+        config_files=dict.fromkeys(configs), prepared=[_prepared("a"), _prepared("b")],
+        skipped=[], evaluations={}, command="pytest", elapsed_s=1.0,
+    )  # fmt: skip
+    return path.read_text()
+
+
+def test_each_runs_notes_are_listed_under_its_case_and_configuration(tmp_path):
+    text = _report(tmp_path, [
+        {"config": "default", "patient_id": "a", "status": "ok", "notes": NOTE},
+        {"config": "peer", "patient_id": "a", "status": "ok", "notes": ""},
+        {"config": "default", "patient_id": "b", "status": "failed", "notes": "half a run"},
+        {"config": "peer", "patient_id": "b", "status": "ok", "notes": np.nan},
+    ])  # fmt: skip
+    assert "Notes of the runs" in text
+    assert text.count(f"- a (default): {NOTE}") == 1
+    assert "- a (peer)" not in text  # said nothing
+    assert "half a run" not in text  # failed: its notes are not a result's
+    assert "- b (peer)" not in text  # no notes column value
+
+
+def test_no_notes_section_when_no_run_said_anything(tmp_path):
+    text = _report(tmp_path, [
+        {"config": "default", "patient_id": "a", "status": "ok", "notes": ""},
+        {"config": "peer", "patient_id": "a", "status": "ok"},
+    ])  # fmt: skip
+    assert "Notes of the runs" not in text
