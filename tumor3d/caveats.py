@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.lesion import SYMMETRY_TOLERANCE_MM, MirrorPlane
+from tumor3d.lesion import LESION_DEFAULTS, SYMMETRY_TOLERANCE_MM, MirrorPlane
 
 __all__ = ["midline_caveat", "scan_end_caveat", "segmentation_caveats"]
 
@@ -138,14 +138,15 @@ def segmentation_caveats(
     *,
     plane: MirrorPlane | None = None,
     spacing_mm: tuple[float, float, float] | None = None,
-    min_region_pixels: int = 50,
-    min_slices: int = 2,
+    min_region_pixels: int = int(LESION_DEFAULTS["min_region_pixels"]),
+    min_slices: int = int(LESION_DEFAULTS["min_slices"]),
 ) -> tuple[str, ...]:
     """Every caveat of a segmentation, in a fixed order (ends, then midline).
 
     ``plane`` is given when the symmetry rule shaped the mask (robust
     method); None skips the midline caveat. ``spacing_mm`` None means 1 mm
-    voxels.
+    voxels. The significance rule defaults to the lesion model's
+    (:data:`tumor3d.lesion.LESION_DEFAULTS`).
     """
     m = _mask3d(tumor_mask)
     out = [scan_end_caveat(m)]
