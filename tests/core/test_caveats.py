@@ -21,6 +21,9 @@ from tumor3d.segment import segment_tumor
 SHAPE = (6, 96, 96)
 PIXEL_MM = (0.8, 0.8)
 SPACING = (5.0, *PIXEL_MM)
+#: the vertical line through column 48 (the grid's middle) and a point of it, (y, x) in mm
+MID_PLANE = MirrorPlane(2, 0.0, 48 * PIXEL_MM[1])
+CENTRE = (48 * PIXEL_MM[0], 48 * PIXEL_MM[1])
 
 
 def _disc(centre_yx_mm, radius_mm, slices, shape=SHAPE, pixel_mm=PIXEL_MM):
@@ -69,8 +72,8 @@ def test_scan_end_caveat_names_the_end_slices_the_tumour_reaches():
 
 
 def test_midline_caveat_only_for_a_significant_cross_section_at_the_plane():
-    plane = MirrorPlane(2, 0.0, 48 * PIXEL_MM[1])  # the vertical line through column 48
-    centre = (48 * PIXEL_MM[0], 48 * PIXEL_MM[1])
+    plane = MID_PLANE
+    centre = CENTRE
     kw = {"min_region_pixels": 50, "min_slices": 2}
     straddling = _disc(centre, 8.0, slices=(1, 2, 3))
     note = midline_caveat(straddling, plane, SPACING, **kw)
@@ -90,8 +93,8 @@ def test_midline_caveat_only_for_a_significant_cross_section_at_the_plane():
 
 
 def test_midline_caveat_names_each_run_of_slices():
-    plane = MirrorPlane(2, 0.0, 48 * PIXEL_MM[1])
-    centre = (48 * PIXEL_MM[0], 48 * PIXEL_MM[1])
+    plane = MID_PLANE
+    centre = CENTRE
     kw = {"min_region_pixels": 50, "min_slices": 2}
     m = np.zeros((14, 96, 96), bool)
     m[[1, 2, 3, 9, 10]] = _disc(centre, 8.0, slices=(0,))[0]
@@ -157,16 +160,16 @@ def test_midline_caveat_follows_a_turned_plane():
 
 def test_caveats_survive_the_notes_separator():
     # the run's notes are joined with "; " in metrics.parquet and split on it again
-    plane = MirrorPlane(2, 0.0, 48 * PIXEL_MM[1])
-    m = _disc((48 * PIXEL_MM[0], 48 * PIXEL_MM[1]), 8.0, slices=(0, 1, 2, 3, 4, 5))
+    plane = MID_PLANE
+    m = _disc(CENTRE, 8.0, slices=(0, 1, 2, 3, 4, 5))
     notes = segmentation_caveats(m, plane=plane, spacing_mm=SPACING)
     assert len(notes) == 2
     assert "; ".join(notes).split("; ") == list(notes)
 
 
 def test_segmentation_caveats_skips_the_midline_without_a_plane():
-    plane = MirrorPlane(2, 0.0, 48 * PIXEL_MM[1])
-    m = _disc((48 * PIXEL_MM[0], 48 * PIXEL_MM[1]), 8.0, slices=(0, 1, 2))
+    plane = MID_PLANE
+    m = _disc(CENTRE, 8.0, slices=(0, 1, 2))
     both = segmentation_caveats(m, plane=plane, spacing_mm=SPACING)
     assert len(both) == 2 and "first slice" in both[0] and "midline" in both[1]
     assert segmentation_caveats(m, spacing_mm=SPACING) == both[:1]
@@ -189,13 +192,13 @@ def _detection_with_lesion(mask, plane):
 
 
 def test_robust_segmentation_says_the_midline_caveat_and_the_peer_does_not():
-    plane = MirrorPlane(2, 0.0, 48 * PIXEL_MM[1])
+    plane = MID_PLANE
     brain = np.zeros(SHAPE, bool)
     brain[:, 8:88, 8:88] = True
     img = np.where(brain, 100, 0).astype(np.uint8)
     img[:, 8:30, 8:88] = 60  # four gray levels, so that the peer's multi-Otsu has 4 classes
     img[:, 66:88, 8:88] = 140
-    straddling = _disc((48 * PIXEL_MM[0], 48 * PIXEL_MM[1]), 8.0, slices=(1, 2, 3))
+    straddling = _disc(CENTRE, 8.0, slices=(1, 2, 3))
     img[straddling] = 220
     det = _detection_with_lesion(straddling, plane)
     robust = segment_tumor(img, brain, det, modality="flair", method="robust", spacing_mm=SPACING)
@@ -203,7 +206,7 @@ def test_robust_segmentation_says_the_midline_caveat_and_the_peer_does_not():
     assert any("midline" in c for c in robust.caveats)
     assert not any("slice of the scan" in c for c in robust.caveats)
     # the same lesion 20 mm to the side: nothing to say
-    lateral = _disc((48 * PIXEL_MM[0], 48 * PIXEL_MM[1] + 20.0), 8.0, slices=(1, 2, 3))
+    lateral = _disc((CENTRE[0], CENTRE[1] + 20.0), 8.0, slices=(1, 2, 3))
     det = _detection_with_lesion(lateral, plane)
     res = segment_tumor(img, brain, det, modality="flair", method="robust", spacing_mm=SPACING)
     assert res.tumor_mask.any() and res.caveats == ()
