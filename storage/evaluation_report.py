@@ -199,17 +199,20 @@ def write_report(
         for s in skipped:
             tag = "file absent" if s["missing_file"] else "invalid"
             parts.append(f"- {s['patient_id'] or ('row ' + str(s['row']))} ({tag}): {s['reason']}")
-    noted = []
-    for pid in pids:
-        for n in names:
-            note = _get(df, n, pid, "notes")
-            if _get(df, n, pid, "status") == "ok" and isinstance(note, str) and note:
-                noted.append((pid, n, note))
+    # the notes each run said about its own result (tumor3d.caveats, "no tumour found", a
+    # brain mask larger than a skull, ...), one line per configuration and note, with the
+    # cases that said it, so that a reader can see whether they point at the worst cases
+    noted: dict[tuple[str, str], list[str]] = {}
+    for n in names:
+        for pid in pids:
+            notes = _get(df, n, pid, "notes")
+            if _get(df, n, pid, "status") != "ok" or not isinstance(notes, str):
+                continue
+            for note in (x for x in notes.split("; ") if x):
+                noted.setdefault((n, note), []).append(pid)
     if noted:
-        # the caveats each run said about its own result (tumor3d.caveats), so that a reader
-        # can see whether they point at the cases that measure worst
         parts += ["", "Notes of the runs (said by the pipeline itself, without the reference):", ""]
-        parts += [f"- {pid} ({n}): {note}" for pid, n, note in noted]
+        parts += [f"- {n}, {', '.join(cases)}: {note}" for (n, note), cases in noted.items()]
     algo = [p.source.patient_id for p in prepared if p.reference_kind == "algorithmic"]
     if algo:
         parts += ["", f"**Note:** the reference of {', '.join(algo)} was made by a segmentation "

@@ -38,18 +38,26 @@ def _report(tmp_path: Path, rows: list[dict]) -> str:
     return path.read_text()
 
 
-def test_each_runs_notes_are_listed_under_its_case_and_configuration(tmp_path):
+def test_each_note_is_listed_once_per_configuration_with_the_cases_that_said_it(tmp_path):
+    other = "no tumour found: no mesh and no render written"
     text = _report(tmp_path, [
-        {"config": "default", "patient_id": "a", "status": "ok", "notes": NOTE},
+        {"config": "default", "patient_id": "a", "status": "ok", "notes": f"{other}; {NOTE}"},
+        {"config": "default", "patient_id": "b", "status": "ok", "notes": other},
         {"config": "peer", "patient_id": "a", "status": "ok", "notes": ""},
-        {"config": "default", "patient_id": "b", "status": "failed", "notes": "half a run"},
         {"config": "peer", "patient_id": "b", "status": "ok", "notes": np.nan},
     ])  # fmt: skip
     assert "Notes of the runs" in text
-    assert text.count(f"- a (default): {NOTE}") == 1
-    assert "- a (peer)" not in text  # said nothing
-    assert "half a run" not in text  # failed: its notes are not a result's
-    assert "- b (peer)" not in text  # no notes column value
+    assert text.count(f"- default, a, b: {other}") == 1
+    assert text.count(f"- default, a: {NOTE}") == 1
+    assert "- peer" not in text  # said nothing, or no value
+
+
+def test_a_failed_runs_notes_are_not_listed(tmp_path):
+    text = _report(tmp_path, [
+        {"config": "default", "patient_id": "a", "status": "ok", "notes": NOTE},
+        {"config": "default", "patient_id": "b", "status": "failed", "notes": "half a run"},
+    ])  # fmt: skip
+    assert "half a run" not in text and f"- default, a: {NOTE}" in text
 
 
 def test_no_notes_section_when_no_run_said_anything(tmp_path):
