@@ -37,7 +37,9 @@ from storage.formats import encode_parquet
 from storage.inputs import input_digest
 from storage.objectstore import is_url
 from storage.patient_outputs import (
+    join_notes,
     patient_report_data,
+    split_notes,
     write_overlays,
     write_report,
     write_surface_files,
@@ -452,7 +454,7 @@ def _metrics_row(
     row["mesh_simplified_watertight"] = bool(outputs["simplify-mesh"].values["watertight"])
     row["slices_between"] = int(outputs["interpolate-slices"].values["slices_between"])
     row["tumour_found"] = row["faces_mc"] > 0
-    row["notes"] = "; ".join(notes)
+    row["notes"] = join_notes(notes)
     for r in runs:
         key = r.stage.replace("-", "_")
         row[f"time_{key}_s"] = float(r.compute_seconds)
@@ -621,7 +623,7 @@ def publish_patient(
             stages=[{**r.model_dump(), "code_sha256": code[r.stage]} for r in runs],
             volume_methods=VOLUME_METHODS,
             eq7_slice_rule={"name": rule, "definition": EQ7_SLICE_RULES[rule]},
-            notes=[n for n in str(metrics.get("notes", "")).split("; ") if n],
+            notes=split_notes(metrics.get("notes")),
         )
         render = outputs["render-views"].values
         provenance["render"] = {k: render.get(k) for k in ("renderer", "fallback_reason")}

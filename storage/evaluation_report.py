@@ -34,6 +34,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from storage.patient_outputs import split_notes
 from storage.store import atomic_write_bytes
 from tumor3d.evaluation.metrics import SliceConfusion, bland_altman
 
@@ -205,10 +206,9 @@ def write_report(
     noted: dict[tuple[str, str], list[str]] = {}
     for n in names:
         for pid in pids:
-            notes = _get(df, n, pid, "notes")
-            if _get(df, n, pid, "status") != "ok" or not isinstance(notes, str):
+            if _get(df, n, pid, "status") != "ok":
                 continue
-            for note in (x for x in notes.split("; ") if x):
+            for note in split_notes(_get(df, n, pid, "notes")):
                 noted.setdefault((n, note), []).append(pid)
     if noted:
         parts += ["", "Notes of the runs (said by the pipeline itself, without the reference):", ""]

@@ -24,13 +24,39 @@ from tumor3d.mesh import Mesh
 from tumor3d.overlay import overlay_mosaic
 
 __all__ = [
+    "NOTES_SEPARATOR",
     "OVERLAYS",
     "RENDER_ORDER",
+    "join_notes",
     "patient_report_data",
+    "split_notes",
     "write_overlays",
     "write_report",
     "write_surface_files",
 ]
+
+#: The separator of a run's notes in the ``notes`` column of ``metrics.parquet``.
+NOTES_SEPARATOR = "; "
+
+
+def join_notes(notes: Iterable[str]) -> str:
+    """A run's notes as one string (``metrics.parquet``); :func:`split_notes` inverts it.
+
+    A separator inside a note (a file name, a sentence) becomes ``", "``, so
+    that the note comes back whole and not as two.
+
+    >>> split_notes(join_notes(["a; b", "c"]))
+    ['a, b', 'c']
+    """
+    return NOTES_SEPARATOR.join(str(n).replace(NOTES_SEPARATOR, ", ") for n in notes if str(n))
+
+
+def split_notes(text: Any) -> list[str]:
+    """The notes of :func:`join_notes`'s string; [] for an empty or missing value."""
+    if not isinstance(text, str):
+        return []
+    return [n for n in text.split(NOTES_SEPARATOR) if n]
+
 
 #: Overlay files and their captions.
 OVERLAYS: dict[str, str] = {
@@ -146,7 +172,7 @@ def patient_report_data(
         "patient_id": str(metrics["patient_id"]),
         "status": "ok" if found else "no tumour found",
         "volumes_mm3": vols,
-        "notes": [n for n in str(metrics.get("notes") or "").split("; ") if n],
+        "notes": split_notes(metrics.get("notes")),
         "n_slices": int(metrics.get("n_slices", 0)),
         "abnormal_slices": [int(k) for k in abnormal_slices],
     }

@@ -553,7 +553,7 @@ def brain_volume_note(brain_volume_ml: float) -> str | None:
         return None
     return (
         f"brain mask of {v:.0f} mL: more than any skull holds ({MAX_INTRACRANIAL_ML:.0f} mL), "
-        "so it holds scalp or face and the tumour volume is not reliable; give the brain "
+        "so it holds scalp or face and the tumour volume is not reliable: give the brain "
         "mask (--brain-mask) or set preprocess.brain_extraction: head, and check overlay_brain.png"
     )
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pandas as pd
 
 from storage.cohort_report import cohort_page_rows, write_cohort_outputs
-from storage.patient_outputs import patient_report_data
+from storage.patient_outputs import join_notes, patient_report_data, split_notes
 from storage.report_html import patient_report_html
 
 METRICS = {
@@ -49,6 +49,25 @@ def test_tumour_free_report_has_no_interval_and_says_so():
     assert data["status"] == "no tumour found" and "eq7_precision" not in data
     assert data["measurements"] == {} and data["renders"] == {}
     assert "no mesh and no render written" in patient_report_html(data)
+
+
+def test_each_note_reaches_the_report_whole_even_with_the_separator_inside_it():
+    # a given brain mask's file name (or any sentence) may hold "; ", the separator of the
+    # notes in metrics.parquet: the note must come back as one, not as two
+    notes = ["brain mask given (a; b.nii.gz, sha256 0123)", "no tumour found: no mesh"]
+    joined = join_notes(notes)
+    assert split_notes(joined) == ["brain mask given (a, b.nii.gz, sha256 0123)", notes[1]]
+    data = patient_report_data({**METRICS, "notes": joined}, stage_runs=RUNS,
+                               abnormal_slices=[], files=[])  # fmt: skip
+    assert len(data["notes"]) == 2 and data["notes"][1] == notes[1]
+    assert split_notes(None) == [] and split_notes(float("nan")) == [] and join_notes([]) == ""
+
+
+def test_brain_volume_note_is_one_note():
+    from tumor3d.preprocess import brain_volume_note
+
+    note = brain_volume_note(3257.0)
+    assert note is not None and split_notes(join_notes([note])) == [note]
 
 
 def test_cohort_rows_link_existing_files_of_published_patients_only(tmp_path):
