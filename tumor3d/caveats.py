@@ -34,17 +34,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from tumor3d.errors import InputError
 from tumor3d.lesion import LESION_DEFAULTS, SYMMETRY_TOLERANCE_MM, MirrorPlane
+from tumor3d.validation import check_binary_mask
 
 __all__ = ["midline_caveat", "scan_end_caveat", "segmentation_caveats"]
 
 
 def _mask3d(tumor_mask: np.ndarray) -> np.ndarray:
-    m = np.asarray(tumor_mask, dtype=bool)
-    if m.ndim != 3:
-        raise InputError(f"tumor_mask must be a (z, y, x) volume, got shape {m.shape}")
-    return m
+    return check_binary_mask(tumor_mask, "tumor_mask", ndim=3)
 
 
 def scan_end_caveat(tumor_mask: np.ndarray) -> str | None:
