@@ -37,6 +37,20 @@ its modes to be counted. This module uses what a single slice cannot:
    ``mu + floor_sigmas sigma`` (see :func:`_grow_local`).
    A lesion covering more than half of the brain is rejected (the model's
    premise is violated: see ``MAX_BRAIN_FRACTION``).
+4b. **Satellites the lesion reaches.** With ``keep_largest``, a significant
+   seed component other than the kept one joins the lesion when the
+   refined lesion of step 4 touches it (26-connected), and the lesion is
+   refined again around both (repeated while another is reached). The seeds
+   were apart only because the tissue between them is below the seed level;
+   the partial-volume rule decided that tissue is lesion, so lesion and
+   satellite are one connected lesion. No distance is involved: a survey of
+   the satellites of the labelled cases found no distance that separates
+   true satellites (5.7-18.8 mm from the lesion) from false ones (7.3 mm and
+   more). Measured (BraTS pat0005 FLAIR at 2 mm / 5 mm, whose tumour
+   continues in a satellite on slabs 13-15): 3-D Dice 0.809 -> 0.831, Eq. 7
+   error -19.5 % -> -14.5 %, a like gain at every emulation phase; the one
+   other change is a 0.7 mL satellite joining native pat0003 (28 % of it in
+   the label, 3-D Dice 0.897 -> 0.896; ``reports/segmentation.md``).
 3b. **Is there a lesion at all: deep, not superficial.** Where the normal
    model fails without any lesion is at the brain's surface: extracerebral
    tissue left by an imperfect brain extraction (scalp fat on T1), the
@@ -1023,7 +1037,13 @@ def _candidates(
     plane,
     voxel_mm,
 ):
-    """Steps 2, 3, 3b, 3c and 6: (not-CSF mask, labels, significant kept ids)."""
+    """Steps 2, 3, 3b, 3c and 6: (not-CSF mask, labels, significant kept ids, satellites).
+
+    ``satellites`` holds the significant seed components that were not kept
+    (with ``keep_largest``), each with the mirrored seeds within
+    ``SYMMETRIC_REGAIN_MM`` of it as the kept core has them: step 4b joins
+    those the refined lesion reaches.
+    """
     not_csf = img < model.csf_threshold
     if plane is not None and not not_csf.all():
         # CSF is bilateral (ventricles, sulci, cisterns); fluid-bright voxels without a
@@ -1041,9 +1061,11 @@ def _candidates(
     if plane is not None and seeds.any():
         seeds = _asymmetric_seeds(seeds, plane, voxel_mm)
     labels, ids = _significant_components(seeds, min_region_pixels, min_slices)
+    significant = ids
     if ids.size and plane is None:
         if spacing_mm is not None:
             ids = _deep_components(labels, ids, b, spacing_mm)
+        satellites = np.isin(labels, np.setdiff1d(significant, ids[:1])) if keep_largest else None
     elif ids.size:
         # the asymmetric seeds decide whether (and where) there is a lesion; the lesion
         # is the seed component holding that core, with the mirrored seeds within
@@ -1066,8 +1088,33 @@ def _candidates(
             out[comp & (out == 0)] = n_out
             if keep_largest:
                 break
+        satellites = None
+        if keep_largest and n_out:
+            # every other significant asymmetric component, with its mirrored seeds near
+            # it as the kept core has them (no depth test: it may join a deep lesion)
+            sat0 = np.isin(labels, significant) & (out == 0)
+            if sat0.any():
+                near = _within_mm(sat0, SYMMETRIC_REGAIN_MM, voxel_mm)
+                satellites = _touching(full_seeds & (seeds | near), sat0) & (out == 0)
         labels, ids = out, np.arange(1, n_out + 1)
-    return not_csf, labels, ids
+    else:
+        satellites = None
+    return not_csf, labels, ids, satellites
+
+
+def _refine(core, img, allowed, grow_t, reach, tips, model, floor_sigmas, rings):
+    """Step 4: the lesion around its seed core, decided by the partial-volume rule."""
+    # the lesion may continue onto the slice just beyond its seeds (its tip, too
+    # small or too partial-volumed for a seed): the zone reaches one slice further
+    zone = ndi.binary_dilation(core, structure=np.ones((3, 1, 1), bool)) if tips else core
+    zone = _box_dilate(zone, reach, reach)
+    # the smoothed seeds only locate the lesion: every pixel is decided by the
+    # partial-volume rule, so the blur halo of the seeds does not stay in
+    cand = allowed & zone & (img > grow_t)
+    mask = _touching(cand, core)
+    if rings > 0 and mask.any():
+        mask = _grow_local(mask, img, allowed, model, floor_sigmas, rings)
+    return mask
 
 
 def _segment_box(
@@ -1093,7 +1140,7 @@ def _segment_box(
     model = normal_model(sm, img, b, seed_sigmas, modality)
     plane = None if lr_axis is None else symmetry_plane(sm, b, model, int(lr_axis), voxel_mm)
     args = (sm, img, b, smoothing_px, min_region_pixels, min_slices, keep_largest)
-    not_csf, labels, ids = _candidates(model, *args, spacing_mm, plane, voxel_mm)
+    not_csf, labels, ids, satellites = _candidates(model, *args, spacing_mm, plane, voxel_mm)
     if ids.size and np.isfinite(model.csf_threshold):
         # step 6, second pass: a voxel is CSF when it is nearer the CSF level than the
         # lesion's own gray (partial-volume midpoint), now that the lesion gray is known;
@@ -1102,7 +1149,9 @@ def _segment_box(
         csf_t = max(model.csf_threshold, _csf_threshold(img, b, lesion_gray0))
         if csf_t > model.csf_threshold:
             model = NormalModel(model.median, model.sigma, model.seed_threshold, csf_t)
-            not_csf, labels, ids = _candidates(model, *args, spacing_mm, plane, voxel_mm)
+            not_csf, labels, ids, satellites = _candidates(
+                model, *args, spacing_mm, plane, voxel_mm
+            )
     if ids.size == 0:
         return LesionResult(np.zeros(b.shape, bool), model, float("nan"), float("nan"), 0, plane)
     core = np.isin(labels, ids[:1] if keep_largest else ids)
@@ -1110,17 +1159,16 @@ def _segment_box(
     grow_t = 0.5 * (lesion_gray + model.median)
     mask = core
     if refine_boundary:
-        reach = _blur_reach(smoothing_px)
-        # the lesion may continue onto the slice just beyond its seeds (its tip, too
-        # small or too partial-volumed for a seed): the zone reaches one slice further
-        zone = ndi.binary_dilation(core, structure=np.ones((3, 1, 1), bool)) if tips else core
-        zone = _box_dilate(zone, reach, reach)
-        # the smoothed seeds only locate the lesion: every pixel is decided by the
-        # partial-volume rule, so the blur halo of the seeds does not stay in
-        cand = b & zone & not_csf & (img > grow_t)
-        mask = _touching(cand, core)
-        if boundary_rings > 0 and mask.any():
-            mask = _grow_local(mask, img, b & not_csf, model, floor_sigmas, boundary_rings)
+        refine = (img, b & not_csf, grow_t, _blur_reach(smoothing_px), tips, model)
+        mask = _refine(core, *refine, floor_sigmas, boundary_rings)
+        if satellites is not None:
+            # step 4b: a satellite the refined lesion reaches is the same lesion
+            for _ in range(MAX_CANDIDATES):
+                reached = _touching(satellites | mask, mask) & satellites & ~core
+                if not reached.any():
+                    break
+                core = core | reached
+                mask = _refine(core, *refine, floor_sigmas, boundary_rings)
     if fill_core:
         mask = _fill_enclosed(mask, b, img, model.median)
         if plane is not None and modality != "t2" and mask.any():

@@ -648,9 +648,10 @@ def test_faint_wall_of_a_joined_cavity_joins_with_it(monkeypatch):
     # step 5c: the rim lies on the core's middle slices; around the core's poles, on the
     # slices beyond the rim, a faint 1 mm wall (gray 175: above the partial-volume
     # threshold between the rim's 230 and the normal 100) is the lesion's too. The steps
-    # before 5c grow from the rim and do not reach most of it (checked below: less than
-    # 60 % without 5c); 5c decides it by the step-4 rule once the core is known, and
-    # adds nothing outside the truth
+    # before 5c grow from the rim and do not reach all of it (checked below: less than
+    # 80 % without 5c; 46 % before step 4b, which joins the rim's pieces the growth
+    # reaches); 5c decides it by the step-4 rule once the core is known, and adds
+    # nothing outside the truth
     import tumor3d.lesion as lesion_mod
 
     brain = _brain()
@@ -664,10 +665,10 @@ def test_faint_wall_of_a_joined_cavity_joins_with_it(monkeypatch):
     mask = _segment(img, brain, modality="t1c", lr_axis=2)
     assert (mask & wall).sum() > 0.9 * wall.sum()
     dice = 2 * (mask & truth).sum() / (mask.sum() + truth.sum())
-    # without step 5c (the wall rule replaced by "nothing joins") half the wall is lost
+    # without step 5c (the wall rule replaced by "nothing joins") a part of the wall is lost
     monkeypatch.setattr(lesion_mod, "_cavity_wall", lambda mask, *args: mask)
     without = _segment(img, brain, modality="t1c", lr_axis=2)
-    assert (without & wall).sum() < 0.6 * wall.sum()
+    assert (without & wall).sum() < 0.8 * wall.sum()
     assert dice > 2 * (without & truth).sum() / (without.sum() + truth.sum())
     assert (mask & ~truth).sum() <= (without & ~truth).sum()
 
@@ -684,3 +685,47 @@ def test_dark_asymmetric_structure_reaching_far_beyond_the_lesion_stays_out():
     mask = _segment(img, brain, modality="t1c", lr_axis=2)
     assert (mask & lesion).sum() > 0.8 * lesion.sum()
     assert (mask & trapped).sum() < 0.1 * trapped.sum()
+
+
+def _lesion_and_satellite(link_gray: float | None):
+    """A lesion, a smaller satellite 9 mm from it (same hemisphere), and optionally a
+    1-pixel strand of ``link_gray`` between them: too thin to seed once smoothed
+    (its smoothed gray stays below the seed level of ``seed_sigmas=3``), but above
+    the partial-volume midpoint pixel by pixel."""
+    brain = _brain()
+    z, y, x = _grid_mm()
+    main = _ball((0.0, -12.0, 16.0), 11.0)
+    satellite = _ball((0.0, 14.0, 16.0), 6.0)
+    strand = (np.abs(z) < 1.6) & (np.abs(x - 16.5) < 0.4) & (y > -2.0) & (y < 9.0)
+    assert not (main & satellite).any()
+    bright = [(main, 200.0), (satellite, 200.0)]
+    if link_gray is not None:
+        bright.append((strand, link_gray))
+    return brain, main, satellite, strand, _image(brain, bright)
+
+
+@pytest.mark.parametrize("lr_axis", [None, 2])
+def test_satellite_the_refined_lesion_reaches_joins_it(lr_axis):
+    brain, main, satellite, strand, img = _lesion_and_satellite(170.0)
+    res = segment_hyperintense_lesion(
+        img, brain, modality="flair", spacing_mm=SPACING, lr_axis=lr_axis, seed_sigmas=3.0
+    )
+    # the strand does not seed: the satellite is a seed component of its own
+    sm = _smooth_in_brain(img, brain, 2.0)
+    middle = strand & (np.abs(_grid_mm()[1] - 3.5) < 3.0)
+    assert sm[middle].max() < res.model.seed_threshold
+    assert img[strand].min() > res.grow_threshold
+    assert res.mask[main].mean() > 0.95
+    assert res.mask[satellite].mean() > 0.95
+    expected = ndi.binary_dilation(main | satellite | strand, iterations=2)
+    assert (res.mask & ~expected).sum() < 0.02 * res.mask.sum()
+
+
+@pytest.mark.parametrize("lr_axis", [None, 2])
+def test_satellite_apart_from_the_refined_lesion_stays_out(lr_axis):
+    brain, main, satellite, _, img = _lesion_and_satellite(None)
+    res = segment_hyperintense_lesion(
+        img, brain, modality="flair", spacing_mm=SPACING, lr_axis=lr_axis, seed_sigmas=3.0
+    )
+    assert res.mask[main].mean() > 0.95
+    assert not res.mask[satellite].any()
