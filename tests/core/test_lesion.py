@@ -687,15 +687,15 @@ def test_dark_asymmetric_structure_reaching_far_beyond_the_lesion_stays_out():
     assert (mask & trapped).sum() < 0.1 * trapped.sum()
 
 
-def _lesion_and_satellite(link_gray: float | None):
-    """A lesion, a smaller satellite 9 mm from it (same hemisphere), and optionally a
-    1-pixel strand of ``link_gray`` between them: too thin to seed once smoothed
-    (its smoothed gray stays below the seed level of ``seed_sigmas=3``), but above
-    the partial-volume midpoint pixel by pixel."""
+def _lesion_and_satellite(link_gray: float | None, satellite_y_mm: float = 14.0):
+    """A lesion, a smaller satellite in the same hemisphere (9 mm from it at the default
+    ``satellite_y_mm``), and optionally a 1-pixel strand of ``link_gray`` between them:
+    too thin to seed once smoothed (its smoothed gray stays below the seed level of
+    ``seed_sigmas=3``), but above the partial-volume midpoint pixel by pixel."""
     brain = _brain()
     z, y, x = _grid_mm()
-    main = _ball((0.0, -12.0, 16.0), 11.0)
-    satellite = _ball((0.0, 14.0, 16.0), 6.0)
+    main = _ball((0.0, -12.0, 16.0), 11.0)  # reaches y = -1 mm
+    satellite = _ball((0.0, satellite_y_mm, 16.0), 6.0)
     strand = (np.abs(z) < 1.6) & (np.abs(x - 16.5) < 0.4) & (y > -2.0) & (y < 9.0)
     assert not (main & satellite).any()
     bright = [(main, 200.0), (satellite, 200.0)]
@@ -704,12 +704,17 @@ def _lesion_and_satellite(link_gray: float | None):
     return brain, main, satellite, strand, _image(brain, bright)
 
 
+def _segment_satellite(img, brain, modality, lr_axis):
+    return segment_hyperintense_lesion(
+        img, brain, modality=modality, spacing_mm=SPACING, lr_axis=lr_axis, seed_sigmas=3.0
+    )
+
+
 @pytest.mark.parametrize("lr_axis", [None, 2])
 def test_satellite_the_refined_lesion_reaches_joins_it(lr_axis):
+    # on T1c, where a satellite joins only when the refined lesion touches it
     brain, main, satellite, strand, img = _lesion_and_satellite(170.0)
-    res = segment_hyperintense_lesion(
-        img, brain, modality="flair", spacing_mm=SPACING, lr_axis=lr_axis, seed_sigmas=3.0
-    )
+    res = _segment_satellite(img, brain, "t1c", lr_axis)
     # the strand does not seed: the satellite is a seed component of its own
     sm = _smooth_in_brain(img, brain, 2.0)
     middle = strand & (np.abs(_grid_mm()[1] - 3.5) < 3.0)
@@ -721,11 +726,26 @@ def test_satellite_the_refined_lesion_reaches_joins_it(lr_axis):
     assert (res.mask & ~expected).sum() < 0.02 * res.mask.sum()
 
 
-@pytest.mark.parametrize("lr_axis", [None, 2])
-def test_satellite_apart_from_the_refined_lesion_stays_out(lr_axis):
-    brain, main, satellite, _, img = _lesion_and_satellite(None)
-    res = segment_hyperintense_lesion(
-        img, brain, modality="flair", spacing_mm=SPACING, lr_axis=lr_axis, seed_sigmas=3.0
-    )
+@pytest.mark.parametrize(
+    ("modality", "lr_axis"),
+    # T2 with its left-right axis only: without the mirror test a lesion as bright as
+    # this one is taken for CSF there (step 6)
+    [("flair", None), ("flair", 2), ("t2", 2), ("t1c", None), ("t1c", 2)],
+)
+def test_satellite_within_1_cm_joins_on_flair_and_t2_but_not_on_t1c(modality, lr_axis):
+    brain, main, satellite, _, img = _lesion_and_satellite(None)  # 9 mm apart
+    res = _segment_satellite(img, brain, modality, lr_axis)
+    assert res.mask[main].mean() > 0.95
+    if modality == "t1c":
+        assert not res.mask[satellite].any()
+    else:
+        assert res.mask[satellite].mean() > 0.95
+        expected = ndi.binary_dilation(main | satellite, iterations=2)
+        assert (res.mask & ~expected).sum() < 0.02 * res.mask.sum()
+
+
+def test_satellite_beyond_1_cm_stays_out():
+    brain, main, satellite, _, img = _lesion_and_satellite(None, satellite_y_mm=24.0)
+    res = _segment_satellite(img, brain, "flair", 2)  # 19 mm apart
     assert res.mask[main].mean() > 0.95
     assert not res.mask[satellite].any()
