@@ -1118,14 +1118,25 @@ def _candidates(
 
 def _refine(core, img, allowed, grow_t, reach, tips, model, floor_sigmas, rings):
     """Step 4: the lesion around its seed core, decided by the partial-volume rule."""
+    mask = np.zeros_like(core)
+    if not core.any():
+        return mask
+    # everything below happens within the zone, the core's box widened by the zone's reach
+    pad = (1 if tips else 0, reach, reach)
+    box = []
+    for ax in range(3):
+        idx = np.flatnonzero(core.any(axis=tuple(a for a in range(3) if a != ax)))
+        box.append(slice(max(idx[0] - pad[ax], 0), idx[-1] + pad[ax] + 1))
+    box = tuple(box)
+    c = core[box]
     # the lesion may continue onto the slice just beyond its seeds (its tip, too
     # small or too partial-volumed for a seed): the zone reaches one slice further
-    zone = ndi.binary_dilation(core, structure=np.ones((3, 1, 1), bool)) if tips else core
+    zone = ndi.binary_dilation(c, structure=np.ones((3, 1, 1), bool)) if tips else c
     zone = _box_dilate(zone, reach, reach)
     # the smoothed seeds only locate the lesion: every pixel is decided by the
     # partial-volume rule, so the blur halo of the seeds does not stay in
-    cand = allowed & zone & (img > grow_t)
-    mask = _touching(cand, core)
+    cand = allowed[box] & zone & (img[box] > grow_t)
+    mask[box] = _touching(cand, c)
     if rings > 0 and mask.any():
         mask = _grow_local(mask, img, allowed, model, floor_sigmas, rings)
     return mask
@@ -1213,7 +1224,8 @@ def _segment_box(
                 if not reached.any():
                     break
                 core = core | reached
-                mask = _refine(core, *refine, floor_sigmas, boundary_rings)
+                # refined around what joined (the rest of the lesion keeps its border)
+                mask = mask | _refine(reached, *refine, floor_sigmas, boundary_rings)
     if fill_core:
         mask = _fill_enclosed(mask, b, img, model.median)
         if plane is not None and modality != "t2" and mask.any():
