@@ -1037,6 +1037,15 @@ def _bounding_box(b: np.ndarray, pad: int) -> tuple[slice, ...]:
     return tuple(out)
 
 
+def _widened_box(mask: np.ndarray, pad: tuple[int, int, int]) -> tuple[slice, ...]:
+    """The bounding box of a non-empty 3-D ``mask``, widened by ``pad`` voxels per axis."""
+    box = []
+    for ax in range(3):
+        idx = np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != ax)))
+        box.append(slice(max(idx[0] - pad[ax], 0), idx[-1] + pad[ax] + 1))
+    return tuple(box)
+
+
 def _candidates(
     model,
     sm,
@@ -1122,12 +1131,7 @@ def _refine(core, img, allowed, grow_t, reach, tips, model, floor_sigmas, rings)
     if not core.any():
         return mask
     # everything below happens within the zone, the core's box widened by the zone's reach
-    pad = (1 if tips else 0, reach, reach)
-    box = []
-    for ax in range(3):
-        idx = np.flatnonzero(core.any(axis=tuple(a for a in range(3) if a != ax)))
-        box.append(slice(max(idx[0] - pad[ax], 0), idx[-1] + pad[ax] + 1))
-    box = tuple(box)
+    box = _widened_box(core, (1 if tips else 0, reach, reach))
     c = core[box]
     # the lesion may continue onto the slice just beyond its seeds (its tip, too
     # small or too partial-volumed for a seed): the zone reaches one slice further
@@ -1155,12 +1159,8 @@ def _reached(
         return out
     # everything is decided within the satellites' bounding box widened by the reach (and
     # one voxel, for touching): a mask voxel farther away reaches no satellite voxel
-    box = []
-    for ax in range(3):
-        idx = np.flatnonzero(satellites.any(axis=tuple(a for a in range(3) if a != ax)))
-        pad = int(np.ceil(reach_mm / float(voxel_mm[ax]))) + 1
-        box.append(slice(max(idx[0] - pad, 0), idx[-1] + pad + 1))
-    box = tuple(box)
+    pad = tuple(int(np.ceil(reach_mm / float(voxel_mm[ax]))) + 1 for ax in range(3))
+    box = _widened_box(satellites, pad)
     sat, m = satellites[box], mask[box]
     if not m.any():
         return out
