@@ -56,7 +56,7 @@ def survey(data: Path, cfg, native: bool) -> list[dict]:
         model = L.normal_model(sm, enhanced, brain, lp.seed_sigmas, case.modality)
         axis = L.left_right_axis(scan.affine)
         plane = None if axis is None else L.symmetry_plane(sm, brain, model, axis, spacing)
-        _, labels, ids = L._candidates(
+        _, labels, ids, _, _ = L._candidates(
             model, sm, enhanced, brain, lp.smoothing_px, lp.min_region_pixels, lp.min_slices,
             False, None, plane, spacing,
         )  # fmt: skip

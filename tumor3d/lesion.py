@@ -689,6 +689,7 @@ def _asymmetric_cavity(
     voxel_mm: tuple[float, ...],
     min_pixels: int,
     min_slices: int,
+    extent_of: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Step 5b: dark asymmetric fluid (a necrotic cavity) next to the lesion joins it.
 
@@ -722,6 +723,12 @@ def _asymmetric_cavity(
     3-D Dice 0.757 -> 0.808 at 2 mm / 5 mm, T1c 0.622 -> 0.697; see
     ``reports/segmentation.md``.
 
+    ``extent_of`` (default: ``mask``) is the lesion whose extent the
+    enclosure test uses: without what step 3d added across the midline, since
+    a lesion spanning both hemispheres spans the ventricles between them,
+    which are bilateral, yet partly asymmetric when the tumour displaces them
+    (BraTS pat0003: 3,184 voxels joined this way before the rule).
+
     Returns the lesion with what joined, and the cavity alone: the dark
     voxels that joined as above (without the ring between), including those
     step 5 had already filled as enclosed (5c grows the wall around them
@@ -739,8 +746,9 @@ def _asymmetric_cavity(
     touch = touch[touch > 0]
     sizes = np.bincount(lab.ravel())
     extent = np.zeros_like(mask)
-    zs = np.flatnonzero(mask.any(axis=(1, 2)))
-    box = _bounding_box(mask, gap_px)
+    ext = mask if extent_of is None or not extent_of.any() else extent_of
+    zs = np.flatnonzero(ext.any(axis=(1, 2)))
+    box = _bounding_box(ext, gap_px)
     extent[(slice(max(zs[0] - 1, 0), zs[-1] + 2), *box[1:])] = True
     inside = np.bincount(lab[extent], minlength=sizes.size)
     touch = touch[np.isin(touch, ids) & (2 * inside[touch] >= sizes[touch])]
@@ -1058,14 +1066,19 @@ def _candidates(
     spacing_mm,
     plane,
     voxel_mm,
+    crossing=False,
 ):
-    """Steps 2, 3, 3b, 3c and 6: (not-CSF mask, labels, significant kept ids, satellites).
+    """Steps 2, 3, 3b, 3c, 3d and 6.
 
-    ``satellites`` holds the significant seed components that were not kept
-    (with ``keep_largest``; None otherwise or when nothing was kept); with a
-    mirror plane each has the mirrored seeds within ``SYMMETRIC_REGAIN_MM``
-    of it, as the kept core has them. Step 4b joins those the refined lesion
-    reaches.
+    Returns ``(not-CSF mask, labels, significant kept ids, satellites,
+    across)``. ``satellites`` holds the significant seed components that
+    were not kept (with ``keep_largest``; None otherwise or when nothing was
+    kept); with a mirror plane each has the mirrored seeds within
+    ``SYMMETRIC_REGAIN_MM`` of it, as the kept core has them. Step 4b joins
+    those the refined lesion reaches. ``across`` (step 3d, with ``crossing``
+    and a mirror plane and the depth of step 3b; None otherwise) holds the
+    seeds in the inner half of the brain connected to the kept lesion
+    through such seeds, beyond the lesion's own extent (its labels).
     """
     not_csf = img < model.csf_threshold
     if plane is not None and not not_csf.all():
@@ -1081,6 +1094,7 @@ def _candidates(
         halo = _box_dilate(~not_csf & b, reach, reach)
         seeds &= ~halo
     full_seeds = seeds
+    across = None
     if plane is not None and seeds.any():
         seeds = _asymmetric_seeds(seeds, plane, voxel_mm)
     labels, ids = _significant_components(seeds, min_region_pixels, min_slices)
@@ -1111,18 +1125,25 @@ def _candidates(
             out[comp & (out == 0)] = n_out
             if keep_largest:
                 break
+        if crossing and n_out and depth is not None:
+            # step 3d: the seeds of the inner half of the brain connected to the lesion
+            # through such seeds, mirrored or not (a tumour crossing the midline)
+            kept = out > 0
+            deep = b & (depth >= float(np.median(depth[b])))
+            across = _touching(kept | (full_seeds & deep), kept) & ~kept
         satellites = None
         if keep_largest and n_out:
             # every other significant asymmetric component, with its mirrored seeds near
             # it as the kept core has them (no depth test: it may join a deep lesion)
-            sat0 = np.isin(labels, significant) & (out == 0)
+            free = out == 0 if across is None else (out == 0) & ~across
+            sat0 = np.isin(labels, significant) & free
             if sat0.any():
                 near = _within_mm(sat0, SYMMETRIC_REGAIN_MM, voxel_mm)
-                satellites = _touching(full_seeds & (seeds | near), sat0) & (out == 0)
+                satellites = _touching(full_seeds & (seeds | near), sat0) & free
         labels, ids = out, np.arange(1, n_out + 1)
     else:
         satellites = None
-    return not_csf, labels, ids, satellites
+    return not_csf, labels, ids, satellites, across
 
 
 def _refine(core, img, allowed, grow_t, reach, tips, model, floor_sigmas, rings):
@@ -1193,8 +1214,13 @@ def _segment_box(
     sm = _smooth_in_brain(img, b, float(smoothing_px))
     model = normal_model(sm, img, b, seed_sigmas, modality)
     plane = None if lr_axis is None else symmetry_plane(sm, b, model, int(lr_axis), voxel_mm)
+    # step 3d on FLAIR only: there the CSF is dark, so the deep bilateral bright structures
+    # of T2 (ventricles) and T1c (choroid plexus, deep veins) are no seeds
     args = (sm, img, b, smoothing_px, min_region_pixels, min_slices, keep_largest)
-    not_csf, labels, ids, satellites = _candidates(model, *args, spacing_mm, plane, voxel_mm)
+    crossing = modality == "flair"
+    not_csf, labels, ids, satellites, across = _candidates(
+        model, *args, spacing_mm, plane, voxel_mm, crossing
+    )
     if ids.size and np.isfinite(model.csf_threshold):
         # step 6, second pass: a voxel is CSF when it is nearer the CSF level than the
         # lesion's own gray (partial-volume midpoint), now that the lesion gray is known;
@@ -1203,8 +1229,8 @@ def _segment_box(
         csf_t = max(model.csf_threshold, _csf_threshold(img, b, lesion_gray0))
         if csf_t > model.csf_threshold:
             model = NormalModel(model.median, model.sigma, model.seed_threshold, csf_t)
-            not_csf, labels, ids, satellites = _candidates(
-                model, *args, spacing_mm, plane, voxel_mm
+            not_csf, labels, ids, satellites, across = _candidates(
+                model, *args, spacing_mm, plane, voxel_mm, crossing
             )
     if ids.size == 0:
         return LesionResult(np.zeros(b.shape, bool), model, float("nan"), float("nan"), 0, plane)
@@ -1212,9 +1238,16 @@ def _segment_box(
     lesion_gray = float(np.median(img[core]))
     grow_t = 0.5 * (lesion_gray + model.median)
     mask = core
+    crossed = None  # what step 3d added beyond the lesion
     if refine_boundary:
         refine = (img, b & not_csf, grow_t, _blur_reach(smoothing_px), tips, model)
         mask = _refine(core, *refine, floor_sigmas, boundary_rings)
+        if across is not None and across.any():
+            # step 3d: the part across the midline is decided by the partial-volume rule
+            # alone, without the boundary rings' weaker evidence
+            crossed = _refine(across, *refine, floor_sigmas, 0) & ~mask
+            mask = mask | crossed
+            core = core | across
         if satellites is not None and satellites.any():
             # step 4b: a satellite the refined lesion reaches (on FLAIR / T2: comes within
             # SATELLITE_MM of) is the same lesion
@@ -1226,6 +1259,11 @@ def _segment_box(
                 core = core | reached
                 # refined around what joined (the rest of the lesion keeps its border)
                 mask = mask | _refine(reached, *refine, floor_sigmas, boundary_rings)
+    elif across is not None and across.any():
+        crossed = across & ~core
+        mask = core | across
+    # the lesion without what step 3d added across the midline: step 5b's extent
+    own = None if crossed is None else mask & ~crossed
     if fill_core:
         mask = _fill_enclosed(mask, b, img, model.median)
         if plane is not None and modality != "t2" and mask.any():
@@ -1242,6 +1280,7 @@ def _segment_box(
                 voxel_mm,
                 min_region_pixels,
                 min_slices,
+                extent_of=own,
             )
             if refine_boundary and cavity.any():
                 mask = _cavity_wall(
