@@ -785,3 +785,103 @@ def test_satellite_reach_is_measured_through_the_voxel_spacing():
     assert _reached(voxel(1, 5, 5), mask, 10.0, (12.0, 1.0, 1.0)).any()
     assert _reached(voxel(1, 5, 5), mask, 0.0, (12.0, 1.0, 1.0)).any()
     assert not _reached(voxel(3, 4, 4), mask, 0.0, (3.0, 1.0, 1.0)).any()
+
+
+def _crossing_tumour(dark_beside_far: bool = False):
+    """A tumour crossing the midline deep (through the corpus callosum), x = left-right.
+
+    Its near part (left) is asymmetric; its far part (right) mirrors into the
+    near part, so step 3c sees it as bilateral; a bar joins the two across the
+    midline. The far part lies more than ``SYMMETRIC_REGAIN_MM`` from the
+    asymmetric core. Optionally a dark asymmetric blob (a sulcus or a horn
+    displaced by the mass) beside the far part, outside the near part's extent.
+    """
+    brain = _brain()
+    z, y, x = _grid_mm()
+    near = _ball((0, 4, -14), 10) | _ball((0, 16, -16), 8)
+    far = _ball((0, -2, 20), 8)
+    bridge = (np.abs(z) < 4.5) & (np.abs(y + 2) < 4) & (x > -6) & (x < 16)
+    blob = _ball((0, -10, 20), 5.5) & brain if dark_beside_far else np.zeros_like(brain)
+    far, bridge = far & ~blob, bridge & ~blob
+    img = _image(brain, [(near, 190.0), (far, 190.0), (bridge, 190.0), (blob, 20.0)])
+    return brain, img, near, far, bridge, blob
+
+
+def _without_step_3d(monkeypatch):
+    original = lesion_module._candidates
+
+    def no_crossing(*args):
+        return original(*args[:-1], False)  # the last positional argument: crossing
+
+    monkeypatch.setattr(lesion_module, "_candidates", no_crossing)
+
+
+@pytest.mark.parametrize("modality", ["flair", "t2", "t1c"])
+def test_a_tumour_crossing_the_midline_keeps_its_far_part_on_flair_only(modality, monkeypatch):
+    brain, img, near, far, bridge, _ = _crossing_tumour()
+    refined = []  # (core, rings) of every step-4 refinement, in the brain box's frame
+    original_refine = lesion_module._refine
+
+    def recording_refine(core, *args):
+        refined.append((core.copy(), args[-1]))
+        return original_refine(core, *args)
+
+    monkeypatch.setattr(lesion_module, "_refine", recording_refine)
+    mask = _segment(img, brain, modality=modality, lr_axis=2)
+    if modality == "flair":
+        assert mask[near].mean() > 0.95
+        assert mask[far].mean() > 0.95 and mask[bridge].mean() > 0.95
+        expected = ndi.binary_dilation(near | far | bridge, iterations=2)
+        assert (mask & ~expected).sum() == 0
+        # the far part is decided by the partial-volume rule alone: every refinement
+        # that grows boundary rings starts from a core without it
+        box = lesion_module._bounding_box(brain, int(np.ceil(4 * 2.0)) + 1)  # as the model
+        far_side = (_grid_mm()[2] > 12.0)[box]
+        with_rings = [core for core, rings in refined if rings > 0]
+        assert with_rings and not any((core & far_side).any() for core in with_rings)
+        assert any((core & far_side).any() for core, rings in refined if rings == 0)
+    else:
+        # T2 (ventricles) and T1c (choroid plexus, deep veins): no crossing rule
+        assert mask[near].mean() > 0.3
+        assert not mask[far].any()
+    # precondition: without step 3d, the far part is lost on FLAIR too
+    _without_step_3d(monkeypatch)
+    assert not _segment(img, brain, modality="flair", lr_axis=2)[far].any()
+
+
+def test_superficial_bilateral_bright_tissue_touching_the_lesion_is_not_taken_across(
+    monkeypatch,
+):
+    # a bright layer along the whole brain surface (bilateral: cortex, or scalp left by
+    # the brain extraction) touching a FLAIR lesion: step 3d takes only the inner half
+    brain = _brain()
+    z, y, x = _grid_mm()
+    r = RADII_MM - 3.0
+    layer = brain & ((z / r[0]) ** 2 + (y / r[1]) ** 2 + (x / r[2]) ** 2 > 1.0) & (np.abs(z) < 7)
+    lesion = _ball((0, 0, -22), 10) & brain
+    img = _image(brain, [(lesion, 190.0), (layer, 190.0)])
+    far = layer & (_inplane_distance_mm(lesion) > 20.0)
+    mask = _segment(img, brain, lr_axis=2)
+    assert mask[lesion].mean() > 0.95
+    assert not mask[far].any() and not mask[layer & (x > 5.0)].any()
+    # precondition: were the whole brain "deep", the layer would join all round
+    monkeypatch.setattr(lesion_module, "_depth_mm", lambda b, sp: np.where(b, 1e3, 0.0))
+    deep = _segment(img, brain, lr_axis=2)
+    assert deep[far].mean() > 0.9
+
+
+def test_a_dark_structure_beside_the_far_part_does_not_join_as_a_cavity(monkeypatch):
+    # step 5b's enclosure test uses the lesion's extent without the part across the
+    # midline: a lesion spanning both hemispheres would enclose the ventricles
+    brain, img, near, far, _, blob = _crossing_tumour(dark_beside_far=True)
+    mask = _segment(img, brain, lr_axis=2)
+    assert mask[far].mean() > 0.95
+    assert not mask[blob].any()
+    # precondition: measured against the whole lesion's extent, the blob would join
+    original = lesion_module._asymmetric_cavity
+    monkeypatch.setattr(
+        lesion_module,
+        "_asymmetric_cavity",
+        lambda *a, **k: original(*a, **{**k, "extent_of": None}),
+    )
+    assert _segment(img, brain, lr_axis=2)[blob].mean() > 0.8
