@@ -100,21 +100,29 @@ its modes to be counted. This module uses what a single slice cannot:
    other hemisphere through the corpus callosum, deep: at the surface the
    falx separates the hemispheres. Its far part mirrors its near part, so
    step 3c keeps only what lies within ``SYMMETRIC_REGAIN_MM`` of the
-   asymmetric core. On FLAIR the seeds of the brain's inner half (deeper
-   than its median depth, as in step 3b, on a depth with no preferred side:
-   :func:`_inner_half`) connected to the kept lesion through such seeds
-   join it too. FLAIR only: its CSF is dark, while the
+   asymmetric core. On FLAIR the seeds of the brain's inner half (at least
+   as deep as its median depth, as in step 3b, on a depth with no preferred
+   side: :func:`_inner_half`) connected to the kept lesion through such
+   seeds join it too; an asymmetric seed component reached that way is a
+   satellite (step 4b). Nothing checks that what joins lies across the
+   plane: mirrored deep seeds on the lesion's own side connected to it (a
+   periventricular hyperintensity touching it) join as well. Step 3d needs
+   step 3b's depth: it is off with ``reject_superficial=False``.
+   FLAIR only: its CSF is dark, while the
    deep bilateral bright structures of T2 (the ventricles) and T1c (choroid
    plexus, deep veins) would join (measured: T2 3-D Dice 0.898 -> 0.853,
    BraTS pat0003 T1c 0.832 -> 0.791). Mirrored tissue is weaker evidence
    than an asymmetric core, so the part that joins is decided by the
    partial-volume rule of step 4 alone, without its boundary rings. A
    lesion spanning both hemispheres spans the ventricles between them, so
-   step 5b's enclosure test uses the lesion's extent without that part.
-   Measured (``reports/segmentation.md``): native BraTS pat0003 3-D Dice
-   0.896 -> 0.917, volume error -2.3 % -> +3.9 %; at 2 mm / 5 mm 0.893 ->
-   0.908 at offset 2 and 0.906-0.908 at every emulation phase; the
-   held-out FLAIR 0.925 -> 0.930; no other case changes. Without the depth
+   step 5b's enclosure test uses the lesion's extent without that part
+   (taken before step 5 fills holes, so that a hole of that part does not
+   widen it; satellites reached through it count).
+   Measured (``reports/segmentation.md``, in-process harness): native BraTS
+   pat0003 3-D Dice 0.896 -> 0.917, volume error -2.3 % -> +3.9 %; at 2 mm /
+   5 mm 0.893 -> 0.908 at offset 2 and 0.906-0.908 at every emulation
+   phase; the held-out FLAIR 0.925 -> 0.930 (2 mm / 5 mm, offset 2); no
+   other case changes. Without the depth
    limit, the unlabelled raw TCGA FLAIR head gains 155 mL through its scalp;
    with it, 0.7 mL.
 5. **Enclosed core.** Necrosis and cysts are dark on FLAIR and T1c but part of
@@ -967,7 +975,7 @@ def segment_hyperintense_lesion(
         mid-sagittal plane of step 3c (in mm).
     reject_superficial : bool
         Step 3b: keep only candidates at least as deep as the brain's median
-        depth.
+        depth. False turns step 3d off too (it needs that depth).
     lr_axis : {1, 2} or None
         Array axis running left-right (:func:`left_right_axis` of the scan's
         affine), for step 3c; None skips it (e.g. sagittal slices). The
@@ -1115,7 +1123,8 @@ def _candidates(
     those the refined lesion reaches. ``across`` (step 3d, with ``crossing``
     and a mirror plane and the depth of step 3b; None otherwise) holds the
     seeds in the inner half of the brain connected to the kept lesion
-    through such seeds, beyond the lesion's own extent (its labels).
+    through such seeds, beyond the lesion's own extent (its labels), other
+    than significant asymmetric components (those are satellites).
     """
     not_csf = img < model.csf_threshold
     if plane is not None and not not_csf.all():
@@ -1168,6 +1177,9 @@ def _candidates(
             kept = out > 0
             deep = _inner_half(b, depth, spacing_mm, plane.axis)
             across = _touching(kept | (full_seeds & deep), kept) & ~kept
+            # an asymmetric component reached this way is a satellite (step 4b: refined
+            # with the rings, as any lesion of its own), not mirrored tissue
+            across &= ~np.isin(labels, significant)
         satellites = None
         if keep_largest and n_out:
             # every other significant asymmetric component, with its mirrored seeds near
@@ -1284,7 +1296,6 @@ def _segment_box(
             # alone, without the boundary rings' weaker evidence
             crossed = _refine(across, *refine, floor_sigmas, 0) & ~mask
             mask = mask | crossed
-            core = core | across
         if satellites is not None and satellites.any():
             # step 4b: a satellite the refined lesion reaches (on FLAIR / T2: comes within
             # SATELLITE_MM of) is the same lesion
