@@ -107,11 +107,11 @@ its modes to be counted. This module uses what a single slice cannot:
    satellite (step 4b). Nothing checks that what joins lies across the
    plane: mirrored deep seeds on the lesion's own side connected to it (a
    periventricular hyperintensity touching it) join as well. Step 3d needs
-   step 3b's depth: it is off with ``reject_superficial=False``.
-   FLAIR only: its CSF is dark, while the
-   deep bilateral bright structures of T2 (the ventricles) and T1c (choroid
-   plexus, deep veins) would join (measured: T2 3-D Dice 0.898 -> 0.853,
-   BraTS pat0003 T1c 0.832 -> 0.791). Mirrored tissue is weaker evidence
+   step 3b's depth: it is off with ``reject_superficial=False``. FLAIR
+   only: its CSF is dark, while the deep bilateral bright structures of T2
+   (the ventricles) and T1c (choroid plexus, deep veins) would join
+   (measured: T2 3-D Dice 0.898 -> 0.853, BraTS pat0003 T1c 0.832 ->
+   0.791). Mirrored tissue is weaker evidence
    than an asymmetric core, so the part that joins is decided by the
    partial-volume rule of step 4 alone, without its boundary rings. A
    lesion spanning both hemispheres spans the ventricles between them, so
@@ -122,9 +122,8 @@ its modes to be counted. This module uses what a single slice cannot:
    pat0003 3-D Dice 0.896 -> 0.917, volume error -2.3 % -> +3.9 %; at 2 mm /
    5 mm 0.893 -> 0.908 at offset 2 and 0.906-0.908 at every emulation
    phase; the held-out FLAIR 0.925 -> 0.930 (2 mm / 5 mm, offset 2); no
-   other case changes. Without the depth
-   limit, the unlabelled raw TCGA FLAIR head gains 155 mL through its scalp;
-   with it, 0.7 mL.
+   other case changes. Without the depth limit, the unlabelled raw TCGA
+   FLAIR head gains 155 mL through its scalp; with it, 0.7 mL.
 5. **Enclosed core.** Necrosis and cysts are dark on FLAIR and T1c but part of
    the whole tumour; holes of each slice's mask are filled, and so are dark
    cavities enclosed by the lesion *and the brain border* (a cavity that

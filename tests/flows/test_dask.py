@@ -33,7 +33,7 @@ pytest.importorskip("prefect_dask", reason="prefect-dask not installed")
 
 
 @pytest.fixture
-def patient_comms():
+def generous_comm_timeouts():
     """Generous Dask comm timeouts (30 s by default) for a loaded shared machine.
 
     Restarting a killed worker *process* imports numpy, numba and Prefect
@@ -89,7 +89,7 @@ def test_dask_options_are_exclusive():
 
 
 @pytest.mark.slow
-@pytest.mark.usefixtures("prefect_harness", "patient_comms")
+@pytest.mark.usefixtures("prefect_harness", "generous_comm_timeouts")
 def test_cohort_on_a_two_worker_cluster_matches_the_local_runner(tmp_path):
     rows = _rows(tmp_path / "in", [0, 1, 2])
     local = run_cohort(rows, tmp_path / "local", workers=2)
@@ -118,7 +118,7 @@ def test_cohort_on_a_two_worker_cluster_matches_the_local_runner(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.usefixtures("prefect_harness", "patient_comms")
+@pytest.mark.usefixtures("prefect_harness", "generous_comm_timeouts")
 def test_a_worker_killed_mid_stage_the_cohort_finishes_and_a_rerun_completes(tmp_path):
     """SIGKILL the worker process running a render: Dask reruns the stage elsewhere.
 
@@ -183,7 +183,7 @@ def test_a_worker_killed_mid_stage_the_cohort_finishes_and_a_rerun_completes(tmp
 
 
 @pytest.mark.slow
-@pytest.mark.usefixtures("prefect_harness", "patient_comms")
+@pytest.mark.usefixtures("prefect_harness", "generous_comm_timeouts")
 def test_a_stage_that_kills_its_worker_every_time_fails_that_patient_only(tmp_path):
     """Dask gives up after ``allowed-failures`` (3) worker deaths with ``KilledWorker``.
 
