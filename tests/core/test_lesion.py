@@ -823,19 +823,30 @@ def _without_step_3d(monkeypatch):
     monkeypatch.setattr(lesion_module, "_candidates", no_crossing)
 
 
+def _record_refinements(monkeypatch) -> list:
+    """Record ``(core, rings)`` of every step-4 refinement (in the brain box's frame)."""
+    refined = []
+    original = lesion_module._refine
+
+    def recording(core, *args):
+        refined.append((core.copy(), args[-1]))
+        return original(core, *args)
+
+    monkeypatch.setattr(lesion_module, "_refine", recording)
+    return refined
+
+
+def _model_box(brain: np.ndarray) -> tuple[slice, ...]:
+    """The brain box the lesion model works in (its smoothing support of 2 px as padding)."""
+    return lesion_module._bounding_box(brain, int(np.ceil(4 * 2.0)) + 1)
+
+
 # not T2: there the far part, bright with a bright mirror, is CSF to step 6 and seeds nothing,
 # so the phantom cannot tell whether step 3d ran
 @pytest.mark.parametrize("modality", ["flair", "t1c"])
 def test_a_tumour_crossing_the_midline_keeps_its_far_part_on_flair_only(modality, monkeypatch):
     brain, img, near, far, bridge, _ = _crossing_tumour()
-    refined = []  # (core, rings) of every step-4 refinement, in the brain box's frame
-    original_refine = lesion_module._refine
-
-    def recording_refine(core, *args):
-        refined.append((core.copy(), args[-1]))
-        return original_refine(core, *args)
-
-    monkeypatch.setattr(lesion_module, "_refine", recording_refine)
+    refined = _record_refinements(monkeypatch)
     mask = _segment(img, brain, modality=modality, lr_axis=2)
     if modality == "flair":
         assert mask[near].mean() > 0.95
@@ -844,7 +855,7 @@ def test_a_tumour_crossing_the_midline_keeps_its_far_part_on_flair_only(modality
         assert (mask & ~expected).sum() == 0
         # the far part is decided by the partial-volume rule alone: every refinement
         # that grows boundary rings starts from a core without it
-        box = lesion_module._bounding_box(brain, int(np.ceil(4 * 2.0)) + 1)  # as the model
+        box = _model_box(brain)
         far_side = (_grid_mm()[2] > 12.0)[box]
         with_rings = [core for core, rings in refined if rings > 0]
         assert with_rings and not any((core & far_side).any() for core in with_rings)
@@ -896,7 +907,6 @@ def test_a_dark_structure_beside_the_far_part_does_not_join_as_a_cavity(monkeypa
     assert _segment(img, brain, lr_axis=2)[blob].mean() > 0.8
 
 
-
 @pytest.mark.parametrize("shape", [(9, 40, 36), (8, 41, 37)])
 @pytest.mark.parametrize("seed", range(3))
 def test_inner_half_of_a_flipped_brain_is_the_flipped_inner_half(shape, seed):
@@ -929,7 +939,7 @@ def test_the_cavity_extent_leaves_out_the_holes_of_the_far_part(monkeypatch):
     monkeypatch.setattr(lesion_module, "_asymmetric_cavity", recording)
     mask = _segment(img, brain, lr_axis=2)
     assert mask[far].mean() > 0.95 and mask[hole].all()  # the hole is filled (step 5)
-    box = lesion_module._bounding_box(brain, int(np.ceil(4 * 2.0)) + 1)  # as the model
+    box = _model_box(brain)
     assert len(extents) == 1 and extents[0] is not None
     assert not (extents[0] & hole[box]).any()
     assert extents[0].sum() > 0.5 * mask.sum()  # the near part's extent, not nothing
@@ -940,17 +950,10 @@ def test_an_asymmetric_lobe_reached_through_the_far_part_is_a_satellite(monkeypa
     # its own, reached through the mirrored far part: step 4b refines it with the
     # boundary rings, not step 3d's partial-volume rule alone
     brain, img, _, far, _, lobe = _crossing_tumour(lobe=True)
-    refined = []
-    original_refine = lesion_module._refine
-
-    def recording_refine(core, *args):
-        refined.append((core.copy(), args[-1]))
-        return original_refine(core, *args)
-
-    monkeypatch.setattr(lesion_module, "_refine", recording_refine)
+    refined = _record_refinements(monkeypatch)
     mask = _segment(img, brain, lr_axis=2)
     assert mask[far].mean() > 0.95 and mask[lobe].mean() > 0.8
-    box = lesion_module._bounding_box(brain, int(np.ceil(4 * 2.0)) + 1)  # as the model
+    box = _model_box(brain)
     lobe_box = lobe[box]
     # its asymmetric seeds (most of it; the rest lies within the mirror tolerance of the
     # near part's mirror image) are refined as a satellite, with the rings
