@@ -111,10 +111,10 @@ its modes to be counted. This module uses what a single slice cannot:
    only: its CSF is dark, while the deep bilateral bright structures of T2
    (the ventricles) and T1c (choroid plexus, deep veins) would join
    (measured: T2 3-D Dice 0.898 -> 0.853, BraTS pat0003 T1c 0.832 ->
-   0.791). Mirrored tissue is weaker evidence
-   than an asymmetric core, so the part that joins is decided by the
-   partial-volume rule of step 4 alone, without its boundary rings. A
-   lesion spanning both hemispheres spans the ventricles between them, so
+   0.791). Mirrored tissue is weaker evidence than an asymmetric core, so
+   the part that joins is decided by the partial-volume rule of step 4
+   alone, without its boundary rings. A lesion spanning both hemispheres
+   spans the ventricles between them, so
    step 5b's enclosure test uses the lesion's extent without that part
    (taken before step 5 fills holes, so that a hole of that part does not
    widen it; satellites reached through it count).
