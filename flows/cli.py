@@ -395,7 +395,10 @@ CohortStore = Annotated[
 @app.command()
 def run(
     input_path: Annotated[
-        Path, typer.Argument(help="NIfTI file, DICOM series folder, or folder of 2-D slices.")
+        Path,
+        typer.Argument(
+            help="NIfTI, NRRD or MetaImage file, DICOM series folder, or folder of 2-D slices."
+        ),
     ],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
     patient_id: Annotated[

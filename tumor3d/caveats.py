@@ -16,7 +16,7 @@ instead of reporting a number that looks as trustworthy as any other:
   symmetry tolerance of the mid-sagittal plane every voxel is its own
   mirror match, so the rule is blind there; a lesion reaching that band
   over a significant cross-section (as a seed component must be:
-  ``min_region_pixels`` on ``min_slices`` consecutive slices) may have
+  ``min_region_mm2`` on ``min_slices`` consecutive slices) may have
   lost a part in the other hemisphere. Measured on the real cases
   (``reports/segmentation.md``): said on every case whose label reaches
   more than 5 mm into the other hemisphere (BraTS pat0003 FLAIR, 12-14 mL
@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tumor3d.lesion import LESION_DEFAULTS, SYMMETRY_TOLERANCE_MM, MirrorPlane
+from tumor3d.lesion import LESION_DEFAULTS, SYMMETRY_TOLERANCE_MM, MirrorPlane, area_in_pixels
 from tumor3d.validation import check_binary_mask
 
 __all__ = ["midline_caveat", "scan_end_caveat", "segmentation_caveats"]
@@ -86,15 +86,16 @@ def midline_caveat(
     plane: MirrorPlane,
     spacing_mm: tuple[float, float, float],
     *,
-    min_region_pixels: int,
+    min_region_mm2: float,
     min_slices: int,
 ) -> str | None:
     """The caveat for a tumour reaching the mid-sagittal plane, else None.
 
     The band is the voxels within ``SYMMETRY_TOLERANCE_MM / 2`` of
     ``plane``; the caveat is said when the mask holds at least
-    ``min_region_pixels`` band pixels on each of ``min_slices`` consecutive
-    slices (the lesion model's significance rule).
+    ``min_region_mm2`` of band area on each of ``min_slices`` consecutive
+    slices (the lesion model's significance rule, with its pixel count on
+    pixels coarser than 1 mm: :func:`tumor3d.lesion.area_in_pixels`).
 
     Parameters
     ----------
@@ -105,8 +106,11 @@ def midline_caveat(
         frame (``LesionResult.plane``).
     spacing_mm : (3,) tuple of float
         ``(slice step, row, column)`` in mm.
-    min_region_pixels, min_slices : int
-        The significance rule (``detect.lesion`` of the configuration).
+    min_region_mm2 : float
+        The significance rule's area, mm2 (``detect.lesion`` of the
+        configuration).
+    min_slices : int
+        Its consecutive slices.
     """
     m = _mask3d(tumor_mask)
     if not m.any():
@@ -115,7 +119,8 @@ def midline_caveat(
         0.5 * SYMMETRY_TOLERANCE_MM
     )
     per_slice = np.count_nonzero(m & band[np.newaxis], axis=(1, 2))
-    big = np.concatenate([[False], per_slice >= int(min_region_pixels), [False]])
+    need = area_in_pixels(min_region_mm2, float(spacing_mm[1]) * float(spacing_mm[2]))
+    big = np.concatenate([[False], per_slice >= need, [False]])
     # runs of consecutive slices with a big cross-section: (start, stop) pairs
     edges = np.flatnonzero(np.diff(big.astype(np.int8)))
     runs = [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
@@ -138,7 +143,7 @@ def segmentation_caveats(
     *,
     plane: MirrorPlane | None = None,
     spacing_mm: tuple[float, float, float] | None = None,
-    min_region_pixels: int = int(LESION_DEFAULTS["min_region_pixels"]),
+    min_region_mm2: float = float(LESION_DEFAULTS["min_region_mm2"]),
     min_slices: int = int(LESION_DEFAULTS["min_slices"]),
 ) -> tuple[str, ...]:
     """Every caveat of a segmentation, in a fixed order (ends, then midline).
@@ -153,6 +158,6 @@ def segmentation_caveats(
     if plane is not None:
         sp = (1.0, 1.0, 1.0) if spacing_mm is None else tuple(float(v) for v in spacing_mm)
         out.append(
-            midline_caveat(m, plane, sp, min_region_pixels=min_region_pixels, min_slices=min_slices)
+            midline_caveat(m, plane, sp, min_region_mm2=min_region_mm2, min_slices=min_slices)
         )
     return tuple(c for c in out if c)

@@ -111,11 +111,11 @@ class LesionConfig(_StageConfig):
     :func:`tumor3d.lesion.segment_hyperintense_lesion`.
     """
 
-    smoothing_px: float = Field(
+    smoothing_mm: float = Field(
         2.0,
         ge=0.0,
         le=20.0,
-        description="In-plane Gaussian sigma (pixels) of the spatial regularisation "
+        description="In-plane Gaussian sigma (mm) of the spatial regularisation "
         "before the patient-pooled normal-tissue model.",
     )
     seed_sigmas: float = Field(
@@ -125,8 +125,8 @@ class LesionConfig(_StageConfig):
         description="Lesion seeds lie this many robust SDs (1.4826 MAD) above the "
         "median of the smoothed brain (chosen by leave-one-case-out).",
     )
-    min_region_pixels: int = Field(
-        50, ge=1, description="Smallest significant lesion cross-section on a slice, px."
+    min_region_mm2: float = Field(
+        50.0, gt=0.0, description="Smallest significant lesion cross-section on a slice, mm2."
     )
     min_slices: int = Field(
         2,
@@ -141,11 +141,12 @@ class LesionConfig(_StageConfig):
     fill_core: bool = Field(
         True, description="Fill the enclosed (necrotic) core and cavities at the rim."
     )
-    boundary_rings: int = Field(
-        3,
-        ge=0,
-        le=20,
-        description="Rings of partial-volume growth against the local lesion gray.",
+    boundary_mm: float = Field(
+        3.0,
+        ge=0.0,
+        le=20.0,
+        description="Width (mm) of the partial-volume growth against the local lesion "
+        "gray, grown one pixel ring at a time; 0 disables it.",
     )
     floor_sigmas: float = Field(
         1.0,
@@ -154,6 +155,33 @@ class LesionConfig(_StageConfig):
         description="That growth never goes below median + this many robust SDs "
         "(chosen by leave-one-case-out).",
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _pixel_keys(cls, data: Any) -> Any:
+        return _refuse_pixel_keys("detect.lesion", data)
+
+
+#: Keys in pixels that became lengths and areas in mm (old key -> new key); the robust
+#: model's constants were chosen on 1 mm pixels, where the numbers are the same.
+_PIXEL_KEYS = {
+    "smoothing_px": "smoothing_mm",
+    "min_region_pixels": "min_region_mm2",
+    "boundary_rings": "boundary_mm",
+    "lesion_min_slice_pixels": "lesion_min_slice_mm2",
+}
+
+
+def _refuse_pixel_keys(section: str, data: Any) -> Any:
+    if isinstance(data, dict):
+        for key in data:
+            if key in _PIXEL_KEYS:
+                raise ValueError(
+                    f"{section}.{key} is now {section}.{_PIXEL_KEYS[key]}: the robust model's "
+                    "lengths and areas are in mm and mm2, converted to pixels through the "
+                    "scan's pixel spacing (the same number at 1 mm pixels)"
+                )
+    return data
 
 
 #: Keys of the lesion model that lived in ``detect`` and ``segment`` before
@@ -209,14 +237,14 @@ class DetectConfig(_StageConfig):
         description="robust: the patient lesion model (tumor3d.lesion), computed once by the "
         "detect stage and reused by the segment stage.",
     )
-    lesion_min_slice_pixels: int = Field(
-        20, ge=1, description="robust: a slice holding this many lesion pixels is abnormal."
+    lesion_min_slice_mm2: float = Field(
+        20.0, gt=0.0, description="robust: a slice holding this much lesion (mm2) is abnormal."
     )
 
     @model_validator(mode="before")
     @classmethod
     def _moved_keys(cls, data: Any) -> Any:
-        return _refuse_moved_lesion_keys("detect", data)
+        return _refuse_pixel_keys("detect", _refuse_moved_lesion_keys("detect", data))
 
 
 class SegmentConfig(_StageConfig):

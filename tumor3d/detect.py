@@ -17,7 +17,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError
-from tumor3d.lesion import LesionResult, patient_lesion
+from tumor3d.lesion import LesionResult, area_in_pixels, patient_lesion
 from tumor3d.scan import MODALITIES
 
 __all__ = [
@@ -476,7 +476,7 @@ def detect_abnormal_slices(
     method: str = "auto",
     modality: str | None = None,
     lesion: Mapping[str, Any] | None = None,
-    lesion_min_slice_pixels: int = 20,
+    lesion_min_slice_mm2: float = 20.0,
     spacing_mm: tuple[float, float, float] | None = None,
     lr_axis: int | None = None,
 ) -> SliceDetection:
@@ -492,7 +492,7 @@ def detect_abnormal_slices(
     segmentation).
 
     ``method="robust"``: a slice is abnormal when it holds at least
-    ``lesion_min_slice_pixels`` pixels of a lesion found by
+    ``lesion_min_slice_mm2`` of a lesion found by
     :func:`tumor3d.lesion.segment_hyperintense_lesion` over the whole
     patient: the normal-tissue intensity model is learned across all
     slices (median / MAD of the smoothed brain), a region is abnormal when
@@ -534,13 +534,16 @@ def detect_abnormal_slices(
         :func:`tumor3d.lesion.segment_hyperintense_lesion` (the fields of
         ``tumor3d.config.LesionConfig``, ``detect.lesion`` of the pipeline);
         None or missing keys = :data:`tumor3d.lesion.LESION_DEFAULTS`.
-    lesion_min_slice_pixels : int
-        Robust method: a slice is abnormal when it holds at least this many
-        lesion pixels (the lesion itself must be significant elsewhere).
+    lesion_min_slice_mm2 : float
+        Robust method: a slice is abnormal when it holds at least this much
+        lesion (mm2 through the pixel spacing, as pixels of 1 mm on coarser
+        pixels: :func:`tumor3d.lesion.area_in_pixels`; the lesion itself must
+        be significant elsewhere).
     spacing_mm : (3,) tuple of float, optional
         Voxel spacing ``(slice step, row, column)`` in mm (robust method: the
-        depth rule of :mod:`tumor3d.lesion`); None = isotropic. The adapter
-        passes the scan's.
+        in-plane lengths and areas and the depth rule of
+        :mod:`tumor3d.lesion`, ``lesion_min_slice_mm2``); None = 1 mm voxels.
+        The adapter passes the scan's.
     lr_axis : {1, 2} or None
         Robust method: the left-right array axis (symmetry rule of
         :mod:`tumor3d.lesion`, :func:`tumor3d.lesion.left_right_axis` of the
@@ -597,7 +600,8 @@ def detect_abnormal_slices(
         model = patient_lesion(
             img, mask, modality=mod, lesion=lesion, spacing_mm=spacing_mm, lr_axis=lr_axis
         )
-        flagged = model.mask.sum(axis=(1, 2)) >= int(lesion_min_slice_pixels)
+        pixel_mm2 = 1.0 if spacing_mm is None else float(spacing_mm[1]) * float(spacing_mm[2])
+        flagged = model.mask.sum(axis=(1, 2)) >= area_in_pixels(lesion_min_slice_mm2, pixel_mm2)
     abnormal = flagged & (brain_pixels >= int(min_brain_pixels))
     return SliceDetection(
         n_modes=n_modes,

@@ -7,7 +7,7 @@ a slice histogram has too few pixels and too many overlapping tissues for
 its modes to be counted. This module uses what a single slice cannot:
 
 1. **Patient-pooled normal-tissue model.** The brain voxels of *all* slices,
-   after an in-plane Gaussian smoothing of ``smoothing_px`` pixels
+   after an in-plane Gaussian smoothing of sigma ``smoothing_mm``
    (normalised inside the brain so the dark exterior does not leak in), give
    ``mu`` = median and ``sigma`` = 1.4826 MAD. A tumour occupies far less
    than half of the brain, and the median and the MAD have a 50 % breakdown
@@ -20,7 +20,7 @@ its modes to be counted. This module uses what a single slice cannot:
    ``mu + seed_sigmas * sigma`` (FLAIR/T2/T1c lesions are hyperintense).
 3. **3-D connectivity across the thick slices.** Seeds are labelled with
    26-connectivity over the stack (consecutive slices touch); a component
-   counts only if it has at least ``min_region_pixels`` pixels on at least
+   counts only if it has at least ``min_region_mm2`` of area on at least
    ``min_slices`` consecutive-slice planes (consistency between neighbouring
    slices); with ``keep_largest`` only the largest such component is kept
    (one tumour, as the paper's method assumes).
@@ -29,10 +29,10 @@ its modes to be counted. This module uses what a single slice cannot:
    intensity exceeds the midpoint ``(t + mu) / 2`` of the pure intensities
    (``t`` = median intensity of the seed component, linear partial-volume
    mixing). Every pixel is decided by this rule: the unsmoothed pixels above
-   the midpoint within ``2 smoothing_px`` of the seed component (in-plane,
+   the midpoint within ``2 smoothing_mm`` of the seed component (in-plane,
    and on the slice just beyond each of its slices: the tip) and connected
    to it form the lesion; this undoes the blur of step 1 at the border.
-   Then ``boundary_rings`` rings are grown against the *local* lesion gray
+   Then pixel rings are grown, ``boundary_mm`` wide, against the *local* lesion gray
    (oedema at the border is darker than the lesion's median), never below
    ``mu + floor_sigmas sigma`` (see :func:`_grow_local`).
    A lesion covering more than half of the brain is rejected (the model's
@@ -144,6 +144,16 @@ its modes to be counted. This module uses what a single slice cannot:
    the CSF threshold are excluded from the seeds and the
    growth (they may still be enclosed and filled).
 
+Lengths and areas are in mm and mm2, converted to pixels through the scan's
+in-plane spacing (:func:`_pixel_lengths`; a significant area keeps its 1 mm pixel
+count on coarser pixels, :func:`area_in_pixels`): the model regularises a scan
+with 0.5 mm pixels as one with 1 mm pixels. The values were chosen on 1 mm BraTS
+pixels, where they are the pixel counts they replaced (every figure there is
+unchanged). Measured on the five labelled FLAIR / T2 cases at 2 mm / 5 mm,
+resampled in-plane to 0.5 mm pixels (pooled slab Dice; ``reports/segmentation.md``,
+session of 2026-12-03): mean 0.889 with the former pixel counts, 0.903 in mm
+(1 mm: 0.907); the largest loss against 1 mm went from 0.046 (the T2) to 0.015.
+
 No constant here is fitted to a case: ``seed_sigmas`` was chosen by
 leave-one-case-out on the three BraTS FLAIR cases (see the report); the
 others have the physical reasons given above.
@@ -166,6 +176,7 @@ __all__ = [
     "LesionResult",
     "MirrorPlane",
     "NormalModel",
+    "area_in_pixels",
     "left_right_axis",
     "lesion_params",
     "patient_lesion",
@@ -179,9 +190,9 @@ _MAD_TO_SIGMA = 1.4826  # sigma of a normal distribution = 1.4826 MAD
 #: median / MAD model (breakdown point 50 %): no lesion is reported.
 MAX_BRAIN_FRACTION = 0.5
 
-#: Step 4: Gaussian sigma (pixels) and truncation (sigmas) of the local lesion gray of
-#: the boundary rings (_grow_local); the box the growth works on follows from both.
-LOCAL_SIGMA_PX = 3.0
+#: Step 4: Gaussian sigma (mm, in-plane) and truncation (sigmas) of the local lesion gray
+#: of the boundary rings (_grow_local); the box the growth works on follows from both.
+LOCAL_SIGMA_MM = 3.0
 LOCAL_TRUNCATE = 4.0
 
 #: Step 3b: the grid spacing (mm) on which the brain's depth is computed (see _depth_mm).
@@ -189,6 +200,10 @@ DEPTH_GRID_MM = 2.0
 #: Step 3b: the depth percentile of a candidate that must reach the brain's median
 #: depth (its deepest tenth; a robust maximum, see the module docstring).
 DEPTH_PERCENTILE = 90.0
+
+#: Pixel area (mm2) on which the model's areas were chosen (BraTS, 1 mm pixels): finer
+#: pixels keep the area, coarser ones the pixel count (see area_in_pixels).
+REFERENCE_PIXEL_MM2 = 1.0
 
 #: Step 3c: mirror tolerance (head roll / yaw of a few degrees, anatomical asymmetry), mm.
 SYMMETRY_TOLERANCE_MM = 5.0
@@ -330,14 +345,14 @@ class LesionResult:
 #: The configurable keywords of :func:`segment_hyperintense_lesion` and their defaults
 #: (``tumor3d.config.LesionConfig`` holds the same, the pipeline's ``detect.lesion``).
 LESION_DEFAULTS: dict[str, float | int | bool] = {
-    "smoothing_px": 2.0,
+    "smoothing_mm": 2.0,
     "seed_sigmas": 2.0,
-    "min_region_pixels": 50,
+    "min_region_mm2": 50.0,
     "min_slices": 2,
     "keep_largest": True,
     "refine_boundary": True,
     "fill_core": True,
-    "boundary_rings": 3,
+    "boundary_mm": 3.0,
     "floor_sigmas": 1.0,
 }
 
@@ -357,27 +372,27 @@ def lesion_params(lesion: Mapping[str, Any] | None) -> dict[str, Any]:
             f"unknown lesion parameter(s) {unknown}: expected {sorted(LESION_DEFAULTS)}"
         )
     p = {**LESION_DEFAULTS, **given}
-    if not 0.0 <= float(p["smoothing_px"]) <= 20.0:
-        raise InputError(f"lesion smoothing_px must lie in [0, 20], got {p['smoothing_px']}")
+    if not 0.0 <= float(p["smoothing_mm"]) <= 20.0:
+        raise InputError(f"lesion smoothing_mm must lie in [0, 20], got {p['smoothing_mm']}")
     if not float(p["seed_sigmas"]) > 0.0:
         raise InputError(f"lesion seed_sigmas must be > 0, got {p['seed_sigmas']}")
-    if int(p["min_region_pixels"]) < 1:
-        raise InputError(f"lesion min_region_pixels must be >= 1, got {p['min_region_pixels']}")
+    if not float(p["min_region_mm2"]) > 0.0:
+        raise InputError(f"lesion min_region_mm2 must be > 0, got {p['min_region_mm2']}")
     if int(p["min_slices"]) < 1:
         raise InputError(f"lesion min_slices must be >= 1, got {p['min_slices']}")
-    if int(p["boundary_rings"]) < 0:
-        raise InputError(f"lesion boundary_rings must be >= 0, got {p['boundary_rings']}")
+    if not 0.0 <= float(p["boundary_mm"]) <= 20.0:
+        raise InputError(f"lesion boundary_mm must lie in [0, 20], got {p['boundary_mm']}")
     if not float(p["floor_sigmas"]) >= 0.0:
         raise InputError(f"lesion floor_sigmas must be >= 0, got {p['floor_sigmas']}")
     return {
-        "smoothing_px": float(p["smoothing_px"]),
+        "smoothing_mm": float(p["smoothing_mm"]),
         "seed_sigmas": float(p["seed_sigmas"]),
-        "min_region_pixels": int(p["min_region_pixels"]),
+        "min_region_mm2": float(p["min_region_mm2"]),
         "min_slices": int(p["min_slices"]),
         "keep_largest": bool(p["keep_largest"]),
         "refine_boundary": bool(p["refine_boundary"]),
         "fill_core": bool(p["fill_core"]),
-        "boundary_rings": int(p["boundary_rings"]),
+        "boundary_mm": float(p["boundary_mm"]),
         "floor_sigmas": float(p["floor_sigmas"]),
     }
 
@@ -820,6 +835,7 @@ def _cavity_wall(
     model: NormalModel,
     floor_sigmas: float,
     rings: int,
+    local_px: float = LOCAL_SIGMA_MM,
 ) -> np.ndarray:
     """Step 5c: the wall of a joined cavity, grown as the lesion was around its seeds.
 
@@ -845,13 +861,63 @@ def _cavity_wall(
         # nor that of the normal ring 5b put between lesion and cavity
         near = _box_dilate(cavity, reach + rings, reach + rings)
         tissue = out & ~cavity & (img > grow_t)
-        out |= _grow_local(tissue, img, allowed & near, model, floor_sigmas, rings)
+        out |= _grow_local(tissue, img, allowed & near, model, floor_sigmas, rings, local_px)
     return out
 
 
 def _blur_reach(smoothing_px: float) -> int:
     """The blur's reach in pixels: 2 sigma of the step-1 Gaussian, at least 1."""
     return max(1, int(round(2 * float(smoothing_px))))
+
+
+def area_in_pixels(area_mm2: float, pixel_mm2: float) -> int:
+    """The pixel count a significance rule of ``area_mm2`` needs on pixels of ``pixel_mm2``.
+
+    The area itself on pixels of ``REFERENCE_PIXEL_MM2`` (1 mm) or finer: the same
+    anatomy, more samples. On coarser pixels the count the rule has at 1 mm: an area
+    decided by a few coarse pixels is decided by a few noisy samples (measured: on the
+    4 mm pixels of the tumour-free ``aniso_vox`` volume a 50 mm2 rule, 3 pixels, reports
+    1.7 mL of false lesion; ``reports/segmentation.md``), so below 1 mm the rule is an
+    area and above it a number of samples. At least 1.
+
+    >>> area_in_pixels(50.0, 0.25), area_in_pixels(50.0, 1.0), area_in_pixels(50.0, 16.0)
+    (200, 50, 50)
+    """
+    return max(1, int(round(float(area_mm2) / min(float(pixel_mm2), REFERENCE_PIXEL_MM2))))
+
+
+@dataclass(frozen=True)
+class _PixelLengths:
+    """The model's in-plane lengths and areas in pixels (:func:`_pixel_lengths`)."""
+
+    smoothing: float  # step 1's Gaussian sigma
+    min_region: int  # a significant cross-section
+    rings: int  # step 4's rings of local growth
+    local_sigma: float  # the Gaussian of the rings' local lesion gray
+
+
+def _pixel_lengths(
+    voxel_mm: tuple[float, ...], smoothing_mm: float, min_region_mm2: float, boundary_mm: float
+) -> _PixelLengths:
+    """Pixels for the model's lengths (mm) and areas (mm2), through the in-plane spacing.
+
+    The pixel's side is the geometric mean of the row and column spacings (the
+    side of a square pixel of the same area; an in-plane anisotropy of a few per
+    cent, as on real scanners, is not modelled by the isotropic filters). At
+    1 mm pixels each value is the one given. The significant area is
+    :func:`area_in_pixels` (an area on pixels of 1 mm or finer, a pixel count
+    on coarser ones).
+
+    >>> _pixel_lengths((5.0, 0.5, 0.5), 2.0, 50.0, 3.0)
+    _PixelLengths(smoothing=4.0, min_region=200, rings=6, local_sigma=6.0)
+    """
+    side = float(np.sqrt(float(voxel_mm[1]) * float(voxel_mm[2])))
+    return _PixelLengths(
+        smoothing=float(smoothing_mm) / side,
+        min_region=area_in_pixels(min_region_mm2, side**2),
+        rings=int(round(float(boundary_mm) / side)),
+        local_sigma=LOCAL_SIGMA_MM / side,
+    )
 
 
 def _touching(cand: np.ndarray, seed: np.ndarray) -> np.ndarray:
@@ -915,15 +981,15 @@ def segment_hyperintense_lesion(
     brain: np.ndarray,
     *,
     modality: str,
-    smoothing_px: float = 2.0,
+    smoothing_mm: float = 2.0,
     seed_sigmas: float = 2.0,
-    min_region_pixels: int = 50,
+    min_region_mm2: float = 50.0,
     min_slices: int = 2,
     keep_largest: bool = True,
     refine_boundary: bool = True,
     fill_core: bool = True,
     tips: bool = True,
-    boundary_rings: int = 3,
+    boundary_mm: float = 3.0,
     floor_sigmas: float = 1.0,
     allowed_slices: np.ndarray | None = None,
     spacing_mm: tuple[float, float, float] = (1.0, 1.0, 1.0),
@@ -940,12 +1006,18 @@ def segment_hyperintense_lesion(
         ``M_brain``.
     modality : {"t2", "flair", "t1c"}
         Sequence; T2 excludes CSF-bright voxels (step 6).
-    smoothing_px : float
-        In-plane Gaussian sigma of step 1, pixels.
+    smoothing_mm : float
+        In-plane Gaussian sigma of step 1, mm. Every in-plane length and area
+        of the model is given in mm and mm2 and converted to pixels
+        through ``spacing_mm`` (:func:`_pixel_lengths`), so that a scan with
+        0.5 mm or 2 mm pixels is regularised like one with 1 mm pixels (the
+        values were chosen on 1 mm BraTS pixels, where they are the pixel
+        counts they replaced).
     seed_sigmas : float
         Seed threshold in robust standard deviations above the median.
-    min_region_pixels : int
-        Smallest cross-section (pixels) of a significant component on a slice.
+    min_region_mm2 : float
+        Smallest cross-section (mm2) of a significant component on a
+        slice.
     min_slices : int
         Consecutive slices on which a significant component must reach that
         cross-section.
@@ -959,9 +1031,10 @@ def segment_hyperintense_lesion(
     tips : bool
         Let the step-4 growth reach one slice beyond the seed component
         (the lesion's tip on the next thick slice).
-    boundary_rings : int
-        Rings of local partial-volume growth after step 4 (:func:`_grow_local`);
-        0 disables it. 3 = the extent (1.5 sigma) of the default 2 px blur.
+    boundary_mm : float
+        Width (mm) of the local partial-volume growth after step 4
+        (:func:`_grow_local`), grown one pixel ring at a time; 0 disables it.
+        3 mm = the extent (1.5 sigma) of the default 2 mm blur.
     floor_sigmas : float
         The growth's floor, robust SDs above the median (chosen by
         leave-one-case-out, see ``reports/segmentation.md``).
@@ -969,9 +1042,10 @@ def segment_hyperintense_lesion(
         Slices where the lesion may lie (e.g. a detection); others are cleared
         at the end.
     spacing_mm : (3,) tuple of float
-        Voxel spacing ``(slice step, row, column)`` in mm: the depth of step
-        3b (only its ratios matter there), the mirror tolerance and the
-        mid-sagittal plane of step 3c (in mm).
+        Voxel spacing ``(slice step, row, column)`` in mm: the in-plane
+        lengths and areas above, the depth of step 3b (only its ratios matter
+        there), the mirror tolerance and the mid-sagittal plane of step 3c
+        (in mm).
     reject_superficial : bool
         Step 3b: keep only candidates at least as deep as the brain's median
         depth. False turns step 3d off too (it needs that depth).
@@ -993,6 +1067,8 @@ def segment_hyperintense_lesion(
     if sp.size != 3 or not (np.all(np.isfinite(sp)) and np.all(sp > 0)):
         raise InputError(f"spacing_mm must be three positive numbers (mm), got {spacing_mm}")
     voxel_mm = tuple(float(v) for v in sp)
+    px = _pixel_lengths(voxel_mm, smoothing_mm, min_region_mm2, boundary_mm)
+    smoothing_px = px.smoothing
     empty_model = NormalModel(float("nan"), float("nan"), float("nan"), float("inf"))
     if not b.any():
         return LesionResult(np.zeros(b.shape, bool), empty_model, float("nan"), float("nan"), 0)
@@ -1006,17 +1082,18 @@ def segment_hyperintense_lesion(
         modality,
         smoothing_px,
         seed_sigmas,
-        min_region_pixels,
+        px.min_region,
         min_slices,
         keep_largest,
         refine_boundary,
         fill_core,
         tips,
-        boundary_rings,
+        px.rings,
         floor_sigmas,
         voxel_mm if reject_superficial else None,
         lr_axis,
         voxel_mm,
+        px.local_sigma,
     )
     mask = np.zeros(b.shape, dtype=bool)
     mask[box] = res.mask
@@ -1037,6 +1114,7 @@ def _grow_local(
     model: NormalModel,
     floor_sigmas: float,
     rings: int,
+    sigma_px: float = LOCAL_SIGMA_MM,
 ) -> np.ndarray:
     """Partial-volume growth against the *local* lesion intensity, one ring at a time.
 
@@ -1044,31 +1122,34 @@ def _grow_local(
     global midpoint of step 4 cuts it. A pixel 8-adjacent (in-plane) to the
     mask joins when its gray exceeds ``max(mu + floor_sigmas sigma, (l + mu) / 2)``
     with ``l`` the mean gray of the mask pixels around it (Gaussian weights,
-    sigma 3 px): more than half lesion by linear partial volume against the
-    lesion tissue next to it, and outside the normal model (the floor stops
-    the growth from creeping through normal tissue brighter than ``mu``).
+    sigma ``sigma_px``: ``LOCAL_SIGMA_MM`` in pixels): more than half lesion
+    by linear partial volume against the lesion tissue next to it, and
+    outside the normal model (the floor stops the growth from creeping
+    through normal tissue brighter than ``mu``).
     """
     if int(rings) <= 0 or not mask.any():
         return mask
     # work on the mask's in-plane bounding box widened by the rings and the Gaussian's
     # support: every pixel the growth can reach sees the same neighbourhood as in the
     # whole volume (identical result), at a fraction of the cost
-    margin = int(rings) + int(LOCAL_TRUNCATE * LOCAL_SIGMA_PX + 0.5) + 1
+    margin = int(rings) + int(LOCAL_TRUNCATE * float(sigma_px) + 0.5) + 1
     zs = np.flatnonzero(mask.any(axis=(1, 2)))  # the growth is in-plane: no z support
     box = (slice(zs[0], zs[-1] + 1), *_bounding_box(mask, margin)[1:])
     out = mask.copy()
-    out[box] = _grow_local_box(mask[box], img[box], allowed[box], model, floor_sigmas, rings)
+    out[box] = _grow_local_box(
+        mask[box], img[box], allowed[box], model, floor_sigmas, rings, float(sigma_px)
+    )
     return out
 
 
-def _grow_local_box(mask, img, allowed, model, floor_sigmas, rings):
+def _grow_local_box(mask, img, allowed, model, floor_sigmas, rings, sigma_px):
     """:func:`_grow_local` on a box that holds the whole growth."""
     f = img.astype(np.float32)
     ring_fp = np.ones((1, 3, 3), dtype=bool)
     floor = model.median + float(floor_sigmas) * model.sigma
     for _ in range(int(rings)):
         m32 = mask.astype(np.float32)
-        sigma = (0.0, LOCAL_SIGMA_PX, LOCAL_SIGMA_PX)
+        sigma = (0.0, sigma_px, sigma_px)
         num = ndi.gaussian_filter(f * m32, sigma, truncate=LOCAL_TRUNCATE)
         den = ndi.gaussian_filter(m32, sigma, truncate=LOCAL_TRUNCATE)
         local = num / np.maximum(den, 1e-6)
@@ -1194,8 +1275,14 @@ def _candidates(
     return not_csf, labels, ids, satellites, across
 
 
-def _refine(core, img, allowed, grow_t, reach, tips, model, floor_sigmas, rings):
-    """Step 4: the lesion around its seed core, decided by the partial-volume rule."""
+def _refine(
+    core, img, allowed, grow_t, reach, tips, model, floor_sigmas, rings, local_px=LOCAL_SIGMA_MM
+):
+    """Step 4: the lesion around its seed core, decided by the partial-volume rule.
+
+    ``reach`` (the zone around the core) and ``rings`` are pixels; ``local_px`` is the
+    rings' Gaussian (:func:`_grow_local`) in pixels.
+    """
     mask = np.zeros_like(core)
     if not core.any():
         return mask
@@ -1211,7 +1298,7 @@ def _refine(core, img, allowed, grow_t, reach, tips, model, floor_sigmas, rings)
     cand = allowed[box] & zone & (img[box] > grow_t)
     mask[box] = _touching(cand, c)
     if rings > 0 and mask.any():
-        mask = _grow_local(mask, img, allowed, model, floor_sigmas, rings)
+        mask = _grow_local(mask, img, allowed, model, floor_sigmas, rings, local_px)
     return mask
 
 
@@ -1257,8 +1344,13 @@ def _segment_box(
     spacing_mm=None,
     lr_axis=None,
     voxel_mm=(1.0, 1.0, 1.0),
+    local_px=LOCAL_SIGMA_MM,
 ) -> LesionResult:
-    """:func:`segment_hyperintense_lesion` on the brain's bounding box."""
+    """:func:`segment_hyperintense_lesion` on the brain's bounding box.
+
+    Its in-plane lengths and areas are pixels (``smoothing_px``, ``min_region_pixels``,
+    ``boundary_rings``, ``local_px``: see :func:`_pixel_lengths`).
+    """
     sm = _smooth_in_brain(img, b, float(smoothing_px))
     model = normal_model(sm, img, b, seed_sigmas, modality)
     plane = None if lr_axis is None else symmetry_plane(sm, b, model, int(lr_axis), voxel_mm)
@@ -1289,7 +1381,7 @@ def _segment_box(
     crossed = None  # what step 3d added beyond the lesion
     if refine_boundary:
         refine = (img, b & not_csf, grow_t, _blur_reach(smoothing_px), tips, model)
-        mask = _refine(core, *refine, floor_sigmas, boundary_rings)
+        mask = _refine(core, *refine, floor_sigmas, boundary_rings, local_px=local_px)
         if across is not None and across.any():
             # step 3d: the part across the midline is decided by the partial-volume rule
             # alone, without the boundary rings' weaker evidence
@@ -1305,7 +1397,9 @@ def _segment_box(
                     break
                 core = core | reached
                 # refined around what joined (the rest of the lesion keeps its border)
-                mask = mask | _refine(reached, *refine, floor_sigmas, boundary_rings)
+                mask = mask | _refine(
+                    reached, *refine, floor_sigmas, boundary_rings, local_px=local_px
+                )
     elif across is not None and across.any():
         crossed = across & ~core
         mask = core | across
@@ -1332,7 +1426,7 @@ def _segment_box(
             if refine_boundary and cavity.any():
                 mask = _cavity_wall(
                     mask, cavity, img, b & not_csf, grow_t, reach, model, floor_sigmas,
-                    boundary_rings,
+                    boundary_rings, local_px,
                 )  # fmt: skip
     mask &= b
     if np.count_nonzero(mask) > MAX_BRAIN_FRACTION * np.count_nonzero(b):

@@ -847,7 +847,7 @@ def segment_tumor(
             tumor,
             plane=plane,
             spacing_mm=spacing_mm,
-            min_region_pixels=params["min_region_pixels"],
+            min_region_mm2=params["min_region_mm2"],
             min_slices=params["min_slices"],
         ),
     )

@@ -20,6 +20,7 @@ from tumor3d.segment import segment_tumor
 
 SHAPE = (6, 96, 96)
 PIXEL_MM = (0.8, 0.8)
+PIXEL_AREA_MM2 = PIXEL_MM[0] * PIXEL_MM[1]
 SPACING = (5.0, *PIXEL_MM)
 #: the vertical line through column 48 (the grid's middle) and a point of it, (y, x) in mm
 MID_PLANE = MirrorPlane(2, 0.0, 48 * PIXEL_MM[1])
@@ -74,7 +75,7 @@ def test_scan_end_caveat_names_the_end_slices_the_tumour_reaches():
 def test_midline_caveat_only_for_a_significant_cross_section_at_the_plane():
     plane = MID_PLANE
     centre = CENTRE
-    kw = {"min_region_pixels": 50, "min_slices": 2}
+    kw = {"min_region_mm2": 50 * PIXEL_AREA_MM2, "min_slices": 2}
     straddling = _disc(centre, 8.0, slices=(1, 2, 3))
     note = midline_caveat(straddling, plane, SPACING, **kw)
     assert note is not None and "slices 1-3" in note
@@ -87,15 +88,43 @@ def test_midline_caveat_only_for_a_significant_cross_section_at_the_plane():
     # on one slice only: not significant (min_slices 2), significant with min_slices 1
     single = _disc(centre, 8.0, slices=(2,))
     assert midline_caveat(single, plane, SPACING, **kw) is None
-    assert midline_caveat(single, plane, SPACING, min_region_pixels=50, min_slices=1)
-    # a thin contact (fewer pixels in the band than min_region_pixels) is no cross-section
-    assert midline_caveat(straddling, plane, SPACING, min_region_pixels=500, min_slices=2) is None
+    assert midline_caveat(single, plane, SPACING, min_region_mm2=50 * PIXEL_AREA_MM2, min_slices=1)
+    # a thin contact (less band area than min_region_mm2) is no cross-section
+    strict = {"min_region_mm2": 500 * PIXEL_AREA_MM2, "min_slices": 2}
+    assert midline_caveat(straddling, plane, SPACING, **strict) is None
+
+
+@pytest.mark.parametrize("pixel_mm", [0.5, 1.0, 2.0])
+def test_midline_caveat_area_is_in_mm2_down_to_1_mm_pixels_then_a_pixel_count(pixel_mm):
+    # a rectangle straddling the plane, 4 mm wide (all of it within the +-2.5 mm band) and
+    # 10, 16 or 28 mm tall: 40, 64 or 112 mm2 of band a slice, against a rule of 50 mm2.
+    # At 0.5 and 1 mm pixels the rule is the area (at 0.5 mm 160 and 256 pixels: a count
+    # in pixels would say both); at 2 mm pixels it is the 50 pixels it has at 1 mm
+    # (200 mm2): 10, 16 and 28 pixels say nothing
+    n = int(round(64 / pixel_mm))
+    shape = (4, n, n)
+    mid = n // 2
+    plane = MirrorPlane(2, 0.0, mid * pixel_mm)
+    half_w = int(round(2.0 / pixel_mm))
+    rule = {"min_region_mm2": 50.0, "min_slices": 2}
+    for tall_mm, said in ((10.0, False), (16.0, True), (28.0, True)):
+        said = said and pixel_mm <= 1.0
+        m = np.zeros(shape, bool)
+        m[1:3, 4 : 4 + int(round(tall_mm / pixel_mm)), mid - half_w : mid + half_w] = True
+        area_mm2 = m[1].sum() * pixel_mm**2
+        assert area_mm2 == pytest.approx(4.0 * tall_mm)
+        got = midline_caveat(m, plane, (5.0, pixel_mm, pixel_mm), **rule)
+        assert (got is not None) == said, (pixel_mm, tall_mm)
+    if pixel_mm > 1.0:  # 26 x 2 = 52 pixels (208 mm2): said
+        m = np.zeros(shape, bool)
+        m[1:3, 4:30, mid - half_w : mid + half_w] = True
+        assert midline_caveat(m, plane, (5.0, pixel_mm, pixel_mm), **rule) is not None
 
 
 def test_midline_caveat_names_each_run_of_slices():
     plane = MID_PLANE
     centre = CENTRE
-    kw = {"min_region_pixels": 50, "min_slices": 2}
+    kw = {"min_region_mm2": 50 * PIXEL_AREA_MM2, "min_slices": 2}
     m = np.zeros((14, 96, 96), bool)
     m[[1, 2, 3, 9, 10]] = _disc(centre, 8.0, slices=(0,))[0]
     note = midline_caveat(m, plane, SPACING, **kw)
@@ -103,11 +132,12 @@ def test_midline_caveat_names_each_run_of_slices():
     # big cross-sections on slices 1 and 3 only are no run of two consecutive slices
     m[[2, 9, 10]] = False
     assert midline_caveat(m, plane, SPACING, **kw) is None
-    one = midline_caveat(m, plane, SPACING, min_region_pixels=50, min_slices=1)
+    one = midline_caveat(m, plane, SPACING, min_region_mm2=50 * PIXEL_AREA_MM2, min_slices=1)
     assert "on slices 1, 3 (0-based" in one
     m[3] = False
-    assert "on slice 1 (0-based" in midline_caveat(m, plane, SPACING, min_region_pixels=50,
-                                                     min_slices=1)
+    assert "on slice 1 (0-based" in midline_caveat(
+        m, plane, SPACING, min_region_mm2=50 * PIXEL_AREA_MM2, min_slices=1
+    )
 
 
 @pytest.mark.parametrize("pixel_mm", [(0.8, 0.8), (0.5, 1.25), (1.25, 0.5)])
@@ -118,7 +148,7 @@ def test_midline_band_is_half_the_symmetry_tolerance_in_mm(pixel_mm):
     plane = MirrorPlane(2, 0.0, 60.0)  # the vertical line x = 60 mm
     y, x = np.indices(shape[1:], dtype=float)
     x_mm = x * pixel_mm[1]
-    kw = {"min_region_pixels": 20, "min_slices": 2}
+    kw = {"min_region_mm2": 20 * PIXEL_AREA_MM2, "min_slices": 2}
     for gap_mm, said in ((2.0, True), (3.0, False)):
         strip = (x_mm >= 60.0 + gap_mm) & (x_mm <= 60.0 + gap_mm + 10.0)
         m = np.zeros(shape, bool)
@@ -152,7 +182,7 @@ def test_midline_caveat_follows_a_turned_plane():
     on_plane = 30.0 * n - 45.0 * t  # a point of the line, (y, x) in mm
     assert 10 < on_plane[0] < 70 and 10 < on_plane[1] < 70
     disc = _disc(tuple(on_plane), 6.0, slices=(0, 1, 2, 3, 4, 5))
-    kw = {"min_region_pixels": 30, "min_slices": 2}
+    kw = {"min_region_mm2": 30 * PIXEL_AREA_MM2, "min_slices": 2}
     assert midline_caveat(disc, plane, SPACING, **kw) is not None
     unturned = MirrorPlane(2, 0.0, 30.0)
     assert midline_caveat(disc, unturned, SPACING, **kw) is None
@@ -211,10 +241,10 @@ def test_robust_segmentation_says_the_midline_caveat_and_the_peer_does_not():
     res = segment_tumor(img, brain, det, modality="flair", method="robust", spacing_mm=SPACING)
     assert res.tumor_mask.any() and res.caveats == ()
     # the significance rule is the configuration's (detect.lesion), not a constant: with
-    # min_region_pixels above the band's ~120 pixels a slice the midline lesion says nothing
+    # min_region_mm2 above the band's ~120 pixels a slice the midline lesion says nothing
     det = _detection_with_lesion(straddling, plane)
     strict = segment_tumor(img, brain, det, modality="flair", method="robust",
-                           spacing_mm=SPACING, lesion={"min_region_pixels": 500})
+                           spacing_mm=SPACING, lesion={"min_region_mm2": 500 * PIXEL_AREA_MM2})
     assert strict.tumor_mask.any() and strict.caveats == ()
     # the peer has no symmetry rule: it says no midline caveat, even on the midline lesion
     det = _detection_with_lesion(straddling, plane)

@@ -100,3 +100,21 @@ def test_an_old_lesion_key_names_its_new_place(section):
         r"\.seed_sigmas",
     ):
         parse_config(f"{section}:\n  lesion_seed_sigmas: 2.5\n", source="old.yaml")
+
+
+@pytest.mark.parametrize(
+    ("section", "old", "new"),
+    [
+        ("detect.lesion", "smoothing_px", "smoothing_mm"),
+        ("detect.lesion", "min_region_pixels", "min_region_mm2"),
+        ("detect.lesion", "boundary_rings", "boundary_mm"),
+        ("detect", "lesion_min_slice_pixels", "lesion_min_slice_mm2"),
+    ],
+)
+def test_a_pixel_key_names_its_key_in_mm(section, old, new):
+    # the lesion model's lengths became mm: a configuration written before says which key
+    # replaced its pixel count, instead of "extra inputs are not permitted"
+    outer, _, inner = section.partition(".")
+    text = f"{outer}:\n  {inner}:\n    {old}: 3\n" if inner else f"{outer}:\n  {old}: 3\n"
+    with pytest.raises(ConfigError, match=rf"{section}\.{old} is now {section}\.{new}: .* mm"):
+        parse_config(text, source="old.yaml")

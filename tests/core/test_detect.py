@@ -258,3 +258,36 @@ def test_rejects_negative_significance():
         count_histogram_modes(
             np.arange(10, dtype=np.uint8), **{**MODE_DEFAULTS, "min_valley_significance": -1}
         )
+
+
+@pytest.mark.parametrize("pixel_mm", [0.5, 1.0, 2.0])
+def test_a_robust_slice_is_abnormal_by_its_lesion_area_in_mm2(monkeypatch, pixel_mm):
+    # the lesion model's mask is given (its own tests are in test_lesion.py): slices 1-3
+    # hold 8, 32 and 96 mm2 of lesion against lesion_min_slice_mm2 = 20. At 0.5 and 1 mm
+    # pixels the rule is that area (at 0.5 mm 32 and 128 pixels: a count in pixels would
+    # flag slice 1 too); at 2 mm pixels it is the 20 pixels it has at 1 mm (80 mm2):
+    # 2, 8 and 24 pixels flag slice 3 only
+    import tumor3d.detect as detect_module
+    from tumor3d.lesion import LesionResult, NormalModel
+
+    n = int(round(64 / pixel_mm))
+    shape = (5, n, n)
+    lesion = np.zeros(shape, bool)
+    for z, (h_mm, w_mm) in ((1, (4.0, 2.0)), (2, (8.0, 4.0)), (3, (16.0, 6.0))):
+        h, w = int(round(h_mm / pixel_mm)), int(round(w_mm / pixel_mm))
+        lesion[z, 10 : 10 + h, 10 : 10 + w] = True
+        assert lesion[z].sum() * pixel_mm**2 == pytest.approx(h_mm * w_mm)
+
+    def given_lesion(img, mask, **kw):
+        model = NormalModel(100.0, 10.0, 120.0, float("inf"))
+        return LesionResult(lesion, model, 150.0, 125.0, 1)
+
+    monkeypatch.setattr(detect_module, "patient_lesion", given_lesion)
+    brain = np.ones(shape, bool)
+    img = np.full(shape, 100, np.uint8)
+    det = detect_abnormal_slices(
+        img, brain, method="robust", modality="flair", min_brain_pixels=0,
+        lesion_min_slice_mm2=20.0, spacing_mm=(5.0, pixel_mm, pixel_mm),
+    )  # fmt: skip
+    expected = [False, False, True, True, False] if pixel_mm <= 1.0 else [False] * 3 + [True, False]
+    assert det.abnormal.tolist() == expected
