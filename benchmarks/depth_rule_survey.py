@@ -52,12 +52,13 @@ def survey(data: Path, cfg, native: bool) -> list[dict]:
         spacing = (step, *scan.pixel_spacing_mm)
         pre = preprocess_volume(img, **cfg.preprocess.model_dump(), spacing_mm=spacing)
         enhanced, brain = pre.enhanced, pre.brain_mask
-        sm = L._smooth_in_brain(enhanced, brain, lp.smoothing_px)
+        px = L._pixel_lengths(spacing, lp.smoothing_mm, lp.min_region_mm2, lp.boundary_mm)
+        sm = L._smooth_in_brain(enhanced, brain, px.smoothing)
         model = L.normal_model(sm, enhanced, brain, lp.seed_sigmas, case.modality)
         axis = L.left_right_axis(scan.affine)
         plane = None if axis is None else L.symmetry_plane(sm, brain, model, axis, spacing)
         _, labels, ids, _, _ = L._candidates(
-            model, sm, enhanced, brain, lp.smoothing_px, lp.min_region_pixels, lp.min_slices,
+            model, sm, enhanced, brain, px.smoothing, px.min_region, lp.min_slices,
             False, None, plane, spacing,
         )  # fmt: skip
         depth = L._depth_mm(brain, spacing)

@@ -126,7 +126,10 @@ class LesionConfig(_StageConfig):
         "median of the smoothed brain (chosen by leave-one-case-out).",
     )
     min_region_mm2: float = Field(
-        50.0, gt=0.0, description="Smallest significant lesion cross-section on a slice, mm2."
+        50.0,
+        gt=0.0,
+        description="Smallest significant lesion cross-section on a slice, mm2 (on pixels "
+        "coarser than 1 mm: this many pixels).",
     )
     min_slices: int = Field(
         2,
@@ -185,8 +188,14 @@ def _refuse_pixel_keys(section: str, data: Any) -> Any:
 
 
 #: Keys of the lesion model that lived in ``detect`` and ``segment`` before
-#: ``detect.lesion`` (old name -> field of :class:`LesionConfig`).
-_MOVED_LESION_KEYS = {f"lesion_{name}": name for name in LesionConfig.model_fields}
+#: ``detect.lesion`` (old name -> field of :class:`LesionConfig`; those that were pixel
+#: counts then name their field in mm).
+_MOVED_LESION_KEYS = {
+    **{f"lesion_{name}": name for name in LesionConfig.model_fields},
+    **{
+        f"lesion_{old}": new for old, new in _PIXEL_KEYS.items() if new in LesionConfig.model_fields
+    },
+}
 
 
 def _refuse_moved_lesion_keys(section: str, data: Any) -> Any:
@@ -238,7 +247,10 @@ class DetectConfig(_StageConfig):
         "detect stage and reused by the segment stage.",
     )
     lesion_min_slice_mm2: float = Field(
-        20.0, gt=0.0, description="robust: a slice holding this much lesion (mm2) is abnormal."
+        20.0,
+        gt=0.0,
+        description="robust: a slice holding this much lesion (mm2; on pixels coarser than "
+        "1 mm: this many pixels) is abnormal.",
     )
 
     @model_validator(mode="before")

@@ -835,7 +835,7 @@ def _cavity_wall(
     model: NormalModel,
     floor_sigmas: float,
     rings: int,
-    local_px: float = LOCAL_SIGMA_MM,
+    local_px: float,
 ) -> np.ndarray:
     """Step 5c: the wall of a joined cavity, grown as the lesion was around its seeds.
 
@@ -1043,9 +1043,10 @@ def segment_hyperintense_lesion(
         at the end.
     spacing_mm : (3,) tuple of float
         Voxel spacing ``(slice step, row, column)`` in mm: the in-plane
-        lengths and areas above, the depth of step 3b (only its ratios matter
-        there), the mirror tolerance and the mid-sagittal plane of step 3c
-        (in mm).
+        lengths and areas above (through a square pixel of the same area:
+        rows and columns of different spacing get the same pixel lengths),
+        the depth of step 3b (only its ratios matter there), the mirror
+        tolerance and the mid-sagittal plane of step 3c (in mm).
     reject_superficial : bool
         Step 3b: keep only candidates at least as deep as the brain's median
         depth. False turns step 3d off too (it needs that depth).
@@ -1093,7 +1094,7 @@ def segment_hyperintense_lesion(
         voxel_mm if reject_superficial else None,
         lr_axis,
         voxel_mm,
-        px.local_sigma,
+        local_px=px.local_sigma,
     )
     mask = np.zeros(b.shape, dtype=bool)
     mask[box] = res.mask
@@ -1114,7 +1115,7 @@ def _grow_local(
     model: NormalModel,
     floor_sigmas: float,
     rings: int,
-    sigma_px: float = LOCAL_SIGMA_MM,
+    sigma_px: float,
 ) -> np.ndarray:
     """Partial-volume growth against the *local* lesion intensity, one ring at a time.
 
@@ -1275,9 +1276,7 @@ def _candidates(
     return not_csf, labels, ids, satellites, across
 
 
-def _refine(
-    core, img, allowed, grow_t, reach, tips, model, floor_sigmas, rings, local_px=LOCAL_SIGMA_MM
-):
+def _refine(core, img, allowed, grow_t, reach, tips, model, floor_sigmas, rings, *, local_px):
     """Step 4: the lesion around its seed core, decided by the partial-volume rule.
 
     ``reach`` (the zone around the core) and ``rings`` are pixels; ``local_px`` is the
@@ -1344,7 +1343,8 @@ def _segment_box(
     spacing_mm=None,
     lr_axis=None,
     voxel_mm=(1.0, 1.0, 1.0),
-    local_px=LOCAL_SIGMA_MM,
+    *,
+    local_px,
 ) -> LesionResult:
     """:func:`segment_hyperintense_lesion` on the brain's bounding box.
 
@@ -1385,7 +1385,7 @@ def _segment_box(
         if across is not None and across.any():
             # step 3d: the part across the midline is decided by the partial-volume rule
             # alone, without the boundary rings' weaker evidence
-            crossed = _refine(across, *refine, floor_sigmas, 0) & ~mask
+            crossed = _refine(across, *refine, floor_sigmas, 0, local_px=local_px) & ~mask
             mask = mask | crossed
         if satellites is not None and satellites.any():
             # step 4b: a satellite the refined lesion reaches (on FLAIR / T2: comes within

@@ -118,3 +118,13 @@ def test_a_pixel_key_names_its_key_in_mm(section, old, new):
     text = f"{outer}:\n  {inner}:\n    {old}: 3\n" if inner else f"{outer}:\n  {old}: 3\n"
     with pytest.raises(ConfigError, match=rf"{section}\.{old} is now {section}\.{new}: .* mm"):
         parse_config(text, source="old.yaml")
+
+
+@pytest.mark.parametrize("old", ["smoothing_px", "min_region_pixels", "boundary_rings"])
+def test_a_pixel_key_of_the_old_layout_names_its_place_and_its_key_in_mm(old):
+    # detect.lesion_<key> of the layout before detect.lesion, with a key now in mm
+    new = {"smoothing_px": "smoothing_mm", "min_region_pixels": "min_region_mm2"}.get(
+        old, "boundary_mm"
+    )
+    with pytest.raises(ConfigError, match=rf"detect\.lesion_{old} moved to detect\.lesion\.{new}"):
+        parse_config(f"detect:\n  lesion_{old}: 3\n", source="old.yaml")

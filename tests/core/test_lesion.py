@@ -605,7 +605,7 @@ def test_local_growth_on_the_lesion_box_equals_the_whole_volume(seed):
     allowed = rng.random(shape) > 0.05
     model = NormalModel(120.0, 12.0, 144.0, float("inf"))
     expected = _grow_local_naive(mask, img, allowed, model, 1.0, 3)
-    got = _grow_local(mask, img, allowed, model, 1.0, 3)
+    got = _grow_local(mask, img, allowed, model, 1.0, 3, 3.0)  # the naive growth's 3 px
     assert got.sum() > mask.sum()  # it grew
     np.testing.assert_array_equal(got, expected)
 
@@ -966,23 +966,58 @@ def _replicated(a: np.ndarray) -> np.ndarray:
     return np.repeat(np.repeat(a, 2, axis=1), 2, axis=2)
 
 
-@pytest.mark.parametrize("seed", range(4))
-def test_the_lesion_does_not_depend_on_the_pixel_size(seed):
+def test_the_lesion_does_not_depend_on_the_pixel_size():
     # one image at 1 mm pixels and the same image on a 0.5 mm grid (every pixel as 2 x 2):
     # the model's lengths and areas are mm (smoothing, significance, boundary rings, the
-    # rings' local gray), so both give the same lesion; with the former pixel counts the
-    # 0.5 mm grid was smoothed half as much and grew half as far (volume -8 to -10 % on
-    # seeds 2 and 3, Dice 0.94-0.95 against the 1 mm mask)
+    # rings' local gray), so both give the same lesion up to the grids' sampling. Over
+    # noise seeds 0-19: mean Dice 0.992 and mean volume difference 1.4 % (worst seed
+    # 0.957, +8.7 %); with the former pixel counts, which smooth the 0.5 mm grid half as
+    # much and grow half as far, 0.970 and 4.5 % (seeds 0-7: 0.975 and 3.9 %)
     brain = _brain()
-    img = _image(brain, [(_ball((0, -8, 12), 9), 150.0)], seed=seed)
     fine_mm = (SPACING[0], SPACING[1] / 2, SPACING[2] / 2)
-    coarse = _segment(img, brain, lr_axis=2)
-    fine = segment_hyperintense_lesion(
-        _replicated(img), _replicated(brain), modality="flair", spacing_mm=fine_mm, lr_axis=2
-    ).mask
-    z, y, x = fine.shape
-    fine_on_coarse = fine.reshape(z, y // 2, 2, x // 2, 2).mean(axis=(2, 4)) >= 0.5
-    assert coarse.any()
-    dice = 2 * (fine_on_coarse & coarse).sum() / (fine_on_coarse.sum() + coarse.sum())
-    assert dice >= 0.97
-    assert fine.sum() / 4 == pytest.approx(coarse.sum(), rel=0.05)
+    dices, volume_errors = [], []
+    for seed in range(8):
+        img = _image(brain, [(_ball((0, -8, 12), 9), 150.0)], seed=seed)
+        coarse = _segment(img, brain, lr_axis=2)
+        fine = segment_hyperintense_lesion(
+            _replicated(img), _replicated(brain), modality="flair", spacing_mm=fine_mm, lr_axis=2
+        ).mask
+        z, y, x = fine.shape
+        fine_on_coarse = fine.reshape(z, y // 2, 2, x // 2, 2).mean(axis=(2, 4)) >= 0.5
+        assert coarse.any()
+        dices.append(2 * (fine_on_coarse & coarse).sum() / (fine_on_coarse.sum() + coarse.sum()))
+        volume_errors.append(abs(fine.sum() / 4 - coarse.sum()) / coarse.sum())
+    assert np.mean(dices) >= 0.985
+    assert np.mean(volume_errors) <= 0.03
+
+
+@pytest.mark.parametrize("pixel_mm", [0.5, 1.0])
+def test_each_step_gets_its_length_in_pixels(monkeypatch, pixel_mm):
+    # the plumbing of the conversion (the conversion itself: the doctest of _pixel_lengths):
+    # the 2 mm blur, the 50 mm2 significance, the 3 mm of rings and their 3 mm Gaussian
+    # reach the steps as 4 px, 200 px, 6 rings, 6 px at 0.5 mm pixels and as 2, 50, 3, 3
+    # at 1 mm
+    seen = {}
+
+    def spy(name, fn, pick):
+        def wrapped(*args, **kwargs):
+            seen.setdefault(name, set()).add(pick(*args, **kwargs))
+            return fn(*args, **kwargs)
+
+        monkeypatch.setattr(lesion_module, fn.__name__, wrapped)
+
+    spy("blur", lesion_module._smooth_in_brain, lambda img, b, sigma: sigma)
+    spy("region", lesion_module._significant_components, lambda seeds, n, k: n)
+    spy("rings", lesion_module._refine, lambda *a, **kw: (a[-1], kw["local_px"]))
+    brain = _brain()
+    img = _image(brain, [(_ball((0, -8, 12), 9), 150.0)])
+    k = int(round(1.0 / pixel_mm))
+    big = (lambda a: np.repeat(np.repeat(a, k, axis=1), k, axis=2)) if k > 1 else (lambda a: a)
+    res = segment_hyperintense_lesion(
+        big(img), big(brain), modality="flair", spacing_mm=(3.0, pixel_mm, pixel_mm), lr_axis=2
+    )
+    assert res.mask.any()
+    scale = 1.0 / pixel_mm
+    assert seen["blur"] == {2.0 * scale}
+    assert seen["region"] == {int(round(50 * scale**2))}
+    assert (int(round(3 * scale)), 3.0 * scale) in seen["rings"]
