@@ -14,6 +14,13 @@ offset 2), the per-slab Dice of the segmented slabs against the slab reference
   head along the in-plane axis that is not left-right (anterior-posterior on
   axial slices) / along the slices, on the intensities shifted
   to start at 0 (background kept): what an uncorrected receive-coil bias does;
+- **reversed**: the slab stack in reverse order (the head upside down along the
+  slices), the mask reversed back: nothing in the pipeline should prefer a slice
+  direction, so the masks should agree exactly (column "reversed masks agree");
+- **0.5 mm pixels**: every slab resampled in-plane to half the pixel size (linear
+  interpolation, ``scipy.ndimage.zoom``) with the spacing halved, the mask averaged
+  back over 2 x 2 pixels (>= 0.5) before scoring: the lesion model's lengths and
+  areas are millimetres, so the result should stay close to the one at 1 mm;
 - **yaw -10 / +5 / +10**: the head turned in the slice plane by that many
   degrees (nearest-neighbour rotation of the 1 mm image and of its label about
   the volume's centre, so that no gray level is blurred and the masked
@@ -37,6 +44,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage as ndi
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -52,8 +60,6 @@ YAWS = {"yaw -10": -10.0, "yaw +5": 5.0, "yaw +10": 10.0}  # degrees, in-plane
 
 def _turned(vol: np.ndarray, deg: float) -> np.ndarray:
     """``vol`` turned by ``deg`` in the (y, x) plane about its centre (nearest neighbour)."""
-    from scipy import ndimage as ndi
-
     lo = vol.min()
     return ndi.rotate(vol, deg, axes=(1, 2), reshape=False, order=0, cval=lo)
 
@@ -84,9 +90,11 @@ def main(argv=None) -> int:
     if data is None:
         return 0
     cfg = rs.default_config()
-    variants = ("as given", "mirrored", "linear", "bias y", "bias z", *YAWS)
-    print("| case | " + " | ".join(variants) + " | mirrored masks agree |")
-    print("|---|" + "---|" * (len(variants) + 1))
+    variants = (
+        "as given", "mirrored", "reversed", "linear", "bias y", "bias z", "0.5 mm pixels", *YAWS
+    )  # fmt: skip
+    print("| case | " + " | ".join(variants) + " | mirrored masks agree | reversed masks agree |")
+    print("|---|" + "---|" * (len(variants) + 2))
     for case in rs._cases(data):
         if case.label is None or case.native_only:
             continue
@@ -102,14 +110,23 @@ def main(argv=None) -> int:
                 cells.append("–")
                 continue
             img = scan.image.astype(np.float64)
-            if name != "as given":
+            if name not in ("as given", "reversed", "0.5 mm pixels"):
                 img = _variant(img, name, axis)
-            _, _, seg, _ = rs.run_pipeline(
-                rs.emulate_thick(img, 2), cfg, case.modality, None, spacing, axis
-            )
+            thick, sp = rs.emulate_thick(img, 2), spacing
+            if name == "reversed":
+                thick = thick[::-1]
+            elif name == "0.5 mm pixels":
+                thick = ndi.zoom(thick, (1, 2, 2), order=1)
+                sp = (spacing[0], spacing[1] / 2, spacing[2] / 2)
+            _, _, seg, _ = rs.run_pipeline(thick, cfg, case.modality, None, sp, axis)
             mask = seg.tumor_mask
             if name == "mirrored":
                 mask = np.flip(mask, axis=axis)
+            elif name == "reversed":
+                mask = mask[::-1]
+            elif name == "0.5 mm pixels":
+                z, y, x = mask.shape
+                mask = mask.reshape(z, y // 2, 2, x // 2, 2).mean(axis=(2, 4)) >= 0.5
             masks[name] = mask
             ref_v = slab_ref
             if name in YAWS:
@@ -121,7 +138,8 @@ def main(argv=None) -> int:
             if "mirrored" in masks
             else "–"
         )
-        print(f"| {case.name} | " + " | ".join(cells) + f" | {agree} |")
+        agree_z = f"{rs.soft_dice(masks['as given'], masks['reversed']):.3f}"
+        print(f"| {case.name} | " + " | ".join(cells) + f" | {agree} | {agree_z} |")
     _unlabelled_table(data, cfg, args.cases)
     return 0
 

@@ -151,9 +151,49 @@ def to_uint8(image: np.ndarray, *, window_percentiles=(0.5, 99.5)) -> np.ndarray
     return _to_uint8(arr, lo_p, hi_p)
 
 
+#: Values within this share of the volume's intensity range of the background value are
+#: background: the rounding of a resampling (a weighted mean of equal values is equal up
+#: to a few ulps), far below any intensity difference between tissues.
+BACKGROUND_TOLERANCE = 1e-6
+
+
+def masked_background(arr: np.ndarray) -> tuple[float, float, float]:
+    """The constant background a mask left in a volume: ``(value, tolerance, share)``.
+
+    Skull stripping sets every voxel outside the brain to one value: the
+    volume's minimum (0 in BraTS T2, -3.16 in the z-scored BraTS FLAIR), or 0
+    below a brain z-scored to negative values too. The candidates are the
+    minimum and the most frequent value of the volume's in-plane border (the
+    background fills the corners); the one that more voxels hold, within
+    ``BACKGROUND_TOLERANCE`` of the intensity range (the rounding of a
+    resampling: a volume resampled with linear interpolation holds the mask
+    value up to a few ulps), is the background. ``share`` is the share of the
+    volume that holds it (81-89 % on the BraTS volumes, 2-6 % on raw heads,
+    whose air carries noise).
+
+    >>> v = np.zeros((2, 4, 4)); v[:, 1:3, 1:3] = [[-1.0, 2.0], [3.0, -2.0]]
+    >>> value, tol, share = masked_background(v)  # 0 is the background, not the minimum -2
+    >>> value, float(share)
+    (0.0, 0.75)
+    """
+    lo, hi = float(arr.min()), float(arr.max())
+    tol = BACKGROUND_TOLERANCE * (hi - lo)
+    border = np.concatenate(
+        [arr[:, 0, :].ravel(), arr[:, -1, :].ravel(), arr[:, :, 0].ravel(), arr[:, :, -1].ravel()]
+    )
+    values, counts = np.unique(border, return_counts=True)
+    best = (lo, 0.0)
+    for candidate in (lo, float(values[np.argmax(counts)])):
+        share = float(np.count_nonzero(np.abs(arr - candidate) <= tol)) / arr.size
+        if share > best[1]:
+            best = (candidate, share)
+    return best[0], tol, best[1]
+
+
 def _to_uint8(arr: np.ndarray, lo_p: float, hi_p: float) -> np.ndarray:
     vmin = arr.min()
-    foreground = arr[arr > vmin]
+    value, tol, _ = masked_background(arr)
+    foreground = arr[np.abs(arr - value) > tol]
     if foreground.size == 0:
         raise InputError("image is constant: no foreground to set an intensity window from")
     lo, hi = np.percentile(foreground.astype(np.float64), [lo_p, hi_p])
@@ -561,11 +601,12 @@ def brain_volume_note(brain_volume_ml: float) -> str | None:
 def foreground_brain_mask(image: np.ndarray) -> np.ndarray:
     """Brain mask of an already skull-stripped volume: its foreground.
 
-    Foreground = voxels strictly above the volume's minimum (the constant
-    masked background, whatever its value: 0, or negative for z-scored
-    volumes); the largest 26-connected 3-D component is kept (stray
-    background specks drop out) and each slice's holes are filled (dark
-    necrosis or ventricles whose intensity equals the background). Nothing
+    Foreground = voxels that differ from the constant masked background
+    (:func:`masked_background`, whatever its value: 0, negative for z-scored
+    volumes, or 0 below a brain with negative values too); the largest
+    26-connected 3-D component is kept (stray background specks drop out)
+    and each slice's holes are filled (dark necrosis or ventricles whose
+    intensity equals the background). Nothing
     is eroded, so the brain's rim, where a tumour may touch the surface,
     stays in.
 
@@ -582,7 +623,8 @@ def foreground_brain_mask(image: np.ndarray) -> np.ndarray:
 
 
 def _foreground_brain_mask(arr: np.ndarray) -> np.ndarray:
-    fg = arr > arr.min()
+    value, tol, _ = masked_background(arr)
+    fg = np.abs(arr - value) > tol
     box = _true_box(fg)
     if box is None:
         return fg
@@ -737,7 +779,9 @@ def preprocess_volume(
         lesions in normal white matter on two raw T1 heads, see
         ``reports/segmentation.md``; needs ``spacing_mm``); ``auto``:
         ``foreground`` when at least ``masked_background_fraction`` of the
-        voxels hold exactly the volume's minimum, else ``skull_strip``.
+        voxels hold the masked background value (:func:`masked_background`:
+        the volume's minimum or the border's most frequent value, up to the
+        rounding of a resampling), else ``skull_strip``.
         Reason: the air of a raw magnitude MR volume carries Rician noise,
         so a large set of voxels sharing one exact value is a mask applied
         by skull stripping (0 in BraTS T2, the z-scored background -3.16 of
@@ -805,8 +849,8 @@ def preprocess_volume(
         )
     mode = brain_extraction
     if mode == "auto":
-        at_min = np.count_nonzero(arr == arr.min()) / arr.size
-        mode = "foreground" if at_min >= float(masked_background_fraction) else "skull_strip"
+        share = masked_background(arr)[2]
+        mode = "foreground" if share >= float(masked_background_fraction) else "skull_strip"
     if spacing_mm is not None:
         sp = tuple(float(v) for v in np.ravel(spacing_mm))
         if len(sp) != 3 or not all(np.isfinite(v) and v > 0 for v in sp):

@@ -295,6 +295,49 @@ def test_zscored_skull_stripped_volume_keeps_the_whole_brain():
     assert 110 < np.median(res.enhanced[res.brain_mask]) < 145
 
 
+def _zscored_brain(background: float, seed: int = 1):
+    """A z-scored skull-stripped volume (tissue mean 0, SD 1) and its brain."""
+    rng = np.random.default_rng(seed)
+    nz, n = 5, 64
+    yy, xx = np.mgrid[:n, :n]
+    brain2d = (yy - 32) ** 2 + (xx - 32) ** 2 < 25**2
+    tissue = np.clip(rng.normal(0.0, 1.0, (nz, n, n)), -3.0, 3.0)
+    vol = np.where(brain2d, tissue, background)
+    return vol, np.broadcast_to(brain2d, vol.shape)
+
+
+def test_a_resampled_skull_stripped_volume_keeps_its_brain():
+    # a resampling (linear interpolation in float64) leaves the masked background equal
+    # up to a few ulps: some of it just below the mask value, so that "exactly the
+    # minimum" held 0.01 % of the voxels and the volume was taken for a raw head
+    from tumor3d.preprocess import preprocess_volume
+
+    exact, brain = _zscored_brain(-3.16)
+    rng = np.random.default_rng(2)
+    resampled = exact.copy()
+    outside = ~brain & (rng.random(exact.shape) < 0.5)
+    resampled[outside] = np.nextafter(-3.16, -np.inf)
+    resampled[~brain & ~outside & (rng.random(exact.shape) < 0.01)] = np.nextafter(-3.16, 0.0)
+    assert np.count_nonzero(resampled == resampled.min()) / resampled.size < 0.5  # premise
+    ref = preprocess_volume(exact)
+    got = preprocess_volume(resampled)
+    assert ref.brain_extraction == got.brain_extraction == "foreground"
+    assert np.array_equal(got.brain_mask, brain)
+    assert np.array_equal(got.enhanced, ref.enhanced)
+
+
+def test_a_zero_background_below_negative_tissue_is_the_background():
+    # a brain z-scored to negative and positive values with the mask's 0 around it: the
+    # background is the value the mask left (0), not the volume's minimum
+    from tumor3d.preprocess import preprocess_volume
+
+    vol, brain = _zscored_brain(0.0)
+    assert vol.min() < 0.0
+    res = preprocess_volume(vol)
+    assert res.brain_extraction == "foreground"
+    assert np.array_equal(res.brain_mask, brain)
+
+
 def test_brain_extraction_rejects_unknown_mode():
     from tumor3d.preprocess import preprocess_volume
 
@@ -452,8 +495,10 @@ def test_to_uint8_fused_window_matches_numpy_expression():
     rng = np.random.default_rng(15)
     for dtype in (np.float32, np.float64, np.int16, np.uint16):
         for _ in range(10):
-            vol = rng.normal(100.0, 40.0, size=(3, 11, 13))
-            vol[rng.random(vol.shape) < 0.3] = vol.min() - 5.0  # masked background
+            # tissue above 10 and a masked background of 0 (the minimum, also for the
+            # unsigned dtype: a negative value would wrap to its top)
+            vol = np.clip(rng.normal(100.0, 40.0, size=(3, 11, 13)), 10.0, None)
+            vol[rng.random(vol.shape) < 0.3] = 0.0  # masked background
             vol = vol.astype(dtype)
             lo_p, hi_p = sorted(rng.uniform(0, 100, size=2))
             fg = vol[vol > vol.min()].astype(np.float64)
