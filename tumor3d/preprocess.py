@@ -190,9 +190,10 @@ def masked_background(arr: np.ndarray) -> tuple[float, float, float]:
     return best[0], tol, best[1]
 
 
-def _to_uint8(arr: np.ndarray, lo_p: float, hi_p: float) -> np.ndarray:
+def _to_uint8(arr: np.ndarray, lo_p: float, hi_p: float, background=None) -> np.ndarray:
+    """The 8-bit window; ``background`` = :func:`masked_background` of ``arr`` if known."""
     vmin = arr.min()
-    value, tol, _ = masked_background(arr)
+    value, tol, _ = masked_background(arr) if background is None else background
     foreground = arr[np.abs(arr - value) > tol]
     if foreground.size == 0:
         raise InputError("image is constant: no foreground to set an intensity window from")
@@ -622,8 +623,8 @@ def foreground_brain_mask(image: np.ndarray) -> np.ndarray:
     return _foreground_brain_mask(_check_volume(image))
 
 
-def _foreground_brain_mask(arr: np.ndarray) -> np.ndarray:
-    value, tol, _ = masked_background(arr)
+def _foreground_brain_mask(arr: np.ndarray, background=None) -> np.ndarray:
+    value, tol, _ = masked_background(arr) if background is None else background
     fg = np.abs(arr - value) > tol
     box = _true_box(fg)
     if box is None:
@@ -832,8 +833,10 @@ def preprocess_volume(
         if arr.min() == arr.max():
             raise InputError("image is constant: there is no tissue to process")
         original = arr.copy()
+        background = None
     else:
-        original = _to_uint8(arr, lo_p, hi_p)
+        background = masked_background(arr)  # computed once: the window, auto, foreground
+        original = _to_uint8(arr, lo_p, hi_p, background)
     enhanced = _median_stack(original, size)
     if sharpen:
         enhanced = _unsharp_stack(enhanced, unsharp_alpha)
@@ -849,7 +852,7 @@ def preprocess_volume(
         )
     mode = brain_extraction
     if mode == "auto":
-        share = masked_background(arr)[2]
+        share = (masked_background(arr) if background is None else background)[2]
         mode = "foreground" if share >= float(masked_background_fraction) else "skull_strip"
     if spacing_mm is not None:
         sp = tuple(float(v) for v in np.ravel(spacing_mm))
@@ -859,7 +862,7 @@ def preprocess_volume(
         brain = given
         mode = "given"
     elif mode == "foreground":
-        brain = _foreground_brain_mask(arr)
+        brain = _foreground_brain_mask(arr, background)
     elif mode == "head":
         if spacing_mm is None:
             raise InputError("brain_extraction 'head' needs the voxel spacing (spacing_mm)")
