@@ -40,6 +40,7 @@ __all__ = [
     "PreprocessResult",
     "equalize_slices",
     "foreground_brain_mask",
+    "masked_background",
     "preprocess_volume",
     "remove_skull",
     "to_uint8",
@@ -607,9 +608,8 @@ def foreground_brain_mask(image: np.ndarray) -> np.ndarray:
     volumes, or 0 below a brain with negative values too); the largest
     26-connected 3-D component is kept (stray background specks drop out)
     and each slice's holes are filled (dark necrosis or ventricles whose
-    intensity equals the background). Nothing
-    is eroded, so the brain's rim, where a tumour may touch the surface,
-    stays in.
+    intensity equals the background). Nothing is eroded, so the brain's rim,
+    where a tumour may touch the surface, stays in.
 
     Parameters
     ----------
