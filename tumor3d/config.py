@@ -175,16 +175,25 @@ _PIXEL_KEYS = {
 }
 
 
-def _refuse_pixel_keys(section: str, data: Any) -> Any:
+def _refuse_renamed_keys(data: Any, renamed: dict[str, str], message) -> Any:
+    """``data`` unchanged, or ValueError(``message(key, new)``) for its first renamed key."""
     if isinstance(data, dict):
         for key in data:
-            if key in _PIXEL_KEYS:
-                raise ValueError(
-                    f"{section}.{key} is now {section}.{_PIXEL_KEYS[key]}: the robust model's "
-                    "lengths and areas are in mm and mm2, converted to pixels through the "
-                    "scan's pixel spacing (the same number at 1 mm pixels)"
-                )
+            if key in renamed:
+                raise ValueError(message(key, renamed[key]))
     return data
+
+
+def _refuse_pixel_keys(section: str, data: Any) -> Any:
+    return _refuse_renamed_keys(
+        data,
+        _PIXEL_KEYS,
+        lambda key, new: (
+            f"{section}.{key} is now {section}.{new}: the robust model's "
+            "lengths and areas are in mm and mm2, converted to pixels through the "
+            "scan's pixel spacing (the same number at 1 mm pixels)"
+        ),
+    )
 
 
 #: Keys of the lesion model that lived in ``detect`` and ``segment`` before
@@ -199,14 +208,14 @@ _MOVED_LESION_KEYS = {
 
 
 def _refuse_moved_lesion_keys(section: str, data: Any) -> Any:
-    if isinstance(data, dict):
-        for key in data:
-            if key in _MOVED_LESION_KEYS:
-                raise ValueError(
-                    f"{section}.{key} moved to detect.lesion.{_MOVED_LESION_KEYS[key]} "
-                    "(one lesion model, computed by the detect stage and reused by segment)"
-                )
-    return data
+    return _refuse_renamed_keys(
+        data,
+        _MOVED_LESION_KEYS,
+        lambda key, new: (
+            f"{section}.{key} moved to detect.lesion.{new} "
+            "(one lesion model, computed by the detect stage and reused by segment)"
+        ),
+    )
 
 
 class DetectConfig(_StageConfig):
