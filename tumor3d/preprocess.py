@@ -27,6 +27,7 @@ thresholds are computed slice by slice.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -37,6 +38,7 @@ from tumor3d.brain_extraction import extract_brain
 from tumor3d.errors import InputError
 
 __all__ = [
+    "MaskedBackground",
     "PreprocessResult",
     "equalize_slices",
     "foreground_brain_mask",
@@ -158,8 +160,17 @@ def to_uint8(image: np.ndarray, *, window_percentiles=(0.5, 99.5)) -> np.ndarray
 BACKGROUND_TOLERANCE = 1e-6
 
 
-def masked_background(arr: np.ndarray) -> tuple[float, float, float]:
-    """The constant background a mask left in a volume: ``(value, tolerance, share)``.
+class MaskedBackground(NamedTuple):
+    """:func:`masked_background`: the value, its tolerance, the share and the voxels."""
+
+    value: float
+    tolerance: float
+    share: float
+    mask: np.ndarray  # (z, y, x) bool: the voxels within ``tolerance`` of ``value``
+
+
+def masked_background(arr: np.ndarray) -> MaskedBackground:
+    """The constant background a mask left in a volume (:class:`MaskedBackground`).
 
     Skull stripping sets every voxel outside the brain to one value: the
     volume's minimum (0 in BraTS T2, -3.16 in the z-scored BraTS FLAIR), or 0
@@ -170,12 +181,12 @@ def masked_background(arr: np.ndarray) -> tuple[float, float, float]:
     resampling: a volume resampled with linear interpolation holds the mask
     value up to a few ulps), is the background. ``share`` is the share of the
     volume that holds it (81-89 % on the BraTS volumes, 2-6 % on raw heads,
-    whose air carries noise).
+    whose air carries noise), ``mask`` those voxels.
 
     >>> v = np.zeros((2, 4, 4)); v[:, 1:3, 1:3] = [[-1.0, 2.0], [3.0, -2.0]]
-    >>> value, tol, share = masked_background(v)  # 0 is the background, not the minimum -2
-    >>> value, float(share)
-    (0.0, 0.75)
+    >>> bg = masked_background(v)  # 0 is the background, not the minimum -2
+    >>> bg.value, bg.share, int(bg.mask.sum())
+    (0.0, 0.75, 24)
     """
     lo, hi = float(arr.min()), float(arr.max())
     tol = BACKGROUND_TOLERANCE * (hi - lo)
@@ -183,19 +194,20 @@ def masked_background(arr: np.ndarray) -> tuple[float, float, float]:
         [arr[:, 0, :].ravel(), arr[:, -1, :].ravel(), arr[:, :, 0].ravel(), arr[:, :, -1].ravel()]
     )
     values, counts = np.unique(border, return_counts=True)
-    best = (lo, 0.0)
+    best = None
     for candidate in (lo, float(values[np.argmax(counts)])):
-        share = float(np.count_nonzero(np.abs(arr - candidate) <= tol)) / arr.size
-        if share > best[1]:
-            best = (candidate, share)
-    return best[0], tol, best[1]
+        mask = np.abs(arr - candidate) <= tol
+        share = float(np.count_nonzero(mask)) / arr.size
+        if best is None or share > best.share:
+            best = MaskedBackground(candidate, tol, share, mask)
+    return best
 
 
 def _to_uint8(arr: np.ndarray, lo_p: float, hi_p: float, background=None) -> np.ndarray:
     """The 8-bit window; ``background`` = :func:`masked_background` of ``arr`` if known."""
     vmin = arr.min()
-    value, tol, _ = masked_background(arr) if background is None else background
-    foreground = arr[np.abs(arr - value) > tol]
+    bg = masked_background(arr) if background is None else background
+    foreground = arr[~bg.mask]
     if foreground.size == 0:
         raise InputError("image is constant: no foreground to set an intensity window from")
     lo, hi = np.percentile(foreground.astype(np.float64), [lo_p, hi_p])
@@ -624,8 +636,8 @@ def foreground_brain_mask(image: np.ndarray) -> np.ndarray:
 
 
 def _foreground_brain_mask(arr: np.ndarray, background=None) -> np.ndarray:
-    value, tol, _ = masked_background(arr) if background is None else background
-    fg = np.abs(arr - value) > tol
+    bg = masked_background(arr) if background is None else background
+    fg = ~bg.mask
     box = _true_box(fg)
     if box is None:
         return fg
@@ -852,7 +864,7 @@ def preprocess_volume(
         )
     mode = brain_extraction
     if mode == "auto":
-        share = (masked_background(arr) if background is None else background)[2]
+        share = (masked_background(arr) if background is None else background).share
         mode = "foreground" if share >= float(masked_background_fraction) else "skull_strip"
     if spacing_mm is not None:
         sp = tuple(float(v) for v in np.ravel(spacing_mm))
