@@ -961,9 +961,9 @@ def test_an_asymmetric_lobe_reached_through_the_far_part_is_a_satellite(monkeypa
     assert max(in_satellite) > 0.5 * lobe_box.sum()
 
 
-def _replicated(a: np.ndarray) -> np.ndarray:
-    """Every pixel as 2 x 2 pixels: the same image on a grid of half the pixel size."""
-    return np.repeat(np.repeat(a, 2, axis=1), 2, axis=2)
+def _replicated(a: np.ndarray, k: int = 2) -> np.ndarray:
+    """Every pixel as k x k pixels: the same image on a grid of 1/k the pixel size."""
+    return np.repeat(np.repeat(a, k, axis=1), k, axis=2)
 
 
 def test_the_lesion_does_not_depend_on_the_pixel_size():
@@ -1012,9 +1012,12 @@ def test_each_step_gets_its_length_in_pixels(monkeypatch, pixel_mm):
     brain = _brain()
     img = _image(brain, [(_ball((0, -8, 12), 9), 150.0)])
     k = int(round(1.0 / pixel_mm))
-    big = (lambda a: np.repeat(np.repeat(a, k, axis=1), k, axis=2)) if k > 1 else (lambda a: a)
     res = segment_hyperintense_lesion(
-        big(img), big(brain), modality="flair", spacing_mm=(3.0, pixel_mm, pixel_mm), lr_axis=2
+        _replicated(img, k),
+        _replicated(brain, k),
+        modality="flair",
+        spacing_mm=(3.0, pixel_mm, pixel_mm),
+        lr_axis=2,
     )
     assert res.mask.any()
     scale = 1.0 / pixel_mm
