@@ -818,7 +818,8 @@ def _without_step_3d(monkeypatch):
     original = lesion_module._candidates
 
     def no_crossing(*args):
-        return original(*args[:-1], False)  # the last positional argument: crossing
+        # the last two positional arguments: crossing (step 3d), contrast (step 3e)
+        return original(*args[:-2], False, args[-1])
 
     monkeypatch.setattr(lesion_module, "_candidates", no_crossing)
 
@@ -1024,3 +1025,69 @@ def test_each_step_gets_its_length_in_pixels(monkeypatch, pixel_mm):
     assert seen["blur"] == {2.0 * scale}
     assert seen["region"] == {int(round(50 * scale**2))}
     assert (int(round(3 * scale)), 3.0 * scale) in seen["rings"]
+
+
+def _normal_model_of(img: np.ndarray, brain: np.ndarray) -> NormalModel:
+    """The lesion model's normal model of ``img`` (smoothing as the default, 2 mm)."""
+    sm = _smooth_in_brain(img.astype(np.float64), brain, 2.0)
+    return normal_model(sm, img.astype(np.float64), brain, 2.0, "flair")
+
+
+def test_the_normal_tail_level_splits_the_tail_beyond_the_seed_level():
+    # independent expectation: the share of a large normal sample beyond the seed level
+    # that also lies beyond the tail level
+    m = NormalModel(median=50.0, sigma=4.0, seed_threshold=58.0, csf_threshold=np.inf)
+    x = np.random.default_rng(0).normal(50.0, 4.0, 4_000_000)
+    tail = x[x > m.seed_threshold]
+    for q in (0.5, 0.25, 0.1):
+        share = float(np.mean(tail > lesion_module.normal_tail_level(m, q)))
+        assert share == pytest.approx(q, abs=0.01)
+
+
+def _faint_region_image(z_sigmas: float, seed: int = 0):
+    """A deep, one-sided region at ``mu + z_sigmas sigma`` of the normal model."""
+    brain = _brain()
+    region = brain & _ball((0, -10, 12), 9)
+    model = _normal_model_of(_image(brain, [], seed=seed), brain)
+    gray = model.median + z_sigmas * model.sigma
+    return _image(brain, [(region, gray)], seed=seed), brain, region
+
+
+def test_a_region_at_the_normal_tails_level_is_no_lesion(monkeypatch):
+    # step 3e: a region planted at 2.5 sigma of the brain without it (its seeds' median
+    # measures 2.26 sigma of the model with it, below the tail's upper quartile at 2.53)
+    # is normal tissue's outliers clustered; it is a lesion on T1c, where step 3e does
+    # not apply, and on FLAIR with step 3e off: step 3e is what rejects it
+    for seed in (0, 1, 2):
+        img, brain, region = _faint_region_image(2.5, seed)
+        assert not _segment(img, brain, lr_axis=2).any()
+        found = _segment(img, brain, modality="t1c", lr_axis=2)
+        assert (found & region).sum() > 0.9 * region.sum()
+    with monkeypatch.context() as m:
+        m.setattr(lesion_module, "TAIL_QUANTILE", 1.0)  # the tail level is the seed level
+        found = _segment(img, brain, lr_axis=2)
+    assert (found & region).sum() > 0.9 * region.sum()
+
+
+def test_a_region_well_beyond_the_normal_tail_is_a_lesion():
+    for seed in (0, 1, 2):
+        img, brain, region = _faint_region_image(4.0, seed)
+        # kept whole (its border at this low contrast is step 4's business, not 3e's)
+        mask = _segment(img, brain, lr_axis=2)
+        assert (mask & region).sum() > 0.95 * region.sum()
+
+
+def test_a_small_bright_lesion_is_kept_over_a_larger_faint_region():
+    # the faint region (the larger seed component) is examined first and fails step 3e;
+    # the smaller lesion, well beyond the normal tail, is the lesion
+    brain = _brain()
+    faint = brain & _ball((0, -10, 12), 11)
+    lesion = brain & _ball((0, 14, -12), 6)
+    model = _normal_model_of(_image(brain, []), brain)
+    img = _image(
+        brain,
+        [(faint, model.median + 2.5 * model.sigma), (lesion, model.median + 6 * model.sigma)],
+    )
+    mask = _segment(img, brain, lr_axis=2)
+    assert (mask & lesion).sum() > 0.8 * lesion.sum()
+    assert not (mask & faint).any()
