@@ -57,6 +57,8 @@ def survey(data: Path, cfg, native: bool) -> list[dict]:
         model = L.normal_model(sm, enhanced, brain, lp.seed_sigmas, case.modality)
         axis = L.left_right_axis(scan.affine)
         plane = None if axis is None else L.symmetry_plane(sm, brain, model, axis, spacing)
+        # every candidate before the decision rules: no depth (3b, spacing None) and no
+        # contrast test (3e, the default contrast=False), so the survey sees them all
         _, labels, ids, _, _ = L._candidates(
             model, sm, enhanced, brain, px.smoothing, px.min_region, lp.min_slices,
             False, None, plane, spacing,

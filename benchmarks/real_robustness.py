@@ -133,9 +133,8 @@ def main(argv=None) -> int:
             img = scan.image.astype(np.float64)
             if name not in ("as given", "reversed", "0.5 mm pixels", "5 mm slabs"):
                 img = _variant(img, name, axis)
-            thick, sp = rs.emulate_thick(img, 2), spacing
-            if name == "5 mm slabs":
-                thick = _slabs_5mm(img)
+            thick = _slabs_5mm(img) if name == "5 mm slabs" else rs.emulate_thick(img, 2)
+            sp = spacing
             if name == "reversed":
                 thick = thick[::-1]
             elif name == "0.5 mm pixels":

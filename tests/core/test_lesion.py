@@ -1053,20 +1053,21 @@ def _faint_region_image(z_sigmas: float, seed: int = 0):
     return _image(brain, [(region, gray)], seed=seed), brain, region
 
 
-def test_a_region_at_the_normal_tails_level_is_no_lesion(monkeypatch):
+@pytest.mark.parametrize("lr_axis", [2, None])  # with and without the mirror plane (step 3c)
+def test_a_region_at_the_normal_tails_level_is_no_lesion(lr_axis, monkeypatch):
     # step 3e: a region planted at 2.5 sigma of the brain without it (its seeds' median
     # measures 2.26 sigma of the model with it, below the tail's upper quartile at 2.53)
     # is normal tissue's outliers clustered; it is a lesion on T1c, where step 3e does
     # not apply, and on FLAIR with step 3e off: step 3e is what rejects it
     for seed in (0, 1, 2):
         img, brain, region = _faint_region_image(2.5, seed)
-        assert not _segment(img, brain, lr_axis=2).any()
-        found = _segment(img, brain, modality="t1c", lr_axis=2)
+        assert not _segment(img, brain, lr_axis=lr_axis).any()
+        found = _segment(img, brain, modality="t1c", lr_axis=lr_axis)
         assert (found & region).sum() > 0.9 * region.sum()
-    with monkeypatch.context() as m:
-        m.setattr(lesion_module, "TAIL_QUANTILE", 1.0)  # the tail level is the seed level
-        found = _segment(img, brain, lr_axis=2)
-    assert (found & region).sum() > 0.9 * region.sum()
+        with monkeypatch.context() as m:
+            m.setattr(lesion_module, "TAIL_QUANTILE", 1.0)  # the tail level is the seed level
+            found = _segment(img, brain, lr_axis=lr_axis)
+        assert (found & region).sum() > 0.9 * region.sum()
 
 
 def test_a_region_well_beyond_the_normal_tail_is_a_lesion():
