@@ -140,22 +140,23 @@ its modes to be counted. This module uses what a single slice cannot:
    voxels widen ``sigma``. Measured (``benchmarks/pseudo_healthy.py``): real
    FLAIR brains made tumour-free by replacing the tumour with its mirror
    image (BraTS pat0004, pat0005) report 0 mL at 1 mm and at 2 mm / 5 mm;
-   pat0004 at 1 mm reported 16.9 mL in the cerebellum before. The tail's
-   median would still keep 12.3 mL of its mesial temporal lobe; its 90th
-   percentile would miss pat0005's spheres implanted at the gray of its
-   oedema (up to 14 mL at 2 mm / 5 mm). The seeds judged are those of the
-   lesion step 3c forms (its asymmetric core with the mirrored seeds near
-   it; without a mirror plane, the whole seed component). A candidate
-   rejected here may still join a lesion kept by another candidate as its
-   satellite (step 4b): next to a lesion, faint tissue may be its oedema.
-   The real FLAIR tumours' seeds lie at a median of 3.3-5.6 ``sigma`` (four
-   cases, 1 mm and 2 mm / 5 mm; the raw TCGA head 2.9-4.0), so no labelled
-   case changes. Not on T2: its lesions are less conspicuous (the CSF, not
-   the lesion, is the brightest tissue), and the raw TCGA T2's lesion seeds
-   at 2.4-2.5 ``sigma``: step 3e would lose it (6.1 mL found today). Not on
-   T1c: its enhancing rim is 2-3 pixels thin, the smoothing of step 1
-   dilutes it, and its seeds lie just above the seed level (BraTS pat0005
-   T1c: a median of 2.3 ``sigma``).
+   before, pat0004 reported 16.9 mL in the cerebellum at 1 mm and 8.6-14.1
+   mL in the mesial temporal lobe at 2 mm / 5 mm. The tail's median would
+   still keep 12.3 mL of its mesial temporal lobe; its 90th percentile would
+   miss pat0005's spheres implanted at the gray of its oedema (up to 14 mL
+   at 2 mm / 5 mm). The seeds judged are those of the lesion step 3c forms
+   (its asymmetric core with the mirrored seeds near it; without a mirror
+   plane, the whole seed component). A candidate rejected here may still
+   join a lesion kept by another candidate as its satellite (step 4b): next
+   to a lesion, faint tissue may be its oedema. The real FLAIR tumours'
+   seeds lie at a median of 3.3-5.6 ``sigma`` (four cases, 1 mm and 2 mm / 5
+   mm; the raw TCGA head 2.9-4.0), so no labelled case changes. Not on T2:
+   its lesions are less conspicuous (the CSF, not the lesion, is the
+   brightest tissue), and the raw TCGA T2's lesion seeds at 2.4-2.5
+   ``sigma``: step 3e would lose it (6.1 mL found today). Not on T1c: its
+   enhancing rim is 2-3 pixels thin, the smoothing of step 1 dilutes it, and
+   its seeds lie just above the seed level (BraTS pat0005 T1c: a median of
+   2.3 ``sigma``).
 5. **Enclosed core.** Necrosis and cysts are dark on FLAIR and T1c but part of
    the whole tumour; holes of each slice's mask are filled, and so are dark
    cavities enclosed by the lesion *and the brain border* (a cavity that
