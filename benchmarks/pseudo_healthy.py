@@ -10,7 +10,8 @@ middle), replaced whole to 3 mm from the label and blended to the image from 3
 to 5 mm; the replaced part takes the mirror's outline too. A case of which more
 than 1 % of the tumour stays, or is brought in from the mirror side, is skipped.
 What is left is the patient's own normal tissue, with the mass effect of the
-tumour that was there.
+tumour that was there. ``--modality t1c`` does the same to the cases' T1c (their
+whole tumour replaced), without implants.
 
 Reported, at the native 1 mm and at 2 mm every 5 mm (offset 2, as
 ``benchmarks/real_segmentation.py``):
@@ -28,7 +29,8 @@ Reported, at the native 1 mm and at 2 mm every 5 mm (offset 2, as
 
 Usage::
 
-    TUMOR3D_DATA_DIR=/work/shared/data python benchmarks/pseudo_healthy.py [--cases pat0004 ...]
+    TUMOR3D_DATA_DIR=/work/shared/data python benchmarks/pseudo_healthy.py [--cases pat0004 ...] \
+        [--modality t1c]   # the same cases' T1c without tumour (no implants)
 """
 
 from __future__ import annotations
@@ -105,29 +107,38 @@ def ball_fraction(shape, centre, radius: float, ss: int = 3) -> np.ndarray:
     return f
 
 
-def _run(img, scan, cfg, lr_axis, thick: bool):
+def _run(img, scan, cfg, lr_axis, thick: bool, modality: str = "flair"):
     if thick:
         img, spacing = rs.emulate_thick(img, 2), (rs.STEP * scan.slice_step_mm, 1.0, 1.0)
     else:
         spacing = (scan.slice_step_mm, 1.0, 1.0)
-    _, det, seg, _ = rs.run_pipeline(img, cfg, "flair", None, spacing, lr_axis)
+    _, det, seg, _ = rs.run_pipeline(img, cfg, modality, None, spacing, lr_axis)
     return det, seg.tumor_mask, spacing
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="*", default=["pat0004", "pat0005"])
+    ap.add_argument(
+        "--modality",
+        choices=("flair", "t1c"),
+        default="flair",
+        help="t1c: the case's T1c, its whole tumour replaced the same way; no implants",
+    )
     args = ap.parse_args(argv)
     data = rs.real_data_or_skip()
     if data is None:
         return 0
     cfg = rs.default_config()
-    cases = {c.name: c for c in rs._cases(data) if c.modality == "flair" and c.label}
+    all_cases = {c.name: c for c in rs._cases(data)}
+    cases = {c.name: c for c in all_cases.values() if c.modality == "flair" and c.label}
     for name in args.cases:
         if name not in cases:
             raise SystemExit(f"unknown case {name!r}: expected one of {sorted(cases)}")
         case = cases[name]
-        scan, label = rs.read_case(case)
+        scan, label = rs.read_case(case)  # the whole tumour (FLAIR label)
+        if args.modality == "t1c":
+            scan, _ = rs.read_case(all_cases[f"{name}_t1c"])
         if tuple(scan.pixel_spacing_mm) != (1.0, 1.0) or scan.slice_step_mm != 1.0:
             raise SystemExit(f"{case.image}: expected 1 mm voxels (BraTS)")
         axis = left_right_axis(scan.affine)
@@ -151,12 +162,14 @@ def main(argv=None) -> int:
         print("|---|---|---|")
         cells, where = [], []
         for thick in (True, False):
-            det, mask, spacing = _run(healthy, scan, cfg, axis, thick)
+            det, mask, spacing = _run(healthy, scan, cfg, axis, thick, args.modality)
             ml = float(mask.sum()) * float(np.prod(spacing)) / 1000.0
             cells.append(f"{int(det.abnormal.sum())} / {det.abnormal.size}, {ml:.2f}")
             where.append(_where(mask))
-        print(f"| pseudo-healthy | {cells[0]} | {cells[1]} |")
+        print(f"| pseudo-healthy {args.modality} | {cells[0]} | {cells[1]} |")
         print(f"\nwhere (slab / 1 mm slice indices): {where[0]}; {where[1]}")
+        if args.modality != "flair":
+            continue  # the implants have the FLAIR oedema's gray
         print("\n| implanted sphere | 2 mm / 5 mm: Dice, volume (error) | 1 mm: the same |")
         print("|---|---|---|")
         centre = np.array(ndi.center_of_mass(label))
