@@ -1,4 +1,4 @@
-"""Patient-level lesion decision of tumor3d.lesion (steps 3b, 3c, 6 of its docstring).
+"""Patient-level lesion decision of tumor3d.lesion (steps 3b, 3c, 3e, 6 of its docstring, and more).
 
 Synthetic volumes: an ellipsoidal brain of one tissue with noise, a bright
 structure planted where the rule under test applies. Each rule is checked both
@@ -1045,7 +1045,7 @@ def test_the_normal_tail_level_splits_the_tail_beyond_the_seed_level():
 
 
 def _faint_region_image(z_sigmas: float, seed: int = 0):
-    """A deep, one-sided region at ``mu + z_sigmas sigma`` of the normal model."""
+    """A deep, one-sided region at ``mu + z_sigmas sigma`` of the brain without it."""
     brain = _brain()
     region = brain & _ball((0, -10, 12), 9)
     model = _normal_model_of(_image(brain, [], seed=seed), brain)
