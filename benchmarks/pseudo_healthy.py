@@ -25,7 +25,10 @@ Reported, at the native 1 mm and at 2 mm every 5 mm (offset 2, as
   against the sphere's partial-volume fraction (on the slabs at 2 mm / 5 mm: the
   slab reference, as ``benchmarks/real_robustness.py``; not the 3-D Dice of the
   interpolated stack; a fractional reference keeps it below 1 for small spheres)
-  and the volume error (Eq. 7). The smallest found tells the detection limit.
+  and the volume error (Eq. 7). The smallest found tells the detection limit;
+- **placements** (``--placements N``, default 4): 4.2 mL oedema-bright spheres at
+  ``N`` random places in each of three depth classes (fixed seed): how the rules
+  (depth, symmetry, satellites) treat a lesion elsewhere in the brain.
 
 Usage::
 
@@ -49,7 +52,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import real_segmentation as rs  # noqa: E402
 
 from storage.readers import read_scan  # noqa: E402
-from tumor3d.lesion import left_right_axis  # noqa: E402
+from tumor3d.lesion import _depth_mm, left_right_axis  # noqa: E402
 
 MARGIN_MM = 5.0  # replaced beyond the label (the oedema's edge, the blend)
 BLEND_MM = 2.0
@@ -116,9 +119,54 @@ def _run(img, scan, cfg, lr_axis, thick: bool, modality: str = "flair"):
     return det, seg.tumor_mask, spacing
 
 
+def _placements(healthy, brain, texture, gray, scan, cfg, axis, n: int) -> None:
+    """Spheres of 10 mm radius at ``gray``, ``n`` per depth class, at random places.
+
+    Depth classes by the 3-D distance to the brain's outside against the brain's
+    median depth ``m``: deep (at least ``m + 8`` mm), middle (``m`` +- 2 mm), shallow
+    (11-13 mm); centres at least 15 voxels from the array's middle column (the midline).
+    """
+    depth = _depth_mm(brain, (1.0, 1.0, 1.0))
+    med = float(np.median(depth[brain]))
+    rng = np.random.default_rng(1)
+    zc, yc, xc = np.nonzero(brain)
+    far = np.abs(xc - brain.shape[2] / 2) > 15
+    d = depth[zc, yc, xc]
+    classes = {"deep": (med + 8, np.inf), "middle": (med - 2, med + 2), "shallow": (11, 13)}
+    print(f"\n| 4.2 mL sphere at (z, y, x), depth (brain median {med:.0f} mm) | 2 mm / 5 mm Dice"
+          " | 1 mm Dice |")  # fmt: skip
+    print("|---|---|---|")
+    dice = {True: [], False: []}
+    for cname, (lo_d, hi_d) in classes.items():
+        sel = np.flatnonzero((d >= lo_d) & (d < hi_d) & far)
+        for k in rng.choice(sel, n, replace=False):
+            c = np.array([zc[k], yc[k], xc[k]], dtype=np.float64)
+            f = ball_fraction(healthy.shape, c, 10.0) * brain
+            im = np.where(brain, (1.0 - f) * healthy + f * (gray + texture), healthy)
+            cells = []
+            for thick in (True, False):
+                _, mask, _ = _run(im, scan, cfg, axis, thick)
+                ref = rs.emulate_thick(f, 2) if thick else f
+                dice[thick].append(rs.soft_dice(mask, ref))
+                cells.append(f"{dice[thick][-1]:.2f}")
+            where = f"({zc[k]}, {yc[k]}, {xc[k]}), {d[k]:.0f} mm"
+            print(f"| {cname} {where} | {cells[0]} | {cells[1]} |")
+    print(
+        f"| mean (min) | {np.mean(dice[True]):.3f} ({min(dice[True]):.2f}) |"
+        f" {np.mean(dice[False]):.3f} ({min(dice[False]):.2f}) |"
+    )
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="*", default=["pat0004", "pat0005"])
+    ap.add_argument(
+        "--placements",
+        type=int,
+        default=4,
+        help="oedema-bright 4.2 mL spheres per depth class (deep, middle, shallow) placed at "
+        "random (fixed seed) instead of where the tumour was; 0: none",
+    )
     ap.add_argument(
         "--modality",
         choices=("flair", "t1c"),
@@ -188,6 +236,8 @@ def main(argv=None) -> int:
                     err = 100.0 * (ml - true_ml) / true_ml
                     cells.append(f"{rs.soft_dice(mask, ref):.2f}, {ml:.2f} mL ({err:+.0f} %)")
                 print(f"| {cname}, r {r:g} mm ({true_ml:.2f} mL) | {cells[0]} | {cells[1]} |")
+        if args.placements > 0:
+            _placements(healthy, brain, texture, oedema, scan, cfg, axis, args.placements)
     return 0
 
 

@@ -1092,3 +1092,46 @@ def test_a_small_bright_lesion_is_kept_over_a_larger_faint_region():
     mask = _segment(img, brain, lr_axis=2)
     assert (mask & lesion).sum() > 0.8 * lesion.sum()
     assert not (mask & faint).any()
+
+
+@pytest.mark.parametrize("lr_axis", [2, None])
+def test_a_faint_region_within_1_cm_of_a_lesion_does_not_join_it(lr_axis, monkeypatch):
+    # step 3e decides the satellites too (4b): a region at the normal tail's level 6 mm
+    # from a bright lesion is normal tissue's outliers near a lesion, not the lesion's
+    # satellite; with step 3e off it joins (within SATELLITE_MM of the lesion)
+    brain = _brain()
+    lesion = brain & _ball((0, -12, 16), 8)
+    faint = brain & _ball((0, 11, 16), 9) & ~lesion  # 6 mm between the two surfaces
+    for seed in (0, 1, 2):
+        model = _normal_model_of(_image(brain, [], seed=seed), brain)
+        bright = [
+            (lesion, model.median + 6 * model.sigma),
+            (faint, model.median + 2.5 * model.sigma),
+        ]
+        img = _image(brain, bright, seed=seed)
+        mask = _segment(img, brain, lr_axis=lr_axis)
+        assert mask[lesion].mean() > 0.95
+        assert not mask[faint].any()
+        with monkeypatch.context() as m:
+            m.setattr(lesion_module, "TAIL_QUANTILE", 1.0)
+            mask = _segment(img, brain, lr_axis=lr_axis)
+        assert mask[lesion].mean() > 0.95 and mask[faint].mean() > 0.8
+
+
+def test_step_3e_on_labelled_components_equals_the_per_component_median():
+    # the one-sort version against a naive mask-per-component median
+    rng = np.random.default_rng(3)
+    labels = rng.integers(0, 7, size=(6, 20, 20))
+    sm = rng.normal(100.0, 10.0, labels.shape) + 4.0 * labels  # brighter with the label
+    ids = np.array([5, 1, 3, 6, 2, 4])  # size order in the pipeline: any order is kept
+    m = NormalModel(median=100.0, sigma=4.0, seed_threshold=108.0, csf_threshold=np.inf)
+    level = lesion_module.normal_tail_level(m)
+    naive = [i for i in ids if np.median(sm[labels == i]) >= level]
+    got = lesion_module._beyond_normal_tail_ids(sm, labels, ids, m)
+    assert got.tolist() == naive and 0 < len(naive) < len(ids)
+    # tiny components, where every voxel counts: one voxel above the level; two
+    # straddling it (median below); three with the median above
+    labels = np.array([[[1, 2, 2, 3, 3, 3, 0]]])
+    sm = level + np.array([[[1.0, -3.0, 1.0, -1.0, 1.0, 2.0, 50.0]]])
+    got = lesion_module._beyond_normal_tail_ids(sm, labels, np.array([3, 2, 1]), m)
+    assert got.tolist() == [3, 1]
