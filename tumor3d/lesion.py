@@ -38,8 +38,7 @@ its modes to be counted. This module uses what a single slice cannot:
    A lesion covering more than half of the brain is rejected (the model's
    premise is violated: see ``MAX_BRAIN_FRACTION``).
 4b. **Satellites the lesion reaches.** With ``keep_largest``, a significant
-   seed component other than the kept one (on FLAIR, one that passes step 3e)
-   joins the lesion when the
+   seed component other than the kept one joins the lesion when the
    refined lesion of step 4 touches it (26-connected); what joined is
    refined by the same rule, on its own, and added (repeated while another
    is reached, at most ``MAX_CANDIDATES`` times). The seeds were apart
@@ -147,21 +146,21 @@ its modes to be counted. This module uses what a single slice cannot:
    miss pat0005's spheres implanted at the gray of its oedema (up to 14 mL
    at 2 mm / 5 mm). The seeds judged are those of the lesion step 3c forms
    (its asymmetric core with the mirrored seeds near it; without a mirror
-   plane, the whole seed component). The same test decides which components
-   may join a lesion as its satellites (step 4b): normal tissue's outliers
-   within 1 cm of a lesion are no more a lesion than far from it. Measured:
-   a 4.2 mL sphere implanted at oedema gray in the pseudo-healthy pat0004
-   took 12.7 mL of the mesial temporal lobe as a satellite (Dice 0.38 at 1
-   mm) and no longer does (0.88); the one labelled case that changes is
-   native pat0003, whose 0.7 mL satellite (28 % of it in the label) stays
-   out (3-D Dice 0.917 -> 0.918). The real FLAIR tumours' seeds lie at a
-   median of 3.3-5.6 ``sigma`` (four cases, 1 mm and 2 mm / 5 mm; the raw
-   TCGA head 2.9-4.0), so no labelled case changes. Not on T2: its lesions
-   are less conspicuous (the CSF, not the lesion, is the brightest tissue),
-   and the raw TCGA T2's lesion seeds at 2.4-2.5 ``sigma``: step 3e would
-   lose it (6.1 mL found today). Not on T1c: its enhancing rim is 2-3 pixels
-   thin, the smoothing of step 1 dilutes it, and its seeds lie just above
-   the seed level (BraTS pat0005 T1c: a median of 2.3 ``sigma``).
+   plane, the whole seed component). A candidate rejected here may still
+   join a lesion kept by another candidate as its satellite (step 4b): next
+   to a lesion, faint tissue may be its oedema. Measured both ways: with
+   step 3e deciding the satellites too, BraTS pat0005 at 2 mm / 5 mm loses a
+   true satellite at four emulation phases of five (3-D Dice 0.848-0.856 ->
+   0.829-0.834), while an implanted sphere in the pseudo-healthy pat0004
+   stops taking 12.7 mL of normal tissue with it; the real case decides. The
+   real FLAIR tumours' seeds lie at a median of 3.3-5.6 ``sigma`` (four
+   cases, 1 mm and 2 mm / 5 mm; the raw TCGA head 2.9-4.0), so no labelled
+   case changes. Not on T2: its lesions are less conspicuous (the CSF, not
+   the lesion, is the brightest tissue), and the raw TCGA T2's lesion seeds
+   at 2.4-2.5 ``sigma``: step 3e would lose it (6.1 mL found today). Not on
+   T1c: its enhancing rim is 2-3 pixels thin, the smoothing of step 1
+   dilutes it, and its seeds lie just above the seed level (BraTS pat0005
+   T1c: a median of 2.3 ``sigma``).
 5. **Enclosed core.** Necrosis and cysts are dark on FLAIR and T1c but part of
    the whole tumour; holes of each slice's mask are filled, and so are dark
    cavities enclosed by the lesion *and the brain border* (a cavity that
@@ -531,29 +530,6 @@ def _beyond_normal_tail(seed_gray: np.ndarray, model: NormalModel) -> bool:
     """Step 3e: whether the median of a candidate's seeds (smoothed gray) is beyond the tail."""
     level = normal_tail_level(model, TAIL_QUANTILE)
     return bool(seed_gray.size) and float(np.median(seed_gray)) >= level
-
-
-def _beyond_normal_tail_ids(
-    sm: np.ndarray, labels: np.ndarray, ids: np.ndarray, model: NormalModel
-) -> np.ndarray:
-    """Step 3e on labelled components: the ``ids`` (order kept) whose seeds' median passes.
-
-    One sort of the seed voxels (``labels > 0``) by label, not a pass over the volume
-    per component.
-    """
-    on = labels > 0
-    lab, val = labels[on], sm[on]
-    order = np.argsort(lab, kind="stable")
-    lab, val = lab[order], val[order]
-    start = np.searchsorted(lab, ids, side="left")
-    stop = np.searchsorted(lab, ids, side="right")
-    level = normal_tail_level(model, TAIL_QUANTILE)
-    keep = [
-        i
-        for i, a, z in zip(ids, start, stop, strict=True)
-        if z > a and float(np.median(val[a:z])) >= level
-    ]
-    return np.asarray(keep, dtype=ids.dtype)
 
 
 def _significant_components(
@@ -1327,17 +1303,14 @@ def _candidates(
     if plane is not None and seeds.any():
         seeds = _asymmetric_seeds(seeds, plane, voxel_mm)
     labels, ids = _significant_components(seeds, min_region_pixels, min_slices)
-    significant = joinable = ids
-    if contrast and ids.size:
-        # step 3e also decides which components may join a lesion as satellites (4b):
-        # normal tissue's outliers near a lesion are no more a lesion than far from it
-        joinable = _beyond_normal_tail_ids(sm, labels, ids, model)
+    significant = ids
     if ids.size and plane is None:
         if spacing_mm is not None:
             ids = _deep_components(labels, ids, b, spacing_mm)
         if contrast:
-            ids = ids[np.isin(ids, joinable)]
-        satellites = np.isin(labels, np.setdiff1d(joinable, ids[:1])) if keep_largest else None
+            keep = [i for i in ids if _beyond_normal_tail(sm[labels == i], model)]
+            ids = np.asarray(keep, dtype=ids.dtype)
+        satellites = np.isin(labels, np.setdiff1d(significant, ids[:1])) if keep_largest else None
     elif ids.size:
         # the asymmetric seeds decide whether (and where) there is a lesion; the lesion
         # is the seed component holding that core, with the mirrored seeds within
@@ -1376,7 +1349,7 @@ def _candidates(
             # every other significant asymmetric component, with its mirrored seeds near
             # it as the kept core has them (no depth test: it may join a deep lesion)
             free = out == 0 if across is None else (out == 0) & ~across
-            sat0 = np.isin(labels, joinable) & free
+            sat0 = np.isin(labels, significant) & free
             if sat0.any():
                 near = _within_mm(sat0, SYMMETRIC_REGAIN_MM, voxel_mm)
                 satellites = _touching(full_seeds & (seeds | near), sat0) & free
