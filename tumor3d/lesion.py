@@ -532,6 +532,28 @@ def _beyond_normal_tail(seed_gray: np.ndarray, model: NormalModel) -> bool:
     return bool(seed_gray.size) and float(np.median(seed_gray)) >= level
 
 
+def _passing_components(mask: np.ndarray, sm: np.ndarray, model: NormalModel) -> np.ndarray:
+    """The 26-connected components of ``mask`` whose smoothed gray passes step 3e.
+
+    One sort of the mask's voxels by component, not a pass over the volume per
+    component.
+    """
+    labels, n = ndi.label(mask, structure=np.ones((3, 3, 3), dtype=bool))
+    if n == 0:
+        return mask.copy()
+    lab, val = labels[mask], sm[mask]
+    order = np.argsort(lab, kind="stable")
+    lab, val = lab[order], val[order]
+    ids = np.arange(1, n + 1)
+    start = np.searchsorted(lab, ids, side="left")
+    stop = np.searchsorted(lab, ids, side="right")
+    level = normal_tail_level(model, TAIL_QUANTILE)
+    ok = [
+        i for i, a, z in zip(ids, start, stop, strict=True) if float(np.median(val[a:z])) >= level
+    ]
+    return np.isin(labels, ok)
+
+
 def _significant_components(
     seeds: np.ndarray, min_region_pixels: int, min_slices: int
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -1476,8 +1498,17 @@ def _segment_box(
             # step 4b: a satellite the refined lesion reaches (on FLAIR / T2: comes within
             # SATELLITE_MM of) is the same lesion
             reach_mm = SATELLITE_MM if modality in ("flair", "t2") else 0.0
+            # joining by proximity alone (within SATELLITE_MM, not touching) is weaker
+            # evidence than touching: on FLAIR the satellite must then pass step 3e
+            near_ok = None
+            if contrast and reach_mm > 0.0:
+                near_ok = _passing_components(satellites, sm, model)
             for _ in range(MAX_CANDIDATES):
-                reached = _reached(satellites & ~core, mask, reach_mm, voxel_mm)
+                if near_ok is None:
+                    reached = _reached(satellites & ~core, mask, reach_mm, voxel_mm)
+                else:
+                    reached = _reached(satellites & ~core, mask, 0.0, voxel_mm)
+                    reached |= _reached(near_ok & ~core, mask, reach_mm, voxel_mm)
                 if not reached.any():
                     break
                 core = core | reached

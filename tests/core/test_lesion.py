@@ -1092,3 +1092,56 @@ def test_a_small_bright_lesion_is_kept_over_a_larger_faint_region():
     mask = _segment(img, brain, lr_axis=2)
     assert (mask & lesion).sum() > 0.8 * lesion.sum()
     assert not (mask & faint).any()
+
+
+@pytest.mark.parametrize("lr_axis", [2, None])
+def test_a_faint_region_near_a_lesion_joins_only_by_touching_it(lr_axis, monkeypatch):
+    # step 4b on FLAIR: a satellite that the refined lesion only comes near (within 1 cm)
+    # must pass step 3e; one it touches joins as before (the partial-volume rule decided
+    # that the tissue between is lesion). 6 mm apart: stays out, and joins with step 3e
+    # off; 1 mm apart (the rings reach it): joins
+    brain = _brain()
+    lesion = brain & _ball((0, -12, 16), 8)
+    for gap_mm, joins in ((6.0, False), (1.0, True)):
+        faint = brain & _ball((0, -12 + 8 + gap_mm + 9, 16), 9) & ~lesion
+        for seed in (0, 1, 2):
+            model = _normal_model_of(_image(brain, [], seed=seed), brain)
+            planted = [
+                (lesion, model.median + 6 * model.sigma),
+                (faint, model.median + 2.5 * model.sigma),
+            ]
+            img = _image(brain, planted, seed=seed)
+            mask = _segment(img, brain, lr_axis=lr_axis)
+            assert mask[lesion].mean() > 0.95
+            if joins:
+                assert mask[faint].mean() > 0.8
+                continue
+            assert not mask[faint].any()
+            with monkeypatch.context() as m:
+                m.setattr(lesion_module, "TAIL_QUANTILE", 1.0)
+                mask = _segment(img, brain, lr_axis=lr_axis)
+            assert mask[faint].mean() > 0.8
+
+
+def test_step_3e_on_components_equals_the_per_component_median():
+    # the one-sort version against a naive median per component; tiny components too,
+    # where every voxel counts
+    m = NormalModel(median=100.0, sigma=4.0, seed_threshold=108.0, csf_threshold=np.inf)
+    level = lesion_module.normal_tail_level(m)
+    mask = np.zeros((1, 3, 15), dtype=bool)
+    sm = np.full(mask.shape, level + 50.0)
+    # components along row 1, apart by one column: 1 voxel above the level; 2 straddling
+    # it (median below); 3 with the median above
+    for cols, offs in (((0,), (1.0,)), ((2, 3), (-3.0, 1.0)), ((5, 6, 7), (-1.0, 1.0, 2.0))):
+        for c, o in zip(cols, offs, strict=True):
+            mask[0, 1, c], sm[0, 1, c] = True, level + o
+    got = lesion_module._passing_components(mask, sm, m)
+    assert got[0, 1].tolist()[:8] == [True, False, False, False, False, True, True, True]
+    rng = np.random.default_rng(3)
+    big = ndi.binary_opening(rng.random((6, 24, 24)) > 0.55)
+    sm = rng.normal(100.0, 10.0, big.shape)
+    labels, n = ndi.label(big, structure=np.ones((3, 3, 3), dtype=bool))
+    sm = sm + 2.0 * labels  # brighter with the label
+    naive = np.isin(labels, [i for i in range(1, n + 1) if np.median(sm[labels == i]) >= level])
+    got = lesion_module._passing_components(big, sm, m)
+    assert np.array_equal(got, naive) and naive.any() and (big & ~naive).any()
