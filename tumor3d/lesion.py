@@ -47,7 +47,8 @@ its modes to be counted. This module uses what a single slice cannot:
    satellite are one connected lesion. On FLAIR and T2 a satellite joins
    also when it comes within ``SATELLITE_MM`` (1 cm) of the refined lesion:
    foci less than 1 cm apart are one tumour by the usual convention, and
-   the whole-tumour label of these sequences counts them. Not on T1c:
+   the whole-tumour label of these sequences counts them (on FLAIR, a
+   satellite joining by proximity alone must pass step 3e). Not on T1c:
    normal enhancing structures lie next to a tumour there. Measured on BraTS
    pat0005 FLAIR, whose tumour continues in satellites on slabs 13-15 and
    23-25 (2 mm / 5 mm): 3-D Dice 0.809 -> 0.831 (touching) -> 0.845
@@ -147,20 +148,23 @@ its modes to be counted. This module uses what a single slice cannot:
    at 2 mm / 5 mm). The seeds judged are those of the lesion step 3c forms
    (its asymmetric core with the mirrored seeds near it; without a mirror
    plane, the whole seed component). A candidate rejected here may still
-   join a lesion kept by another candidate as its satellite (step 4b): next
-   to a lesion, faint tissue may be its oedema. Measured both ways: with
-   step 3e deciding the satellites too, BraTS pat0005 at 2 mm / 5 mm loses a
-   true satellite at four emulation phases of five (3-D Dice 0.848-0.856 ->
-   0.829-0.834), while an implanted sphere in the pseudo-healthy pat0004
-   stops taking 12.7 mL of normal tissue with it; the real case decides. The
-   real FLAIR tumours' seeds lie at a median of 3.3-5.6 ``sigma`` (four
-   cases, 1 mm and 2 mm / 5 mm; the raw TCGA head 2.9-4.0), so no labelled
-   case changes. Not on T2: its lesions are less conspicuous (the CSF, not
-   the lesion, is the brightest tissue), and the raw TCGA T2's lesion seeds
-   at 2.4-2.5 ``sigma``: step 3e would lose it (6.1 mL found today). Not on
-   T1c: its enhancing rim is 2-3 pixels thin, the smoothing of step 1
-   dilutes it, and its seeds lie just above the seed level (BraTS pat0005
-   T1c: a median of 2.3 ``sigma``).
+   join a kept lesion as its satellite (step 4b) when the refined lesion
+   touches it: the partial-volume rule then decided that the tissue between
+   is lesion. A satellite the lesion only comes near (within 1 cm) must pass
+   this test: proximity alone is weaker evidence. Measured: an implanted
+   sphere in the pseudo-healthy pat0004 took 12.7 mL of the mesial temporal
+   lobe by proximity and no longer does (1 mm Dice 0.38 -> 0.88), and no
+   labelled case changes at any emulation phase. Applying the test to
+   touching satellites too lost a true satellite of BraTS pat0005 at four
+   phases of five (3-D Dice 0.848-0.856 -> 0.829-0.834). The real FLAIR
+   tumours' seeds lie at a median of 3.3-5.6 ``sigma`` (four cases, 1 mm and
+   2 mm / 5 mm; the raw TCGA head 2.9-4.0), so no labelled case changes. Not
+   on T2: its lesions are less conspicuous (the CSF, not the lesion, is the
+   brightest tissue), and the raw TCGA T2's lesion seeds at 2.4-2.5
+   ``sigma``: step 3e would lose it (6.1 mL found today). Not on T1c: its
+   enhancing rim is 2-3 pixels thin, the smoothing of step 1 dilutes it, and
+   its seeds lie just above the seed level (BraTS pat0005 T1c: a median of
+   2.3 ``sigma``).
 5. **Enclosed core.** Necrosis and cysts are dark on FLAIR and T1c but part of
    the whole tumour; holes of each slice's mask are filled, and so are dark
    cavities enclosed by the lesion *and the brain border* (a cavity that
