@@ -536,26 +536,32 @@ def _beyond_normal_tail(seed_gray: np.ndarray, model: NormalModel) -> bool:
     return bool(seed_gray.size) and float(np.median(seed_gray)) >= level
 
 
-def _passing_components(mask: np.ndarray, sm: np.ndarray, model: NormalModel) -> np.ndarray:
-    """The 26-connected components of ``mask`` whose smoothed gray passes step 3e.
+def _passing_ids(
+    labels: np.ndarray, ids: np.ndarray, sm: np.ndarray, model: NormalModel
+) -> np.ndarray:
+    """Step 3e on labelled components: the ``ids`` (order kept) whose gray passes.
 
-    One sort of the mask's voxels by component, not a pass over the volume per
-    component.
+    One sort of the labelled voxels by label, not a pass over the volume per
+    component; each component is judged by :func:`_beyond_normal_tail`.
     """
+    on = labels > 0
+    lab, val = labels[on], sm[on]
+    order = np.argsort(lab, kind="stable")
+    lab, val = lab[order], val[order]
+    start = np.searchsorted(lab, ids, side="left")
+    stop = np.searchsorted(lab, ids, side="right")
+    keep = [
+        i for i, a, z in zip(ids, start, stop, strict=True) if _beyond_normal_tail(val[a:z], model)
+    ]
+    return np.asarray(keep, dtype=np.asarray(ids).dtype)
+
+
+def _passing_components(mask: np.ndarray, sm: np.ndarray, model: NormalModel) -> np.ndarray:
+    """The 26-connected components of ``mask`` whose smoothed gray passes step 3e."""
     labels, n = ndi.label(mask, structure=np.ones((3, 3, 3), dtype=bool))
     if n == 0:
         return mask.copy()
-    lab, val = labels[mask], sm[mask]
-    order = np.argsort(lab, kind="stable")
-    lab, val = lab[order], val[order]
-    ids = np.arange(1, n + 1)
-    start = np.searchsorted(lab, ids, side="left")
-    stop = np.searchsorted(lab, ids, side="right")
-    level = normal_tail_level(model, TAIL_QUANTILE)
-    ok = [
-        i for i, a, z in zip(ids, start, stop, strict=True) if float(np.median(val[a:z])) >= level
-    ]
-    return np.isin(labels, ok)
+    return np.isin(labels, _passing_ids(labels, np.arange(1, n + 1), sm, model))
 
 
 def _significant_components(
@@ -1334,8 +1340,7 @@ def _candidates(
         if spacing_mm is not None:
             ids = _deep_components(labels, ids, b, spacing_mm)
         if contrast:
-            keep = [i for i in ids if _beyond_normal_tail(sm[labels == i], model)]
-            ids = np.asarray(keep, dtype=ids.dtype)
+            ids = _passing_ids(labels, ids, sm, model)
         satellites = np.isin(labels, np.setdiff1d(significant, ids[:1])) if keep_largest else None
     elif ids.size:
         # the asymmetric seeds decide whether (and where) there is a lesion; the lesion

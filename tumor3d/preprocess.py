@@ -205,14 +205,13 @@ def masked_background(arr: np.ndarray) -> MaskedBackground:
 
 def _to_uint8(arr: np.ndarray, lo_p: float, hi_p: float, background=None) -> np.ndarray:
     """The 8-bit window; ``background`` = :func:`masked_background` of ``arr`` if known."""
-    vmin = arr.min()
     bg = masked_background(arr) if background is None else background
     foreground = arr[~bg.mask]
     if foreground.size == 0:
         raise InputError("image is constant: no foreground to set an intensity window from")
     lo, hi = np.percentile(foreground.astype(np.float64), [lo_p, hi_p])
     if not hi > lo:
-        lo, hi = float(vmin), float(arr.max())
+        lo, hi = float(arr.min()), float(arr.max())
     return _window_u8(arr, float(lo), 255.0 / (float(hi) - float(lo)))
 
 
