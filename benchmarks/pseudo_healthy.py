@@ -27,8 +27,9 @@ Reported, at the native 1 mm and at 2 mm every 5 mm (offset 2, as
   interpolated stack; a fractional reference keeps it below 1 for small spheres)
   and the volume error (Eq. 7). The smallest found tells the detection limit;
 - **placements** (``--placements N``, default 4): 4.2 mL oedema-bright spheres at
-  ``N`` random places in each of three depth classes (fixed seed): how the rules
-  (depth, symmetry, satellites) treat a lesion elsewhere in the brain.
+  ``N`` random places in each of three depth classes off the midline, and deep on
+  the midline (fixed seed): how the rules (depth, symmetry, satellites, a lesion
+  straddling the midline) treat a lesion elsewhere in the brain.
 
 Usage::
 
@@ -141,32 +142,36 @@ def _placements(healthy, brain, texture, gray, scan, cfg, axis, n: int) -> None:
     Depth classes by the 3-D distance to the brain's outside against the brain's
     median depth ``m``: deep (at least ``m + 8`` mm), middle (``m`` +- 2 mm), shallow
     (11-13 mm); centres at least 15 voxels from the array's middle column (the midline).
+    A fourth class, midline: deep centres on the array's middle column (the sphere is
+    its own mirror image: lesion step 3f).
     """
     depth = _depth_mm(brain, (1.0, 1.0, 1.0))
     med = float(np.median(depth[brain]))
     rng = np.random.default_rng(1)
     zc, yc, xc = np.nonzero(brain)
-    far = np.abs(xc - brain.shape[2] / 2) > 15
+    from_mid = np.abs(xc - (brain.shape[2] - 1) / 2)
+    far = from_mid > 15
     d = depth[zc, yc, xc]
     classes = {"deep": (med + 8, np.inf), "middle": (med - 2, med + 2), "shallow": (11, 13)}
+    where_ok = {"deep": far, "middle": far, "shallow": far, "midline": from_mid < 1}
+    classes["midline"] = classes["deep"]
     print(f"\n| 4.2 mL sphere at (z, y, x), depth (brain median {med:.0f} mm) | 2 mm / 5 mm Dice"
           " | 1 mm Dice |")  # fmt: skip
     print("|---|---|---|")
-    dice = {True: [], False: []}
+    dice = {(t, m): [] for t in (True, False) for m in (False, True)}  # (thick, midline)
     for cname, (lo_d, hi_d) in classes.items():
-        sel = np.flatnonzero((d >= lo_d) & (d < hi_d) & far)
+        sel = np.flatnonzero((d >= lo_d) & (d < hi_d) & where_ok[cname])
         for k in rng.choice(sel, n, replace=False):
             c = np.array([zc[k], yc[k], xc[k]], dtype=np.float64)
             _, runs = _implanted(healthy, brain, texture, gray, c, 10.0, scan, cfg, axis)
             for thick, (dc, _) in zip((True, False), runs, strict=True):
-                dice[thick].append(dc)
+                dice[thick, cname == "midline"].append(dc)
             cells = [f"{dc:.2f}" for dc, _ in runs]
             where = f"({zc[k]}, {yc[k]}, {xc[k]}), {d[k]:.0f} mm"
             print(f"| {cname} {where} | {cells[0]} | {cells[1]} |")
-    print(
-        f"| mean (min) | {np.mean(dice[True]):.3f} ({min(dice[True]):.2f}) |"
-        f" {np.mean(dice[False]):.3f} ({min(dice[False]):.2f}) |"
-    )
+    for mid, what in ((False, "deep, middle, shallow"), (True, "midline")):
+        cells = [f"{np.mean(dice[t, mid]):.3f} ({min(dice[t, mid]):.2f})" for t in (True, False)]
+        print(f"| mean (min), {what} | {cells[0]} | {cells[1]} |")
 
 
 def main(argv=None) -> int:
@@ -176,8 +181,8 @@ def main(argv=None) -> int:
         "--placements",
         type=int,
         default=4,
-        help="oedema-bright 4.2 mL spheres per depth class (deep, middle, shallow) placed at "
-        "random (fixed seed) instead of where the tumour was; 0: none",
+        help="oedema-bright 4.2 mL spheres per class (deep, middle, shallow; deep on the "
+        "midline) at random (fixed seed) instead of where the tumour was; 0: none",
     )
     ap.add_argument(
         "--modality",

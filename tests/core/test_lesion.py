@@ -1145,3 +1145,62 @@ def test_step_3e_on_components_equals_the_per_component_median():
     naive = np.isin(labels, [i for i in range(1, n + 1) if np.median(sm[labels == i]) >= level])
     got = lesion_module._passing_components(big, sm, m)
     assert np.array_equal(got, naive) and naive.any() and (big & ~naive).any()
+
+
+def _midline_image(gray_sigmas: float, seed: int = 0, centre=(0.0, 5.0, 0.0), radius=10.0):
+    """A deep ball centred on the midline (x = 0) at ``mu + gray_sigmas sigma``."""
+    brain = _brain()
+    ball = brain & _ball(centre, radius)
+    model = _normal_model_of(_image(brain, [], seed=seed), brain)
+    return _image(brain, [(ball, model.median + gray_sigmas * model.sigma)], seed=seed), brain, ball
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_lesion_centred_on_the_midline_is_found_on_flair(seed, monkeypatch):
+    # step 3f: its mirror image is itself, so step 3c finds no asymmetric seed; the seeds
+    # within the tolerance of the plane form one component holding both sides
+    img, brain, ball = _midline_image(6.0, seed)
+    mask = _segment(img, brain, lr_axis=2)
+    assert 2 * (mask & ball).sum() / (mask.sum() + ball.sum()) > 0.9
+    with monkeypatch.context() as m:
+        m.setattr(lesion_module, "MIDLINE_LESIONS", False)
+        assert not _segment(img, brain, lr_axis=2).any()
+    # FLAIR only (the deep bilateral bright structures of T2 and T1c lie at the midline)
+    assert not _segment(img, brain, modality="t1c", lr_axis=2).any()
+
+
+def test_a_faint_or_superficial_midline_region_is_no_lesion(monkeypatch):
+    # step 3f judges its candidate by steps 3e and 3b as any other
+    img, brain, ball = _midline_image(2.5)
+    assert not _segment(img, brain, lr_axis=2).any()
+    with monkeypatch.context() as m:
+        m.setattr(lesion_module, "TAIL_QUANTILE", 1.0)  # the tail level is the seed level
+        assert (_segment(img, brain, lr_axis=2) & ball).sum() > 0.8 * ball.sum()
+    # a bright cap at the brain's front, across the midline: its deepest tenth lies
+    # shallower than the brain's median depth
+    brain = _brain()
+    z, y, x = _grid_mm()
+    cap = brain & (y > 35.0) & (np.abs(x) <= 10.0)
+    depth = _depth_mm(brain, SPACING)
+    assert np.percentile(depth[cap], 90) < np.median(depth[brain])
+    img = _image(brain, [(cap, 200.0)])
+    assert not _segment(img, brain, lr_axis=2).any()
+    with monkeypatch.context() as m:
+        m.setattr(lesion_module, "_deep_components", lambda labels, ids, *a, **k: ids)
+        assert (_segment(img, brain, lr_axis=2) & cap).sum() > 0.8 * cap.sum()
+
+
+def test_bilateral_structures_along_the_midline_are_no_midline_lesion(monkeypatch):
+    # two bright plates 4-12 mm either side of the midline (periventricular caps): each
+    # has a significant part within the tolerance of the plane, on its own side; neither
+    # crosses the plane, so step 3f takes neither
+    brain = _brain()
+    z, y, x = _grid_mm()
+    plates = brain & (np.abs(x) >= 4.0) & (np.abs(x) <= 12.0) & (np.abs(y) <= 15.0)
+    plates &= np.abs(z) <= 9.0
+    img = _image(brain, [(plates, 200.0)])
+    assert not _segment(img, brain, lr_axis=2).any()
+    with monkeypatch.context() as m:
+        m.setattr(lesion_module, "_straddles", lambda part, side: True)
+        found = _segment(img, brain, lr_axis=2)
+    assert (found & plates).sum() > 0.4 * plates.sum()  # one plate
