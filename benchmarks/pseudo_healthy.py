@@ -149,11 +149,11 @@ def _placements(healthy, brain, texture, gray, scan, cfg, axis, n: int) -> None:
     med = float(np.median(depth[brain]))
     rng = np.random.default_rng(1)
     zc, yc, xc = np.nonzero(brain)
-    from_mid = np.abs(xc - (brain.shape[2] - 1) / 2)
-    far = from_mid > 15
+    far = np.abs(xc - brain.shape[2] / 2) > 15
+    on_mid = np.abs(xc - (brain.shape[2] - 1) / 2) < 1
     d = depth[zc, yc, xc]
     classes = {"deep": (med + 8, np.inf), "middle": (med - 2, med + 2), "shallow": (11, 13)}
-    where_ok = {"deep": far, "middle": far, "shallow": far, "midline": from_mid < 1}
+    where_ok = {"deep": far, "middle": far, "shallow": far, "midline": on_mid}
     classes["midline"] = classes["deep"]
     print(f"\n| 4.2 mL sphere at (z, y, x), depth (brain median {med:.0f} mm) | 2 mm / 5 mm Dice"
           " | 1 mm Dice |")  # fmt: skip
