@@ -172,7 +172,9 @@ its modes to be counted. This module uses what a single slice cannot:
    its own mirror image: step 3c leaves it no asymmetric seed, and the
    volume was "no tumour found" (measured: 4.2 and 14 mL spheres implanted
    at the oedema's gray on the midline of the tumour-free FLAIR of
-   ``benchmarks/pseudo_healthy.py``, Dice 0 at every place). When no
+   ``benchmarks/pseudo_healthy.py``, Dice 0 at every place; with this step,
+   4.2 mL spheres at seven places of eight at 2 mm / 5 mm, Dice 0.51-0.81,
+   and all eight at 1 mm, 0.55-0.91). When no
    asymmetric lesion is kept, the seeds within ``SYMMETRY_TOLERANCE_MM`` of
    the plane (the band where step 3c cannot tell a voxel from its mirror)
    form components; one that is significant (step 3) within the band and
