@@ -247,6 +247,7 @@ __all__ = [
     "area_in_pixels",
     "left_right_axis",
     "lesion_params",
+    "mirror_image",
     "normal_tail_level",
     "patient_lesion",
     "segment_hyperintense_lesion",
@@ -842,8 +843,18 @@ def _mirror_index(
     return iy, ix, ok
 
 
-def _mirror(a: np.ndarray, plane: MirrorPlane, voxel_mm: tuple[float, ...]) -> np.ndarray:
-    """Every slice of ``a`` reflected about the plane (nearest pixel); 0 outside the grid."""
+def mirror_image(a: np.ndarray, plane: MirrorPlane, voxel_mm: tuple[float, ...]) -> np.ndarray:
+    """Every slice of ``a`` reflected about ``plane`` (nearest pixel); 0 outside the grid.
+
+    ``a`` is ``(z, y, x)``; ``voxel_mm`` is ``(slice step, row, column)`` in mm and
+    ``plane`` is in ``a``'s pixel frame.
+
+    Examples
+    --------
+    >>> a = np.zeros((1, 1, 5), int); a[0, 0, :] = [1, 2, 3, 4, 5]
+    >>> mirror_image(a, MirrorPlane(2, 0.0, 2.0), (1.0, 1.0, 1.0))[0, 0].tolist()
+    [5, 4, 3, 2, 1]
+    """
     iy, ix, ok = _mirror_index(a.shape[1:], plane, voxel_mm)
     out = np.zeros_like(a)
     out[:, ok] = a[:, iy[ok], ix[ok]]
@@ -872,7 +883,7 @@ def _asymmetric_seeds(
 ) -> np.ndarray:
     """Step 3c: the seeds whose mirror position (within the tolerance) holds no seed."""
     half = [int(round(SYMMETRY_TOLERANCE_MM / float(voxel_mm[ax]))) for ax in (1, 2)]
-    mirrored = _box_dilate(_mirror(seeds, plane, voxel_mm), half[0], half[1])
+    mirrored = _box_dilate(mirror_image(seeds, plane, voxel_mm), half[0], half[1])
     return seeds & ~mirrored
 
 

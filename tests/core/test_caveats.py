@@ -12,7 +12,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tumor3d.caveats import midline_caveat, scan_end_caveat, segmentation_caveats
+from tumor3d.caveats import (
+    midline_caveat,
+    scan_end_caveat,
+    segmentation_caveats,
+    symmetric_caveat,
+)
 from tumor3d.detect import SliceDetection
 from tumor3d.errors import InputError
 from tumor3d.lesion import SYMMETRY_TOLERANCE_MM, LesionResult, MirrorPlane, NormalModel
@@ -241,8 +246,14 @@ def test_robust_segmentation_says_the_midline_caveat_and_the_peer_does_not():
     res = segment_tumor(img, brain, det, modality="flair", method="robust", spacing_mm=SPACING)
     assert res.tumor_mask.any() and res.caveats == ()
     # the significance rule is the configuration's (detect.lesion), not a constant: with
-    # min_region_mm2 above the band's ~120 pixels a slice the midline lesion says nothing
-    det = _detection_with_lesion(straddling, plane)
+    # min_region_mm2 above the band's ~110 pixels a slice a lesion reaching the midline
+    # says nothing (one 5 mm off the plane: a quarter of it is its own mirror image, so
+    # the midline caveat is the one that applies)
+    near = _disc((CENTRE[0], CENTRE[1] + 5.0), 8.0, slices=(1, 2, 3))
+    img[near] = 220
+    det = _detection_with_lesion(near, plane)
+    res = segment_tumor(img, brain, det, modality="flair", method="robust", spacing_mm=SPACING)
+    assert res.tumor_mask.any() and any("other hemisphere" in c for c in res.caveats)
     strict = segment_tumor(img, brain, det, modality="flair", method="robust",
                            spacing_mm=SPACING, lesion={"min_region_mm2": 500 * PIXEL_AREA_MM2})
     assert strict.tumor_mask.any() and strict.caveats == ()
@@ -251,3 +262,35 @@ def test_robust_segmentation_says_the_midline_caveat_and_the_peer_does_not():
     peer = segment_tumor(img, brain, det, modality="flair", method="multiotsu", spacing_mm=SPACING)
     assert (peer.tumor_mask & straddling).sum() > 0.9 * straddling.sum()
     assert not any("midline" in c for c in peer.caveats)
+
+
+def _lens_share(offset_mm: float, radius_mm: float) -> float:
+    """Share of a disc's area that its mirror image covers (centre ``offset_mm`` off)."""
+    d, r = 2.0 * offset_mm, radius_mm
+    lens = 2 * r * r * np.arccos(d / (2 * r)) - 0.5 * d * np.sqrt(4 * r * r - d * d)
+    return lens / (np.pi * r * r)
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 20.0])
+def test_symmetric_caveat_says_how_much_of_the_tumour_is_its_own_mirror_image(yaw_deg):
+    # independent expectation: the lens of a disc and its mirror image, in closed form
+    plane = MirrorPlane(2, yaw_deg, 0.0)
+    # a point of the plane: p = offset * n + t * tangent, here through the grid's centre
+    n = plane.normal()
+    plane = MirrorPlane(2, yaw_deg, float(n[0] * CENTRE[0] + n[1] * CENTRE[1]))
+    for offset_mm in (0.0, 1.5, 2.5, 4.0, 6.0):
+        c = (CENTRE[0] + offset_mm * n[0], CENTRE[1] + offset_mm * n[1])
+        disc = _disc(c, 8.0, slices=(1, 2, 3))
+        expected = _lens_share(offset_mm, 8.0)
+        note = symmetric_caveat(disc, plane, SPACING)
+        # the rule (SYMMETRIC_SHARE): the majority of the mask is its own mirror image
+        if expected < 0.5:
+            assert note is None
+            continue
+        assert note is not None and "own mirror image" in note
+        said = float(note.split("tumour is ")[1].split(" %")[0]) / 100.0
+        assert said == pytest.approx(expected, abs=0.04)
+        # said in place of the midline caveat (no part lies in a hemisphere it misses)
+        notes = segmentation_caveats(disc, plane=plane, spacing_mm=SPACING)
+        assert notes == (note,)
+    assert symmetric_caveat(np.zeros(SHAPE, bool), plane, SPACING) is None

@@ -22,10 +22,10 @@ from tumor3d.lesion import (
     NormalModel,
     _deep_components,
     _depth_mm,
-    _mirror,
     _smooth_in_brain,
     left_right_axis,
     lesion_params,
+    mirror_image,
     normal_model,
     patient_lesion,
     segment_hyperintense_lesion,
@@ -203,14 +203,14 @@ def test_mirror_about_an_unturned_plane_is_the_array_flip():
     rng = np.random.default_rng(1)
     a = rng.random((3, 12, 20)) > 0.5
     middle = MirrorPlane(2, 0.0, 9.5)  # x = 9.5: columns j and 19 - j swap
-    assert np.array_equal(_mirror(a, middle, (1.0, 1.0, 1.0)), a[:, :, ::-1])
+    assert np.array_equal(mirror_image(a, middle, (1.0, 1.0, 1.0)), a[:, :, ::-1])
     left = MirrorPlane(2, 0.0, 6.0)  # columns j and 12 - j; 13-19 have no mirror inside
     expected = np.zeros_like(a)
     expected[:, :, :13] = a[:, :, 12::-1]
-    assert np.array_equal(_mirror(a, left, (1.0, 1.0, 1.0)), expected)
+    assert np.array_equal(mirror_image(a, left, (1.0, 1.0, 1.0)), expected)
     # left-right along y (axis 1): the flip of the rows
     rows = MirrorPlane(1, 0.0, 5.5)
-    assert np.array_equal(_mirror(a, rows, (1.0, 1.0, 1.0)), a[:, ::-1, :])
+    assert np.array_equal(mirror_image(a, rows, (1.0, 1.0, 1.0)), a[:, ::-1, :])
 
 
 def test_bilateral_structures_of_a_turned_head_are_no_lesion(monkeypatch):
