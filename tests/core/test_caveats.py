@@ -238,7 +238,8 @@ def test_robust_segmentation_says_the_midline_caveat_and_the_peer_does_not():
     det = _detection_with_lesion(straddling, plane)
     robust = segment_tumor(img, brain, det, modality="flair", method="robust", spacing_mm=SPACING)
     assert robust.tumor_mask.any()
-    assert any("midline" in c for c in robust.caveats)
+    # centred on the plane: it is its own mirror image (said in place of "reaches the midline")
+    assert any("own mirror image" in c for c in robust.caveats)
     assert not any("slice of the scan" in c for c in robust.caveats)
     # the same lesion 20 mm to the side: nothing to say
     lateral = _disc((CENTRE[0], CENTRE[1] + 20.0), 8.0, slices=(1, 2, 3))
