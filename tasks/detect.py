@@ -43,6 +43,7 @@ def lesion_metadata(lesion: LesionResult | None, params: dict[str, Any]) -> dict
             lesion_gray=_num(lesion.lesion_gray),
             grow_threshold=_num(lesion.grow_threshold),
             n_components=int(lesion.n_components),
+            midline=bool(lesion.midline),
             mirror_plane=None
             if lesion.plane is None
             else {

@@ -48,6 +48,7 @@ def lesion_from_artifact(mask: np.ndarray, meta: dict[str, Any]) -> LesionResult
         None
         if plane is None
         else MirrorPlane(int(plane["lr_axis"]), float(plane["yaw_deg"]), float(plane["offset_mm"])),
+        bool(meta.get("midline", False)),  # absent from artifacts written before step 3f
     )
 
 

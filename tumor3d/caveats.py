@@ -26,17 +26,17 @@ instead of reporting a number that looks as trustworthy as any other:
   :mod:`tumor3d.lesion` now takes the deep crossing back in part (native
   pat0003: 7.3 of those 12.4 mL, was 0.3; the algoseg FLAIR 1.2 of 2.1 mL,
   was 0.2), so the caveat still holds there: a part may be missing.
-- **The tumour is mostly its own mirror image** (robust method). A lesion
-  centred on the midline leaves the symmetry rule no asymmetric seed; on
-  FLAIR step 3f of :mod:`tumor3d.lesion` then finds it by its brightness
-  and depth alone, without the evidence that tells a tumour from bilateral
-  normal tissue, and the run says so, in place of the midline caveat
-  (nothing of it lies in a hemisphere it does not reach). Said when at least
-  :data:`SYMMETRIC_SHARE` of the mask's voxels have their mirror image
-  (nearest pixel, about the plane the rule used) in the mask. Measured
-  (``reports/segmentation.md``): 0.00-0.12 on every real tumour of
-  ``../shared/data`` (FLAIR, T2, T1c; 2 mm / 5 mm and 1 mm; pat0003 crossing
-  the midline is 0.12), 0.71-0.82 on spheres implanted on the midline.
+- **The lesion was found without the symmetry rule's confirmation**
+  (robust method, FLAIR). A lesion centred on the midline leaves the
+  symmetry rule no asymmetric seed; step 3f of :mod:`tumor3d.lesion` then
+  finds it by its brightness and depth alone, without the evidence that
+  tells a tumour from bilateral normal tissue (``LesionResult.midline``).
+  The run says so, with the share of the mask that is its own mirror image,
+  in place of the midline caveat (the lesion straddles the plane: no part
+  of it lies in a hemisphere it does not reach). Measured share
+  (``reports/segmentation.md``): 0.71-0.82 on spheres implanted on the
+  midline; 0.00-0.12 on every real tumour of ``../shared/data``, none of
+  which step 3f found.
 
 Slice numbers are 0-based array indices (``slice_index`` of the run's
 ``slices.parquet``).
@@ -58,10 +58,6 @@ from tumor3d.lesion import (
 from tumor3d.validation import check_binary_mask
 
 __all__ = ["midline_caveat", "scan_end_caveat", "segmentation_caveats", "symmetric_caveat"]
-
-#: A mask with at least this share of its voxels mirrored in itself is "its own mirror
-#: image": the majority of it has no asymmetry to speak for it.
-SYMMETRIC_SHARE = 0.5
 
 
 def _mask3d(tumor_mask: np.ndarray) -> np.ndarray:
@@ -162,7 +158,10 @@ def midline_caveat(
 def symmetric_caveat(
     tumor_mask: np.ndarray, plane: MirrorPlane, spacing_mm: tuple[float, float, float]
 ) -> str | None:
-    """The caveat for a tumour that is mostly its own mirror image, else None.
+    """The caveat for a lesion found by step 3f (no asymmetry confirmed it); None if empty.
+
+    It names the share of the mask's voxels whose mirror image (nearest
+    pixel, about ``plane``) is in the mask.
 
     Parameters
     ----------
@@ -178,12 +177,10 @@ def symmetric_caveat(
     if n == 0:
         return None
     share = np.count_nonzero(m & mirror_image(m, plane, spacing_mm)) / n
-    if share < SYMMETRIC_SHARE:
-        return None
     return (
-        f"tumour is {100.0 * share:.0f} % its own mirror image about the brain's midline: "
-        "the symmetry rule, which tells a tumour from bilateral normal tissue, could not "
-        "confirm it, and it was found by its brightness and depth alone (check in "
+        f"tumour straddles the brain's midline and is {100.0 * share:.0f} % its own mirror "
+        "image: the symmetry rule, which tells a tumour from bilateral normal tissue, could "
+        "not confirm it, and it was found by its brightness and depth alone (check in "
         "overlay_tumor.png that it is a lesion and not normal tissue)"
     )
 
@@ -195,22 +192,25 @@ def segmentation_caveats(
     spacing_mm: tuple[float, float, float] | None = None,
     min_region_mm2: float = float(LESION_DEFAULTS["min_region_mm2"]),
     min_slices: int = int(LESION_DEFAULTS["min_slices"]),
+    midline_lesion: bool = False,
 ) -> tuple[str, ...]:
     """Every caveat of a segmentation, in a fixed order (ends, then midline).
 
     ``plane`` is given when the symmetry rule shaped the mask (robust
-    method); None skips the midline caveats. A tumour that is mostly its own
-    mirror image gets :func:`symmetric_caveat` in place of
-    :func:`midline_caveat`. ``spacing_mm`` None means 1 mm voxels. The
-    significance rule defaults to the lesion model's
-    (:data:`tumor3d.lesion.LESION_DEFAULTS`).
+    method); None skips the midline caveats. ``midline_lesion`` (the lesion
+    model's ``LesionResult.midline``: step 3f found it) says
+    :func:`symmetric_caveat` in place of :func:`midline_caveat`.
+    ``spacing_mm`` None means 1 mm voxels. The significance rule defaults to
+    the lesion model's (:data:`tumor3d.lesion.LESION_DEFAULTS`).
     """
     m = _mask3d(tumor_mask)
     out = [scan_end_caveat(m)]
     if plane is not None:
         sp = (1.0, 1.0, 1.0) if spacing_mm is None else tuple(float(v) for v in spacing_mm)
-        out.append(
-            symmetric_caveat(m, plane, sp)
-            or midline_caveat(m, plane, sp, min_region_mm2=min_region_mm2, min_slices=min_slices)
-        )
+        if midline_lesion:
+            out.append(symmetric_caveat(m, plane, sp))
+        else:
+            out.append(
+                midline_caveat(m, plane, sp, min_region_mm2=min_region_mm2, min_slices=min_slices)
+            )
     return tuple(c for c in out if c)

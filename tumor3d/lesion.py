@@ -412,6 +412,9 @@ class LesionResult:
         The mid-sagittal plane of step 3c, in the whole volume's pixel frame;
         None when the symmetry rule did not run (no left-right axis, or no
         brain).
+    midline : bool
+        The lesion was found by step 3f (it straddles the plane and no
+        asymmetric seed confirmed it: its brightness and depth alone).
     """
 
     mask: np.ndarray
@@ -420,6 +423,7 @@ class LesionResult:
     grow_threshold: float
     n_components: int
     plane: MirrorPlane | None = None
+    midline: bool = False
 
 
 #: The configurable keywords of :func:`segment_hyperintense_lesion` and their defaults
@@ -1254,7 +1258,7 @@ def segment_hyperintense_lesion(
     if plane is not None:  # from the box's pixel frame to the volume's
         plane = _shifted_plane(plane, box[1].start * voxel_mm[1], box[2].start * voxel_mm[2])
     return LesionResult(
-        mask, res.model, res.lesion_gray, res.grow_threshold, res.n_components, plane
+        mask, res.model, res.lesion_gray, res.grow_threshold, res.n_components, plane, res.midline
     )
 
 
@@ -1348,9 +1352,10 @@ def _candidates(
     """Steps 2, 3, 3b, 3c, 3d and 3f (with ``crossing``), 3e (with ``contrast``) and 6.
 
     Returns ``(not-CSF mask, labels, significant kept ids, satellites,
-    across)``. ``satellites`` holds the significant seed components that
-    were not kept (with ``keep_largest``; None otherwise or when nothing was
-    kept); with a mirror plane each has the mirrored seeds within
+    across, midline)``; ``midline`` tells that step 3f found the lesion.
+    ``satellites`` holds the significant seed components that were not kept
+    (with ``keep_largest``; None otherwise or when nothing was kept); with a
+    mirror plane each has the mirrored seeds within
     ``SYMMETRIC_REGAIN_MM`` of it, as the kept core has them. Step 4b joins
     those the refined lesion reaches. ``across`` (step 3d, with ``crossing``
     and a mirror plane and the depth of step 3b; None otherwise) holds the
@@ -1373,6 +1378,7 @@ def _candidates(
         seeds &= ~halo
     full_seeds = seeds
     across = None
+    midline = False  # step 3f found the lesion
     if plane is not None and seeds.any():
         seeds = _asymmetric_seeds(seeds, plane, voxel_mm)
     labels, ids = _significant_components(seeds, min_region_pixels, min_slices)
@@ -1417,6 +1423,7 @@ def _candidates(
             if comp is not None:
                 n_out = 1
                 out[comp] = 1
+                midline = True
         if crossing and n_out and depth is not None:
             # step 3d: the seeds of the inner half of the brain connected to the lesion
             # through such seeds, mirrored or not (a tumour crossing the midline)
@@ -1438,13 +1445,18 @@ def _candidates(
         labels, ids = out, np.arange(1, n_out + 1)
     else:
         satellites = None
-    return not_csf, labels, ids, satellites, across
+    return not_csf, labels, ids, satellites, across, midline
 
 
 def _straddles(part: np.ndarray, side: np.ndarray) -> bool:
-    """Whether the voxels of ``part`` lie on both sides of the plane (``side``: which)."""
+    """Whether ``part`` has voxels strictly on both sides of the plane.
+
+    ``side`` is the sign (-1, 0, +1) of each voxel's signed distance to the
+    plane; a voxel on the plane counts for neither side, so the decision is
+    the same for a mirrored image.
+    """
     s = side[part]
-    return bool(s.any() and not s.all())
+    return bool((s > 0).any() and (s < 0).any())
 
 
 def _midline_lesion(
@@ -1466,12 +1478,12 @@ def _midline_lesion(
     significant (step 3, within the band) and holds seeds on both sides of the
     plane crosses it as one connected structure. Its whole seed component is
     the lesion when it passes step 3b (deep) and step 3e (beyond the normal
-    tail); the largest such, examined largest first.
+    tail); the first that passes, the band parts examined largest first.
     """
     d = plane.signed_distance_mm(b.shape[1:], (float(voxel_mm[1]), float(voxel_mm[2])))
     band = np.abs(d) <= SYMMETRY_TOLERANCE_MM
     lab, ids = _significant_components(full_seeds & band[None], min_region_pixels, min_slices)
-    side = np.broadcast_to(d[None] > 0.0, lab.shape)
+    side = np.broadcast_to(np.sign(d)[None], lab.shape)
     one = np.array([1])
     for i in ids[:MAX_CANDIDATES]:
         part = lab == i
@@ -1570,7 +1582,7 @@ def _segment_box(
     crossing = modality == "flair"
     # step 3e on FLAIR only: T2's and T1c's lesions are less conspicuous (module docstring)
     contrast = modality == "flair"
-    not_csf, labels, ids, satellites, across = _candidates(
+    not_csf, labels, ids, satellites, across, midline = _candidates(
         model, *args, spacing_mm, plane, voxel_mm, crossing, contrast
     )
     if ids.size and np.isfinite(model.csf_threshold):
@@ -1581,7 +1593,7 @@ def _segment_box(
         csf_t = max(model.csf_threshold, _csf_threshold(img, b, lesion_gray0))
         if csf_t > model.csf_threshold:
             model = NormalModel(model.median, model.sigma, model.seed_threshold, csf_t)
-            not_csf, labels, ids, satellites, across = _candidates(
+            not_csf, labels, ids, satellites, across, midline = _candidates(
                 model, *args, spacing_mm, plane, voxel_mm, crossing, contrast
             )
     if ids.size == 0:
@@ -1655,4 +1667,4 @@ def _segment_box(
         # the MAD describe normal tissue) is violated: what lies "outside" it is a
         # normal tissue class (e.g. grey matter of a strongly bimodal parenchyma)
         return LesionResult(np.zeros(b.shape, bool), model, float("nan"), float("nan"), 0, plane)
-    return LesionResult(mask, model, lesion_gray, grow_t, int(ids.size), plane)
+    return LesionResult(mask, model, lesion_gray, grow_t, int(ids.size), plane, midline)

@@ -816,6 +816,7 @@ def segment_tumor(
         center = np.full(nz, np.nan)
         ref = np.full(3, np.nan)
         plane = None  # the peer has no symmetry rule
+        midline = False
     else:
         res = detection.lesion
         if res is None:
@@ -832,6 +833,7 @@ def segment_tumor(
         center = np.full(nz, res.lesion_gray)
         ref = np.array([res.model.median, res.model.sigma, res.model.seed_threshold])
         plane = res.plane
+        midline = res.midline
     small = tumor.sum(axis=(1, 2)) < int(min_tumor_pixels)
     tumor[small] = False
     has = tumor.any(axis=(1, 2))
@@ -849,6 +851,7 @@ def segment_tumor(
             spacing_mm=spacing_mm,
             min_region_mm2=params["min_region_mm2"],
             min_slices=params["min_slices"],
+            midline_lesion=midline,
         ),
     )
 

@@ -213,10 +213,10 @@ def test_segmentation_caveats_skips_the_midline_without_a_plane():
         segmentation_caveats(np.zeros((4, 4), bool))
 
 
-def _detection_with_lesion(mask, plane):
+def _detection_with_lesion(mask, plane, midline=False):
     nz = mask.shape[0]
     model = NormalModel(100.0, 10.0, 120.0, float("inf"))
-    lesion = LesionResult(mask, model, 200.0, 150.0, 1, plane)
+    lesion = LesionResult(mask, model, 200.0, 150.0, 1, plane, midline)
     return SliceDetection(
         n_modes=np.full(nz, 4),
         abnormal=mask.any(axis=(1, 2)),
@@ -238,8 +238,7 @@ def test_robust_segmentation_says_the_midline_caveat_and_the_peer_does_not():
     det = _detection_with_lesion(straddling, plane)
     robust = segment_tumor(img, brain, det, modality="flair", method="robust", spacing_mm=SPACING)
     assert robust.tumor_mask.any()
-    # centred on the plane: it is its own mirror image (said in place of "reaches the midline")
-    assert any("own mirror image" in c for c in robust.caveats)
+    assert any("reaches the brain's midline" in c for c in robust.caveats)
     assert not any("slice of the scan" in c for c in robust.caveats)
     # the same lesion 20 mm to the side: nothing to say
     lateral = _disc((CENTRE[0], CENTRE[1] + 20.0), 8.0, slices=(1, 2, 3))
@@ -275,23 +274,32 @@ def _lens_share(offset_mm: float, radius_mm: float) -> float:
 @pytest.mark.parametrize("yaw_deg", [0.0, 20.0])
 def test_symmetric_caveat_says_how_much_of_the_tumour_is_its_own_mirror_image(yaw_deg):
     # independent expectation: the lens of a disc and its mirror image, in closed form
-    plane = MirrorPlane(2, yaw_deg, 0.0)
-    # a point of the plane: p = offset * n + t * tangent, here through the grid's centre
-    n = plane.normal()
+    n = MirrorPlane(2, yaw_deg, 0.0).normal()
+    # the plane through the grid's centre
     plane = MirrorPlane(2, yaw_deg, float(n[0] * CENTRE[0] + n[1] * CENTRE[1]))
     for offset_mm in (0.0, 1.5, 2.5, 4.0, 6.0):
         c = (CENTRE[0] + offset_mm * n[0], CENTRE[1] + offset_mm * n[1])
         disc = _disc(c, 8.0, slices=(1, 2, 3))
-        expected = _lens_share(offset_mm, 8.0)
         note = symmetric_caveat(disc, plane, SPACING)
-        # the rule (SYMMETRIC_SHARE): the majority of the mask is its own mirror image
-        if expected < 0.5:
-            assert note is None
-            continue
-        assert note is not None and "own mirror image" in note
-        said = float(note.split("tumour is ")[1].split(" %")[0]) / 100.0
-        assert said == pytest.approx(expected, abs=0.04)
-        # said in place of the midline caveat (no part lies in a hemisphere it misses)
-        notes = segmentation_caveats(disc, plane=plane, spacing_mm=SPACING)
-        assert notes == (note,)
+        said = float(note.split("is ")[1].split(" %")[0]) / 100.0
+        assert said == pytest.approx(_lens_share(offset_mm, 8.0), abs=0.04)
     assert symmetric_caveat(np.zeros(SHAPE, bool), plane, SPACING) is None
+
+
+def test_a_lesion_found_by_step_3f_says_so_in_place_of_the_midline_caveat():
+    disc = _disc(CENTRE, 8.0, slices=(1, 2, 3))
+    said = segmentation_caveats(disc, plane=MID_PLANE, spacing_mm=SPACING, midline_lesion=True)
+    assert len(said) == 1 and "own mirror image" in said[0] and "brightness and depth" in said[0]
+    # found otherwise (an asymmetric core, with its part across the plane): the midline
+    # caveat, whatever its share of mirrored voxels
+    said = segmentation_caveats(disc, plane=MID_PLANE, spacing_mm=SPACING)
+    assert len(said) == 1 and "reaches the brain's midline" in said[0]
+    # through segment_tumor: the detection's lesion carries the flag
+    brain = np.zeros(SHAPE, bool)
+    brain[:, 8:88, 8:88] = True
+    img = np.where(brain, 100, 0).astype(np.uint8)
+    img[disc] = 220
+    det = _detection_with_lesion(disc, MID_PLANE, midline=True)
+    res = segment_tumor(img, brain, det, modality="flair", method="robust", spacing_mm=SPACING)
+    assert any("own mirror image" in c for c in res.caveats)
+    assert not any("reaches the brain's midline" in c for c in res.caveats)

@@ -1204,3 +1204,38 @@ def test_bilateral_structures_along_the_midline_are_no_midline_lesion(monkeypatc
         m.setattr(lesion_module, "_straddles", lambda part, side: True)
         found = _segment(img, brain, lr_axis=2)
     assert (found & plates).sum() > 0.4 * plates.sum()  # one plate
+
+
+@pytest.mark.parametrize("pad", [(0, 0), (30, 6)])  # the brain centred, or off-centre
+def test_a_midline_lesion_is_flagged_through_detection_and_segmentation(pad):
+    # step 3f's flag travels from the lesion model (on the brain's box) through the
+    # detection to the segmentation's notes; the brain off the array's centre makes the
+    # box's pixel frame differ from the volume's
+    from tumor3d.detect import detect_abnormal_slices
+    from tumor3d.segment import segment_tumor
+
+    img, brain, ball = _midline_image(6.0)
+    widths = ((0, 0), (0, 0), pad)
+    img, brain, ball = (np.pad(a, widths) for a in (img, brain, ball))
+    det = detect_abnormal_slices(img, brain, modality="flair", spacing_mm=SPACING, lr_axis=2)
+    assert det.lesion.midline
+    seg = segment_tumor(img, brain, det, modality="flair", spacing_mm=SPACING, lr_axis=2)
+    assert 2 * (seg.tumor_mask & ball).sum() / (seg.tumor_mask.sum() + ball.sum()) > 0.9
+    assert any("own mirror image" in c for c in seg.caveats)
+    # a lateral lesion is found by step 3c: no flag, no such note
+    brain0 = _brain()
+    lateral = brain0 & _ball((0, 5, 16), 9)
+    img = np.pad(_image(brain0, [(lateral, 220.0)]), widths)
+    det = detect_abnormal_slices(img, np.pad(brain0, widths), modality="flair",
+                                 spacing_mm=SPACING, lr_axis=2)
+    assert det.lesion.mask.any() and not det.lesion.midline
+
+
+def test_a_part_straddles_the_plane_only_with_voxels_strictly_on_both_sides():
+    # a voxel on the plane counts for neither side, so a mirrored image decides the same
+    side = np.array([-1, 0, 1, 0, 0], dtype=np.int8)
+    straddles = lesion_module._straddles
+    assert straddles(np.array([1, 0, 1, 0, 0], bool), side)
+    assert not straddles(np.array([0, 1, 1, 0, 0], bool), side)
+    assert not straddles(np.array([1, 1, 0, 0, 0], bool), side)  # the mirror of the above
+    assert not straddles(np.array([0, 1, 0, 1, 1], bool), side)

@@ -238,3 +238,10 @@ def test_the_lesion_artifact_metadata_round_trips_the_mirror_plane():
         lesion_from_artifact(mask, json.loads(json.dumps(lesion_metadata(without, {})))).plane
         is None
     )
+    # step 3f's flag (found without the symmetry rule's confirmation) round-trips too; an
+    # artifact written before the flag existed reads as "not found by step 3f"
+    assert not rebuilt.midline
+    flagged = LesionResult(mask, original.model, 200.0, 160.0, 1, plane, True)
+    assert lesion_from_artifact(mask, json.loads(json.dumps(lesion_metadata(flagged, {})))).midline
+    old_meta = {k: v for k, v in meta.items() if k != "midline"}
+    assert not lesion_from_artifact(mask, old_meta).midline
