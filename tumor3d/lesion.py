@@ -188,7 +188,8 @@ its modes to be counted. This module uses what a single slice cannot:
    an asymmetric lesion changes (every labelled case is identical at every
    emulation phase and at 1 mm). FLAIR only, as step 3d: on T2 and T1c deep
    bilateral bright structures lie at the midline (the third ventricle, the
-   deep veins, the choroid plexus). The real tumour-free FLAIR of
+   deep veins, the choroid plexus). Step 3f needs step 3b's depth: it is off
+   with ``reject_superficial=False``. The real tumour-free FLAIR of
    ``benchmarks/pseudo_healthy.py`` (two brains, every emulation phase and 1
    mm) still gives 0 mL; that is little tumour-free FLAIR, said as such.
 5. **Enclosed core.** Necrosis and cysts are dark on FLAIR and T1c but part of
