@@ -1,9 +1,11 @@
 """Caveats of a segmentation: where its volume may be wrong, said in words.
 
 A volume is only as good as the mask it measures. Two situations are known
-to bias it and can be recognised from the mask alone, so the pipeline says
-so in the run's notes (summary, ``metrics.parquet``, ``provenance.json``)
-instead of reporting a number that looks as trustworthy as any other:
+to bias it and can be recognised from the mask alone, and a third (a lesion
+found without the symmetry rule's confirmation) is known from the lesion
+model, so the pipeline says so in the run's notes (summary,
+``metrics.parquet``, ``provenance.json``) instead of reporting a number that
+looks as trustworthy as any other:
 
 - **The tumour reaches the first or last slice of the scan.** It may
   continue beyond the scanned range; every volume may then underestimate
