@@ -1404,11 +1404,7 @@ def _candidates(
                 continue  # already part of a kept lesion
             near = _within_mm(core0, SYMMETRIC_REGAIN_MM, voxel_mm)
             comp = _touching(full_seeds & (seeds | near), core0)
-            if spacing_mm is not None:
-                one = np.array([1])
-                if not _deep_components(comp.astype(np.int64), one, b, spacing_mm, depth).size:
-                    continue
-            if contrast and not _beyond_normal_tail(sm[comp], model):
+            if not _passes_evidence(comp, b, spacing_mm, depth, sm, model, contrast):
                 continue
             n_out += 1
             out[comp & (out == 0)] = n_out
@@ -1419,7 +1415,7 @@ def _candidates(
             # invisible to step 3c (its mirror image is itself)
             comp = _midline_lesion(
                 full_seeds, plane, voxel_mm, min_region_pixels, min_slices, b, spacing_mm,
-                depth, sm, model,
+                depth, sm, model, contrast,
             )  # fmt: skip
             if comp is not None:
                 n_out = 1
@@ -1449,6 +1445,23 @@ def _candidates(
     return not_csf, labels, ids, satellites, across, midline
 
 
+def _passes_evidence(
+    comp: np.ndarray,
+    b: np.ndarray,
+    spacing_mm: tuple[float, ...] | None,
+    depth: np.ndarray | None,
+    sm: np.ndarray,
+    model: NormalModel,
+    contrast: bool,
+) -> bool:
+    """Steps 3b (with ``spacing_mm``) and 3e (with ``contrast``) on one candidate mask."""
+    if spacing_mm is not None:
+        one = np.array([1])
+        if not _deep_components(comp.astype(np.int64), one, b, spacing_mm, depth).size:
+            return False
+    return not contrast or _beyond_normal_tail(sm[comp], model)
+
+
 def _straddles(part: np.ndarray, side: np.ndarray) -> bool:
     """Whether ``part`` has voxels strictly on both sides of the plane.
 
@@ -1471,6 +1484,7 @@ def _midline_lesion(
     depth: np.ndarray,
     sm: np.ndarray,
     model: NormalModel,
+    contrast: bool = True,
 ) -> np.ndarray | None:
     """Step 3f: a lesion straddling the mid-sagittal plane, or None.
 
@@ -1478,24 +1492,21 @@ def _midline_lesion(
     step 3c cannot tell a voxel from its mirror) form components; one that is
     significant (step 3, within the band) and holds seeds on both sides of the
     plane crosses it as one connected structure. Its whole seed component is
-    the lesion when it passes step 3b (deep) and step 3e (beyond the normal
-    tail); the first that passes, the band parts examined largest first.
+    the lesion when it passes step 3b (deep) and, with ``contrast``, step 3e
+    (beyond the normal tail): :func:`_passes_evidence`, as the asymmetric
+    candidates; the first that passes, the band parts examined largest first.
     """
     d = plane.signed_distance_mm(b.shape[1:], (float(voxel_mm[1]), float(voxel_mm[2])))
     band = np.abs(d) <= SYMMETRY_TOLERANCE_MM
     lab, ids = _significant_components(full_seeds & band[None], min_region_pixels, min_slices)
     side = np.broadcast_to(np.sign(d)[None], lab.shape)
-    one = np.array([1])
     for i in ids[:MAX_CANDIDATES]:
         part = lab == i
         if not _straddles(part, side):
             continue  # on one side only: a bilateral structure's medial edge
         comp = _touching(full_seeds, part)
-        if not _deep_components(comp.astype(np.int64), one, b, spacing_mm, depth).size:
-            continue
-        if not _beyond_normal_tail(sm[comp], model):
-            continue
-        return comp
+        if _passes_evidence(comp, b, spacing_mm, depth, sm, model, contrast):
+            return comp
     return None
 
 
