@@ -59,7 +59,7 @@ def survey(data: Path, cfg, native: bool) -> list[dict]:
         plane = None if axis is None else L.symmetry_plane(sm, brain, model, axis, spacing)
         # every candidate before the decision rules: no depth (3b, spacing None) and no
         # contrast test (3e, the default contrast=False), so the survey sees them all
-        _, labels, ids, _, _ = L._candidates(
+        _, labels, ids, _, _, _ = L._candidates(
             model, sm, enhanced, brain, px.smoothing, px.min_region, lp.min_slices,
             False, None, plane, spacing,
         )  # fmt: skip
