@@ -1044,13 +1044,18 @@ def test_the_normal_tail_level_splits_the_tail_beyond_the_seed_level():
         assert share == pytest.approx(q, abs=0.01)
 
 
-def _faint_region_image(z_sigmas: float, seed: int = 0):
-    """A deep, one-sided region at ``mu + z_sigmas sigma`` of the brain without it."""
+def _ball_image(z_sigmas: float, centre, radius: float, seed: int = 0):
+    """A ball at ``mu + z_sigmas sigma`` of the brain without it: (image, brain, ball)."""
     brain = _brain()
-    region = brain & _ball((0, -10, 12), 9)
+    ball = brain & _ball(centre, radius)
     model = _normal_model_of(_image(brain, [], seed=seed), brain)
     gray = model.median + z_sigmas * model.sigma
-    return _image(brain, [(region, gray)], seed=seed), brain, region
+    return _image(brain, [(ball, gray)], seed=seed), brain, ball
+
+
+def _faint_region_image(z_sigmas: float, seed: int = 0):
+    """A deep, one-sided region at ``mu + z_sigmas sigma`` of the brain without it."""
+    return _ball_image(z_sigmas, (0, -10, 12), 9, seed)
 
 
 @pytest.mark.parametrize("lr_axis", [2, None])  # with and without the mirror plane (step 3c)
@@ -1147,12 +1152,9 @@ def test_step_3e_on_components_equals_the_per_component_median():
     assert np.array_equal(got, naive) and naive.any() and (big & ~naive).any()
 
 
-def _midline_image(gray_sigmas: float, seed: int = 0, centre=(0.0, 5.0, 0.0), radius=10.0):
+def _midline_image(gray_sigmas: float, seed: int = 0):
     """A deep ball centred on the midline (x = 0) at ``mu + gray_sigmas sigma``."""
-    brain = _brain()
-    ball = brain & _ball(centre, radius)
-    model = _normal_model_of(_image(brain, [], seed=seed), brain)
-    return _image(brain, [(ball, model.median + gray_sigmas * model.sigma)], seed=seed), brain, ball
+    return _ball_image(gray_sigmas, (0.0, 5.0, 0.0), 10.0, seed)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
