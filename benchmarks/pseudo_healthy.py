@@ -152,15 +152,20 @@ def _placements(healthy, brain, texture, gray, scan, cfg, axis, n: int) -> None:
     far = np.abs(xc - brain.shape[2] / 2) > 15
     on_mid = np.abs(xc - (brain.shape[2] - 1) / 2) < 1
     d = depth[zc, yc, xc]
-    classes = {"deep": (med + 8, np.inf), "middle": (med - 2, med + 2), "shallow": (11, 13)}
-    where_ok = {"deep": far, "middle": far, "shallow": far, "midline": on_mid}
-    classes["midline"] = classes["deep"]
+    # class: (depth range in mm, where); the midline class last, so that the random draws
+    # of the other three are those of the benchmark before it had one
+    classes = {
+        "deep": ((med + 8, np.inf), far),
+        "middle": ((med - 2, med + 2), far),
+        "shallow": ((11, 13), far),
+        "midline": ((med + 8, np.inf), on_mid),
+    }
     print(f"\n| 4.2 mL sphere at (z, y, x), depth (brain median {med:.0f} mm) | 2 mm / 5 mm Dice"
           " | 1 mm Dice |")  # fmt: skip
     print("|---|---|---|")
     dice = {(t, m): [] for t in (True, False) for m in (False, True)}  # (thick, midline)
-    for cname, (lo_d, hi_d) in classes.items():
-        sel = np.flatnonzero((d >= lo_d) & (d < hi_d) & where_ok[cname])
+    for cname, ((lo_d, hi_d), where_ok) in classes.items():
+        sel = np.flatnonzero((d >= lo_d) & (d < hi_d) & where_ok)
         for k in rng.choice(sel, n, replace=False):
             c = np.array([zc[k], yc[k], xc[k]], dtype=np.float64)
             _, runs = _implanted(healthy, brain, texture, gray, c, 10.0, scan, cfg, axis)
