@@ -547,13 +547,21 @@ def _keep_nested_slices(mask: np.ndarray) -> np.ndarray:
     (dilated by ``_NESTING_TOLERANCE_PX``) is past the brain, where the
     slice cuts scalp or skull tangentially into a solid disc: it and every
     slice beyond it are cleared.
+
+    The largest mask is not the brain's when a scan reaches below the skull
+    base: a slice through the face or the neck can be wider than any slice
+    of the brain, and the walk from it clears the brain itself (a raw TCGA
+    head: every slice but the three lowest). So when the walk keeps fewer
+    slices with a mask than it clears, it is walked again from the largest
+    cleared slice, and the walk that keeps more slices is taken. A scalp
+    disc or a face slice at the end of a head is a slice or two, never most
+    of the stack, so the walk from the brain's widest slice keeps its result.
     """
     areas = mask.sum(axis=(1, 2))
     if not areas.any():
         return mask
-    out = mask.copy()
-    # Until the walk stops, a slice's inner neighbour is still as in ``mask`` (only the
-    # slices beyond the stop are cleared), so all the dilations are done in one call.
+    # The walk never changes a slice's inner neighbour (it only decides where to stop),
+    # so all the dilations are done in one call.
     r = _NESTING_TOLERANCE_PX
     dilated = np.zeros_like(mask)
     box = _true_box(mask)
@@ -564,18 +572,34 @@ def _keep_nested_slices(mask: np.ndarray) -> np.ndarray:
         slice(max(box[2].start - r, 0), min(box[2].stop + r, nx)),
     )
     dilated[box] = ndi.binary_dilation(mask[box], structure=_in_plane(disk(r)))
-    centre = int(np.argmax(areas))
-    for step in (1, -1):
-        z = centre + step
-        while 0 <= z < len(out):
-            outside = np.count_nonzero(mask[z] & ~dilated[z - step])
-            if outside > _NESTING_MAX_OUTSIDE * max(1, int(areas[z])):
-                if step > 0:
-                    out[z:] = False
-                else:
-                    out[: z + 1] = False
-                break
-            z += step
+    has = areas > 0
+
+    def walk(centre: int) -> tuple[int, int]:
+        """The first and last slice kept walking outwards from ``centre``."""
+        ends = []
+        for step in (-1, 1):
+            z = centre + step
+            while 0 <= z < len(mask):
+                outside = np.count_nonzero(mask[z] & ~dilated[z - step])
+                if outside > _NESTING_MAX_OUTSIDE * max(1, int(areas[z])):
+                    break
+                z += step
+            ends.append(z - step)
+        return ends[0], ends[1]
+
+    lo, hi = walk(int(np.argmax(areas)))
+    kept = int(np.count_nonzero(has[lo : hi + 1]))
+    if int(np.count_nonzero(has)) - kept > kept:
+        # the widest slice is not the brain's (a face or neck slice): walk again from
+        # the widest slice it cleared
+        cleared = has.copy()
+        cleared[lo : hi + 1] = False
+        lo2, hi2 = walk(int(np.argmax(np.where(cleared, areas, -1))))
+        if int(np.count_nonzero(has[lo2 : hi2 + 1])) > kept:
+            lo, hi = lo2, hi2
+    out = mask.copy()
+    out[:lo] = False
+    out[hi + 1 :] = False
     return out
 
 

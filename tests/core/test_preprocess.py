@@ -435,21 +435,31 @@ def _naive_keep_nested(mask):
     areas = mask.sum(axis=(1, 2))
     if not areas.any():
         return mask
-    out = mask.copy()
     footprint = disk(_NESTING_TOLERANCE_PX).astype(bool)
-    centre = int(np.argmax(areas))
-    for step in (1, -1):
-        z = centre + step
-        while 0 <= z < len(out):
-            inner = ndi.binary_dilation(out[z - step], structure=footprint)
-            outside = np.count_nonzero(out[z] & ~inner)
-            if outside > _NESTING_MAX_OUTSIDE * max(1, np.count_nonzero(out[z])):
-                if step > 0:
-                    out[z:] = False
-                else:
-                    out[: z + 1] = False
-                break
-            z += step
+
+    def kept_by_walk(centre):
+        keep = np.zeros(len(mask), dtype=bool)
+        keep[centre] = True
+        for step in (1, -1):
+            z = centre + step
+            while 0 <= z < len(mask):
+                inner = ndi.binary_dilation(mask[z - step], structure=footprint)
+                outside = np.count_nonzero(mask[z] & ~inner)
+                if outside > _NESTING_MAX_OUTSIDE * max(1, np.count_nonzero(mask[z])):
+                    break
+                keep[z] = True
+                z += step
+        return keep
+
+    keep = kept_by_walk(int(np.argmax(areas)))
+    with_mask = areas > 0
+    n_kept = np.count_nonzero(keep & with_mask)
+    if np.count_nonzero(with_mask & ~keep) > n_kept:  # the widest slice was no brain's
+        again = kept_by_walk(int(np.argmax(np.where(with_mask & ~keep, areas, -1))))
+        if np.count_nonzero(again & with_mask) > n_kept:
+            keep = again
+    out = mask.copy()
+    out[~keep] = False
     return out
 
 

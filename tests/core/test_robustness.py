@@ -64,6 +64,26 @@ def test_nested_slices_clears_scalp_discs_and_everything_beyond():
     np.testing.assert_array_equal(mask, before)  # input untouched
 
 
+def test_nested_slices_keeps_the_brain_when_a_face_slice_is_the_widest():
+    shape = (64, 64)
+    c = (31.5, 31.5)
+    # a raw head scanned from below the skull base: slices 0-1 cut the face and
+    # neck, wider (r 26, 25) than any brain slice (widest r 22 on slice 7); slice 2
+    # is a thin arc of scalp, outside both its neighbours, so the walk from slice 0
+    # stops there and would clear the whole brain
+    arc = _disk(shape, c, 26) & ~_disk(shape, c, 23) & (np.indices(shape)[0] < 20)
+    brain_radii = [10, 14, 18, 20, 22, 21, 18, 15, 11, 6]
+    mask = np.stack(
+        [_disk(shape, c, 26), _disk(shape, c, 25), arc] + [_disk(shape, c, r) for r in brain_radii]
+    )
+    before = mask.copy()
+    out = _keep_nested_slices(mask)
+    expected = mask.copy()
+    expected[:3] = False  # the walk from the brain's widest slice clears slice 2 and beyond
+    np.testing.assert_array_equal(out, expected)
+    np.testing.assert_array_equal(mask, before)  # input untouched
+
+
 def test_nested_slices_leaves_a_normal_stack_alone():
     shape = (64, 64)
     # shrinking outwards, with a 1-pixel non-monotone wobble (slice 1 vs 2)
