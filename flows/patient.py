@@ -58,13 +58,13 @@ from storage.remote_publish import publish_folder
 from storage.slice_table import slice_table
 from storage.store import ArtifactRef, ArtifactStore, canonical_dumps, source_grid_from_metadata
 from tasks import stages
+from tasks.preprocess import preprocess_notes
 from tasks.runner import DirectRunner, PrefectRunner, StageRun
 from tasks.spec import InputSource, StageOutput
 from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
 from tumor3d.metrics import EQ7_SLICE_RULES
-from tumor3d.preprocess import brain_volume_note
 from tumor3d.scan import MODALITIES, validate_patient_id
 
 __all__ = [
@@ -308,9 +308,7 @@ def patient_pipeline(
         notes.append(f"skipped {len(skipped)} unreadable file(s): {', '.join(skipped)}")
     if brain_mask is not None:
         notes.append(brain_mask_note(brain_mask))
-    implausible = brain_volume_note(outputs["preprocess"].values.get("brain_volume_ml", 0.0))
-    if implausible:
-        notes.append(implausible)
+    notes += preprocess_notes(outputs["preprocess"].values)
     metrics = _metrics_row(outputs, runner.runs, pid, flow_seconds, notes)
     if is_url(out_dir):  # staged locally, then uploaded (storage.remote_publish)
         with tempfile.TemporaryDirectory(prefix="tumor3d-publish-") as tmp:

@@ -2,15 +2,23 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import numpy as np
 
 from storage.objectstore import open_store
 from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
 from tumor3d.config import PreprocessConfig
-from tumor3d.preprocess import preprocess_volume
+from tumor3d.preprocess import (
+    brain_coverage_note,
+    brain_volume_note,
+    preprocess_volume,
+    tissue_slice_count,
+)
 
-__all__ = ["SPEC", "preprocess_task"]
+__all__ = ["SPEC", "preprocess_notes", "preprocess_task"]
 
 
 @stage_task("preprocess")
@@ -42,8 +50,25 @@ def preprocess_task(
             "brain_voxels": brain_voxels,
             "brain_volume_ml": brain_voxels * float(np.prod(spacing)) / 1000.0,
             "brain_extraction": result.brain_extraction,
+            "brain_slices": int(np.count_nonzero(result.brain_mask.any(axis=(1, 2)))),
+            "tissue_slices": tissue_slice_count(result.original_u8),
         },
     )
+
+
+def preprocess_notes(values: Mapping[str, Any]) -> list[str]:
+    """The run's notes on the brain mask, from the preprocess stage's values.
+
+    A mask larger than any skull holds (:func:`tumor3d.preprocess.brain_volume_note`),
+    or found on too few of the slices that hold tissue
+    (:func:`tumor3d.preprocess.brain_coverage_note`; not for a given mask, which is
+    the user's, and not for values cached before the slice counts were stored).
+    """
+    notes = [brain_volume_note(values.get("brain_volume_ml", 0.0))]
+    if values.get("brain_extraction") != "given":
+        slices = (values.get("brain_slices", 0), values.get("tissue_slices", 0))
+        notes.append(brain_coverage_note(*slices))
+    return [n for n in notes if n]
 
 
 SPEC = StageSpec(

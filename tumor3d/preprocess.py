@@ -635,6 +635,51 @@ def brain_volume_note(brain_volume_ml: float) -> str | None:
     )
 
 
+#: A brain mask on fewer than this share of the slices that hold tissue has lost most
+#: of the brain: the brain spans most of a head scan's slices (the phantoms' whole
+#: heads: 63-70 %; the raw clinical heads of ``../shared/data``: 85-88 %; skull-stripped
+#: volumes: 100 %), while a skull removal misled by a face or neck slice kept 3 of 26.
+MIN_BRAIN_SLICE_SHARE = 0.5
+
+
+def tissue_slice_count(original_u8: np.ndarray) -> int:
+    """Slices of a ``(z, y, x)`` stack that hold anything: not one constant gray.
+
+    A skull-stripped volume's slices beyond the brain are its constant background;
+    a raw head's slices hold head, or at least the scanner's noise.
+
+    >>> tissue_slice_count(np.stack([np.zeros((4, 4)), np.eye(4)]).astype(np.uint8))
+    1
+    """
+    flat = np.asarray(original_u8).reshape(len(original_u8), -1)
+    if flat.size == 0:
+        return 0
+    return int(np.count_nonzero(flat.max(axis=1) > flat.min(axis=1)))
+
+
+def brain_coverage_note(brain_slices: int, tissue_slices: int) -> str | None:
+    """A warning for a brain mask on too few of the slices that hold tissue, else None.
+
+    Below :data:`MIN_BRAIN_SLICE_SHARE`, the skull removal has most likely lost
+    the brain (a face or neck slice taken for the brain's widest, or the scalp
+    joined to the brain on a slice), and what it kept may be face or neck.
+
+    >>> brain_coverage_note(20, 30) is None
+    True
+    >>> brain_coverage_note(3, 26)[:48]
+    'brain mask on 3 of the 26 slices that hold tissu'
+    """
+    b, t = int(brain_slices), int(tissue_slices)
+    if t <= 0 or b >= MIN_BRAIN_SLICE_SHARE * t:
+        return None
+    return (
+        f"brain mask on {b} of the {t} slices that hold tissue: the skull removal has likely "
+        "lost most of the brain (or kept face or neck), so the tumour volume is not reliable: "
+        "give the brain mask (--brain-mask) or set preprocess.brain_extraction: head, and "
+        "check overlay_brain.png"
+    )
+
+
 def foreground_brain_mask(image: np.ndarray) -> np.ndarray:
     """Brain mask of an already skull-stripped volume: its foreground.
 

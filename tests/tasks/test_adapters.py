@@ -10,9 +10,11 @@ import pandas as pd
 import pytest
 
 from flows.patient import run_stages_direct
+from storage.patient_outputs import join_notes, split_notes
 from storage.phantom_io import write_phantom_patient
 from storage.store import ArtifactStore
 from tasks import stages
+from tasks.preprocess import preprocess_notes
 from tasks.spec import StageOutput
 from tumor3d.config import PipelineConfig, SimplifyConfig
 from tumor3d.mesh import Mesh
@@ -109,6 +111,58 @@ def test_measure_stage_counts_the_tumour_tip_beyond_the_abnormal_slices(tumour_r
     assert got["volume_eq7_ml"] == pytest.approx(got["volume_eq7_mm3"] / 1000.0)
     tip_mm3 = slab * dy * dx * int(seg.loc[seg["slice_index"] == tip, "tumor_pixels"].iloc[0])
     assert tip_mm3 > 0  # so the tip really matters to the assertion above
+
+
+def test_preprocess_counts_the_slices_with_brain_and_with_tissue(tumour_run):
+    run, store = tumour_run
+    outs = run.outputs
+    values = outs["preprocess"].values
+    brain, _ = store.get_volume(outs["preprocess"].artifacts["brain_mask"])
+    image, _ = store.get_volume(outs["ingest-scan"].artifacts["scan"])
+    flat = image.reshape(len(image), -1)
+    # independent expectations: the stored mask's slices, the scan's non-constant slices
+    assert values["brain_slices"] == int(brain.any(axis=(1, 2)).sum())
+    assert values["tissue_slices"] == int((flat.max(axis=1) > flat.min(axis=1)).sum())
+    assert 0 < values["brain_slices"] <= values["tissue_slices"] <= len(image)
+    assert preprocess_notes(values) == []  # the phantom's whole head: no note
+
+
+def test_preprocess_tissue_slices_leave_out_constant_background_slices(tmp_path):
+    import nibabel as nib
+
+    from storage.readers import read_scan
+    from tumor3d.config import PreprocessConfig
+
+    # a skull-stripped volume: its slices beyond the head are one constant background
+    patient = make_phantom_patient(3, patient_id="padded3")
+    data = patient.scan.image.transpose(2, 1, 0)
+    pad = np.full(data.shape[:2] + (3,), float(data.min()), dtype=data.dtype)
+    padded = np.concatenate([pad, data, pad], axis=2)
+    nib.save(nib.Nifti1Image(padded, patient.scan.affine), str(tmp_path / "padded.nii.gz"))
+    store = ArtifactStore(tmp_path / "store")
+    ref = store.put_scan(read_scan(tmp_path / "padded.nii.gz", modality="t2"))
+    values = stages.STAGES["preprocess"].task.fn(
+        scan=ref, config=PreprocessConfig(), store_root=str(store.root)
+    ).values
+    assert values["tissue_slices"] == data.shape[2]  # the six padded slices left out
+    assert values["tissue_slices"] < padded.shape[2]
+
+
+def test_preprocess_notes_say_when_the_brain_mask_lost_most_slices():
+    lost = {"brain_volume_ml": 480.0, "brain_slices": 3, "tissue_slices": 26,
+            "brain_extraction": "skull_strip"}  # fmt: skip
+    (note,) = preprocess_notes(lost)
+    assert note.startswith("brain mask on 3 of the 26 slices that hold tissue")
+    assert "overlay_brain.png" in note
+    assert split_notes(join_notes([note])) == [note]
+    # half the slices or more: no note; a mask the user gave: theirs, no note
+    assert preprocess_notes({**lost, "brain_slices": 13}) == []
+    assert preprocess_notes({**lost, "brain_slices": 12}) != []
+    assert preprocess_notes({**lost, "brain_extraction": "given"}) == []
+    # values cached before the counts were stored: no note; the volume note stays
+    assert preprocess_notes({"brain_volume_ml": 480.0}) == []
+    (big,) = preprocess_notes({"brain_volume_ml": 3257.0, "brain_extraction": "given"})
+    assert big.startswith("brain mask of 3257 mL")
 
 
 def test_stage_outputs_are_sealed_and_detect_edits(tumour_run):
