@@ -67,7 +67,7 @@ def preprocess_notes(values: Mapping[str, Any]) -> list[str]:
     notes = [brain_volume_note(values.get("brain_volume_ml", 0.0))]
     if values.get("brain_extraction") != "given":
         slices = (values.get("brain_slices", 0), values.get("tissue_slices", 0))
-        notes.append(brain_coverage_note(*slices))
+        notes.append(brain_coverage_note(*slices, values.get("brain_extraction", "")))
     return [n for n in notes if n]
 
 

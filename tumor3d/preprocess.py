@@ -433,7 +433,10 @@ def remove_skull(
       scalp segmented as tumour). Brain cross-sections shrink from the
       widest slice outwards, so, walking outwards, a slice whose mask lies
       mostly outside its inner neighbour's is past the brain: it and the
-      slices beyond are cleared (:func:`_keep_nested_slices`). This loses
+      slices beyond are cleared (:func:`_keep_nested_slices`; when that walk
+      keeps fewer slices than it clears, it started on a face or neck slice
+      wider than the brain and is walked again from the widest slice it
+      cleared). This loses
       the brain's extreme end slices where the scalp outsizes them. No
       per-slice rule can tell a scalp ring around the brain from a brain rim
       around a tumour (plain Otsu on T2): they are the same topology.
@@ -556,6 +559,9 @@ def _keep_nested_slices(mask: np.ndarray) -> np.ndarray:
     cleared slice, and the walk that keeps more slices is taken. A scalp
     disc or a face slice at the end of a head is a slice or two, never most
     of the stack, so the walk from the brain's widest slice keeps its result.
+    A scan holding more face and neck slices than brain slices is beyond this
+    rule (the run's notes then say the mask lies on few slices only if it is
+    under half of them: :func:`brain_coverage_note`).
     """
     areas = mask.sum(axis=(1, 2))
     if not areas.any():
@@ -637,8 +643,9 @@ def brain_volume_note(brain_volume_ml: float) -> str | None:
 
 #: A brain mask on fewer than this share of the slices that hold tissue has lost most
 #: of the brain: the brain spans most of a head scan's slices (the phantoms' whole
-#: heads: 63-70 %; the raw clinical heads of ``../shared/data``: 85-88 %; skull-stripped
-#: volumes: 100 %), while a skull removal misled by a face or neck slice kept 3 of 26.
+#: heads: 63-73 %, 59 % with ``brain_extraction: head``; the raw clinical heads of
+#: ``../shared/data``: 65-100 %; skull-stripped volumes: 100 %), while a skull removal
+#: misled by a face or neck slice kept 3 of 26.
 MIN_BRAIN_SLICE_SHARE = 0.5
 
 
@@ -657,12 +664,16 @@ def tissue_slice_count(original_u8: np.ndarray) -> int:
     return int(np.count_nonzero(flat.max(axis=1) > flat.min(axis=1)))
 
 
-def brain_coverage_note(brain_slices: int, tissue_slices: int) -> str | None:
+def brain_coverage_note(
+    brain_slices: int, tissue_slices: int, brain_extraction: str = ""
+) -> str | None:
     """A warning for a brain mask on too few of the slices that hold tissue, else None.
 
     Below :data:`MIN_BRAIN_SLICE_SHARE`, the skull removal has most likely lost
     the brain (a face or neck slice taken for the brain's widest, or the scalp
     joined to the brain on a slice), and what it kept may be face or neck.
+    ``brain_extraction`` (the mode used) keeps the advice from naming the mode
+    that failed.
 
     >>> brain_coverage_note(20, 30) is None
     True
@@ -672,11 +683,13 @@ def brain_coverage_note(brain_slices: int, tissue_slices: int) -> str | None:
     b, t = int(brain_slices), int(tissue_slices)
     if t <= 0 or b >= MIN_BRAIN_SLICE_SHARE * t:
         return None
+    advice = "give the brain mask (--brain-mask)"
+    if brain_extraction != "head":
+        advice += " or set preprocess.brain_extraction: head"
     return (
         f"brain mask on {b} of the {t} slices that hold tissue: the skull removal has likely "
         "lost most of the brain (or kept face or neck), so the tumour volume is not reliable: "
-        "give the brain mask (--brain-mask) or set preprocess.brain_extraction: head, and "
-        "check overlay_brain.png"
+        f"{advice}, and check overlay_brain.png"
     )
 
 

@@ -69,8 +69,8 @@ def test_nested_slices_keeps_the_brain_when_a_face_slice_is_the_widest():
     c = (31.5, 31.5)
     # a raw head scanned from below the skull base: slices 0-1 cut the face and
     # neck, wider (r 26, 25) than any brain slice (widest r 22 on slice 7); slice 2
-    # is a thin arc of scalp, outside both its neighbours, so the walk from slice 0
-    # stops there and would clear the whole brain
+    # is a thin arc of scalp, and the brain's first slice (r 10) lies outside that
+    # arc, so the walk from slice 0 stops at slice 3 and would clear the whole brain
     arc = _disk(shape, c, 26) & ~_disk(shape, c, 23) & (np.indices(shape)[0] < 20)
     brain_radii = [10, 14, 18, 20, 22, 21, 18, 15, 11, 6]
     mask = np.stack(

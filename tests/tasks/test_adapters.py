@@ -133,7 +133,7 @@ def test_preprocess_tissue_slices_leave_out_constant_background_slices(tmp_path)
     from storage.readers import read_scan
     from tumor3d.config import PreprocessConfig
 
-    # a skull-stripped volume: its slices beyond the head are one constant background
+    # slices beyond the head of one constant gray, as a skull-stripped volume's background
     patient = make_phantom_patient(3, patient_id="padded3")
     data = patient.scan.image.transpose(2, 1, 0)
     pad = np.full(data.shape[:2] + (3,), float(data.min()), dtype=data.dtype)
@@ -141,9 +141,11 @@ def test_preprocess_tissue_slices_leave_out_constant_background_slices(tmp_path)
     nib.save(nib.Nifti1Image(padded, patient.scan.affine), str(tmp_path / "padded.nii.gz"))
     store = ArtifactStore(tmp_path / "store")
     ref = store.put_scan(read_scan(tmp_path / "padded.nii.gz", modality="t2"))
-    values = stages.STAGES["preprocess"].task.fn(
-        scan=ref, config=PreprocessConfig(), store_root=str(store.root)
-    ).values
+    values = (
+        stages.STAGES["preprocess"]
+        .task.fn(scan=ref, config=PreprocessConfig(), store_root=str(store.root))
+        .values
+    )
     assert values["tissue_slices"] == data.shape[2]  # the six padded slices left out
     assert values["tissue_slices"] < padded.shape[2]
 
@@ -159,6 +161,10 @@ def test_preprocess_notes_say_when_the_brain_mask_lost_most_slices():
     assert preprocess_notes({**lost, "brain_slices": 13}) == []
     assert preprocess_notes({**lost, "brain_slices": 12}) != []
     assert preprocess_notes({**lost, "brain_extraction": "given"}) == []
+    # the advice does not name the extraction that failed
+    assert "brain_extraction: head" in note
+    (head,) = preprocess_notes({**lost, "brain_extraction": "head"})
+    assert "brain_extraction: head" not in head and "--brain-mask" in head
     # values cached before the counts were stored: no note; the volume note stays
     assert preprocess_notes({"brain_volume_ml": 480.0}) == []
     (big,) = preprocess_notes({"brain_volume_ml": 3257.0, "brain_extraction": "given"})
