@@ -127,16 +127,18 @@ def test_preprocess_counts_the_slices_with_brain_and_with_tissue(tumour_run):
     assert preprocess_notes(values) == []  # the phantom's whole head: no note
 
 
-def test_preprocess_tissue_slices_leave_out_constant_background_slices(tmp_path):
+@pytest.mark.parametrize("below_min", [0.0, 250.0])
+def test_preprocess_tissue_slices_leave_out_constant_background_slices(tmp_path, below_min):
     import nibabel as nib
 
     from storage.readers import read_scan
     from tumor3d.config import PreprocessConfig
 
-    # slices beyond the head of one constant gray, as a skull-stripped volume's background
+    # slices beyond the head of one constant gray, as a skull-stripped volume's background:
+    # the image's minimum, or below it (a z-scored volume's negative background)
     patient = make_phantom_patient(3, patient_id="padded3")
     data = patient.scan.image.transpose(2, 1, 0)
-    pad = np.full(data.shape[:2] + (3,), float(data.min()), dtype=data.dtype)
+    pad = np.full(data.shape[:2] + (3,), float(data.min()) - below_min, dtype=data.dtype)
     padded = np.concatenate([pad, data, pad], axis=2)
     nib.save(nib.Nifti1Image(padded, patient.scan.affine), str(tmp_path / "padded.nii.gz"))
     store = ArtifactStore(tmp_path / "store")
