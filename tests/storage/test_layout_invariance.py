@@ -25,6 +25,7 @@ from tumor3d.detect import detect_abnormal_slices
 from tumor3d.lesion import left_right_axis
 from tumor3d.phantom import make_phantom_patient
 from tumor3d.preprocess import preprocess_volume
+from tumor3d.scan import zyx_index_to_ras
 from tumor3d.segment import segment_tumor
 
 
@@ -48,8 +49,7 @@ def _tumour_world_cmm(path, modality: str) -> set[tuple[int, int, int]]:
         pre.enhanced, pre.brain_mask, det, modality=modality, spacing_mm=spacing, lr_axis=lr,
         **cfg.segment.model_dump(),
     )  # fmt: skip
-    ijk = np.argwhere(seg.tumor_mask)[:, ::-1].astype(np.float64)  # (z, y, x) -> (x, y, z)
-    ras = ijk @ scan.affine[:3, :3].T + scan.affine[:3, 3]
+    ras = zyx_index_to_ras(np.argwhere(seg.tumor_mask), scan.affine)
     return set(map(tuple, np.rint(ras * 100.0).astype(np.int64)))
 
 
@@ -105,9 +105,8 @@ def _with_bilateral_pair(image_zyx, affine, gray: float) -> np.ndarray:
     mm), deep in the white matter, and are each other's left-right mirror image but
     not their own front-back one.
     """
-    z, y, x = np.indices(image_zyx.shape)
-    ijk1 = np.stack([x, y, z, np.ones_like(x)], axis=-1).astype(np.float64)
-    ras = ijk1 @ np.asarray(affine, dtype=np.float64).T
+    zyx = np.indices(image_zyx.shape).reshape(3, -1).T
+    ras = zyx_index_to_ras(zyx, affine).reshape(*image_zyx.shape, 3)
     out = image_zyx.copy()
     for r_mm in (-30.0, 30.0):
         d2 = (ras[..., 0] - r_mm) ** 2 + (ras[..., 1] + 25.0) ** 2 + (ras[..., 2] - 5.0) ** 2
