@@ -83,13 +83,6 @@ def _slabs_5mm(vol: np.ndarray) -> np.ndarray:
     return np.mean([vol[idx + j].astype(np.float64) for j in range(rs.STEP)], axis=0)
 
 
-def _slabs_every(vol: np.ndarray, step: int) -> np.ndarray:
-    """Slab ``i`` = mean of thin slices ``step i + 2`` and ``step i + 3``: 2 mm every ``step``."""
-    n = (vol.shape[0] - 4) // step + 1
-    idx = 2 + step * np.arange(n)
-    return 0.5 * (vol[idx].astype(np.float64) + vol[idx + 1].astype(np.float64))
-
-
 COARSE_STEP = 7  # thin slices (mm at 1 mm) between the slabs of the "7 mm step" column
 
 
@@ -155,7 +148,7 @@ def main(argv=None) -> int:
             if name == "5 mm slabs":
                 thick = _slabs_5mm(img)
             elif name == "7 mm step":
-                thick = _slabs_every(img, COARSE_STEP)
+                thick = rs.emulate_thick(img, 2, COARSE_STEP)
                 sp = (COARSE_STEP * scan.slice_step_mm, *spacing[1:])
             elif name == "tumour slabs only":
                 thick = rs.emulate_thick(img[cut], 2)
@@ -180,7 +173,7 @@ def main(argv=None) -> int:
             if name == "5 mm slabs":
                 ref_v = _slabs_5mm(ref.astype(np.float64)) >= 0.5
             elif name == "7 mm step":
-                ref_v = _slabs_every(ref.astype(np.float64), COARSE_STEP) >= 0.5
+                ref_v = rs.emulate_thick(ref.astype(np.float64), 2, COARSE_STEP) >= 0.5
             elif name == "tumour slabs only":
                 ref_v = rs.emulate_thick(ref[cut].astype(np.float64), 2) >= 0.5
             if name in YAWS:

@@ -150,10 +150,10 @@ def soft_dice(pred: np.ndarray, ref: np.ndarray) -> float:
     return float(2.0 * (p * ref).sum() / denom) if denom > 0 else 1.0
 
 
-def emulate_thick(vol: np.ndarray, offset: int) -> np.ndarray:
-    """Slab ``i`` = mean of thin slices ``5 i + offset`` and ``5 i + offset + 1``."""
-    n = (vol.shape[0] - offset - 2) // STEP + 1
-    idx = offset + STEP * np.arange(n)
+def emulate_thick(vol: np.ndarray, offset: int, step: int = STEP) -> np.ndarray:
+    """Slab ``i`` = mean of thin slices ``step i + offset`` and ``step i + offset + 1``."""
+    n = (vol.shape[0] - offset - 2) // step + 1
+    idx = offset + step * np.arange(n)
     return 0.5 * (vol[idx].astype(np.float64) + vol[idx + 1].astype(np.float64))
 
 
