@@ -62,7 +62,9 @@ def preprocess_notes(values: Mapping[str, Any]) -> list[str]:
     A mask larger than any skull holds (:func:`tumor3d.preprocess.brain_volume_note`),
     or found on too few of the slices that hold tissue
     (:func:`tumor3d.preprocess.brain_coverage_note`; not for a given mask, which is
-    the user's, and not for values cached before the slice counts were stored).
+    the user's). Values without the slice counts give no coverage note; the stage
+    always stores them, and its code enters its cache key, so none reach here from
+    an older cache.
     """
     notes = [brain_volume_note(values.get("brain_volume_ml", 0.0))]
     if values.get("brain_extraction") != "given":
