@@ -249,21 +249,27 @@ def _preflight(
     """Check the destination, read the input and open the store before starting Prefect.
 
     Bad input then fails in a second, an output folder that is or holds the
-    input (or the brain mask) is refused before any work, a given brain mask
+    input (or the brain mask), holds files other than a tumor3d result, or
+    (for a patient id derived from the file name) holds another input's
+    results is refused before any work, a given brain mask
     is checked against the image (grid, values, overlap), and a store that
     is a file or cannot be created is named before a temporary server is
     started for nothing.
     """
     from storage.brain_mask import read_given_brain_mask
-    from storage.publish import check_output_not_input
-    from storage.readers import derive_patient_id, read_scan
+    from storage.inputs import input_digest
+    from storage.publish import check_destination
+    from storage.readers import derive_patient_id, read_scan, suggest_patient_id
     from tumor3d.scan import validate_patient_id
 
     _check_out_dir(out)
     if input_path.exists():
         pid = validate_patient_id(patient_id) if patient_id else derive_patient_id(input_path)
         given = [input_path] + ([] if brain_mask is None else [brain_mask])
-        check_output_not_input(out / pid, given)
+        check_destination(
+            out / pid, given, derived_from=None if patient_id else input_digest(input_path),
+            suggestion=suggest_patient_id(input_path),
+        )  # fmt: skip
     scan = read_scan(input_path, modality=modality, patient_id=patient_id, **read_kw)
     if brain_mask is not None:
         limit = read_kw.get("max_voxels", MAX_VOXELS_DEFAULT)

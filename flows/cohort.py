@@ -54,7 +54,7 @@ from storage.cohort_report import (
 )
 from storage.manifest import ManifestRow, read_manifest
 from storage.objectstore import ObjectStore, is_url, open_store
-from storage.publish import check_output_not_input
+from storage.publish import check_destination
 from storage.remote_publish import RemoteFolder, publish_files, published_names
 from storage.store import ArtifactStore
 from tasks import stages
@@ -302,7 +302,7 @@ def _validate_rows(rows: list[dict[str, Any]], out_dir: Path | None) -> None:
         # are local files, so an object-store output (out_dir None) cannot hold one
         if out_dir is not None:
             given = [row["image"]] + ([row["brain_mask"]] if row.get("brain_mask") else [])
-            check_output_not_input(out_dir / pid, given)
+            check_destination(out_dir / pid, given)
 
 
 def run_cohort(

@@ -47,13 +47,14 @@ from storage.patient_outputs import (
 from storage.provenance import build_provenance, versions
 from storage.publish import (
     PUBLISH_MANIFEST,
+    check_destination,
     check_output_not_input,
     clean_stale_staging,
     published_is_current,
     staged_folder,
     write_publish_manifest,
 )
-from storage.readers import derive_patient_id, read_scan
+from storage.readers import derive_patient_id, read_scan, suggest_patient_id
 from storage.remote_publish import publish_folder
 from storage.slice_table import slice_table
 from storage.store import ArtifactRef, ArtifactStore, canonical_dumps, source_grid_from_metadata
@@ -156,7 +157,9 @@ def prepare_source(
     """Validate the user's input and identify it by content.
 
     With ``out_dir``, also refuse (before any work) an output folder
-    ``<out_dir>/<patient_id>`` that is or contains the input.
+    ``<out_dir>/<patient_id>`` that is or contains the input, that holds
+    files other than a tumor3d result, or (for an id derived from the file
+    name) the results of another input (:func:`storage.publish.check_destination`).
 
     Raises
     ------
@@ -170,12 +173,16 @@ def prepare_source(
     if modality not in MODALITIES:
         raise InputError(f"unknown modality {modality!r}: expected one of {', '.join(MODALITIES)}")
     pid = validate_patient_id(patient_id) if patient_id is not None else derive_patient_id(path)
+    digest = input_digest(path)
     if out_dir is not None and not is_url(out_dir):  # an object store holds no local input
-        check_output_not_input(Path(out_dir) / pid, [path])
+        check_destination(
+            Path(out_dir) / pid, [path], derived_from=None if patient_id is not None else digest,
+            suggestion=suggest_patient_id(path),
+        )  # fmt: skip
     return InputSource(
         path=str(path.resolve()),
         name=path.name,
-        digest=input_digest(path),
+        digest=digest,
         modality=modality,
         patient_id=pid,
         series_uid=series_uid,

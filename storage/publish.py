@@ -7,10 +7,14 @@ if any, is first renamed aside to ``.<name>.old-<pid>-<random>`` and removed
 afterwards; restored if the swap fails). A failed run leaves nothing under
 the final name.
 
-Two safety rules:
+Three safety rules:
 
 * :func:`check_output_not_input` -- a folder that is, or contains, an input
   is never removed or replaced (the caller checks before any work);
+* :func:`check_replaceable` -- only a tumor3d result folder (or an empty
+  one) is ever replaced: a folder of the user's own files that happens to
+  have the patient's name is refused (the caller checks before any work,
+  and :func:`staged_folder` checks again before the swap);
 * :func:`clean_stale_staging` -- staging and trash folders left by a killed
   run (its process is gone) are removed by the next publish of that name;
   those of a live concurrent run are left alone.
@@ -40,7 +44,11 @@ from tumor3d.errors import InputError
 
 __all__ = [
     "PUBLISH_MANIFEST",
+    "RESULT_MARKERS",
+    "check_destination",
     "check_output_not_input",
+    "check_replaceable",
+    "check_same_input",
     "clean_stale_staging",
     "published_is_current",
     "staged_folder",
@@ -51,6 +59,10 @@ __all__ = [
 PUBLISH_MANIFEST = ".tumor3d-publish-key.json"
 
 _MANIFEST_FORMAT = 1
+
+#: Files that mark a folder as a tumor3d result (one published before the publish
+#: manifest existed still holds ``provenance.json``): only such a folder is replaced.
+RESULT_MARKERS = (PUBLISH_MANIFEST, "provenance.json")
 
 _LEFTOVER = re.compile(r"^\.(?P<name>.+)\.(?:partial|old)-(?P<pid>\d+)-[0-9a-f]{8}$")
 
@@ -76,6 +88,103 @@ def check_output_not_input(final: str | Path, inputs: Iterable[str | Path]) -> N
                 "--out or patient id",
                 path=str(src),
             )
+
+
+def check_replaceable(final: str | Path) -> None:
+    """Refuse to publish into ``final`` unless it is absent, empty or a tumor3d result.
+
+    Publishing replaces ``final`` as a whole. A folder that holds neither
+    marker of :data:`RESULT_MARKERS` is someone's own files under the
+    patient's name (``--out ~/project --patient-id data``), which would be
+    deleted; a file there would be moved aside.
+
+    Raises
+    ------
+    InputError
+        Naming the folder and what to do.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> out = Path(tempfile.mkdtemp())
+    >>> check_replaceable(out / "p1")  # absent: fine
+    >>> (out / "p1").mkdir(); _ = (out / "p1" / "notes.txt").write_text("mine")
+    >>> check_replaceable(out / "p1")
+    Traceback (most recent call last):
+    ...
+    tumor3d.errors.InputError: ...p1: this folder exists and is not a tumor3d result ...
+    """
+    target = Path(final).expanduser()
+    if not (target.exists() or target.is_symlink()):
+        return
+    if not target.is_dir() or target.is_symlink():
+        raise InputError(
+            "this output path exists and is not a folder; publishing would replace it: "
+            "choose another --out or patient id",
+            path=str(target),
+        )
+    if any((target / m).is_file() for m in RESULT_MARKERS) or not any(target.iterdir()):
+        return
+    raise InputError(
+        f"this folder exists and is not a tumor3d result (none of {', '.join(RESULT_MARKERS)} "
+        "in it); publishing replaces the folder as a whole and would delete its files: choose "
+        "another --out or patient id, or remove the folder yourself",
+        path=str(target),
+    )
+
+
+def check_same_input(final: str | Path, digest: str, *, suggestion: str | None = None) -> None:
+    """Refuse to publish into ``final`` when it holds the results of another input.
+
+    For a patient id derived from the file name (no ``--patient-id``): two
+    inputs of the same name (``pat3/flair.nii.gz``, ``pat4/flair.nii.gz``)
+    get the same id, and the second would silently replace the first. The
+    input digest recorded in ``final/provenance.json`` (``input.digest_sha256``,
+    :func:`storage.inputs.input_digest`) must be ``digest``; a folder without
+    a readable record is left to :func:`check_replaceable`.
+
+    Raises
+    ------
+    InputError
+        Naming the folder, the other input and, with ``suggestion``, an id to give.
+    """
+    record = Path(final).expanduser() / "provenance.json"
+    try:
+        doc = json.loads(record.read_text(encoding="utf-8"))
+        old = doc["input"]
+        old_digest, old_name = str(old["digest_sha256"]), str(old.get("name", "?"))
+    except (OSError, ValueError, KeyError, TypeError):
+        return
+    if old_digest == digest:
+        return
+    hint = f" (e.g. --patient-id {suggestion})" if suggestion else ""
+    raise InputError(
+        f"this folder holds the results of another input ({old_name}, SHA-256 "
+        f"{old_digest[:12]}...) under the same patient id, which was derived from the file "
+        f"name: give --patient-id{hint} to keep both, or --patient-id "
+        f"{Path(final).name} to replace it",
+        path=str(Path(final).expanduser()),
+    )
+
+
+def check_destination(
+    final: str | Path,
+    inputs: Iterable[str | Path],
+    *,
+    derived_from: str | None = None,
+    suggestion: str | None = None,
+) -> None:
+    """The destination rules of a patient's folder ``final``, checked before any work.
+
+    :func:`check_output_not_input` (never over an input), :func:`check_replaceable`
+    (only a tumor3d result or an empty folder is replaced) and, with
+    ``derived_from`` (the input's digest, when the patient id was derived from
+    its file name), :func:`check_same_input`.
+    """
+    check_output_not_input(final, inputs)
+    check_replaceable(final)
+    if derived_from is not None:
+        check_same_input(final, derived_from, suggestion=suggestion)
 
 
 def _pid_alive(pid: int) -> bool:
@@ -163,7 +272,9 @@ def _swap_into_place(staging: Path, final: Path, *, attempts: int = 20) -> None:
 def staged_folder(out_dir: str | Path, name: str) -> Iterator[Path]:
     """Yield an empty staging folder; on normal exit it replaces ``<out_dir>/<name>``.
 
-    Leftovers of killed runs for ``name`` are cleaned first. On an exception
+    ``<out_dir>/<name>`` must be absent, empty or a tumor3d result
+    (:func:`check_replaceable`). Leftovers of killed runs for ``name`` are
+    cleaned first. On an exception
     the staging folder is removed and ``<out_dir>/<name>`` is untouched.
 
     Examples
@@ -179,6 +290,7 @@ def staged_folder(out_dir: str | Path, name: str) -> Iterator[Path]:
     out.mkdir(parents=True, exist_ok=True)
     clean_stale_staging(out, name)
     final = out / name
+    check_replaceable(final)
     staging = out / f".{name}.partial-{_tag()}"
     staging.mkdir()
     try:

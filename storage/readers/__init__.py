@@ -89,6 +89,7 @@ from storage.readers.common import (
     check_max_voxels,
     choose_slice_axis,
     derive_patient_id,
+    suggest_patient_id,
 )
 from storage.readers.dicom import DICOM_FILE_SUFFIXES, _NoDicomImagesError, read_dicom_series
 from storage.readers.itk import ITK_SUFFIXES, read_itk_scan
@@ -116,6 +117,7 @@ __all__ = [
     "read_itk_scan",
     "read_nifti_scan",
     "read_scan",
+    "suggest_patient_id",
 ]
 
 

@@ -40,6 +40,7 @@ __all__ = [
     "choose_slice_axis",
     "derive_patient_id",
     "scan_from_volume",
+    "suggest_patient_id",
 ]
 
 NIFTI_SUFFIXES = (".nii.gz", ".nii")
@@ -93,6 +94,23 @@ def derive_patient_id(path: str | os.PathLike[str]) -> str:
             "pass patient_id explicitly",
             os.fspath(path),
         ) from None
+
+
+def suggest_patient_id(path: str | os.PathLike[str]) -> str | None:
+    """A patient id from the input's folder and file names, for an error's advice.
+
+    ``pat3/flair.nii.gz`` -> ``pat3_flair``; None when none can be made.
+
+    Examples
+    --------
+    >>> suggest_patient_id("/data/brats_pat0004/flair.nii.gz")
+    'brats_pat0004_flair'
+    """
+    p = Path(os.path.abspath(os.fspath(path)))
+    try:
+        return derive_patient_id(p.with_name(f"{p.parent.name}_{p.name}"))
+    except InputError:
+        return None
 
 
 def choose_slice_axis(affine: np.ndarray) -> int:

@@ -6,6 +6,8 @@ problem on stderr, exit code 2, nothing under the output folder.
 
 from __future__ import annotations
 
+import json
+
 import nibabel as nib
 import numpy as np
 import pytest
@@ -340,3 +342,39 @@ def test_brain_mask_inside_the_output_folder_is_refused(tmp_path):
 
 def test_brain_mask_option_is_in_the_help_of_run():
     assert "--brain-mask" in runner.invoke(app, ["run", "--help"]).output
+
+
+def test_run_refuses_to_replace_another_inputs_results_under_a_derived_id(tmp_path):
+    """pat3/flair.nii.gz then pat4/flair.nii.gz into one --out: both derive the id 'flair'."""
+    from storage.inputs import input_digest
+
+    rng = np.random.default_rng(2)
+    (tmp_path / "pat3").mkdir()
+    (tmp_path / "pat4").mkdir()
+    first = _nifti(tmp_path / "pat3" / "flair.nii.gz", rng.random((12, 12, 4)) + 1)
+    second = _nifti(tmp_path / "pat4" / "flair.nii.gz", rng.random((12, 12, 4)) + 1)
+    done = tmp_path / "out" / "flair"  # what the run of the first left
+    done.mkdir(parents=True)
+    record = json.dumps({"input": {"name": "flair.nii.gz", "digest_sha256": input_digest(first)}})
+    (done / "provenance.json").write_text(record)
+    result = runner.invoke(app, ["run", str(second), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2, result.output
+    assert f"error: {done}: this folder holds the results of another input" in result.output
+    assert "--patient-id pat4_flair" in result.output
+    assert len(result.output.strip().splitlines()) == 1 and "starting Prefect" not in result.output
+    assert (done / "provenance.json").read_text() == record
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["flair"]
+
+
+def test_run_refuses_to_replace_a_folder_of_the_users_own_files(tmp_path):
+    rng = np.random.default_rng(3)
+    image = _nifti(tmp_path / "scan.nii.gz", rng.random((12, 12, 4)) + 1)
+    own = tmp_path / "project" / "data"
+    own.mkdir(parents=True)
+    (own / "results.xlsx").write_bytes(b"mine")
+    result = runner.invoke(app, ["run", str(image), "--out", str(tmp_path / "project"),
+                                 "--patient-id", "data"])  # fmt: skip
+    assert result.exit_code == 2, result.output
+    assert f"error: {own}: this folder exists and is not a tumor3d result" in result.output
+    assert (own / "results.xlsx").read_bytes() == b"mine"
+    assert sorted(p.name for p in own.iterdir()) == ["results.xlsx"]

@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
 
 import pytest
 
-from storage.publish import check_output_not_input, clean_stale_staging, staged_folder
+from storage.publish import (
+    PUBLISH_MANIFEST,
+    check_destination,
+    check_output_not_input,
+    check_replaceable,
+    check_same_input,
+    clean_stale_staging,
+    staged_folder,
+)
 from tumor3d.errors import InputError
 
 
@@ -49,6 +58,7 @@ def test_killed_run_leftovers_are_cleaned_by_the_next_publish(tmp_path):
 def test_failure_while_staging_leaves_the_old_folder(tmp_path):
     (tmp_path / "p1").mkdir()
     (tmp_path / "p1" / "old.txt").write_text("old")
+    (tmp_path / "p1" / PUBLISH_MANIFEST).write_text("{}")  # a tumor3d result
     with pytest.raises(RuntimeError), staged_folder(tmp_path, "p1") as staging:
         (staging / "new.txt").write_text("new")
         raise RuntimeError("killed")
@@ -60,5 +70,77 @@ def test_republish_replaces_the_folder_as_a_whole(tmp_path):
     for content in ("one", "two"):
         with staged_folder(tmp_path, "p1") as staging:
             (staging / f"{content}.txt").write_text(content)
-    assert sorted(p.name for p in (tmp_path / "p1").iterdir()) == ["two.txt"]
+            (staging / "provenance.json").write_text("{}")  # what marks a tumor3d result
+    assert sorted(p.name for p in (tmp_path / "p1").iterdir()) == ["provenance.json", "two.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p1"]
+
+
+def _files(folder):
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*"))
+
+
+@pytest.mark.parametrize("marker", [None, PUBLISH_MANIFEST, "provenance.json"])
+def test_only_a_tumor3d_result_or_an_empty_folder_is_replaced(tmp_path, marker):
+    """A folder of the user's own files under the patient's name is never deleted."""
+    own = tmp_path / "data"
+    (own / "sub").mkdir(parents=True)
+    (own / "sub" / "notes.txt").write_text("mine")
+    if marker is not None:
+        (own / marker).write_text("{}")
+    before = _files(own)
+    if marker is None:
+        with pytest.raises(InputError, match="is not a tumor3d result") as err:
+            check_replaceable(own)
+        assert str(own) in str(err.value)
+        with pytest.raises(InputError, match="is not a tumor3d result"):
+            with staged_folder(tmp_path, "data") as staging:  # the mechanism refuses too
+                (staging / "tumor.ply").write_text("new")
+        assert _files(own) == before and (own / "sub" / "notes.txt").read_text() == "mine"
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]  # no staging left
+    else:
+        check_replaceable(own)
+        with staged_folder(tmp_path, "data") as staging:
+            (staging / "tumor.ply").write_text("new")
+        assert _files(own) == ["tumor.ply"]
+
+
+def test_an_absent_or_empty_folder_may_be_published_but_not_over_a_file(tmp_path):
+    check_replaceable(tmp_path / "absent")
+    (tmp_path / "empty").mkdir()
+    check_replaceable(tmp_path / "empty")
+    (tmp_path / "p1").write_text("a file named like the patient")
+    with pytest.raises(InputError, match="exists and is not a folder"):
+        check_replaceable(tmp_path / "p1")
+    with pytest.raises(InputError, match="exists and is not a folder"):
+        with staged_folder(tmp_path, "p1"):
+            pass
+    assert (tmp_path / "p1").read_text() == "a file named like the patient"
+
+
+def _result_of(folder, digest, name="flair.nii.gz"):
+    folder.mkdir(parents=True)
+    record = {"input": {"name": name, "digest_sha256": digest}}
+    (folder / "provenance.json").write_text(json.dumps(record))
+
+
+def test_a_derived_id_never_replaces_the_results_of_another_input(tmp_path):
+    """pat3/flair.nii.gz then pat4/flair.nii.gz into one --out both derive the id 'flair'."""
+    _result_of(tmp_path / "flair", "a" * 64)
+    check_same_input(tmp_path / "flair", "a" * 64)  # the same input again: a re-run
+    with pytest.raises(InputError, match="holds the results of another input") as err:
+        check_same_input(tmp_path / "flair", "b" * 64, suggestion="pat4_flair")
+    msg = str(err.value)
+    assert "flair.nii.gz, SHA-256 aaaaaaaaaaaa" in msg and "--patient-id pat4_flair" in msg
+    check_same_input(tmp_path / "absent", "b" * 64)  # nothing published yet
+    (tmp_path / "odd").mkdir()
+    (tmp_path / "odd" / "provenance.json").write_text("not json")
+    check_same_input(tmp_path / "odd", "b" * 64)  # no readable record: check_replaceable's job
+
+
+def test_check_destination_applies_the_input_rule_only_for_a_derived_id(tmp_path):
+    _result_of(tmp_path / "flair", "a" * 64)
+    check_destination(tmp_path / "flair", [tmp_path / "x.nii.gz"])  # an id the user gave
+    with pytest.raises(InputError, match="another input"):
+        check_destination(tmp_path / "flair", [tmp_path / "x.nii.gz"], derived_from="b" * 64)
+    with pytest.raises(InputError, match="would delete the input"):
+        check_destination(tmp_path / "flair", [tmp_path / "flair" / "x.nii.gz"])
