@@ -196,6 +196,8 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     if truth_mm3 is not None:
         table.add_row("truth (phantom)", f"{truth_mm3:,.1f}", f"{truth_mm3 / 1000.0:.3f}", "")
     console.print(table)
+    if m.get("measured"):
+        console.print(f"what is measured: {escape(str(m['measured']))}")
     console.print(
         "[dim]" + "; ".join(f"{VOLUME_LABELS[k]}: {d}" for k, d in VOLUME_METHODS.items()) + "[/]"
     )

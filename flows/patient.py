@@ -250,6 +250,7 @@ def run_stages(
         S["preprocess"], scan=scan, config=cfg.preprocess, store_root=root, brain_mask=brain_mask
     )
     enhanced, brain = pre.artifacts["enhanced"], pre.artifacts["brain_mask"]
+    exterior = pre.artifacts["head_exterior"]
     detected = run.run(
         S["detect-abnormal"], scan=scan, enhanced=enhanced, brain_mask=brain, config=cfg.detect,
         store_root=root,
@@ -258,7 +259,7 @@ def run_stages(
     det, lesion = detected.artifacts["detection"], detected.artifacts["lesion"]
     seg = run.run(
         S["segment-tumor"], scan=scan, enhanced=enhanced, brain_mask=brain, detection=det,
-        lesion=lesion, config=cfg.segment, store_root=root,
+        lesion=lesion, head_exterior=exterior, config=cfg.segment, store_root=root,
     )  # fmt: skip
     itp = run.run(
         S["interpolate-slices"], scan=scan, tumor_mask_slices=seg.artifacts["tumor_mask_slices"],
@@ -451,6 +452,8 @@ def _metrics_row(
     notes: list[str],
 ) -> dict[str, Any]:
     row: dict[str, Any] = {"patient_id": pid}
+    seg = outputs["segment-tumor"].values
+    row.update({k: seg[k] for k in ("modality", "segment_method", "measured")})
     row.update(outputs["measure-volume"].values)
     row["faces_mc"] = int(outputs["extract-surface"].values["faces"])
     row["faces_simplified"] = int(outputs["simplify-mesh"].values["faces"])

@@ -171,6 +171,7 @@ def patient_report_data(
     data: dict[str, Any] = {
         "patient_id": str(metrics["patient_id"]),
         "status": "ok" if found else "no tumour found",
+        "measured": str(metrics.get("measured") or ""),
         "volumes_mm3": vols,
         "notes": split_notes(metrics.get("notes")),
         "n_slices": int(metrics.get("n_slices", 0)),
@@ -183,15 +184,21 @@ def patient_report_data(
     meas: dict[str, str] = {}
     if found:
         for key, label in (
-            ("rano_longest_mm", "RANO longest in-plane diameter"),
-            ("rano_perpendicular_mm", "RANO perpendicular diameter"),
+            ("rano_longest_mm", "RANO-style longest in-plane diameter"),
+            ("rano_perpendicular_mm", "RANO-style perpendicular diameter"),
         ):
             if _num(metrics, key) is not None:
                 meas[label] = f"{_num(metrics, key):.1f} mm"
         if _num(metrics, "rano_product_mm2") is not None:
-            meas["RANO product"] = f"{_num(metrics, 'rano_product_mm2'):,.1f} mm²"
+            meas["RANO-style product"] = f"{_num(metrics, 'rano_product_mm2'):,.1f} mm²"
         if metrics.get("rano_slice_index") is not None:
-            meas["RANO slice (0-based)"] = str(int(metrics["rano_slice_index"]))
+            meas["RANO-style slice (0-based)"] = str(int(metrics["rano_slice_index"]))
+        if meas and str(metrics.get("modality") or "") in ("flair", "t2"):
+            # RANO's bidimensional product is defined on contrast-enhancing tumour (T1c)
+            meas["RANO-style diameters of"] = (
+                f"the {str(metrics['modality']).upper()} whole tumour, oedema included (RANO "
+                "measures contrast-enhancing tumour on T1c)"
+            )
         if _num(metrics, "max_diameter_3d_mm") is not None:
             meas["largest 3-D diameter of the surface"] = (
                 f"{_num(metrics, 'max_diameter_3d_mm'):.1f} mm"

@@ -13,6 +13,8 @@ A mapping with the keys (all but ``patient_id`` optional)::
 
     patient_id        str
     status            str, e.g. "ok" or "no tumour found"
+    measured          str, what the mask (every volume) holds, in words
+                      (:func:`tumor3d.segment.lesion_definition`)
     volumes_mm3       {"eq7": float, "voxel": float, "mesh": float,
                        "mesh_simplified": float}  (any subset; None = n/a)
     eq7_precision     {"ce": float, "ci95_low_mm3": float, "ci95_high_mm3": float}
@@ -251,6 +253,8 @@ def patient_report_html(data: Mapping[str, Any]) -> str:
         f"<h1>Tumour reconstruction: {_e(pid)}</h1>",
         f'<p>Status: <strong class="{_status_class(status)}">{_e(status)}</strong></p>',
     ]
+    if data.get("measured"):
+        parts.append(f"<p>What is measured: {_e(data['measured'])}</p>")
     notes = _notes(data)
     if notes:
         parts.append("<ul>" + "".join(f"<li>{_e(n)}</li>" for n in notes) + "</ul>")
@@ -394,6 +398,8 @@ def patient_report_markdown(data: Mapping[str, Any]) -> str:
         f"Status: **{md(data.get('status', 'ok'))}**",
         "",
     ]
+    if data.get("measured"):
+        lines += [f"What is measured: {md(data['measured'])}", ""]
     vols = _volumes(data)
     if vols:
         lines += ["| Estimator | mm³ | mL |", "|---|---:|---:|"]
@@ -459,6 +465,8 @@ def patient_summary_table(data: Mapping[str, Any]) -> list[dict[str, str]]:
     data = _check_mapping(data, "report data")
     rows = [{"quantity": "patient", "value": _patient_id(data), "unit": ""}]
     rows.append({"quantity": "status", "value": str(data.get("status", "ok")), "unit": ""})
+    if data.get("measured"):
+        rows.append({"quantity": "what is measured", "value": str(data["measured"]), "unit": ""})
     for _key, label, v in _volumes(data):
         rows.append({"quantity": f"volume, {label}", "value": _fmt(v), "unit": "mm³"})
         ml = None if v is None else v / 1000.0

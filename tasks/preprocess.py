@@ -40,11 +40,16 @@ def preprocess_task(
     spacing = scan_spacing_mm(scan)
     result = preprocess_volume(image, **config.model_dump(), spacing_mm=spacing, brain_mask=given)
     brain_voxels = int(np.count_nonzero(result.brain_mask))
+    # the air outside a raw head; all False when there is none (skull-stripped, given)
+    exterior = result.head_exterior
+    if exterior is None:
+        exterior = np.zeros(result.brain_mask.shape, dtype=bool)
     return StageOutput(
         stage="preprocess",
         artifacts={
             "enhanced": store.put_volume(result.enhanced, affine, dtype="uint8"),
             "brain_mask": store.put_volume(result.brain_mask, affine, kind="mask"),
+            "head_exterior": store.put_volume(exterior, affine, kind="mask"),
         },
         values={
             "brain_voxels": brain_voxels,
@@ -79,5 +84,5 @@ SPEC = StageSpec(
     entry=preprocess_volume,
     config_model=PreprocessConfig,
     inputs={"scan": "scan", "brain_mask": "mask"},
-    outputs={"enhanced": "image", "brain_mask": "mask"},
+    outputs={"enhanced": "image", "brain_mask": "mask", "head_exterior": "mask"},
 )

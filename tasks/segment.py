@@ -19,7 +19,7 @@ from tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
 from tumor3d.config import SegmentConfig
 from tumor3d.detect import SliceDetection
 from tumor3d.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
-from tumor3d.segment import segment_tumor
+from tumor3d.segment import lesion_definition, segment_tumor
 
 __all__ = ["SPEC", "lesion_from_artifact", "segment_task"]
 
@@ -59,6 +59,7 @@ def segment_task(
     brain_mask: ArtifactRef,
     detection: ArtifactRef,
     lesion: ArtifactRef,
+    head_exterior: ArtifactRef,
     config: SegmentConfig,
     store_root: str,
 ) -> StageOutput:
@@ -66,20 +67,24 @@ def segment_task(
     store = open_store(store_root)
     image, affine = store.get_volume(enhanced)
     brain, _ = store.get_volume(brain_mask)
+    exterior = store.get_volume(head_exterior)[0].astype(bool)
     det = SliceDetection.from_records(store.get_table(detection).to_dict("records"))
     meta = lesion.metadata["lesion"]
     needs_lesion = config.method in ("auto", "robust")
     if needs_lesion and meta.get("computed"):
         lesion_mask, _ = store.get_volume(lesion)
         det = dataclasses.replace(det, lesion=lesion_from_artifact(lesion_mask, meta))
+    modality = scan.metadata["modality"]
     result = segment_tumor(
         image,
         brain,
         det,
-        modality=scan.metadata["modality"],
+        modality=modality,
         spacing_mm=scan_spacing_mm(scan),
         lr_axis=left_right_axis(affine),
         lesion=meta["params"],
+        # the air outside a raw head (none stored for a skull-stripped one): scalp caveat
+        head_exterior=exterior if exterior.any() else None,
         **config.model_dump(),
     )
     return StageOutput(
@@ -93,6 +98,10 @@ def segment_task(
             "n_tumor_slices": int(np.count_nonzero(result.tumor_pixels)),
             # where the volume may be wrong, in words (the run's notes say them)
             "caveats": list(result.caveats),
+            # which method ran and what its mask (every volume) holds, in words
+            "modality": modality,
+            "segment_method": result.method,
+            "measured": lesion_definition(result.method, modality),
         },
     )
 
@@ -108,6 +117,7 @@ SPEC = StageSpec(
         "brain_mask": "mask",
         "detection": "table",
         "lesion": "mask",
+        "head_exterior": "mask",
     },
     outputs={"tumor_mask_slices": "mask", "segmentation": "table"},
 )

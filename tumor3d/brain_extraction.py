@@ -74,7 +74,7 @@ from skimage.filters import threshold_multiotsu
 
 from tumor3d.errors import InputError
 
-__all__ = ["extract_brain"]
+__all__ = ["SCALP_SKULL_MIN_MM", "extract_brain", "head_exterior", "soft_tissue_threshold"]
 
 #: Working grid (mm). Half the thinnest skull (about 4 mm at the temporal
 #: squama together with its dark periosteum/dura) and well below the
@@ -93,6 +93,7 @@ _EROSION_MM = 5.0
 #: 2-10 mm thick, so every brain voxel lies at least about 5 mm under the
 #: head surface.
 _SCALP_SKULL_MIN_MM = 5.0
+SCALP_SKULL_MIN_MM = _SCALP_SKULL_MIN_MM
 
 #: Outer shell of the head holding scalp fat and skull marrow (mm): scalp
 #: (<= 8 mm) plus skull (<= 10 mm) plus a margin; bright voxels are only
@@ -195,14 +196,71 @@ def _check_inputs(image_u8: object, spacing_mm: object) -> tuple[np.ndarray, np.
     return image, spacing
 
 
-def _extract_brain(image: np.ndarray, spacing: np.ndarray) -> np.ndarray:
-    empty = np.zeros(image.shape, dtype=bool)
-    hist = np.bincount(image.ravel(), minlength=256)
+def soft_tissue_threshold(image: np.ndarray) -> int | None:
+    """Step 1's gray level: soft tissue is ``image > t``; None with one gray level only.
+
+    ``t`` is the lower of the two 3-class Otsu thresholds of the 8-bit
+    volume, which separates air and bone (and CSF on T1) from soft tissue;
+    with only two gray levels, the brighter one is tissue.
+    """
+    hist = np.bincount(np.asarray(image, dtype=np.uint8).ravel(), minlength=256)
     levels = np.flatnonzero(hist)
     if levels.size < 2:
-        return empty
+        return None
+    return int(threshold_multiotsu(hist=hist, classes=3)[0]) if levels.size >= 3 else int(levels[0])
+
+
+def head_exterior(image: np.ndarray) -> np.ndarray:
+    """The air outside a raw head, slice by slice: dark and connected to the image border.
+
+    Dark is not soft tissue (:func:`soft_tissue_threshold`); of the dark
+    pixels of a ``(z, y, x)`` 8-bit slice, those 4-connected in-plane to the
+    slice's border are the air around the head (skull and CSF are dark too,
+    but the scalp encloses them). Every brain voxel lies at least
+    :data:`SCALP_SKULL_MIN_MM` inside it. Meaningless for a skull-stripped
+    volume, whose brain borders the masked background directly.
+
+    Parameters
+    ----------
+    image : (z, y, x) ndarray of uint8
+        The original 8-bit slices (``PreprocessResult.original_u8``).
+
+    Returns
+    -------
+    (z, y, x) ndarray of bool
+        All False when the volume holds one gray level only.
+
+    Examples
+    --------
+    >>> head = np.zeros((1, 9, 9), np.uint8)
+    >>> head[0, 1:8, 1:8] = 200  # scalp
+    >>> head[0, 2:7, 2:7] = 10   # dark skull (not connected to the border)
+    >>> head[0, 3:6, 3:6] = 120  # brain
+    >>> ext = head_exterior(head)
+    >>> int(ext.sum()), bool(ext[0, 4, 4]), bool(ext[0, 2, 2])
+    (32, False, False)
+    """
+    img = np.asarray(image)
+    t = soft_tissue_threshold(img)
+    out = np.zeros(img.shape, dtype=bool)
+    if t is None:
+        return out
+    for z in range(img.shape[0]):
+        labels, n = ndi.label(img[z] <= t)
+        if n == 0:
+            continue
+        edge = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+        touching = np.unique(edge[edge > 0])
+        out[z] = np.isin(labels, touching)
+    return out
+
+
+def _extract_brain(image: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    empty = np.zeros(image.shape, dtype=bool)
     # step 1: soft tissue. With only 2 gray levels, the brighter one is tissue.
-    t = threshold_multiotsu(hist=hist, classes=3)[0] if levels.size >= 3 else levels[0]
+    t = soft_tissue_threshold(image)
+    if t is None:
+        return empty
     tissue = image > t
 
     # step 2: working grid of blocks of about _GRID_MM

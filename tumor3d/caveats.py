@@ -40,6 +40,17 @@ looks as trustworthy as any other:
   midline; 0.00-0.12 on every real tumour of ``../shared/data``, none of
   which step 3f found.
 
+- **The tumour comes near the air outside the head** (a raw head, its
+  brain found by skull removal). Every brain voxel lies at least the
+  thinnest scalp plus skull (:data:`tumor3d.brain_extraction.
+  SCALP_SKULL_MIN_MM`, 5 mm) inside the head's surface, so tumour voxels
+  nearer the air are scalp that the brain mask kept and the lesion grew
+  into (scalp fat and marrow are bright on FLAIR and T1). Measured
+  (``reports/segmentation.md``): the raw TCGA FLAIR, whose mask keeps the
+  scalp on its top slices, has 1,131 tumour voxels within 5 mm of the air
+  on slices 14-15 and 19-21; every phantom's tumour lies 14-35 mm from it
+  and its brain at least 10.7 mm; the raw TCGA T2's lesion 10.8 mm.
+
 Slice numbers are 0-based array indices (``slice_index`` of the run's
 ``slices.parquet``).
 
@@ -49,7 +60,10 @@ The functions are pure: masks in, sentences out.
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage as ndi
 
+from tumor3d.brain_extraction import SCALP_SKULL_MIN_MM
+from tumor3d.errors import InputError
 from tumor3d.lesion import (
     LESION_DEFAULTS,
     SYMMETRY_TOLERANCE_MM,
@@ -59,7 +73,13 @@ from tumor3d.lesion import (
 )
 from tumor3d.validation import check_binary_mask
 
-__all__ = ["midline_caveat", "scan_end_caveat", "segmentation_caveats", "symmetric_caveat"]
+__all__ = [
+    "midline_caveat",
+    "scalp_caveat",
+    "scan_end_caveat",
+    "segmentation_caveats",
+    "symmetric_caveat",
+]
 
 
 def _mask3d(tumor_mask: np.ndarray) -> np.ndarray:
@@ -187,6 +207,67 @@ def symmetric_caveat(
     )
 
 
+def _slice_runs(slices: np.ndarray) -> str:
+    """Sorted slice indices as runs: ``[3, 4, 5, 9]`` -> ``"3-5, 9"``."""
+    zs = [int(z) for z in np.unique(slices)]
+    runs: list[list[int]] = []
+    for z in zs:
+        if runs and z == runs[-1][1] + 1:
+            runs[-1][1] = z
+        else:
+            runs.append([z, z])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
+
+
+def scalp_caveat(
+    tumor_mask: np.ndarray,
+    head_exterior: np.ndarray,
+    spacing_mm: tuple[float, float, float],
+) -> str | None:
+    """The caveat for tumour within the scalp and skull's thickness of the air, else None.
+
+    Parameters
+    ----------
+    tumor_mask : (z, y, x) array_like of bool
+        The segmentation.
+    head_exterior : (z, y, x) array_like of bool
+        The air outside the head (``PreprocessResult.head_exterior``).
+    spacing_mm : (3,) tuple of float
+        ``(slice step, row, column)`` in mm; the distance is in-plane.
+
+    Examples
+    --------
+    >>> air = np.zeros((2, 20, 20), bool); air[:, :, :2] = True
+    >>> m = np.zeros((2, 20, 20), bool); m[1, 8:12, 4:8] = True  # 2 mm from the air
+    >>> scalp_caveat(m, air, (5.0, 1.0, 1.0))[:60]
+    'tumour within 5 mm of the air outside the head on slice 1 (0'
+    >>> m[1, :, :] = False; m[1, 8:12, 10:14] = True  # 8 mm away
+    >>> scalp_caveat(m, air, (5.0, 1.0, 1.0)) is None
+    True
+    """
+    m = _mask3d(tumor_mask)
+    ext = check_binary_mask(head_exterior, "head_exterior", ndim=3)
+    if ext.shape != m.shape:
+        raise InputError(f"head_exterior {ext.shape} and tumor_mask {m.shape} differ in shape")
+    pixel_mm = (float(spacing_mm[1]), float(spacing_mm[2]))
+    near = np.zeros(m.shape, dtype=bool)
+    for z in np.flatnonzero(m.any(axis=(1, 2)) & ext.any(axis=(1, 2))):
+        dist = ndi.distance_transform_edt(~ext[z], sampling=pixel_mm)
+        near[z] = m[z] & (dist < SCALP_SKULL_MIN_MM)
+    if not near.any():
+        return None
+    zs = np.flatnonzero(near.any(axis=(1, 2)))
+    ml = np.count_nonzero(near) * float(np.prod(spacing_mm)) / 1000.0
+    plural = "s" if zs.size > 1 else ""
+    return (
+        f"tumour within {SCALP_SKULL_MIN_MM:g} mm of the air outside the head on slice{plural} "
+        f"{_slice_runs(zs)} (0-based; {ml:.2f} mL of it): the brain lies deeper than the "
+        "scalp and skull, so the brain mask holds scalp there and the tumour may include "
+        "scalp, its volume too high: check overlay_tumor.png and overlay_brain.png, and give "
+        "the brain mask (--brain-mask) or set preprocess.brain_extraction: head"
+    )
+
+
 def segmentation_caveats(
     tumor_mask: np.ndarray,
     *,
@@ -195,8 +276,13 @@ def segmentation_caveats(
     min_region_mm2: float = float(LESION_DEFAULTS["min_region_mm2"]),
     min_slices: int = int(LESION_DEFAULTS["min_slices"]),
     midline_lesion: bool = False,
+    head_exterior: np.ndarray | None = None,
 ) -> tuple[str, ...]:
-    """Every caveat of a segmentation, in a fixed order (ends, then midline).
+    """Every caveat of a segmentation, in a fixed order (ends, midline, scalp).
+
+    ``head_exterior`` (the air outside a raw head, ``PreprocessResult.
+    head_exterior``) adds :func:`scalp_caveat`; None skips it (a
+    skull-stripped volume, a given brain mask).
 
     ``plane`` is given when the symmetry rule shaped the mask (robust
     method); None skips the midline caveats. ``midline_lesion`` (the lesion
@@ -215,4 +301,7 @@ def segmentation_caveats(
             out.append(
                 midline_caveat(m, plane, sp, min_region_mm2=min_region_mm2, min_slices=min_slices)
             )
+    if head_exterior is not None:
+        sp = (1.0, 1.0, 1.0) if spacing_mm is None else tuple(float(v) for v in spacing_mm)
+        out.append(scalp_caveat(m, head_exterior, sp))
     return tuple(c for c in out if c)

@@ -20,6 +20,11 @@ lengths of the affine), so non-square pixels do not distort the anatomy.
 The intensity window is the 0.5-99.5 percentile range of the whole volume
 (one window for all slices, so slices can be compared).
 
+The patient directions at the tiles' edges (e.g. ``left R, right L, top A,
+bottom P`` for axial slices) are written on the mosaic's title line and
+returned in :attr:`MosaicLayout.edges`, so that the display convention
+is never guessed.
+
 The contour is the inner boundary of the mask *at tile resolution*: tile
 pixels inside the resampled mask with a 4-neighbour outside it, drawn in
 ``contour_rgb``. Slice position: the RAS coordinate of the slice centre
@@ -61,12 +66,16 @@ class MosaicLayout:
         Per slice, the signed position along the labelled axis in mm.
     axis_letter : str
         The letter of that axis (``R``, ``A`` or ``S``).
+    edges : str
+        The patient directions at a tile's left, right, top and bottom edges,
+        e.g. ``"RLAP"`` (axial, radiological: the patient's right on the left).
     """
 
     tiles: tuple[tuple[int, int, int, int], ...]
     labels: tuple[str, ...]
     positions_mm: tuple[float, ...]
     axis_letter: str
+    edges: str = ""
 
 
 def slice_positions_mm(affine: np.ndarray, shape_zyx: Sequence[int]) -> tuple[str, np.ndarray]:
@@ -143,7 +152,8 @@ def overlay_mosaic(
     columns : int, optional
         Tiles per mosaic row; default ``ceil(sqrt(z))``.
     title : str, optional
-        A line of text above the mosaic (e.g. the patient and mask name).
+        A line of text above the mosaic (e.g. the patient and mask name); the
+        patient directions at the tiles' edges follow it on that line.
     return_layout : bool
         Also return the :class:`MosaicLayout`.
 
@@ -212,10 +222,24 @@ def overlay_mosaic(
         img, m = img[:, :, ::-1], m[:, :, ::-1]
     if flip_y:
         img, m = img[:, ::-1, :], m[:, ::-1, :]
+    edges = _edge_letters(aff[:3, 0] * (-1.0 if flip_x else 1.0)) + _edge_letters(
+        aff[:3, 1] * (-1.0 if flip_y else 1.0)
+    )
     mosaic, layout = _compose(
-        img, m, aff, flags, tuple(int(c) for c in rgb), int(tile_px), int(columns), title
+        img, m, aff, flags, tuple(int(c) for c in rgb), int(tile_px), int(columns), title, edges
     )
     return (mosaic, layout) if return_layout else mosaic
+
+
+def _edge_letters(direction: np.ndarray) -> str:
+    """The patient directions at the low and high end of an image axis (RAS ``direction``).
+
+    >>> _edge_letters(np.array([-1.0, 0.0, 0.0]))  # the axis runs towards the left
+    'RL'
+    """
+    i = int(np.argmax(np.abs(direction)))
+    towards = "RAS"[i] if direction[i] > 0 else "LPI"[i]
+    return {"R": "L", "L": "R", "A": "P", "P": "A", "S": "I", "I": "S"}[towards] + towards
 
 
 def _window(img: np.ndarray) -> np.ndarray:
@@ -245,6 +269,7 @@ def _compose(
     tile_px: int,
     columns: int,
     title: str | None,
+    edges: str,
 ) -> tuple[np.ndarray, MosaicLayout]:
     from PIL import Image, ImageDraw
 
@@ -262,7 +287,9 @@ def _compose(
     src_r = np.minimum(((np.arange(th) + 0.5) / th * ny).astype(np.int64), ny - 1)
     header = max(12, int(round(_HEADER_FRACTION * tile_px)))
     rows = math.ceil(nz / columns)
-    title_h = header + _GAP_PX if title else 0
+    sides = f"left {edges[0]}, right {edges[1]}, top {edges[2]}, bottom {edges[3]}"
+    title = f"{title}   ({sides})" if title else sides
+    title_h = header + _GAP_PX
     cell_w, cell_h = tw + _GAP_PX, th + header + _GAP_PX
     big_w = columns * cell_w + _GAP_PX
     big_h = title_h + rows * cell_h + _GAP_PX
@@ -294,12 +321,12 @@ def _compose(
     for k, (r0, c0, _, _) in enumerate(tiles):
         ink = _ABNORMAL_RGB if flags[k] else _TEXT_RGB
         draw.text((c0, r0 - frame - 1), labels[k], fill=ink, font=font, anchor="lb")
-    if title:
-        draw.text((_GAP_PX, _GAP_PX + header // 2), title, fill=_TEXT_RGB, font=font, anchor="lm")
+    draw.text((_GAP_PX, _GAP_PX + header // 2), title, fill=_TEXT_RGB, font=font, anchor="lm")
     layout = MosaicLayout(
         tiles=tuple(tiles),
         labels=tuple(labels),
         positions_mm=tuple(float(p) for p in pos),
         axis_letter=letter,
+        edges=edges,
     )
     return np.asarray(pil, dtype=np.uint8).copy(), layout

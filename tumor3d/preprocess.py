@@ -34,7 +34,7 @@ from scipy import ndimage as ndi
 from skimage.filters import threshold_multiotsu, threshold_otsu
 from skimage.morphology import disk
 
-from tumor3d.brain_extraction import extract_brain
+from tumor3d.brain_extraction import extract_brain, head_exterior
 from tumor3d.errors import InputError
 
 __all__ = [
@@ -68,12 +68,19 @@ class PreprocessResult:
         How ``M_brain`` was found: ``"given"`` (``brain_mask``),
         ``"foreground"``, ``"skull_strip"`` or ``"head"`` (the
         ``brain_extraction`` used, ``auto`` resolved).
+    head_exterior : ndarray of bool or None
+        Where the brain was found inside a raw head (``"skull_strip"``,
+        ``"head"``): the air outside the head
+        (:func:`tumor3d.brain_extraction.head_exterior`), which no brain voxel
+        comes within the scalp and skull's thickness of. None for a
+        skull-stripped volume (``"foreground"``) and a given mask.
     """
 
     original_u8: np.ndarray
     enhanced: np.ndarray
     brain_mask: np.ndarray
     brain_extraction: str = ""
+    head_exterior: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- validation
@@ -966,6 +973,8 @@ def preprocess_volume(
         )
 
     enhanced = np.where(brain, enhanced, np.uint8(0))
+    exterior = head_exterior(original) if mode in ("skull_strip", "head") else None
     return PreprocessResult(
-        original_u8=original, enhanced=enhanced, brain_mask=brain, brain_extraction=mode
-    )
+        original_u8=original, enhanced=enhanced, brain_mask=brain, brain_extraction=mode,
+        head_exterior=exterior,
+    )  # fmt: skip

@@ -49,7 +49,9 @@ __all__ = [
     "SegmentationResult",
     "fuzzy_cmeans_histogram",
     "fcm_memberships",
+    "lesion_definition",
     "multiotsu_peer",
+    "resolve_method",
     "segment_tumor",
 ]
 
@@ -91,6 +93,10 @@ class SegmentationResult:
         (:func:`tumor3d.caveats.segmentation_caveats`): tumour on the scan's
         first or last slice; a tumour reaching the midline (robust method).
         Empty when there is nothing to say.
+    method : str
+        The method that ran (``"auto"`` resolved by :func:`resolve_method`):
+        ``"robust"``, ``"paper"`` or ``"multiotsu"``; what its mask holds in
+        words is :func:`lesion_definition`.
     """
 
     tumor_mask: np.ndarray
@@ -101,6 +107,7 @@ class SegmentationResult:
     fcm_iterations: np.ndarray | None = None
     fcm_converged: np.ndarray | None = None
     caveats: tuple[str, ...] = ()
+    method: str = ""
 
     def __post_init__(self) -> None:
         nz = int(np.asarray(self.tumor_pixels).size)
@@ -647,6 +654,63 @@ def _refine_boundary(
 
 SEGMENT_METHODS = ("auto", "robust", "paper", "multiotsu")
 
+#: What each method's mask holds, by modality (:func:`lesion_definition`).
+_WHOLE_TUMOUR = (
+    "whole tumour: the {seq}-hyperintense lesion with its enclosed necrotic core "
+    "(oedema and non-enhancing tumour included, as the BraTS whole-tumour label)"
+)
+_LESION_DEFINITIONS = {
+    ("robust", "flair"): _WHOLE_TUMOUR.format(seq="FLAIR"),
+    ("robust", "t2"): _WHOLE_TUMOUR.format(seq="T2"),
+    ("robust", "t1c"): (
+        "enhancing tumour: the contrast-enhancing lesion with its enclosed necrotic core "
+        "(no oedema)"
+    ),
+    ("paper", None): (
+        "the tumour cluster of the paper's per-slice wavelet + fuzzy c-means segmentation "
+        "(Arakeri & Reddy 2013, section 3) on {seq}"
+    ),
+    ("multiotsu", None): (
+        "the peer: the brightest of the multi-Otsu classes of the brain on {seq}, its "
+        "largest 3-D component"
+    ),
+}
+_SEQUENCE_NAMES = {"flair": "FLAIR", "t2": "T2", "t1c": "T1c"}
+
+
+def lesion_definition(method: str, modality: str) -> str:
+    """What a segmentation method's mask (and so every volume of it) holds, in words.
+
+    The words a volume is reported with (summary, ``metrics.parquet``,
+    report): a FLAIR volume of the robust method counts the oedema, a T1c
+    one does not.
+
+    Parameters
+    ----------
+    method : {"robust", "paper", "multiotsu"}
+        The method that ran (``"auto"`` resolved, :func:`resolve_method`).
+    modality : {"t2", "flair", "t1c"}
+
+    Raises
+    ------
+    InputError
+        For another method or modality (``"auto"`` included: resolve it first).
+
+    Examples
+    --------
+    >>> lesion_definition("robust", "t1c")
+    'enhancing tumour: the contrast-enhancing lesion with its enclosed necrotic core (no oedema)'
+    """
+    mod = modality.strip().lower() if isinstance(modality, str) else modality
+    if mod not in _SEQUENCE_NAMES:
+        raise InputError(f"unknown modality {modality!r}: expected one of {MODALITIES}")
+    text = _LESION_DEFINITIONS.get((method, mod)) or _LESION_DEFINITIONS.get((method, None))
+    if text is None:
+        raise InputError(
+            f"no definition for method {method!r}: expected one of robust, paper, multiotsu"
+        )
+    return text.format(seq=_SEQUENCE_NAMES[mod])
+
 
 def resolve_method(
     method: str, modality: str | None, detection: SliceDetection | None = None
@@ -696,6 +760,7 @@ def segment_tumor(
     lesion: Mapping[str, Any] | None = None,
     spacing_mm: tuple[float, float, float] | None = None,
     lr_axis: int | None = None,
+    head_exterior: np.ndarray | None = None,
 ) -> SegmentationResult:
     """Segment the tumour of a patient's slices (specification section 3).
 
@@ -759,6 +824,11 @@ def segment_tumor(
         Robust method: the left-right array axis (symmetry rule of
         :mod:`tumor3d.lesion`, :func:`tumor3d.lesion.left_right_axis` of the
         scan's affine); None skips the rule. The adapter passes it.
+    head_exterior : (z, y, x) ndarray of bool, optional
+        The air outside a raw head (``PreprocessResult.head_exterior``): the
+        caveats then say where the tumour comes nearer it than any brain can
+        (:func:`tumor3d.caveats.scalp_caveat`). None (a skull-stripped
+        volume, a given brain mask) skips that caveat.
 
     Returns
     -------
@@ -795,7 +865,10 @@ def segment_tumor(
             refine_boundary=refine_boundary,
             min_tumor_slices=min_tumor_slices,
         )
-        return replace(res, caveats=segmentation_caveats(res.tumor_mask))
+        caveats = segmentation_caveats(
+            res.tumor_mask, spacing_mm=spacing_mm, head_exterior=head_exterior
+        )
+        return replace(res, caveats=caveats, method="paper")
     img, brain = _check_pair(enhanced, brain_mask)
     if not isinstance(detection, SliceDetection):
         raise InputError("detection must be a SliceDetection")
@@ -852,7 +925,9 @@ def segment_tumor(
             min_region_mm2=params["min_region_mm2"],
             min_slices=params["min_slices"],
             midline_lesion=midline,
+            head_exterior=head_exterior,
         ),
+        method=method,
     )
 
 

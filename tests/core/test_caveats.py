@@ -14,6 +14,7 @@ import pytest
 
 from tumor3d.caveats import (
     midline_caveat,
+    scalp_caveat,
     scan_end_caveat,
     segmentation_caveats,
     symmetric_caveat,
@@ -303,3 +304,60 @@ def test_a_lesion_found_by_step_3f_says_so_in_place_of_the_midline_caveat():
     res = segment_tumor(img, brain, det, modality="flair", method="robust", spacing_mm=SPACING)
     assert any("own mirror image" in c for c in res.caveats)
     assert not any("reaches the brain's midline" in c for c in res.caveats)
+
+
+def _air_left_of(column: int, shape=SHAPE) -> np.ndarray:
+    air = np.zeros(shape, bool)
+    air[:, :, :column] = True
+    return air
+
+
+@pytest.mark.parametrize("pixel_mm", [(0.8, 0.8), (0.5, 0.5), (1.0, 2.0)])
+def test_scalp_caveat_is_said_within_5_mm_of_the_air_in_mm(pixel_mm):
+    """The distance is in mm through the pixel spacing, not in pixels."""
+    air = _air_left_of(4)
+    spacing = (5.0, *pixel_mm)
+    # a disc whose left edge lies 3 mm from the air (column 3 is the air's last), and
+    # the same disc with its left edge 7 mm away: an independent in-mm construction
+    for gap_mm, says in ((3.0, True), (7.0, False)):
+        centre_x_mm = 3 * pixel_mm[1] + gap_mm + 6.0
+        m = _disc((48 * pixel_mm[0], centre_x_mm), 6.0, slices=(2, 3), pixel_mm=pixel_mm)
+        note = scalp_caveat(m, air, spacing)
+        assert (note is not None) == says, (pixel_mm, gap_mm, note)
+    assert "on slices 2-3 (0-based" in scalp_caveat(
+        _disc((48 * pixel_mm[0], 3 * pixel_mm[1] + 9.0), 6.0, (2, 3), pixel_mm=pixel_mm),
+        air, spacing,
+    )  # fmt: skip
+
+
+def test_scalp_caveat_names_the_slices_and_the_volume_near_the_air():
+    air = _air_left_of(4)
+    m = np.zeros(SHAPE, bool)
+    m[1, 40:50, 4:10] = True  # 60 pixels touching the air: all within 5 mm (0.8 mm pixels)
+    m[4, 40:50, 60:70] = True  # far from it
+    note = scalp_caveat(m, air, SPACING)
+    ml = 60 * SPACING[0] * PIXEL_AREA_MM2 / 1000.0
+    assert note.startswith("tumour within 5 mm of the air outside the head on slice 1 (0-based;")
+    assert f"{ml:.2f} mL of it" in note and "brain_extraction: head" in note
+    with pytest.raises(InputError, match="differ in shape"):
+        scalp_caveat(m, air[:, :, :10], SPACING)
+
+
+def test_segmentation_says_the_scalp_caveat_only_with_the_air_of_a_raw_head():
+    brain = np.zeros(SHAPE, bool)
+    brain[:, 8:88, 8:88] = True
+    img = np.where(brain, 100, 0).astype(np.uint8)
+    img[:, 8:30, 8:88] = 60
+    img[:, 66:88, 8:88] = 140
+    lesion = _disc((48 * PIXEL_MM[0], 12 * PIXEL_MM[1]), 5.0, slices=(1, 2, 3))  # at the edge
+    img[lesion] = 220
+    det = _detection_with_lesion(lesion, None)
+    air = _air_left_of(8)  # the air right outside the brain mask's left edge
+    for method in ("robust", "multiotsu"):
+        raw = segment_tumor(img, brain, det, modality="flair", method=method,
+                            spacing_mm=SPACING, head_exterior=air)  # fmt: skip
+        assert raw.tumor_mask.any()
+        assert any("air outside the head" in c for c in raw.caveats), method
+        stripped = segment_tumor(img, brain, det, modality="flair", method=method,
+                                 spacing_mm=SPACING)  # fmt: skip
+        assert not any("air outside the head" in c for c in stripped.caveats), method

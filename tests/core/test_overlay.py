@@ -142,3 +142,28 @@ def test_validation(kwargs, match):
     args = {"image": img, "mask": mask, "affine": aff, **kwargs}
     with pytest.raises(InputError, match=match):
         overlay_mosaic(args.pop("image"), args.pop("mask"), args.pop("affine"), **args)
+
+
+@pytest.mark.parametrize(
+    "affine, edges",
+    [
+        (np.diag([0.5, 0.5, 5.0, 1.0]), "RLAP"),  # RAS storage, axial: radiological
+        (np.diag([-0.5, -0.5, 5.0, 1.0]), "RLAP"),  # LPS storage: the same display
+        # coronal slices: columns along x (R), rows along -z (inferior), slices along y
+        (np.array([[1.0, 0, 0, 0], [0, 0, 4.0, 0], [0, -1.0, 0, 0], [0, 0, 0, 1]]), "RLSI"),
+        # sagittal slices: columns along y (A), rows along z (S), slices along x
+        (np.array([[0, 0, 3.0, 0], [1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 0, 1]]), "APSI"),
+    ],
+)
+def test_the_tiles_edges_are_named_by_patient_direction(affine, edges):
+    img, mask, _ = _volume()
+    _, layout = overlay_mosaic(img, mask, affine, title="t", return_layout=True)
+    assert layout.edges == edges
+    # independent check: the voxel shown at a tile's left column lies farther towards
+    # the left-edge direction than the one at its right column (world coordinates)
+    letters = {"R": (0, 1), "L": (0, -1), "A": (1, 1), "P": (1, -1), "S": (2, 1), "I": (2, -1)}
+    axis, sign = letters[edges[0]]
+    col = affine[:3, 0]
+    flipped = affine[int(np.argmax(np.abs(col))), 0] > 0  # the display flips such an axis
+    first, last = (img.shape[2] - 1, 0) if flipped else (0, img.shape[2] - 1)
+    assert sign * (affine[axis, 0] * first - affine[axis, 0] * last) > 0

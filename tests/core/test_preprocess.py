@@ -519,3 +519,30 @@ def test_to_uint8_fused_window_matches_numpy_expression():
             expect = np.floor(np.clip(scaled, 0.0, 255.0) + 0.5).astype(np.uint8)
             got = to_uint8(vol, window_percentiles=(lo_p, hi_p))
             assert np.array_equal(got, expect)
+
+
+def test_the_air_outside_a_raw_head_is_found_and_no_brain_voxel_comes_near_it():
+    """Anatomy: the brain lies at least the scalp plus skull (5 mm) inside the head."""
+    from scipy import ndimage as ndi
+
+    from tumor3d.brain_extraction import SCALP_SKULL_MIN_MM
+    from tumor3d.phantom.patient import make_phantom_patient
+
+    scan = make_phantom_patient(2).scan
+    pre = preprocess_volume(scan.image, **PreprocessConfig().model_dump())
+    assert pre.brain_extraction == "skull_strip" and pre.head_exterior is not None
+    ext = pre.head_exterior
+    # independent expectation: the image's corner pixels are air, the head's centre is not
+    # (beyond the head's ends, a slice is air throughout)
+    brain_slices = np.flatnonzero(pre.brain_mask.any(axis=(1, 2)))
+    assert ext[:, 0, 0].all() and ext[:, -1, -1].all()
+    assert not ext[brain_slices, 128, 128].any()
+    for z in brain_slices:
+        dist = ndi.distance_transform_edt(~ext[z], sampling=scan.pixel_spacing_mm)
+        assert dist[pre.brain_mask[z]].min() >= SCALP_SKULL_MIN_MM, z
+    # a skull-stripped volume (its brain borders the masked background) has no such air
+    stripped = np.where(pre.brain_mask, scan.image, 0.0)
+    assert preprocess_volume(stripped).brain_extraction == "foreground"
+    assert preprocess_volume(stripped).head_exterior is None
+    given = preprocess_volume(scan.image, brain_mask=pre.brain_mask)
+    assert given.brain_extraction == "given" and given.head_exterior is None

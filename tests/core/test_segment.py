@@ -388,3 +388,45 @@ def test_histogram_fcm_matches_naive_pixel_fcm_of_tumor3d_fcm():
     v_hist = fuzzy_cmeans_histogram(hist, v0, tol=1e-6, max_num_iter=500)
     v_pix = fuzzy_cmeans_pixels(pixels, v0, tol=1e-6, max_num_iter=500)
     np.testing.assert_allclose(v_hist, v_pix, atol=1e-3)
+
+
+@pytest.mark.parametrize(
+    "method, modality, words",
+    [
+        ("robust", "flair", "FLAIR-hyperintense lesion"),
+        ("robust", "t2", "T2-hyperintense lesion"),
+        ("robust", "t1c", "contrast-enhancing lesion with its enclosed necrotic core (no oedema)"),
+        ("paper", "t2", "fuzzy c-means segmentation (Arakeri & Reddy 2013, section 3) on T2"),
+        ("multiotsu", "flair", "multi-Otsu classes of the brain on FLAIR"),
+    ],
+)
+def test_lesion_definition_names_what_each_method_measures(method, modality, words):
+    from tumor3d.segment import lesion_definition
+
+    assert words in lesion_definition(method, modality)
+    assert ("oedema" in lesion_definition(method, modality)) == (method == "robust")
+
+
+def test_lesion_definition_refuses_an_unresolved_method_or_unknown_modality():
+    from tumor3d.segment import lesion_definition
+
+    with pytest.raises(InputError, match="no definition for method 'auto'"):
+        lesion_definition("auto", "flair")
+    with pytest.raises(InputError, match="unknown modality 't1'"):
+        lesion_definition("robust", "t1")
+
+
+@pytest.mark.parametrize(
+    "case, modality, method, expected",
+    [
+        ("t2_case", "t2", "auto", "paper"),  # the T2 phantoms: the paper's premise holds
+        ("flair_case", "flair", "auto", "robust"),
+        ("flair_case", "flair", "multiotsu", "multiotsu"),
+    ],
+)
+def test_the_result_names_the_method_that_ran(request, case, modality, method, expected):
+    _, pre, det = request.getfixturevalue(case)
+    res = segment_tumor(
+        pre.enhanced, pre.brain_mask, det, modality=modality, **{**DEFAULTS, "method": method}
+    )
+    assert res.method == expected and res.tumor_pixels.sum() > 0

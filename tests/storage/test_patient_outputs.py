@@ -35,7 +35,8 @@ def test_report_links_only_the_files_that_were_written():
     assert list(data["overlays"].values()) == ["overlay_tumor.png"]
     assert "viewer" not in data and "turntable" not in data
     assert data["eq7_precision"] == {"ce": 0.02, "ci95_low_mm3": 20921.3, "ci95_high_mm3": 22628.5}
-    assert data["measurements"]["RANO longest in-plane diameter"] == "41.2 mm"  # 41.25 rounds even
+    longest = data["measurements"]["RANO-style longest in-plane diameter"]
+    assert longest == "41.2 mm"  # 41.25 rounds even
     assert data["stage_cached"] == {"segment-tumor": True, "render-views": False}
     page = patient_report_html(data)
     assert "21,774.9" in page and "21.775" in page and "20,921.3 to 22,628.5" in page
@@ -95,3 +96,22 @@ def test_cohort_rows_link_existing_files_of_published_patients_only(tmp_path):
     page = (tmp_path / "cohort.html").read_text()
     assert 'href="a/report.html"' in page and 'href="b/report.html"' not in page
     assert (tmp_path / "cohort.parquet").is_file() and (tmp_path / "cohort.md").is_file()
+
+
+def test_the_report_says_what_is_measured_and_on_which_sequence_the_diameters_are():
+    from storage.report_html import patient_report_markdown, patient_summary_table
+    from tumor3d.segment import lesion_definition
+
+    words = lesion_definition("robust", "flair")
+    metrics = {**METRICS, "modality": "flair", "segment_method": "robust", "measured": words}
+    data = patient_report_data(metrics, stage_runs=RUNS, abnormal_slices=[10], files=[])
+    assert data["measured"] == words and "oedema" in words
+    assert f"What is measured: {words}" in patient_report_html(data)
+    assert f"What is measured: {words}" in patient_report_markdown(data)
+    assert {"quantity": "what is measured", "value": words, "unit": ""} in patient_summary_table(
+        data
+    )
+    assert "FLAIR whole tumour, oedema included" in data["measurements"]["RANO-style diameters of"]
+    t1c = patient_report_data({**metrics, "modality": "t1c"}, stage_runs=RUNS,
+                              abnormal_slices=[10], files=[])  # fmt: skip
+    assert "RANO-style diameters of" not in t1c["measurements"]  # RANO's own sequence
