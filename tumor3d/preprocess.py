@@ -631,7 +631,8 @@ def brain_volume_note(brain_volume_ml: float) -> str | None:
     """A warning for a brain mask that holds more than any skull can, else None.
 
     Such a mask holds scalp, face or neck, where the lesion model may find a
-    "lesion" (fat, muscle, sinus); the tumour volume is then not to be trusted.
+    "lesion" (fat, muscle, sinus), and its statistics of normal tissue are off; the
+    result, a tumour volume or "no tumour found", is then not to be trusted.
 
     >>> brain_volume_note(1400.0) is None
     True
@@ -643,8 +644,9 @@ def brain_volume_note(brain_volume_ml: float) -> str | None:
         return None
     return (
         f"brain mask of {v:.0f} mL: more than any skull holds ({MAX_INTRACRANIAL_ML:.0f} mL), "
-        "so it holds scalp or face and the tumour volume is not reliable: give the brain "
-        "mask (--brain-mask) or set preprocess.brain_extraction: head, and check overlay_brain.png"
+        "so it holds scalp or face and the result (a tumour volume, or no tumour found) is not "
+        "reliable: give the brain mask (--brain-mask) or set preprocess.brain_extraction: "
+        "head, and check overlay_brain.png"
     )
 
 
@@ -695,8 +697,8 @@ def brain_coverage_note(
         advice += " or set preprocess.brain_extraction: head"
     return (
         f"brain mask on {b} of the {t} slices that hold tissue: the skull removal has likely "
-        "lost most of the brain (or kept face or neck), so the tumour volume is not reliable: "
-        f"{advice}, and check overlay_brain.png"
+        "lost most of the brain (or kept face or neck), so the result (a tumour volume, or no "
+        f"tumour found) is not reliable: {advice}, and check overlay_brain.png"
     )
 
 
