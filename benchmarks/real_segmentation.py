@@ -176,10 +176,22 @@ def run_pipeline(image, cfg, modality, brain_mask=None, spacing_mm=None, lr_axis
 
 def evaluate(case: Case, cfg, *, native: bool, offset: int, use_mask: bool) -> dict:
     scan, label = read_case(case)
-    img = scan.image
     bm = read_scan(case.brainmask).image > 0.5 if (use_mask and case.brainmask) else None
+    return evaluate_volume(case.name, scan.image, label, scan, cfg, case.modality,
+                           native=native or case.native_only, offset=offset, brain_mask=bm)
+
+
+def evaluate_volume(name: str, img: np.ndarray, label: np.ndarray | None, scan, cfg,
+                    modality: str, *, native: bool, offset: int,
+                    brain_mask: np.ndarray | None = None) -> dict:
+    """:func:`evaluate` on arrays: ``img`` and ``label`` (bool or None) on ``scan``'s grid.
+
+    ``scan`` gives the spacing and the affine (left-right axis); with ``native`` the
+    slices are run as they are, else emulated at 2 mm every 5 mm from ``offset``.
+    """
+    bm = brain_mask
     voxel_mm3 = float(np.prod(scan.pixel_spacing_mm)) * scan.slice_step_mm
-    if native or label is None or case.native_only:
+    if native or label is None:
         thick, ref, bm_t = img, (None if label is None else label.astype(np.float64)), bm
         step_mm = scan.slice_step_mm
     else:
@@ -188,12 +200,12 @@ def evaluate(case: Case, cfg, *, native: bool, offset: int, use_mask: bool) -> d
         bm_t = None if bm is None else emulate_thick(bm, offset) >= 0.5
         step_mm = STEP * scan.slice_step_mm
     spacing = (step_mm, *scan.pixel_spacing_mm)
-    pre, det, seg, t = run_pipeline(thick, cfg, case.modality, bm_t, spacing,
+    pre, det, seg, t = run_pipeline(thick, cfg, modality, bm_t, spacing,
                                     left_right_axis(scan.affine))
     mask = seg.tumor_mask
     px_mm2 = float(np.prod(scan.pixel_spacing_mm))
     vol_eq7 = step_mm * px_mm2 * float(mask.sum())
-    row = {"case": case.name, "n_slices": thick.shape[0], "t": t,
+    row = {"case": name, "n_slices": thick.shape[0], "t": t,
            "flagged": int(det.abnormal.sum()), "found": int(mask.any(axis=(1, 2)).sum()),
            "vol_eq7_ml": vol_eq7 / 1000.0, "largest_ml": vol_eq7 / 1000.0}
     if ref is None:
@@ -223,7 +235,7 @@ def evaluate(case: Case, cfg, *, native: bool, offset: int, use_mask: bool) -> d
     row["ref_ml"] = ref_ml
     row["vol_err"] = 100.0 * (vol_eq7 / 1000.0 - ref_ml) / ref_ml
     t0 = time.perf_counter()
-    if native or case.native_only:
+    if native:
         row["dice3d"] = soft_dice(mask, label.astype(np.float64))
     else:
         cfg_i = cfg.interpolate
