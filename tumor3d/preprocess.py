@@ -662,6 +662,38 @@ def brain_volume_note(brain_volume_ml: float) -> str | None:
     )
 
 
+#: No whole human brain shows less than this (mm2) on its largest slice: a brain's
+#: largest cross-section (axial, coronal or sagittal) is about 60 cm2 at birth and
+#: 100-250 cm2 in adults (measured: 142-258 cm2 on the real volumes and phantoms the
+#: project uses). Below a third of the newborn's, the voxel size in the header is off
+#: (a unit error: 0.1 mm read for 1 mm pixels makes the area 100 times smaller) or
+#: the brain was lost.
+MIN_BRAIN_SLICE_MM2 = 2000.0
+
+
+def brain_size_note(largest_slice_mm2: float) -> str | None:
+    """A warning for a brain mask too small to be a human brain, else None.
+
+    ``largest_slice_mm2`` is the brain mask's area on its largest slice
+    (through the scan's pixel spacing): see :data:`MIN_BRAIN_SLICE_MM2`.
+
+    >>> brain_size_note(15000.0) is None
+    True
+    >>> brain_size_note(150.0)[:44]
+    'brain mask of at most 1.5 cm2 on any slice: '
+    """
+    a = float(largest_slice_mm2)
+    if not a < MIN_BRAIN_SLICE_MM2:
+        return None
+    return (
+        f"brain mask of at most {a / 100.0:.1f} cm2 on any slice: no human brain is that small "
+        f"(its largest cross-section is about 60 cm2 at birth, 100-250 cm2 in adults), so the "
+        "voxel size in the image header is likely wrong (a unit error, e.g. 0.1 mm pixels "
+        "for 1 mm) or the brain was lost, and every volume is not reliable: check the "
+        "header's voxel size and overlay_brain.png"
+    )
+
+
 #: A brain mask on fewer than this share of the slices that hold tissue has lost most
 #: of the brain: the brain spans most of a head scan's slices (the phantoms' whole
 #: heads: 63-73 %, 59 % with ``brain_extraction: head``; the raw clinical heads of

@@ -5,6 +5,7 @@ from __future__ import annotations
 import inspect
 from fnmatch import fnmatch
 
+import nibabel as nib
 import numpy as np
 import pandas as pd
 import pytest
@@ -307,3 +308,34 @@ def test_the_lesion_artifact_metadata_round_trips_the_mirror_plane():
     assert lesion_from_artifact(mask, json.loads(json.dumps(lesion_metadata(flagged, {})))).midline
     old_meta = {k: v for k, v in meta.items() if k != "midline"}
     assert not lesion_from_artifact(mask, old_meta).midline
+
+
+def test_preprocess_notes_say_when_the_brain_is_smaller_than_any_human_brain():
+    from tumor3d.preprocess import MIN_BRAIN_SLICE_MM2
+
+    base = {"brain_volume_ml": 1.7, "brain_slices": 20, "tissue_slices": 26,
+            "brain_extraction": "foreground"}  # fmt: skip
+    (note,) = preprocess_notes({**base, "brain_max_slice_mm2": 150.0})
+    assert note.startswith("brain mask of at most 1.5 cm2 on any slice")
+    assert "voxel size" in note and split_notes(join_notes([note])) == [note]
+    assert preprocess_notes({**base, "brain_max_slice_mm2": MIN_BRAIN_SLICE_MM2}) == []
+    assert preprocess_notes({**base, "brain_max_slice_mm2": MIN_BRAIN_SLICE_MM2 - 1}) != []
+    # a mask the user gave is checked too (a wrong voxel size shrinks it as well)
+    given = {**base, "brain_extraction": "given", "brain_max_slice_mm2": 150.0}
+    assert [n[:30] for n in preprocess_notes(given)] == [note[:30]]
+
+
+def test_preprocess_stage_stores_the_largest_brain_slice_in_mm2(tmp_path):
+    """Independent expectation: the mask's largest slice count x the pixel area."""
+    rng = np.random.default_rng(5)
+    data = rng.normal(100.0, 3.0, (40, 30, 6)).astype(np.float32)
+    data[5:35, 5:25, :] += 200.0  # a bright block the skull removal keeps
+    path = tmp_path / "p.nii.gz"
+    nib.save(nib.Nifti1Image(data, np.diag([0.7, 0.5, 4.0, 1.0])), path)
+    run = run_stages_direct(path, tmp_path / "store", patient_id="p1")
+    values = run.outputs["preprocess"].values
+    store = ArtifactStore(tmp_path / "store")
+    brain, _ = store.get_volume(run.outputs["preprocess"].artifacts["brain_mask"])
+    largest = int(brain.reshape(brain.shape[0], -1).sum(axis=1).max())
+    assert values["brain_max_slice_mm2"] == pytest.approx(largest * 0.7 * 0.5)
+    assert values["brain_max_slice_mm2"] > 0
