@@ -54,7 +54,7 @@ from storage.publish import (
     staged_folder,
     write_publish_manifest,
 )
-from storage.readers import derive_patient_id, read_scan, suggest_patient_id
+from storage.readers import check_modality, derive_patient_id, read_scan, suggest_patient_id
 from storage.remote_publish import publish_folder
 from storage.slice_table import slice_table
 from storage.store import ArtifactRef, ArtifactStore, canonical_dumps, source_grid_from_metadata
@@ -66,7 +66,7 @@ from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
 from tumor3d.metrics import EQ7_SLICE_RULES
-from tumor3d.scan import MODALITIES, validate_patient_id
+from tumor3d.scan import validate_patient_id
 
 __all__ = [
     "DirectRunner",
@@ -170,8 +170,7 @@ def prepare_source(
     path = Path(input_path).expanduser()
     if not path.exists():
         raise InputError("no such file or folder", path=str(path))
-    if modality not in MODALITIES:
-        raise InputError(f"unknown modality {modality!r}: expected one of {', '.join(MODALITIES)}")
+    modality = check_modality(modality)  # case-insensitive, as the readers and manifests
     pid = validate_patient_id(patient_id) if patient_id is not None else derive_patient_id(path)
     digest = input_digest(path)
     if out_dir is not None and not is_url(out_dir):  # an object store holds no local input

@@ -84,9 +84,10 @@ from storage.readers.common import (
     MAX_VOXELS_DEFAULT,
     NIFTI_SUFFIXES,
     REL_TOL,
-    _check_modality,
     _check_override,
+    check_field_of_view,
     check_max_voxels,
+    check_modality,
     choose_slice_axis,
     derive_patient_id,
     suggest_patient_id,
@@ -110,6 +111,7 @@ __all__ = [
     "MODALITIES",
     "REL_TOL",
     "STACK_SIDECAR_NAMES",
+    "check_modality",
     "choose_slice_axis",
     "derive_patient_id",
     "read_dicom_series",
@@ -169,13 +171,14 @@ def read_scan(
     ------
     InputError
         If the path is missing, unsupported or unreadable, holds a single
-        2-D image, a constant volume or non-finite values, or if a parameter
-        is invalid. The message names the file and the problem; operating-
+        2-D image, a constant volume or non-finite values, spans more than any
+        MR scanner images (:func:`storage.readers.common.check_field_of_view`),
+        or if a parameter is invalid. The message names the file and the problem; operating-
         system errors (permissions, I/O) are mapped to one such line.
     """
     p = Path(path)
     try:
-        return _read_scan(
+        scan = _read_scan(
             p,
             modality=modality,
             patient_id=patient_id,
@@ -189,6 +192,8 @@ def read_scan(
         raise InputError(
             f"cannot read the input ({os_error_text(exc)})", os_error_path(exc, p)
         ) from None
+    check_field_of_view(scan.image.shape, scan.pixel_spacing_mm, scan.slice_step_mm, str(p))
+    return scan
 
 
 def _read_scan(
@@ -204,7 +209,7 @@ def _read_scan(
 ) -> Scan:
     if not p.exists():
         raise InputError("no such file or folder", str(p))
-    mod = None if modality is None else _check_modality(modality)
+    mod = None if modality is None else check_modality(modality)
     pid = derive_patient_id(p) if patient_id is None else validate_patient_id(patient_id)
     thickness = _check_override("slice_thickness_mm", slice_thickness_mm, allow_zero=False)
     gap = _check_override("slice_gap_mm", slice_gap_mm, allow_zero=True)

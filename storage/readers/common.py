@@ -35,6 +35,10 @@ from tumor3d.validation import check_int, check_positive, non_finite_problem
 __all__ = [
     "MAX_VOXELS_DEFAULT",
     "REL_TOL",
+    "MAX_FIELD_OF_VIEW_MM",
+    "MAX_STACK_EXTENT_MM",
+    "check_field_of_view",
+    "check_modality",
     "check_max_voxels",
     "check_voxel_count",
     "choose_slice_axis",
@@ -47,6 +51,52 @@ NIFTI_SUFFIXES = (".nii.gz", ".nii")
 VOLUME_FILE_SUFFIXES = (*NIFTI_SUFFIXES, ".nrrd", ".nhdr", ".mha", ".mhd")
 """Suffixes stripped from a volume file's name to make its patient id."""
 _UNSAFE_ID_CHARS = re.compile(r"[^A-Za-z0-9._-]")
+
+
+#: The widest slice (mm) an MR scanner images: its bore is under 1 m across (clinical
+#: bores 60-70 cm, fields of view up to about 50 cm). A volume whose slices span more
+#: has a wrong voxel size in its header (cm or 10 x mm read as mm).
+MAX_FIELD_OF_VIEW_MM = 1000.0
+#: The longest stack (mm) across the slices: whole-body coverage is about 2 m.
+MAX_STACK_EXTENT_MM = 2500.0
+
+
+def check_field_of_view(
+    shape_zyx: tuple[int, int, int],
+    pixel_spacing_mm: tuple[float, float],
+    slice_step_mm: float,
+    where: str,
+) -> None:
+    """Refuse a volume larger than any MR scanner images: its voxel size must be wrong.
+
+    Such a header (20 mm pixels for 2 mm, a unit error) would give volumes
+    100-1000 times too large, and the brain surface's 2 mm grid over that
+    extent asked for 205 GiB (measured by an audit).
+
+    Raises
+    ------
+    InputError
+        Naming the file, the extent and the likely cause.
+
+    Examples
+    --------
+    >>> check_field_of_view((155, 240, 240), (1.0, 1.0), 1.0, "x.nii.gz")  # BraTS
+    >>> check_field_of_view((4, 8, 8), (200.0, 200.0), 5.0, "x.nii.gz")
+    Traceback (most recent call last):
+    ...
+    tumor3d.errors.InputError: x.nii.gz: the slices span 1600 x 1600 mm and the stack 20 mm: ...
+    """
+    nz, ny, nx = (int(n) for n in shape_zyx)
+    dy, dx = (float(v) for v in pixel_spacing_mm)
+    height, width, depth = ny * dy, nx * dx, nz * float(slice_step_mm)
+    if max(height, width) > MAX_FIELD_OF_VIEW_MM or depth > MAX_STACK_EXTENT_MM:
+        raise InputError(
+            f"the slices span {height:.0f} x {width:.0f} mm and the stack {depth:.0f} mm: more "
+            f"than any MR scanner images (slices under {MAX_FIELD_OF_VIEW_MM:.0f} mm across, "
+            f"{MAX_STACK_EXTENT_MM:.0f} mm along the body), so the voxel size in the header is "
+            "wrong (a unit error?): fix the header's voxel size",
+            where,
+        )
 
 
 def derive_patient_id(path: str | os.PathLike[str]) -> str:
@@ -263,7 +313,12 @@ def check_voxel_count(shape: tuple[int, ...], max_voxels: int, where: str) -> No
         )
 
 
-def _check_modality(modality: Any, where: str | None = None) -> str:
+def check_modality(modality: Any, where: str | None = None) -> str:
+    """The modality in lower case (``"FLAIR"`` -> ``"flair"``), or an error naming the choices.
+
+    >>> check_modality(" T1c ")
+    't1c'
+    """
     value = modality.strip().lower() if isinstance(modality, str) else None
     if value not in MODALITIES:
         raise InputError(
@@ -329,3 +384,4 @@ def _check_volume(image: np.ndarray, where: str) -> None:
 def _describe(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
+

@@ -12,12 +12,12 @@ import numpy as np
 from storage.readers.common import (
     MAX_VOXELS_DEFAULT,
     REL_TOL,
-    _check_modality,
     _check_override,
     _check_volume,
     _describe,
     _resolve_thickness,
     check_max_voxels,
+    check_modality,
     check_voxel_count,
     derive_patient_id,
 )
@@ -111,7 +111,7 @@ def read_dicom_series(
     from pydicom.errors import InvalidDicomError
 
     d = Path(folder)
-    mod = _check_modality(modality)
+    mod = check_modality(modality)
     pid = derive_patient_id(d) if patient_id is None else validate_patient_id(patient_id)
     thickness_override = _check_override("slice_thickness_mm", slice_thickness_mm, allow_zero=False)
     gap_override = _check_override("slice_gap_mm", slice_gap_mm, allow_zero=True)

@@ -29,10 +29,10 @@ import numpy as np
 
 from storage.readers.common import (
     MAX_VOXELS_DEFAULT,
-    _check_modality,
     _check_override,
     _describe,
     check_max_voxels,
+    check_modality,
     check_voxel_count,
     derive_patient_id,
     scan_from_volume,
@@ -120,7 +120,7 @@ def read_itk_scan(
 
     p = Path(path)
     where = str(p)
-    mod = _check_modality(modality)
+    mod = check_modality(modality)
     pid = derive_patient_id(p) if patient_id is None else validate_patient_id(patient_id)
     thickness_override = _check_override("slice_thickness_mm", slice_thickness_mm, allow_zero=False)
     gap_override = _check_override("slice_gap_mm", slice_gap_mm, allow_zero=True)

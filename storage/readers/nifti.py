@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -12,11 +13,11 @@ from storage.readers.common import (
     MAX_VOXELS_DEFAULT,
     NIFTI_SUFFIXES,
     REL_TOL,
-    _check_modality,
     _check_override,
     _describe,
     _positive_number,
     check_max_voxels,
+    check_modality,
     check_voxel_count,
     derive_patient_id,
     scan_from_volume,
@@ -66,7 +67,7 @@ def read_nifti_scan(
     """
     p = Path(path)
     where = str(p)
-    mod = _check_modality(modality)
+    mod = check_modality(modality)
     pid = derive_patient_id(p) if patient_id is None else validate_patient_id(patient_id)
     thickness_override = _check_override("slice_thickness_mm", slice_thickness_mm, allow_zero=False)
     gap_override = _check_override("slice_gap_mm", slice_gap_mm, allow_zero=True)
@@ -133,14 +134,67 @@ def load_nifti_volume(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
     if len(shape) < 3 or min(shape) < 2:
         raise InputError(f"a single 2-D image (shape {shape}): at least 2 slices are needed", where)
 
+    dtype = img.get_data_dtype()
+    if dtype.fields is not None:  # RGB, RGBA: several values per voxel
+        raise InputError(
+            f"{len(dtype.fields)} values per voxel (data type {dtype}, e.g. RGB): give a "
+            "single-channel gray-level image",
+            where,
+        )
+    if dtype.kind == "c":  # the imaginary part would be dropped without a word
+        raise InputError(
+            f"complex voxel values (data type {dtype}): give the magnitude image", where
+        )
+    _check_voxel_size(p, img)
     affine = np.asarray(img.affine, dtype=np.float64)
     if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < SINGULAR_DET_TOL:
         raise InputError("the image affine is singular or not finite", where)
+    affine = _affine_in_mm(img.header, affine)
     try:
         data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32)
     except Exception as exc:
         raise InputError(f"cannot read the voxel data ({_describe(exc)})", where) from exc
     return data.reshape(shape), affine
+
+
+#: The NIfTI spatial units (``xyzt_units``) and their length in mm; "unknown" is read as
+#: mm, as every NIfTI reader does. Meters and microns are converted, as ITK, MINC's
+#: nii2mnc and Connectome Workbench do (nibabel's ``affine`` ignores the field).
+_UNIT_MM = {"mm": 1.0, "unknown": 1.0, "meter": 1000.0, "micron": 0.001}
+
+
+def _affine_in_mm(header: Any, affine: np.ndarray) -> np.ndarray:
+    """``affine`` with its lengths in mm (the header's spatial unit converted)."""
+    unit = str(header.get_xyzt_units()[0])
+    out = affine.copy()
+    out[:3, :] *= _UNIT_MM.get(unit, 1.0)
+    return out
+
+
+def _check_voxel_size(p: Path, img: Any) -> None:
+    """Refuse a zero voxel size that nibabel would silently read as 1 mm.
+
+    Without an sform, the affine's lengths are the header's ``pixdim``; nibabel
+    replaces a zero there by 1 when it loads the header, which gave a 5 mm
+    slice step as 1 mm (a volume five times too small). The header is read
+    again unchecked to see what the file says.
+    """
+    from nibabel.openers import ImageOpener
+
+    try:
+        with ImageOpener(str(p)) as f:
+            raw = type(img.header).from_fileobj(f, check=False)
+        sform_code = int(raw["sform_code"])
+        pixdim = np.asarray(raw["pixdim"][1:4], dtype=np.float64)
+    except Exception:  # the header was read once already: leave it to that reading
+        return
+    if sform_code == 0 and np.any(pixdim == 0):
+        raise InputError(
+            f"the header gives a voxel size of 0 (pixdim {' x '.join(f'{v:g}' for v in pixdim)}) "
+            "and no sform: the voxel size is unknown; fix the header (pixdim) or give a "
+            "file with its voxel size",
+            str(p),
+        )
 
 
 def _bids_sidecar_path(p: Path) -> Path:

@@ -11,12 +11,12 @@ import numpy as np
 
 from storage.readers.common import (
     MAX_VOXELS_DEFAULT,
-    _check_modality,
     _check_override,
     _check_volume,
     _describe,
     _positive_number,
     check_max_voxels,
+    check_modality,
     check_voxel_count,
     derive_patient_id,
 )
@@ -154,9 +154,9 @@ def read_image_stack(
         raise InputError("missing key 'slice_gap_mm' (0 for contiguous slices)", where)
 
     if modality is not None:
-        mod = _check_modality(modality)
+        mod = check_modality(modality)
     elif meta.get("modality") is not None:
-        mod = _check_modality(meta["modality"], where=where)
+        mod = check_modality(meta["modality"], where=where)
     else:
         mod = "t2"
 

@@ -14,6 +14,7 @@ import pytest
 from typer.testing import CliRunner
 
 from flows.cli import app
+from tumor3d.errors import InputError
 
 runner = CliRunner()
 
@@ -378,3 +379,14 @@ def test_run_refuses_to_replace_a_folder_of_the_users_own_files(tmp_path):
     assert f"error: {own}: this folder exists and is not a tumor3d result" in result.output
     assert (own / "results.xlsx").read_bytes() == b"mine"
     assert sorted(p.name for p in own.iterdir()) == ["results.xlsx"]
+
+
+def test_the_modality_is_case_insensitive_for_run_as_for_a_manifest(tmp_path):
+    """An audit: `run --modality FLAIR` was refused while a manifest's FLAIR was accepted."""
+    from flows.patient import prepare_source
+
+    image = _nifti(tmp_path / "scan.nii.gz", np.random.default_rng(4).random((12, 12, 4)) + 1)
+    assert prepare_source(image, modality="FLAIR").modality == "flair"
+    assert prepare_source(image, modality=" T1c ").modality == "t1c"
+    with pytest.raises(InputError, match="unknown modality 't1'"):
+        prepare_source(image, modality="t1")

@@ -485,3 +485,69 @@ def test_derive_patient_id(tmp_path, name, expected):
 def test_derive_patient_id_nothing_left(tmp_path):
     with pytest.raises(InputError, match=r"cannot derive a patient id from the name '\.\.\.nii'"):
         derive_patient_id(tmp_path / "...nii")
+
+
+def test_nifti_complex_voxels_are_refused_not_cut_to_their_real_part(tmp_path):
+    data = ramp_volume((8, 6, 3)).astype(np.complex64) * np.exp(1j * 0.7)
+    f = save_nifti(tmp_path / "phase.nii.gz", data, LAS, np.complex64)
+    with pytest.raises(InputError, match=r"phase\.nii\.gz: complex voxel values .*magnitude"):
+        read_scan(f)
+
+
+def test_nifti_rgb_voxels_are_refused(tmp_path):
+    rgb = np.zeros((8, 6, 3), dtype=[("R", "u1"), ("G", "u1"), ("B", "u1")])
+    img = nib.Nifti1Image(rgb, LAS)
+    nib.save(img, str(tmp_path / "rgb.nii.gz"))
+    with pytest.raises(InputError, match=r"rgb\.nii\.gz: 3 values per voxel"):
+        read_scan(tmp_path / "rgb.nii.gz")
+
+
+def test_nifti_zero_voxel_size_without_sform_is_refused(tmp_path):
+    """nibabel reads pixdim 0 as 1 mm: a 5 mm slice step became 1 mm (volume / 5)."""
+    img = nib.Nifti1Image(ramp_volume((8, 6, 4)), None)
+    img.header.set_zooms((0.9, 0.9, 0.0))
+    img.header.set_sform(None, code=0)
+    img.header.set_qform(None, code=0)
+    nib.save(img, str(tmp_path / "nodz.nii.gz"))
+    with pytest.raises(InputError, match=r"nodz\.nii\.gz: the header gives a voxel size of 0 "
+                                         r"\(pixdim 0\.9 x 0\.9 x 0\)"):  # fmt: skip
+        read_scan(tmp_path / "nodz.nii.gz")
+    # with an sform, pixdim is not where the voxel size comes from: read as given
+    img.set_sform(LAS, code=1)
+    nib.save(img, str(tmp_path / "sform.nii.gz"))
+    assert read_scan(tmp_path / "sform.nii.gz").slice_step_mm == pytest.approx(5.0)
+
+
+@pytest.mark.parametrize(("unit", "factor"), [("meter", 1000.0), ("micron", 0.001), ("mm", 1.0)])
+def test_nifti_spatial_units_are_converted_to_mm(tmp_path, unit, factor):
+    """A valid NIfTI in metres (xyzt_units) is read in mm, as ITK and MINC read it."""
+    in_unit = LAS.copy()
+    in_unit[:3, :] /= factor  # the same grid, its lengths written in the file's unit
+    img = nib.Nifti1Image(ramp_volume((8, 6, 4)), in_unit)
+    img.header.set_xyzt_units(unit)
+    img.set_qform(in_unit, code=1)
+    img.set_sform(in_unit, code=1)
+    nib.save(img, str(tmp_path / f"{unit}.nii.gz"))
+    scan = read_scan(tmp_path / f"{unit}.nii.gz")
+    ref = read_scan(save_nifti(tmp_path / "ref.nii.gz", ramp_volume((8, 6, 4)), LAS))
+    np.testing.assert_allclose(scan.affine, ref.affine, rtol=1e-6, atol=1e-6)
+    assert scan.slice_step_mm == pytest.approx(5.0, rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("zooms", "refused"),
+    [((1.0, 1.0, 1.0), False), ((4.0, 4.0, 8.0), False), ((20.0, 20.0, 100.0), True),
+     ((1.0, 1.0, 20.0), True)],  # fmt: skip
+)
+def test_a_volume_larger_than_any_scanner_images_is_refused(tmp_path, zooms, refused):
+    """240 x 240 x 155 voxels: 20 mm pixels span 4.8 m, 20 mm slices 3.1 m (unit errors)."""
+    data = np.zeros((240, 240, 155), np.int16)
+    data[60:180, 60:180, 40:120] = 100
+    data[100:140, 100:140, 60:100] = 300
+    f = save_nifti(tmp_path / "big.nii.gz", data, np.diag([*zooms, 1.0]))
+    if not refused:
+        assert read_scan(f).image.shape == (155, 240, 240)
+        return
+    with pytest.raises(InputError, match=r"big\.nii\.gz: the slices span .* more than any MR "
+                                         r"scanner images"):  # fmt: skip
+        read_scan(f)
