@@ -20,7 +20,12 @@ import numpy as np
 from tumor3d.errors import InputError
 from tumor3d.mesh import Mesh
 
-__all__ = ["brain_surface", "display_mesh"]
+__all__ = ["MAX_GRID_VOXELS", "brain_surface", "display_mesh"]
+
+#: The brain surface's grid holds at most this many voxels (16 M: a 2 mm grid over
+#: 50 x 50 x 50 cm, twice a head's field of view each way); over a larger extent the
+#: grid spacing grows instead (the surface is context for the renders, not measured).
+MAX_GRID_VOXELS = 16_000_000
 
 
 def brain_surface(brain_mask: np.ndarray, affine: np.ndarray, *, spacing_mm: float = 2.0) -> Mesh:
@@ -30,7 +35,8 @@ def brain_surface(brain_mask: np.ndarray, affine: np.ndarray, *, spacing_mm: flo
     the brain surface too): each acquired slice's mask becomes its in-plane
     signed distance ``d_k`` in mm (negative inside), ``d`` is interpolated
     trilinearly onto an isotropic grid of ``spacing_mm`` covering the same
-    extent, and the brain is ``{d < 0}``; its surface is
+    extent (coarser where that grid would exceed :data:`MAX_GRID_VOXELS`),
+    and the brain is ``{d < 0}``; its surface is
     :func:`tumor3d.surface.extract_surface` of that grid. At 2 mm a brain
     gives some 30,000-60,000 faces, plenty for a translucent context surface
     and cheap to render. Only the largest connected component is kept. An
@@ -100,6 +106,10 @@ def brain_surface(brain_mask: np.ndarray, affine: np.ndarray, *, spacing_mm: flo
     sd = np.concatenate(
         [np.full((1, ny, nx), 1e3, np.float32), sd, np.full((1, ny, nx), 1e3, np.float32)]
     )
+    # a context surface only: over an extent larger than a head the grid is coarsened
+    # to at most MAX_GRID_VOXELS (readers refuse volumes larger than a scanner images)
+    extent_mm3 = (nz + 2) * dz * ny * dy * nx * dx
+    step = max(step, (extent_mm3 / MAX_GRID_VOXELS) ** (1.0 / 3.0))
     # new grid: index i along each axis <-> old voxel coordinate i * step / d
     shape_new = [
         max(2, int(np.floor((n_old - 1) * d / step)) + 1)

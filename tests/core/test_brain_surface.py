@@ -40,3 +40,39 @@ def test_a_mesh_within_the_budget_is_returned_as_is(ellipsoid):
 def test_bad_budget(ellipsoid, bad):
     with pytest.raises(InputError, match="max_faces"):
         display_mesh(ellipsoid, bad)
+
+
+def _ball_slices(radius_mm, pixel_mm, step_mm, n_px=48):
+    """A ball of ``radius_mm`` sampled on thick slices, its (z, y, x) mask and affine."""
+    nz = int(2 * radius_mm / step_mm) + 3
+    z = (np.arange(nz) - (nz - 1) / 2) * step_mm
+    y = (np.arange(n_px) - (n_px - 1) / 2) * pixel_mm
+    zz, yy, xx = np.meshgrid(z, y, y, indexing="ij")
+    mask = zz**2 + yy**2 + xx**2 <= radius_mm**2
+    return mask, np.diag([pixel_mm, pixel_mm, step_mm, 1.0])
+
+
+def test_the_grid_is_coarsened_over_an_extent_larger_than_its_budget(monkeypatch):
+    """The surface stays a closed ball of about its volume, on a grid within the budget."""
+    import tumor3d.brain_surface as bs
+
+    mask, aff = _ball_slices(60.0, 3.0, 6.0)
+    true_ml = 4.0 / 3.0 * np.pi * 60.0**3 / 1000.0
+    fine = bs.brain_surface(mask, aff)
+    budget = 20_000  # far below the 2 mm grid's ~1.4 M voxels: about a 5 mm grid
+    monkeypatch.setattr(bs, "MAX_GRID_VOXELS", budget)
+    seen = []
+    from tumor3d import surface
+
+    original = surface.extract_surface
+
+    def spy(grid, affine, **kw):
+        seen.append(grid.size)
+        return original(grid, affine, **kw)
+
+    monkeypatch.setattr(surface, "extract_surface", spy)
+    coarse = bs.brain_surface(mask, aff)
+    assert seen and seen[0] <= budget
+    for mesh in (fine, coarse):
+        assert is_closed_surface(mesh)
+        assert mesh_volume_mm3(mesh) / 1000.0 == pytest.approx(true_ml, rel=0.1)

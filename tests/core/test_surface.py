@@ -418,3 +418,17 @@ def test_ball_has_euler_characteristic_two_and_voxel_volume(radius_vox):
     # large shapes within 1 %, small ones within 3 % (the cut corners of the
     # marching-cubes surface are a surface effect, relative size ~ 1 / r)
     assert abs(ratio - 1) < (0.01 if radius_vox >= 20 else 0.03)
+
+
+@pytest.mark.parametrize("offset_mm", [0.0, 1e4, 1e6, 1e7, 1e9])
+def test_mesh_volume_does_not_depend_on_where_the_mesh_lies(offset_mm):
+    """An audit's affine 1e7 mm off the origin gave a simplified tumour a negative volume."""
+    from tumor3d.simplify import simplify_mesh
+
+    z, y, x = np.ogrid[:40, :40, :40]
+    mask = (x - 19.5) ** 2 + (y - 19.5) ** 2 + (z - 19.5) ** 2 <= 15**2
+    at_origin = simplify_mesh(extract_surface(mask, np.eye(4)), method="memoryless",
+                              reduction_percent=60.0)  # fmt: skip
+    far = Mesh(at_origin.vertices + offset_mm, at_origin.faces)
+    # independent expectation: the same mesh's volume at the origin
+    assert mesh_volume_mm3(far) == pytest.approx(mesh_volume_mm3(at_origin), rel=1e-9)
