@@ -259,7 +259,7 @@ def _preflight(
     started for nothing.
     """
     from storage.brain_mask import read_given_brain_mask
-    from storage.inputs import input_digest
+    from storage.inputs import input_digest, input_location
     from storage.publish import check_destination
     from storage.readers import derive_patient_id, read_scan, suggest_patient_id
     from tumor3d.scan import validate_patient_id
@@ -268,9 +268,11 @@ def _preflight(
     if input_path.exists():
         pid = validate_patient_id(patient_id) if patient_id else derive_patient_id(input_path)
         given = [input_path] + ([] if brain_mask is None else [brain_mask])
+        # the content is hashed only if a record of another location is there to compare
         check_destination(
-            out / pid, given, derived_from=None if patient_id else input_digest(input_path),
-            suggestion=suggest_patient_id(input_path),
+            out / pid, given,
+            derived_from=None if patient_id else (lambda: input_digest(input_path)),
+            location=input_location(input_path), suggestion=suggest_patient_id(input_path),
         )  # fmt: skip
     scan = read_scan(input_path, modality=modality, patient_id=patient_id, **read_kw)
     if brain_mask is not None:

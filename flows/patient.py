@@ -34,7 +34,7 @@ from flows.artifacts import publish_patient_artifacts
 from storage import nifti
 from storage.brain_mask import GivenBrainMask, read_given_brain_mask
 from storage.formats import encode_parquet
-from storage.inputs import input_digest
+from storage.inputs import input_digest, input_location
 from storage.objectstore import is_url
 from storage.patient_outputs import (
     join_notes,
@@ -49,6 +49,7 @@ from storage.publish import (
     PUBLISH_MANIFEST,
     check_destination,
     check_output_not_input,
+    check_same_input,
     clean_stale_staging,
     published_is_current,
     staged_folder,
@@ -176,7 +177,7 @@ def prepare_source(
     if out_dir is not None and not is_url(out_dir):  # an object store holds no local input
         check_destination(
             Path(out_dir) / pid, [path], derived_from=None if patient_id is not None else digest,
-            suggestion=suggest_patient_id(path),
+            location=input_location(path), suggestion=suggest_patient_id(path),
         )  # fmt: skip
     return InputSource(
         path=str(path.resolve()),
@@ -189,6 +190,7 @@ def prepare_source(
         slice_gap_mm=slice_gap_mm,
         skip_unreadable=bool(skip_unreadable),
         max_voxels=int(max_voxels),
+        id_derived=patient_id is None,
     )
 
 
@@ -578,7 +580,14 @@ def publish_patient(
     grid = source_grid_from_metadata(scan_ref.metadata)
     tumour_found = bool(metrics["tumour_found"])
     art = {name: out.artifacts for name, out in outputs.items()}
-    with staged_folder(out_dir, pid) as staging:
+    same_input = None
+    if source.id_derived:  # checked again right before the swap: a concurrent run's folder
+        location = input_location(source.path)
+
+        def same_input(final: Path) -> None:
+            check_same_input(final, source.digest, location=location)
+
+    with staged_folder(out_dir, pid, check=same_input) as staging:
         files: list[str] = []
 
         def put(name: str, data: bytes) -> None:
@@ -620,7 +629,11 @@ def publish_patient(
         put("slices.parquet", encode_parquet(table))
         put("metrics.parquet", encode_parquet(pd.DataFrame([metrics])))
         rule = str(metrics.get("eq7_slice_rule", "segmented"))
-        input_info = {"name": source.name, "digest_sha256": source.digest}
+        input_info = {
+            "name": source.name,
+            "digest_sha256": source.digest,
+            "location_sha256": input_location(source.path),
+        }
         input_info.update(modality=source.modality, patient_id=pid)
         code = {name: spec.code_digest for name, spec in stages.STAGES.items()}
         provenance = build_provenance(

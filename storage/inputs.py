@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import hashlib
+import os
 import re
 from pathlib import Path
 
 from tumor3d.errors import InputError, os_error_path, os_error_text
 
-__all__ = ["input_digest"]
+__all__ = ["input_digest", "input_location"]
 
 _SIDECAR_SUFFIXES = (".json", ".yaml", ".yml")
 _CHUNK = 1 << 20
@@ -59,6 +60,22 @@ def _hash_file(h: hashlib._Hash, path: Path, label: str) -> None:
         while chunk := fh.read(_CHUNK):
             h.update(chunk)
     h.update(b"\0")
+
+
+def input_location(path: str | Path) -> str:
+    """SHA-256 of the input's resolved absolute path: where it is, not what it holds.
+
+    Recorded in ``provenance.json`` (``input.location_sha256``) so that a re-run
+    of the same file is told from another file of the same name without
+    writing the path itself (folder names may hold a patient's name) into the
+    outputs.
+
+    >>> a, b = "/data/pat3/flair.nii.gz", "/data/pat3/../pat3/flair.nii.gz"
+    >>> input_location(a) == input_location(b) != input_location("/data/pat4/flair.nii.gz")
+    True
+    """
+    resolved = os.path.abspath(os.path.realpath(os.fspath(path)))
+    return hashlib.sha256(resolved.encode("utf-8", "surrogateescape")).hexdigest()
 
 
 def input_digest(path: str | Path) -> str:

@@ -14,7 +14,9 @@ Three safety rules:
 * :func:`check_replaceable` -- only a tumor3d result folder (or an empty
   one) is ever replaced: a folder of the user's own files that happens to
   have the patient's name is refused (the caller checks before any work,
-  and :func:`staged_folder` checks again before the swap);
+  and :func:`staged_folder` checks again at entry and right before the swap);
+  a local folder only: an ``s3://`` output (``storage.remote_publish``)
+  replaces every object under its prefix;
 * :func:`clean_stale_staging` -- staging and trash folders left by a killed
   run (its process is gone) are removed by the next publish of that name;
   those of a live concurrent run are left alone.
@@ -36,7 +38,7 @@ import os
 import re
 import shutil
 import uuid
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -50,6 +52,7 @@ __all__ = [
     "check_replaceable",
     "check_same_input",
     "clean_stale_staging",
+    "is_tumor3d_result",
     "published_is_current",
     "staged_folder",
     "write_publish_manifest",
@@ -61,8 +64,35 @@ PUBLISH_MANIFEST = ".tumor3d-publish-key.json"
 _MANIFEST_FORMAT = 1
 
 #: Files that mark a folder as a tumor3d result (one published before the publish
-#: manifest existed still holds ``provenance.json``): only such a folder is replaced.
+#: manifest existed still holds ``provenance.json``): only such a folder is replaced,
+#: and only when the file's content is tumor3d's (:func:`is_tumor3d_result`: other
+#: pipelines write a ``provenance.json`` too).
 RESULT_MARKERS = (PUBLISH_MANIFEST, "provenance.json")
+
+
+def _json_object(path: Path) -> dict | None:
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+def is_tumor3d_result(folder: str | Path) -> bool:
+    """Whether ``folder`` holds a tumor3d result: its publish manifest, or its provenance.
+
+    The manifest (:data:`PUBLISH_MANIFEST`) with its ``key`` and ``files``, or a
+    ``provenance.json`` whose ``versions`` name ``tumor3d``: the file names alone
+    are not enough (another pipeline's ``provenance.json`` is someone's result).
+    """
+    folder = Path(folder)
+    manifest = _json_object(folder / PUBLISH_MANIFEST)
+    if manifest is not None and {"key", "files"} <= manifest.keys():
+        return True
+    prov = _json_object(folder / "provenance.json")
+    return prov is not None and isinstance(prov.get("versions"), dict) and (
+        "tumor3d" in prov["versions"]
+    )
 
 _LEFTOVER = re.compile(r"^\.(?P<name>.+)\.(?:partial|old)-(?P<pid>\d+)-[0-9a-f]{8}$")
 
@@ -117,49 +147,66 @@ def check_replaceable(final: str | Path) -> None:
     target = Path(final).expanduser()
     if not (target.exists() or target.is_symlink()):
         return
-    if not target.is_dir() or target.is_symlink():
+    if target.is_symlink():
+        raise InputError(
+            "this output path is a symbolic link; publishing would replace the link (not "
+            "what it points to): choose another --out or patient id",
+            path=str(target),
+        )
+    if not target.is_dir():
         raise InputError(
             "this output path exists and is not a folder; publishing would replace it: "
             "choose another --out or patient id",
             path=str(target),
         )
-    if any((target / m).is_file() for m in RESULT_MARKERS) or not any(target.iterdir()):
+    if is_tumor3d_result(target) or not any(target.iterdir()):
         return
     raise InputError(
-        f"this folder exists and is not a tumor3d result (none of {', '.join(RESULT_MARKERS)} "
-        "in it); publishing replaces the folder as a whole and would delete its files: choose "
-        "another --out or patient id, or remove the folder yourself",
+        "this folder exists and is not a tumor3d result (no tumor3d "
+        f"{' or '.join(RESULT_MARKERS)} in it); publishing replaces the folder as a whole and "
+        "would delete its files: choose another --out or patient id, or remove the folder "
+        "yourself",
         path=str(target),
     )
 
 
-def check_same_input(final: str | Path, digest: str, *, suggestion: str | None = None) -> None:
+def check_same_input(
+    final: str | Path,
+    digest: str | Callable[[], str],
+    *,
+    location: str | None = None,
+    suggestion: str | None = None,
+) -> None:
     """Refuse to publish into ``final`` when it holds the results of another input.
 
     For a patient id derived from the file name (no ``--patient-id``): two
     inputs of the same name (``pat3/flair.nii.gz``, ``pat4/flair.nii.gz``)
     get the same id, and the second would silently replace the first. The
-    input digest recorded in ``final/provenance.json`` (``input.digest_sha256``,
-    :func:`storage.inputs.input_digest`) must be ``digest``; a folder without
-    a readable record is left to :func:`check_replaceable`.
+    record in ``final/provenance.json`` (``input``) is the same input when its
+    ``location_sha256`` is ``location`` (:func:`storage.inputs.input_location`:
+    the same file, edited or not; a header fixed as a note asked is a re-run)
+    or its ``digest_sha256`` is ``digest`` (:func:`storage.inputs.input_digest`:
+    the same content, moved). ``digest`` may be a callable, called only when the
+    location does not decide (the content is hashed only then). A folder
+    without a readable record is left to :func:`check_replaceable`.
 
     Raises
     ------
     InputError
         Naming the folder, the other input and, with ``suggestion``, an id to give.
     """
-    record = Path(final).expanduser() / "provenance.json"
-    try:
-        doc = json.loads(record.read_text(encoding="utf-8"))
-        old = doc["input"]
-        old_digest, old_name = str(old["digest_sha256"]), str(old.get("name", "?"))
-    except (OSError, ValueError, KeyError, TypeError):
+    doc = _json_object(Path(final).expanduser() / "provenance.json")
+    old = None if doc is None else doc.get("input")
+    if not isinstance(old, dict) or "digest_sha256" not in old:
         return
-    if old_digest == digest:
+    if location is not None and old.get("location_sha256") == location:
+        return
+    old_digest, old_name = str(old["digest_sha256"]), str(old.get("name", "?"))
+    if old_digest == (digest() if callable(digest) else digest):
         return
     hint = f" (e.g. --patient-id {suggestion})" if suggestion else ""
     raise InputError(
-        f"this folder holds the results of another input ({old_name}, SHA-256 "
+        f"this folder holds the results of another input file ({old_name}, SHA-256 "
         f"{old_digest[:12]}...) under the same patient id, which was derived from the file "
         f"name: give --patient-id{hint} to keep both, or --patient-id "
         f"{Path(final).name} to replace it",
@@ -171,20 +218,21 @@ def check_destination(
     final: str | Path,
     inputs: Iterable[str | Path],
     *,
-    derived_from: str | None = None,
+    derived_from: str | Callable[[], str] | None = None,
+    location: str | None = None,
     suggestion: str | None = None,
 ) -> None:
     """The destination rules of a patient's folder ``final``, checked before any work.
 
     :func:`check_output_not_input` (never over an input), :func:`check_replaceable`
     (only a tumor3d result or an empty folder is replaced) and, with
-    ``derived_from`` (the input's digest, when the patient id was derived from
-    its file name), :func:`check_same_input`.
+    ``derived_from`` (the input's digest, or a callable giving it, when the
+    patient id was derived from its file name), :func:`check_same_input`.
     """
     check_output_not_input(final, inputs)
     check_replaceable(final)
     if derived_from is not None:
-        check_same_input(final, derived_from, suggestion=suggestion)
+        check_same_input(final, derived_from, location=location, suggestion=suggestion)
 
 
 def _pid_alive(pid: int) -> bool:
@@ -269,11 +317,15 @@ def _swap_into_place(staging: Path, final: Path, *, attempts: int = 20) -> None:
 
 
 @contextmanager
-def staged_folder(out_dir: str | Path, name: str) -> Iterator[Path]:
+def staged_folder(
+    out_dir: str | Path, name: str, *, check: Callable[[Path], None] | None = None
+) -> Iterator[Path]:
     """Yield an empty staging folder; on normal exit it replaces ``<out_dir>/<name>``.
 
     ``<out_dir>/<name>`` must be absent, empty or a tumor3d result
-    (:func:`check_replaceable`). Leftovers of killed runs for ``name`` are
+    (:func:`check_replaceable`), and pass ``check`` (e.g. :func:`check_same_input`),
+    both at entry and again right before the swap: a concurrent run may have put
+    its folder there meanwhile. Leftovers of killed runs for ``name`` are
     cleaned first. On an exception
     the staging folder is removed and ``<out_dir>/<name>`` is untouched.
 
@@ -290,12 +342,19 @@ def staged_folder(out_dir: str | Path, name: str) -> Iterator[Path]:
     out.mkdir(parents=True, exist_ok=True)
     clean_stale_staging(out, name)
     final = out / name
-    check_replaceable(final)
+
+    def checks() -> None:
+        check_replaceable(final)
+        if check is not None:
+            check(final)
+
+    checks()
     staging = out / f".{name}.partial-{_tag()}"
     staging.mkdir()
     try:
         yield staging
         _fsync_tree(staging)
+        checks()
         _swap_into_place(staging, final)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)

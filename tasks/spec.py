@@ -95,9 +95,12 @@ class InputSource(BaseModel):
     skip_unreadable: bool = False
     #: Refuse an input whose header declares more voxels (checked before reading).
     max_voxels: int = MAX_VOXELS_DEFAULT
+    #: The patient id was derived from the file name (no ``--patient-id``): publishing
+    #: then never replaces another input's results (``storage.publish.check_same_input``).
+    id_derived: bool = False
 
-    #: Where the input lives does not change what it is.
-    __cache_exclude__: ClassVar[frozenset[str]] = frozenset({"path"})
+    #: Where the input lives, and how its id was chosen, do not change what it is.
+    __cache_exclude__: ClassVar[frozenset[str]] = frozenset({"path", "id_derived"})
 
 
 @dataclass(frozen=True)

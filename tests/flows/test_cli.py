@@ -356,7 +356,13 @@ def test_run_refuses_to_replace_another_inputs_results_under_a_derived_id(tmp_pa
     second = _nifti(tmp_path / "pat4" / "flair.nii.gz", rng.random((12, 12, 4)) + 1)
     done = tmp_path / "out" / "flair"  # what the run of the first left
     done.mkdir(parents=True)
-    record = json.dumps({"input": {"name": "flair.nii.gz", "digest_sha256": input_digest(first)}})
+    from storage.inputs import input_location
+
+    record = json.dumps({
+        "versions": {"tumor3d": "0.1.0"},
+        "input": {"name": "flair.nii.gz", "digest_sha256": input_digest(first),
+                  "location_sha256": input_location(first)},
+    })  # fmt: skip
     (done / "provenance.json").write_text(record)
     result = runner.invoke(app, ["run", str(second), "--out", str(tmp_path / "out")])
     assert result.exit_code == 2, result.output
