@@ -34,7 +34,7 @@ from scipy import ndimage as ndi
 from skimage.filters import threshold_multiotsu, threshold_otsu
 from skimage.morphology import disk
 
-from tumor3d.brain_extraction import extract_brain, head_exterior
+from tumor3d.brain_extraction import extract_brain, head_around_brain, head_exterior
 from tumor3d.errors import InputError
 
 __all__ = [
@@ -70,10 +70,12 @@ class PreprocessResult:
         ``brain_extraction`` used, ``auto`` resolved).
     head_exterior : ndarray of bool or None
         Where the brain was found inside a raw head (``"skull_strip"``,
-        ``"head"``): the air outside the head
-        (:func:`tumor3d.brain_extraction.head_exterior`), which no brain voxel
-        comes within the scalp and skull's thickness of. None for a
-        skull-stripped volume (``"foreground"``) and a given mask.
+        ``"head"``) and the volume shows a head around it
+        (:func:`tumor3d.brain_extraction.head_around_brain`): the air outside
+        the head (:func:`tumor3d.brain_extraction.head_exterior`), which no
+        brain voxel comes within the scalp and skull's thickness of. None for a
+        skull-stripped volume (``"foreground"``), a given mask, and a volume
+        of the brain alone.
     """
 
     original_u8: np.ndarray
@@ -1019,7 +1021,12 @@ def preprocess_volume(
         )
 
     enhanced = np.where(brain, enhanced, np.uint8(0))
-    exterior = head_exterior(original) if mode in ("skull_strip", "head") else None
+    exterior = None
+    if mode in ("skull_strip", "head"):  # a raw head: its air, if it shows a head at all
+        pixel_mm = (1.0, 1.0) if spacing_mm is None else (sp[1], sp[2])
+        exterior = head_exterior(original, pixel_mm)
+        if not head_around_brain(brain, exterior, pixel_mm):
+            exterior = None
     return PreprocessResult(
         original_u8=original, enhanced=enhanced, brain_mask=brain, brain_extraction=mode,
         head_exterior=exterior,

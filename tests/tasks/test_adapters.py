@@ -339,3 +339,28 @@ def test_preprocess_stage_stores_the_largest_brain_slice_in_mm2(tmp_path):
     largest = int(brain.reshape(brain.shape[0], -1).sum(axis=1).max())
     assert values["brain_max_slice_mm2"] == pytest.approx(largest * 0.7 * 0.5)
     assert values["brain_max_slice_mm2"] > 0
+
+
+def test_the_air_outside_a_raw_head_reaches_the_segment_stage_and_a_stripped_one_has_none(
+    tumour_run, tmp_path
+):
+    """The preprocess stage stores the air of a raw head (the phantom's), all False for a
+    skull-stripped volume; a deep tumour gets no scalp caveat from it."""
+    run, store = tumour_run
+    ext, _ = store.get_volume(run.outputs["preprocess"].artifacts["head_exterior"])
+    brain, _ = store.get_volume(run.outputs["preprocess"].artifacts["brain_mask"])
+    ext, brain = ext.astype(bool), brain.astype(bool)
+    assert ext.any() and not (ext & brain).any()
+    assert not any("air outside the head" in c for c in run.outputs["segment-tumor"].values[
+        "caveats"])  # fmt: skip
+    # the same brain skull-stripped: a foreground volume, no air stored
+    scan, affine = store.get_volume(run.outputs["ingest-scan"].artifacts["scan"])
+    stripped = np.where(brain, scan, 0.0).astype(np.float32)
+    path = tmp_path / "stripped.nii.gz"
+    nib.save(nib.Nifti1Image(stripped.transpose(2, 1, 0), affine), path)
+    again = run_stages_direct(path, tmp_path / "store", patient_id="s1")
+    assert again.outputs["preprocess"].values["brain_extraction"] == "foreground"
+    ext2, _ = ArtifactStore(tmp_path / "store").get_volume(
+        again.outputs["preprocess"].artifacts["head_exterior"]
+    )
+    assert not ext2.any()
