@@ -169,7 +169,7 @@ def to_uint8(image: np.ndarray, *, window_percentiles=(0.5, 99.5)) -> np.ndarray
 BACKGROUND_TOLERANCE = 1e-6
 
 #: The intensity range of that tolerance is robust: between these quantiles of the
-#: volume (of at most ``_RANGE_SAMPLE`` evenly strided voxels), so that a few extreme
+#: volume (of at most ``_RANGE_SAMPLE`` voxels drawn with a fixed seed), so that a few extreme
 #: voxels do not widen it. With the plain minimum and maximum, one voxel at 1e7 in a
 #: skull-stripped BraTS FLAIR (range about 10) made a tolerance of 10: the whole brain
 #: became "background" and the run said "no tumour found" (measured by an audit).
@@ -208,8 +208,10 @@ def masked_background(arr: np.ndarray) -> MaskedBackground:
     (0.0, 0.75, 24)
     """
     lo = float(arr.min())
-    sample = arr.reshape(-1)[:: max(1, arr.size // _RANGE_SAMPLE)]
-    q_lo, q_hi = np.quantile(sample.astype(np.float64), BACKGROUND_RANGE_QUANTILES)
+    flat = arr.reshape(-1)
+    if flat.size > _RANGE_SAMPLE:  # a seeded random sample: a stride could alias with a row
+        flat = flat[np.random.default_rng(0).integers(0, flat.size, _RANGE_SAMPLE)]
+    q_lo, q_hi = np.quantile(flat.astype(np.float64), BACKGROUND_RANGE_QUANTILES)
     tol = BACKGROUND_TOLERANCE * float(q_hi - q_lo)
     border = np.concatenate(
         [arr[:, 0, :].ravel(), arr[:, -1, :].ravel(), arr[:, :, 0].ravel(), arr[:, :, -1].ravel()]

@@ -580,3 +580,22 @@ def test_one_extreme_voxel_leaves_a_skull_stripped_brain_as_it_was(spike, where)
     inside[zyx] = False
     step = np.abs(got.original_u8[inside].astype(int) - clean.original_u8[inside])
     assert step.max() <= 1 and np.mean(step) < 0.05
+
+
+def test_the_background_range_sample_does_not_alias_with_the_rows():
+    """A review: a stride of size // 200,000 that is a multiple of the row length samples
+    one column only; if that column is background, the range (and tolerance) is 0 and a
+    resampled background (equal up to a few ulps) is lost."""
+    from tumor3d.preprocess import masked_background
+
+    rng = np.random.default_rng(3)
+    shape = (10_000, 20, 20)  # size // 200_000 = 20: a multiple of the row length
+    vol = rng.normal(1.0, 0.5, shape).astype(np.float32)
+    background = np.zeros(shape, bool)
+    background[:, :, :3] = True
+    background[:, :3, :] = True
+    ulps = rng.integers(-2, 3, shape).astype(np.float32) * np.spacing(np.float32(3.16))
+    vol[background] = (np.float32(-3.16) + ulps)[background]
+    bg = masked_background(vol)
+    assert bg.share == pytest.approx(background.mean(), abs=1e-6)
+    assert np.array_equal(bg.mask, background)
