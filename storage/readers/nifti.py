@@ -146,10 +146,10 @@ def load_nifti_volume(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
             f"complex voxel values (data type {dtype}): give the magnitude image", where
         )
     _check_voxel_size(p, img)
-    affine = np.asarray(img.affine, dtype=np.float64)
+    # in mm first: a 0.1 mm grid written in metres has a determinant of 1e-12
+    affine = _affine_in_mm(img.header, np.asarray(img.affine, dtype=np.float64))
     if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < SINGULAR_DET_TOL:
         raise InputError("the image affine is singular or not finite", where)
-    affine = _affine_in_mm(img.header, affine)
     try:
         data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32)
     except Exception as exc:

@@ -520,7 +520,10 @@ def test_nifti_zero_voxel_size_without_sform_is_refused(tmp_path):
 
 @pytest.mark.parametrize(("unit", "factor"), [("meter", 1000.0), ("micron", 0.001), ("mm", 1.0)])
 def test_nifti_spatial_units_are_converted_to_mm(tmp_path, unit, factor):
-    """A valid NIfTI in metres (xyzt_units) is read in mm, as ITK and MINC read it."""
+    """A valid NIfTI in metres (xyzt_units) is read in mm, as ITK and MINC read it.
+
+    In metres LAS's determinant is 3.6e-9: the singular-affine check comes after the
+    conversion (a 0.1 mm grid in metres would be 1e-12)."""
     in_unit = LAS.copy()
     in_unit[:3, :] /= factor  # the same grid, its lengths written in the file's unit
     img = nib.Nifti1Image(ramp_volume((8, 6, 4)), in_unit)
@@ -551,3 +554,13 @@ def test_a_volume_larger_than_any_scanner_images_is_refused(tmp_path, zooms, ref
     with pytest.raises(InputError, match=r"big\.nii\.gz: the slices span .* more than any MR "
                                          r"scanner images"):  # fmt: skip
         read_scan(f)
+
+
+def test_a_fine_grid_written_in_metres_is_not_taken_for_a_singular_affine(tmp_path):
+    aff = np.diag([0.1e-3, 0.1e-3, 0.1e-3, 1.0])  # 0.1 mm voxels in metres: det 1e-12
+    img = nib.Nifti1Image(ramp_volume((8, 6, 4)), aff)
+    img.header.set_xyzt_units("meter")
+    img.set_qform(aff, code=1)
+    img.set_sform(aff, code=1)
+    nib.save(img, str(tmp_path / "fine.nii.gz"))
+    assert read_scan(tmp_path / "fine.nii.gz").pixel_spacing_mm == pytest.approx((0.1, 0.1))
