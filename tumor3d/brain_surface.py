@@ -22,10 +22,10 @@ from tumor3d.mesh import Mesh
 
 __all__ = ["MAX_GRID_VOXELS", "brain_surface", "display_mesh"]
 
-#: The brain surface's grid holds at most this many voxels (16 M: a 2 mm grid over
-#: 50 x 50 x 50 cm, twice a head's field of view each way); over a larger extent the
-#: grid spacing grows instead (the surface is context for the renders, not measured).
-MAX_GRID_VOXELS = 16_000_000
+#: The brain surface's grid holds at most this many voxels (4 M: a 2 mm grid over a
+#: 32 cm cube; a head's 24 x 24 x 20 cm field of view needs 1.4 M); over a larger extent
+#: the grid spacing grows instead (the surface is context for the renders, not measured).
+MAX_GRID_VOXELS = 4_000_000
 
 
 def brain_surface(brain_mask: np.ndarray, affine: np.ndarray, *, spacing_mm: float = 2.0) -> Mesh:

@@ -86,6 +86,18 @@ def _mask3d(tumor_mask: np.ndarray) -> np.ndarray:
     return check_binary_mask(tumor_mask, "tumor_mask", ndim=3)
 
 
+def _slice_runs(slices: np.ndarray) -> str:
+    """Sorted slice indices as runs: ``[3, 4, 5, 9]`` -> ``"3-5, 9"``."""
+    zs = [int(z) for z in np.unique(slices)]
+    runs: list[list[int]] = []
+    for z in zs:
+        if runs and z == runs[-1][1] + 1:
+            runs[-1][1] = z
+        else:
+            runs.append([z, z])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
+
+
 def scan_end_caveat(tumor_mask: np.ndarray) -> str | None:
     """The caveat for tumour on the scan's first or last slice, else None.
 
@@ -166,10 +178,10 @@ def midline_caveat(
     runs = [r for r in runs if r[1] - r[0] >= int(min_slices)]
     if not runs:
         return None
-    where = ", ".join(str(a) if b - a == 1 else f"{a}-{b - 1}" for a, b in runs)
-    plural = "s" if len(runs) > 1 or runs[0][1] - runs[0][0] > 1 else ""
+    zs = np.concatenate([np.arange(a, b) for a, b in runs])
+    plural = "s" if zs.size > 1 else ""
     return (
-        f"tumour reaches the brain's midline on slice{plural} {where} (0-based, within "
+        f"tumour reaches the brain's midline on slice{plural} {_slice_runs(zs)} (0-based, within "
         f"{0.5 * SYMMETRY_TOLERANCE_MM:g} mm of the mid-sagittal plane): the symmetry rule "
         "cannot tell a tumour that crosses the midline from a bilateral normal structure, "
         "so a part in the other hemisphere may be missing (check those slices in "
@@ -205,18 +217,6 @@ def symmetric_caveat(
         "not confirm it, and it was found by its brightness and depth alone (check in "
         "overlay_tumor.png that it is a lesion and not normal tissue)"
     )
-
-
-def _slice_runs(slices: np.ndarray) -> str:
-    """Sorted slice indices as runs: ``[3, 4, 5, 9]`` -> ``"3-5, 9"``."""
-    zs = [int(z) for z in np.unique(slices)]
-    runs: list[list[int]] = []
-    for z in zs:
-        if runs and z == runs[-1][1] + 1:
-            runs[-1][1] = z
-        else:
-            runs.append([z, z])
-    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
 def scalp_caveat(
