@@ -7,7 +7,7 @@ if any, is first renamed aside to ``.<name>.old-<pid>-<random>`` and removed
 afterwards; restored if the swap fails). A failed run leaves nothing under
 the final name.
 
-Three safety rules:
+Four safety rules:
 
 * :func:`check_output_not_input` -- a folder that is, or contains, an input
   is never removed or replaced (the caller checks before any work);
@@ -17,6 +17,9 @@ Three safety rules:
   and :func:`staged_folder` checks again at entry and right before the swap);
   a local folder only: an ``s3://`` output (``storage.remote_publish``)
   replaces every object under its prefix;
+* :func:`check_same_input` -- for a patient id derived from the file name,
+  a folder holding another input file's results is not replaced (checked
+  before any work and, by :func:`staged_folder`, right before the swap);
 * :func:`clean_stale_staging` -- staging and trash folders left by a killed
   run (its process is gone) are removed by the next publish of that name;
   those of a live concurrent run are left alone.
@@ -123,10 +126,11 @@ def check_output_not_input(final: str | Path, inputs: Iterable[str | Path]) -> N
 def check_replaceable(final: str | Path) -> None:
     """Refuse to publish into ``final`` unless it is absent, empty or a tumor3d result.
 
-    Publishing replaces ``final`` as a whole. A folder that holds neither
-    marker of :data:`RESULT_MARKERS` is someone's own files under the
-    patient's name (``--out ~/project --patient-id data``), which would be
-    deleted; a file there would be moved aside.
+    Publishing replaces ``final`` as a whole. A folder that is not a tumor3d
+    result (:func:`is_tumor3d_result`: no tumor3d content in the files of
+    :data:`RESULT_MARKERS`) is someone's own files under the patient's name
+    (``--out ~/project --patient-id data``), which would be deleted; a file
+    or a symbolic link there would be moved aside.
 
     Raises
     ------

@@ -45,11 +45,13 @@ looks as trustworthy as any other:
   thinnest scalp plus skull (:data:`tumor3d.brain_extraction.
   SCALP_SKULL_MIN_MM`, 5 mm) inside the head's surface, so tumour voxels
   nearer the air are scalp that the brain mask kept and the lesion grew
-  into (scalp fat and marrow are bright on FLAIR and T1). Measured
+  into (scalp fat and marrow are bright on FLAIR and T1). The air is
+  given only where the volume shows a head around the brain
+  (:func:`tumor3d.brain_extraction.head_around_brain`). Measured
   (``reports/segmentation.md``): the raw TCGA FLAIR, whose mask keeps the
-  scalp on its top slices, has 1,131 tumour voxels within 5 mm of the air
-  on slices 14-15 and 19-21; every phantom's tumour lies 14-35 mm from it
-  and its brain at least 10.7 mm; the raw TCGA T2's lesion 10.8 mm.
+  scalp on its top slices, has 3.52 mL of tumour within 5 mm of the air on
+  slices 14-15 and 19-22; every phantom's tumour lies 14-35 mm from it;
+  the raw TCGA T2's lesion 10.8 mm.
 
 Slice numbers are 0-based array indices (``slice_index`` of the run's
 ``slices.parquet``).
@@ -292,9 +294,9 @@ def segmentation_caveats(
     the lesion model's (:data:`tumor3d.lesion.LESION_DEFAULTS`).
     """
     m = _mask3d(tumor_mask)
+    sp = (1.0, 1.0, 1.0) if spacing_mm is None else tuple(float(v) for v in spacing_mm)
     out = [scan_end_caveat(m)]
     if plane is not None:
-        sp = (1.0, 1.0, 1.0) if spacing_mm is None else tuple(float(v) for v in spacing_mm)
         if midline_lesion:
             out.append(symmetric_caveat(m, plane, sp))
         else:
@@ -302,6 +304,5 @@ def segmentation_caveats(
                 midline_caveat(m, plane, sp, min_region_mm2=min_region_mm2, min_slices=min_slices)
             )
     if head_exterior is not None:
-        sp = (1.0, 1.0, 1.0) if spacing_mm is None else tuple(float(v) for v in spacing_mm)
         out.append(scalp_caveat(m, head_exterior, sp))
     return tuple(c for c in out if c)
