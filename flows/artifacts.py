@@ -36,7 +36,7 @@ _KEY_OK = re.compile(r"^[a-z0-9]+(-[a-z0-9]+)*$")
 
 #: Cohort table columns (those present are shown, in this order).
 _COHORT_COLUMNS = (
-    "patient_id", "status", "failed_stage", "error",
+    "patient_id", "status", "review_reasons", "failed_stage", "error",
     "volume_eq7_mm3", "volume_eq7_ml", "volume_eq7_ci95_low_mm3", "volume_eq7_ci95_high_mm3",
     "volume_voxel_mm3", "volume_voxel_ml", "volume_mesh_mm3", "volume_mesh_ml",
     "volume_mesh_simplified_mm3", "n_slices", "n_abnormal_slices", "faces_mc",

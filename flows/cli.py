@@ -9,7 +9,7 @@ N at a time), ``demo`` (a built-in phantom patient end to end), ``phantom``
 Exit codes (every error is one line on stderr naming the file and the
 problem, never a traceback; nothing is published under the final names):
 
-* 0 -- success;
+* 0 -- success: every result has status ``ok``;
 * 1 -- ``cohort``/``evaluate``: some patients failed (the summary names them;
   a manifest row whose image is missing is such a failure);
 * 2 -- bad input: a missing or unreadable file, an unsafe patient id, an
@@ -19,7 +19,12 @@ problem, never a traceback; nothing is published under the final names):
 * 3 -- environment error: the artifact store or an output folder cannot be
   written (a full disk, a read-only mount, no permission), a corrupted store
   object that could not be repaired, a Prefect server that cannot be started
-  or reached (:data:`EXIT_ENVIRONMENT`).
+  or reached (:data:`EXIT_ENVIRONMENT`);
+* 4 -- ``run``/``demo``/``cohort``: every result was published, but some has
+  status ``check``: the tool's own checks doubt it (a segmentation caveat, a
+  brain mask that makes the volume unreliable, skipped files, a segmentation
+  that asks for review); the summary says why (:data:`EXIT_CHECK`,
+  :mod:`tumor3d.review`). A cohort with failures exits 1.
 
 User-supplied strings are escaped before Rich prints them. When stdout is not
 a terminal, progress is one plain line per stage instead of a progress bar.
@@ -67,6 +72,14 @@ err_console = Console(stderr=True)
 EXIT_INPUT = 2
 #: Exit code of environment errors: store or output not writable, server unavailable.
 EXIT_ENVIRONMENT = 3
+#: Exit code of results published with status ``check`` (a human should look).
+EXIT_CHECK = 4
+#: Rich style of each status (tumor3d.review).
+_STATUS_STYLE = {"ok": "bold green", "check": "bold yellow", "failed": "bold red"}
+
+
+def _status_text(status: str) -> str:
+    return f"[{_STATUS_STYLE.get(status, 'bold')}]{escape(status)}[/]"
 
 
 def _error_line(exc: BaseException) -> tuple[str, int]:
@@ -177,9 +190,19 @@ class _PlainReporter:
         print(f"{event.patient_id}\t{event.stage}\t{what}", flush=True)
 
 
+def _patient_exit_code(result: Any) -> int:
+    """0 for status ok, :data:`EXIT_CHECK` for check (tumor3d.review)."""
+    return EXIT_CHECK if result.metrics.get("status") == "check" else 0
+
+
 def print_summary(result: Any, truth_mm3: float | None = None) -> None:
-    """Print a patient's volumes (mm3 and mL, by method), slices and stage times."""
+    """Print a patient's volumes (mm3 and mL, by method), slices, stage times and status.
+
+    The status comes last: ``ok``, or ``check`` with the reasons the tool's
+    own checks doubt the result (:mod:`tumor3d.review`).
+    """
     from flows.patient import VOLUME_LABELS, VOLUME_METHODS
+    from storage.patient_outputs import split_notes
 
     m = result.metrics
     table = Table(title=f"Tumour volume, patient {escape(result.patient_id)}", title_justify="left")
@@ -225,8 +248,10 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
             "cache hit" if s.cached else f"{s.wall_seconds:.2f} s",
         )
     console.print(times)
+    reasons = split_notes(m.get("review_reasons"))
     for note in getattr(result, "notes", []):
-        console.print(f"[bold yellow]{escape(note)}[/]")
+        if note not in reasons:
+            console.print(f"[dim]note:[/] {escape(note)}", soft_wrap=True)
     eq7 = m.get("eq7_slice_rule")
     if eq7:
         from tumor3d.metrics import EQ7_SLICE_RULES
@@ -237,6 +262,24 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     report = Path(result.output_dir) / "report.html"
     if report.is_file():  # a local output folder (an s3:// one is not checked here)
         console.print(f"report: [bold]{escape(str(report))}[/] (open in a browser)")
+    status = str(m.get("status", "ok"))
+    if reasons:
+        console.print(
+            f"status: {_status_text(status)}: the tool's own checks doubt this result; look "
+            "before using it:",
+            soft_wrap=True,
+        )
+        for reason in reasons:
+            console.print(f"  [yellow]-[/] {escape(reason)}", soft_wrap=True)
+    else:
+        console.print(f"status: {_status_text(status)}")
+
+
+def _location(where: str | Path) -> str | Path:
+    """An ``s3://`` URL as given (a Path would fold its ``//``), else a local path."""
+    from storage.objectstore import is_url
+
+    return str(where) if is_url(where) else Path(where)
 
 
 def _preflight(
@@ -468,6 +511,7 @@ def run(
     except _HANDLED as exc:
         raise _fail(exc) from None
     print_summary(result)
+    raise typer.Exit(code=_patient_exit_code(result))
 
 
 @app.command()
@@ -484,8 +528,9 @@ def cohort(
 ) -> None:
     """Run every patient of a manifest, N at a time: OUT/<id>/, OUT/cohort.parquet, OUT/cohort.md.
 
-    Exit code 0 when every patient succeeded, 1 when some failed (named in the
-    summary; a row whose image is missing fails alone), 2 for an invalid
+    Exit code 0 when every patient succeeded with status ok, 1 when some failed
+    (named in the summary; a row whose image is missing fails alone), 4 when
+    none failed but some has status check (the notes say why), 2 for an invalid
     manifest or configuration, 3 for an environment error (an unwritable
     output, an unreachable Dask scheduler or object store, a Prefect server
     that cannot start).
@@ -570,8 +615,9 @@ def serve(
 
 
 def print_cohort_summary(result: Any) -> None:
-    """Print each patient's status and volumes, and name the failures."""
+    """Print each patient's status, volumes and notes; name the failures and the checks."""
     from flows.patient import VOLUME_LABELS
+    from storage.cohort_report import row_notes
 
     table = Table(title=f"Cohort: {len(result.patients)} patients", title_justify="left")
     table.add_column("patient")
@@ -579,14 +625,26 @@ def print_cohort_summary(result: Any) -> None:
     for key in VOLUME_LABELS:
         table.add_column(f"{VOLUME_LABELS[key]} (mL)", justify="right")
     table.add_column("cache hits", justify="right")
+    table.add_column("notes", justify="right")
     for p in result.patients:
-        if p.status == "ok":
+        if p.status != "failed":
             vols = [f"{p.metrics[k] / 1000.0:.3f}" for k in VOLUME_LABELS]
             hits = f"{sum(s.cached for s in p.stages)}/{len(p.stages)}"
-            table.add_row(escape(p.patient_id), "ok", *vols, hits)
+            n = len(row_notes(p.metrics))
+            notes = f"{n} (below)" if n else ""
+            table.add_row(escape(p.patient_id), _status_text(p.status), *vols, hits, notes)
         else:
-            table.add_row(escape(p.patient_id), "[red]failed[/]", *["-"] * len(VOLUME_LABELS), "-")
+            table.add_row(
+                escape(p.patient_id), _status_text("failed"), *["-"] * len(VOLUME_LABELS), "-", ""
+            )
     console.print(table)
+    for p in result.patients:
+        if p.status == "failed":
+            continue
+        reasons = row_notes({"review_reasons": p.metrics.get("review_reasons")})
+        for note in row_notes(p.metrics):
+            what = "[yellow]check[/]" if note in reasons else "[dim]note[/]"
+            console.print(f"{what} {escape(p.patient_id)}: {escape(note)}", soft_wrap=True)
     for p in result.failed:
         console.print(
             f"[red]failed[/] {escape(p.patient_id)} at {escape(str(p.failed_stage))}: "
@@ -599,8 +657,10 @@ def print_cohort_summary(result: Any) -> None:
             f"{escape(', '.join(result.removed))}",
             soft_wrap=True,
         )
+    n_check = sum(p.status == "check" for p in result.patients)
+    n_ok = len(result.patients) - len(result.failed) - n_check
     console.print(
-        f"{len(result.patients) - len(result.failed)} ok, {len(result.failed)} failed in "
+        f"{n_ok} ok, {n_check} to check, {len(result.failed)} failed in "
         f"{result.wall_seconds:.1f} s; outputs: [bold]{escape(result.out_dir)}[/] "
         "(cohort.parquet, cohort.md, cohort.html)"
     )
@@ -635,6 +695,7 @@ def demo(
     except _HANDLED as exc:
         raise _fail(exc) from None
     print_summary(result, truth_mm3=truth)
+    raise typer.Exit(code=_patient_exit_code(result))
 
 
 @app.command()

@@ -49,6 +49,7 @@ from storage.cohort_report import (
     cohort_markdown,
     cohort_output_files,
     cohort_table,
+    cohort_title,
     published_patient_ids,
     write_cohort_outputs,
 )
@@ -63,12 +64,15 @@ from tasks.runner import StageRun
 from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
+from tumor3d.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
 
 __all__ = [
     "CohortResult",
+    "EXIT_CHECK",
     "PatientOutcome",
     "cohort_flow",
     "default_workers",
+    "exit_code_of",
     "one_line_error",
     "run_cohort",
 ]
@@ -83,7 +87,9 @@ class PatientOutcome(BaseModel):
     Parameters
     ----------
     patient_id : str
-    status : {"ok", "failed"}
+    status : {"ok", "check", "failed"}
+        ``check``: completed, but the tool's own checks doubt the result
+        (:mod:`tumor3d.review`; the metrics' ``review_reasons`` say why).
     failed_stage : str or None
         The stage that raised (``prepare-input`` before the first stage,
         ``publish`` after the last).
@@ -127,12 +133,35 @@ class CohortResult(BaseModel):
     @property
     def failed(self) -> list[PatientOutcome]:
         """The patients that failed."""
-        return [p for p in self.patients if p.status != "ok"]
+        return [p for p in self.patients if p.status == STATUS_FAILED]
+
+    @property
+    def to_check(self) -> list[PatientOutcome]:
+        """The patients that completed with status ``check``."""
+        return [p for p in self.patients if p.status == STATUS_CHECK]
 
     @property
     def exit_code(self) -> int:
-        """0 when every patient succeeded, 1 when some failed."""
-        return 1 if self.failed else 0
+        """1 when some patient failed, else 4 when some needs a check, else 0."""
+        return exit_code_of([p.status for p in self.patients])
+
+
+#: Exit code of a command whose results completed but some need a human's check.
+EXIT_CHECK = 4
+
+
+def exit_code_of(statuses: list[str]) -> int:
+    """A command's exit code from its patients' statuses (:mod:`tumor3d.review`).
+
+    1 when some failed, else :data:`EXIT_CHECK` (4) when some has status
+    ``check``, else 0.
+
+    >>> exit_code_of(["ok", "ok"]), exit_code_of(["ok", "check"]), exit_code_of(["check", "failed"])
+    (0, 4, 1)
+    """
+    if STATUS_FAILED in statuses:
+        return 1
+    return EXIT_CHECK if STATUS_CHECK in statuses else 0
 
 
 def default_workers() -> int:
@@ -186,12 +215,13 @@ def _run_one(
             stage = names[done] if done < len(names) else "publish"
         report(ProgressEvent(pid, stage, "failed", done, len(names)))
         return PatientOutcome(
-            patient_id=pid, status="failed", failed_stage=stage, error=one_line_error(exc),
+            patient_id=pid, status=STATUS_FAILED, failed_stage=stage, error=one_line_error(exc),
             stages=list(runs), row=_json_row(row),
         )  # fmt: skip
     report(ProgressEvent(pid, "published", "published", len(names), len(names)))
     return PatientOutcome(
-        patient_id=pid, status="ok", output_dir=result.output_dir, metrics=result.metrics,
+        patient_id=pid, status=str(result.metrics.get("status", STATUS_OK)),
+        output_dir=result.output_dir, metrics=result.metrics,
         stages=result.stages, row=_json_row(row),
     )  # fmt: skip
 
@@ -260,7 +290,7 @@ def cohort_flow(
     table = cohort_table([o.model_dump() for o in outcomes])
     markdown = cohort_markdown(
         table, volume_labels=VOLUME_LABELS, stage_names=list(stages.STAGES),
-        title=f"Cohort {Path(out_dir).name}", wall_seconds=wall, workers=workers,
+        title=cohort_title(Path(out_dir).name), wall_seconds=wall, workers=workers,
         removed=removed,
     )  # fmt: skip
     if remote is None:
@@ -274,7 +304,7 @@ def cohort_flow(
         publish_files(remote, "", files, exclusive=False)
     publish_cohort_artifacts(table, name=Path(out_dir).name)
     for o in outcomes:
-        if o.status != "ok":
+        if o.status == STATUS_FAILED:
             logger.warning("patient %s failed at %s: %s", o.patient_id, o.failed_stage, o.error)
     return CohortResult(
         patients=outcomes, removed=removed, out_dir=str(out_dir), workers=workers,

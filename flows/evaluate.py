@@ -240,11 +240,13 @@ def evaluate_flow(
                 "config": cname, "patient_id": pid, "group": _group(p),
                 "reference_kind": p.reference_kind, "acquisition": p.acquisition,
                 "modality": p.source.modality, "image": p.source.image.name,
-                "status": "failed" if o is None else o.status,
+                # evaluated or not; the run's own ok/check is run_status
+                "status": "failed" if o is None or o.status == "failed" else "ok",
+                "run_status": "failed" if o is None else o.status,
                 "failed_stage": None if o is None else o.failed_stage,
                 "error": "not run" if o is None else o.error,
             }  # fmt: skip
-            if o is None or o.status != "ok":
+            if o is None or o.status == "failed":
                 patient_rows.append(base)
                 continue
             base.update({k: v for k, v in o.metrics.items() if k.startswith(("volume_", "n_"))})

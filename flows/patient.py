@@ -67,6 +67,8 @@ from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
 from tumor3d.metrics import EQ7_SLICE_RULES
+from tumor3d.review import NO_TUMOUR_NOTE, Review, review_status
+from tumor3d.review import run_notes as review_notes
 from tumor3d.scan import validate_patient_id
 
 __all__ = [
@@ -87,6 +89,7 @@ __all__ = [
     "publish_patient",
     "run_patient",
     "run_stages",
+    "run_notes",
     "run_stages_direct",
 ]
 
@@ -107,8 +110,6 @@ VOLUME_LABELS: dict[str, str] = {
     "volume_mesh_simplified_mm3": "mesh (simplified)",
 }
 
-#: The note recorded in summary, metrics and provenance when there is no tumour.
-NO_TUMOUR_NOTE = "no tumour found: no mesh and no render written"
 
 
 class PatientResult(BaseModel):
@@ -310,15 +311,9 @@ def patient_pipeline(
     mask_ref = _store_brain_mask(store, brain_mask)
     outputs = run_stages(runner, source, cfg, str(store.root), brain_mask=mask_ref)
     flow_seconds = time.perf_counter() - t0
-    notes = [NO_TUMOUR_NOTE] if outputs["extract-surface"].values["faces"] == 0 else []
-    notes += outputs["segment-tumor"].values.get("caveats") or []
-    skipped = outputs["ingest-scan"].values.get("skipped_files") or []
-    if skipped:
-        notes.append(f"skipped {len(skipped)} unreadable file(s): {', '.join(skipped)}")
-    if brain_mask is not None:
-        notes.append(brain_mask_note(brain_mask))
-    notes += preprocess_notes(outputs["preprocess"].values)
-    metrics = _metrics_row(outputs, runner.runs, pid, flow_seconds, notes)
+    notes, doubts = run_notes(outputs, brain_mask)
+    review = review_status(doubts, segmentation=outputs["segment-tumor"].values)
+    metrics = _metrics_row(outputs, runner.runs, pid, flow_seconds, notes, review)
     if is_url(out_dir):  # staged locally, then uploaded (storage.remote_publish)
         with tempfile.TemporaryDirectory(prefix="tumor3d-publish-") as tmp:
             staged, report, _ = publish_patient(
@@ -334,6 +329,23 @@ def patient_pipeline(
         patient_id=pid, output_dir=str(out_path), metrics=metrics, stages=runner.runs,
         flow_seconds=flow_seconds, notes=notes, report=report, up_to_date=up_to_date,
     )  # fmt: skip
+
+
+def run_notes(
+    outputs: dict[str, StageOutput], brain_mask: GivenBrainMask | None = None
+) -> tuple[list[str], list[str]]:
+    """The run's notes (summary, metrics, provenance) and those that doubt the result.
+
+    :func:`tumor3d.review.run_notes` on the stages' values: the doubts make
+    the status ``check`` (:func:`tumor3d.review.review_status`).
+    """
+    return review_notes(
+        tumour_found=outputs["extract-surface"].values["faces"] > 0,
+        caveats=outputs["segment-tumor"].values.get("caveats") or [],
+        skipped_files=outputs["ingest-scan"].values.get("skipped_files") or [],
+        brain_mask_note=None if brain_mask is None else brain_mask_note(brain_mask),
+        brain_notes=preprocess_notes(outputs["preprocess"].values),
+    )
 
 
 def _store_brain_mask(store: ArtifactStore, mask: GivenBrainMask | None) -> ArtifactRef | None:
@@ -451,8 +463,15 @@ def _metrics_row(
     pid: str,
     flow_seconds: float,
     notes: list[str],
+    review: Review,
 ) -> dict[str, Any]:
     row: dict[str, Any] = {"patient_id": pid}
+    # ok or check (a failed run publishes no metrics); tumor3d.review decides
+    row["status"] = review.status
+    row["needs_review"] = review.needs_review
+    row["review_reasons"] = join_notes(review.reasons)
+    if review.quality_score is not None:  # a segmentation method that scores itself
+        row["segmentation_quality_score"] = float(review.quality_score)
     seg = outputs["segment-tumor"].values
     row.update({k: seg[k] for k in ("modality", "segment_method", "measured")})
     row.update(outputs["measure-volume"].values)
@@ -475,7 +494,7 @@ def _metrics_row(
 #: The modules whose code writes a published folder (with :data:`__name__`, this one).
 PUBLISHER_MODULES = (
     "storage.formats", "storage.nifti", "storage.patient_outputs", "storage.provenance",
-    "storage.publish", "storage.slice_table",
+    "storage.publish", "storage.slice_table", "tumor3d.review",
 )  # fmt: skip
 
 

@@ -2,9 +2,10 @@
 
 ``cohort.html`` (:func:`cohort_page_rows` + :func:`storage.report_html.cohort_report_html`)
 sits beside ``cohort.parquet``: one row per patient with its anterior render
-as thumbnail, its volumes, its status (the failing stage and error of a
-failed patient) and a link to its ``report.html``, and a distribution plot of
-the Eq. 7 volumes. Links are relative (``<patient_id>/report.html``) and made
+as thumbnail, its volumes, its status (``ok``, ``check`` or ``failed``:
+:mod:`tumor3d.review`; the failing stage and error of a failed patient), its
+notes (why to check first) and a link to its ``report.html``, and a
+distribution plot of the Eq. 7 volumes. Links are relative (``<patient_id>/report.html``) and made
 only to files that exist, and never to a failed patient's folder (which may
 hold an earlier run's results), so the cohort folder can be moved as a whole.
 """
@@ -18,11 +19,15 @@ from typing import Any
 import pandas as pd
 
 from storage.formats import encode_parquet
+from storage.patient_outputs import split_notes
 from storage.report_html import cohort_report_html
 from storage.store import atomic_write_bytes
+from tumor3d.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
 
 __all__ = [
     "cohort_markdown",
+    "cohort_title",
+    "row_notes",
     "cohort_output_files",
     "cohort_page_rows",
     "cohort_table",
@@ -56,6 +61,22 @@ def cohort_table(outcomes: Sequence[Mapping[str, Any]]) -> pd.DataFrame:
     return table[[*_FIRST, *[c for c in table.columns if c not in _FIRST]]]
 
 
+def cohort_title(name: str | None) -> str:
+    """The cohort pages' title: ``tumor3d cohort: <name>`` (no name twice).
+
+    >>> cohort_title("cohort"), cohort_title("brats-2013"), cohort_title("")
+    ('tumor3d cohort', 'tumor3d cohort: brats-2013', 'tumor3d cohort')
+    """
+    name = (name or "").strip()
+    return "tumor3d cohort" if name.lower() in ("", "cohort") else f"tumor3d cohort: {name}"
+
+
+def row_notes(row: Mapping[str, Any]) -> list[str]:
+    """A cohort row's notes: why to check it first, then its other notes (no repeats)."""
+    out = split_notes(row.get("review_reasons"))
+    return out + [n for n in split_notes(row.get("notes")) if n not in out]
+
+
 def _fmt(value: Any, spec: str) -> str:
     try:
         return format(float(value), spec)
@@ -73,35 +94,46 @@ def cohort_markdown(
     workers: int,
     removed: Sequence[str] = (),
 ) -> str:
-    """A Markdown summary: volumes (mm3 and mL) per method, failures, time per stage, cache hits.
+    """A Markdown summary: status, volumes (mm3 and mL) per method and notes, failures, stages.
+
+    Every patient that completed is in the volume table, with its status
+    (``ok`` or ``check``) and notes (why to check first).
 
     ``removed`` names patients published in the output folder by an earlier
     run but no longer in the manifest: listed in a section of their own (their
     folders are kept, never deleted).
     """
-    ok = table[table["status"] == "ok"]
-    failed = table[table["status"] != "ok"]
+    failed = table[table["status"] == STATUS_FAILED]
+    ok = table[table["status"] != STATUS_FAILED]  # completed: ok or check
+    n_check = int((table["status"] == STATUS_CHECK).sum())
+    n_ok = int((table["status"] == STATUS_OK).sum())
     lines = [
         f"# {title}",
         "",
-        f"{len(table)} patients: {len(ok)} ok, {len(failed)} failed; wall time "
-        f"{wall_seconds:.1f} s with {workers} worker(s).",
+        f"{len(table)} patients: {n_ok} ok, {n_check} to check, {len(failed)} failed; wall "
+        f"time {wall_seconds:.1f} s with {workers} worker(s).",
+        "",
+        "Status: **ok** -- completed and nothing asks for a human; **check** -- completed, "
+        "but the tool's own checks doubt the result (the notes say why: look before using "
+        "it); **failed** -- did not complete.",
         "",
         "## Volumes",
         "",
-        "| patient | "
+        "| patient | status | "
         + " | ".join(f"{volume_labels[k]} (mm3) | (mL)" for k in volume_labels)
-        + " | Eq. 7 slices | note |",
-        "|---|" + "---:|---:|" * len(volume_labels) + "---:|---|",
+        + " | Eq. 7 slices | notes |",
+        "|---|---|" + "---:|---:|" * len(volume_labels) + "---:|---|",
     ]
     for _, r in ok.iterrows():
         cells = []
         for k in volume_labels:
             cells += [_fmt(r.get(k), ",.1f"), _fmt(r.get(k.replace("_mm3", "_ml")), ".3f")]
+        notes = "; ".join(row_notes(r)).replace("|", "\\|")
+        status = f"**{r['status']}**" if r["status"] == STATUS_CHECK else str(r["status"])
         lines.append(
-            f"| {r['patient_id']} | "
+            f"| {r['patient_id']} | {status} | "
             + " | ".join(cells)
-            + f" | {r.get('eq7_slice_rule', '-')} | {r.get('notes') or ''} |"
+            + f" | {r.get('eq7_slice_rule', '-')} | {notes} |"
         )
     lines += ["", "## Failures", ""]
     if failed.empty:
@@ -153,7 +185,7 @@ def cohort_page_rows(
     *,
     exists: Callable[[str], bool] | None = None,
 ) -> list[dict[str, Any]]:
-    """The rows of ``cohort.html``: per patient its status, volumes and relative links.
+    """The rows of ``cohort.html``: per patient its status, volumes, notes and relative links.
 
     Parameters
     ----------
@@ -172,10 +204,9 @@ def cohort_page_rows(
     rows = []
     for r in table.to_dict(orient="records"):
         pid = str(r["patient_id"])
-        ok = r.get("status") == "ok"
+        ok = r.get("status") != STATUS_FAILED  # completed: ok or check
         if ok:
-            found = r.get("tumour_found")
-            status = "ok" if found is None or bool(found) else "ok: no tumour found"
+            status = str(r.get("status") or STATUS_OK)
         else:
             status = f"failed at {r.get('failed_stage') or '?'}: {r.get('error') or ''}".strip()
         vols = {
@@ -185,6 +216,7 @@ def cohort_page_rows(
         }
         row: dict[str, Any] = {"patient_id": pid, "status": status}
         if ok:
+            row["notes"] = row_notes(r)
             row["volumes_mm3"] = vols
             if exists(f"{pid}/render_anterior.png"):
                 row["thumbnail"] = f"{pid}/render_anterior.png"
@@ -219,10 +251,10 @@ def cohort_output_files(
 ) -> dict[str, bytes]:
     """The bytes of ``cohort.parquet``, ``cohort.md`` and ``cohort.html`` (file name -> bytes).
 
-    ``name`` is the cohort's name in the page title (default ``out_dir``'s
-    name); ``exists`` as :func:`cohort_page_rows`.
+    ``name`` is the cohort's name in the page title (:func:`cohort_title`;
+    default ``out_dir``'s name); ``exists`` as :func:`cohort_page_rows`.
     """
-    title = f"tumor3d cohort {name if name is not None else Path(out_dir).name}"
+    title = cohort_title(name if name is not None else Path(out_dir).name)
     page = cohort_report_html(cohort_page_rows(table, out_dir, exists=exists), title=title)
     return {
         "cohort.parquet": encode_parquet(table),

@@ -170,7 +170,10 @@ def patient_report_data(
     }
     data: dict[str, Any] = {
         "patient_id": str(metrics["patient_id"]),
-        "status": "ok" if found else "no tumour found",
+        # ok or check (tumor3d.review); a metrics row from before the status: ok
+        "status": str(metrics.get("status") or "ok"),
+        "review_reasons": split_notes(metrics.get("review_reasons")),
+        "tumour_found": found,
         "measured": str(metrics.get("measured") or ""),
         "volumes_mm3": vols,
         "notes": split_notes(metrics.get("notes")),

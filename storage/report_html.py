@@ -12,7 +12,8 @@ Patient input (:func:`patient_report_html`, :func:`patient_report_markdown`)
 A mapping with the keys (all but ``patient_id`` optional)::
 
     patient_id        str
-    status            str, e.g. "ok" or "no tumour found"
+    status            str: "ok", "check" or "failed" (:mod:`tumor3d.review`)
+    review_reasons    list of str: why a human should check (status "check")
     measured          str, what the mask (every volume) holds, in words
                       (:func:`tumor3d.segment.lesion_definition`)
     volumes_mm3       {"eq7": float, "voxel": float, "mesh": float,
@@ -36,8 +37,9 @@ A mapping with the keys (all but ``patient_id`` optional)::
     provenance        JSON-able dict (shown as JSON)
 
 Cohort input (:func:`cohort_report_html`): a sequence of mappings with
-``patient_id``, ``status``, ``volumes_mm3`` (as above), ``thumbnail`` and
-``report`` (relative paths).
+``patient_id``, ``status``, ``volumes_mm3`` (as above), ``notes`` (list of
+str: why to check, then the other notes), ``thumbnail`` and ``report``
+(relative paths).
 """
 
 from __future__ import annotations
@@ -103,6 +105,7 @@ font-variant-numeric:tabular-nums}
 .grid img{width:240px;border:1px solid #ddd}figcaption{font-size:.85rem;color:#555}
 img.wide{max-width:100%;border:1px solid #ddd}pre{background:#f7f7f7;padding:.6rem;
 overflow:auto;font-size:.8rem}.status-ok{color:#17692b}.status-bad{color:#a31515}
+.status-check{color:#8a5a00}td.notes{font-size:.85rem;max-width:40rem}
 img.thumb{width:120px}
 """
 
@@ -203,8 +206,25 @@ def _patient_id(data: Mapping[str, Any]) -> str:
 
 
 def _status_class(status: str) -> str:
-    ok = status.lower().split(":")[0].strip() in ("ok", "done", "completed", "success")
+    word = status.lower().split(":")[0].strip()
+    if word == "check":
+        return "status-check"
+    ok = word in ("ok", "done", "completed", "success")
     return "status-ok" if ok else "status-bad"
+
+
+def _reasons(data: Mapping[str, Any]) -> list[str]:
+    """Why a human should check the result (``review_reasons``)."""
+    reasons = data.get("review_reasons", [])
+    if isinstance(reasons, str) or not isinstance(reasons, Sequence):
+        raise InputError(f"review_reasons must be a list of strings, got {reasons!r}")
+    return [str(n) for n in reasons if str(n)]
+
+
+def _other_notes(data: Mapping[str, Any]) -> list[str]:
+    """The notes that are not already said as review reasons."""
+    reasons = set(_reasons(data))
+    return [n for n in _notes(data) if n not in reasons]
 
 
 def _abnormal(data: Mapping[str, Any]) -> list[int]:
@@ -253,9 +273,15 @@ def patient_report_html(data: Mapping[str, Any]) -> str:
         f"<h1>Tumour reconstruction: {_e(pid)}</h1>",
         f'<p>Status: <strong class="{_status_class(status)}">{_e(status)}</strong></p>',
     ]
+    reasons = _reasons(data)
+    if reasons:
+        parts.append(
+            "<p>Check before using the result; the tool's own checks doubt it:</p>"
+            '<ul class="status-check">' + "".join(f"<li>{_e(n)}</li>" for n in reasons) + "</ul>"
+        )
     if data.get("measured"):
         parts.append(f"<p>What is measured: {_e(data['measured'])}</p>")
-    notes = _notes(data)
+    notes = _other_notes(data)
     if notes:
         parts.append("<ul>" + "".join(f"<li>{_e(n)}</li>" for n in notes) + "</ul>")
     vols = _volumes(data)
@@ -398,6 +424,10 @@ def patient_report_markdown(data: Mapping[str, Any]) -> str:
         f"Status: **{md(data.get('status', 'ok'))}**",
         "",
     ]
+    for reason in _reasons(data):
+        lines.append(f"- Check: {md(reason)}")
+    if _reasons(data):
+        lines.append("")
     if data.get("measured"):
         lines += [f"What is measured: {md(data['measured'])}", ""]
     vols = _volumes(data)
@@ -415,7 +445,7 @@ def patient_report_markdown(data: Mapping[str, Any]) -> str:
         if prec is not None:
             lines.append(f"- **Eq. 7 precision**: {EQ7_PRECISION_DEFINITION}")
         lines.append("")
-    for note in _notes(data):
+    for note in _other_notes(data):
         lines.append(f"- Note: {md(note)}")
     for label, value in _check_mapping(data.get("measurements", {}), "measurements").items():
         lines.append(f"- {md(label)}: {md(value)}")
@@ -465,6 +495,8 @@ def patient_summary_table(data: Mapping[str, Any]) -> list[dict[str, str]]:
     data = _check_mapping(data, "report data")
     rows = [{"quantity": "patient", "value": _patient_id(data), "unit": ""}]
     rows.append({"quantity": "status", "value": str(data.get("status", "ok")), "unit": ""})
+    for reason in _reasons(data):
+        rows.append({"quantity": "check", "value": reason, "unit": ""})
     if data.get("measured"):
         rows.append({"quantity": "what is measured", "value": str(data["measured"]), "unit": ""})
     for _key, label, v in _volumes(data):
@@ -566,8 +598,8 @@ def cohort_report_html(rows: Sequence[Mapping[str, Any]], *, title: str = "tumor
     ----------
     rows : sequence of mapping
         Per patient: ``patient_id``, ``status``, ``volumes_mm3`` (estimator ->
-        mm³), ``thumbnail`` and ``report`` (relative paths), all but the id
-        optional.
+        mm³), ``notes`` (list of str), ``thumbnail`` and ``report`` (relative
+        paths), all but the id optional.
     title : str
         Page title.
 
@@ -595,7 +627,9 @@ def cohort_report_html(rows: Sequence[Mapping[str, Any]], *, title: str = "tumor
         f"<h1>{_e(title)}</h1><p>{len(rows)} patient(s).</p>",
     ]
     points: list[tuple[str, float]] = []
-    table = [f"<table><tr><th>Render</th><th>Patient</th><th>Status</th>{head}</tr>"]
+    table = [
+        f"<table><tr><th>Render</th><th>Patient</th><th>Status</th>{head}<th>Notes</th></tr>"
+    ]
     for r in rows:
         pid = _patient_id(r)
         status = str(r.get("status", "ok"))
@@ -614,9 +648,11 @@ def cohort_report_html(rows: Sequence[Mapping[str, Any]], *, title: str = "tumor
             f"<td class='num'>{_fmt(None if vol.get(k) is None else vol[k] / 1000.0, 3)}</td>"
             for k in keys
         )
+        notes = "".join(f"<li>{_e(n)}</li>" for n in _notes(r))
         table.append(
             f"<tr><td>{thumb}</td><td>{name}</td>"
-            f'<td class="{_status_class(status)}">{_e(status)}</td>{cells}</tr>'
+            f'<td class="{_status_class(status)}">{_e(status)}</td>{cells}'
+            f'<td class="notes">{"<ul>" + notes + "</ul>" if notes else ""}</td></tr>'
         )
         if vol.get("eq7") is not None:
             points.append((pid, vol["eq7"] / 1000.0))

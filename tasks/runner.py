@@ -31,9 +31,10 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from storage.store import ArtifactStore
 from tasks.progress import ProgressEvent, report
+from tasks.records import UntrustedRecord
 from tasks.spec import StageOutput, StageSpec
 
-__all__ = ["DirectRunner", "PrefectRunner", "StageRun", "result_storage_for"]
+__all__ = ["DirectRunner", "PrefectRunner", "StageRun", "result_storage_for", "stage_key"]
 
 _log = logging.getLogger("tumor3d.runner")
 
@@ -69,13 +70,14 @@ class StageRun(BaseModel):
 def result_storage_for(store: ArtifactStore | str | Path) -> Any:
     """Prefect result storage inside an artifact store: ``<store>/prefect-results``.
 
-    For a local store, a path (Prefect makes it a local file system), so no
-    storage block has to be registered on the server. For an object store
-    (:class:`storage.objectstore.ObjectStore`), a Prefect ``RemoteFileSystem``
-    block on ``<url>/prefect-results``, saved on the Prefect server once per
-    process as ``tumor3d-results-<hash of the URL>`` (Prefect requires result
-    storage blocks to be saved, and every Dask worker then reads the same
-    cache).
+    A :class:`~tasks.records.ScreenedResultFolder` for a local store, a
+    :class:`~tasks.records.ScreenedRemoteFolder` on ``<url>/prefect-results``
+    for an object store (:class:`storage.objectstore.ObjectStore`): every
+    record is screened (plain JSON, this project's serializer, the key it is
+    stored under) before Prefect decodes it. Prefect requires a task's result
+    storage block to be saved on the server: each is saved once per process
+    and server as ``tumor3d-results-<hash of the path or URL>`` (the local
+    one when first used; every Dask worker reads the same cache).
     """
     url = getattr(store, "url", None)
     if url is not None:
@@ -83,21 +85,38 @@ def result_storage_for(store: ArtifactStore | str | Path) -> Any:
     root = store.root if isinstance(store, ArtifactStore) else store
     path = Path(root).resolve() / "prefect-results"
     path.mkdir(parents=True, exist_ok=True)
-    return path
+    return _local_result_storage(path)
 
 
 _REMOTE_STORAGE: dict[str, Any] = {}
 
 
-def _remote_result_storage(url: str, options: dict[str, Any]) -> Any:
-    from prefect.filesystems import RemoteFileSystem
+def _server() -> str:
     from prefect.settings import PREFECT_API_URL
 
-    key = f"{PREFECT_API_URL.value()}|{url}"  # saved on this server
+    return str(PREFECT_API_URL.value())
+
+
+def _local_result_storage(path: Path) -> Any:
+    from tasks.records import ScreenedResultFolder
+
+    key = f"{_server()}|{path}"
     with _TASKS_LOCK:
         block = _REMOTE_STORAGE.get(key)
         if block is None:
-            block = RemoteFileSystem(basepath=f"{url}/prefect-results", settings=options)
+            block = ScreenedResultFolder(basepath=str(path))  # saved when first used
+            _REMOTE_STORAGE[key] = block
+    return block
+
+
+def _remote_result_storage(url: str, options: dict[str, Any]) -> Any:
+    from tasks.records import ScreenedRemoteFolder
+
+    key = f"{_server()}|{url}"  # saved on this server
+    with _TASKS_LOCK:
+        block = _REMOTE_STORAGE.get(key)
+        if block is None:
+            block = ScreenedRemoteFolder(basepath=f"{url}/prefect-results", settings=options)
             name = "tumor3d-results-" + hashlib.sha256(url.encode()).hexdigest()[:16]
             block.save(name, overwrite=True)
             _REMOTE_STORAGE[key] = block
@@ -149,6 +168,10 @@ def _task_for(spec: StageSpec, result_storage: Any, refresh: bool, patient_id: s
     where = str(getattr(result_storage, "basepath", result_storage))
     key = (spec.name, where, refresh, patient_id)
     with _TASKS_LOCK:
+        if getattr(result_storage, "_block_document_id", None) is None:
+            # Prefect requires a saved block: one per folder, named after its path
+            digest = hashlib.sha256(where.encode()).hexdigest()[:16]
+            result_storage.save(f"tumor3d-results-{digest}", overwrite=True)
         task = _TASKS.get(key)
         if task is None or task.fn is not spec.task.fn:
             task = spec.task.with_options(
@@ -197,26 +220,40 @@ class PrefectRunner(_Recorder):
             raise wrapped.exception()
         return future.state
 
-    def _record_bytes(self, spec: StageSpec, inputs: dict[str, Any]) -> bytes | None:
-        """The cached result record this stage's key names, if present (before submitting)."""
+    def _record_check(self, key: str | None) -> str | None:
+        """Before submitting: is a record stored under ``key``, would it be trusted.
+
+        None if there is none; else why the screen would refuse it ("" if it
+        would trust it).
+        """
+        from tasks.records import why_refused
+
         try:
-            key = spec.task.cache_policy.compute_key(None, inputs, {})
-            return (self.result_storage / key).read_bytes() if key else None
+            record = self.result_storage.read_raw(key) if key else None
+        except UntrustedRecord as exc:
+            return str(exc)  # present, but not a file to read (a symlink)
         except Exception:  # diagnostics only: never fail a stage for it
             return None
+        return None if record is None else (why_refused(record, key) or "")
 
     def run(self, spec: StageSpec, **inputs: Any) -> StageOutput:
         """Run one stage (cached), repairing an untrustworthy cache hit."""
         self.started(spec.name)
         t0 = time.perf_counter()
-        record = self._record_bytes(spec, inputs)
+        key = stage_key(spec, inputs)
+        check = self._record_check(key)
         state = self._submit(spec, refresh=False, **inputs)
         cached = state.name == "Cached"
         repaired = missed = None
-        if not cached and record is not None:
+        if not cached and check is not None:
             # Issue 6's intermittent miss: Prefect's ResultStore.exists() swallows any
-            # error reading a record and reports a miss; name it instead of nothing.
-            missed = _why_prefect_missed(record)
+            # error reading a record (and the screen's refusals) and reports a miss;
+            # name it instead of nothing.
+            missed = (
+                f"cache record present but refused: {check}"
+                if check
+                else "cache record present and trusted; Prefect missed it"
+            )
             _log.warning("%s: recomputed although its cache record existed: %s", spec.name, missed)
         try:
             out: StageOutput = state.result()
@@ -225,7 +262,7 @@ class PrefectRunner(_Recorder):
                 raise
             out, repaired = None, f"cached result unreadable ({type(exc).__name__})"  # type: ignore[assignment]
         if cached and repaired is None:
-            repaired = self._distrust(out)
+            repaired = self._distrust(out, stage=spec.name)
         if repaired is not None:
             _log.warning("%s: %s; recomputing", spec.name, repaired)
             out = self._submit(spec, refresh=True, **inputs).result()
@@ -233,12 +270,21 @@ class PrefectRunner(_Recorder):
         wall = time.perf_counter() - t0
         return self.finished(out, cached=cached, wall=wall, repaired=repaired or missed)
 
-    def _distrust(self, out: Any) -> str | None:
-        """Why a cached output cannot be used, or None if it can."""
+    def _distrust(self, out: Any, stage: str | None = None) -> str | None:
+        """Why a cached output cannot be used, or None if it can.
+
+        ``stage``, when given, is the stage it was looked up for: another
+        stage's output is not used. (A record stored under another key than
+        the one Prefect read it under is refused before it is decoded:
+        :func:`tasks.records.screen_record`.)
+        """
         if not isinstance(out, StageOutput):
             return f"cached result is a {type(out).__name__}, not a StageOutput"
         if not out.verify():
             return "cached result failed its digest check (edited or corrupted)"
+        if stage is not None and out.stage != stage:
+            return f"cached result is the {out.stage} stage's, not {stage}'s"
+
         # verify(): present AND content matching its digest; a corrupted object is
         # quarantined by the store, so recomputing the stage writes it afresh
         bad = [k for k, r in out.artifacts.items() if not self.store.verify(r)]
@@ -250,17 +296,16 @@ class PrefectRunner(_Recorder):
         return None
 
 
-def _why_prefect_missed(record: bytes) -> str:
-    """Why Prefect may have ignored a present result record (it hides the reason)."""
-    from prefect.results import ResultRecord
+def stage_key(spec: StageSpec, inputs: dict[str, Any]) -> str | None:
+    """The cache key Prefect derives for ``spec``'s task called with ``inputs``."""
+    import inspect
 
     try:
-        rec = ResultRecord.deserialize(record)
-    except Exception as exc:
-        first = (str(exc).strip().splitlines() or [""])[0][:200]
-        return f"cache record present but unreadable by Prefect ({type(exc).__name__}: {first})"
-    expiration = getattr(rec.metadata, "expiration", None)
-    return f"cache record present and readable (expiration {expiration}); Prefect missed it"
+        bound = inspect.signature(spec.task.fn).bind(**inputs)
+        bound.apply_defaults()  # as Prefect's task parameters
+        return spec.task.cache_policy.compute_key(None, dict(bound.arguments), {})
+    except Exception:  # diagnostics and checks only: Prefect reports its own errors
+        return None
 
 
 class DirectRunner(_Recorder):

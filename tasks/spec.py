@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import hashlib
+import inspect
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -47,6 +48,9 @@ class StageOutput(BaseModel):
         Small JSON-able results (counts, volumes) for summaries.
     compute_seconds : float
         Wall time of the computation when it actually ran (kept on cache hits).
+    key : str
+        The cache key the output was computed (and its record stored) under: a
+        record found under another key is not this output's (``tasks.records``).
     digest : str
         SHA-256 of the canonical JSON of all other fields ("" until sealed).
     """
@@ -57,6 +61,7 @@ class StageOutput(BaseModel):
     artifacts: dict[str, ArtifactRef] = Field(default_factory=dict)
     values: dict[str, Any] = Field(default_factory=dict)
     compute_seconds: float = 0.0
+    key: str = ""
     digest: str = ""
 
     def content_digest(self) -> str:
@@ -151,16 +156,27 @@ def stage_task(name: str) -> Callable[[Callable[..., StageOutput]], Any]:
     """Decorate an adapter function as the cached Prefect task of stage ``name``.
 
     The key is :func:`tasks.caching.stage_cache_policy` with the adapter's
-    module as the closure root; the result (a sealed :class:`StageOutput`) is
-    persisted as JSON, never pickled. Result storage is set per run by the
-    runner (:mod:`tasks.runner`) to the artifact store's folder.
+    module as the closure root; the result (a sealed :class:`StageOutput`
+    carrying that key) is persisted as plain JSON by
+    :class:`tasks.records.StageOutputSerializer`, never pickled. Result storage
+    is set per run by the runner (:mod:`tasks.runner`) to the artifact store's
+    folder, whose records are screened before Prefect decodes them.
     """
 
     def decorate(fn: Callable[..., StageOutput]) -> Any:
+        from tasks.records import StageOutputSerializer
+
+        policy = stage_cache_policy(name, (fn.__module__,))
+        signature = inspect.signature(fn)
+
         def timed(*args: Any, **kwargs: Any) -> StageOutput:
             t0 = time.perf_counter()
             out = fn(*args, **kwargs)
-            return out.model_copy(update={"compute_seconds": time.perf_counter() - t0}).sealed()
+            bound = signature.bind(*args, **kwargs)
+            bound.apply_defaults()  # as Prefect's task parameters
+            key = policy.compute_key(None, dict(bound.arguments), {})
+            update = {"compute_seconds": time.perf_counter() - t0, "key": key or ""}
+            return out.model_copy(update=update).sealed()
 
         timed.__name__ = fn.__name__
         timed.__qualname__ = fn.__qualname__
@@ -170,9 +186,9 @@ def stage_task(name: str) -> Callable[[Callable[..., StageOutput]], Any]:
         return task(
             name=name,
             task_run_name=name,
-            cache_policy=stage_cache_policy(name, (fn.__module__,)),
+            cache_policy=policy,
             persist_result=True,
-            result_serializer="json",
+            result_serializer=StageOutputSerializer(),
             # Prefect's in-memory result cache is an LRUCache shared by every
             # thread of a flow and not thread-safe: with patients running in
             # parallel lanes it made random cached stages look like misses.

@@ -57,6 +57,9 @@ def test_failed_row_is_isolated_and_the_others_publish(first):
         assert p.status == "ok" and p.error is None
         assert p.output_dir == str(out / pid)
         published = pd.read_parquet(out / pid / "metrics.parquet").iloc[0]
+        # a clean phantom: nothing asks for a human
+        assert published["status"] == "ok" and not published["needs_review"]
+        assert published["review_reasons"] == ""
         assert published["volume_eq7_mm3"] == p.metrics["volume_eq7_mm3"] > 0
         assert not any(s.cached for s in p.stages)
     assert not [q for q in out.iterdir() if ".partial-" in q.name or ".old-" in q.name]
@@ -156,7 +159,7 @@ def test_cli_cohort_exit_codes(first, inputs, tmp_path):
     runner = CliRunner()
     ok = runner.invoke(app, ["cohort", str(manifest), "--out", str(out), "--workers", "2"])
     assert ok.exit_code == 0, ok.output
-    assert "3 ok, 0 failed" in ok.output
+    assert "3 ok, 0 to check, 0 failed" in ok.output
     bad = runner.invoke(app, ["cohort", str(tmp_path / "absent.csv"), "--out", str(out)])
     assert bad.exit_code == 2
     bad_cfg = tmp_path / "bad.yaml"
@@ -184,7 +187,7 @@ def test_cli_cohort_missing_image_in_the_csv_fails_that_row_only(first, inputs, 
     manifest.write_text("\n".join(lines) + "\n")
     res = CliRunner().invoke(app, ["cohort", str(manifest), "--out", str(out), "--workers", "2"])
     assert res.exit_code == 1, res.output
-    assert "2 ok, 1 failed" in res.output and "ghost" in res.output
+    assert "2 ok, 0 to check, 1 failed" in res.output and "ghost" in res.output
     table = pd.read_parquet(out / "cohort.parquet").set_index("patient_id")
     assert table.loc["ghost", "status"] == "failed"
     assert table.loc["ghost", "failed_stage"] == "prepare-input"
@@ -233,7 +236,7 @@ def test_cli_cohort_brain_mask_column_and_a_bad_mask_fails_that_row_only(
     )
     res = CliRunner().invoke(app, ["cohort", str(manifest), "--out", str(out), "--workers", "2"])
     assert res.exit_code == 1, res.output
-    assert "2 ok, 1 failed" in res.output
+    assert "2 ok, 0 to check, 1 failed" in res.output
     table = pd.read_parquet(out / "cohort.parquet").set_index("patient_id")
     assert list(table["status"]) == ["ok", "failed", "ok"]
     assert table.loc["coh1", "failed_stage"] == "prepare-input"
@@ -245,3 +248,65 @@ def test_cli_cohort_brain_mask_column_and_a_bad_mask_fails_that_row_only(
         "given": False, "rule": "found from the image (preprocess brain_extraction)",
         "extraction": "skull_strip",  # a raw phantom head: the auto rule's skull removal
     }  # fmt: skip
+
+
+def test_status_ok_check_failed_through_metrics_table_pages_console_and_exit_code(
+    first, inputs, tmp_path
+):
+    """Issue 33: a result the tool's own checks doubt is "check", never a green "ok"."""
+    import nibabel as nib
+    import numpy as np
+
+    out, _ = first
+    _, rows, missing = inputs
+    img = nib.load(rows[1].image)
+    # a "brain" mask over the whole field of view: more than any skull holds, so the
+    # run's own note says the result is unreliable
+    nib.save(nib.Nifti1Image(np.ones(img.shape, np.uint8), img.affine), tmp_path / "all.nii.gz")
+    manifest = tmp_path / "status.csv"
+    manifest.write_text(
+        "patient_id,image,modality,brain_mask\n"
+        f"coh0,{rows[0].image},t2,\n"
+        f"coh1,{rows[1].image},t2,{tmp_path / 'all.nii.gz'}\n"
+        f"ghost,{missing.image},t2,\n"
+    )
+    dest = tmp_path / "out"
+    store = str(out / ".tumor3d-store")  # coh0 from the cache
+    runner = CliRunner()
+    res = runner.invoke(app, ["cohort", str(manifest), "--out", str(dest), "--store", store])
+    assert res.exit_code == 1, res.output  # a failure outranks a check
+    assert "1 ok, 1 to check, 1 failed" in res.output
+    assert "check coh1: brain mask of" in " ".join(res.output.split())
+    table = pd.read_parquet(dest / "cohort.parquet").set_index("patient_id")
+    assert list(table["status"]) == ["ok", "check", "failed"]
+    assert table.loc["coh1", "needs_review"] and not table.loc["coh0", "needs_review"]
+    assert "more than any skull holds" in table.loc["coh1", "review_reasons"]
+    metrics = pd.read_parquet(dest / "coh1" / "metrics.parquet").iloc[0]
+    assert metrics["status"] == "check" and metrics["needs_review"]
+    reasons = metrics["review_reasons"].split("; ")
+    assert set(reasons) < set(metrics["notes"].split("; "))  # + "brain mask given (...)"
+    md = (dest / "cohort.md").read_text()
+    assert "1 ok, 1 to check, 1 failed" in md and "| coh1 | **check** |" in md
+    assert "more than any skull holds" in md and "| coh0 | ok |" in md
+    page = (dest / "cohort.html").read_text()
+    assert '<td class="status-check">check</td>' in page and "<th>Notes</th>" in page
+    assert "<title>tumor3d cohort: out</title>" in page
+    report = (dest / "coh1" / "report.html").read_text()
+    assert '<strong class="status-check">check</strong>' in report
+    # no failure: the check alone decides the exit code (4), for a cohort and for `run`
+    no_ghost = tmp_path / "no_ghost.csv"
+    no_ghost.write_text("\n".join(manifest.read_text().splitlines()[:3]) + "\n")
+    res = runner.invoke(app, ["cohort", str(no_ghost), "--out", str(dest), "--store", store])
+    assert res.exit_code == 4, res.output
+    one = runner.invoke(app, [
+        "run", str(rows[1].image), "--out", str(tmp_path / "one"), "--patient-id", "coh1",
+        "--brain-mask", str(tmp_path / "all.nii.gz"), "--store", store,
+    ])  # fmt: skip
+    assert one.exit_code == 4, one.output
+    assert "status: check" in one.output and "more than any skull holds" in one.output
+    clean = runner.invoke(app, [
+        "run", str(rows[0].image), "--out", str(tmp_path / "one"), "--patient-id", "coh0",
+        "--store", store,
+    ])  # fmt: skip
+    assert clean.exit_code == 0, clean.output
+    assert "status: ok" in clean.output

@@ -47,7 +47,9 @@ def test_tumour_free_report_has_no_interval_and_says_so():
                "volume_eq7_ci95_low_mm3": 0.0, "volume_eq7_ci95_high_mm3": 0.0,
                "notes": "no tumour found: no mesh and no render written"}  # fmt: skip
     data = patient_report_data(metrics, stage_runs=RUNS, abnormal_slices=[], files=[])
-    assert data["status"] == "no tumour found" and "eq7_precision" not in data
+    # no tumour is a finding, not a doubt: status ok, and the note says it
+    assert data["status"] == "ok" and "eq7_precision" not in data
+    assert data["notes"] == ["no tumour found: no mesh and no render written"]
     assert data["measurements"] == {} and data["renders"] == {}
     assert "no mesh and no render written" in patient_report_html(data)
 
@@ -83,18 +85,34 @@ def test_cohort_rows_link_existing_files_of_published_patients_only(tmp_path):
             {"patient_id": "b", "status": "failed", "failed_stage": "segment-tumor",
              "error": "RuntimeError: boom", "volume_eq7_mm3": float("nan"), "tumour_found": None},
             {"patient_id": "c", "status": "ok", "failed_stage": None, "error": None,
-             "volume_eq7_mm3": 0.0, "tumour_found": False},
+             "volume_eq7_mm3": 0.0, "tumour_found": False,
+             "notes": "no tumour found: no mesh and no render written"},
+            {"patient_id": "d", "status": "check", "failed_stage": None, "error": None,
+             "volume_eq7_mm3": 80800.0, "tumour_found": True,
+             "review_reasons": "the brain mask (2,886 mL) makes the result unreliable",
+             "notes": "brain mask given (m.nii.gz); "
+                      "the brain mask (2,886 mL) makes the result unreliable"},
         ]
     )  # fmt: skip
     rows = cohort_page_rows(table, tmp_path)
     assert rows[0] == {"patient_id": "a", "status": "ok", "volumes_mm3": {"eq7": 1500.0},
-                       "thumbnail": "a/render_anterior.png", "report": "a/report.html"}  # fmt: skip
+                       "notes": [], "thumbnail": "a/render_anterior.png",
+                       "report": "a/report.html"}  # fmt: skip
     # b failed this time: its folder (an earlier run's) is not linked
     assert rows[1] == {"patient_id": "b", "status": "failed at segment-tumor: RuntimeError: boom"}
-    assert rows[2]["status"] == "ok: no tumour found" and "report" not in rows[2]
+    assert rows[2]["status"] == "ok" and "report" not in rows[2]
+    assert rows[2]["notes"] == ["no tumour found: no mesh and no render written"]
+    # a result the tool doubts: check, the reason first and not repeated
+    assert rows[3]["status"] == "check" and rows[3]["volumes_mm3"] == {"eq7": 80800.0}
+    assert rows[3]["notes"] == ["the brain mask (2,886 mL) makes the result unreliable",
+                                "brain mask given (m.nii.gz)"]  # fmt: skip
     write_cohort_outputs(tmp_path, table, "# md\n")
     page = (tmp_path / "cohort.html").read_text()
     assert 'href="a/report.html"' in page and 'href="b/report.html"' not in page
+    assert '<td class="status-check">check</td>' in page and "<th>Notes</th>" in page
+    assert "makes the result unreliable" in page and "no tumour found" in page
+    # the folder's name is not repeated after "cohort" (was "tumor3d cohort <name>")
+    assert "<title>tumor3d cohort: " + tmp_path.name + "</title>" in page
     assert (tmp_path / "cohort.parquet").is_file() and (tmp_path / "cohort.md").is_file()
 
 

@@ -276,3 +276,20 @@ def test_cohort_page_loads_in_headless_chromium(rendered_folder, tmp_path):
     assert ((shot[..., 0] > shot[..., 1] + 40) & (shot[..., 0] > shot[..., 2] + 40)).sum() > 50
     assert page.images == [("render_anterior.png", 240)]
     assert unresolved_links(path) == []
+
+
+def test_a_result_to_check_says_so_and_why_in_every_summary():
+    reason = "the brain mask (2,886 mL) is larger than any skull: the volume is unreliable"
+    data = _data(status="check", review_reasons=[reason],
+                 notes=[reason, "brain mask given (m.nii.gz)"])  # fmt: skip
+    page = patient_report_html(data)
+    assert '<strong class="status-check">check</strong>' in page
+    assert page.count("larger than any skull") == 1  # said once, as the reason
+    assert "brain mask given (m.nii.gz)" in page
+    md = patient_report_markdown(data)
+    assert "Status: **check**" in md and f"- Check: {reason}" in md
+    assert "Note: brain mask given" in md and md.count("larger than any skull") == 1
+    rows = patient_summary_table(data)
+    assert {"quantity": "check", "value": reason, "unit": ""} in rows
+    ok = patient_report_html(_data())
+    assert '<strong class="status-ok">ok</strong>' in ok and "Check before" not in ok

@@ -48,10 +48,10 @@ def test_a_cache_hit_whose_artifact_is_missing_is_recomputed(tmp_path):
     assert reason is not None and "record" in reason
 
 
-def test_why_prefect_missed_names_an_unreadable_record():
-    from tasks.runner import _why_prefect_missed
+def test_why_refused_names_an_unreadable_record():
+    from tasks.records import why_refused
 
-    assert "unreadable by Prefect" in _why_prefect_missed(b'{"metadata": {"storage_key": ')
+    assert "not JSON" in why_refused(b'{"metadata": {"storage_key": ', "0" * 32)
 
 
 @pytest.mark.slow
@@ -77,7 +77,7 @@ def test_a_record_prefect_cannot_read_is_a_named_miss_not_a_silent_one(tmp_path)
     by_stage = {s.stage: s for s in again.stages}
     seg = by_stage["segment-tumor"]
     assert not seg.cached
-    assert seg.repaired is not None and "unreadable by Prefect" in seg.repaired
+    assert seg.repaired is not None and "refused: not JSON" in seg.repaired
     assert all(s.cached for s in again.stages if s.stage != "segment-tumor")
     assert again.metrics["volume_eq7_mm3"] == first.metrics["volume_eq7_mm3"]
     assert all(run_patient(row.image, out, patient_id="rec5").cache_hits)

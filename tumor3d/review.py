@@ -1,0 +1,197 @@
+"""A run's status: ``ok``, ``check`` or ``failed``, and the reasons a human should look.
+
+One rule, used everywhere a status is shown (console, ``metrics.parquet``,
+the cohort table, ``cohort.html``, ``cohort.md``, ``report.html`` and the
+command's exit code):
+
+* ``failed`` -- the run did not complete (an error);
+* ``check`` -- it completed, but the tool's own checks doubt the result: a
+  caveat of the segmentation (:mod:`tumor3d.caveats`), a brain mask whose
+  size or coverage makes the volume unreliable, input files skipped as
+  unreadable, or a segmentation method that asks for review itself
+  (``needs_review`` with ``review_reasons`` and ``quality_score`` in the
+  segment-tumor stage's values);
+* ``ok`` -- it completed and nothing asks for a human. Informational notes
+  (no tumour found, a brain mask given by the user) do not change it.
+
+A result is never ``ok`` when the tool itself doubts it.
+
+The function is pure: words and flags in, a :class:`Review` out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = [
+    "NO_TUMOUR_NOTE",
+    "STATUSES",
+    "STATUS_CHECK",
+    "STATUS_FAILED",
+    "STATUS_OK",
+    "Review",
+    "review_status",
+    "run_notes",
+    "segmentation_review",
+]
+
+STATUS_OK = "ok"
+STATUS_CHECK = "check"
+STATUS_FAILED = "failed"
+#: Every status, from best to worst.
+STATUSES = (STATUS_OK, STATUS_CHECK, STATUS_FAILED)
+
+#: The note of a run that found no tumour (a finding, not a doubt).
+NO_TUMOUR_NOTE = "no tumour found: no mesh and no render written"
+
+
+@dataclass(frozen=True)
+class Review:
+    """A run's status and why.
+
+    Parameters
+    ----------
+    status : {"ok", "check", "failed"}
+    reasons : tuple of str
+        Why a human should look (``check``) or what went wrong (``failed``);
+        empty for ``ok``.
+    quality_score : float or None
+        The segmentation's own quality score, when its method gives one.
+    """
+
+    status: str
+    reasons: tuple[str, ...] = ()
+    quality_score: float | None = None
+
+    @property
+    def needs_review(self) -> bool:
+        """True unless the status is ``ok``."""
+        return self.status != STATUS_OK
+
+
+def _words(items: Iterable[Any] | str | None, name: str) -> list[str]:
+    if items is None:
+        return []
+    if isinstance(items, str):
+        items = [items]
+    out = []
+    for item in items:
+        if not isinstance(item, str):
+            raise TypeError(f"{name} must be strings, got {type(item).__name__}")
+        if item.strip():
+            out.append(item.strip())
+    return out
+
+
+def segmentation_review(values: Mapping[str, Any] | None) -> tuple[bool, list[str], float | None]:
+    """What a segmentation method says about its own result.
+
+    Reads ``needs_review`` (bool), ``review_reasons`` (list of str) and
+    ``quality_score`` (float) from the segment-tumor stage's values; absent
+    keys mean no doubt and no score.
+
+    Examples
+    --------
+    >>> segmentation_review({"segment_method": "robust"})
+    (False, [], None)
+    >>> segmentation_review({"needs_review": True, "quality_score": 0.4})
+    (True, ['the segmentation asks for review (quality score 0.40)'], 0.4)
+    """
+    if not values:
+        return False, [], None
+    flag = values.get("needs_review")
+    if flag is not None and not isinstance(flag, bool):
+        raise TypeError(f"needs_review must be a bool, got {type(flag).__name__}")
+    score = values.get("quality_score")
+    score = None if score is None else float(score)
+    if score is not None and score != score:  # NaN: no score
+        score = None
+    reasons = _words(values.get("review_reasons"), "review_reasons")
+    if flag and not reasons:
+        said = "" if score is None else f" (quality score {score:.2f})"
+        reasons = [f"the segmentation asks for review{said}"]
+    return bool(flag) or bool(flag is None and reasons), reasons, score
+
+
+def review_status(
+    caveats: Iterable[str] | None = (),
+    *,
+    segmentation: Mapping[str, Any] | None = None,
+    error: str | None = None,
+) -> Review:
+    """Decide a run's status from the doubts its checks raised.
+
+    Parameters
+    ----------
+    caveats : iterable of str
+        The run's doubts in words: segmentation caveats, brain-mask notes,
+        skipped files. Informational notes are not passed here.
+    segmentation : mapping, optional
+        The segment-tumor stage's values; its ``needs_review``,
+        ``review_reasons`` and ``quality_score`` are read when present
+        (:func:`segmentation_review`).
+    error : str, optional
+        The run failed with this one-line error: status ``failed``.
+
+    Returns
+    -------
+    Review
+
+    Examples
+    --------
+    >>> review_status([]).status
+    'ok'
+    >>> r = review_status(["tumour on the last slice of the scan"])
+    >>> r.status, r.needs_review, r.reasons
+    ('check', True, ('tumour on the last slice of the scan',))
+    >>> review_status([], segmentation={"needs_review": False, "quality_score": 0.9}).status
+    'ok'
+    >>> review_status(error="InputError: no brain").status
+    'failed'
+    """
+    doubts = _words(caveats, "caveats")
+    flagged, seg_reasons, score = segmentation_review(segmentation)
+    if error is not None:
+        return Review(STATUS_FAILED, tuple(_words(error, "error") or ["failed"]), score)
+    reasons = doubts + [r for r in seg_reasons if r not in doubts] if flagged else doubts
+    return Review(STATUS_CHECK if reasons else STATUS_OK, tuple(reasons), score)
+
+
+def run_notes(
+    *,
+    tumour_found: bool,
+    caveats: Iterable[str] = (),
+    skipped_files: Iterable[str] = (),
+    brain_mask_note: str | None = None,
+    brain_notes: Iterable[str] = (),
+) -> tuple[list[str], list[str]]:
+    """A run's notes, in their fixed order, and those of them that doubt the result.
+
+    Every note is shown (summary, metrics, provenance, report); the doubts
+    (segmentation caveats, files skipped as unreadable, notes on the brain
+    mask's size or coverage) are :func:`review_status`'s ``caveats``. "No
+    tumour found" and "brain mask given" inform; they do not doubt.
+
+    Returns
+    -------
+    notes, doubts : list of str
+
+    Examples
+    --------
+    >>> run_notes(tumour_found=False, brain_mask_note="brain mask given (m.nii)")
+    (['no tumour found: no mesh and no render written', 'brain mask given (m.nii)'], [])
+    """
+    caveat_list = _words(caveats, "caveats")
+    skipped = [str(f) for f in skipped_files]
+    skipped_note = (
+        [f"skipped {len(skipped)} unreadable file(s): {', '.join(skipped)}"] if skipped else []
+    )
+    brain = _words(brain_notes, "brain_notes")
+    notes = [] if tumour_found else [NO_TUMOUR_NOTE]
+    notes += caveat_list + skipped_note
+    if brain_mask_note:
+        notes.append(brain_mask_note)
+    notes += brain
+    return notes, caveat_list + skipped_note + brain
