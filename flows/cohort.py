@@ -55,7 +55,7 @@ from storage.cohort_report import (
 )
 from storage.manifest import ManifestRow, read_manifest
 from storage.objectstore import ObjectStore, is_url, open_store
-from storage.publish import check_destination
+from storage.publish import check_destination, check_outputs_not_inputs
 from storage.remote_publish import RemoteFolder, publish_files, published_names
 from storage.store import ArtifactStore
 from tasks import stages
@@ -333,6 +333,9 @@ def _validate_rows(rows: list[dict[str, Any]], out_dir: Path | None) -> None:
         if out_dir is not None:
             given = [row["image"]] + ([row["brain_mask"]] if row.get("brain_mask") else [])
             check_destination(out_dir / pid, given)
+    if out_dir is not None:  # nor over another row's input (a mask kept in its folder)
+        inputs = [r[k] for r in rows for k in ("image", "brain_mask") if r.get(k)]
+        check_outputs_not_inputs([out_dir / r["patient_id"] for r in rows], inputs)
 
 
 def run_cohort(

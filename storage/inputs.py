@@ -9,11 +9,13 @@ from pathlib import Path
 
 from tumor3d.errors import InputError, os_error_path, os_error_text
 
-__all__ = ["input_digest", "input_location"]
+__all__ = ["detached_data_files", "input_digest", "input_files", "input_location"]
 
 _SIDECAR_SUFFIXES = (".json", ".yaml", ".yml")
 _CHUNK = 1 << 20
 _DETACHED_HEADERS = (".nhdr", ".mhd")
+#: Formats whose header may name another file holding the voxels.
+_HEADER_FORMATS = (".nhdr", ".mhd", ".nrrd", ".mha")
 _HEADER_PROBE = 1 << 16
 # NRRD "data file: x.raw" / "datafile: x.raw"; MetaImage "ElementDataFile = x.raw"
 _DATA_FILE_LINE = re.compile(
@@ -29,16 +31,56 @@ def _stem(path: Path) -> str:
     return path.stem
 
 
-def _detached_data_files(header: Path) -> list[Path]:
-    """The voxel-data files a ``.nhdr``/``.mhd`` header points to.
+def _header_text(header: Path) -> str:
+    """The header part of a NRRD/MetaImage file (latin-1), at most 64 KiB."""
+    with open(header, "rb") as fh:
+        text = fh.read(_HEADER_PROBE).decode("latin-1")
+    if header.name.lower().endswith((".nrrd", ".nhdr")):
+        text = text.split("\n\n", 1)[0]  # a NRRD header ends at its first blank line
+    return text
+
+
+def _named_files(text: str, match: re.Match[str]) -> list[str]:
+    """The file names a data-file line gives: one, a pattern's, or a LIST's."""
+    ref = match.group(1)
+    if ref.upper() == "LIST" or ref.upper().startswith("LIST "):
+        return [ln.strip() for ln in text[match.end() :].splitlines() if ln.strip()]
+    if "%" in ref:  # a printf pattern and its index range: "slice%03d.raw 1 40 1"
+        return [ref.split()[0]]
+    return [ref]
+
+
+def _check_inside(header: Path, name: str) -> None:
+    """Refuse a data file named outside the header's folder (absolute, or up through ``..``)."""
+    folder = os.path.normpath(os.path.abspath(header.parent))
+    target = os.path.normpath(os.path.join(folder, name))
+    if os.path.isabs(name) or os.path.commonpath([folder, target]) != folder:
+        raise InputError(
+            f"its header names the data file {name!r} outside the header's folder; a "
+            "detached header's data must lie in its folder (or below it)",
+            path=str(header),
+        )
+
+
+def detached_data_files(header: str | Path) -> list[Path]:
+    """The voxel-data files a NRRD/MetaImage header points to (resolved).
 
     A single named file is returned when it exists; for a list, a file-name
     pattern or anything not understood, every other regular file in the
-    header's folder (over-inclusion only costs a cache miss).
+    header's folder (over-inclusion only costs a cache miss, or refuses an
+    output folder holding one of them).
+
+    Raises
+    ------
+    InputError
+        If the header names a data file outside its own folder (an absolute
+        path or ``../``): one line naming the header.
     """
+    header = Path(header)
+    if not header.name.lower().endswith(_HEADER_FORMATS):
+        return []
     try:
-        with open(header, "rb") as fh:
-            text = fh.read(_HEADER_PROBE).decode("latin-1")
+        text = _header_text(header)
     except OSError:
         return []
     match = _DATA_FILE_LINE.search(text)
@@ -47,11 +89,39 @@ def _detached_data_files(header: Path) -> list[Path]:
     ref = match.group(1)
     if ref.upper() == "LOCAL":
         return []  # the data follow the header in the same file
+    for name in _named_files(text, match):
+        _check_inside(header, name)
     if " " not in ref and "%" not in ref and ref.upper() != "LIST":
         target = (header.parent / ref).resolve()
         if target.is_file():
             return [target]
-    return sorted(f for f in header.parent.iterdir() if f.is_file() and f != header)
+    if not header.name.lower().endswith(_DETACHED_HEADERS):
+        return []
+    return sorted(f.resolve() for f in header.parent.iterdir() if f.is_file() and f != header)
+
+
+def input_files(path: str | Path) -> list[Path]:
+    """Every file an input consists of, resolved: what publishing must never replace.
+
+    The input itself; for a detached header its data file(s)
+    (:func:`detached_data_files`) and any sidecar of the same stem; for a
+    folder, the folder and the targets of the symbolic links in it.
+
+    Raises
+    ------
+    InputError
+        A header naming a data file outside its folder.
+    """
+    p = Path(path).expanduser()
+    found = [p.resolve()]
+    if p.is_dir():
+        found += [f.resolve() for f in p.rglob("*") if f.is_symlink()]
+    elif p.is_file():
+        found += detached_data_files(p)
+        stem = _stem(p)
+        found += [p.with_name(stem + s).resolve() for s in _SIDECAR_SUFFIXES
+                  if p.with_name(stem + s).is_file()]  # fmt: skip
+    return found
 
 
 def _hash_file(h: hashlib._Hash, path: Path, label: str) -> None:
@@ -112,8 +182,8 @@ def _input_digest(p: Path) -> str:
             _hash_file(h, f, f.relative_to(p).as_posix())
     else:
         _hash_file(h, p, "image")
-        if p.name.lower().endswith(_DETACHED_HEADERS):
-            for data_file in _detached_data_files(p):
+        if p.name.lower().endswith(_HEADER_FORMATS):
+            for data_file in detached_data_files(p):
                 _hash_file(h, data_file, "data:" + data_file.name)
         stem = _stem(p)
         for suffix in _SIDECAR_SUFFIXES:

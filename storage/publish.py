@@ -10,7 +10,10 @@ the final name.
 Four safety rules:
 
 * :func:`check_output_not_input` -- a folder that is, or contains, an input
-  is never removed or replaced (the caller checks before any work);
+  (any file it consists of: a detached header's data file, a sidecar,
+  :func:`storage.inputs.input_files`) is never removed or replaced (the
+  caller checks before any work; a cohort checks every row's folder against
+  every row's inputs, :func:`check_outputs_not_inputs`);
 * :func:`check_replaceable` -- only a tumor3d result folder (or an empty
   one) is ever replaced: a folder of the user's own files that happens to
   have the patient's name is refused (the caller checks before any work,
@@ -45,6 +48,7 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from storage.inputs import input_files
 from tumor3d.errors import InputError
 
 __all__ = [
@@ -52,6 +56,7 @@ __all__ = [
     "RESULT_MARKERS",
     "check_destination",
     "check_output_not_input",
+    "check_outputs_not_inputs",
     "check_replaceable",
     "check_same_input",
     "clean_stale_staging",
@@ -100,27 +105,47 @@ def is_tumor3d_result(folder: str | Path) -> bool:
 _LEFTOVER = re.compile(r"^\.(?P<name>.+)\.(?:partial|old)-(?P<pid>\d+)-[0-9a-f]{8}$")
 
 
+def _over_input(target: Path, src: Path) -> InputError:
+    return InputError(
+        f"the output folder {target} is or contains the input {src}; publishing "
+        "replaces that folder as a whole and would delete the input: choose another "
+        "--out or patient id",
+        path=str(src),
+    )
+
+
 def check_output_not_input(final: str | Path, inputs: Iterable[str | Path]) -> None:
     """Refuse to publish into ``final`` when it is, or contains, one of ``inputs``.
 
     Publishing replaces ``final`` as a whole, so an input inside it would be
-    deleted.
+    deleted. Every file an input consists of counts
+    (:func:`storage.inputs.input_files`: a ``.mhd`` header's data file too).
 
     Raises
     ------
     InputError
-        Naming the input and the output folder.
+        Naming the input and the output folder (or a header naming a data
+        file outside its folder).
     """
-    target = Path(final).expanduser().resolve()
+    check_outputs_not_inputs([final], inputs)
+
+
+def check_outputs_not_inputs(finals: Iterable[str | Path], inputs: Iterable[str | Path]) -> None:
+    """:func:`check_output_not_input` for many folders and inputs at once.
+
+    A cohort: no row's folder may be or contain any row's input (a brain mask
+    kept in another patient's published folder would be replaced when that
+    patient is published). Linear in the number of folders and input files.
+    """
+    holders: dict[Path, Path] = {}
     for item in inputs:
-        src = Path(item).expanduser().resolve()
-        if src == target or target in src.parents:
-            raise InputError(
-                f"the output folder {target} is or contains the input {src}; publishing "
-                "replaces that folder as a whole and would delete the input: choose another "
-                "--out or patient id",
-                path=str(src),
-            )
+        for src in input_files(item):
+            for folder in (src, *src.parents):
+                holders.setdefault(folder, src)
+    for final in finals:
+        target = Path(final).expanduser().resolve()
+        if target in holders:
+            raise _over_input(target, holders[target])
 
 
 def check_replaceable(final: str | Path) -> None:

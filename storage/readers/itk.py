@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from storage.inputs import detached_data_files
 from storage.readers.common import (
     MAX_VOXELS_DEFAULT,
     _check_override,
@@ -114,7 +115,8 @@ def read_itk_scan(
         Unreadable file, more voxels declared than ``max_voxels``, not a
         single-component 3-D image (a 4-D image with one volume is
         accepted), a single 2-D image, a singular geometry, a constant or
-        non-finite volume.
+        non-finite volume, a detached header naming a data file outside its
+        folder (``ElementDataFile = ../../etc/passwd``).
     """
     import SimpleITK as sitk
 
@@ -127,6 +129,7 @@ def read_itk_scan(
     limit = check_max_voxels(max_voxels)
     if not p.is_file():
         raise InputError("no such file", where)
+    detached_data_files(p)  # a header naming data outside its folder is refused, never read
     kind = "NRRD" if p.name.lower().endswith((".nrrd", ".nhdr")) else "MetaImage"
     # ITK prints warnings for odd headers to stderr; the reader reports in one line instead
     shown = sitk.ProcessObject.GetGlobalWarningDisplay()
