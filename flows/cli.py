@@ -68,6 +68,27 @@ console = Console()
 err_console = Console(stderr=True)
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from tumor3d import __version__
+
+        console.print(f"tumor3d {__version__}", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_print_version, is_eager=True,
+            help="Print the installed version and exit.",
+        ),
+    ] = False,
+) -> None:
+    """3-D reconstruction and volume of brain tumours from thick-slice MR (Arakeri & Reddy 2013)."""
+
+
 #: Exit code of bad input (a file, option, configuration or manifest the user gave).
 EXIT_INPUT = 2
 #: Exit code of environment errors: store or output not writable, server unavailable.

@@ -396,3 +396,25 @@ def test_the_modality_is_case_insensitive_for_run_as_for_a_manifest(tmp_path):
     assert prepare_source(image, modality=" T1c ").modality == "t1c"
     with pytest.raises(InputError, match="unknown modality 't1'"):
         prepare_source(image, modality="t1")
+
+
+def test_version_option_prints_the_installed_version():
+    from importlib.metadata import version
+
+    from flows.cli import app
+
+    result = CliRunner().invoke(app, ["--version"])
+    assert result.exit_code == 0 and result.output.strip() == f"tumor3d {version('tumor3d')}"
+
+
+def test_exit_code_of_a_result_to_check_is_documented():
+    from pathlib import Path
+
+    import flows.cli as cli
+    from flows.cohort import EXIT_CHECK, exit_code_of
+
+    assert cli.EXIT_CHECK == EXIT_CHECK == 4 and "* 4 -- " in cli.__doc__
+    assert exit_code_of(["ok", "check"]) == 4 and exit_code_of(["check", "failed"]) == 1
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    row = "| 4 | `run`/`demo`/`cohort`: every result published, but some has status `check`"
+    assert row in readme

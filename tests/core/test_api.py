@@ -1,0 +1,123 @@
+"""tumor3d.reconstruct: the Python entry, in process, without Prefect."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import tumor3d
+from tumor3d.errors import ConfigError, InputError
+from tumor3d.phantom import make_phantom_patient
+from tumor3d.surface import is_watertight
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return make_phantom_patient(3, patient_id="api3", n_slices=16, matrix_size=(128, 128))
+
+
+@pytest.fixture(scope="module")
+def result(phantom):
+    return tumor3d.reconstruct(phantom.scan)
+
+
+def test_version_is_the_installed_packages():
+    from importlib.metadata import version
+
+    assert tumor3d.__version__ == version("tumor3d") and tumor3d.__version__[0].isdigit()
+
+
+def test_a_phantom_gives_its_known_volume_masks_and_a_closed_mesh(phantom, result):
+    truth = phantom.true_volume_mm3
+    assert result.status == "ok" and not result.needs_review and result.review_reasons == ()
+    assert result.method == "robust" and "T2" in result.measured
+    assert result.volumes_mm3["eq7"] == pytest.approx(truth, rel=0.03)
+    for key in ("voxel", "mesh", "mesh_simplified"):
+        assert result.volumes_mm3[key] == pytest.approx(truth, rel=0.10), key
+        assert result.volumes_ml[key] == pytest.approx(result.volumes_mm3[key] / 1000.0)
+    lo, hi = result.eq7_ci95_mm3
+    assert lo < result.volumes_mm3["eq7"] < hi and 0 < result.eq7_ce < 0.1
+    assert result.eq7_ci95_ml == pytest.approx((lo / 1000.0, hi / 1000.0))
+    assert result.tumor_mask_slices.shape == phantom.scan.shape
+    assert result.brain_mask.shape == phantom.scan.shape
+    # the segmentation overlaps the truth on the acquired slices
+    inter = np.count_nonzero(result.tumor_mask_slices & phantom.slice_masks)
+    dice = 2 * inter / (result.tumor_mask_slices.sum() + phantom.slice_masks.sum())
+    assert dice > 0.8
+    assert result.tumor_mask.shape[0] > phantom.scan.shape[0]  # slices inserted between
+    assert is_watertight(result.mesh) and is_watertight(result.mesh_simplified)
+    assert result.tumour_found and result.metrics["n_slices"] == 16
+
+
+def test_an_array_with_its_affine_and_a_file_give_the_same_result(phantom, result, tmp_path):
+    from storage.phantom_io import write_phantom_patient
+
+    grid = phantom.scan.source_grid
+    arr = tumor3d.reconstruct(
+        grid.to_source(phantom.scan.image), affine=grid.affine, modality="t2",
+        slice_thickness_mm=phantom.scan.slice_thickness_mm,
+    )  # fmt: skip
+    assert arr.volumes_mm3 == result.volumes_mm3 and arr.patient_id == "array"
+    assert np.array_equal(arr.tumor_mask_slices, result.tumor_mask_slices)
+    assert arr.on_input_grid(arr.tumor_mask_slices).shape == grid.shape
+    row = write_phantom_patient(phantom, tmp_path)
+    from_file = tumor3d.reconstruct(str(row.image), modality="t2")
+    assert from_file.patient_id == row.image.name.split(".")[0]
+    for key, v in result.volumes_mm3.items():
+        assert from_file.volumes_mm3[key] == pytest.approx(v, rel=1e-6), key
+
+
+def test_the_api_agrees_with_the_pipeline_stage_for_stage(phantom, result, tmp_path):
+    """The same core functions in the same order as flows.patient.run_stages (no Prefect run)."""
+    from flows.patient import run_notes, run_stages_direct
+    from storage.phantom_io import write_phantom_patient
+    from tumor3d.review import review_status
+
+    row = write_phantom_patient(phantom, tmp_path / "in")
+    runner = run_stages_direct(row.image, tmp_path / "store", patient_id="api3", modality="t2")
+    measured = runner.outputs["measure-volume"].values
+    for key, v in result.volumes_mm3.items():
+        assert measured[f"volume_{key}_mm3"] == pytest.approx(v, rel=1e-6), key
+    notes, doubts = run_notes(runner.outputs)
+    assert list(result.notes) == notes
+    review = review_status(doubts, segmentation=runner.outputs["segment-tumor"].values)
+    assert result.status == review.status
+
+
+def test_a_brain_mask_the_tool_doubts_gives_status_check_with_the_reason(phantom):
+    # a "brain" mask over the whole field of view: more than any skull holds (the issue's
+    # clinical T1c whose note said the result was unreliable, yet showed "ok")
+    everything = np.ones(phantom.scan.shape, dtype=np.uint8)
+    r = tumor3d.reconstruct(phantom.scan, brain_mask=everything)
+    assert r.status == "check" and r.needs_review
+    assert any("more than any skull holds" in reason for reason in r.review_reasons)
+    assert set(r.review_reasons) <= set(r.notes)
+    assert "brain mask given: no skull removal" in r.notes
+
+
+def test_bad_input_is_one_line():
+    arr = np.zeros((8, 8, 4), np.float32)
+    with pytest.raises(InputError, match="needs its affine"):
+        tumor3d.reconstruct(arr, modality="t2")
+    with pytest.raises(InputError, match="give modality"):
+        tumor3d.reconstruct(arr, affine=np.eye(4))
+    with pytest.raises(InputError, match="unknown modality"):
+        tumor3d.reconstruct(arr, affine=np.eye(4), modality="pd")
+    with pytest.raises(ConfigError):
+        tumor3d.reconstruct(arr, affine=np.eye(4), modality="t2", config={"nope": 1})
+    with pytest.raises(InputError, match="no such file"):
+        tumor3d.reconstruct("/nonexistent/x.nii.gz", modality="t2")
+
+
+def test_import_tumor3d_needs_no_prefect_and_reconstruct_runs_without_it():
+    code = (
+        "import sys, tumor3d; assert 'scipy' not in sys.modules; "
+        "from tumor3d.phantom import make_phantom_patient; "
+        "p = make_phantom_patient(1, n_slices=12, matrix_size=(96, 96)); "
+        "r = tumor3d.reconstruct(p.scan); "
+        "sys.exit(2 if 'prefect' in sys.modules else 0 if r.volumes_mm3['eq7'] > 0 else 3)"
+    )
+    assert subprocess.run([sys.executable, "-c", code], timeout=300).returncode == 0

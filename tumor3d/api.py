@@ -1,0 +1,398 @@
+"""The Python entry: :func:`reconstruct` one patient in this process, no Prefect, no server.
+
+>>> import tumor3d
+>>> r = tumor3d.reconstruct("flair.nii.gz", modality="flair")   # doctest: +SKIP
+>>> r.status, r.volumes_ml["eq7"], r.eq7_ci95_ml                # doctest: +SKIP
+('ok', 21.97, (21.0, 22.9))
+
+The stages are the pipeline's (the same core functions, in the same order,
+with the same configuration as ``tumor3d run``): preprocessing and brain
+mask, abnormal-slice detection, segmentation, interpolation between slices,
+marching cubes, simplification and the volumes with Eq. 7's predicted
+precision; renders, overlays and files are left to the command line. Nothing
+is cached or written.
+
+The core stays pure: arrays (or a :class:`~tumor3d.scan.Scan`) go in. A path
+is read, and an array with its affine is turned into a ``Scan``, by
+:mod:`storage.readers`, imported only then.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from tumor3d.config import PipelineConfig, parse_config
+from tumor3d.errors import InputError
+from tumor3d.lesion import left_right_axis
+from tumor3d.measures import clinical_measures
+from tumor3d.mesh import Mesh
+from tumor3d.metrics import measure_volumes
+from tumor3d.review import review_status, run_notes
+from tumor3d.scan import MODALITIES, Scan, slab_height_mm
+
+__all__ = ["Reconstruction", "reconstruct", "reconstruct_scan"]
+
+#: The volume estimators, as in ``metrics.parquet`` (``volume_<key>_mm3``).
+VOLUME_KEYS = ("eq7", "voxel", "mesh", "mesh_simplified")
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """What :func:`reconstruct` returns.
+
+    Arrays are in the pipeline's ``(z, y, x)`` order (``z`` the slice axis)
+    with ``affine`` mapping ``(x, y, z, 1)`` to RAS mm; :meth:`on_input_grid`
+    puts a mask back in the input's own voxel order.
+
+    Attributes
+    ----------
+    patient_id, modality : str
+    status : {"ok", "check"}
+        ``check``: the tool's own checks doubt the result; ``review_reasons``
+        say why (:mod:`tumor3d.review`).
+    review_reasons : tuple of str
+    notes : tuple of str
+        Every note of the run (the reasons included).
+    method : str
+        The segmentation method that ran (``auto`` resolved).
+    measured : str
+        What the mask, and so every volume, holds, in words.
+    volumes_mm3, volumes_ml : dict of str to float
+        ``eq7`` (slab sum, the paper's Eq. 7), ``voxel``, ``mesh`` and
+        ``mesh_simplified``.
+    eq7_ce : float
+        Predicted coefficient of error of the Eq. 7 volume.
+    eq7_ci95_mm3, eq7_ci95_ml : (float, float)
+        Its 95 % interval.
+    tumor_mask_slices : (z, y, x) ndarray of bool
+        The segmentation on the acquired slices.
+    brain_mask : (z, y, x) ndarray of bool
+    affine : (4, 4) ndarray
+        Of the acquired grid.
+    tumor_mask : (Z, y, x) ndarray of bool
+        The tumour after interpolation between slices, on ``fine_affine``.
+    fine_affine : (4, 4) ndarray
+    mesh, mesh_simplified : Mesh
+        RAS mm; empty when no tumour was found.
+    metrics : dict
+        Every measurement (the measure stage's row: RANO diameters, counts...).
+    """
+
+    patient_id: str
+    modality: str
+    status: str
+    review_reasons: tuple[str, ...]
+    notes: tuple[str, ...]
+    method: str
+    measured: str
+    volumes_mm3: dict[str, float]
+    volumes_ml: dict[str, float]
+    eq7_ce: float
+    eq7_ci95_mm3: tuple[float, float]
+    eq7_ci95_ml: tuple[float, float]
+    tumor_mask_slices: np.ndarray = field(repr=False)
+    brain_mask: np.ndarray = field(repr=False)
+    affine: np.ndarray = field(repr=False)
+    tumor_mask: np.ndarray = field(repr=False)
+    fine_affine: np.ndarray = field(repr=False)
+    mesh: Mesh = field(repr=False)
+    mesh_simplified: Mesh = field(repr=False)
+    metrics: dict[str, Any] = field(repr=False, default_factory=dict)
+    scan: Scan | None = field(repr=False, default=None)
+
+    @property
+    def needs_review(self) -> bool:
+        """True when the status is ``check``."""
+        return self.status != "ok"
+
+    @property
+    def tumour_found(self) -> bool:
+        """Whether any tumour was segmented."""
+        return bool(np.any(self.tumor_mask_slices))
+
+    def on_input_grid(self, mask_zyx: np.ndarray) -> np.ndarray:
+        """A ``(z, y, x)`` array of the acquired grid in the input's own voxel order."""
+        if self.scan is None:
+            raise InputError("no input grid recorded")
+        return self.scan.source_grid.to_source(np.asarray(mask_zyx))
+
+
+def _modality(modality: str | None, scan: Scan | None) -> str:
+    if modality is None:
+        if scan is not None:
+            return scan.modality
+        raise InputError(
+            f"give modality= ({', '.join(MODALITIES)}): it decides the segmentation method, "
+            "and is never assumed"
+        )
+    m = str(modality).strip().lower()
+    if m not in MODALITIES:
+        raise InputError(f"unknown modality {modality!r}: expected one of {', '.join(MODALITIES)}")
+    return m
+
+
+def _config(config: PipelineConfig | Mapping[str, Any] | str | None) -> PipelineConfig:
+    if isinstance(config, PipelineConfig):
+        return config
+    if config is None:
+        return parse_config({})
+    if isinstance(config, str | Mapping):
+        return parse_config(config, source="config")
+    raise InputError(
+        f"config must be a PipelineConfig, a dict or YAML text, got {type(config).__name__}"
+    )
+
+
+def _brain_notes(
+    brain: np.ndarray, spacing: tuple[float, float, float], extraction: str, tissue_slices: int
+) -> list[str]:
+    """The brain-mask notes of the pipeline (``tasks.preprocess.preprocess_notes``)."""
+    from tumor3d.preprocess import brain_coverage_note, brain_size_note, brain_volume_note
+
+    per_slice = np.count_nonzero(brain, axis=(1, 2))
+    notes = [
+        brain_volume_note(np.count_nonzero(brain) * float(np.prod(spacing)) / 1000.0),
+        brain_size_note(float(per_slice.max()) * spacing[1] * spacing[2]),
+    ]
+    if extraction != "given":
+        notes.append(
+            brain_coverage_note(int(np.count_nonzero(per_slice)), tissue_slices, extraction)
+        )
+    return [n for n in notes if n]
+
+
+def reconstruct_scan(
+    scan: Scan,
+    *,
+    config: PipelineConfig | Mapping[str, Any] | str | None = None,
+    brain_mask: np.ndarray | None = None,
+) -> Reconstruction:
+    """Run the pipeline's stages on a :class:`~tumor3d.scan.Scan` (pure: arrays in and out).
+
+    Parameters
+    ----------
+    scan : Scan
+    config : PipelineConfig, dict or YAML text, optional
+        As ``tumor3d run --config`` (defaults when None).
+    brain_mask : (z, y, x) ndarray, optional
+        A brain mask on the scan's grid (brain = values > 0.5), used instead
+        of skull removal.
+    """
+    from tumor3d.detect import detect_abnormal_slices
+    from tumor3d.interpolate import interpolate_stack
+    from tumor3d.pipeline import tumour_surface
+    from tumor3d.preprocess import preprocess_volume, tissue_slice_count
+    from tumor3d.segment import lesion_definition, segment_tumor
+    from tumor3d.simplify import simplify_mesh, target_face_count
+
+    if not isinstance(scan, Scan):
+        raise InputError(f"scan must be a tumor3d.scan.Scan, got {type(scan).__name__}")
+    cfg = _config(config)
+    given = None
+    if brain_mask is not None:
+        given = np.asarray(brain_mask)
+        if given.shape != scan.shape:
+            raise InputError(f"brain_mask has shape {given.shape}, the image {scan.shape}")
+        given = np.nan_to_num(given.astype(np.float64), nan=0.0) > 0.5
+    spacing = scan.spacing_zyx_mm
+    affine = np.asarray(scan.affine, dtype=np.float64)
+    lr_axis = left_right_axis(affine)
+    # preprocess
+    pre = preprocess_volume(
+        scan.image, **cfg.preprocess.model_dump(), spacing_mm=spacing, brain_mask=given
+    )
+    brain = np.asarray(pre.brain_mask, dtype=bool)
+    exterior = pre.head_exterior
+    # detect-abnormal
+    det = detect_abnormal_slices(
+        pre.enhanced, brain, modality=scan.modality, spacing_mm=spacing, lr_axis=lr_axis,
+        **cfg.detect.model_dump(),
+    )  # fmt: skip
+    if cfg.segment.method not in ("auto", "robust"):  # the segment stage reuses it only then
+        det = dataclasses.replace(det, lesion=None)
+    # segment-tumor
+    seg = segment_tumor(
+        pre.enhanced, brain, det, modality=scan.modality, spacing_mm=spacing, lr_axis=lr_axis,
+        lesion=cfg.detect.lesion.model_dump(),
+        head_exterior=exterior if exterior is not None and np.any(exterior) else None,
+        **cfg.segment.model_dump(),
+    )  # fmt: skip
+    # interpolate-slices, extract-surface, simplify-mesh
+    stack = interpolate_stack(
+        seg.tumor_mask, **cfg.interpolate.model_dump(), slice_step_mm=scan.slice_step_mm,
+        pixel_spacing_mm=scan.pixel_spacing_mm,
+    )  # fmt: skip
+    fine_affine = stack.fine_affine(affine)
+    surface = tumour_surface(stack.mask, fine_affine, **cfg.surface.model_dump())
+    simplified = surface
+    target = target_face_count(surface.n_faces, cfg.simplify.reduction_percent)
+    if not surface.is_empty and target >= 4:  # as the simplify stage: a tetrahedron at least
+        simplified = simplify_mesh(surface, **cfg.simplify.model_dump())
+    # measure-volume
+    dy, dx = scan.pixel_spacing_mm
+    slab = slab_height_mm(scan.slice_step_mm, scan.slice_thickness_mm, scan.slice_gap_mm)
+    row = measure_volumes(
+        seg.tumor_pixels, det.abnormal, stack.mask, fine_affine, pixel_area_mm2=dy * dx,
+        slab_height_mm=slab, mesh=surface, mesh_simplified=simplified,
+    ).to_row()  # fmt: skip
+    row.update(
+        clinical_measures(
+            seg.tumor_mask, pixel_spacing_mm=(dy, dx), slab_height_mm=slab,
+            mesh_vertices=None if surface.is_empty else surface.vertices,
+        )  # fmt: skip
+    )
+    # notes and status (tumor3d.review), as the pipeline's
+    extraction = "given" if given is not None else str(pre.brain_extraction)
+    notes, doubts = run_notes(
+        tumour_found=not surface.is_empty,
+        caveats=seg.caveats,
+        skipped_files=scan.skipped_files,
+        brain_mask_note="brain mask given: no skull removal" if given is not None else None,
+        brain_notes=_brain_notes(brain, spacing, extraction, tissue_slice_count(pre.original_u8)),
+    )
+    seg_values = {
+        k: getattr(seg, k) for k in ("needs_review", "review_reasons", "quality_score")
+        if getattr(seg, k, None) is not None
+    }  # fmt: skip
+    review = review_status(doubts, segmentation=seg_values)
+    vols = {k: float(row[f"volume_{k}_mm3"]) for k in VOLUME_KEYS}
+    lo, hi = float(row["volume_eq7_ci95_low_mm3"]), float(row["volume_eq7_ci95_high_mm3"])
+    return Reconstruction(
+        patient_id=scan.patient_id, modality=scan.modality, status=review.status,
+        review_reasons=review.reasons, notes=tuple(notes), method=seg.method,
+        measured=lesion_definition(seg.method, scan.modality), volumes_mm3=vols,
+        volumes_ml={k: v / 1000.0 for k, v in vols.items()},
+        eq7_ce=float(row["volume_eq7_ce"]), eq7_ci95_mm3=(lo, hi),
+        eq7_ci95_ml=(lo / 1000.0, hi / 1000.0), tumor_mask_slices=np.asarray(seg.tumor_mask),
+        brain_mask=brain, affine=affine, tumor_mask=np.asarray(stack.mask),
+        fine_affine=fine_affine, mesh=surface, mesh_simplified=simplified, metrics=row,
+        scan=scan,
+    )  # fmt: skip
+
+
+def reconstruct(
+    image: str | os.PathLike[str] | np.ndarray | Scan,
+    *,
+    affine: np.ndarray | None = None,
+    modality: str | None = None,
+    config: PipelineConfig | Mapping[str, Any] | str | None = None,
+    brain_mask: str | os.PathLike[str] | np.ndarray | None = None,
+    patient_id: str | None = None,
+    slice_thickness_mm: float | None = None,
+    slice_gap_mm: float | None = None,
+) -> Reconstruction:
+    """Reconstruct one patient's tumour in this process: masks, meshes, volumes, status.
+
+    Parameters
+    ----------
+    image : path, ndarray or Scan
+        A NIfTI, NRRD or MetaImage file, a DICOM series folder or a folder
+        of 2-D slices (as ``tumor3d run``); or a 3-D array in its file's voxel
+        order ``(i, j, k)`` with ``affine``; or a :class:`~tumor3d.scan.Scan`.
+    affine : (4, 4) ndarray
+        With an array: voxel index ``(i, j, k, 1)`` -> RAS mm (as NIfTI;
+        nibabel's ``img.affine``). Required then (voxel sizes are never
+        assumed); the coarsest axis is the slice axis.
+    modality : {"t2", "flair", "t1c"}
+        Required (it decides the segmentation method); a Scan's own by default.
+    config : PipelineConfig, dict or YAML text, optional
+        As ``tumor3d run --config``; the defaults when None.
+    brain_mask : path or ndarray, optional
+        A brain mask on the image's grid (brain = values > 0.5) used instead
+        of skull removal: a file for a path input, an array of the image
+        array's shape for an array input.
+    patient_id : str, optional
+        Default: from the file name, or ``"array"``.
+    slice_thickness_mm, slice_gap_mm : float, optional
+        Override what the input says about its slices (Eq. 7 uses thickness
+        + gap).
+
+    Returns
+    -------
+    Reconstruction
+
+    Raises
+    ------
+    InputError
+        One line: an unreadable file, no affine with an array, no modality,
+        a brain mask off the image's grid, an invalid configuration.
+    """
+    if isinstance(image, Scan):
+        if modality is not None and _modality(modality, None) != image.modality:
+            image = dataclasses.replace(image, modality=_modality(modality, None))
+        mask = None if brain_mask is None else np.asarray(brain_mask)
+        return reconstruct_scan(image, config=config, brain_mask=mask)
+    mod = _modality(modality, None)
+    cfg = _config(config)  # a bad configuration fails before the image is read
+    if isinstance(image, np.ndarray):
+        scan = _scan_from_array(image, affine, mod, patient_id or "array",
+                                slice_thickness_mm, slice_gap_mm)  # fmt: skip
+        mask = None
+        if brain_mask is not None:
+            arr = np.asarray(brain_mask)
+            if arr.shape != image.shape:
+                raise InputError(f"brain_mask has shape {arr.shape}, the image {image.shape}")
+            axes = scan.source_grid.axes
+            mask = np.ascontiguousarray(arr.transpose(axes[::-1]))
+        return reconstruct_scan(scan, config=cfg, brain_mask=mask)
+    if not isinstance(image, str | os.PathLike):
+        raise InputError(
+            f"image must be a path, a 3-D array with affine, or a Scan; got {type(image).__name__}"
+        )
+    if affine is not None:
+        raise InputError("affine is for an array input; a file carries its own")
+    from storage.readers import read_scan
+
+    scan = read_scan(image, modality=mod, patient_id=patient_id,
+                     slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm)  # fmt: skip
+    mask = None
+    if brain_mask is not None:
+        if isinstance(brain_mask, np.ndarray):
+            mask = brain_mask
+            if mask.shape == scan.source_grid.shape:  # the file's voxel order
+                mask = np.ascontiguousarray(mask.transpose(scan.source_grid.axes[::-1]))
+        else:
+            from storage.brain_mask import read_given_brain_mask
+
+            mask = read_given_brain_mask(brain_mask, scan).mask
+    return reconstruct_scan(scan, config=cfg, brain_mask=mask)
+
+
+def _scan_from_array(
+    data: np.ndarray,
+    affine: np.ndarray | None,
+    modality: str,
+    patient_id: str,
+    slice_thickness_mm: float | None,
+    slice_gap_mm: float | None,
+) -> Scan:
+    if affine is None:
+        raise InputError(
+            "an array input needs its affine= (voxel index -> RAS mm): voxel sizes are never "
+            "assumed"
+        )
+    aff = np.asarray(affine, dtype=np.float64)
+    if aff.shape != (4, 4) or not np.all(np.isfinite(aff)) or np.linalg.det(aff[:3, :3]) == 0:
+        raise InputError(f"affine must be a finite invertible 4x4 matrix, got shape {aff.shape}")
+    if data.ndim != 3:
+        raise InputError(f"image must be a 3-D array, got shape {data.shape}")
+    from storage.readers.common import scan_from_volume
+    from tumor3d.scan import validate_patient_id
+    from tumor3d.validation import check_positive
+
+    if slice_thickness_mm is not None:
+        slice_thickness_mm = check_positive(slice_thickness_mm, "slice_thickness_mm", unit="mm")
+    if slice_gap_mm is not None:
+        slice_gap_mm = check_positive(slice_gap_mm, "slice_gap_mm", allow_zero=True, unit="mm")
+
+    return scan_from_volume(
+        np.asarray(data, dtype=np.float32), aff, where="array", source="array",
+        modality=modality, patient_id=validate_patient_id(patient_id),
+        slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm,
+    )  # fmt: skip
