@@ -305,10 +305,10 @@ def _location(where: str | Path) -> str | Path:
 
 def _preflight(
     input_path: Path,
-    out: Path,
+    out: str | Path,
     patient_id: str | None,
     modality: str,
-    store: Path | None = None,
+    store: str | Path | None = None,
     brain_mask: Path | None = None,
     **read_kw: Any,
 ) -> None:
@@ -320,14 +320,20 @@ def _preflight(
     results is refused before any work, a given brain mask
     is checked against the image (grid, values, overlap), and a store that
     is a file or cannot be created is named before a temporary server is
-    started for nothing.
+    started for nothing. An ``s3://`` output or store is reached (one line
+    naming the URL if it cannot be) instead, never made a local folder.
     """
     from storage.brain_mask import read_given_brain_mask
     from storage.inputs import input_digest, input_location
+    from storage.objectstore import is_url, open_store
     from storage.publish import check_destination
     from storage.readers import derive_patient_id, read_scan, suggest_patient_id
     from tumor3d.scan import validate_patient_id
 
+    out = _location(out)
+    if isinstance(out, str):
+        _preflight_remote(input_path, out, patient_id, modality, store, brain_mask, **read_kw)
+        return
     _check_out_dir(out)
     if input_path.exists():
         pid = validate_patient_id(patient_id) if patient_id else derive_patient_id(input_path)
@@ -345,7 +351,38 @@ def _preflight(
     from storage.store import ArtifactStore
 
     # flows.patient.default_store_dir, without importing Prefect for it
-    ArtifactStore(store if store is not None else out / ".tumor3d-store")
+    if store is not None and is_url(store):
+        open_store(str(store)).check()  # type: ignore[attr-defined]
+    else:
+        ArtifactStore(store if store is not None else out / ".tumor3d-store")
+
+
+def _preflight_remote(
+    input_path: Path,
+    out: str,
+    patient_id: str | None,
+    modality: str,
+    store: str | Path | None = None,
+    brain_mask: Path | None = None,
+    **read_kw: Any,
+) -> None:
+    """:func:`_preflight` for an ``s3://`` output: inputs are local, so none can lie in it."""
+    from storage.brain_mask import read_given_brain_mask
+    from storage.objectstore import is_url, open_store
+    from storage.readers import read_scan
+    from storage.remote_publish import RemoteFolder
+    from storage.store import ArtifactStore
+
+    scan = read_scan(input_path, modality=modality, patient_id=patient_id, **read_kw)
+    if brain_mask is not None:
+        limit = read_kw.get("max_voxels", MAX_VOXELS_DEFAULT)
+        read_given_brain_mask(brain_mask, scan, max_voxels=limit)
+    RemoteFolder(out).check()  # one line naming the URL
+    at = store if store is not None else f"{out.rstrip('/')}/.tumor3d-store"
+    if is_url(at):
+        open_store(str(at)).check()  # type: ignore[attr-defined]
+    else:
+        ArtifactStore(at)
 
 
 def _check_out_dir(out: Path) -> None:
@@ -474,7 +511,7 @@ def run(
             help="NIfTI, NRRD or MetaImage file, DICOM series folder, or folder of 2-D slices."
         ),
     ],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
+    out: Annotated[str, typer.Option("--out", "-o", help="Output folder, or s3://bucket/prefix.")],
     patient_id: Annotated[
         str | None, typer.Option(help="Folder-safe patient id (default: from the input name).")
     ] = None,
@@ -487,9 +524,7 @@ def run(
     series_uid: Annotated[
         str | None, typer.Option(help="DICOM SeriesInstanceUID when a folder holds several.")
     ] = None,
-    store: Annotated[
-        Path | None, typer.Option(help="Artifact store (default OUT/.tumor3d-store).")
-    ] = None,
+    store: CohortStore = None,
     skip_unreadable_dicom: Annotated[
         bool,
         typer.Option(
@@ -521,7 +556,7 @@ def run(
         _preflight(input_path, out, patient_id, modality, store, brain_mask, **read_kw)
         result = _run_with_progress(
             input_path=input_path,
-            out_dir=out,
+            out_dir=_location(out),
             patient_id=patient_id,
             config=cfg,
             modality=modality,

@@ -35,7 +35,7 @@ from storage import nifti
 from storage.brain_mask import GivenBrainMask, read_given_brain_mask
 from storage.formats import encode_parquet
 from storage.inputs import input_digest, input_location
-from storage.objectstore import is_url
+from storage.objectstore import is_url, open_store
 from storage.patient_outputs import (
     join_notes,
     patient_report_data,
@@ -134,8 +134,13 @@ class PatientResult(BaseModel):
         return [s.cached for s in self.stages]
 
 
-def default_store_dir(out_dir: str | Path) -> Path:
-    """The artifact store used when none is given: ``<out_dir>/.tumor3d-store``."""
+def default_store_dir(out_dir: str | Path) -> Path | str:
+    """The artifact store used when none is given: ``<out_dir>/.tumor3d-store``.
+
+    A URL for an object-store ``out_dir`` (``s3://bucket/x/.tumor3d-store``).
+    """
+    if is_url(out_dir):
+        return f"{str(out_dir).rstrip('/')}/.tumor3d-store"
     return Path(out_dir) / ".tumor3d-store"
 
 
@@ -319,8 +324,10 @@ def patient_pipeline(
             staged, report, _ = publish_patient(
                 store, Path(tmp), source, outputs, runner.runs, metrics, cfg, brain_mask
             )
-            out_path = publish_folder(staged, f"{str(out_dir).rstrip('/')}/{pid}")
-        up_to_date = False  # publish_folder itself skips an unchanged upload
+            reused = all(r.cached and not r.repaired for r in runner.runs)
+            # publish_folder skips an unchanged upload, and with reuse a folder of the same key
+            out_path = publish_folder(staged, f"{str(out_dir).rstrip('/')}/{pid}", reuse=reused)
+        up_to_date = False
     else:
         out_path, report, up_to_date = publish_patient(
             store, Path(out_dir), source, outputs, runner.runs, metrics, cfg, brain_mask
@@ -416,7 +423,7 @@ def patient_flow(
         skip_unreadable=skip_unreadable, max_voxels=max_voxels, out_dir=out_dir,
     )  # fmt: skip
     given = None if brain_mask is None else prepare_brain_mask(brain_mask, source, out_dir=out_dir)
-    store = ArtifactStore(store_dir or default_store_dir(out_dir))
+    store = open_store(store_dir or default_store_dir(out_dir))  # s3:// -> ObjectStore
     logger = get_run_logger()
     digest = config_digest(cfg)[:12]
     logger.info("patient %s: %s (config %s)", source.patient_id, source.name, digest)

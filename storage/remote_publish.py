@@ -23,8 +23,10 @@ A run killed anywhere before step 5 leaves no valid marker, so the folder is
 not published (:func:`published_names` skips it, :func:`read_marker` returns
 None) and the next publish of that name completes it. A folder whose marker
 already lists exactly the staged files' digests, and whose objects still
-match them (read back), is left alone (re-runs from the cache upload nothing;
-a corrupted object is re-published). :func:`verify_folder` re-reads every listed file
+match them (read back), is left alone, and so is one whose marker records the
+same publish key when every stage was a cache hit (re-runs from the cache
+upload nothing, although files holding run times differ; a corrupted object
+is re-published when the bytes are compared). :func:`verify_folder` re-reads every listed file
 against its digest (a corrupted or missing object is named).
 
 Inputs are never touched: inputs are local files, and only keys under the
@@ -220,13 +222,24 @@ def _clean_stale_tmp(out: RemoteFolder, name: str, keep: str) -> None:
 
 
 def publish_files(
-    out: RemoteFolder, name: str, files: Mapping[str, bytes | Path], *, exclusive: bool
+    out: RemoteFolder,
+    name: str,
+    files: Mapping[str, bytes | Path],
+    *,
+    exclusive: bool,
+    key: str | None = None,
+    reuse: bool = False,
 ) -> str:
     """Publish ``files`` (relative path -> bytes or local file) as ``<url>/<name>/``.
 
     The steps of the module docstring. ``name`` may be ``""`` (files at the
     root, as the cohort's ``cohort.parquet``/``.md``/``.html``), which needs
-    ``exclusive=False``: then keys not in ``files`` are left alone.
+    ``exclusive=False``: then keys not in ``files`` are left alone. ``key``
+    (the caller's digest of everything the folder is made from, as in
+    :func:`storage.publish.write_publish_manifest`) is recorded in the marker;
+    with ``reuse`` (every stage a cache hit), a folder whose valid marker
+    (every listed file present with its size) records the same key is left
+    alone: nothing is uploaded, although files holding run times differ.
 
     Returns
     -------
@@ -247,6 +260,8 @@ def publish_files(
     data = {rel: (v.read_bytes() if isinstance(v, Path) else bytes(v)) for rel, v in files.items()}
     entries = {rel: {"sha256": _sha256(b), "size": len(b)} for rel, b in sorted(data.items())}
     current = read_marker(out, name)
+    if reuse and key and current is not None and current.get("key") == key:
+        return where  # the same result, published and complete: upload nothing
     if current is not None and current["files"] == entries and not verify_folder(out, name):
         return where  # already published with exactly these bytes (read back, intact)
     tag = f"{name or '_root'}.{os.getpid()}-{uuid.uuid4().hex[:8]}"
@@ -275,15 +290,16 @@ def publish_files(
         if exclusive:
             step = "remove the previous version's files"
             keep = {out.key(prefix + r) for r in data} | {out.key(_marker_path(name))}
-            for key in out._find(name):
-                if key not in keep:
-                    out.fs.rm_file(key)
+            for obj in out._find(name):
+                if obj not in keep:
+                    out.fs.rm_file(obj)
         step = "write the marker"
         rel = MARKER
         marker = {
             "format": MARKER_FORMAT,
             "name": name,
             "files": entries,
+            **({"key": key} if key else {}),
             "published_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
         out.fs.pipe_file(out.key(_marker_path(name)), json.dumps(marker, indent=1).encode())
@@ -303,15 +319,27 @@ def publish_files(
     return where
 
 
-def publish_folder(folder: str | Path, url: str) -> str:
+def publish_folder(folder: str | Path, url: str, *, reuse: bool = False) -> str:
     """Publish a finished local folder (a staging folder) as ``<url>`` on an object store.
 
     ``url`` is the folder's own URL (``s3://bucket/prefix/<patient_id>``);
-    every file below ``folder`` is published, relative paths kept. Returns
-    ``url``. Raises :class:`~storage.store.StoreError` as :func:`publish_files`.
+    every file below ``folder`` is published, relative paths kept. The key of
+    the folder's publish manifest (:data:`storage.publish.PUBLISH_MANIFEST`),
+    if any, goes into the marker; with ``reuse`` a folder published under the
+    same key is left alone (:func:`publish_files`). Returns ``url``. Raises
+    :class:`~storage.store.StoreError` as :func:`publish_files`.
     """
+    from storage.publish import PUBLISH_MANIFEST
+
     root = Path(folder)
     files = {p.relative_to(root).as_posix(): p for p in sorted(root.rglob("*")) if p.is_file()}
+    try:
+        key = json.loads((root / PUBLISH_MANIFEST).read_text()).get("key")
+    except (OSError, ValueError, AttributeError):
+        key = None
     parent, name = url.rstrip("/").rsplit("/", 1)
-    publish_files(RemoteFolder(parent), name, files, exclusive=True)
+    publish_files(
+        RemoteFolder(parent), name, files, exclusive=True,
+        key=key if isinstance(key, str) else None, reuse=reuse,
+    )  # fmt: skip
     return url.rstrip("/")

@@ -419,3 +419,57 @@ def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patient
     md = _body(s3_endpoint, "outs/cohort.md").decode()
     assert "Removed from the manifest" in md and "s3p1" in md
     assert f"outs/s3p1/{MARKER}" in _keys(s3_endpoint, "outs/s3p1/")  # reported, not deleted
+
+
+# -- issue 29: `run` to s3 is s3; a cached re-run uploads nothing -----------------------
+
+
+def _stamps(client, prefix: str) -> dict[str, tuple[str, object]]:
+    pages = client.get_paginator("list_objects_v2").paginate(Bucket=BUCKET, Prefix=prefix)
+    return {o["Key"]: (o["ETag"], o["LastModified"]) for p in pages for o in p.get("Contents", [])}
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_run_with_an_s3_output_or_store_writes_the_bucket_not_a_local_folder(
+    s3_endpoint, tmp_path, monkeypatch
+):
+    monkeypatch.chdir(tmp_path)
+    row = _rows(tmp_path / "in", [3])[0]
+    args = ["run", str(row.image), "--patient-id", "s3p3"]
+    res = CliRunner().invoke(app, [*args, "--out", f"s3://{BUCKET}/single"])
+    assert res.exit_code in (0, 4), res.output
+    assert not (tmp_path / "s3:").exists()
+    keys = _keys(s3_endpoint, "single/")
+    assert f"single/s3p3/{MARKER}" in keys and "single/s3p3/provenance.json" in keys
+    assert any(k.startswith("single/.tumor3d-store/objects/") for k in keys)  # the store too
+    assert verify_folder(RemoteFolder(f"s3://{BUCKET}/single"), "s3p3") == []
+    out = tmp_path / "o"
+    res = CliRunner().invoke(app, [*args, "--out", str(out), "--store", f"s3://{BUCKET}/store1"])
+    assert res.exit_code in (0, 4), res.output
+    assert not (tmp_path / "s3:").exists() and not (out / ".tumor3d-store").exists()
+    assert (out / "s3p3" / "provenance.json").is_file()
+    assert any(k.startswith("store1/objects/") for k in _keys(s3_endpoint, "store1/"))
+    # an unreachable bucket: one line, before any work
+    res = CliRunner().invoke(app, [*args, "--out", "s3://no-such-bucket/x"])
+    assert res.exit_code == 3 and "no-such-bucket" in res.output
+    assert "Traceback" not in res.output and not (tmp_path / "s3:").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_fully_cached_cohort_rerun_to_s3_uploads_no_patient_object(s3_endpoint, tmp_path):
+    rows = _rows(tmp_path / "in", [4, 5])
+    url = f"s3://{BUCKET}/again"
+    first = run_cohort(rows, url, workers=1, store_dir=tmp_path / "st")
+    assert first.exit_code in (0, 4)
+    before = {k: v for k, v in _stamps(s3_endpoint, "again/").items() if "/s3p" in f"/{k}"}
+    assert len(before) > 2 * 5
+    time.sleep(1.1)  # LastModified has a resolution of a second
+    again = run_cohort(rows, url, workers=1, store_dir=tmp_path / "st")
+    assert all(s.cached for p in again.patients for s in p.stages)
+    after = {k: v for k, v in _stamps(s3_endpoint, "again/").items() if "/s3p" in f"/{k}"}
+    assert after == before  # no object of a patient's folder rewritten
+    for p in again.patients:
+        assert verify_folder(RemoteFolder(url), p.patient_id) == []
+
