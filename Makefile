@@ -8,7 +8,7 @@ DEMO_OUT ?= demo-out
 # Real MR cases for development and evaluation (never used by the tests).
 TUMOR3D_DATA_DIR ?= ../shared/data
 
-.PHONY: demo test setup system-deps lint bench bench-cohort accuracy real-data evaluate clean
+.PHONY: demo test setup system-deps lint bench bench-cohort accuracy real-data evaluate paper clean
 
 demo: setup
 	$(BIN)/tumor3d demo --out $(DEMO_OUT)
@@ -64,6 +64,14 @@ evaluate: setup
 	    --out $(EVAL_OUT); rc=$$?; [ $$rc -le 1 ] || exit $$rc
 	mkdir -p reports && cp $(EVAL_OUT)/REPORT.md reports/REPORT.md
 	rm -f reports/bland_altman_*.png && cp $(EVAL_OUT)/bland_altman_*.png reports/
+
+# The paper's tables beside ours: reports/PAPER.md. Table 2 (slice recognition), Table 3
+# (Eq. 9 pixel counts) and the Eq. 7 volume on T2 phantoms for configs/paper.yaml, the
+# default and the paper read literally, with each choice of paper.yaml reverted alone; the
+# demo patient end to end and Table 5 (time per phase); Table 4 and Figure 10 from the
+# interpolation and simplification evaluations' CSVs (reports/). About 2-3 minutes.
+paper: setup
+	TUMOR3D_DATA_DIR="$(TUMOR3D_DATA_DIR)" PYTHONPATH=. $(BIN)/python benchmarks/paper_tables.py
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) real-out .pytest_cache .ruff_cache
