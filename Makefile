@@ -22,10 +22,14 @@ setup: system-deps $(STAMP)
 system-deps:
 	@sh scripts/system-deps.sh
 
+# After installing, the numba kernels are compiled once into numba's cache
+# (tumor3d/**/__pycache__) by tumor3d.warmup, so that the first patient does not
+# pay it (reports/benchmarks.md, first demo).
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e ".[test]"
+	$(BIN)/python -m tumor3d.warmup
 	@touch $(STAMP)
 
 lint: setup
