@@ -253,3 +253,48 @@ def test_simplify_qem_validation(kwargs, match):
 def test_simplify_qem_rejects_non_mesh():
     with pytest.raises(InputError, match="tumor3d.mesh.Mesh"):
         simplify_qem([1, 2, 3], target_faces=1)
+
+
+# ---------------------------------------------------------------------------
+# curvature: why it stops above the target, and tau="refresh"
+# ---------------------------------------------------------------------------
+
+
+def test_curvature_says_why_it_stops_above_the_target_and_refresh_reaches_it(sphere):
+    # Algorithm 2 stops when its candidates (R < tau, tau fixed before the loop,
+    # [A22]) run out: at P = 90 % on this sphere that is above F_target
+    mesh, _ = sphere
+    target = target_face_count(mesh.n_faces, 90.0)
+    out, info = simplify_mesh(mesh, method="curvature", reduction_percent=90.0, return_info=True)
+    assert info["candidates_exhausted"] and out.n_faces > target
+    assert info["tau_passes"] == 1
+    assert "candidate set ran out" in info["stop_reason"]
+    assert f"{out.n_faces} faces" in info["stop_reason"]
+    # refreshing tau whenever the candidates run out reaches the target
+    ref, rinfo = simplify_mesh(
+        mesh, method="curvature", reduction_percent=90.0, tau="refresh", return_info=True
+    )
+    assert target - 1 <= ref.n_faces <= target  # a collapse removes two faces
+    assert rinfo["stop_reason"] is None and not rinfo["candidates_exhausted"]
+    assert rinfo["tau_passes"] >= 2 and rinfo["n_collapses"] > info["n_collapses"]
+    assert is_watertight(ref)
+    # the kept vertices are input vertices (half-edge collapse, v_j does not move)
+    kept = {tuple(v) for v in np.round(mesh.vertices, 9)}
+    assert all(tuple(v) in kept for v in np.round(ref.vertices, 9))
+    # the first pass is the paper's: its tau is the one reported
+    assert rinfo["tau"] == pytest.approx(info["tau"])
+
+
+def test_curvature_reaching_the_target_has_no_stop_reason(sphere):
+    mesh, _ = sphere
+    out, info = simplify_mesh(mesh, method="curvature", reduction_percent=40.0, return_info=True)
+    assert out.n_faces <= target_face_count(mesh.n_faces, 40.0)
+    assert info["stop_reason"] is None and info["tau_passes"] == 1
+
+
+def test_curvature_tau_option_is_validated(sphere):
+    mesh, _ = sphere
+    with pytest.raises(InputError, match="tau must be one of"):
+        simplify_mesh(mesh, method="curvature", reduction_percent=40.0, tau="often")
+    with pytest.raises(InputError, match="unknown option"):
+        simplify_mesh(mesh, method="memoryless", reduction_percent=40.0, tau="refresh")

@@ -57,7 +57,7 @@ __all__ = [
 
 #: method name -> (function(mesh, *, target_faces, return_info, **options), allowed option names)
 _METHODS: dict[str, tuple[Callable[..., Any], frozenset[str]]] = {
-    "curvature": (simplify_curvature, frozenset({"curvedness"})),
+    "curvature": (simplify_curvature, frozenset({"curvedness", "tau"})),
     "memoryless": (simplify_memoryless, frozenset()),
     "qem": (simplify_qem, frozenset({"aggressiveness"})),
 }
@@ -138,7 +138,9 @@ def simplify_mesh(
     return_info : bool, optional
         Also return diagnostics.
     **options
-        Method-specific tuning (``qem``: ``aggressiveness``).
+        Method-specific tuning (``qem``: ``aggressiveness``; ``curvature``:
+        ``tau``, ``"once"`` as in the paper or ``"refresh"`` to reach the
+        target, :func:`~tumor3d.simplify.curvature.simplify_curvature`).
 
     Returns
     -------
@@ -154,7 +156,8 @@ def simplify_mesh(
         (``100 (1 - n_faces_out / F0)``), ``simplified`` (False for a
         pass-through), ``reason`` (why not, else None), ``watertight`` (of
         the result), plus the method's own diagnostics (``curvature`` and
-        ``memoryless``: ``n_collapses``, ``candidates_exhausted``, ...).
+        ``memoryless``: ``n_collapses``, ``candidates_exhausted``, ...;
+        ``curvature``: ``stop_reason``, why it stopped above the target).
 
     Raises
     ------
