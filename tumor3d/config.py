@@ -13,10 +13,19 @@ The defaults are the recommended choices of ``ALGORITHMS.md`` ([A1]-[A29]);
 from __future__ import annotations
 
 import json
-from typing import Any, Literal
+from types import UnionType
+from typing import Any, Literal, Union, get_args, get_origin
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from tumor3d.constants import YAML_MAX_ALIASES, YAML_MAX_BYTES, YAML_MAX_EXPANDED_NODES
 from tumor3d.errors import ConfigError
@@ -40,6 +49,28 @@ __all__ = [
 
 class _StageConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _numbers_are_numbers(cls, value: Any, info: ValidationInfo) -> Any:
+        """A number's key takes a number: ``true`` or ``"3"`` is refused, not coerced to 1 or 3."""
+        field = cls.model_fields.get(info.field_name or "")
+        if field is not None and isinstance(value, bool | str) and _is_number(field.annotation):
+            kind = "true/false" if isinstance(value, bool) else "text (quoted)"
+            raise ValueError(f"must be a number, not {kind}")
+        return value
+
+
+def _is_number(annotation: Any) -> bool:
+    """True for ``int``, ``float`` and their optional forms (``float | None``)."""
+    if annotation in (int, float):
+        return True
+    args = [a for a in get_args(annotation) if a is not type(None)]
+    return (
+        bool(args)
+        and get_origin(annotation) in (Union, UnionType)
+        and all(a in (int, float) for a in args)
+    )
 
 
 class PreprocessConfig(_StageConfig):
@@ -477,7 +508,31 @@ class _BoundedLoader(yaml.SafeLoader):
     def compose_document(self) -> Any:
         node = super().compose_document()
         _check_expanded_size(node)
+        _check_duplicate_keys(node)
         return node
+
+
+def _check_duplicate_keys(root: Any) -> None:
+    """Refuse a mapping that gives a key twice (YAML would silently keep the last)."""
+    seen_nodes: set[int] = set()
+    stack = [root]
+    while stack:
+        node = stack.pop()
+        if id(node) in seen_nodes:
+            continue
+        seen_nodes.add(id(node))
+        if isinstance(node, yaml.MappingNode):
+            first: dict[str, int] = {}
+            for key, _ in node.value:
+                if isinstance(key, yaml.ScalarNode) and key.tag != "tag:yaml.org,2002:merge":
+                    line = key.start_mark.line + 1
+                    if key.value in first:
+                        raise yaml.YAMLError(
+                            f"the key '{key.value}' is given twice (lines {first[key.value]} "
+                            f"and {line}); YAML would silently drop the first"
+                        )
+                    first[key.value] = line
+        stack.extend(_children(node))
 
 
 def _check_expanded_size(root: Any) -> None:

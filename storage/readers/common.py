@@ -37,6 +37,7 @@ __all__ = [
     "REL_TOL",
     "MAX_FIELD_OF_VIEW_MM",
     "MAX_STACK_EXTENT_MM",
+    "MIN_VOXEL_MM",
     "check_field_of_view",
     "check_modality",
     "check_max_voxels",
@@ -59,6 +60,10 @@ _UNSAFE_ID_CHARS = re.compile(r"[^A-Za-z0-9._-]")
 MAX_FIELD_OF_VIEW_MM = 1000.0
 #: The longest stack (mm) across the slices: whole-body coverage is about 2 m.
 MAX_STACK_EXTENT_MM = 2500.0
+#: The finest voxel (mm) taken for MR: clinical and 7 T research scans stay above 0.1 mm.
+#: Finer voxels mean a unit error (metres, or an sform scaled by 1e-3), and the
+#: millimetre-sized structuring elements of skull removal would not fit in memory.
+MIN_VOXEL_MM = 0.05
 
 
 def check_field_of_view(
@@ -67,7 +72,7 @@ def check_field_of_view(
     slice_step_mm: float,
     where: str,
 ) -> None:
-    """Refuse a volume larger than any MR scanner images: its voxel size must be wrong.
+    """Refuse a volume larger, or voxels finer, than any MR scanner images: a wrong voxel size.
 
     Such a header (20 mm pixels for 2 mm, a unit error) would give volumes
     100-1000 times too large, and the brain surface's 2 mm grid over that
@@ -88,6 +93,14 @@ def check_field_of_view(
     """
     nz, ny, nx = (int(n) for n in shape_zyx)
     dy, dx = (float(v) for v in pixel_spacing_mm)
+    finest = min(dy, dx, float(slice_step_mm))
+    if finest < MIN_VOXEL_MM:
+        raise InputError(
+            f"voxels of {dy:.3g} x {dx:.3g} mm and slices {float(slice_step_mm):.3g} mm apart: "
+            f"finer than any MR scanner images (at least {MIN_VOXEL_MM:g} mm), so the voxel "
+            "size in the header is wrong (a unit error?): fix the header's voxel size",
+            where,
+        )
     height, width, depth = ny * dy, nx * dx, nz * float(slice_step_mm)
     if max(height, width) > MAX_FIELD_OF_VIEW_MM or depth > MAX_STACK_EXTENT_MM:
         raise InputError(
@@ -349,6 +362,18 @@ def _resolve_thickness(
 ) -> tuple[float, float]:
     """Combine the geometric step with stated thickness/gap (see the module docstring)."""
     thickness = thickness_override if thickness_override is not None else file_thickness
+    if (
+        gap_override is None
+        and thickness_override is not None
+        and thickness_override > step * (1 + REL_TOL)
+    ):
+        raise InputError(
+            f"slice_thickness_mm = {thickness_override:g} mm is larger than the slice step "
+            f"{step:.6g} mm of the image geometry (the gap would be "
+            f"{step - thickness_override:g} mm): give the acquired thickness, at most the step, "
+            "or slice_gap_mm as well",
+            where,
+        )
     if gap_override is None:
         if thickness is None:
             thickness = step
@@ -384,4 +409,3 @@ def _check_volume(image: np.ndarray, where: str) -> None:
 def _describe(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
-
