@@ -356,7 +356,9 @@ def staged_folder(
     both at entry and again right before the swap: a concurrent run may have put
     its folder there meanwhile. Leftovers of killed runs for ``name`` are
     cleaned first. On an exception
-    the staging folder is removed and ``<out_dir>/<name>`` is untouched.
+    the staging folder is removed and ``<out_dir>/<name>`` is untouched; an
+    OS error that names no file (a full disk while writing) is re-raised
+    naming ``<out_dir>/<name>``.
 
     Examples
     --------
@@ -385,6 +387,12 @@ def staged_folder(
         _fsync_tree(staging)
         checks()
         _swap_into_place(staging, final)
+    except OSError as exc:
+        shutil.rmtree(staging, ignore_errors=True)
+        if exc.filename is None and exc.errno is not None:
+            # a write's ENOSPC/EIO names no file: name the folder being published
+            raise OSError(exc.errno, exc.strerror or str(exc), str(final)) from exc
+        raise
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

@@ -233,3 +233,20 @@ def test_a_cohort_row_whose_folder_is_not_a_result_is_refused_before_any_work(tm
         _validate_rows(rows, tmp_path)
     (tmp_path / "pat1" / "provenance.json").write_text(PROVENANCE)
     _validate_rows(rows, tmp_path)
+
+
+def test_a_full_disk_while_publishing_names_the_folder(tmp_path):
+    """Issue 29: ENOSPC from a write names no file; the error names the folder published."""
+    import errno
+
+    from flows.cli import EXIT_ENVIRONMENT, _error_line
+
+    with pytest.raises(OSError) as exc:
+        with staged_folder(tmp_path, "pat") as staging:
+            (staging / "a.txt").write_text("x")
+            raise OSError(errno.ENOSPC, "No space left on device")  # as a full disk's write()
+    assert exc.value.errno == errno.ENOSPC and exc.value.filename == str(tmp_path / "pat")
+    text, code = _error_line(exc.value)
+    assert code == EXIT_ENVIRONMENT and text.startswith(f"{tmp_path / 'pat'}: ")
+    assert "ENOSPC" in text and "\n" not in text
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # nothing half-written
