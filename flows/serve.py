@@ -16,6 +16,7 @@ runs).
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +60,28 @@ def load_config_file(path: str | Path | None) -> dict[str, Any]:
             path=str(path),
         ) from None
     return parse_config(text, source=str(path)).model_dump(mode="json")
+
+
+#: The fields of a cron expression and their ranges.
+_CRON_FIELDS = (("minute", 0, 59), ("hour", 0, 23), ("day of month", 1, 31),
+                ("month", 1, 12), ("day of week", 0, 7))  # fmt: skip
+
+
+def _cron_reason(cron: str, exc: ValueError) -> str:
+    """Why a cron expression was refused, in words (no validation-library URL)."""
+    fields = cron.split()
+    if len(fields) != len(_CRON_FIELDS):
+        return (
+            f"a cron expression has 5 fields (minute hour day-of-month month day-of-week), "
+            f"this one {len(fields)}"
+        )
+    for text, (name, low, high) in zip(fields, _CRON_FIELDS, strict=True):
+        for number in re.findall(r"\d+", text):
+            if not low <= int(number) <= high:
+                return f"{name} {number} is outside {low}-{high}"
+    errors = getattr(exc, "errors", None)
+    msg = errors()[0]["msg"] if callable(errors) and errors() else str(exc).splitlines()[0]
+    return str(msg).removeprefix("Value error, ")
 
 
 @flow(name="tumor3d-scheduled-cohort", persist_result=False, log_prints=False)
@@ -126,10 +149,7 @@ def cohort_deployment(
     try:
         schedule = CronSchedule(cron=cron, timezone=timezone)
     except ValueError as exc:
-        first = str(exc).strip().splitlines()
-        raise InputError(
-            f"invalid --cron {cron!r}: {first[-1] if first else 'not a cron expression'}"
-        ) from None
+        raise InputError(f"invalid --cron {cron!r}: {_cron_reason(cron, exc)}") from None
     manifest_path = Path(manifest).expanduser().resolve()
     read_manifest(manifest_path)
     cfg_path = None if config_path is None else Path(config_path).expanduser().resolve()

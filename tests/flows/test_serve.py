@@ -133,3 +133,22 @@ def test_cli_serve_builds_the_deployment_and_hands_it_to_prefect(tmp_path, monke
     assert served[0].parameters["workers"] == 2
     bad = CliRunner().invoke(app, [*args, "--cron", "every night"])
     assert bad.exit_code == 2 and "invalid --cron" in bad.output and len(served) == 1
+
+
+@pytest.mark.parametrize(
+    ("cron", "reason"),
+    [
+        ("61 99 * * *", "minute 61 is outside 0-59"),
+        ("0 24 * * *", "hour 24 is outside 0-23"),
+        ("0 2 * 13 *", "month 13 is outside 1-12"),
+        ("0 2 * *", "has 5 fields"),
+    ],
+)
+def test_a_bad_cron_says_why_in_one_line_without_a_pydantic_url(tmp_path, cron, reason):
+    """Issue 29: the error dropped the reason and printed a pydantic URL."""
+    manifest = write_manifest([_row(0, tmp_path)], tmp_path / "m.csv")
+    with pytest.raises(InputError) as exc:
+        cohort_deployment(manifest, tmp_path / "out", cron=cron)
+    text = str(exc.value)
+    assert reason in text and "\n" not in text
+    assert "pydantic" not in text and "http" not in text
