@@ -335,6 +335,9 @@ def _preflight(
     from storage.readers import derive_patient_id, read_scan, suggest_patient_id
     from tumor3d.scan import validate_patient_id
 
+    from flows.server import check_configured_api
+
+    check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
     out = _location(out)
     if isinstance(out, str):
         _preflight_remote(input_path, out, patient_id, modality, store, brain_mask, **read_kw)
@@ -390,6 +393,22 @@ def _preflight_remote(
         ArtifactStore(at)
 
 
+#: The modality ``run`` assumes when --modality is not given (said on the console).
+DEFAULT_MODALITY = "t2"
+
+
+def _say_modality(modality: str, assumed: bool) -> None:
+    """Say the modality the run used, and that it was the default when it was."""
+    if not assumed:
+        console.print(f"modality: {escape(modality)}", highlight=False)
+        return
+    console.print(
+        f"modality: [bold]{escape(modality)}[/] (the default: --modality was not given; it "
+        "decides the segmentation, so give --modality flair or t1c for those images)",
+        highlight=False, soft_wrap=True,
+    )  # fmt: skip
+
+
 def _check_out_dir(out: Path) -> None:
     """An output folder that exists as a file is bad input (exit 2), found before any work."""
     from tumor3d.errors import InputError
@@ -406,17 +425,17 @@ def _starting_prefect_note() -> None:
 
 
 class _NoFailureTracebacks:
-    """Console filter: drop Prefect's own ERROR records of failed flow and task runs.
+    """Console filter: drop Prefect's own records of flow and task runs (any level).
 
-    They repeat, with a traceback, the error the command prints as one line;
-    they still reach the Prefect server (its API handler is not filtered), and
-    ``--verbose`` shows them.
+    Their warnings and errors repeat, under a run name and with a traceback,
+    what the command prints itself as one line (a failed patient, a skipped
+    row, a patient no longer in the manifest); they still reach the Prefect
+    server (its API handler is not filtered), and ``--verbose`` shows them.
     """
 
     def filter(self, record: Any) -> bool:
         name = record.name
-        ours = name.startswith(("prefect.flow_runs", "prefect.task_runs"))
-        return not (ours and record.levelno >= 40)
+        return not name.startswith(("prefect.flow_runs", "prefect.task_runs"))
 
 
 def _quiet_prefect_failures() -> None:
@@ -521,7 +540,10 @@ def run(
         str | None, typer.Option(help="Folder-safe patient id (default: from the input name).")
     ] = None,
     config: Annotated[Path | None, typer.Option(help="YAML configuration file.")] = None,
-    modality: Annotated[str, typer.Option(help="t2, flair or t1c.")] = "t2",
+    modality: Annotated[
+        str | None,
+        typer.Option(help="t2, flair or t1c (default t2, said on the console when assumed)."),
+    ] = None,
     slice_thickness_mm: Annotated[
         float | None, typer.Option(help="Override the slice thickness (mm).")
     ] = None,
@@ -558,6 +580,8 @@ def run(
             "skip_unreadable": skip_unreadable_dicom,
             "max_voxels": max_voxels,
         }
+        assumed = modality is None
+        modality = DEFAULT_MODALITY if modality is None else modality
         _preflight(input_path, out, patient_id, modality, store, brain_mask, **read_kw)
         result = _run_with_progress(
             input_path=input_path,
@@ -571,6 +595,7 @@ def run(
         )
     except _HANDLED as exc:
         raise _fail(exc) from None
+    _say_modality(modality, assumed)
     print_summary(result)
     raise typer.Exit(code=_patient_exit_code(result))
 

@@ -152,7 +152,16 @@ def _group(prepared: PreparedCase) -> str:
     return f"{prepared.reference_kind}, {prepared.acquisition}"
 
 
-@flow(name="tumor3d-evaluate", persist_result=False, log_prints=False)
+def _evaluate_run_name() -> str:
+    from prefect.runtime import flow_run
+
+    return f"evaluate-{Path(str(flow_run.parameters.get('out_dir', 'eval'))).name}"
+
+
+@flow(
+    name="tumor3d-evaluate", flow_run_name=_evaluate_run_name, persist_result=False,
+    log_prints=False,
+)  # fmt: skip
 def evaluate_flow(
     manifests: list[str],
     out_dir: str,

@@ -366,7 +366,13 @@ def _flow_run_name() -> str:
     from prefect.runtime import flow_run
 
     params = flow_run.parameters
-    pid = params.get("patient_id") or Path(str(params.get("input_path", "input"))).name
+    pid = params.get("patient_id")
+    if not pid:  # the id the run will publish under (as the README says), not the file name
+        path = Path(str(params.get("input_path", "input")))
+        try:
+            pid = derive_patient_id(path)
+        except InputError:
+            pid = path.name
     return f"patient-{pid}"
 
 

@@ -9,6 +9,10 @@ Per patient ``<pid>``, in ``<folder>``:
   manifest's ``reference``), in the same world space;
 * ``<pid>_truth_slices.nii.gz``: the true tumour on each acquired slice;
 * ``<pid>_truth.json``: the exact tumour volume and the phantom parameters.
+
+Its manifest row names the fine truth as ``reference`` with ``reference_kind``
+``truth``; a tumour-free patient's row has no reference and ``reference_kind``
+``tumor_free``, so that ``tumor3d evaluate`` scores both.
 """
 
 from __future__ import annotations
@@ -63,14 +67,18 @@ def write_phantom_patient(patient: PhantomPatient, folder: str | Path) -> Manife
     atomic_write_bytes(
         folder / f"{pid}_truth.json", (json.dumps(truth, indent=2, default=float) + "\n").encode()
     )
+    # the truth is the reference of a tumour; a tumour-free patient's row says so (its
+    # empty truth file is written all the same), so that `tumor3d evaluate` takes both
+    tumour = patient.true_volume_mm3 > 0
     return ManifestRow(
         patient_id=pid,
         image=image_path.resolve(),
         modality=scan.modality,
-        reference=fine_path.resolve(),
-        reference_labels=(1,),
+        reference=fine_path.resolve() if tumour else None,
+        reference_labels=(1,) if tumour else None,
         slice_thickness_mm=None,
         slice_gap_mm=None,
+        reference_kind="truth" if tumour else "tumor_free",
     )
 
 

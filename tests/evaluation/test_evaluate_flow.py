@@ -74,7 +74,8 @@ def test_report_has_the_tables_and_plot(evaluated):
         assert heading in text
     assert "| ph0 |" in text and "gone (file absent)" in text
     # pooled rows are per kind of reference, acquisition and modality (never FLAIR with T1c)
-    assert "| unspecified, native, 5 mm slice step, t2 |" in text
+    # (the phantom writer declares its reference: reference_kind truth)
+    assert "| truth, native, 5 mm slice step, t2 |" in text
     png = out / "bland_altman_default.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -99,3 +100,26 @@ def test_evaluate_has_help():
 
     r = CliRunner().invoke(app, ["evaluate", "--help"])
     assert r.exit_code == 0 and "NAME=FILE" in r.output
+
+
+def test_evaluate_scores_the_phantom_commands_own_manifest(tmp_path, prefect_harness):
+    """Issue 33: `tumor3d phantom` then `tumor3d evaluate` on its manifest (was: exit 1,
+    the tumour-free row refused, Tables 2 and 3 without a row)."""
+    from flows.cli import app
+
+    runner = CliRunner()
+    made = runner.invoke(app, ["phantom", "--out", str(tmp_path / "ph"), "--n", "2",
+                               "--normal", "1"])  # fmt: skip
+    assert made.exit_code == 0, made.output
+    res = runner.invoke(app, ["evaluate", str(tmp_path / "ph" / "manifest.csv"),
+                              "--out", str(tmp_path / "ev"), "--workers", "2"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "WARNING" not in res.output  # Prefect's own records stay off the console
+    df = pd.read_parquet(tmp_path / "ev" / "evaluation.parquet").set_index("patient_id")
+    assert list(df.index) == ["phantom000", "phantom001n"]
+    assert set(df["status"]) == {"ok"} and set(df["reference_kind"]) == {"truth", "tumor_free"}
+    report = (tmp_path / "ev" / "REPORT.md").read_text()
+    table2 = report.split("## Table 2")[1].split("## Table 3")[0]
+    table3 = report.split("## Table 3")[1].split("\n## ")[0]
+    for pid in ("phantom000", "phantom001n"):
+        assert f"| {pid} |" in table2 and f"| {pid} |" in table3

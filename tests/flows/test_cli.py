@@ -97,10 +97,14 @@ def test_phantom_command_writes_patients_truth_and_a_readable_manifest(tmp_path)
     for row in rows:
         scan = read_scan(row.image, modality=row.modality)
         assert (scan.slice_thickness_mm, scan.slice_gap_mm) == (2.0, 3.0)  # from the sidecar
-        assert row.reference is not None and row.reference.is_file()
         truth = json.loads((row.image.parent / f"{row.patient_id}_truth.json").read_text())
         volumes.append(truth["true_volume_mm3"])
     assert volumes[0] > 0 and volumes[1] == 0
+    # the evaluation's reference kinds (issue 33: evaluate on this manifest scored no row)
+    assert rows[0].reference is not None and rows[0].reference.is_file()
+    assert rows[0].reference_kind == "truth"
+    assert rows[1].reference is None and rows[1].reference_kind == "tumor_free"
+    assert (out / "phantom001n" / "phantom001n_truth_fine.nii.gz").is_file()
 
 
 def test_phantom_command_rejects_more_normal_than_total(tmp_path):
@@ -418,3 +422,41 @@ def test_exit_code_of_a_result_to_check_is_documented():
     readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
     row = "| 4 | `run`/`demo`/`cohort`: every result published, but some has status `check`"
     assert row in readme
+
+
+def test_run_says_the_modality_it_uses_and_when_it_is_the_default(tmp_path, monkeypatch):
+    import types
+
+    import flows.cli as cli
+
+    seen = {}  # what the flow was given (the flow itself is tested elsewhere)
+    good = _nifti(tmp_path / "good.nii.gz", np.random.default_rng(4).random((12, 12, 4)) + 1)
+    result_stub = types.SimpleNamespace(metrics={"status": "ok"})
+    monkeypatch.setattr(cli, "_run_with_progress", lambda **kw: (seen.update(kw), result_stub)[1])
+    monkeypatch.setattr(cli, "print_summary", lambda result: None)
+    assumed = runner.invoke(app, ["run", str(good), "--out", str(tmp_path / "o")])
+    assert assumed.exit_code == 0, assumed.output
+    assert seen["modality"] == "t2"
+    said = " ".join(assumed.output.split())
+    assert "modality: t2 (the default: --modality was not given" in said
+    given = runner.invoke(
+        app, ["run", str(good), "--out", str(tmp_path / "o"), "--modality", "flair"]
+    )
+    assert seen["modality"] == "flair"
+    assert "modality: flair" in given.output and "default" not in given.output
+
+
+def test_prefect_run_records_stay_off_the_console_without_verbose():
+    import logging
+
+    from flows.cli import _NoFailureTracebacks
+
+    keep = _NoFailureTracebacks()
+
+    def record(name, level):
+        return logging.LogRecord(name, level, __file__, 1, "x", None, None)
+
+    # a flow run's warning (a skipped row, a failed patient) is said by the command itself
+    assert not keep.filter(record("prefect.flow_runs", logging.WARNING))
+    assert not keep.filter(record("prefect.task_runs", logging.ERROR))
+    assert keep.filter(record("prefect.client", logging.WARNING))

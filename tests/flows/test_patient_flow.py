@@ -212,11 +212,14 @@ def test_tumour_free_patient_writes_no_empty_mesh_and_says_so(tmp_path):
     assert "no tumour found" in metrics["notes"]
     assert "no tumour found" in json.loads((folder / "provenance.json").read_text())["notes"][0]
     assert result.notes and "no tumour found" in result.notes[0]
+    # no tumour is a finding, not a doubt: the status stays ok
+    assert metrics["status"] == "ok" and not metrics["needs_review"]
 
 
 def test_tumour_cut_by_the_end_of_the_scan_is_named_in_the_notes(tmp_path, phantom, first_run):
-    # the whole phantom's tumour lies inside its scan: nothing to say
+    # the whole phantom's tumour lies inside its scan: nothing to say, status ok
     assert not any("slice of the scan" in n for n in first_run[1].notes)
+    assert first_run[1].metrics["status"] == "ok"
     # the same phantom scanned only up to its tumour's middle slice
     image = write_phantom_patient(phantom, tmp_path / "in").image
     src = nib.load(image)
@@ -232,6 +235,11 @@ def test_tumour_cut_by_the_end_of_the_scan_is_named_in_the_notes(tmp_path, phant
     folder = tmp_path / "out" / "cut1"
     assert note[0] in pd.read_parquet(folder / "metrics.parquet").iloc[0]["notes"]
     assert note[0] in json.loads((folder / "provenance.json").read_text())["notes"]
+    # the tool's own caveat asks for a human: status check, never a green ok (issue 33)
+    metrics = pd.read_parquet(folder / "metrics.parquet").iloc[0]
+    assert metrics["status"] == "check" and metrics["needs_review"]
+    assert note[0] in metrics["review_reasons"]
+    assert '<strong class="status-check">check</strong>' in (folder / "report.html").read_text()
 
 
 @pytest.mark.parametrize(
@@ -420,3 +428,17 @@ def test_summary_artifacts_are_on_the_patient_flow_run(first_run):
     md = next(a for a in arts if a.key == keys[0]).data
     row = pd.read_parquet(out / "flowpat" / "metrics.parquet").iloc[0]
     assert f"| Eq. 7 (slices) | {row['volume_eq7_mm3']:,.1f} | {row['volume_eq7_ml']:.3f} |" in md
+
+
+def test_run_name_is_the_patient_id_derived_from_the_file(nifti_input, tmp_path):
+    """Issue 33: the run is named after the id it publishes under, not the file name."""
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterName
+
+    result = run_patient(nifti_input, tmp_path / "out")  # no --patient-id: from the name
+    assert result.patient_id == "flowpat_t2" and nifti_input.name == "flowpat_t2.nii.gz"
+    with get_client(sync_client=True) as client:
+        names = FlowRunFilter(name=FlowRunFilterName(any_=["patient-flowpat_t2",
+                                                           "patient-flowpat_t2.nii.gz"]))
+        runs = client.read_flow_runs(flow_run_filter=names)
+    assert {r.name for r in runs} == {"patient-flowpat_t2"}
