@@ -335,9 +335,6 @@ def _preflight(
     from storage.readers import derive_patient_id, read_scan, suggest_patient_id
     from tumor3d.scan import validate_patient_id
 
-    from flows.server import check_configured_api
-
-    check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
     out = _location(out)
     if isinstance(out, str):
         _preflight_remote(input_path, out, patient_id, modality, store, brain_mask, **read_kw)
