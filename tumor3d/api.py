@@ -36,7 +36,7 @@ from tumor3d.metrics import measure_volumes
 from tumor3d.review import review_status, run_notes
 from tumor3d.scan import MODALITIES, Scan, slab_height_mm
 
-__all__ = ["Reconstruction", "reconstruct", "reconstruct_scan"]
+__all__ = ["Reconstruction", "reconstruct", "reconstruct_scan", "segmentation_values"]
 
 #: The volume estimators, as in ``metrics.parquet`` (``volume_<key>_mm3``).
 VOLUME_KEYS = ("eq7", "voxel", "mesh", "mesh_simplified")
@@ -167,6 +167,33 @@ def _brain_notes(
     return [n for n in notes if n]
 
 
+def segmentation_values(seg: Any) -> dict[str, Any]:
+    """A segmentation's own review, as the segment-tumor stage's values hold it.
+
+    ``needs_review``, ``review_reasons`` and ``quality_score`` read from the
+    segmentation result, or from its ``review`` (an object with
+    ``needs_review``, ``reasons`` and ``quality_score``, as
+    :class:`tumor3d.learned.review.Review`); absent ones are left out (no doubt).
+
+    >>> from types import SimpleNamespace as NS
+    >>> segmentation_values(NS(review=NS(needs_review=True, reasons=("low",), quality_score=.3)))
+    {'needs_review': True, 'review_reasons': ['low'], 'quality_score': 0.3}
+    >>> segmentation_values(NS(method="robust"))
+    {}
+    """
+    src = getattr(seg, "review", None) or seg
+    out: dict[str, Any] = {}
+    if getattr(src, "needs_review", None) is not None:
+        out["needs_review"] = bool(src.needs_review)
+    reasons = getattr(src, "review_reasons", None)
+    reasons = getattr(src, "reasons", None) if reasons is None else reasons
+    if reasons is not None:
+        out["review_reasons"] = [str(r) for r in reasons]
+    if getattr(src, "quality_score", None) is not None:
+        out["quality_score"] = float(src.quality_score)
+    return out
+
+
 def reconstruct_scan(
     scan: Scan,
     *,
@@ -256,11 +283,7 @@ def reconstruct_scan(
         brain_mask_note="brain mask given: no skull removal" if given is not None else None,
         brain_notes=_brain_notes(brain, spacing, extraction, tissue_slice_count(pre.original_u8)),
     )
-    seg_values = {
-        k: getattr(seg, k) for k in ("needs_review", "review_reasons", "quality_score")
-        if getattr(seg, k, None) is not None
-    }  # fmt: skip
-    review = review_status(doubts, segmentation=seg_values)
+    review = review_status(doubts, segmentation=segmentation_values(seg))
     vols = {k: float(row[f"volume_{k}_mm3"]) for k in VOLUME_KEYS}
     lo, hi = float(row["volume_eq7_ci95_low_mm3"]), float(row["volume_eq7_ci95_high_mm3"])
     return Reconstruction(
