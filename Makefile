@@ -10,8 +10,10 @@ TUMOR3D_DATA_DIR ?= ../shared/data
 
 .PHONY: demo test setup system-deps lint bench bench-cohort accuracy real-data evaluate paper clean
 
+# Exit code 4 (results published, status "check": the summary says what to look at)
+# is not a failure of these targets.
 demo: setup
-	$(BIN)/tumor3d demo --out $(DEMO_OUT)
+	$(BIN)/tumor3d demo --out $(DEMO_OUT); rc=$$?; [ $$rc -eq 0 ] || [ $$rc -eq 4 ] || exit $$rc
 
 # The test suite plus the doctests of every package (examples in docstrings must run).
 test: setup
@@ -51,6 +53,7 @@ real-data: setup
 	    echo "real-data: $(TUMOR3D_DATA_DIR)/brats2013_pat0003/flair.nii.gz not found; set TUMOR3D_DATA_DIR (skipped)"; \
 	else \
 	    $(BIN)/tumor3d run "$(TUMOR3D_DATA_DIR)/brats2013_pat0003/flair.nii.gz" --modality flair --out real-out; \
+	    rc=$$?; [ $$rc -eq 0 ] || [ $$rc -eq 4 ] || exit $$rc; \
 	fi
 
 # Evaluation against reference labels: the labelled real cases of
@@ -73,7 +76,8 @@ evaluate: setup
 # (Eq. 9 pixel counts) and the Eq. 7 volume on T2 phantoms for configs/paper.yaml, the
 # default and the paper read literally, with each choice of paper.yaml reverted alone; the
 # demo patient end to end and Table 5 (time per phase); Table 4 and Figure 10 from the
-# interpolation and simplification evaluations' CSVs (reports/). About 2-3 minutes.
+# interpolation and simplification evaluations' CSVs (reports/); the paper configuration at
+# 0.45 mm (the paper's 640 x 480) and 1.25 mm pixels; the real cases. About 5-7 minutes.
 paper: setup
 	TUMOR3D_DATA_DIR="$(TUMOR3D_DATA_DIR)" PYTHONPATH=. $(BIN)/python benchmarks/paper_tables.py
 

@@ -14,8 +14,12 @@ sharpening and equalisation on, no valley test, cluster labels, per slice):
   phantom and per slice;
 * Eq. 7 volume against the exact phantom volume;
 * each choice of ``configs/paper.yaml`` reverted one at a time (ablation);
-* the demo patient (``tumor3d demo``, seed 7) end to end, every volume, and
-  the time of each phase (Table 5);
+* the paper configuration at the paper's own geometry (640 x 480 pixels of
+  0.45 mm) and at 1.25 mm pixels;
+* the demo patient (``tumor3d demo``, seed 7) end to end, every volume, the
+  time of each phase (Table 5) and its renders (Figures 11-12);
+* the real cases of ``configs/evaluation/real_cases.csv`` found under
+  ``$TUMOR3D_DATA_DIR`` (skipped with a message when absent);
 * Table 4 and Figure 10 from the interpolation and simplification
   evaluations (``reports/interpolation.table4.csv``,
   ``reports/simplification_rows.csv``, made by
@@ -315,6 +319,41 @@ def ablation_rows(patients, normals, paper_cfg: PipelineConfig) -> list[str]:
     return lines
 
 
+#: Other geometries of the same phantoms: (label, make_phantom_patient keywords).
+GEOMETRIES = [
+    ('the paper\'s 640 x 480 pixels of 0.45 mm (`preset="paper"`)', {"preset": "paper"}),
+    ("256 x 256 pixels of 0.94 mm (the rows above)", {}),
+    ("192 x 192 pixels of 1.25 mm", {"matrix_size": (192, 192)}),
+]
+
+
+def geometry_rows(cfg: PipelineConfig, n: int, normal: int) -> list[str]:
+    """The paper configuration's claims at other pixel sizes (seeds ``0..n-1``)."""
+    lines = [
+        "| geometry | abnormal slices reported | normal slices reported | normal slices "
+        "flagged (section 2) | Eq. 9 per phantom (%) | Eq. 7 error (%) |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for label, kwargs in GEOMETRIES:
+        rows = [
+            score(p, *run_chain(p, cfg))
+            for p in [make_phantom_patient(s, **kwargs) for s in range(n)]
+            + [make_phantom_patient(s, tumor=False, **kwargs) for s in range(normal)]
+        ]
+        tum = [r for r in rows if r["true_vol"]]
+        ab, nm = _sum(rows, "abnormal"), _sum(rows, "normal")
+        lines.append(
+            f"| {label} | {_pct(_sum(rows, 'found_hit'), ab)} | "
+            f"{_pct(_sum(rows, 'found_false'), nm)} | {_pct(_sum(rows, 'flag_false'), nm)} | "
+            + ", ".join(f"{r['eq9']:.2f}" for r in tum)
+            + " | "
+            + ", ".join(f"{r['eq7_err']:+.2f}" for r in tum)
+            + " |"
+        )
+        print(lines[-1], flush=True)
+    return lines
+
+
 def demo_rows(configs: dict[str, PipelineConfig], seed: int = 7) -> tuple[list[str], list[str]]:
     """The demo patient end to end (every stage, no Prefect): volumes and phase times."""
     from flows.patient import VOLUME_LABELS, VOLUME_METHODS, run_stages_direct
@@ -602,6 +641,7 @@ def main() -> None:
     parser.add_argument("--no-demo", action="store_true", help="skip the end-to-end demo runs")
     parser.add_argument("--no-ablation", action="store_true")
     parser.add_argument("--no-real", action="store_true", help="skip the real cases")
+    parser.add_argument("--geometry-n", type=int, default=4, help="phantoms per geometry (0: skip)")
     parser.add_argument("--report", type=Path, default=ROOT / "reports" / "PAPER.md")
     args = parser.parse_args()
     t0 = time.perf_counter()
@@ -630,6 +670,9 @@ def main() -> None:
         demo_vol, demo_time, figures = demo_rows(
             {k: v for k, v in configs.items() if not k.startswith("paper read")}
         )
+    geometry = []
+    if args.geometry_n > 0:
+        geometry = geometry_rows(paper_cfg, args.geometry_n, max(1, args.geometry_n // 2))
     real = []
     if not args.no_real:
         real = real_rows({k: v for k, v in configs.items() if not k.startswith("paper read")})
@@ -698,6 +741,19 @@ def main() -> None:
         *normal_table(normal_results, list(range(args.normal))),
         "",
     ]
+    if geometry:
+        lines += [
+            "## The paper configuration at other pixel sizes",
+            "",
+            f"Seeds 0-{args.geometry_n - 1} with a tumour and 0-{max(1, args.geometry_n // 2) - 1} "
+            "without, `configs/paper.yaml`, the same heads and tumours rendered at another "
+            "in-plane pixel size (2 mm slices every 5 mm throughout).",
+            "",
+            *geometry,
+            "",
+            *GEOMETRY_NOTE,
+            "",
+        ]
     if demo_vol:
         lines += [
             "## The demo patient (`tumor3d demo`, phantom seed 7), every stage",
@@ -790,6 +846,19 @@ def main() -> None:
     args.report.parent.mkdir(parents=True, exist_ok=True)
     args.report.write_text("\n".join(lines))
     print(f"wrote {args.report} in {elapsed:.0f} s")
+
+
+#: What the geometry table shows (measured while writing it: seed 0, slice 12).
+GEOMETRY_NOTE = [
+    "Where we agree: at the paper's own geometry (640 x 480 pixels of 0.45 mm) the paper "
+    "configuration meets the paper's Table 2 and Table 3 claims as at 0.94 mm. Where not: at "
+    "1.25 mm pixels it misses most tumours, and so does the default, whose T2 route is the "
+    "same detector. The method's premise is that every tissue forms a histogram mode. The "
+    "CSF rim is a few millimetres thick: at 0.94 mm it still shows a mode (seed 0, slice 12: "
+    "the CSF pixels' median gray 240, a spike at 255), at 1.25 mm nearly every CSF pixel is "
+    "partial volume (gray 172-249, no mode), so a tumour slice shows three modes (WM, GM, "
+    "tumour) and is called normal.",
+]
 
 
 #: Why the paper's method fails on the real cases (reports/segmentation.md has the
