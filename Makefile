@@ -10,8 +10,10 @@ TUMOR3D_DATA_DIR ?= ../shared/data
 
 .PHONY: demo test setup system-deps lint bench bench-cohort accuracy real-data evaluate paper clean
 
+# Exit code 4 (results published, status "check": the summary says what to look at)
+# is not a failure of these targets.
 demo: setup
-	$(BIN)/tumor3d demo --out $(DEMO_OUT)
+	$(BIN)/tumor3d demo --out $(DEMO_OUT); rc=$$?; [ $$rc -eq 0 ] || [ $$rc -eq 4 ] || exit $$rc
 
 # The test suite plus the doctests of every package (examples in docstrings must run).
 test: setup
@@ -51,6 +53,7 @@ real-data: setup
 	    echo "real-data: $(TUMOR3D_DATA_DIR)/brats2013_pat0003/flair.nii.gz not found; set TUMOR3D_DATA_DIR (skipped)"; \
 	else \
 	    $(BIN)/tumor3d run "$(TUMOR3D_DATA_DIR)/brats2013_pat0003/flair.nii.gz" --modality flair --out real-out; \
+	    rc=$$?; [ $$rc -eq 0 ] || [ $$rc -eq 4 ] || exit $$rc; \
 	fi
 
 # Evaluation against reference labels: the labelled real cases of
