@@ -353,8 +353,10 @@ def _preflight(
     if brain_mask is not None:
         limit = read_kw.get("max_voxels", MAX_VOXELS_DEFAULT)
         read_given_brain_mask(brain_mask, scan, max_voxels=limit)
+    from flows.server import check_configured_api
     from storage.store import ArtifactStore
 
+    check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
     # flows.patient.default_store_dir, without importing Prefect for it
     if store is not None and is_url(store):
         open_store(str(store)).check()  # type: ignore[attr-defined]
@@ -382,6 +384,9 @@ def _preflight_remote(
     if brain_mask is not None:
         limit = read_kw.get("max_voxels", MAX_VOXELS_DEFAULT)
         read_given_brain_mask(brain_mask, scan, max_voxels=limit)
+    from flows.server import check_configured_api
+
+    check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
     RemoteFolder(out).check()  # one line naming the URL
     at = store if store is not None else f"{out.rstrip('/')}/.tumor3d-store"
     if is_url(at):

@@ -52,6 +52,7 @@ __all__ = [
     "ServerError",
     "ServerInfo",
     "ServerStatus",
+    "check_configured_api",
     "healthy",
     "prefect_api",
     "server_status",
@@ -305,6 +306,27 @@ def _configured_api_url() -> str | None:
     return PREFECT_API_URL.value() or None
 
 
+def check_configured_api(timeout_s: float = 5.0) -> None:
+    """Refuse, in one line, a ``PREFECT_API_URL`` that does not answer ``/health``.
+
+    Called before any work (nothing is created for a run that cannot start);
+    does nothing when no API is configured (the background or a temporary
+    server is used then).
+
+    Raises
+    ------
+    ServerError
+        Naming the URL and what to do (exit code 3 on the command line).
+    """
+    url = _configured_api_url()
+    if url and not healthy(url, timeout_s=timeout_s):
+        raise ServerError(
+            f"the Prefect API {url} (PREFECT_API_URL) does not answer {url.rstrip('/')}/health: "
+            "start that server, or unset PREFECT_API_URL to use `tumor3d server start`'s "
+            "or a temporary one"
+        )
+
+
 def _drain_prefect_workers() -> None:
     """Send the buffered logs and events before the server they go to stops."""
     from prefect.events.worker import EventsWorker
@@ -345,6 +367,7 @@ def prefect_api(on_temporary_start: Callable[[], None] | None = None) -> Iterato
     """
     configured = _configured_api_url()
     if configured:
+        check_configured_api()
         yield configured
         return
     status = server_status()
