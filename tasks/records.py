@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import stat
 from pathlib import Path
 from typing import ClassVar, Literal
 
@@ -39,6 +40,7 @@ from storage.store import atomic_write_bytes
 from tasks.spec import StageOutput
 
 __all__ = [
+    "MAX_RECORD_BYTES",
     "SERIALIZER_TYPE",
     "ScreenedRemoteFolder",
     "ScreenedResultFolder",
@@ -50,6 +52,9 @@ __all__ = [
 
 #: The ``metadata.serializer.type`` of every record this project writes.
 SERIALIZER_TYPE = "tumor3d-stage-output"
+
+#: A record's size limit: a stage output is a few kilobytes of references and values.
+MAX_RECORD_BYTES = 1 << 20
 
 #: A record's file name: a cache key (a hex digest), never a path.
 _KEY = re.compile(r"^[0-9A-Za-z_-]{8,128}$")
@@ -154,16 +159,22 @@ class ScreenedResultFolder(LocalFileSystem):
         return base / _record_name(path)
 
     def read_raw(self, path: str) -> bytes:
-        """A record's bytes, unscreened (for diagnostics); never through a symlink."""
+        """A record's bytes, unscreened; never through a symlink, never a FIFO or a huge file."""
         target = self._record_path(path)
+        flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
         try:
-            fd = os.open(target, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+            fd = os.open(target, flags)
         except OSError as exc:
             if target.is_symlink():
                 raise UntrustedRecord("it is a symlink (records are plain files)") from None
             raise ValueError(f"Path {target} cannot be read ({exc.strerror}).") from None
         with os.fdopen(fd, "rb") as fh:
-            return fh.read()
+            if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+                raise UntrustedRecord("it is not a regular file")
+            data = fh.read(MAX_RECORD_BYTES + 1)
+        if len(data) > MAX_RECORD_BYTES:
+            raise UntrustedRecord(f"it is larger than {MAX_RECORD_BYTES:,} bytes")
+        return data
 
     def read_path(self, path: str, _sync: bool | None = None) -> bytes:  # type: ignore[override]
         """The record stored under ``path`` (a cache key) if :func:`screen_record` trusts it."""

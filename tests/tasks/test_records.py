@@ -110,6 +110,19 @@ def test_the_result_folder_never_reads_or_writes_through_a_symlink(tmp_path):
         folder.read_path("../outside.txt")
 
 
+def test_a_fifo_or_an_oversized_record_is_refused_without_blocking(tmp_path):
+    from tasks.records import MAX_RECORD_BYTES
+
+    (tmp_path / "results").mkdir()
+    folder = ScreenedResultFolder(basepath=str(tmp_path / "results"))
+    os.mkfifo(tmp_path / "results" / KEY)  # opening it for reading would wait for a writer
+    with pytest.raises(UntrustedRecord, match="not a regular file"):
+        folder.read_path(KEY)
+    (tmp_path / "results" / OTHER).write_bytes(b" " * (MAX_RECORD_BYTES + 1))
+    with pytest.raises(UntrustedRecord, match="larger than"):
+        folder.read_path(OTHER)
+
+
 # -- end to end: the attacks of issue 29 against a real run ---------------------------
 
 
