@@ -372,13 +372,13 @@ def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patient
     staged: dict[str, dict[str, bytes]] = {}
     real = patient_mod.publish_folder
 
-    def spy(folder, url):
+    def spy(folder, url, **kwargs):
         staged[url] = {
             p.relative_to(folder).as_posix(): p.read_bytes()
             for p in folder.rglob("*")
             if p.is_file()
         }
-        return real(folder, url)
+        return real(folder, url, **kwargs)
 
     monkeypatch.setattr(patient_mod, "publish_folder", spy)
     rows = _rows(tmp_path / "in", [0, 1])
