@@ -315,6 +315,7 @@ def _preflight(
     modality: str,
     store: str | Path | None = None,
     brain_mask: Path | None = None,
+    segmentation: Path | None = None,
     **read_kw: Any,
 ) -> None:
     """Check the destination, read the input and open the store before starting Prefect.
@@ -323,12 +324,12 @@ def _preflight(
     input (or the brain mask), holds files other than a tumor3d result, or
     (for a patient id derived from the file name) holds another input's
     results is refused before any work, a given brain mask
-    is checked against the image (grid, values, overlap), and a store that
+    is checked against the image (grid, values, overlap), a given
+    segmentation against its grid and values, and a store that
     is a file or cannot be created is named before a temporary server is
     started for nothing. An ``s3://`` output or store is reached (one line
     naming the URL if it cannot be) instead, never made a local folder.
     """
-    from storage.brain_mask import read_given_brain_mask
     from storage.inputs import input_digest, input_location
     from storage.objectstore import is_url, open_store
     from storage.publish import check_destination
@@ -337,12 +338,14 @@ def _preflight(
 
     out = _location(out)
     if isinstance(out, str):
-        _preflight_remote(input_path, out, patient_id, modality, store, brain_mask, **read_kw)
+        _preflight_remote(
+            input_path, out, patient_id, modality, store, brain_mask, segmentation, **read_kw
+        )
         return
     _check_out_dir(out)
     if input_path.exists():
         pid = validate_patient_id(patient_id) if patient_id else derive_patient_id(input_path)
-        given = [input_path] + ([] if brain_mask is None else [brain_mask])
+        given = [input_path] + [m for m in (brain_mask, segmentation) if m is not None]
         # the content is hashed only if a record of another location is there to compare
         check_destination(
             out / pid, given,
@@ -350,9 +353,7 @@ def _preflight(
             location=input_location(input_path), suggestion=suggest_patient_id(input_path),
         )  # fmt: skip
     scan = read_scan(input_path, modality=modality, patient_id=patient_id, **read_kw)
-    if brain_mask is not None:
-        limit = read_kw.get("max_voxels", MAX_VOXELS_DEFAULT)
-        read_given_brain_mask(brain_mask, scan, max_voxels=limit)
+    _check_given_masks(scan, brain_mask, segmentation, read_kw.get("max_voxels"))
     from flows.server import check_configured_api
     from storage.store import ArtifactStore
 
@@ -371,19 +372,17 @@ def _preflight_remote(
     modality: str,
     store: str | Path | None = None,
     brain_mask: Path | None = None,
+    segmentation: Path | None = None,
     **read_kw: Any,
 ) -> None:
     """:func:`_preflight` for an ``s3://`` output: inputs are local, so none can lie in it."""
-    from storage.brain_mask import read_given_brain_mask
     from storage.objectstore import is_url, open_store
     from storage.readers import read_scan
     from storage.remote_publish import RemoteFolder
     from storage.store import ArtifactStore
 
     scan = read_scan(input_path, modality=modality, patient_id=patient_id, **read_kw)
-    if brain_mask is not None:
-        limit = read_kw.get("max_voxels", MAX_VOXELS_DEFAULT)
-        read_given_brain_mask(brain_mask, scan, max_voxels=limit)
+    _check_given_masks(scan, brain_mask, segmentation, read_kw.get("max_voxels"))
     from flows.server import check_configured_api
 
     check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
@@ -393,6 +392,21 @@ def _preflight_remote(
         open_store(str(at)).check()  # type: ignore[attr-defined]
     else:
         ArtifactStore(at)
+
+
+def _check_given_masks(
+    scan: Any, brain_mask: Path | None, segmentation: Path | None, max_voxels: int | None
+) -> None:
+    """A given brain mask and segmentation checked against the image (one line naming the file)."""
+    limit = MAX_VOXELS_DEFAULT if max_voxels is None else max_voxels
+    if brain_mask is not None:
+        from storage.brain_mask import read_given_brain_mask
+
+        read_given_brain_mask(brain_mask, scan, max_voxels=limit)
+    if segmentation is not None:
+        from storage.given_segmentation import read_given_segmentation
+
+        read_given_segmentation(segmentation, scan, max_voxels=limit)
 
 
 #: The modality ``run`` assumes when --modality is not given (said on the console).
@@ -570,6 +584,15 @@ def run(
             "removal.",
         ),
     ] = None,
+    segmentation: Annotated[
+        Path | None,
+        typer.Option(
+            "--segmentation",
+            help="Your own tumour mask on the input's voxel grid (same shape and affine; "
+            "tumour = values > 0.5), used instead of the tool's segmentation; meshes, volumes, "
+            "renders and report are made from it.",
+        ),
+    ] = None,
     verbose: Verbose = False,
 ) -> None:
     """Reconstruct one patient's tumour: masks, meshes, renders and volumes under OUT/<id>/."""
@@ -584,7 +607,9 @@ def run(
         }
         assumed = modality is None
         modality = DEFAULT_MODALITY if modality is None else modality
-        _preflight(input_path, out, patient_id, modality, store, brain_mask, **read_kw)
+        _preflight(
+            input_path, out, patient_id, modality, store, brain_mask, segmentation, **read_kw
+        )
         result = _run_with_progress(
             input_path=input_path,
             out_dir=_location(out),
@@ -593,6 +618,7 @@ def run(
             modality=modality,
             store_dir=None if store is None else str(store),
             brain_mask=None if brain_mask is None else str(brain_mask),
+            segmentation=None if segmentation is None else str(segmentation),
             **read_kw,
         )
     except _HANDLED as exc:

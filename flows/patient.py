@@ -34,6 +34,7 @@ from flows.artifacts import publish_patient_artifacts
 from storage import nifti
 from storage.brain_mask import GivenBrainMask, read_given_brain_mask
 from storage.formats import encode_parquet
+from storage.given_segmentation import GivenSegmentation, read_given_segmentation
 from storage.inputs import input_digest, input_location
 from storage.objectstore import is_url, open_store
 from storage.patient_outputs import (
@@ -84,6 +85,7 @@ __all__ = [
     "patient_flow",
     "patient_pipeline",
     "prepare_brain_mask",
+    "prepare_segmentation",
     "prepare_source",
     "publish_key",
     "publish_patient",
@@ -230,6 +232,44 @@ def prepare_brain_mask(
     return read_given_brain_mask(path, image, max_voxels=source.max_voxels)
 
 
+def prepare_segmentation(
+    mask_path: str | Path,
+    source: InputSource,
+    *,
+    out_dir: str | Path | None = None,
+) -> GivenSegmentation:
+    """Read a given tumour segmentation and check it against the source's image.
+
+    As :func:`prepare_brain_mask` (same grid rule, one line naming the file;
+    with ``out_dir``, a mask inside ``<out_dir>/<patient_id>`` is refused):
+    :func:`storage.given_segmentation.read_given_segmentation`.
+    """
+    path = Path(mask_path).expanduser()
+    if out_dir is not None and not is_url(out_dir):
+        check_output_not_input(Path(out_dir) / source.patient_id, [path])
+    image = read_scan(
+        source.path, modality=source.modality, patient_id=source.patient_id,
+        series_uid=source.series_uid, slice_thickness_mm=source.slice_thickness_mm,
+        slice_gap_mm=source.slice_gap_mm, skip_unreadable=source.skip_unreadable,
+        max_voxels=source.max_voxels,
+    )  # fmt: skip
+    return read_given_segmentation(path, image, max_voxels=source.max_voxels)
+
+
+def _store_segmentation(store: ArtifactStore, seg: GivenSegmentation | None) -> ArtifactRef | None:
+    """Put a given segmentation in the store; its file name rides along (``measured``)."""
+    if seg is None:
+        return None
+    return store.put_volume(seg.mask, seg.affine, kind="mask", extra={"given_file": seg.name})
+
+
+def _given_inputs(
+    brain_mask: GivenBrainMask | None, segmentation: GivenSegmentation | None
+) -> list[str]:
+    """The given mask files (never inside the output folder, never modified)."""
+    return [m.path for m in (brain_mask, segmentation) if m is not None]
+
+
 def brain_mask_note(mask: GivenBrainMask) -> str:
     """The note a run with a given brain mask carries (summary, metrics, provenance)."""
     return f"brain mask given ({mask.name}, SHA-256 {mask.sha256[:12]}...): no skull removal"
@@ -242,6 +282,7 @@ def run_stages(
     root: str,
     *,
     brain_mask: ArtifactRef | None = None,
+    segmentation: ArtifactRef | None = None,
 ) -> dict[str, Any]:
     """The pipeline's wiring: every stage in order, each fed its inputs' references.
 
@@ -249,7 +290,8 @@ def run_stages(
     returns its :class:`~tasks.spec.StageOutput` (:class:`PrefectRunner`,
     :class:`DirectRunner`). ``brain_mask``, a given mask stored on the
     scan's grid, replaces the skull removal of the preprocess stage (and
-    enters its cache key). Returns stage name -> output.
+    enters its cache key); ``segmentation``, a given tumour mask stored
+    likewise, replaces the segment-tumor stage's mask. Returns stage name -> output.
     """
     S = stages.STAGES
     scan = run.run(S["ingest-scan"], source=source, store_root=root).artifacts["scan"]
@@ -267,6 +309,7 @@ def run_stages(
     seg = run.run(
         S["segment-tumor"], scan=scan, enhanced=enhanced, brain_mask=brain, detection=det,
         lesion=lesion, head_exterior=exterior, config=cfg.segment, store_root=root,
+        given_mask=segmentation,
     )  # fmt: skip
     itp = run.run(
         S["interpolate-slices"], scan=scan, tumor_mask_slices=seg.artifacts["tumor_mask_slices"],
@@ -302,36 +345,44 @@ def patient_pipeline(
     *,
     runs: list[StageRun] | None = None,
     brain_mask: GivenBrainMask | None = None,
+    segmentation: GivenSegmentation | None = None,
 ) -> PatientResult:
     """Run every stage for one patient (inside a flow) and publish the results.
 
     ``runs``, if given, is filled with each stage's :class:`StageRun` as it
     completes (so a caller learns which stage failed). ``brain_mask``
     (:func:`prepare_brain_mask`) replaces the skull removal; it is stored
-    as an artifact and recorded in the notes and ``provenance.json``.
+    as an artifact and recorded in the notes and ``provenance.json``;
+    ``segmentation`` (:func:`prepare_segmentation`) likewise replaces the
+    segment-tumor stage's mask.
     """
     t0 = time.perf_counter()
     pid = source.patient_id
     runner = PrefectRunner(store, pid, total=len(stages.STAGES), runs=runs)
     mask_ref = _store_brain_mask(store, brain_mask)
-    outputs = run_stages(runner, source, cfg, str(store.root), brain_mask=mask_ref)
+    seg_ref = _store_segmentation(store, segmentation)
+    outputs = run_stages(
+        runner, source, cfg, str(store.root), brain_mask=mask_ref, segmentation=seg_ref
+    )
     flow_seconds = time.perf_counter() - t0
-    notes, doubts = run_notes(outputs, brain_mask)
+    notes, doubts = run_notes(outputs, brain_mask, segmentation)
     review = review_status(doubts, segmentation=outputs["segment-tumor"].values)
     metrics = _metrics_row(outputs, runner.runs, pid, flow_seconds, notes, review)
     if is_url(out_dir):  # staged locally, then uploaded (storage.remote_publish)
         with tempfile.TemporaryDirectory(prefix="tumor3d-publish-") as tmp:
             staged, report, _ = publish_patient(
-                store, Path(tmp), source, outputs, runner.runs, metrics, cfg, brain_mask
-            )
+                store, Path(tmp), source, outputs, runner.runs, metrics, cfg, brain_mask,
+                segmentation,
+            )  # fmt: skip
             reused = all(r.cached and not r.repaired for r in runner.runs)
             # publish_folder skips an unchanged upload, and with reuse a folder of the same key
             out_path = publish_folder(staged, f"{str(out_dir).rstrip('/')}/{pid}", reuse=reused)
         up_to_date = False
     else:
         out_path, report, up_to_date = publish_patient(
-            store, Path(out_dir), source, outputs, runner.runs, metrics, cfg, brain_mask
-        )
+            store, Path(out_dir), source, outputs, runner.runs, metrics, cfg, brain_mask,
+            segmentation,
+        )  # fmt: skip
     return PatientResult(
         patient_id=pid, output_dir=str(out_path), metrics=metrics, stages=runner.runs,
         flow_seconds=flow_seconds, notes=notes, report=report, up_to_date=up_to_date,
@@ -339,20 +390,26 @@ def patient_pipeline(
 
 
 def run_notes(
-    outputs: dict[str, StageOutput], brain_mask: GivenBrainMask | None = None
+    outputs: dict[str, StageOutput],
+    brain_mask: GivenBrainMask | None = None,
+    segmentation: GivenSegmentation | None = None,
 ) -> tuple[list[str], list[str]]:
     """The run's notes (summary, metrics, provenance) and those that doubt the result.
 
     :func:`tumor3d.review.run_notes` on the stages' values: the doubts make
-    the status ``check`` (:func:`tumor3d.review.review_status`).
+    the status ``check`` (:func:`tumor3d.review.review_status`). A given
+    segmentation adds an informational note (``segmentation: given (FILE, ...)``).
     """
-    return review_notes(
+    notes, doubts = review_notes(
         tumour_found=outputs["extract-surface"].values["faces"] > 0,
         caveats=outputs["segment-tumor"].values.get("caveats") or [],
         skipped_files=outputs["ingest-scan"].values.get("skipped_files") or [],
         brain_mask_note=None if brain_mask is None else brain_mask_note(brain_mask),
         brain_notes=preprocess_notes(outputs["preprocess"].values),
     )
+    if segmentation is not None:
+        notes.append(segmentation.note())
+    return notes, doubts
 
 
 def _store_brain_mask(store: ArtifactStore, mask: GivenBrainMask | None) -> ArtifactRef | None:
@@ -390,6 +447,7 @@ def patient_flow(
     skip_unreadable: bool = False,
     max_voxels: int = MAX_VOXELS_DEFAULT,
     brain_mask: str | None = None,
+    segmentation: str | None = None,
 ) -> PatientResult:
     """Reconstruct one patient's tumour and publish masks, meshes, renders and metrics.
 
@@ -421,6 +479,9 @@ def patient_flow(
     brain_mask : str, optional
         A brain mask on the input's voxel grid (brain = values > 0.5) used
         instead of skull removal (:func:`prepare_brain_mask`).
+    segmentation : str, optional
+        A tumour mask on the input's voxel grid (tumour = values > 0.5) used
+        instead of the segment-tumor stage's (:func:`prepare_segmentation`).
     """
     cfg = parse_config(config or {}, source="config")
     source = prepare_source(
@@ -429,11 +490,14 @@ def patient_flow(
         skip_unreadable=skip_unreadable, max_voxels=max_voxels, out_dir=out_dir,
     )  # fmt: skip
     given = None if brain_mask is None else prepare_brain_mask(brain_mask, source, out_dir=out_dir)
+    seg = None
+    if segmentation is not None:
+        seg = prepare_segmentation(segmentation, source, out_dir=out_dir)
     store = open_store(store_dir or default_store_dir(out_dir))  # s3:// -> ObjectStore
     logger = get_run_logger()
     digest = config_digest(cfg)[:12]
     logger.info("patient %s: %s (config %s)", source.patient_id, source.name, digest)
-    result = patient_pipeline(source, out_dir, cfg, store, brain_mask=given)
+    result = patient_pipeline(source, out_dir, cfg, store, brain_mask=given, segmentation=seg)
     publish_patient_artifacts(result.report)
     logger.info("patient %s: published %s", source.patient_id, result.output_dir)
     return result
@@ -447,14 +511,19 @@ def run_stages_direct(
     patient_id: str | None = None,
     modality: str = "t2",
     brain_mask: str | Path | None = None,
+    segmentation: str | Path | None = None,
 ) -> DirectRunner:
     """Run every stage in this process without Prefect; artifacts go to ``store_dir``."""
     cfg = config if isinstance(config, PipelineConfig) else parse_config(config or {})
     source = prepare_source(input_path, patient_id=patient_id, modality=modality)
     store = ArtifactStore(store_dir)
     given = None if brain_mask is None else prepare_brain_mask(brain_mask, source)
+    seg = None if segmentation is None else prepare_segmentation(segmentation, source)
     runner = DirectRunner(source.patient_id, len(stages.STAGES))
-    run_stages(runner, source, cfg, str(store.root), brain_mask=_store_brain_mask(store, given))
+    run_stages(
+        runner, source, cfg, str(store.root), brain_mask=_store_brain_mask(store, given),
+        segmentation=_store_segmentation(store, seg),
+    )  # fmt: skip
     return runner
 
 
@@ -532,6 +601,7 @@ def publish_key(
     outputs: dict[str, StageOutput],
     cfg: PipelineConfig,
     brain_mask: GivenBrainMask | None = None,
+    segmentation: GivenSegmentation | None = None,
 ) -> str:
     """SHA-256 of everything a published folder is made from.
 
@@ -552,6 +622,8 @@ def publish_key(
     }
     if brain_mask is not None:
         doc["brain_mask"] = brain_mask.provenance()
+    if segmentation is not None:
+        doc["segmentation"] = segmentation.provenance()
     return hashlib.sha256(canonical_dumps(doc).encode()).hexdigest()
 
 
@@ -581,6 +653,7 @@ def publish_patient(
     metrics: dict[str, Any],
     cfg: PipelineConfig,
     brain_mask: GivenBrainMask | None = None,
+    segmentation: GivenSegmentation | None = None,
 ) -> tuple[Path, dict[str, Any], bool]:
     """Write the patient's outputs to a staging folder, then swap it into ``out_dir/<id>``.
 
@@ -596,9 +669,9 @@ def publish_patient(
     the folder was already up to date (nothing written).
     """
     pid = source.patient_id
-    inputs = [source.path] + ([] if brain_mask is None else [brain_mask.path])
+    inputs = [source.path] + _given_inputs(brain_mask, segmentation)
     check_output_not_input(out_dir / pid, inputs)
-    key = publish_key(source, outputs, cfg, brain_mask)
+    key = publish_key(source, outputs, cfg, brain_mask, segmentation)
     reused = all(r.cached and not r.repaired for r in runs)
     if reused and published_is_current(out_dir / pid, key):
         clean_stale_staging(out_dir, pid)
@@ -689,6 +762,11 @@ def publish_patient(
             }
             if brain_mask is None
             else brain_mask.provenance()
+        )
+        provenance["segmentation"] = (
+            {"given": False, "method": outputs["segment-tumor"].values.get("segment_method")}
+            if segmentation is None
+            else segmentation.provenance()
         )
         (staging / "provenance.json").write_text(json.dumps(provenance, indent=2) + "\n")
         files.append("provenance.json")

@@ -74,11 +74,11 @@ class GivenBrainMask:
         }
 
 
-def _fail(problem: str, where: str | os.PathLike[str]) -> InputError:
-    return InputError(f"{_WHAT}: {problem}", str(where))
+def _fail(problem: str, where: str | os.PathLike[str], what: str = _WHAT) -> InputError:
+    return InputError(f"{what}: {problem}", str(where))
 
 
-def brain_mask_sha256(path: str | os.PathLike[str]) -> str:
+def brain_mask_sha256(path: str | os.PathLike[str], *, what: str = _WHAT) -> str:
     """SHA-256 of a mask file's bytes (a folder: its :func:`~storage.inputs.input_digest`)."""
     p = Path(path)
     if p.is_dir():
@@ -89,7 +89,7 @@ def brain_mask_sha256(path: str | os.PathLike[str]) -> str:
             while chunk := fh.read(1 << 20):
                 h.update(chunk)
     except OSError as exc:
-        raise _fail(f"cannot read it ({os_error_text(exc)})", os_error_path(exc, p)) from None
+        raise _fail(f"cannot read it ({os_error_text(exc)})", os_error_path(exc, p), what) from None
     return h.hexdigest()
 
 
@@ -108,9 +108,12 @@ def _read_itk_values(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_brain_mask_volume(
-    path: str | os.PathLike[str], *, max_voxels: int = MAX_VOXELS_DEFAULT
+    path: str | os.PathLike[str], *, max_voxels: int = MAX_VOXELS_DEFAULT, what: str = _WHAT
 ) -> tuple[np.ndarray, np.ndarray]:
     """Read a mask file's values and affine in the file's own voxel order.
+
+    ``what`` names the mask in errors (``"brain mask"``; a given tumour
+    segmentation, :mod:`storage.given_segmentation`, says ``"segmentation"``).
 
     Returns
     -------
@@ -122,13 +125,13 @@ def read_brain_mask_volume(
     Raises
     ------
     InputError
-        ``"<file>: brain mask: <problem>"`` for a missing or unreadable
+        ``"<file>: <what>: <problem>"`` for a missing or unreadable
         file, one that is not 3-D (or has fewer than 2 slices), a singular or
         non-finite affine, or more voxels than ``max_voxels``.
     """
     p = Path(path)
     if not p.exists():
-        raise _fail("no such file or folder", p)
+        raise _fail("no such file or folder", p, what)
     lower = p.name.lower()
     try:
         if p.is_file() and lower.endswith(NIFTI_SUFFIXES):
@@ -137,11 +140,11 @@ def read_brain_mask_volume(
             return _read_itk_values(p, max_voxels)
         scan = read_scan(p, max_voxels=max_voxels, patient_id="brain-mask")
     except InputError as exc:
-        if exc.problem.startswith(f"{_WHAT}: "):
+        if exc.problem.startswith(f"{what}: "):
             raise
-        raise _fail(exc.problem, exc.path or p) from None
+        raise _fail(exc.problem, exc.path or p, what) from None
     except OSError as exc:
-        raise _fail(f"cannot read it ({os_error_text(exc)})", os_error_path(exc, p)) from None
+        raise _fail(f"cannot read it ({os_error_text(exc)})", os_error_path(exc, p), what) from None
     grid = scan.source_grid
     return np.ascontiguousarray(grid.to_source(scan.image)), np.asarray(grid.affine)
 

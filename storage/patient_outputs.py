@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from storage.formats import encode_ply, encode_png, encode_vtk_polydata
+from storage.formats import encode_ply, encode_png, encode_stl, encode_vtk_polydata
 from storage.report_html import patient_report_html
 from storage.viewer import viewer_html
 from tumor3d.mesh import Mesh
@@ -104,11 +104,14 @@ def write_surface_files(
     brain_color_rgb: Sequence[float],
     brain_opacity: float,
 ) -> list[str]:
-    """``brain_mesh.ply``, ``tumor_lps.vtk`` and ``viewer.html``; returns the file names.
+    """``brain_mesh.ply``, ``tumor_lps.vtk``, the STL files and ``viewer.html``; the names.
 
-    The viewer shows the simplified tumour and ``brain_viewer`` (the brain
-    reduced for the browser). Without a tumour only the brain surface is
-    written (there is nothing to view).
+    ``tumor.stl`` and ``tumor_simplified.stl`` (binary, LPS millimetres with
+    ``SPACE=LPS`` in the header: STL carries no coordinate system, and 3D
+    Slicer, which reads that header, assumes LPS without it) hold the
+    surface and the simplified surface. The viewer shows the simplified
+    tumour and ``brain_viewer`` (the brain reduced for the browser). Without
+    a tumour only the brain surface is written (there is nothing to view).
     """
     written = []
     if not brain.is_empty:
@@ -117,13 +120,15 @@ def write_surface_files(
     if tumour.is_empty:
         return written
     (folder / "tumor_lps.vtk").write_bytes(encode_vtk_polydata(tumour, space="LPS"))
+    (folder / "tumor.stl").write_bytes(encode_stl(tumour, space="LPS"))
+    (folder / "tumor_simplified.stl").write_bytes(encode_stl(simplified, space="LPS"))
     html = viewer_html(
         simplified, None if brain_viewer.is_empty else brain_viewer, title=title,
         tumor_color_rgb=tumor_color_rgb, brain_color_rgb=brain_color_rgb,
         brain_opacity=brain_opacity,
     )  # fmt: skip
     (folder / "viewer.html").write_text(html, encoding="utf-8")
-    return [*written, "tumor_lps.vtk", "viewer.html"]
+    return [*written, "tumor_lps.vtk", "tumor.stl", "tumor_simplified.stl", "viewer.html"]
 
 
 def _num(row: Mapping[str, Any], key: str) -> float | None:

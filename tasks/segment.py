@@ -18,6 +18,7 @@ from storage.store import ArtifactRef
 from tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
 from tumor3d.config import SegmentConfig
 from tumor3d.detect import SliceDetection
+from tumor3d.given_segmentation import given_definition, given_segmentation
 from tumor3d.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
 from tumor3d.segment import lesion_definition, segment_tumor
 
@@ -62,9 +63,34 @@ def segment_task(
     head_exterior: ArtifactRef,
     config: SegmentConfig,
     store_root: str,
+    given_mask: ArtifactRef | None = None,
 ) -> StageOutput:
-    """Tumour segmentation: the lesion model (robust), wavelet + histogram FCM, or the peer."""
+    """Tumour segmentation: the lesion model (robust), wavelet + histogram FCM, or the peer.
+
+    ``given_mask``, the user's segmentation on the scan's grid (``--segmentation``,
+    its file name in the artifact's ``given_file``), replaces the method: stored as
+    is, method ``"given"``; as an input artifact its content enters the cache key.
+    """
     store = open_store(store_root)
+    if given_mask is not None:
+        mask, mask_affine = store.get_volume(given_mask)
+        res = given_segmentation(mask.astype(bool), spacing_mm=scan_spacing_mm(scan))
+        name = given_mask.metadata.get("given_file")
+        return StageOutput(
+            stage="segment-tumor",
+            artifacts={
+                "tumor_mask_slices": store.put_volume(res.tumor_mask, mask_affine, kind="mask"),
+                "segmentation": store.put_table(res.to_records()),
+            },
+            values={
+                "tumor_pixels_total": int(np.sum(res.tumor_pixels)),
+                "n_tumor_slices": int(np.count_nonzero(res.tumor_pixels)),
+                "caveats": list(res.caveats),
+                "modality": scan.metadata["modality"],
+                "segment_method": res.method,
+                "measured": given_definition(name),
+            },
+        )
     image, affine = store.get_volume(enhanced)
     brain, _ = store.get_volume(brain_mask)
     exterior = store.get_volume(head_exterior)[0].astype(bool)
@@ -118,6 +144,7 @@ SPEC = StageSpec(
         "detection": "table",
         "lesion": "mask",
         "head_exterior": "mask",
+        "given_mask": "mask",  # a given segmentation (optional)
     },
     outputs={"tumor_mask_slices": "mask", "segmentation": "table"},
 )

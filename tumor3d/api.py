@@ -199,6 +199,8 @@ def reconstruct_scan(
     *,
     config: PipelineConfig | Mapping[str, Any] | str | None = None,
     brain_mask: np.ndarray | None = None,
+    segmentation: np.ndarray | None = None,
+    segmentation_name: str | None = None,
 ) -> Reconstruction:
     """Run the pipeline's stages on a :class:`~tumor3d.scan.Scan` (pure: arrays in and out).
 
@@ -210,6 +212,12 @@ def reconstruct_scan(
     brain_mask : (z, y, x) ndarray, optional
         A brain mask on the scan's grid (brain = values > 0.5), used instead
         of skull removal.
+    segmentation : (z, y, x) ndarray, optional
+        A tumour mask on the scan's grid (tumour = values > 0.5), used instead
+        of the segmentation (:mod:`tumor3d.given_segmentation`); detection
+        still runs, nothing trims the mask.
+    segmentation_name : str, optional
+        Its file name, said in ``measured`` and the notes.
     """
     from tumor3d.detect import detect_abnormal_slices
     from tumor3d.interpolate import interpolate_stack
@@ -227,6 +235,13 @@ def reconstruct_scan(
         if given.shape != scan.shape:
             raise InputError(f"brain_mask has shape {given.shape}, the image {scan.shape}")
         given = np.nan_to_num(given.astype(np.float64), nan=0.0) > 0.5
+    tumour_given = None
+    if segmentation is not None:
+        from tumor3d.given_segmentation import binarize_segmentation
+
+        tumour_given = binarize_segmentation(segmentation)
+        if tumour_given.shape != scan.shape:
+            raise InputError(f"segmentation has shape {tumour_given.shape}, the image {scan.shape}")
     spacing = scan.spacing_zyx_mm
     affine = np.asarray(scan.affine, dtype=np.float64)
     lr_axis = left_right_axis(affine)
@@ -243,13 +258,20 @@ def reconstruct_scan(
     )  # fmt: skip
     if cfg.segment.method not in ("auto", "robust"):  # the segment stage reuses it only then
         det = dataclasses.replace(det, lesion=None)
-    # segment-tumor
-    seg = segment_tumor(
-        pre.enhanced, brain, det, modality=scan.modality, spacing_mm=spacing, lr_axis=lr_axis,
-        lesion=cfg.detect.lesion.model_dump(),
-        head_exterior=exterior if exterior is not None and np.any(exterior) else None,
-        **cfg.segment.model_dump(),
-    )  # fmt: skip
+    # segment-tumor (a given segmentation replaces it, as tasks.segment does)
+    if tumour_given is not None:
+        from tumor3d.given_segmentation import given_definition, given_segmentation
+
+        seg = given_segmentation(tumour_given, spacing_mm=spacing)
+        measured = given_definition(segmentation_name)
+    else:
+        seg = segment_tumor(
+            pre.enhanced, brain, det, modality=scan.modality, spacing_mm=spacing, lr_axis=lr_axis,
+            lesion=cfg.detect.lesion.model_dump(),
+            head_exterior=exterior if exterior is not None and np.any(exterior) else None,
+            **cfg.segment.model_dump(),
+        )  # fmt: skip
+        measured = lesion_definition(seg.method, scan.modality)
     # interpolate-slices, extract-surface, simplify-mesh
     stack = interpolate_stack(
         seg.tumor_mask, **cfg.interpolate.model_dump(), slice_step_mm=scan.slice_step_mm,
@@ -283,13 +305,16 @@ def reconstruct_scan(
         brain_mask_note="brain mask given: no skull removal" if given is not None else None,
         brain_notes=_brain_notes(brain, spacing, extraction, tissue_slice_count(pre.original_u8)),
     )
+    if tumour_given is not None:  # informational, as flows.patient.run_notes
+        said = f" ({segmentation_name})" if segmentation_name else ""
+        notes.append(f"segmentation: given{said}")
     review = review_status(doubts, segmentation=segmentation_values(seg))
     vols = {k: float(row[f"volume_{k}_mm3"]) for k in VOLUME_KEYS}
     lo, hi = float(row["volume_eq7_ci95_low_mm3"]), float(row["volume_eq7_ci95_high_mm3"])
     return Reconstruction(
         patient_id=scan.patient_id, modality=scan.modality, status=review.status,
         review_reasons=review.reasons, notes=tuple(notes), method=seg.method,
-        measured=lesion_definition(seg.method, scan.modality), volumes_mm3=vols,
+        measured=measured, volumes_mm3=vols,
         volumes_ml={k: v / 1000.0 for k, v in vols.items()},
         eq7_ce=float(row["volume_eq7_ce"]), eq7_ci95_mm3=(lo, hi),
         eq7_ci95_ml=(lo / 1000.0, hi / 1000.0), tumor_mask_slices=np.asarray(seg.tumor_mask),
@@ -306,6 +331,7 @@ def reconstruct(
     modality: str | None = None,
     config: PipelineConfig | Mapping[str, Any] | str | None = None,
     brain_mask: str | os.PathLike[str] | np.ndarray | None = None,
+    segmentation: str | os.PathLike[str] | np.ndarray | None = None,
     patient_id: str | None = None,
     slice_thickness_mm: float | None = None,
     slice_gap_mm: float | None = None,
@@ -330,6 +356,12 @@ def reconstruct(
         A brain mask on the image's grid (brain = values > 0.5) used instead
         of skull removal: a file for a path input, an array of the image
         array's shape for an array input.
+    segmentation : path or ndarray, optional
+        Your own tumour mask on the image's grid (tumour = values > 0.5),
+        used instead of the segmentation; detection, interpolation, meshes,
+        volumes and status run on it (``method`` ``"given"``). A file (same
+        shape and affine as the image, checked as ``brain_mask``) or an
+        array, as ``brain_mask``.
     patient_id : str, optional
         Default: from the file name, or ``"array"``.
     slice_thickness_mm, slice_gap_mm : float, optional
@@ -344,13 +376,14 @@ def reconstruct(
     ------
     InputError
         One line: an unreadable file, no affine with an array, no modality,
-        a brain mask off the image's grid, an invalid configuration.
+        a brain mask or segmentation off the image's grid, an invalid configuration.
     """
     if isinstance(image, Scan):
         if modality is not None and _modality(modality, None) != image.modality:
             image = dataclasses.replace(image, modality=_modality(modality, None))
         mask = None if brain_mask is None else np.asarray(brain_mask)
-        return reconstruct_scan(image, config=config, brain_mask=mask)
+        tumour = None if segmentation is None else np.asarray(segmentation)
+        return reconstruct_scan(image, config=config, brain_mask=mask, segmentation=tumour)
     mod = _modality(modality, None)
     cfg = _config(config)  # a bad configuration fails before the image is read
     if isinstance(image, np.ndarray):
@@ -363,7 +396,13 @@ def reconstruct(
                 raise InputError(f"brain_mask has shape {arr.shape}, the image {image.shape}")
             axes = scan.source_grid.axes
             mask = np.ascontiguousarray(arr.transpose(axes[::-1]))
-        return reconstruct_scan(scan, config=cfg, brain_mask=mask)
+        tumour = None
+        if segmentation is not None:
+            arr = np.asarray(segmentation)
+            if arr.shape != image.shape:
+                raise InputError(f"segmentation has shape {arr.shape}, the image {image.shape}")
+            tumour = np.ascontiguousarray(arr.transpose(scan.source_grid.axes[::-1]))
+        return reconstruct_scan(scan, config=cfg, brain_mask=mask, segmentation=tumour)
     if not isinstance(image, str | os.PathLike):
         raise InputError(
             f"image must be a path, a 3-D array with affine, or a Scan; got {type(image).__name__}"
@@ -384,7 +423,19 @@ def reconstruct(
             from storage.brain_mask import read_given_brain_mask
 
             mask = read_given_brain_mask(brain_mask, scan).mask
-    return reconstruct_scan(scan, config=cfg, brain_mask=mask)
+    tumour, name = None, None
+    if isinstance(segmentation, np.ndarray):
+        tumour = segmentation
+        if tumour.shape == scan.source_grid.shape:  # the file's voxel order
+            tumour = np.ascontiguousarray(tumour.transpose(scan.source_grid.axes[::-1]))
+    elif segmentation is not None:
+        from storage.given_segmentation import read_given_segmentation
+
+        given_seg = read_given_segmentation(segmentation, scan)
+        tumour, name = given_seg.mask, given_seg.name
+    return reconstruct_scan(
+        scan, config=cfg, brain_mask=mask, segmentation=tumour, segmentation_name=name
+    )
 
 
 def _scan_from_array(
