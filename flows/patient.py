@@ -701,6 +701,12 @@ def publish_patient(
 
         slices_mask, _ = store.get_volume(art["segment-tumor"]["tumor_mask_slices"])
         put("tumor_mask_slices.nii.gz", nifti.mask_to_source_nifti_bytes(slices_mask, grid))
+        if "tumor_probability" in art["segment-tumor"]:  # the learned method's confidence
+            prob, prob_affine = store.get_volume(art["segment-tumor"]["tumor_probability"])
+            put(
+                "tumor_probability.nii.gz",
+                nifti.volume_to_source_nifti_bytes(prob, prob_affine, grid, dtype="float32"),
+            )
         brain, _ = store.get_volume(art["preprocess"]["brain_mask"])
         put("brain_mask.nii.gz", nifti.mask_to_source_nifti_bytes(brain, grid))
         fine, fine_affine = store.get_volume(art["interpolate-slices"]["tumor_mask"])

@@ -44,6 +44,7 @@ from storage.store import ArtifactRef, canonical_dumps
 
 __all__ = [
     "ARTIFACT_FORMAT_VERSION",
+    "DATA_FILES",
     "FORMAT_MODULES",
     "IGNORED_INPUTS",
     "PROJECT_PACKAGES",
@@ -69,6 +70,16 @@ PROJECT_PACKAGES = ("tumor3d", "storage", "tasks")
 
 #: The store's codecs: covered by :data:`ARTIFACT_FORMAT_VERSION`, their source not hashed.
 FORMAT_MODULES = frozenset({"storage.store", "storage.formats", "storage.objectstore"})
+
+#: Data files a module reads as part of its behaviour (paths relative to the project
+#: root): when the module is in a stage's closure, their bytes enter its code digest.
+#: The shipped learned models: a retrained model recomputes the segment stage.
+DATA_FILES: dict[str, tuple[str, ...]] = {
+    "tumor3d.learned.shipped": (
+        "tumor3d/learned/models/hyper.npz",
+        "tumor3d/learned/models/t1c.npz",
+    ),
+}
 
 #: The folder holding the project packages (this repository's root).
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
@@ -193,6 +204,11 @@ def code_digest(roots: tuple[str, ...], root: str | None = None) -> str:
         h.update(name.encode() + b"\0")
         h.update(path.read_bytes())
         h.update(b"\0")
+        for rel in DATA_FILES.get(name, ()):
+            data = base / rel
+            h.update(rel.encode() + b"\0")
+            h.update(data.read_bytes() if data.is_file() else b"<missing>")
+            h.update(b"\0")
     return h.hexdigest()
 
 

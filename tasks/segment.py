@@ -19,14 +19,21 @@ from tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
 from tumor3d.config import SegmentConfig
 from tumor3d.detect import SliceDetection
 from tumor3d.given_segmentation import given_definition, given_segmentation
+from tumor3d.learned.shipped import shipped_model
 from tumor3d.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
-from tumor3d.segment import lesion_definition, segment_tumor
+from tumor3d.segment import lesion_definition, resolve_method, segment_tumor
 
 __all__ = ["SPEC", "lesion_from_artifact", "segment_task"]
 
 
 def _f(v: Any, missing: float = float("nan")) -> float:
     return missing if v is None else float(v)
+
+
+def _json_float(v: float) -> float | None:
+    """A figure as JSON allows it (None for inf and NaN)."""
+    v = float(v)
+    return v if np.isfinite(v) else None
 
 
 def lesion_from_artifact(mask: np.ndarray, meta: dict[str, Any]) -> LesionResult | None:
@@ -96,11 +103,14 @@ def segment_task(
     exterior = store.get_volume(head_exterior)[0].astype(bool)
     det = SliceDetection.from_records(store.get_table(detection).to_dict("records"))
     meta = lesion.metadata["lesion"]
-    needs_lesion = config.method in ("auto", "robust")
+    needs_lesion = config.method in ("auto", "robust", "learned")
     if needs_lesion and meta.get("computed"):
         lesion_mask, _ = store.get_volume(lesion)
         det = dataclasses.replace(det, lesion=lesion_from_artifact(lesion_mask, meta))
     modality = scan.metadata["modality"]
+    learned: dict[str, Any] = {}
+    if resolve_method(config.method, modality, det) == "learned":  # the acquired image, a model
+        learned = {"image": store.get_volume(scan)[0], "model": shipped_model(modality)}
     result = segment_tumor(
         image,
         brain,
@@ -112,14 +122,30 @@ def segment_task(
         # the air outside a raw head (none stored for a skull-stripped one): scalp caveat
         head_exterior=exterior if exterior.any() else None,
         **config.model_dump(),
+        **learned,
     )
+    artifacts = {
+        "tumor_mask_slices": store.put_volume(result.tumor_mask, affine, kind="mask"),
+        "segmentation": store.put_table(result.to_records()),
+    }
+    review: dict[str, Any] = {}
+    if result.probability is not None:
+        artifacts["tumor_probability"] = store.put_volume(
+            result.probability.astype(np.float32), affine, kind="image"
+        )
+    if result.review is not None:  # read by tumor3d.review.review_status
+        review = {
+            "needs_review": bool(result.review.needs_review),
+            "review_reasons": list(result.review.reasons),
+            "quality_score": float(result.review.quality_score),
+            "review_figures": {k: _json_float(v) for k, v in result.review.figures.items()},
+            "model": learned["model"].meta.get("name", "shipped"),
+        }
     return StageOutput(
         stage="segment-tumor",
-        artifacts={
-            "tumor_mask_slices": store.put_volume(result.tumor_mask, affine, kind="mask"),
-            "segmentation": store.put_table(result.to_records()),
-        },
+        artifacts=artifacts,
         values={
+            **review,
             "tumor_pixels_total": int(np.sum(result.tumor_pixels)),
             "n_tumor_slices": int(np.count_nonzero(result.tumor_pixels)),
             # where the volume may be wrong, in words (the run's notes say them)
@@ -146,5 +172,6 @@ SPEC = StageSpec(
         "head_exterior": "mask",
         "given_mask": "mask",  # a given segmentation (optional)
     },
-    outputs={"tumor_mask_slices": "mask", "segmentation": "table"},
+    # tumor_probability: the learned method only
+    outputs={"tumor_mask_slices": "mask", "segmentation": "table", "tumor_probability": "image"},
 )

@@ -223,7 +223,7 @@ def reconstruct_scan(
     from tumor3d.interpolate import interpolate_stack
     from tumor3d.pipeline import tumour_surface
     from tumor3d.preprocess import preprocess_volume, tissue_slice_count
-    from tumor3d.segment import lesion_definition, segment_tumor
+    from tumor3d.segment import lesion_definition, resolve_method, segment_tumor
     from tumor3d.simplify import simplify_mesh, target_face_count
 
     if not isinstance(scan, Scan):
@@ -256,8 +256,13 @@ def reconstruct_scan(
         pre.enhanced, brain, modality=scan.modality, spacing_mm=spacing, lr_axis=lr_axis,
         **cfg.detect.model_dump(),
     )  # fmt: skip
-    if cfg.segment.method not in ("auto", "robust"):  # the segment stage reuses it only then
+    if cfg.segment.method not in ("auto", "robust", "learned"):  # reused only then
         det = dataclasses.replace(det, lesion=None)
+    learned: dict[str, Any] = {}
+    if tumour_given is None and resolve_method(cfg.segment.method, scan.modality, det) == "learned":
+        from tumor3d.learned.shipped import shipped_model
+
+        learned = {"image": scan.image, "model": shipped_model(scan.modality)}
     # segment-tumor (a given segmentation replaces it, as tasks.segment does)
     if tumour_given is not None:
         from tumor3d.given_segmentation import given_definition, given_segmentation
@@ -269,7 +274,7 @@ def reconstruct_scan(
             pre.enhanced, brain, det, modality=scan.modality, spacing_mm=spacing, lr_axis=lr_axis,
             lesion=cfg.detect.lesion.model_dump(),
             head_exterior=exterior if exterior is not None and np.any(exterior) else None,
-            **cfg.segment.model_dump(),
+            **cfg.segment.model_dump(), **learned,
         )  # fmt: skip
         measured = lesion_definition(seg.method, scan.modality)
     # interpolate-slices, extract-surface, simplify-mesh

@@ -310,10 +310,12 @@ class SegmentConfig(_StageConfig):
     ``min_tumor_pixels`` applies to every method.
     """
 
-    method: Literal["auto", "robust", "paper", "multiotsu"] = Field(
+    method: Literal["auto", "robust", "paper", "multiotsu", "learned"] = Field(
         "auto",
         description="robust = patient-pooled lesion model (tumor3d.lesion); paper = wavelet + "
         "histogram FCM per slice ([A7], [A8]); multiotsu = peer (brightest of 4 classes); "
+        "learned = the robust mask refined by the shipped boosted forest (tumor3d.learned, "
+        "reports/model_card.md), with a probability map and a review; "
         "auto = robust on FLAIR/T1c; on T2 paper where >= 95 % of the slices show 3 "
         "histogram modes (the paper's premise), robust otherwise.",
     )

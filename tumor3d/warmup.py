@@ -1,7 +1,8 @@
 """Compile every numba kernel once, ahead of the first patient: ``python -m tumor3d.warmup``.
 
 The kernels (the simplifier's collapse engine in :mod:`tumor3d.simplify`,
-the exact distance transforms of :mod:`tumor3d.distance`, the z-buffer
+the exact distance transforms of :mod:`tumor3d.distance`, the tree walk of
+the learned segmentation (:mod:`tumor3d.learned.forest`), the z-buffer
 renderer of :mod:`tumor3d.render` and the phantom rasteriser of
 :mod:`tumor3d.phantom.raster`) are ``numba.njit(cache=True)``: compiled
 on their first call in a process and written to numba's cache (by default
@@ -49,6 +50,10 @@ def warm_up() -> dict[str, float]:
         lambda: make_phantom_patient(0, n_slices=10, matrix_size=(96, 96), patient_id="warmup"),
     )
     result = step("pipeline (distance, simplify)", lambda: reconstruct_scan(patient.scan))
+    flair = make_phantom_patient(
+        0, n_slices=10, matrix_size=(96, 96), patient_id="warmup", modality="flair"
+    )
+    step("learned segmentation (forest)", lambda: reconstruct_scan(flair.scan))
     mesh = result.mesh
     for method in METHODS:
         step(

@@ -386,7 +386,7 @@ def test_auto_on_t2_takes_the_paper_method_only_where_its_premise_holds():
     half = det([3] * 10 + [2] * 10)  # real thick slices: 46-79 % with three modes
     assert resolve_method("auto", "t2", three_everywhere) == "paper"
     assert resolve_method("auto", "t2", half) == "robust"
-    assert resolve_method("auto", "flair", three_everywhere) == "robust"
+    assert resolve_method("auto", "flair", three_everywhere) == "learned"  # reports/learned_cv.md
     assert resolve_method("paper", "t2", half) == "paper"
 
 

@@ -354,8 +354,9 @@ def test_multiotsu_peer_segments_the_flair_blob():
 def test_auto_method_resolves_by_modality():
     from tumor3d.segment import resolve_method
 
-    assert resolve_method("auto", "FLAIR") == "robust"
-    assert resolve_method("auto", "t1c") == "robust"
+    # the learned method on FLAIR and T1c: chosen by cross-validation (reports/learned_cv.md)
+    assert resolve_method("auto", "FLAIR") == "learned"
+    assert resolve_method("auto", "t1c") == "learned"
     assert resolve_method("auto", "t2") == "paper"
     assert resolve_method("multiotsu", "t2") == "multiotsu"
 

@@ -246,3 +246,22 @@ def test_code_digests_parse_under_one_lock_and_agree_across_threads(package_copy
     caching._parse_imports.cache_clear()
     assert unlocked == []
     assert digests[: len(roots)] == digests[len(roots) :]  # the same closure, the same key
+
+
+def test_a_retrained_shipped_model_changes_exactly_the_segment_key(package_copy):
+    """The learned models are data, not modules: their bytes enter the key of every stage
+    whose code closure holds the module that reads them (``DATA_FILES``), the segment
+    stage's among them, and no other stage's."""
+    from tasks.caching import DATA_FILES
+
+    before = _keys(package_copy)
+    model = package_copy / DATA_FILES["tumor3d.learned.shipped"][0]
+    assert model.is_file()
+    model.write_bytes(model.read_bytes() + b"\0")
+    after = _keys(package_copy)
+    expected = {
+        n for n, spec in STAGES.items()
+        if "tumor3d.learned.shipped" in module_closure((spec.adapter_module,), str(package_copy))
+    }  # fmt: skip
+    assert "segment-tumor" in expected
+    assert {n for n in STAGES if before[n] != after[n]} == expected

@@ -1,0 +1,711 @@
+"""Cross-validation by patient of the segmentation methods on the labelled real cases.
+
+Every labelled case of ``$TUMOR3D_DATA_DIR`` (default ``../shared/data``) in
+four groups:
+
+- ``brats_flair`` (BraTS 2018 x7, BraTS 2013 x3, the algoseg case's FLAIR),
+- ``brats_t2`` (BraTS 2018 x7, algoseg T2w; the algoseg label is an algorithm's),
+- ``brats_t1c`` (the same patients' T1c; reference = tumour core, labels 1 + 4,
+  algoseg 1 + 3),
+- ``lgg`` (45 clinical FLAIR heads, skull on, native slices; ``thick_t1c_brain2``
+  is reported alone as ``clinical_t1c``).
+
+The BraTS volumes are cut to the paper's acquisition as the evaluation does
+(slab ``i`` = mean of 1 mm slices ``5 i + 2`` and ``5 i + 3``; slab reference
+= mean label >= 0.5); the 3-D Dice compares the interpolated stack with the
+1 mm label (``benchmarks/real_segmentation.py`` documents it). The LGG heads
+run at their native slices (voxel size unknown: voxel Dice, voxel-count
+error).
+
+Folds: 5, patients dealt round-robin per source (a patient's FLAIR, T2 and
+T1c are always in the same fold), seed-free. ``--method learned`` trains on
+the other four folds' patients (one model for FLAIR + T2, one for T1c) and
+scores the held-out fold; ``--method robust`` / ``multiotsu`` / ``paper``
+run a configured method (nothing trained: every case is held out).
+
+Usage::
+
+    TUMOR3D_DATA_DIR=/work/shared/data python benchmarks/learned_cv.py --method learned
+    python benchmarks/learned_cv.py --method robust --config configs/default.yaml
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from real_segmentation import emulate_thick  # noqa: E402
+
+from storage.manifest import data_dir  # noqa: E402
+from storage.readers import read_scan  # noqa: E402
+from tumor3d.config import parse_config  # noqa: E402
+from tumor3d.evaluation.metrics import dice  # noqa: E402
+from tumor3d.interpolate import interpolate_stack  # noqa: E402
+from tumor3d.learned.features import compute_features  # noqa: E402
+from tumor3d.learned.forest import predict_proba  # noqa: E402
+from tumor3d.learned.review import review_features  # noqa: E402
+from tumor3d.learned.segment import keep_main_lesion  # noqa: E402
+from tumor3d.learned.training import TrainingRows, sample_rows, train_forest  # noqa: E402
+from tumor3d.lesion import left_right_axis  # noqa: E402
+from tumor3d.preprocess import preprocess_volume  # noqa: E402
+
+STEP = 5
+OFFSET = 2
+GROUPS = ("brats_flair", "brats_t2", "brats_t1c", "lgg", "clinical_t1c", "phantom")
+
+
+@dataclass
+class CaseSpec:
+    name: str
+    patient: str
+    source: str
+    group: str
+    image: str
+    label: str
+    modality: str
+    labels: tuple[int, ...] | None = None
+    native: bool = False
+
+
+def case_specs(data: Path) -> list[CaseSpec]:
+    out: list[CaseSpec] = []
+    for d in sorted((data / "brats2018").glob("*")):
+        if not (d / "seg.nii.gz").is_file():
+            continue
+        p = d.name
+        out.append(
+            CaseSpec(
+                f"{p}/flair",
+                p,
+                "brats2018",
+                "brats_flair",
+                str(d / "flair.nii.gz"),
+                str(d / "seg.nii.gz"),
+                "flair",
+            )
+        )
+        out.append(
+            CaseSpec(
+                f"{p}/t2",
+                p,
+                "brats2018",
+                "brats_t2",
+                str(d / "t2.nii.gz"),
+                str(d / "seg.nii.gz"),
+                "t2",
+            )
+        )
+        out.append(
+            CaseSpec(
+                f"{p}/t1c",
+                p,
+                "brats2018",
+                "brats_t1c",
+                str(d / "t1c.nii.gz"),
+                str(d / "seg.nii.gz"),
+                "t1c",
+                labels=(1, 4),
+            )
+        )
+    for p in ("pat0003", "pat0004", "pat0005"):
+        d = data / f"brats2013_{p}"
+        if not d.is_dir():
+            continue
+        out.append(
+            CaseSpec(
+                f"{p}/flair",
+                p,
+                "brats2013",
+                "brats_flair",
+                str(d / "flair.nii.gz"),
+                str(d / "seg.nii.gz"),
+                "flair",
+            )
+        )
+        out.append(
+            CaseSpec(
+                f"{p}/t1c",
+                p,
+                "brats2013",
+                "brats_t1c",
+                str(d / "t1c.nii.gz"),
+                str(d / "seg.nii.gz"),
+                "t1c",
+                labels=(1, 4),
+            )
+        )
+    d = data / "brats_t2_algoseg"
+    if d.is_dir():
+        lab = str(d / "seg_algorithm.nii.gz")
+        out.append(
+            CaseSpec(
+                "algoseg/flair",
+                "algoseg",
+                "algoseg",
+                "brats_flair",
+                str(d / "t2f.nii.gz"),
+                lab,
+                "flair",
+            )
+        )
+        out.append(
+            CaseSpec(
+                "algoseg/t2", "algoseg", "algoseg", "brats_t2", str(d / "t2w.nii.gz"), lab, "t2"
+            )
+        )
+        out.append(
+            CaseSpec(
+                "algoseg/t1c",
+                "algoseg",
+                "algoseg",
+                "brats_t1c",
+                str(d / "t1c.nii.gz"),
+                lab,
+                "t1c",
+                labels=(1, 3),
+            )
+        )
+    d = data / "thick_t1c_brain2"
+    if d.is_dir():
+        out.append(
+            CaseSpec(
+                "brain2/t1c",
+                "brain2",
+                "clinical",
+                "clinical_t1c",
+                str(d / "image.nii.gz"),
+                str(d / "label.nii.gz"),
+                "t1c",
+                native=True,
+            )
+        )
+    for d in sorted((data / "lgg_flair").glob("*")):
+        if (d / "seg.nii.gz").is_file():
+            out.append(
+                CaseSpec(
+                    f"lgg/{d.name}",
+                    d.name,
+                    "lgg",
+                    "lgg",
+                    str(d / "flair.nii.gz"),
+                    str(d / "seg.nii.gz"),
+                    "flair",
+                    native=True,
+                )
+            )
+    return out
+
+
+def assign_folds(specs: list[CaseSpec], k: int) -> dict[str, int]:
+    """Patients dealt round-robin into ``k`` folds, source by source (sorted names)."""
+    folds: dict[str, int] = {}
+    i = 0
+    for source in ("brats2018", "brats2013", "algoseg", "clinical", "lgg", "phantom"):
+        for p in sorted({s.patient for s in specs if s.source == source}):
+            folds[p] = i % k
+            i += 1
+    return folds
+
+
+@dataclass
+class Prepared:
+    spec: CaseSpec
+    image: np.ndarray  # the slices the method sees (z, y, x)
+    ref: np.ndarray  # bool reference on those slices
+    label: np.ndarray  # bool full-resolution label (3-D Dice, volumes)
+    brain: np.ndarray
+    spacing_mm: tuple[float, float, float]
+    pixel_mm: tuple[float, float]
+    thin_mm: float
+    lr_axis: int | None
+    head_exterior: np.ndarray | None
+    raw: np.ndarray | None = None  # the 1 mm volume (BraTS), for other training offsets
+    prior: np.ndarray | None = None  # the robust method's mask (a feature of the model)
+
+
+#: Seeds of the synthetic training patients (the tests' phantoms use seeds below 100).
+PHANTOM_SEED0 = 1000
+
+
+def phantom_specs(n: int) -> list[CaseSpec]:
+    """``n`` FLAIR and ``n`` T2 phantoms (``tumor3d.phantom``), a source of their own."""
+    out = []
+    for i in range(n):
+        seed = PHANTOM_SEED0 + i
+        for mod in ("flair", "t2"):
+            out.append(
+                CaseSpec(
+                    f"phantom/{seed}/{mod}",
+                    f"phantom{seed}",
+                    "phantom",
+                    "phantom",
+                    f"phantom:{seed}",
+                    "",
+                    mod,
+                    native=True,
+                )
+            )
+    return out
+
+
+def _read(spec: CaseSpec):
+    """The scan and the boolean reference of one case."""
+    if spec.source == "phantom":
+        from tumor3d.phantom import make_phantom_patient
+
+        p = make_phantom_patient(int(spec.image.split(":")[1]), modality=spec.modality)
+        return p.scan, np.asarray(p.slice_masks) > 0.5
+    scan = read_scan(spec.image, modality=spec.modality)
+    lab = read_scan(spec.label).image
+    return scan, (np.isin(np.rint(lab), spec.labels) if spec.labels else lab > 0.5)
+
+
+def prepare(spec: CaseSpec, cfg, with_prior: bool = False) -> Prepared:
+    scan, label = _read(spec)
+    px = tuple(float(v) for v in scan.pixel_spacing_mm)
+    if spec.native:
+        img, ref, step = scan.image.astype(np.float32), label, scan.slice_step_mm
+    else:
+        img = emulate_thick(scan.image, OFFSET).astype(np.float32)
+        ref = emulate_thick(label, OFFSET) >= 0.5
+        step = STEP * scan.slice_step_mm
+    sp = (float(step), *px)
+    pre = preprocess_volume(img, **cfg.preprocess.model_dump(), spacing_mm=sp)
+    lr = left_right_axis(scan.affine)
+    prior = None
+    if with_prior:
+        prior = robust_mask(pre, spec.modality, sp, lr, cfg)
+    return Prepared(
+        spec,
+        img,
+        ref,
+        label,
+        pre.brain_mask,
+        sp,
+        px,
+        scan.slice_step_mm,
+        lr,
+        pre.head_exterior,
+        None if spec.native else scan.image,
+        prior,
+    )
+
+
+def cached_prepare(spec: CaseSpec, cfg, with_prior: bool, cache: str | None) -> Prepared:
+    """:func:`prepare`, kept as arrays in ``cache`` (``np.load`` without pickle)."""
+    if cache is None:
+        return prepare(spec, cfg, with_prior)
+    import hashlib
+
+    tag = hashlib.sha256(cfg.model_dump_json().encode()).hexdigest()[:10]
+    path = Path(cache) / f"{spec.name.replace('/', '__')}-{tag}-{int(with_prior)}.npz"
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as z:
+            a = {k: z[k] for k in z.files}
+        lr = int(a["lr_axis"])
+        return Prepared(
+            spec,
+            a["image"],
+            a["ref"],
+            a["label"],
+            a["brain"],
+            tuple(a["spacing_mm"]),
+            tuple(a["pixel_mm"]),
+            float(a["thin_mm"]),
+            None if lr < 0 else lr,
+            None,
+            a.get("raw"),
+            a.get("prior"),
+        )
+    p = prepare(spec, cfg, with_prior)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    extra = {k: v for k, v in (("raw", p.raw), ("prior", p.prior)) if v is not None}
+    tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")  # renamed when whole: runs share it
+    np.savez(
+        tmp,
+        image=p.image,
+        ref=p.ref,
+        label=p.label,
+        brain=p.brain,
+        spacing_mm=np.array(p.spacing_mm),
+        pixel_mm=np.array(p.pixel_mm),
+        thin_mm=p.thin_mm,
+        lr_axis=-1 if p.lr_axis is None else p.lr_axis,
+        **extra,
+    )
+    os.replace(tmp, path)
+    return p
+
+
+def robust_mask(pre, modality: str, spacing_mm, lr_axis, cfg) -> np.ndarray:
+    """The robust method's segmentation (detect + segment) of preprocessed slices."""
+    from tumor3d.detect import detect_abnormal_slices
+    from tumor3d.segment import segment_tumor
+
+    det = detect_abnormal_slices(
+        pre.enhanced,
+        pre.brain_mask,
+        modality=modality,
+        spacing_mm=spacing_mm,
+        lr_axis=lr_axis,
+        **cfg.detect.model_dump(),
+    )
+    seg_cfg = {**cfg.segment.model_dump(), "method": "robust"}  # the learned method's prior
+    seg = segment_tumor(
+        pre.enhanced,
+        pre.brain_mask,
+        det,
+        modality=modality,
+        spacing_mm=spacing_mm,
+        lr_axis=lr_axis,
+        **seg_cfg,
+    )
+    return seg.tumor_mask
+
+
+def score(prep: Prepared, mask: np.ndarray, cfg) -> dict:
+    """Per-slice Dice, slice recall/specificity, 3-D Dice and volume error of one mask."""
+    ref = prep.ref
+    row: dict = {"case": prep.spec.name, "group": prep.spec.group}
+    ref_sl = ref.any(axis=(1, 2))
+    found = mask.any(axis=(1, 2))
+    row["recall"] = float(found[ref_sl].mean()) if ref_sl.any() else float("nan")
+    row["spec"] = float((~found[~ref_sl]).mean()) if (~ref_sl).any() else float("nan")
+    zs = np.flatnonzero(ref_sl)
+    row["slice_dice"] = float(np.mean([dice(mask[z], ref[z]) for z in zs])) if zs.size else np.nan
+    px_mm2 = prep.pixel_mm[0] * prep.pixel_mm[1]
+    ref_mm3 = float(prep.label.sum()) * px_mm2 * prep.thin_mm
+    est_mm3 = float(mask.sum()) * px_mm2 * prep.spacing_mm[0]  # Eq. 7 (native: voxel volume)
+    row["ref_ml"] = ref_mm3 / 1000.0
+    row["est_ml"] = est_mm3 / 1000.0
+    row["vol_err"] = 100.0 * (est_mm3 - ref_mm3) / ref_mm3 if ref_mm3 > 0 else float("nan")
+    if prep.spec.native:
+        row["dice3d"] = dice(mask, prep.label)
+    else:
+        ci = cfg.interpolate
+        st = interpolate_stack(
+            mask,
+            method=ci.method,
+            slices_between=STEP - 1,
+            slice_step_mm=prep.spacing_mm[0],
+            pixel_spacing_mm=prep.pixel_mm,
+            end_caps=ci.end_caps,
+        )
+        fine = st.mask
+        lab = prep.label.astype(np.float64)
+        n = min(fine.shape[0], lab.shape[0] - OFFSET - 1)
+        mid = 0.5 * (lab[OFFSET : OFFSET + n] + lab[OFFSET + 1 : OFFSET + 1 + n])
+        inter = float((fine[:n] * mid).sum())
+        denom = float(fine[:n].sum()) + float(lab.sum())
+        row["dice3d"] = 2.0 * inter / denom if denom else 1.0
+        row["vol_interp_err"] = (
+            100.0 * (float(fine.sum()) * px_mm2 * prep.thin_mm - ref_mm3) / ref_mm3
+        )
+    return row
+
+
+def summarise(rows: list[dict]) -> str:
+    lines = [
+        "| group | n | per-slice Dice mean ± sd | slice recall | slice spec. | 3-D Dice mean ± sd "
+        "(median) | volume error mean abs (median) | within 10 % / beyond 25 % |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for g in GROUPS:
+        rs = [r for r in rows if r["group"] == g]
+        if not rs:
+            continue
+        a = {
+            k: np.array([r[k] for r in rs], float)
+            for k in ("slice_dice", "recall", "spec", "dice3d", "vol_err")
+        }
+        err = np.abs(a["vol_err"])
+        lines.append(
+            f"| {g} | {len(rs)} | {np.nanmean(a['slice_dice']):.3f}"
+            f" ± {np.nanstd(a['slice_dice']):.3f}"
+            f" | {np.nanmean(a['recall']):.3f} | {np.nanmean(a['spec']):.3f}"
+            f" | {np.nanmean(a['dice3d']):.3f} ± {np.nanstd(a['dice3d']):.3f}"
+            f" ({np.nanmedian(a['dice3d']):.3f})"
+            f" | {np.nanmean(err):.1f} % ({np.nanmedian(a['vol_err']):+.1f} %)"
+            f" | {int(np.sum(err <= 10))} / {int(np.sum(err > 25))} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--method", default="learned")
+    ap.add_argument("--config", default=str(ROOT / "configs" / "default.yaml"))
+    ap.add_argument("--folds", type=int, default=5)
+    ap.add_argument("--groups", nargs="*", default=None)
+    ap.add_argument("--limit-lgg", type=int, default=None)
+    ap.add_argument(
+        "--phantoms",
+        type=int,
+        default=0,
+        help="add this many FLAIR and T2 phantoms (seeds 1000 on) as a group",
+    )
+    ap.add_argument("--threshold", type=float, default=0.5)
+    ap.add_argument(
+        "--t1c-threshold",
+        type=float,
+        default=None,
+        help="the T1c model's threshold (default: --threshold)",
+    )
+    ap.add_argument("--keep-fraction", type=float, default=0.3)
+    ap.add_argument(
+        "--train-offsets",
+        type=int,
+        nargs="*",
+        default=[2],
+        help="BraTS slab offsets sampled for training (evaluation: offset 2)",
+    )
+    ap.add_argument(
+        "--no-prior",
+        dest="prior",
+        action="store_false",
+        help="learned: without the robust method's mask as a feature",
+    )
+    ap.add_argument(
+        "--cache",
+        default=None,
+        help="folder keeping the prepared cases between runs (scratch, not an input)",
+    )
+    ap.add_argument("--json", default=None, help="write the per-case rows here")
+    ap.add_argument(
+        "--cv-rows",
+        default=None,
+        help="learned --final: take the cross-validation rows from this --json of "
+        "an earlier run instead of running it again",
+    )
+    ap.add_argument(
+        "--final",
+        default=None,
+        help="learned: also train on every case and write hyper.npz and t1c.npz "
+        "here (the shipped models: tumor3d/learned/models)",
+    )
+    ap.add_argument("--save-prob", default=None, help="folder for out-of-fold probabilities")
+    args = ap.parse_args(argv)
+    data = data_dir()
+    if not data.is_dir():
+        print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
+        return 0
+    cfg = parse_config(Path(args.config).read_text(), source=args.config)
+    specs = case_specs(data)
+    if args.groups:
+        specs = [s for s in specs if s.group in args.groups]
+    specs += phantom_specs(args.phantoms)
+    if args.limit_lgg is not None:
+        lgg = [s for s in specs if s.group == "lgg"][: args.limit_lgg]
+        specs = [s for s in specs if s.group != "lgg"] + lgg
+    folds = assign_folds(specs, args.folds)
+    t0 = time.perf_counter()
+    preps = []
+    want_prior = args.method == "learned" and args.prior
+    for s in specs:
+        preps.append(cached_prepare(s, cfg, want_prior, args.cache))
+    print(f"prepared {len(preps)} cases in {time.perf_counter() - t0:.0f} s", flush=True)
+    rows: list[dict] = []
+    if args.method == "learned":
+        if args.cv_rows:  # the cross-validation of an earlier run of the same command
+            rows = json.loads(Path(args.cv_rows).read_text())
+        else:
+            rows = run_learned_cv(preps, folds, args, cfg)
+        if args.final:
+            write_final_models(preps, rows, args)
+    else:
+        rows = run_configured(preps, args.method, cfg)
+    print(summarise(rows))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+def _features(p: Prepared):
+    return compute_features(
+        p.image, spacing_mm=p.spacing_mm, modality=p.spec.modality, lr_axis=p.lr_axis, prior=p.prior
+    )
+
+
+def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> list[dict]:
+    t0 = time.perf_counter()
+    rows_of = _training_rows(preps, args)
+    print(f"sampled rows in {time.perf_counter() - t0:.0f} s", flush=True)
+    out = []
+    for k in range(args.folds):
+        held = [p for p in preps if folds[p.spec.patient] == k]
+        train = [p for p in preps if folds[p.spec.patient] != k]
+        models = {}
+        for fam, mods in FAMILIES:
+            parts = [rows_of[p.spec.name] for p in train if p.spec.modality in mods]
+            if parts:
+                t1 = time.perf_counter()
+                models[fam] = train_forest(TrainingRows.concatenate(parts))
+                print(
+                    f"fold {k} {fam}: {sum(len(r.y) for r in parts)} rows, "
+                    f"{time.perf_counter() - t1:.0f} s",
+                    flush=True,
+                )
+        for p in held:
+            fam = "t1c" if p.spec.modality == "t1c" else "hyper"
+            f = _features(p)
+            prob = np.zeros(f.shape, np.float32)
+            prob.ravel()[f.index] = predict_proba(models[fam], f.values)
+            if args.save_prob:
+                d = Path(args.save_prob)
+                d.mkdir(parents=True, exist_ok=True)
+                np.savez_compressed(
+                    d / (p.spec.name.replace("/", "__") + ".npz"), prob=prob.astype(np.float16)
+                )
+            vox = float(np.prod(p.spacing_mm))
+            mask = keep_main_lesion(
+                prob,
+                _threshold(args, fam),
+                keep_fraction=args.keep_fraction,
+                min_voxels=max(1, int(round(20.0 / vox))),
+            )
+            # as the pipeline (segment.min_tumor_pixels): small slice masks are cleared
+            mask[mask.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
+            row = score(p, mask, cfg)
+            row["fold"] = k
+            row.update(review_features(prob, mask, p.spacing_mm, prior=p.prior))
+            out.append(row)
+            print(
+                f"  {row['case']}: slice {row['slice_dice']:.3f} 3d {row['dice3d']:.3f} "
+                f"vol {row['vol_err']:+.1f}% rec {row['recall']:.2f} spec {row['spec']:.2f}",
+                flush=True,
+            )
+    return out
+
+
+FAMILIES = (("hyper", ("flair", "t2")), ("t1c", ("t1c",)))
+
+
+def _training_rows(preps: list[Prepared], args) -> dict[str, TrainingRows]:
+    rng = np.random.default_rng(0)
+    out = {}
+    for p in preps:
+        parts = [sample_rows(_features(p), p.ref, rng=rng)]
+        if not p.spec.native:
+            for off in args.train_offsets:
+                if off == OFFSET:
+                    continue
+                q = Prepared(
+                    p.spec,
+                    emulate_thick(p.raw, off).astype(np.float32),
+                    emulate_thick(p.label, off) >= 0.5,
+                    p.label,
+                    p.brain,
+                    p.spacing_mm,
+                    p.pixel_mm,
+                    p.thin_mm,
+                    p.lr_axis,
+                    None,
+                )
+                parts.append(sample_rows(_features(q), q.ref, rng=rng))
+        out[p.spec.name] = TrainingRows.concatenate(parts)
+    return out
+
+
+def write_final_models(preps: list[Prepared], cv_rows: list[dict], args) -> None:
+    """Train each family on every case and write ``<family>.npz`` with its model card data."""
+    import datetime
+
+    rows_of = _training_rows(preps, args)
+    out = Path(args.final)
+    out.mkdir(parents=True, exist_ok=True)
+    for fam, mods in FAMILIES:
+        train = [p for p in preps if p.spec.modality in mods]
+        groups = sorted({p.spec.group for p in train})
+        cv = {g: _group_figures([r for r in cv_rows if r["group"] == g]) for g in groups}
+        meta = {
+            "name": f"tumor3d-{fam}-{datetime.date.today().isoformat()}",
+            "family": fam,
+            "modalities": list(mods),
+            "threshold": _threshold(args, fam),
+            "keep_fraction": args.keep_fraction,
+            "prior": "robust" if args.prior else None,
+            "training_cases": [p.spec.name for p in train],
+            "cross_validation": cv,
+            "command": "python benchmarks/learned_cv.py --method learned " + " ".join(sys.argv[1:]),
+        }
+        model = train_forest(
+            TrainingRows.concatenate([rows_of[p.spec.name] for p in train]), meta=meta
+        )
+        (out / f"{fam}.npz").write_bytes(model.to_bytes())
+        print(f"wrote {out / f'{fam}.npz'}: {len(train)} cases, {model.roots.size} trees")
+
+
+def _threshold(args, family: str) -> float:
+    if family == "t1c" and args.t1c_threshold is not None:
+        return args.t1c_threshold
+    return args.threshold
+
+
+def _group_figures(rs: list[dict]) -> dict:
+    if not rs:
+        return {}
+    a = {
+        k: np.array([r[k] for r in rs], float)
+        for k in ("slice_dice", "recall", "spec", "dice3d", "vol_err")
+    }
+    err = np.abs(a["vol_err"])
+    return {
+        "n": len(rs),
+        "slice_dice": float(np.nanmean(a["slice_dice"])),
+        "dice3d_mean": float(np.nanmean(a["dice3d"])),
+        "dice3d_median": float(np.nanmedian(a["dice3d"])),
+        "within_10pct": int(np.sum(err <= 10)),
+        "beyond_25pct": int(np.sum(err > 25)),
+    }
+
+
+def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
+    from tumor3d.detect import detect_abnormal_slices
+    from tumor3d.segment import segment_tumor
+
+    out = []
+    seg_cfg = cfg.segment.model_dump()
+    seg_cfg["method"] = method if method != "default" else seg_cfg["method"]
+    for p in preps:
+        pre = preprocess_volume(p.image, **cfg.preprocess.model_dump(), spacing_mm=p.spacing_mm)
+        det = detect_abnormal_slices(
+            pre.enhanced,
+            pre.brain_mask,
+            modality=p.spec.modality,
+            spacing_mm=p.spacing_mm,
+            lr_axis=p.lr_axis,
+            **cfg.detect.model_dump(),
+        )
+        seg = segment_tumor(
+            pre.enhanced,
+            pre.brain_mask,
+            det,
+            modality=p.spec.modality,
+            spacing_mm=p.spacing_mm,
+            lr_axis=p.lr_axis,
+            **seg_cfg,
+        )
+        row = score(p, seg.tumor_mask, cfg)
+        row["fold"] = -1
+        out.append(row)
+        print(
+            f"  {row['case']}: slice {row['slice_dice']:.3f} 3d {row['dice3d']:.3f} "
+            f"vol {row['vol_err']:+.1f}% rec {row['recall']:.2f} spec {row['spec']:.2f}",
+            flush=True,
+        )
+    return out
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

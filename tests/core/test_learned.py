@@ -1,0 +1,234 @@
+"""The learned segmentation method: features, the flat forest, a tiny model on phantoms.
+
+Real data never enters these tests: a tiny model is trained on phantoms
+(LightGBM, the ``test`` extra) and judged on a phantom it did not see.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+from tumor3d.errors import InputError
+from tumor3d.evaluation.metrics import dice
+from tumor3d.learned.features import FEATURE_NAMES, compute_features, tissue_foreground
+from tumor3d.learned.forest import ForestModel, forest_from_lightgbm_dump, predict_proba
+from tumor3d.learned.review import review_features, review_segmentation
+from tumor3d.learned.segment import keep_main_lesion, segment_learned
+from tumor3d.lesion import left_right_axis
+from tumor3d.phantom.patient import make_phantom_patient
+
+lgb = pytest.importorskip("lightgbm")
+
+
+def _phantom(seed: int, modality: str = "flair"):
+    p = make_phantom_patient(seed, modality=modality, matrix_size=(128, 128))
+    truth = np.asarray(p.slice_masks) > 0.5
+    return p.scan, truth
+
+
+def _features(scan, prior=None):
+    return compute_features(
+        scan.image,
+        spacing_mm=scan.spacing_zyx_mm,
+        modality=scan.modality,
+        lr_axis=left_right_axis(scan.affine),
+        prior=prior,
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_model() -> ForestModel:
+    """A forest trained on three phantoms (not seed 7, the held-out one)."""
+    from tumor3d.learned.training import TrainingRows, sample_rows, train_forest
+
+    rng = np.random.default_rng(0)
+    parts = []
+    for seed in (1, 2, 3):
+        scan, truth = _phantom(seed)
+        parts.append(
+            sample_rows(_features(scan), truth, rng=rng, n_lesion=1500, n_far=1500, n_band=1000)
+        )
+    return train_forest(
+        TrainingRows.concatenate(parts),
+        num_rounds=40,
+        params={"min_data_in_leaf": 20},
+        meta={"threshold": 0.5, "keep_fraction": 0.3},
+    )
+
+
+# --------------------------------------------------------------------------- features
+
+
+def test_features_do_not_depend_on_the_intensity_scale():
+    """An 8-bit export and a uint16 one of the same head give the same features."""
+    scan, _ = _phantom(4)
+    a = compute_features(scan.image, spacing_mm=scan.spacing_zyx_mm, modality="flair")
+    b = compute_features(
+        scan.image * 37.0 + 500.0, spacing_mm=scan.spacing_zyx_mm, modality="flair"
+    )
+    assert np.array_equal(a.index, b.index)
+    assert a.values.shape == (a.index.size, len(FEATURE_NAMES))
+    np.testing.assert_allclose(a.values, b.values, rtol=1e-3, atol=1e-3)
+
+
+def test_tissue_is_the_head_with_its_holes_filled():
+    img = np.zeros((3, 40, 40), np.float32)
+    img[:, 5:35, 5:35] = 100.0  # the head
+    img[:, 15:25, 15:25] = 2.0  # a dark ventricle inside: still tissue
+    img[:, 0, 0] = 100.0  # a speck: not tissue (opened away)
+    fg = tissue_foreground(img)
+    assert fg.sum() == 3 * 30 * 30 and not fg[:, 0, 0].any()
+
+
+def test_prior_features_are_its_inside_and_signed_distance_mm():
+    img = np.zeros((2, 60, 60), np.float32)
+    img[:, 5:55, 5:55] = 100.0
+    prior = np.zeros(img.shape, bool)
+    prior[0, 20:30, 20:30] = True
+    f = compute_features(img, spacing_mm=(5.0, 0.5, 0.5), modality="t2", prior=prior)
+    col = {n: f.values[:, i] for i, n in enumerate(FEATURE_NAMES)}
+    flat = {int(k): j for j, k in enumerate(f.index)}
+    centre = flat[np.ravel_multi_index((0, 25, 25), img.shape)]
+    outside = flat[np.ravel_multi_index((0, 25, 40), img.shape)]  # 11 px = 5.5 mm outside
+    other_slice = flat[np.ravel_multi_index((1, 25, 25), img.shape)]
+    assert col["prior_inside"][centre] == 1 and col["prior_inside"][outside] == 0
+    assert col["prior_distance_mm"][centre] < 0
+    assert col["prior_distance_mm"][outside] == pytest.approx(5.5)
+    assert col["prior_slice_area"][other_slice] == 0 and col["prior_slice_area"][centre] == 1
+    with pytest.raises(InputError, match="prior mask shape"):
+        compute_features(img, spacing_mm=(5.0, 0.5, 0.5), modality="t2", prior=prior[:1])
+
+
+# --------------------------------------------------------------------------- the forest
+
+
+def test_flat_forest_predicts_as_lightgbm():
+    """The numba walk of the flattened trees equals LightGBM's own prediction."""
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(3000, 5)).astype(np.float32)
+    y = ((x[:, 0] + 0.5 * x[:, 1] ** 2 - x[:, 3]) > 0.3).astype(int)
+    booster = lgb.train(
+        {"objective": "binary", "verbose": -1, "num_leaves": 15},
+        lgb.Dataset(x, label=y),
+        num_boost_round=25,
+    )
+    model = forest_from_lightgbm_dump(booster.dump_model())
+    test = rng.normal(size=(500, 5)).astype(np.float32)
+    np.testing.assert_allclose(predict_proba(model, test), booster.predict(test), atol=1e-6)
+
+
+def test_model_round_trip_is_plain_arrays_and_refuses_pickles(tiny_model):
+    data = tiny_model.to_bytes()
+    back = ForestModel.from_bytes(data)
+    assert back.digest() == tiny_model.digest() and back.meta == tiny_model.meta
+    # an .npz holding an object array (a pickle) is refused, never unpickled
+    buf = io.BytesIO()
+    arrays = {
+        k: getattr(tiny_model, k)
+        for k in ("feature", "threshold", "left", "right", "value", "roots")
+    }
+    np.savez(buf, meta=np.array([{"x": 1}], dtype=object), **arrays)
+    with pytest.raises(InputError, match="not a tumor3d forest model"):
+        ForestModel.from_bytes(buf.getvalue())
+    with pytest.raises(InputError):
+        ForestModel.from_bytes(b"not an npz")
+    assert json.loads(json.dumps(back.meta)) == back.meta
+
+
+def test_a_forest_pointing_outside_its_nodes_is_refused():
+    with pytest.raises(InputError, match="outside the node table"):
+        ForestModel(
+            np.array([0], np.int32),
+            np.zeros(1),
+            np.array([5], np.int32),
+            np.array([6], np.int32),
+            np.zeros(1),
+            np.array([0], np.int32),
+        )
+
+
+# --------------------------------------------------------------------------- segmentation
+
+
+def test_tiny_model_finds_an_unseen_phantom_tumour(tiny_model):
+    scan, truth = _phantom(7)
+    seg = segment_learned(
+        scan.image,
+        model=tiny_model,
+        spacing_mm=scan.spacing_zyx_mm,
+        modality="flair",
+        lr_axis=left_right_axis(scan.affine),
+    )
+    assert seg.probability.shape == scan.shape
+    assert 0.0 <= seg.probability.min() and seg.probability.max() <= 1.0
+    assert dice(seg.mask, truth) > 0.75
+    vol_err = abs(int(seg.mask.sum()) - int(truth.sum())) / truth.sum()
+    assert vol_err < 0.3
+
+
+def test_tiny_model_finds_nothing_much_in_a_tumour_free_phantom(tiny_model):
+    p = make_phantom_patient(7, modality="flair", matrix_size=(128, 128), tumor=False)
+    scan = p.scan
+    seg = segment_learned(
+        scan.image,
+        model=tiny_model,
+        spacing_mm=scan.spacing_zyx_mm,
+        modality="flair",
+        lr_axis=left_right_axis(scan.affine),
+    )
+    _, with_tumour = _phantom(7)
+    assert seg.mask.sum() < 0.1 * with_tumour.sum()
+
+
+def test_a_model_of_other_features_is_refused(tiny_model):
+    import dataclasses
+
+    other = dataclasses.replace(tiny_model, meta={**tiny_model.meta, "feature_names": ["a"]})
+    scan, _ = _phantom(7)
+    with pytest.raises(InputError, match="retrain"):
+        segment_learned(scan.image, model=other, spacing_mm=scan.spacing_zyx_mm, modality="flair")
+
+
+def test_keep_main_lesion_keeps_the_heaviest_region_and_its_peers():
+    p = np.zeros((3, 30, 30), np.float32)
+    p[1, 2:12, 2:12] = 0.9  # 100 voxels, mass 90
+    p[1, 20:26, 20:26] = 0.8  # 36 voxels, mass 28.8 (>= 0.3 x 90: a peer, kept)
+    p[1, 2:4, 25:27] = 0.95  # 4 voxels, mass 3.8: dropped
+    m = keep_main_lesion(p, 0.5, keep_fraction=0.3, min_voxels=1)
+    assert m.sum() == 136
+    assert keep_main_lesion(p, 0.5, keep_fraction=0.5, min_voxels=1).sum() == 100
+    assert not keep_main_lesion(p, 0.96, min_voxels=1).any()
+
+
+def test_review_flags_a_doubtful_map_and_passes_a_confident_one():
+    sure = np.zeros((2, 20, 20), np.float32)
+    sure[:, 5:15, 5:15] = 0.97
+    good = review_segmentation(review_features(sure, sure > 0.5, (5.0, 1.0, 1.0)))
+    assert not good.needs_review and good.quality_score > 0.9
+    unsure = sure.copy()
+    unsure[:, 3:17, 3:17] = np.maximum(unsure[:, 3:17, 3:17], 0.5)  # a wide uncertain rim
+    unsure[:, 5:15, 5:15] = 0.6
+    bad = review_segmentation(review_features(unsure, unsure > 0.55, (5.0, 1.0, 1.0)))
+    assert bad.needs_review and bad.quality_score < good.quality_score
+    assert any("confidence" in r for r in bad.reasons)
+
+
+def test_segment_tumor_learned_needs_the_image_and_a_model():
+    from tumor3d.detect import SliceDetection
+    from tumor3d.segment import segment_tumor
+
+    shape = (4, 32, 32)
+    det = SliceDetection.from_records(
+        [
+            {"slice_index": z, "n_modes": 3, "abnormal": False, "peaks_gray": [], "brain_pixels": 0}
+            for z in range(shape[0])
+        ]
+    )
+    with pytest.raises(InputError, match="learned method needs"):
+        segment_tumor(
+            np.zeros(shape, np.uint8), np.ones(shape, bool), det, modality="flair", method="learned"
+        )

@@ -1,0 +1,238 @@
+"""A gradient-boosted tree ensemble as flat arrays: inference in numba, no pickle.
+
+A trained LightGBM binary model (``Booster.dump_model()``, its documented
+JSON) is flattened into five arrays (:func:`forest_from_lightgbm_dump`):
+per node its split feature (``-1`` at a leaf), threshold, children and leaf
+value. :func:`predict_logit` walks every tree for every row (``x <= t``
+goes left, LightGBM's ``decision_type`` ``"<="``) and sums the leaves;
+:func:`predict_proba` applies the logistic function. The model is stored as
+an ``.npz`` of plain arrays plus its JSON metadata (:meth:`ForestModel.to_bytes`,
+read back with ``allow_pickle=False``), so loading a model runs no code.
+Inference needs numpy and numba only; LightGBM is needed for training.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+import numba
+import numpy as np
+
+from tumor3d.errors import InputError
+
+__all__ = ["ForestModel", "forest_from_lightgbm_dump", "predict_logit", "predict_proba"]
+
+_ARRAYS = ("feature", "threshold", "left", "right", "value", "roots")
+
+
+@dataclass(frozen=True)
+class ForestModel:
+    """A binary tree ensemble: ``logit(x) = sum over trees of the leaf x reaches``.
+
+    Attributes
+    ----------
+    feature : (n_nodes,) int32
+        Split feature of each node; ``-1`` at a leaf.
+    threshold : (n_nodes,) float64
+        ``x[feature] <= threshold`` goes to ``left``.
+    left, right : (n_nodes,) int32
+        Children (global node indices; ``-1`` at a leaf).
+    value : (n_nodes,) float64
+        Leaf value (0 at internal nodes).
+    roots : (n_trees,) int32
+        Root node of each tree.
+    meta : dict
+        JSON-able description: ``feature_names``, ``threshold`` (probability
+        cut), training cases, scores, ... (see ``reports/model_card.md``).
+    """
+
+    feature: np.ndarray
+    threshold: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    value: np.ndarray
+    roots: np.ndarray
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        n = self.feature.shape[0]
+        for name in ("threshold", "left", "right", "value"):
+            if getattr(self, name).shape != (n,):
+                raise InputError(f"forest array {name!r} must have shape ({n},)")
+        if self.roots.ndim != 1 or self.roots.size == 0:
+            raise InputError("a forest needs at least one tree")
+        internal = self.feature >= 0
+        for name in ("left", "right"):
+            child = getattr(self, name)[internal]
+            if child.size and (child.min() < 0 or child.max() >= n):
+                raise InputError(f"forest array {name!r} points outside the node table")
+        if self.roots.min() < 0 or self.roots.max() >= n:
+            raise InputError("forest roots point outside the node table")
+
+    @property
+    def n_features(self) -> int:
+        """Number of input columns the trees read (``len(meta['feature_names'])`` if given)."""
+        names = self.meta.get("feature_names")
+        if names:
+            return len(names)
+        return int(self.feature.max(initial=-1)) + 1
+
+    def to_bytes(self) -> bytes:
+        """The model as ``.npz`` bytes: the arrays and ``meta`` as JSON (no pickle)."""
+        buf = io.BytesIO()
+        meta = np.frombuffer(json.dumps(self.meta, sort_keys=True).encode(), dtype=np.uint8)
+        np.savez_compressed(buf, meta=meta, **{k: getattr(self, k) for k in _ARRAYS})
+        return buf.getvalue()
+
+    @classmethod
+    def from_bytes(cls, data: bytes, *, source: str = "model") -> ForestModel:
+        """Read :meth:`to_bytes`; never unpickles. ``source`` names it in errors."""
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as z:
+                arrays = {k: np.array(z[k]) for k in _ARRAYS}
+                meta = json.loads(bytes(z["meta"]).decode())
+        except (OSError, ValueError, KeyError, UnicodeDecodeError) as exc:
+            raise InputError(f"{source}: not a tumor3d forest model ({exc})") from None
+        return cls(
+            arrays["feature"].astype(np.int32),
+            arrays["threshold"].astype(np.float64),
+            arrays["left"].astype(np.int32),
+            arrays["right"].astype(np.int32),
+            arrays["value"].astype(np.float64),
+            arrays["roots"].astype(np.int32),
+            meta,
+        )
+
+    def digest(self) -> str:
+        """SHA-256 of the arrays and metadata (independent of the compression)."""
+        h = hashlib.sha256()
+        for k in _ARRAYS:
+            a = np.ascontiguousarray(getattr(self, k))
+            h.update(k.encode() + str(a.dtype).encode() + a.tobytes())
+        h.update(json.dumps(self.meta, sort_keys=True).encode())
+        return h.hexdigest()
+
+
+def forest_from_lightgbm_dump(
+    dump: dict[str, Any], meta: dict[str, Any] | None = None
+) -> ForestModel:
+    """Flatten ``lightgbm.Booster.dump_model()`` (a binary model with numeric splits).
+
+    Raises
+    ------
+    InputError
+        For a categorical split or a decision type other than ``"<="``, or
+        a missing-value rule that sends NaN somewhere other than where a
+        finite feature would go (the features here are always finite).
+    """
+    feature: list[int] = []
+    threshold: list[float] = []
+    left: list[int] = []
+    right: list[int] = []
+    value: list[float] = []
+    roots: list[int] = []
+
+    def add(node: dict[str, Any]) -> int:
+        i = len(feature)
+        feature.append(-1)
+        threshold.append(0.0)
+        left.append(-1)
+        right.append(-1)
+        value.append(0.0)
+        if "leaf_value" in node and "split_feature" not in node:
+            value[i] = float(node["leaf_value"])
+            return i
+        if node.get("decision_type", "<=") != "<=":
+            raise InputError(f"unsupported decision type {node.get('decision_type')!r}")
+        feature[i] = int(node["split_feature"])
+        threshold[i] = float(node["threshold"])
+        li = add(node["left_child"])
+        ri = add(node["right_child"])
+        left[i], right[i] = li, ri
+        return i
+
+    for tree in dump["tree_info"]:
+        roots.append(add(tree["tree_structure"]))
+    info = dict(meta or {})
+    if "feature_names" not in info and "feature_names" in dump:
+        info["feature_names"] = list(dump["feature_names"])
+    return ForestModel(
+        np.asarray(feature, np.int32),
+        np.asarray(threshold, np.float64),
+        np.asarray(left, np.int32),
+        np.asarray(right, np.int32),
+        np.asarray(value, np.float64),
+        np.asarray(roots, np.int32),
+        info,
+    )
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _walk(x, feature, threshold, left, right, value, roots):  # pragma: no cover - numba
+    n = x.shape[0]
+    out = np.zeros(n, np.float64)
+    for i in numba.prange(n):
+        acc = 0.0
+        for t in range(roots.shape[0]):
+            node = roots[t]
+            while feature[node] >= 0:
+                if x[i, feature[node]] <= threshold[node]:
+                    node = left[node]
+                else:
+                    node = right[node]
+            acc += value[node]
+        out[i] = acc
+    return out
+
+
+def predict_logit(model: ForestModel, x: np.ndarray) -> np.ndarray:
+    """The summed leaf values (log-odds) of every row of ``x``.
+
+    Parameters
+    ----------
+    model : ForestModel
+    x : (n, n_features) ndarray of float
+        Finite feature rows.
+
+    Returns
+    -------
+    (n,) ndarray of float64
+
+    Examples
+    --------
+    >>> stump = ForestModel(np.array([0, -1, -1], np.int32), np.array([0.5, 0, 0]),
+    ...                     np.array([1, -1, -1], np.int32), np.array([2, -1, -1], np.int32),
+    ...                     np.array([0, -1.0, 2.0]), np.array([0], np.int32))
+    >>> predict_logit(stump, np.array([[0.0], [1.0]])).tolist()
+    [-1.0, 2.0]
+    """
+    if not isinstance(model, ForestModel):
+        raise InputError(f"model must be a ForestModel, got {type(model).__name__}")
+    arr = np.asarray(x, dtype=np.float32)
+    if arr.ndim != 2:
+        raise InputError(f"x must be 2-D (rows, features), got shape {arr.shape}")
+    if arr.shape[1] < int(model.feature.max(initial=-1)) + 1:
+        raise InputError(
+            f"x has {arr.shape[1]} features but the model reads feature {int(model.feature.max())}"
+        )
+    if arr.shape[0] == 0:
+        return np.zeros(0, np.float64)
+    return _walk(
+        np.ascontiguousarray(arr),
+        model.feature,
+        model.threshold,
+        model.left,
+        model.right,
+        model.value,
+        model.roots,
+    )
+
+
+def predict_proba(model: ForestModel, x: np.ndarray) -> np.ndarray:
+    """Probability of the positive class, ``1 / (1 + exp(-logit))``."""
+    z = predict_logit(model, x)
+    return 1.0 / (1.0 + np.exp(-np.clip(z, -50.0, 50.0)))

@@ -1,0 +1,140 @@
+"""The learned method: per-pixel lesion probability, then one lesion in 3-D.
+
+:func:`segment_learned` computes the features of every tissue pixel
+(:mod:`tumor3d.learned.features`), the model's probability
+(:mod:`tumor3d.learned.forest`), and keeps the connected 3-D region of
+pixels above the model's threshold that carries the most probability, with
+any other region carrying at least ``keep_fraction`` of it (a multifocal
+lesion); holes are filled per slice. It also returns the probability
+volume (per-voxel confidence, written as a NIfTI by the stage) and the
+figures :func:`tumor3d.learned.review.review_segmentation` judges.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage as ndi
+
+from tumor3d.errors import InputError
+from tumor3d.learned.features import FEATURE_NAMES, compute_features
+from tumor3d.learned.forest import ForestModel, predict_proba
+
+__all__ = ["LearnedSegmentation", "keep_main_lesion", "segment_learned"]
+
+_STRUCT_3D = np.ones((3, 3, 3), dtype=bool)
+
+
+@dataclass(frozen=True)
+class LearnedSegmentation:
+    """Result of :func:`segment_learned`.
+
+    Attributes
+    ----------
+    mask : (z, y, x) ndarray of bool
+        The lesion.
+    probability : (z, y, x) ndarray of float32
+        The model's lesion probability (0 outside the tissue).
+    threshold : float
+        The probability cut that made ``mask``.
+    """
+
+    mask: np.ndarray
+    probability: np.ndarray
+    threshold: float
+
+
+def keep_main_lesion(
+    probability: np.ndarray, threshold: float, *, keep_fraction: float = 0.3, min_voxels: int = 20
+) -> np.ndarray:
+    """The 3-D region above ``threshold`` with the largest summed probability, and its peers.
+
+    Regions are 26-connected; any other region whose summed probability is
+    at least ``keep_fraction`` of the largest is kept too. Regions under
+    ``min_voxels`` voxels are dropped. Holes are filled per slice.
+
+    Examples
+    --------
+    >>> p = np.zeros((1, 12, 12), np.float32); p[0, 1:5, 1:5] = 0.9; p[0, 8:10, 8:10] = 0.6
+    >>> int(keep_main_lesion(p, 0.5, min_voxels=1).sum())
+    16
+    """
+    prob = np.asarray(probability, dtype=np.float32)
+    if prob.ndim != 3:
+        raise InputError(f"probability must be 3-D (z, y, x), got shape {prob.shape}")
+    if not 0.0 < float(threshold) < 1.0:
+        raise InputError(f"threshold must lie in (0, 1), got {threshold}")
+    if not 0.0 <= float(keep_fraction) <= 1.0:
+        raise InputError(f"keep_fraction must lie in [0, 1], got {keep_fraction}")
+    above = prob > float(threshold)
+    labels, n = ndi.label(above, structure=_STRUCT_3D)
+    if n == 0:
+        return above
+    ids = np.arange(1, n + 1)
+    mass = ndi.sum_labels(prob, labels, ids)
+    size = ndi.sum_labels(above, labels, ids)
+    mass = np.where(size >= int(min_voxels), mass, 0.0)
+    if mass.max() <= 0:
+        return np.zeros_like(above)
+    keep = ids[mass >= float(keep_fraction) * mass.max()]
+    mask = np.isin(labels, keep)
+    for z in np.flatnonzero(mask.any(axis=(1, 2))):
+        mask[z] = ndi.binary_fill_holes(mask[z])
+    return mask
+
+
+def segment_learned(
+    image: np.ndarray,
+    *,
+    model: ForestModel,
+    spacing_mm: tuple[float, float, float],
+    modality: str,
+    lr_axis: int | None = 2,
+    threshold: float | None = None,
+    keep_fraction: float | None = None,
+    prior: np.ndarray | None = None,
+) -> LearnedSegmentation:
+    """Segment one patient's lesion with a trained forest.
+
+    Parameters
+    ----------
+    image : (z, y, x) ndarray of real numbers
+        The slices as acquired. Not modified.
+    model : ForestModel
+        Trained on :data:`~tumor3d.learned.features.FEATURE_NAMES`.
+    spacing_mm : (3,) tuple of float
+        ``(slice step, row, column)`` in mm.
+    modality : {"flair", "t2", "t1c"}
+    lr_axis : {1, 2} or None
+        Left-right array axis (:func:`tumor3d.lesion.left_right_axis`).
+    threshold, keep_fraction : float, optional
+        Override the model's own (``model.meta``; defaults 0.5 and 0.3).
+    prior : (z, y, x) ndarray of bool, optional
+        The rule-based lesion of the same slices (the robust method's mask),
+        a feature of the model (:func:`~tumor3d.learned.features.compute_features`).
+
+    Returns
+    -------
+    LearnedSegmentation
+    """
+    if not isinstance(model, ForestModel):
+        raise InputError(f"model must be a ForestModel, got {type(model).__name__}")
+    names = model.meta.get("feature_names")
+    if names and tuple(names) != FEATURE_NAMES:
+        raise InputError(
+            "the model was trained on other features than this version of tumor3d computes; "
+            "retrain it (tumor3d train)"
+        )
+    t = float(model.meta.get("threshold", 0.5) if threshold is None else threshold)
+    kf = float(model.meta.get("keep_fraction", 0.3) if keep_fraction is None else keep_fraction)
+    feats = compute_features(
+        image, spacing_mm=spacing_mm, modality=modality, lr_axis=lr_axis, prior=prior
+    )
+    prob = np.zeros(feats.shape, dtype=np.float32)
+    prob.ravel()[feats.index] = predict_proba(model, feats.values)
+    # a lesion of less than ~20 mm3 is noise at any slice thickness
+    voxel_mm3 = float(np.prod(spacing_mm))
+    min_voxels = max(1, int(round(20.0 / voxel_mm3)))
+    mask = keep_main_lesion(prob, t, keep_fraction=kf, min_voxels=min_voxels)
+    return LearnedSegmentation(mask, prob, t)
