@@ -43,6 +43,7 @@ from flows.patient import (
     config_digest,
     patient_pipeline,
     prepare_brain_mask,
+    prepare_segmentation,
     prepare_source,
 )
 from storage.cohort_report import (
@@ -205,8 +206,12 @@ def _run_one(
         )  # fmt: skip
         mask = row.get("brain_mask")
         given = None if not mask else prepare_brain_mask(mask, source, out_dir=out_dir)
+        seg_path = row.get("segmentation")
+        seg = None if not seg_path else prepare_segmentation(seg_path, source, out_dir=out_dir)
         prepared = True
-        result = patient_pipeline(source, out_dir, cfg, store, runs=runs, brain_mask=given)
+        result = patient_pipeline(
+            source, out_dir, cfg, store, runs=runs, brain_mask=given, segmentation=seg
+        )
     except Exception as exc:  # failure isolation: record and let the others finish
         done = len(runs)
         if not prepared:
@@ -250,9 +255,9 @@ def cohort_flow(
     rows : list of dict
         Manifest rows (``patient_id``, ``image``, ``modality``, optional
         ``slice_thickness_mm``, ``slice_gap_mm``, ``series_uid``,
-        ``brain_mask``; other keys are passed through to the outcome). A row
-        whose image or brain mask is missing or bad fails alone, at
-        ``prepare-input``.
+        ``brain_mask``, ``segmentation``; other keys are passed through to the
+        outcome). A row whose image, brain mask or segmentation is missing or
+        bad fails alone, at ``prepare-input``.
     out_dir : str
         ``DIR``: patients under ``DIR/<patient_id>/``, plus ``cohort.parquet``
         and ``cohort.md``.
@@ -319,6 +324,10 @@ def _default_store(out_dir: str | Path) -> str | Path:
     return Path(out_dir) / ".tumor3d-store"
 
 
+#: A row's columns naming input files (never inside any row's output folder).
+_INPUT_COLUMNS = ("image", "brain_mask", "segmentation")
+
+
 def _validate_rows(rows: list[dict[str, Any]], out_dir: Path | None) -> None:
     seen: set[str] = set()
     for i, row in enumerate(rows, start=1):
@@ -331,10 +340,10 @@ def _validate_rows(rows: list[dict[str, Any]], out_dir: Path | None) -> None:
         # never publish over an input (checked for every row before any work); inputs
         # are local files, so an object-store output (out_dir None) cannot hold one
         if out_dir is not None:
-            given = [row["image"]] + ([row["brain_mask"]] if row.get("brain_mask") else [])
+            given = [row[k] for k in _INPUT_COLUMNS if row.get(k)]
             check_destination(out_dir / pid, given)
     if out_dir is not None:  # nor over another row's input (a mask kept in its folder)
-        inputs = [r[k] for r in rows for k in ("image", "brain_mask") if r.get(k)]
+        inputs = [r[k] for r in rows for k in _INPUT_COLUMNS if r.get(k)]
         check_outputs_not_inputs([out_dir / r["patient_id"] for r in rows], inputs)
 
 

@@ -14,6 +14,11 @@ brain_mask          no        a brain mask on the image's voxel grid (same
                               instead of skull removal
                               (:mod:`storage.brain_mask`); with emulation it
                               is emulated like the image
+segmentation        no        your own tumour mask on the image's voxel grid
+                              (the brain mask's grid rule; tumour = values >
+                              0.5), used instead of the segment-tumor stage's
+                              (:mod:`storage.given_segmentation`); not with
+                              ``emulate_step_mm``
 reference           no        reference tumour label volume (NIfTI, any grid
                               in the same world space)
 reference_labels    no        label values forming the tumour, e.g. ``"1,2,4"``
@@ -84,6 +89,7 @@ MANIFEST_COLUMNS = (
     "emulate_thickness_mm",
     "reference_kind",
     "brain_mask",
+    "segmentation",
 )
 #: Values of the ``reference_kind`` column: the evaluation's kinds less its
 #: "unspecified" (an empty cell).
@@ -117,6 +123,8 @@ class ManifestRow:
         One of :data:`REFERENCE_KINDS`, or ``None`` (not stated).
     brain_mask : Path or None
         Absolute path of a given brain mask on the image's grid, if any.
+    segmentation : Path or None
+        Absolute path of a given tumour segmentation on the image's grid, if any.
     """
 
     patient_id: str
@@ -130,12 +138,20 @@ class ManifestRow:
     emulate_thickness_mm: float | None = None
     reference_kind: str | None = None
     brain_mask: Path | None = None
+    segmentation: Path | None = None
 
     def __post_init__(self) -> None:
         validate_patient_id(self.patient_id)
         object.__setattr__(self, "image", Path(self.image))
         if self.brain_mask is not None:
             object.__setattr__(self, "brain_mask", Path(self.brain_mask))
+        if self.segmentation is not None:
+            object.__setattr__(self, "segmentation", Path(self.segmentation))
+            if self.emulate_step_mm is not None:
+                raise InputError(
+                    "segmentation given with emulate_step_mm (a mask on the thin image "
+                    "cannot replace the emulated image's segmentation)"
+                )
         if self.reference is not None:
             object.__setattr__(self, "reference", Path(self.reference))
         modality = self.modality.strip().lower() if isinstance(self.modality, str) else None
@@ -213,10 +229,10 @@ def read_manifest(path: str | os.PathLike[str], *, require_files: bool = True) -
     path : str or path-like
         The CSV file (UTF-8, optional BOM).
     require_files : bool
-        Whether an image, brain mask or reference path that does not exist
-        is an error of the manifest. ``tumor3d cohort`` passes False: such a row is kept
-        (every other column still validated) and fails alone when its
-        patient runs, so the other patients still run.
+        Whether an image, brain mask, segmentation or reference path that
+        does not exist is an error of the manifest. ``tumor3d cohort`` passes
+        False: such a row is kept (every other column still validated) and
+        fails alone when its patient runs, so the other patients still run.
 
     Returns
     -------
@@ -230,7 +246,8 @@ def read_manifest(path: str | os.PathLike[str], *, require_files: bool = True) -
         an empty required value, an unsafe or duplicate ``patient_id``, an
         unknown modality, a non-numeric or negative thickness or gap, a bad
         label list, bad emulation values or reference kind, or (with
-        ``require_files``) an image, brain mask or reference path that does not exist.
+        ``require_files``) an image, brain mask, segmentation or reference path
+        that does not exist.
     """
     rows, problems = read_manifest_rows(path, require_files=require_files)
     if problems:
@@ -248,7 +265,8 @@ def read_manifest_rows(
     path : str or path-like
         The CSV file (UTF-8, optional BOM).
     require_files : bool
-        Whether a row naming an absent image, brain mask or reference is a problem
+        Whether a row naming an absent image, brain mask, segmentation or
+        reference is a problem
         (default); see :func:`read_manifest`.
 
     Returns
@@ -347,6 +365,11 @@ def _parse_row(
         brain_mask = _resolve(base, cells["brain_mask"])
         if require_files and not brain_mask.exists():
             raise fail("brain_mask", f"{brain_mask} does not exist", missing=True)
+    segmentation = None
+    if cells.get("segmentation"):
+        segmentation = _resolve(base, cells["segmentation"])
+        if require_files and not segmentation.exists():
+            raise fail("segmentation", f"{segmentation} does not exist", missing=True)
     reference = None
     if cells.get("reference"):
         reference = _resolve(base, cells["reference"])
@@ -381,6 +404,12 @@ def _parse_row(
         )
     if kind == "tumor_free" and reference is not None:
         raise fail("reference_kind", "tumor_free, but a reference file is given")
+    if segmentation is not None and e_step is not None:
+        raise fail(
+            "segmentation",
+            "given with emulate_step_mm (a mask on the thin image cannot replace the "
+            "emulated image's segmentation)",
+        )
     seen[pid] = index
     return ManifestRow(
         patient_id=pid,
@@ -394,6 +423,7 @@ def _parse_row(
         emulate_thickness_mm=e_thick,
         reference_kind=kind,
         brain_mask=brain_mask,
+        segmentation=segmentation,
     )
 
 
@@ -455,6 +485,7 @@ def write_manifest(rows: Iterable[ManifestRow], path: str | os.PathLike[str]) ->
                         else repr(float(r.emulate_thickness_mm)),
                         r.reference_kind or "",
                         "" if r.brain_mask is None else _relative(base, r.brain_mask),
+                        "" if r.segmentation is None else _relative(base, r.segmentation),
                     ]
                 )
         os.replace(tmp, p)

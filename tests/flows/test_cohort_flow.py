@@ -7,6 +7,7 @@ patient computes only it.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pandas as pd
@@ -18,6 +19,7 @@ from flows.cohort import run_cohort
 from storage.manifest import ManifestRow, write_manifest
 from storage.phantom_io import write_phantom_patient
 from tasks.stages import STAGES
+from tumor3d.errors import InputError
 from tumor3d.phantom import make_phantom_patient
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
@@ -310,3 +312,101 @@ def test_status_ok_check_failed_through_metrics_table_pages_console_and_exit_cod
     ])  # fmt: skip
     assert clean.exit_code == 0, clean.output
     assert "status: ok" in clean.output
+
+
+def _seg_manifest(path, lines):
+    path.write_text("patient_id,image,modality,segmentation\n" + "\n".join(lines) + "\n")
+    return path
+
+
+def test_cli_cohort_segmentation_column_replaces_that_rows_segmentation(first, inputs, tmp_path):
+    """Issue 33: the manifest's segmentation (a relative path); the other row segments as usual."""
+    import hashlib
+    import shutil
+
+    import nibabel as nib
+    import numpy as np
+
+    out, result = first
+    folder, rows, _ = inputs
+    (tmp_path / "masks").mkdir()
+    mask = tmp_path / "masks" / "coh0_seg.nii.gz"  # the phantom's own true slice mask
+    shutil.copyfile(folder / "coh0" / "coh0_truth_slices.nii.gz", mask)
+    sha = hashlib.sha256(mask.read_bytes()).hexdigest()
+    manifest = _seg_manifest(
+        tmp_path / "seg.csv",
+        [f"coh0,{rows[0].image},t2,masks/coh0_seg.nii.gz", f"coh1,{rows[1].image},t2,"],
+    )
+    dest = tmp_path / "out"
+    store = str(out / ".tumor3d-store")
+    res = CliRunner().invoke(app, ["cohort", str(manifest), "--out", str(dest), "--store", store])
+    assert res.exit_code == 0, res.output
+    assert "2 ok, 0 to check, 0 failed" in res.output
+    # the truth, computed here: true tumour pixels x pixel area x slab height
+    patient = make_phantom_patient(0, patient_id="coh0", n_slices=16)
+    truth = np.asarray(patient.slice_masks, bool)
+    dy, dx = patient.scan.pixel_spacing_mm
+    slab = patient.scan.slice_thickness_mm + patient.scan.slice_gap_mm
+    expected = float(truth.sum()) * dy * dx * slab
+    assert expected > 1000.0
+    given = pd.read_parquet(dest / "coh0" / "metrics.parquet").iloc[0]
+    assert given["volume_eq7_mm3"] == pytest.approx(expected, rel=1e-9)
+    assert given["segment_method"] == "given"
+    assert given["measured"] == "the segmentation given by the user (coh0_seg.nii.gz)"
+    assert given["status"] == "ok"
+    published = np.asarray(nib.load(dest / "coh0" / "tumor_mask_slices.nii.gz").dataobj)
+    np.testing.assert_array_equal(published.transpose(2, 1, 0) > 0, truth)
+    prov = json.loads((dest / "coh0" / "provenance.json").read_text())["segmentation"]
+    assert prov["given"] is True and prov["file"] == "coh0_seg.nii.gz" and prov["sha256"] == sha
+    assert hashlib.sha256(mask.read_bytes()).hexdigest() == sha  # only read
+    # the row without one is segmented as usual: the first run's result, from the cache
+    usual = pd.read_parquet(dest / "coh1" / "metrics.parquet").iloc[0]
+    assert usual["segment_method"] != "given"
+    before = next(p for p in result.patients if p.patient_id == "coh1")
+    assert usual["volume_eq7_mm3"] == before.metrics["volume_eq7_mm3"]
+    usual_prov = json.loads((dest / "coh1" / "provenance.json").read_text())
+    assert usual_prov["segmentation"]["given"] is False
+    table = pd.read_parquet(dest / "cohort.parquet").set_index("patient_id")
+    assert "segmentation: given (coh0_seg.nii.gz" in table.loc["coh0", "notes"]
+
+
+def test_cli_cohort_a_bad_segmentation_fails_that_row_only(first, inputs, tmp_path):
+    import nibabel as nib
+    import numpy as np
+
+    out, _ = first
+    _, rows, _ = inputs
+    img = nib.load(rows[1].image)
+    short = tmp_path / "short_seg.nii.gz"
+    nib.save(nib.Nifti1Image(np.zeros(img.shape[:2] + (img.shape[2] - 1,), np.uint8),
+                             img.affine), short)  # fmt: skip
+    manifest = _seg_manifest(
+        tmp_path / "bad.csv", [f"coh0,{rows[0].image},t2,", f"coh1,{rows[1].image},t2,{short}"]
+    )
+    dest = tmp_path / "out"
+    store = str(out / ".tumor3d-store")
+    res = CliRunner().invoke(app, ["cohort", str(manifest), "--out", str(dest), "--store", store])
+    assert res.exit_code == 1, res.output
+    assert "1 ok, 0 to check, 1 failed" in res.output
+    table = pd.read_parquet(dest / "cohort.parquet").set_index("patient_id")
+    assert list(table["status"]) == ["ok", "failed"]
+    assert table.loc["coh1", "failed_stage"] == "prepare-input"
+    error = table.loc["coh1", "error"]
+    assert f"{short}: segmentation: shape" in error and "\n" not in error
+    assert (dest / "coh0" / "metrics.parquet").is_file() and not (dest / "coh1").exists()
+
+
+def test_cohort_refuses_a_segmentation_inside_another_rows_output(first, inputs, tmp_path):
+    """Issue 29's cross-row rule holds for the segmentation column too (before any work)."""
+    import shutil
+
+    out, _ = first
+    _, rows, _ = inputs
+    dest = tmp_path / "out"
+    shutil.copytree(out / "coh1", dest / "coh1")  # coh1's published result
+    kept = dest / "coh1" / "my_seg.nii.gz"  # a user-edited copy kept in coh1's folder
+    kept.write_bytes(b"mask")
+    seg_row = dataclasses.replace(rows[0], segmentation=kept)
+    with pytest.raises(InputError, match="my_seg.nii.gz"):
+        run_cohort([seg_row, rows[1]], dest, workers=1)
+    assert kept.read_bytes() == b"mask"

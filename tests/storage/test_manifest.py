@@ -305,3 +305,32 @@ def test_absent_brain_mask_is_a_missing_file_of_that_row(cohort):
     assert "none.nii.gz does not exist" in problems[0].message
     kept = read_manifest(p, require_files=False)  # a cohort: that row fails alone when run
     assert kept[0].brain_mask == (cohort / "masks" / "none.nii.gz").resolve()
+
+
+def test_segmentation_column_resolves_like_brain_mask_and_round_trips(cohort, tmp_path):
+    """Issue 33: optional segmentation, relative to the manifest; absent = a missing file."""
+    (cohort / "masks").mkdir()
+    (cohort / "masks" / "p1_seg.nii.gz").write_bytes(b"x")
+    p = write_csv(
+        cohort,
+        "patient_id,image,modality,segmentation\n"
+        "p1,images/p1.nii.gz,t2,masks/p1_seg.nii.gz\n"
+        "p2,images/p1.nii.gz,t2,\n"
+        "p3,images/p1.nii.gz,t2,masks/none.nii.gz\n",
+    )
+    rows, problems = read_manifest_rows(p)
+    assert [r.patient_id for r in rows] == ["p1", "p2"]
+    assert rows[0].segmentation == (cohort / "masks" / "p1_seg.nii.gz").resolve()
+    assert rows[1].segmentation is None
+    assert [(q.row, q.column, q.missing_file) for q in problems] == [(3, "segmentation", True)]
+    out = write_manifest(rows, cohort / "again.csv")
+    assert "masks/p1_seg.nii.gz" in out.read_text()
+    assert read_manifest(out) == rows
+    emulated = write_csv(
+        cohort,
+        "patient_id,image,modality,segmentation,emulate_step_mm\n"
+        "p1,images/p1.nii.gz,t2,masks/p1_seg.nii.gz,5\n",
+        "emulated.csv",
+    )
+    with pytest.raises(InputError, match=r"column 'segmentation': given with emulate_step_mm"):
+        read_manifest(emulated)
