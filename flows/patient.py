@@ -398,7 +398,9 @@ def run_notes(
 
     :func:`tumor3d.review.run_notes` on the stages' values: the doubts make
     the status ``check`` (:func:`tumor3d.review.review_status`). A given
-    segmentation adds an informational note (``segmentation: given (FILE, ...)``).
+    segmentation adds an informational note (``segmentation: given (FILE, ...)``),
+    as do nibabel's repairs of the input's NIfTI header (the ingest-scan stage's
+    ``header_notes``).
     """
     notes, doubts = review_notes(
         tumour_found=outputs["extract-surface"].values["faces"] > 0,
@@ -407,6 +409,8 @@ def run_notes(
         brain_mask_note=None if brain_mask is None else brain_mask_note(brain_mask),
         brain_notes=preprocess_notes(outputs["preprocess"].values),
     )
+    # nibabel's repairs of a NIfTI header (tasks.ingest): informational, never printed
+    notes.extend(outputs["ingest-scan"].values.get("header_notes") or [])
     if segmentation is not None:
         notes.append(segmentation.note())
     return notes, doubts

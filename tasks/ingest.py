@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from storage.objectstore import open_store
 from storage.readers import read_scan
+from storage.readers.nifti import nibabel_header_notes
 from tasks.spec import InputSource, StageOutput, StageSpec, stage_task
 
 __all__ = ["SPEC", "ingest_task"]
@@ -11,17 +12,22 @@ __all__ = ["SPEC", "ingest_task"]
 
 @stage_task("ingest-scan")
 def ingest_task(source: InputSource, store_root: str) -> StageOutput:
-    """Read the user's input (NIfTI, DICOM series, image stack) into a stored `Scan`."""
-    scan = read_scan(
-        source.path,
-        modality=source.modality,
-        patient_id=source.patient_id,
-        series_uid=source.series_uid,
-        slice_thickness_mm=source.slice_thickness_mm,
-        slice_gap_mm=source.slice_gap_mm,
-        skip_unreadable=source.skip_unreadable,
-        max_voxels=source.max_voxels,
-    )
+    """Read the user's input (NIfTI, DICOM series, image stack) into a stored `Scan`.
+
+    ``header_notes``: the repairs nibabel made to a NIfTI header on reading,
+    one note naming the file (informational; never printed by nibabel).
+    """
+    with nibabel_header_notes(source.name) as header_notes:
+        scan = read_scan(
+            source.path,
+            modality=source.modality,
+            patient_id=source.patient_id,
+            series_uid=source.series_uid,
+            slice_thickness_mm=source.slice_thickness_mm,
+            slice_gap_mm=source.slice_gap_mm,
+            skip_unreadable=source.skip_unreadable,
+            max_voxels=source.max_voxels,
+        )
     ref = open_store(store_root).put_scan(scan)
     return StageOutput(
         stage="ingest-scan",
@@ -34,6 +40,7 @@ def ingest_task(source: InputSource, store_root: str) -> StageOutput:
             "slice_thickness_mm": scan.slice_thickness_mm,
             "slice_gap_mm": scan.slice_gap_mm,
             "skipped_files": list(scan.skipped_files),
+            "header_notes": header_notes,
         },
     )
 

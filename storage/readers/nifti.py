@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +30,68 @@ from tumor3d.constants import SINGULAR_DET_TOL
 from tumor3d.errors import InputError
 from tumor3d.scan import Scan, validate_patient_id
 
-__all__ = ["load_nifti_volume", "read_nifti_scan"]
+__all__ = ["load_nifti_volume", "nibabel_header_notes", "quiet_nibabel", "read_nifti_scan"]
+
+#: nibabel's logger of the header repairs it makes on reading (``nibabel.imageglobals``).
+_NIBABEL_LOGGER = "nibabel.global"
+_collected: ContextVar[list[str] | None] = ContextVar("nibabel_header_notes", default=None)
+
+
+class _NibabelCollector(logging.Handler):
+    """nibabel's messages into the collecting reader's list (else dropped), never printed."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        found = _collected.get()
+        if found is None:
+            return
+        try:
+            text = " ".join(record.getMessage().split())
+        except Exception:  # a malformed record: nothing to say
+            return
+        if text and text not in found:
+            found.append(text)
+
+
+def quiet_nibabel() -> None:
+    """Route nibabel's header messages to :func:`nibabel_header_notes`, never to the console.
+
+    nibabel logs each repair it makes to a header on reading (an invalid
+    ``qform_code``, a ``sizeof_hdr`` other than 348) on its own logger, whose
+    handler printed it to stderr, once per reading, and again through
+    Prefect's console handler. Idempotent; call it after importing nibabel
+    (its import adds the printing handler).
+    """
+    logger = logging.getLogger(_NIBABEL_LOGGER)
+    if any(isinstance(h, _NibabelCollector) for h in logger.handlers):
+        return
+    for handler in list(logger.handlers):
+        logger.removeHandler(handler)
+    logger.addHandler(_NibabelCollector())
+    logger.propagate = False
+
+
+@contextmanager
+def nibabel_header_notes(name: str) -> Iterator[list[str]]:
+    """Collect, as one-line notes naming the file, nibabel's header repairs within the block.
+
+    Only in this context (this thread); elsewhere they are dropped: the
+    ingest-scan stage reads the input and reports them, the other readings of
+    the same file (the command line's checks) stay quiet.
+    """
+    import nibabel  # noqa: F401  (its import installs the handler quiet_nibabel removes)
+
+    quiet_nibabel()
+    found: list[str] = []
+    notes: list[str] = []
+    token = _collected.set(found)
+    try:
+        yield notes
+    finally:
+        _collected.reset(token)
+        if found:
+            notes.append(
+                f"{name}: nibabel repaired the NIfTI header on reading: {'; '.join(found)}"
+            )
 
 
 def read_nifti_scan(
@@ -112,6 +177,7 @@ def load_nifti_volume(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
     """
     import nibabel as nib
 
+    quiet_nibabel()
     where = str(p)
     try:
         img = nib.load(where)

@@ -1,0 +1,58 @@
+"""nibabel's header repairs never reach the console; the run's notes say them (issue 29).
+
+nibabel repairs some NIfTI headers on reading (an invalid ``qform_code``, a
+``sizeof_hdr`` other than 348) and logs each repair on its own logger, which
+printed it to stderr, once per reading (the command line reads the input two
+or three times), and again through Prefect's console handler. The ingest-scan
+stage now records the repairs as one note of the run instead.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+
+import nibabel as nib
+import numpy as np
+
+from flows.patient import run_notes, run_stages_direct
+from storage.phantom_io import write_phantom_patient
+from storage.readers import read_scan
+from tumor3d.phantom import make_phantom_patient
+
+NOTE = "hdr.nii: nibabel repaired the NIfTI header on reading: qform_code 7 not valid; setting to 0"
+
+
+def _bad_qform_code(tmp_path):
+    """A phantom NIfTI (uncompressed) whose qform_code is 7: nibabel sets it to 0, logging it."""
+    patient = make_phantom_patient(3, patient_id="hdr", n_slices=12)
+    row = write_phantom_patient(patient, tmp_path / "in")
+    img = nib.load(row.image)
+    plain = tmp_path / "hdr.nii"
+    nib.save(nib.Nifti1Image(np.asarray(img.dataobj), img.affine), plain)
+    raw = bytearray(plain.read_bytes())
+    struct.pack_into("<h", raw, 252, 7)  # qform_code
+    plain.write_bytes(bytes(raw))
+    return plain
+
+
+def test_reading_a_repaired_header_prints_nothing(tmp_path, capfd, caplog):
+    path = _bad_qform_code(tmp_path)
+    capfd.readouterr()
+    with caplog.at_level(logging.DEBUG):
+        scan = read_scan(path, patient_id="hdr")
+    assert scan.n_slices == 12
+    err = capfd.readouterr().err
+    assert "qform_code" not in err, err
+    assert not [r for r in caplog.records if r.name.startswith("nibabel")]
+
+
+def test_the_repair_is_one_note_of_the_run(tmp_path, capfd):
+    path = _bad_qform_code(tmp_path)
+    capfd.readouterr()
+    run = run_stages_direct(path, tmp_path / "store", patient_id="hdr")
+    assert "qform_code" not in capfd.readouterr().err
+    assert run.outputs["ingest-scan"].values["header_notes"] == [NOTE]
+    notes, doubts = run_notes(run.outputs)
+    assert notes.count(NOTE) == 1
+    assert not [d for d in doubts if "qform_code" in d]  # informational: status stays ok
