@@ -69,8 +69,12 @@ def check_target(mesh: Mesh, target_faces: int) -> int:
     return int(target_faces)
 
 
-def prepare(mesh: Mesh, method: str) -> EngineInput:
+def prepare(mesh: Mesh, method: str, *, compact_index: bool = False) -> EngineInput:
     """Copy the mesh into engine arrays and check it is a closed oriented 2-manifold.
+
+    With ``compact_index`` the index arrays (faces, corner lists) are int32
+    when every corner index fits, else int64: the engine gives the same
+    results with either, int32 moves half the bytes.
 
     Raises
     ------
@@ -81,7 +85,8 @@ def prepare(mesh: Mesh, method: str) -> EngineInput:
         locked: it is never removed and never kept by a collapse.
     """
     vertices = np.array(mesh.vertices, dtype=np.float64, order="C")
-    faces = np.array(mesh.faces, dtype=np.int64, order="C")
+    small = compact_index and 3 * len(mesh.faces) < np.iinfo(np.int32).max
+    faces = np.array(mesh.faces, dtype=np.int32 if small else np.int64, order="C")
     head, nxt = _engine.build_corner_lists(faces, len(vertices))
     status = _engine.vertex_status(faces, len(vertices), head.copy(), nxt.copy())
     if np.any(status == _engine.STATUS_DEFECT):

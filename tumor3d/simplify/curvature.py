@@ -142,10 +142,11 @@ def simplify_curvature(
         vertex positions are a subset of the input's).
     info : dict, optional
         ``n_faces_reached``, ``n_collapses``, ``tau`` (the threshold, 1/mm
-        or 1/mm^2), ``n_candidates_initial``, ``n_pops``,
-        ``candidates_exhausted`` (True when the loop stopped above the
-        target because ``C`` ran out), ``n_pinched_vertices``,
-        ``tau_passes`` (passes of the loop: 1 with ``tau="once"``) and
+        or 1/mm^2), ``n_candidates_initial``, ``candidates_exhausted``
+        (True when the loop stopped above the target because ``C`` ran
+        out), ``n_pinched_vertices``,
+        ``tau_passes`` (passes of the loop: 1 with ``tau="once"``),
+        ``n_pops`` (candidates taken from the heap and tried) and
         ``stop_reason`` (None when the target was reached, otherwise why
         the method stopped above it, in words).
 
@@ -166,7 +167,7 @@ def simplify_curvature(
     taus: list[float] = []
     n_cand0 = n_pinched = 0
     while True:
-        arr = prepare(out, "curvature")
+        arr = prepare(out, "curvature", compact_index=True)
         v = arr.vertices
         f = arr.faces
         face_alive, _, n_faces, n_pass, tau_pass, n_cand, n_pop = _engine.run_vertex_priority(
