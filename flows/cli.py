@@ -95,6 +95,8 @@ EXIT_INPUT = 2
 EXIT_ENVIRONMENT = 3
 #: Exit code of results published with status ``check`` (a human should look).
 EXIT_CHECK = 4
+#: Exit code of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
+EXIT_INTERRUPTED = 130
 #: Rich style of each status (tumor3d.review).
 _STATUS_STYLE = {"ok": "bold green", "check": "bold yellow", "failed": "bold red"}
 
@@ -127,6 +129,41 @@ def _fail(exc: BaseException) -> typer.Exit:
 
 #: What the commands catch and turn into one line (anything else is a bug: traceback).
 _HANDLED = (Tumor3DError, OSError)
+
+
+@contextmanager
+def _ctrl_c_ends(message: str) -> Iterator[None]:
+    """Ctrl-C (SIGINT) ends the command at once: one line on stderr, exit code 130.
+
+    Python's KeyboardInterrupt did not stop a cohort: the main thread's
+    interrupt waited for every patient lane to finish, and those lanes (with
+    Prefect's event and log services) retried for minutes against the
+    temporary Prefect server, which the same Ctrl-C had stopped (it shares
+    the terminal's process group), printing their tracebacks. Here the
+    process exits instead: nothing is published half (a patient is staged in
+    a hidden folder and renamed at the end; a staging folder of this ended
+    process is removed by the next publish of that patient), the temporary
+    server dies with its parent (:mod:`flows.server`), and Prefect's unsent
+    events are dropped. Install from the main thread only.
+    """
+    import signal
+
+    def on_sigint(signum: int, frame: Any) -> None:
+        try:
+            if console.is_terminal:
+                console.show_cursor(True)  # a live progress bar hides it
+            for stream in (sys.stdout, sys.stderr):
+                stream.flush()
+            sys.stderr.write(("\n" if console.is_terminal else "") + f"interrupted: {message}\n")
+            sys.stderr.flush()
+        finally:
+            os._exit(EXIT_INTERRUPTED)
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _load_config(path: Path | None) -> dict[str, Any]:
@@ -660,7 +697,15 @@ def cohort(
             _check_out_dir(Path(out))
         rows = read_manifest(manifest, require_files=False)
         dask = DaskSpec(dask_address, dask_workers)
-        with _prefect(), _reporting(lambda progress: _CohortReporter(progress, len(rows))):
+        stopped = (
+            "Ctrl-C stopped the cohort; the patients published before it are complete, "
+            "a re-run continues from the cache"
+        )
+        with (
+            _ctrl_c_ends(stopped),
+            _prefect(),
+            _reporting(lambda progress: _CohortReporter(progress, len(rows))),
+        ):
             result = run_cohort(
                 rows, out, config=cfg, workers=workers, max_voxels=max_voxels,
                 store_dir=store, dask=dask,

@@ -1,0 +1,96 @@
+"""Ctrl-C during ``tumor3d cohort`` (issue 29): one line, exit code 130, nothing left behind.
+
+The command runs in its own session with its own temporary Prefect server
+(a terminal's Ctrl-C reaches the whole process group: the command and that
+server). SIGINT is sent once the first stage has finished. Before the fix it
+was still running 30 s later (the lanes and Prefect's services retrying
+against the stopped server, printing tracebacks). It must end within seconds
+with one line on stderr and exit code 130, leave no process of its own
+running, and no staging folder once the cohort has run again.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from storage.manifest import write_manifest
+from storage.phantom_io import write_phantom_patient
+from tumor3d.phantom import make_phantom_patient
+
+pytestmark = pytest.mark.slow
+
+
+def _children(pid: int) -> list[int]:
+    out = subprocess.run(["ps", "-o", "pid=", "--ppid", str(pid)], capture_output=True, text=True)
+    return [int(v) for v in out.stdout.split()]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def _cohort(manifest, out, home):
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_API")}
+    env.update(TUMOR3D_HOME=str(home / "t3d"), PREFECT_HOME=str(home / "prefect"))
+    return subprocess.Popen(
+        [sys.executable, "-m", "flows.cli", "cohort", str(manifest), "--out", str(out),
+         "--workers", "2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
+
+
+def test_ctrl_c_during_a_cohort_is_one_line_exit_130_and_leaves_nothing(tmp_path):
+    rows = [
+        write_phantom_patient(
+            make_phantom_patient(s, patient_id=f"int{s}", n_slices=16), tmp_path / "in" / f"{s}"
+        )
+        for s in range(4)
+    ]
+    manifest = write_manifest(rows, tmp_path / "in" / "manifest.csv")
+    out = tmp_path / "out"
+    proc = _cohort(manifest, out, tmp_path)
+    assert proc.stdout is not None and proc.stderr is not None
+    deadline = time.monotonic() + 120
+    seen = []
+    for line in proc.stdout:  # plain progress lines: patient<TAB>stage<TAB>seconds
+        seen.append(line)
+        if line.count("\t") == 2 or time.monotonic() > deadline:
+            break
+    assert any(line.count("\t") == 2 for line in seen), "".join(seen)
+    children = _children(proc.pid)
+    os.killpg(proc.pid, signal.SIGINT)
+    t0 = time.monotonic()
+    try:
+        rest, err = proc.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        rest, err = proc.communicate()
+        pytest.fail(f"still running 30 s after Ctrl-C; stderr: {err[-2000:]}")
+    waited = time.monotonic() - t0
+    assert proc.returncode == 130, (proc.returncode, err[-3000:])
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "interrupted" in lines[0], err[-3000:]
+    assert "Traceback" not in err and waited < 30
+    # its temporary Prefect server shuts down (a few seconds), never outlives it
+    end = time.monotonic() + 20
+    while [c for c in children if _alive(c)] and time.monotonic() < end:
+        time.sleep(0.5)
+    assert not [c for c in children if _alive(c)], "a process of the command outlived it"
+    # a staging folder of the killed lanes is removed by the next run (all from the cache)
+    again = _cohort(manifest, out, tmp_path)
+    again.communicate(timeout=300)
+    assert again.returncode == 0
+    left = [p.name for p in out.iterdir() if ".partial-" in p.name or ".old-" in p.name]
+    assert not left, left
