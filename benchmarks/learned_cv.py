@@ -522,7 +522,7 @@ def main(argv=None) -> int:
         else:
             rows = run_learned_cv(preps, folds, args, cfg)
         if args.final:
-            write_final_models(preps, rows, args)
+            write_final_models(preps, rows, args, cfg)
     else:
         rows = run_configured(preps, args.method, cfg)
     print(summarise(rows))
@@ -539,7 +539,7 @@ def _features(p: Prepared):
 
 def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> list[dict]:
     t0 = time.perf_counter()
-    rows_of = _training_rows(preps, args)
+    rows_of = _training_rows(preps, args, cfg)
     print(f"sampled rows in {time.perf_counter() - t0:.0f} s", flush=True)
     out = []
     for k in range(args.folds):
@@ -591,7 +591,7 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
 FAMILIES = (("hyper", ("flair", "t2")), ("t1c", ("t1c",)))
 
 
-def _training_rows(preps: list[Prepared], args) -> dict[str, TrainingRows]:
+def _training_rows(preps: list[Prepared], args, cfg) -> dict[str, TrainingRows]:
     rng = np.random.default_rng(0)
     out = {}
     for p in preps:
@@ -600,9 +600,16 @@ def _training_rows(preps: list[Prepared], args) -> dict[str, TrainingRows]:
             for off in args.train_offsets:
                 if off == OFFSET:
                     continue
+                img = emulate_thick(p.raw, off).astype(np.float32)
+                prior = None
+                if p.prior is not None:  # the robust mask of these slabs, as at inference
+                    pre = preprocess_volume(
+                        img, **cfg.preprocess.model_dump(), spacing_mm=p.spacing_mm
+                    )
+                    prior = robust_mask(pre, p.spec.modality, p.spacing_mm, p.lr_axis, cfg)
                 q = Prepared(
                     p.spec,
-                    emulate_thick(p.raw, off).astype(np.float32),
+                    img,
                     emulate_thick(p.label, off) >= 0.5,
                     p.label,
                     p.brain,
@@ -611,17 +618,19 @@ def _training_rows(preps: list[Prepared], args) -> dict[str, TrainingRows]:
                     p.thin_mm,
                     p.lr_axis,
                     None,
+                    None,
+                    prior,
                 )
                 parts.append(sample_rows(_features(q), q.ref, rng=rng))
         out[p.spec.name] = TrainingRows.concatenate(parts)
     return out
 
 
-def write_final_models(preps: list[Prepared], cv_rows: list[dict], args) -> None:
+def write_final_models(preps: list[Prepared], cv_rows: list[dict], args, cfg) -> None:
     """Train each family on every case and write ``<family>.npz`` with its model card data."""
     import datetime
 
-    rows_of = _training_rows(preps, args)
+    rows_of = _training_rows(preps, args, cfg)
     out = Path(args.final)
     out.mkdir(parents=True, exist_ok=True)
     for fam, mods in FAMILIES:

@@ -82,6 +82,9 @@ class Reconstruction:
         RAS mm; empty when no tumour was found.
     metrics : dict
         Every measurement (the measure stage's row: RANO diameters, counts...).
+    tumor_probability : (z, y, x) ndarray of float32 or None
+        The learned method's lesion probability per voxel (None for the other
+        methods).
     """
 
     patient_id: str
@@ -105,6 +108,7 @@ class Reconstruction:
     mesh_simplified: Mesh = field(repr=False)
     metrics: dict[str, Any] = field(repr=False, default_factory=dict)
     scan: Scan | None = field(repr=False, default=None)
+    tumor_probability: np.ndarray | None = field(repr=False, default=None)
 
     @property
     def needs_review(self) -> bool:
@@ -325,7 +329,7 @@ def reconstruct_scan(
         eq7_ci95_ml=(lo / 1000.0, hi / 1000.0), tumor_mask_slices=np.asarray(seg.tumor_mask),
         brain_mask=brain, affine=affine, tumor_mask=np.asarray(stack.mask),
         fine_affine=fine_affine, mesh=surface, mesh_simplified=simplified, metrics=row,
-        scan=scan,
+        scan=scan, tumor_probability=getattr(seg, "probability", None),
     )  # fmt: skip
 
 

@@ -232,3 +232,34 @@ def test_segment_tumor_learned_needs_the_image_and_a_model():
         segment_tumor(
             np.zeros(shape, np.uint8), np.ones(shape, bool), det, modality="flair", method="learned"
         )
+
+
+# --------------------------------------------------------------------------- the shipped model
+
+
+def test_shipped_models_load_without_pickle_and_name_their_features():
+    from tumor3d.learned.shipped import model_family, shipped_model
+
+    for modality, family in (("flair", "hyper"), ("T2", "hyper"), ("t1c", "t1c")):
+        assert model_family(modality) == family
+        m = shipped_model(modality)
+        assert tuple(m.meta["feature_names"]) == FEATURE_NAMES
+        assert 0.0 < m.meta["threshold"] < 1.0 and m.meta["training_cases"]
+    with pytest.raises(InputError, match="no learned model"):
+        model_family("dwi")
+
+
+def test_default_on_an_unseen_flair_phantom_is_the_shipped_model_and_accurate():
+    """``auto`` on FLAIR runs the shipped model (trained on real cases and phantom seeds
+    1000-1009) and recovers a phantom it never saw: Eq. 7 against the exact truth."""
+    import tumor3d
+
+    p = make_phantom_patient(5, modality="flair")
+    truth = np.asarray(p.slice_masks) > 0.5
+    r = tumor3d.reconstruct_scan(p.scan)
+    assert r.method == "learned"
+    assert r.tumor_probability is not None and r.tumor_probability.shape == p.scan.shape
+    assert dice(r.tumor_mask_slices, truth) > 0.9
+    dy, dx = p.scan.pixel_spacing_mm
+    truth_eq7_mm3 = float(np.asarray(p.slice_masks).sum()) * dy * dx * p.scan.slice_step_mm
+    assert abs(r.volumes_mm3["eq7"] - truth_eq7_mm3) / truth_eq7_mm3 < 0.10
