@@ -62,12 +62,17 @@ def quiet_nibabel() -> None:
     (its import adds the printing handler).
     """
     logger = logging.getLogger(_NIBABEL_LOGGER)
-    if any(isinstance(h, _NibabelCollector) for h in logger.handlers):
-        return
+    # Enforced on every call, not once: a later logging set-up (Prefect's,
+    # a notebook's ``logging.basicConfig``/``dictConfig``, a test harness)
+    # can re-enable propagation or add a printing handler after the first.
+    ours = [h for h in logger.handlers if isinstance(h, _NibabelCollector)]
     for handler in list(logger.handlers):
-        logger.removeHandler(handler)
-    logger.addHandler(_NibabelCollector())
+        if handler not in ours[:1]:
+            logger.removeHandler(handler)
+    if not ours:
+        logger.addHandler(_NibabelCollector())
     logger.propagate = False
+    logger.disabled = False
 
 
 @contextmanager

@@ -56,3 +56,18 @@ def test_the_repair_is_one_note_of_the_run(tmp_path, capfd):
     notes, doubts = run_notes(run.outputs)
     assert notes.count(NOTE) == 1
     assert not [d for d in doubts if "qform_code" in d]  # informational: status stays ok
+
+
+def test_a_later_logging_set_up_does_not_bring_the_messages_back(tmp_path, capfd, caplog):
+    """Another library re-enabling propagation (and adding a printer) after the
+    first reading: the next reading is as quiet as the first."""
+    path = _bad_qform_code(tmp_path)
+    read_scan(path, patient_id="hdr")  # installs the collector
+    logger = logging.getLogger("nibabel.global")
+    logger.propagate = True
+    logger.addHandler(logging.StreamHandler())  # stderr
+    capfd.readouterr()
+    with caplog.at_level(logging.DEBUG):
+        read_scan(path, patient_id="hdr")
+    assert "qform_code" not in capfd.readouterr().err
+    assert not [r for r in caplog.records if r.name.startswith("nibabel")]

@@ -71,7 +71,7 @@ POLICY_MEMORYLESS = 0  #: Lindstrom-Turk memoryless cost and placement
 POLICY_MIDPOINT = 1  #: squared edge length, midpoint placement (engine tests)
 
 #: LLVM fast-math flags without "no NaN / no inf" (the engine uses inf as a sentinel)
-_FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+_FASTMATH: set[str] = set()
 _SQRT3x4 = 4.0 * math.sqrt(3.0)
 _COS2_ALPHA = math.cos(math.radians(1.0)) ** 2  # Lindstrom-Turk alpha = 1 degree
 _SIN2_ALPHA = math.sin(math.radians(1.0)) ** 2
