@@ -26,6 +26,9 @@ from tumor3d.overlay import overlay_mosaic
 __all__ = [
     "NOTES_SEPARATOR",
     "OVERLAYS",
+    "OVERLAY_CONTOUR_PX",
+    "OVERLAY_MARGIN_VOXELS",
+    "OVERLAY_TILE_PX",
     "RENDER_ORDER",
     "join_notes",
     "patient_report_data",
@@ -64,6 +67,11 @@ OVERLAYS: dict[str, str] = {
     "overlay_brain.png": "brain-mask contour (skull removal) over the preprocessed slices",
 }
 
+#: Overlay tiles: longer side in pixels, contour width in pixels, voxels kept around the brain.
+OVERLAY_TILE_PX = 256
+OVERLAY_CONTOUR_PX = 2
+OVERLAY_MARGIN_VOXELS = 3
+
 #: Render images in the order the report shows them.
 RENDER_ORDER = (
     "anterior", "posterior", "right", "left", "superior", "inferior",
@@ -79,15 +87,31 @@ def write_overlays(
     tumour_zyx: np.ndarray,
     abnormal_slices: Sequence[int],
 ) -> list[str]:
-    """Slice mosaics with the tumour and the brain-mask contours; returns the file names."""
+    """Slice mosaics with the tumour and the brain-mask contours; returns the file names.
+
+    Only the slices with brain (or tumour: one outside the brain mask stays
+    visible) are shown, each cropped to the bounding box of the brain and
+    tumour over those slices (:data:`OVERLAY_MARGIN_VOXELS` around it), with
+    a contour :data:`OVERLAY_CONTOUR_PX` pixels wide on
+    :data:`OVERLAY_TILE_PX`-pixel tiles; a tile keeps its slice's 0-based
+    index. Without brain or tumour anywhere every slice is shown whole.
+    """
     abnormal = np.asarray(list(abnormal_slices), dtype=np.int64)
-    masks = {"overlay_tumor.png": tumour_zyx, "overlay_brain.png": brain_zyx}
+    brain = np.asarray(brain_zyx).astype(bool)
+    tumour = np.asarray(tumour_zyx).astype(bool)
+    region = brain | tumour
+    shown = region.any(axis=(1, 2))
+    masks = {"overlay_tumor.png": tumour, "overlay_brain.png": brain}
     titles = {
         "overlay_tumor.png": "tumour contour (abnormal slices framed)",
         "overlay_brain.png": "brain mask contour",
     }
     for name, mask in masks.items():
-        rgb = overlay_mosaic(image_zyx, mask, affine, abnormal_slices=abnormal, title=titles[name])
+        rgb = overlay_mosaic(
+            image_zyx, mask, affine, abnormal_slices=abnormal, title=titles[name],
+            slices=shown, crop_mask=region, crop_margin=OVERLAY_MARGIN_VOXELS,
+            contour_px=OVERLAY_CONTOUR_PX, tile_px=OVERLAY_TILE_PX,
+        )  # fmt: skip
         (folder / name).write_bytes(encode_png(rgb))
     return list(masks)
 

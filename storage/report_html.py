@@ -102,9 +102,11 @@ table{border-collapse:collapse;margin:.3rem 0}td,th{border:1px solid #ccc;paddin
 text-align:left;vertical-align:top}th{background:#f3f3f3}td.num{text-align:right;
 font-variant-numeric:tabular-nums}
 .grid{display:flex;flex-wrap:wrap;gap:.6rem}.grid figure{margin:0}
-.grid img{width:240px;border:1px solid #ddd}figcaption{font-size:.85rem;color:#555}
+.grid img{width:480px;max-width:100%;border:1px solid #ddd}figcaption{font-size:.95rem;color:#444}
 img.wide{max-width:100%;border:1px solid #ddd}pre{background:#f7f7f7;padding:.6rem;
-overflow:auto;font-size:.8rem}.status-ok{color:#17692b}.status-bad{color:#a31515}
+overflow:auto;font-size:.8rem}
+details{margin:.3rem 0}summary{cursor:pointer;color:#1a4d8f}
+.status-ok{color:#17692b}.status-bad{color:#a31515}
 .status-check{color:#8a5a00}td.notes{font-size:.85rem;max-width:40rem}
 img.thumb{width:120px}
 """
@@ -393,7 +395,10 @@ def patient_report_html(data: Mapping[str, Any]) -> str:
             prov = json.dumps(data["provenance"], indent=2, sort_keys=True, allow_nan=False)
         except (TypeError, ValueError) as exc:
             raise InputError(f"provenance must be JSON-able: {exc}") from None
-        parts.append(f"<h2>Provenance</h2><pre>{_e(prov)}</pre>")
+        parts.append(
+            "<h2>Provenance</h2><details><summary>versions, input digests, configuration "
+            f"and stages as recorded in provenance.json</summary><pre>{_e(prov)}</pre></details>"
+        )
     parts.append("</body></html>")
     return "\n".join(parts) + "\n"
 
@@ -627,9 +632,7 @@ def cohort_report_html(rows: Sequence[Mapping[str, Any]], *, title: str = "tumor
         f"<h1>{_e(title)}</h1><p>{len(rows)} patient(s).</p>",
     ]
     points: list[tuple[str, float]] = []
-    table = [
-        f"<table><tr><th>Render</th><th>Patient</th><th>Status</th>{head}<th>Notes</th></tr>"
-    ]
+    table = [f"<table><tr><th>Render</th><th>Patient</th><th>Status</th>{head}<th>Notes</th></tr>"]
     for r in rows:
         pid = _patient_id(r)
         status = str(r.get("status", "ok"))

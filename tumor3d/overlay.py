@@ -26,8 +26,14 @@ returned in :attr:`MosaicLayout.edges`, so that the display convention
 is never guessed.
 
 The contour is the inner boundary of the mask *at tile resolution*: tile
-pixels inside the resampled mask with a 4-neighbour outside it, drawn in
-``contour_rgb``. Slice position: the RAS coordinate of the slice centre
+pixels inside the resampled mask within ``contour_px`` 4-neighbour steps of a
+pixel outside it, drawn in ``contour_rgb``.
+
+Which slices and which part of them: ``slices`` chooses the slices shown (a
+tile keeps its slice's index in its label), ``crop_mask`` crops every tile to
+the in-plane bounding box of that mask over the shown slices plus
+``crop_margin`` voxels (e.g. the brain: the air and the head's edge are left
+out and the brain fills the tile). Slice position: the RAS coordinate of the slice centre
 along the world axis closest to the slice normal, written with that axis's
 letter, e.g. ``S +12.5 mm`` for axial slices.
 """
@@ -36,7 +42,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -69,6 +75,12 @@ class MosaicLayout:
     edges : str
         The patient directions at a tile's left, right, top and bottom edges,
         e.g. ``"RLAP"`` (axial, radiological: the patient's right on the left).
+    slice_indices : tuple of int
+        Per tile, the index of its slice in the volume (all slices unless
+        ``slices`` chose some).
+    crop_yx : tuple of int
+        The in-plane voxel box ``(y0, x0, y1, x1)`` (end exclusive, in the
+        volume's storage order) shown in every tile.
     """
 
     tiles: tuple[tuple[int, int, int, int], ...]
@@ -76,6 +88,8 @@ class MosaicLayout:
     positions_mm: tuple[float, ...]
     axis_letter: str
     edges: str = ""
+    slice_indices: tuple[int, ...] = ()
+    crop_yx: tuple[int, int, int, int] = (0, 0, 0, 0)
 
 
 def slice_positions_mm(affine: np.ndarray, shape_zyx: Sequence[int]) -> tuple[str, np.ndarray]:
@@ -130,6 +144,10 @@ def overlay_mosaic(
     columns: int | None = None,
     title: str | None = None,
     return_layout: bool = False,
+    slices: Sequence[int] | np.ndarray | None = None,
+    crop_mask: np.ndarray | None = None,
+    crop_margin: int = 2,
+    contour_px: int = 1,
 ) -> np.ndarray | tuple[np.ndarray, MosaicLayout]:
     """Mosaic of the slices with the mask's contour, abnormal slices framed.
 
@@ -156,6 +174,15 @@ def overlay_mosaic(
         patient directions at the tiles' edges follow it on that line.
     return_layout : bool
         Also return the :class:`MosaicLayout`.
+    slices : sequence of int or (z,) bool array, optional
+        The slices shown, in volume order (default all); an empty choice shows all.
+    crop_mask : (z, y, x) array_like of bool or 0/1, optional
+        Crop every tile to this mask's in-plane bounding box over the shown
+        slices, widened by ``crop_margin`` voxels (an empty mask: no crop).
+    crop_margin : int
+        Voxels kept around the crop box on each side (0-64).
+    contour_px : int
+        Contour thickness in tile pixels (1-8).
 
     Returns
     -------
@@ -176,12 +203,24 @@ def overlay_mosaic(
     m = np.asarray(mask)
     if m.shape != img.shape:
         raise InputError(f"mask shape {m.shape} does not match image shape {img.shape}")
-    if m.dtype != bool:
-        if not np.issubdtype(m.dtype, np.number) or not np.isin(m, (0, 1)).all():
-            raise InputError("mask must be boolean or contain only 0 and 1")
-        m = m.astype(bool)
+    m = _bool_mask(m, "mask")
     aff = _check_affine(affine)
     nz = img.shape[0]
+    shown = _chosen_slices(slices, nz)
+    crop = None
+    if crop_mask is not None:
+        c = np.asarray(crop_mask)
+        if c.shape != img.shape:
+            raise InputError(f"crop_mask shape {c.shape} does not match image shape {img.shape}")
+        crop = _bool_mask(c, "crop_mask")
+    for name, value, hi in (("crop_margin", crop_margin, 64), ("contour_px", contour_px, 8)):
+        low = 1 if name == "contour_px" else 0
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, np.integer))
+            or not low <= value <= hi
+        ):
+            raise InputError(f"{name} must be an integer in [{low}, {hi}], got {value!r}")
     flags = np.zeros(nz, dtype=bool)
     if abnormal_slices is not None:
         ab = np.asarray(abnormal_slices)
@@ -210,25 +249,61 @@ def overlay_mosaic(
     ):
         raise InputError(f"tile_px must be an integer in [32, 1024], got {tile_px!r}")
     if columns is None:
-        columns = math.ceil(math.sqrt(nz))
+        columns = math.ceil(math.sqrt(len(shown)))
     elif isinstance(columns, bool) or not isinstance(columns, (int, np.integer)) or columns < 1:
         raise InputError(f"columns must be a positive integer, got {columns!r}")
     if title is not None and not isinstance(title, str):
         raise InputError(f"title must be a string, got {type(title).__name__}")
+    y0, x0, y1, x1 = 0, 0, img.shape[1], img.shape[2]
+    if crop is not None and crop[shown].any():
+        ys = np.flatnonzero(crop[shown].any(axis=(0, 2)))
+        xs = np.flatnonzero(crop[shown].any(axis=(0, 1)))
+        y0, y1 = max(0, ys[0] - crop_margin), min(img.shape[1], ys[-1] + 1 + crop_margin)
+        x0, x1 = max(0, xs[0] - crop_margin), min(img.shape[2], xs[-1] + 1 + crop_margin)
+    # one intensity window for the whole volume, before choosing and cropping
+    gray = _window(img)
+    gray, m = gray[shown, y0:y1, x0:x1], m[shown, y0:y1, x0:x1]
+    flags = flags[shown]
     # radiological display: flip in-plane voxel axes that point to R, A or S
     flip_x = aff[int(np.argmax(np.abs(aff[:3, 0]))), 0] > 0
     flip_y = aff[int(np.argmax(np.abs(aff[:3, 1]))), 1] > 0
     if flip_x:
-        img, m = img[:, :, ::-1], m[:, :, ::-1]
+        gray, m = gray[:, :, ::-1], m[:, :, ::-1]
     if flip_y:
-        img, m = img[:, ::-1, :], m[:, ::-1, :]
+        gray, m = gray[:, ::-1, :], m[:, ::-1, :]
     edges = _edge_letters(aff[:3, 0] * (-1.0 if flip_x else 1.0)) + _edge_letters(
         aff[:3, 1] * (-1.0 if flip_y else 1.0)
     )
+    letter, pos = slice_positions_mm(aff, img.shape)
     mosaic, layout = _compose(
-        img, m, aff, flags, tuple(int(c) for c in rgb), int(tile_px), int(columns), title, edges
-    )
+        gray, m, aff, flags, tuple(int(c) for c in rgb), int(tile_px), int(columns), title,
+        edges, index=shown, letter=letter, positions=pos[shown], contour_px=int(contour_px),
+    )  # fmt: skip
+    layout = replace(layout, crop_yx=(int(y0), int(x0), int(y1), int(x1)))
     return (mosaic, layout) if return_layout else mosaic
+
+
+def _bool_mask(m: np.ndarray, name: str) -> np.ndarray:
+    if m.dtype == bool:
+        return m
+    if not np.issubdtype(m.dtype, np.number) or not np.isin(m, (0, 1)).all():
+        raise InputError(f"{name} must be boolean or contain only 0 and 1")
+    return m.astype(bool)
+
+
+def _chosen_slices(slices: Sequence[int] | np.ndarray | None, nz: int) -> np.ndarray:
+    """The indices of the shown slices, sorted (all when ``slices`` is None or empty)."""
+    if slices is None:
+        return np.arange(nz)
+    s = np.asarray(slices)
+    if s.dtype == bool:
+        if s.shape != (nz,):
+            raise InputError(f"slices as booleans must have shape ({nz},)")
+        s = np.flatnonzero(s)
+    elif s.size and (not np.issubdtype(s.dtype, np.integer) or s.min() < 0 or s.max() >= nz):
+        raise InputError(f"slices must be slice indices in [0, {nz})")
+    s = np.unique(s.astype(np.int64).ravel())
+    return s if s.size else np.arange(nz)
 
 
 def _edge_letters(direction: np.ndarray) -> str:
@@ -253,15 +328,24 @@ def _window(img: np.ndarray) -> np.ndarray:
     return np.rint(out * 255.0).astype(np.uint8)
 
 
-def _inner_boundary(mask: np.ndarray) -> np.ndarray:
-    """Pixels of a 2-D mask with a 4-neighbour outside it (the image border is outside)."""
-    p = np.pad(mask, 1, constant_values=False)
-    inner = p[1:-1, :-2] & p[1:-1, 2:] & p[:-2, 1:-1] & p[2:, 1:-1]
+def _inner_boundary(mask: np.ndarray, width: int = 1) -> np.ndarray:
+    """Pixels of a 2-D mask within ``width`` 4-neighbour steps of the outside.
+
+    The image border counts as outside.
+
+    >>> m = np.zeros((7, 7), bool); m[1:6, 1:6] = True
+    >>> int(_inner_boundary(m, 1).sum()), int(_inner_boundary(m, 2).sum())
+    (16, 24)
+    """
+    inner = mask
+    for _ in range(width):
+        p = np.pad(inner, 1, constant_values=False)
+        inner = p[1:-1, 1:-1] & p[1:-1, :-2] & p[1:-1, 2:] & p[:-2, 1:-1] & p[2:, 1:-1]
     return mask & ~inner
 
 
 def _compose(
-    img: np.ndarray,
+    gray: np.ndarray,
     mask: np.ndarray,
     aff: np.ndarray,
     flags: np.ndarray,
@@ -270,12 +354,18 @@ def _compose(
     columns: int,
     title: str | None,
     edges: str,
+    *,
+    index: np.ndarray,
+    letter: str,
+    positions: np.ndarray,
+    contour_px: int,
 ) -> tuple[np.ndarray, MosaicLayout]:
+    """The mosaic of the windowed (uint8) slices ``gray``; ``index`` their volume indices."""
     from PIL import Image, ImageDraw
 
     from tumor3d.render import _font
 
-    nz, ny, nx = img.shape
+    nz, ny, nx = gray.shape
     dx = float(np.linalg.norm(aff[:3, 0]))
     dy = float(np.linalg.norm(aff[:3, 1]))
     width_mm, height_mm = nx * dx, ny * dy
@@ -295,8 +385,7 @@ def _compose(
     big_h = title_h + rows * cell_h + _GAP_PX
     out = np.empty((big_h, big_w, 3), dtype=np.uint8)
     out[:] = _BACKGROUND_RGB
-    gray = _window(img)
-    letter, pos = slice_positions_mm(aff, img.shape)
+    pos = positions
     tiles = []
     labels = []
     frame = max(2, tile_px // 64)
@@ -305,7 +394,7 @@ def _compose(
         c0 = _GAP_PX + (k % columns) * cell_w
         g = gray[k][np.ix_(src_r, src_c)]
         tile = np.repeat(g[:, :, None], 3, axis=2)
-        edge = _inner_boundary(mask[k][np.ix_(src_r, src_c)])
+        edge = _inner_boundary(mask[k][np.ix_(src_r, src_c)], contour_px)
         tile[edge] = contour_rgb
         out[r0 : r0 + th, c0 : c0 + tw] = tile
         if flags[k]:
@@ -314,7 +403,7 @@ def _compose(
             out[r0 : r0 + th, c0 - frame : c0] = _ABNORMAL_RGB
             out[r0 : r0 + th, c0 + tw : c0 + tw + frame] = _ABNORMAL_RGB
         tiles.append((r0, c0, r0 + th, c0 + tw))
-        labels.append(f"#{k} {letter} {pos[k]:+.1f} mm" + (" abn." if flags[k] else ""))
+        labels.append(f"#{int(index[k])} {letter} {pos[k]:+.1f} mm" + (" abn." if flags[k] else ""))
     pil = Image.fromarray(out)
     draw = ImageDraw.Draw(pil)
     font = _font(max(8, int(header * 0.6)))
@@ -328,5 +417,6 @@ def _compose(
         positions_mm=tuple(float(p) for p in pos),
         axis_letter=letter,
         edges=edges,
+        slice_indices=tuple(int(i) for i in index),
     )
     return np.asarray(pil, dtype=np.uint8).copy(), layout
