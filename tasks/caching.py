@@ -5,9 +5,12 @@ style of ``prefect/cache_policies.py`` (combined with ``+`` into Prefect's
 ``CompoundCachePolicy``):
 
 * :class:`StageCode` -- the stage name, :data:`ARTIFACT_FORMAT_VERSION` and
-  the source text of every project module the stage's adapter imports,
-  directly or transitively (:func:`module_closure`, an AST walk over
-  ``tumor3d/``, ``storage/`` and ``tasks/``, computed once per process);
+  the syntax tree, docstrings removed, of every project module the stage's
+  adapter imports, directly or transitively (:func:`module_closure`, an AST
+  walk over ``tumor3d/``, ``storage/`` and ``tasks/``, computed once per
+  process; :func:`syntax_dump`: a comment, a docstring or a blank line
+  changes no key, a constant or an operator does), with the bytes of the
+  data files those modules read (:data:`DATA_FILES`);
 * :class:`StageConfig` -- the canonical JSON of the stage's configuration
   (the ``config`` parameter, a pydantic model);
 * :class:`InputArtifacts` -- every other input: artifact references by their
@@ -19,12 +22,13 @@ The flow run id is *not* part of the key, so a result computed by any earlier
 run is reused; Prefect's default policy would key on the run id, and its
 ``TASK_SOURCE`` ignores the core functions a task calls.
 
-The sources of the artifact store's own codecs and back-ends
+The code of the artifact store's own codecs and back-ends
 (``storage/store.py``, ``storage/formats.py``, ``storage/objectstore.py``,
 :data:`FORMAT_MODULES`) are not hashed: the on-disk
 form of artifacts is covered by :data:`ARTIFACT_FORMAT_VERSION`, bumped by
 hand when it changes. The modules they import are walked and hashed as any
-other (``storage/nifti.py``, ``tumor3d/scan.py``, ...).
+other (``storage/nifti.py``, ``tumor3d/scan.py``, ...). The syntax tree's
+form is Python's (``ast.dump``): another Python version may give other keys.
 """
 
 from __future__ import annotations
@@ -56,6 +60,7 @@ __all__ = [
     "fingerprint",
     "module_closure",
     "stage_cache_policy",
+    "syntax_dump",
 ]
 
 #: Bump when the on-disk form of any artifact (NIfTI/PLY/parquet/PNG/JSON
@@ -103,7 +108,12 @@ def _with_parents(name: str) -> list[str]:
 
 def _imports_of(name: str, path: Path, root: Path) -> set[str]:
     """Project modules named by the import statements of one module (any depth)."""
-    return set(_parse_imports(name, str(path), str(root), path.read_bytes()))
+    return set(_parse_module(name, str(path), str(root), path.read_bytes()).imports)
+
+
+def _syntax_digest_of(name: str, path: Path, root: Path) -> str:
+    """SHA-256 of one module's syntax tree without docstrings (:func:`syntax_dump`)."""
+    return _parse_module(name, str(path), str(root), path.read_bytes()).syntax_sha256
 
 
 #: ``ast.parse`` is not thread-safe on CPython 3.11 (the AST constructor's recursion
@@ -111,16 +121,64 @@ def _imports_of(name: str, path: Path, root: Path) -> set[str]:
 #: python/cpython#106905), and a cohort's lanes compute code digests concurrently.
 _AST_LOCK = threading.Lock()
 
+_DOCSTRING_OWNERS = (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)
+
+
+def syntax_dump(tree: ast.AST) -> str:
+    r"""The behaviour-bearing form of a parsed module: its AST without docstrings.
+
+    Comments and blank lines are gone with parsing; the docstring of the
+    module, of every class and of every function is removed here (a body
+    left empty becomes ``pass``, which behaves the same); line and column
+    numbers are left out (``include_attributes=False``). So an edit of a
+    comment, a docstring or the layout gives the same dump, and any change
+    of a name, a constant, an operator or a statement gives another.
+    The tree is modified in place.
+
+    >>> a = ast.parse('def f(x):\n    "Twice."\n    return 2 * x  # double\n')
+    >>> b = ast.parse('\n\ndef f(x):\n    return 2*x\n')
+    >>> syntax_dump(a) == syntax_dump(b)
+    True
+    >>> syntax_dump(a) == syntax_dump(ast.parse('def f(x):\n    return 3 * x\n'))
+    False
+    """
+    for node in ast.walk(tree):
+        _drop_docstring(node)
+    return ast.dump(tree, annotate_fields=True, include_attributes=False)
+
+
+def _drop_docstring(node: ast.AST) -> None:
+    """Remove the docstring of a module, class or function node (in place)."""
+    if not isinstance(node, _DOCSTRING_OWNERS) or not node.body:
+        return
+    first = node.body[0]
+    if (
+        isinstance(first, ast.Expr)
+        and isinstance(first.value, ast.Constant)
+        and isinstance(first.value.value, str)
+    ):
+        node.body = node.body[1:] or [ast.Pass()]
+
+
+@dataclass(frozen=True)
+class _ModuleSyntax:
+    """What the digests need from one module's source: its project imports, its syntax."""
+
+    imports: frozenset[str]
+    syntax_sha256: str
+
 
 @cache
-def _parse_imports(name: str, path_str: str, root_str: str, source: bytes) -> frozenset[str]:
+def _parse_module(name: str, path_str: str, root_str: str, source: bytes) -> _ModuleSyntax:
+    """Parse one module once per process and content: its project imports and syntax digest."""
     path, root = Path(path_str), Path(root_str)
     with _AST_LOCK:
         tree = ast.parse(source, filename=path_str)
     is_package = path.name == "__init__.py"
     package = name if is_package else name.rpartition(".")[0]
     found: set[str] = set()
-    for node in ast.walk(tree):
+    for node in ast.walk(tree):  # one walk: the imports, and docstrings dropped
+        _drop_docstring(node)
         if isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -139,7 +197,9 @@ def _parse_imports(name: str, path_str: str, root_str: str, source: bytes) -> fr
     for mod in found:
         if mod.split(".")[0] in PROJECT_PACKAGES:
             out.update(m for m in _with_parents(mod) if _module_file(m, root) is not None)
-    return frozenset(out)
+    dump = ast.dump(tree, annotate_fields=True, include_attributes=False)  # as syntax_dump
+    syntax = hashlib.sha256(dump.encode()).hexdigest()
+    return _ModuleSyntax(imports=frozenset(out), syntax_sha256=syntax)
 
 
 @cache
@@ -189,10 +249,14 @@ def module_closure(roots: tuple[str, ...], root: str | None = None) -> tuple[str
 
 @cache
 def code_digest(roots: tuple[str, ...], root: str | None = None) -> str:
-    """SHA-256 of :data:`ARTIFACT_FORMAT_VERSION` and the sources of the closure of ``roots``.
+    """SHA-256 of :data:`ARTIFACT_FORMAT_VERSION` and the code of the closure of ``roots``.
 
-    Store codecs in :data:`FORMAT_MODULES` contribute only through the format
-    version. Cached: computed once per process.
+    Each module contributes its name and the digest of its syntax tree
+    without docstrings (:func:`syntax_dump`: comments, docstrings and blank
+    lines do not count; any change of behaviour does), plus the bytes of
+    its :data:`DATA_FILES`. Store codecs in :data:`FORMAT_MODULES`
+    contribute only through the format version. Cached: computed once per
+    process (and each module parsed once per process and content).
     """
     base = Path(root) if root is not None else PROJECT_ROOT
     h = hashlib.sha256(f"artifact-format={ARTIFACT_FORMAT_VERSION}\0".encode())
@@ -202,7 +266,7 @@ def code_digest(roots: tuple[str, ...], root: str | None = None) -> str:
         path = _module_file(name, base)
         assert path is not None  # the closure holds only located modules
         h.update(name.encode() + b"\0")
-        h.update(path.read_bytes())
+        h.update(_syntax_digest_of(name, path, base).encode())
         h.update(b"\0")
         for rel in DATA_FILES.get(name, ()):
             data = base / rel

@@ -114,6 +114,10 @@ def _keys(root) -> dict[str, str]:
     }
 
 
+#: A behaviour edit: a new module-level constant (a new name in the module's syntax tree).
+_BEHAVIOUR_EDIT = "\n_CACHE_KEY_PROBE = 1\n"
+
+
 @pytest.mark.parametrize(
     "module",
     ["tumor3d.scan", "tumor3d.simplify.qem", "storage.nifti", "tumor3d.metrics",
@@ -122,7 +126,7 @@ def _keys(root) -> dict[str, str]:
 def test_editing_a_module_changes_exactly_the_keys_whose_closure_holds_it(package_copy, module):
     before = _keys(package_copy)
     target = _module_file(module, package_copy)
-    target.write_text(target.read_text() + "\n# a comment edit\n")
+    target.write_text(target.read_text() + _BEHAVIOUR_EDIT)
     after = _keys(package_copy)
     changed = {n for n in STAGES if before[n] != after[n]}
     expected = {
@@ -133,19 +137,109 @@ def test_editing_a_module_changes_exactly_the_keys_whose_closure_holds_it(packag
     assert changed == expected
 
 
-def test_a_comment_in_one_adapter_invalidates_only_that_stage(package_copy):
+def test_a_behaviour_edit_in_one_adapter_invalidates_only_that_stage(package_copy):
     before = _keys(package_copy)
     f = package_copy / "tasks" / "render.py"
-    f.write_text(f.read_text() + "\n# only a comment\n")
+    f.write_text(f.read_text() + _BEHAVIOUR_EDIT)
     after = _keys(package_copy)
     assert {n for n in STAGES if before[n] != after[n]} == {"render-views"}
+
+
+# -- code digests from the syntax tree (issue 31) -------------------------------
+
+#: Appended to tumor3d/scan.py: a constant, a function with a docstring and a comment.
+_SCAN_PROBE = '''
+
+_PROBE_LIMIT = 2
+
+
+def _probe(a, b):
+    """Sum of two numbers."""
+    return a + b  # the sum
+'''
+
+
+def _edit_scan(root, text: str) -> None:
+    target = _module_file("tumor3d.scan", root)
+    target.write_text(text)
+
+
+@pytest.fixture
+def scan_probe(package_copy):
+    """A package copy whose tumor3d/scan.py ends with :data:`_SCAN_PROBE`; its original text."""
+    target = _module_file("tumor3d.scan", package_copy)
+    original = target.read_text() + _SCAN_PROBE
+    target.write_text(original)
+    return package_copy, original
+
+
+#: Edits that change no behaviour: (id, old text, new text), the first occurrence replaced.
+_NEUTRAL_EDITS = [
+    ("comment", "# the sum", "# a + b, the sum of both"),
+    ("new-comment-line", "_PROBE_LIMIT = 2\n", "_PROBE_LIMIT = 2\n# a new comment line\n"),
+    ("blank-lines", "\n\ndef _probe", "\n\n\n\n\ndef _probe"),
+    ("docstring", "Sum of two numbers.", "Add ``a`` and ``b``."),
+    ("docstring-removed", '    """Sum of two numbers."""\n', ""),
+    ("module-docstring", '"""', '"""Edited: '),
+    ("layout", "return a + b  # the sum", "return (a\n            + b)"),
+]
+
+
+@pytest.mark.parametrize(("old", "new"), [e[1:] for e in _NEUTRAL_EDITS],
+                         ids=[e[0] for e in _NEUTRAL_EDITS])  # fmt: skip
+def test_comments_docstrings_and_layout_leave_every_key_equal(scan_probe, old, new):
+    root, original = scan_probe
+    before = _keys(root)
+    edited = original.replace(old, new, 1)
+    assert edited != original  # the edit applied
+    _edit_scan(root, edited)
+    assert _keys(root) == before
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [
+        pytest.param(lambda t: t.replace("_PROBE_LIMIT = 2", "_PROBE_LIMIT = 3"), id="constant"),
+        pytest.param(lambda t: t.replace("return a + b", "return a - b"), id="operator"),
+        pytest.param(lambda t: t.replace("return a + b", "return b + a"), id="operands"),
+    ],
+)  # fmt: skip
+def test_a_constant_or_an_operator_moves_the_keys_of_the_stages_holding_the_module(
+    scan_probe, edit
+):
+    root, original = scan_probe
+    before = _keys(root)
+    edited = edit(original)
+    assert edited != original
+    _edit_scan(root, edited)
+    after = _keys(root)
+    expected = {
+        n for n, spec in STAGES.items()
+        if "tumor3d.scan" in module_closure((spec.adapter_module,), str(root))
+    }  # fmt: skip
+    assert expected
+    assert {n for n in STAGES if before[n] != after[n]} == expected
+
+
+def test_a_function_left_with_only_its_docstring_digests_as_pass():
+    import ast
+
+    from tasks.caching import syntax_dump
+
+    doc = syntax_dump(ast.parse('def f():\n    """Nothing."""\n'))
+    assert doc == syntax_dump(ast.parse("def f():\n    pass\n"))
+    assert doc != syntax_dump(ast.parse("def f():\n    return 1\n"))
+    # a string statement that is not the first one is code, not a docstring
+    assert syntax_dump(ast.parse('def f():\n    x = 1\n    "s"\n')) != syntax_dump(
+        ast.parse("def f():\n    x = 1\n")
+    )
 
 
 @pytest.mark.parametrize("module", sorted(FORMAT_MODULES))
 def test_store_codecs_enter_keys_through_the_format_version_only(package_copy, module, monkeypatch):
     before = _keys(package_copy)
     f = package_copy.joinpath(*module.split(".")).with_suffix(".py")
-    f.write_text(f.read_text() + "\n# codec comment\n")
+    f.write_text(f.read_text() + _BEHAVIOUR_EDIT)  # a code change, not only a comment
     assert _keys(package_copy) == before
     import tasks.caching as caching
 
@@ -237,13 +331,13 @@ def test_code_digests_parse_under_one_lock_and_agree_across_threads(package_copy
         return real_parse(*args, **kwargs)
 
     monkeypatch.setattr(caching.ast, "parse", checked)
-    caching._parse_imports.cache_clear()
+    caching._parse_module.cache_clear()
     module_closure.cache_clear()
     code_digest.cache_clear()
     roots = [(spec.adapter_module,) for spec in STAGES.values()]
     with ThreadPoolExecutor(max_workers=4) as pool:
         digests = list(pool.map(lambda r: code_digest(r, str(package_copy)), roots * 2))
-    caching._parse_imports.cache_clear()
+    caching._parse_module.cache_clear()
     assert unlocked == []
     assert digests[: len(roots)] == digests[len(roots) :]  # the same closure, the same key
 
