@@ -24,9 +24,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import platform
 from datetime import UTC, datetime
-from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +34,7 @@ import yaml
 
 from storage.patient_outputs import split_notes
 from storage.store import atomic_write_bytes
+from storage.versions import versions
 from tumor3d.evaluation.metrics import SliceConfusion, bland_altman
 
 __all__ = ["bland_altman_png", "write_report"]
@@ -45,7 +44,6 @@ _VOLUMES = {
     "volume_voxel_mm3": "voxel",
     "volume_mesh_mm3": "mesh",
 }
-_PACKAGES = ("numpy", "scipy", "scikit-image", "nibabel", "prefect", "pandas", "matplotlib")
 
 
 def _f(v: Any, fmt: str = "{:.3f}") -> str:
@@ -124,18 +122,6 @@ def _sha256(path: Path) -> str:
         while chunk := fh.read(1 << 20):
             h.update(chunk)
     return h.hexdigest()
-
-
-def _versions() -> dict[str, str]:
-    import tumor3d
-
-    out = {"tumor3d": tumor3d.__version__, "python": platform.python_version()}
-    for name in _PACKAGES:
-        try:
-            out[name] = importlib_metadata.version(name)
-        except importlib_metadata.PackageNotFoundError:
-            out[name] = "not installed"
-    return out
 
 
 def write_report(
@@ -384,7 +370,7 @@ def write_report(
 
     # ---------------------------------------------------------------- provenance
     parts += ["", "## Provenance", "", "Versions:", "", "```json",
-              json.dumps(_versions(), indent=2), "```", ""]  # fmt: skip
+              json.dumps(versions(), indent=2), "```", ""]  # fmt: skip
     parts += ["Input digests (SHA-256 of the files):", ""]
     dig_rows = []
     for p in prepared:

@@ -1,46 +1,24 @@
 """Provenance of a published result: versions, input, configuration, stages.
 
 Modelled on pyradiomics' ``generalinfo.py``: one function gathers the
-general information (package versions, platform), one assembles the record
-written as ``provenance.json``.
+general information (package versions, platform: :func:`storage.versions.versions`,
+the one the stages' cache keys read too), one assembles the record written
+as ``provenance.json``.
 """
 
 from __future__ import annotations
 
 import json
-import platform
 from datetime import UTC, datetime
-from importlib import metadata as importlib_metadata
 from typing import Any
 
-import tumor3d
 from storage.store import canonical_dumps
+from storage.versions import PACKAGES, versions
 
 __all__ = ["PACKAGES", "METHOD", "build_provenance", "versions"]
 
-#: Distributions whose versions are recorded.
-PACKAGES = (
-    "prefect", "numpy", "scipy", "scikit-image", "nibabel", "pydicom", "open3d-cpu",
-    "pandas", "pyarrow", "PyWavelets", "numba", "pydantic", "fast-simplification",
-)  # fmt: skip
-
 #: The method, as cited in every record.
 METHOD = "Arakeri & Reddy (2013), IJSIP 6(3); see ALGORITHMS.md choices [A1]-[A29]"
-
-
-def versions() -> dict[str, str]:
-    """tumor3d, Python and every package of :data:`PACKAGES` (``not installed`` if absent)."""
-    out = {
-        "tumor3d": tumor3d.__version__,
-        "python": platform.python_version(),
-        "platform": platform.platform(terse=True),
-    }
-    for name in PACKAGES:
-        try:
-            out[name] = importlib_metadata.version(name)
-        except importlib_metadata.PackageNotFoundError:
-            out[name] = "not installed"
-    return out
 
 
 def build_provenance(

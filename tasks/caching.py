@@ -10,7 +10,11 @@ style of ``prefect/cache_policies.py`` (combined with ``+`` into Prefect's
   walk over ``tumor3d/``, ``storage/`` and ``tasks/``, computed once per
   process; :func:`syntax_dump`: a comment, a docstring or a blank line
   changes no key, a constant or an operator does), with the bytes of the
-  data files those modules read (:data:`DATA_FILES`);
+  data files those modules read (:data:`DATA_FILES`) and the installed
+  versions of the numerical packages (numpy, scipy, scikit-image, numba, ...:
+  :data:`storage.versions.NUMERICAL_PACKAGES`) those modules import
+  (:func:`package_versions`, read from :func:`storage.versions.versions`,
+  the function provenance and the publish key read);
 * :class:`StageConfig` -- the canonical JSON of the stage's configuration
   (the ``config`` parameter, a pydantic model);
 * :class:`InputArtifacts` -- every other input: artifact references by their
@@ -45,6 +49,7 @@ from prefect.cache_policies import CachePolicy
 from pydantic import BaseModel
 
 from storage.store import ArtifactRef, canonical_dumps
+from storage.versions import NUMERICAL_PACKAGES, versions
 
 __all__ = [
     "ARTIFACT_FORMAT_VERSION",
@@ -56,9 +61,11 @@ __all__ = [
     "InputArtifacts",
     "StageCode",
     "StageConfig",
+    "closure_packages",
     "code_digest",
     "fingerprint",
     "module_closure",
+    "package_versions",
     "stage_cache_policy",
     "syntax_dump",
 ]
@@ -162,9 +169,14 @@ def _drop_docstring(node: ast.AST) -> None:
 
 @dataclass(frozen=True)
 class _ModuleSyntax:
-    """What the digests need from one module's source: its project imports, its syntax."""
+    """What the digests need from one module's source: its imports and its syntax.
+
+    ``imports``: the project modules it imports; ``packages``: the top-level
+    names of the other packages it imports (``numpy``, ``skimage``, ...).
+    """
 
     imports: frozenset[str]
+    packages: frozenset[str]
     syntax_sha256: str
 
 
@@ -177,11 +189,15 @@ def _parse_module(name: str, path_str: str, root_str: str, source: bytes) -> _Mo
     is_package = path.name == "__init__.py"
     package = name if is_package else name.rpartition(".")[0]
     found: set[str] = set()
+    absolute: set[str] = set()  # top-level names of absolute imports
     for node in ast.walk(tree):  # one walk: the imports, and docstrings dropped
         _drop_docstring(node)
         if isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)
+            absolute.update(alias.name.split(".")[0] for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
+            if not node.level and node.module:
+                absolute.add(node.module.split(".")[0])
             if node.level:
                 anchor = package.split(".") if package else []
                 anchor = anchor[: len(anchor) - (node.level - 1)] if node.level > 1 else anchor
@@ -199,7 +215,8 @@ def _parse_module(name: str, path_str: str, root_str: str, source: bytes) -> _Mo
             out.update(m for m in _with_parents(mod) if _module_file(m, root) is not None)
     dump = ast.dump(tree, annotate_fields=True, include_attributes=False)  # as syntax_dump
     syntax = hashlib.sha256(dump.encode()).hexdigest()
-    return _ModuleSyntax(imports=frozenset(out), syntax_sha256=syntax)
+    packages = frozenset(absolute - set(PROJECT_PACKAGES))
+    return _ModuleSyntax(imports=frozenset(out), packages=packages, syntax_sha256=syntax)
 
 
 @cache
@@ -276,6 +293,38 @@ def code_digest(roots: tuple[str, ...], root: str | None = None) -> str:
     return h.hexdigest()
 
 
+@cache
+def closure_packages(roots: tuple[str, ...], root: str | None = None) -> tuple[str, ...]:
+    """The numerical distributions the closure of ``roots`` imports, sorted.
+
+    The packages of :data:`storage.versions.NUMERICAL_PACKAGES` named by an
+    import statement (any depth) of a module whose code enters the digest
+    (store codecs in :data:`FORMAT_MODULES` excluded, as their code is),
+    mapped to their distributions (``skimage`` -> ``scikit-image``; numba
+    with llvmlite). Their versions enter the stage's key (:class:`StageCode`).
+    Cached: computed once per process.
+    """
+    base = Path(root) if root is not None else PROJECT_ROOT
+    names: set[str] = set()
+    for name in module_closure(roots, root):
+        if name in FORMAT_MODULES:
+            continue
+        path = _module_file(name, base)
+        assert path is not None  # the closure holds only located modules
+        names |= _parse_module(name, str(path), str(base), path.read_bytes()).packages
+    return tuple(sorted({d for n in names for d in NUMERICAL_PACKAGES.get(n, ())}))
+
+
+def package_versions(roots: tuple[str, ...], root: str | None = None) -> dict[str, str]:
+    """Distribution -> installed version, for :func:`closure_packages` of ``roots``.
+
+    Read from :func:`storage.versions.versions`, the one function that
+    provenance and the publish key read too.
+    """
+    installed = versions()
+    return {d: installed.get(d, "not installed") for d in closure_packages(roots, root)}
+
+
 def fingerprint(value: Any) -> Any:
     """The JSON-able identity of a task input, as it enters a cache key.
 
@@ -317,7 +366,11 @@ def _sha(document: Any) -> str:
 
 @dataclass
 class StageCode(CachePolicy):
-    """Key part: stage name, artifact format version and the stage's code closure.
+    """Key part: stage name, artifact format version, the stage's code closure and packages.
+
+    The packages: the versions of the numerical distributions the closure
+    imports (:func:`package_versions`), so an upgrade of scikit-image
+    recomputes the stages whose code calls it, and only those.
 
     Parameters
     ----------
@@ -336,8 +389,14 @@ class StageCode(CachePolicy):
     def compute_key(
         self, task_ctx: Any, inputs: dict[str, Any], flow_parameters: dict[str, Any], **kw: Any
     ) -> str | None:
-        """Digest of the stage's name and code."""
-        return _sha({"stage": self.stage, "code": code_digest(self.modules, self.root)})
+        """Digest of the stage's name, code and numerical packages' versions."""
+        return _sha(
+            {
+                "stage": self.stage,
+                "code": code_digest(self.modules, self.root),
+                "packages": package_versions(self.modules, self.root),
+            }
+        )
 
 
 @dataclass

@@ -359,3 +359,86 @@ def test_a_retrained_shipped_model_changes_exactly_the_segment_key(package_copy)
     }  # fmt: skip
     assert "segment-tumor" in expected
     assert {n for n in STAGES if before[n] != after[n]} == expected
+
+
+# -- package versions in the keys (issue 31) ------------------------------------
+
+
+def _bumped(distribution: str):
+    """A stand-in for ``versions()`` reporting another version of ``distribution``."""
+    from storage.versions import versions
+
+    real = versions()
+    assert distribution in real, f"{distribution} is not among the recorded packages"
+    return lambda: {**real, distribution: real[distribution] + ".post999"}
+
+
+def _stage_keys() -> dict[str, str]:
+    inputs = {"mesh": _ref("a"), "config": SimplifyConfig(), "store_root": "/s"}
+    return {n: _key(n, inputs, (spec.adapter_module,)) for n, spec in STAGES.items()}
+
+
+@pytest.mark.parametrize("distribution", ["scikit-image", "numpy", "numba", "open3d-cpu"])
+def test_a_numerical_package_upgrade_moves_the_keys_of_the_stages_importing_it(
+    monkeypatch, distribution
+):
+    import tasks.caching as caching
+
+    before = _stage_keys()
+    assert _stage_keys() == before  # the same versions, the same keys
+    monkeypatch.setattr(caching, "versions", _bumped(distribution))
+    after = _stage_keys()
+    expected = {
+        n for n, spec in STAGES.items()
+        if distribution in caching.closure_packages((spec.adapter_module,))
+    }  # fmt: skip
+    assert expected, f"no stage imports {distribution}?"
+    assert {n for n in STAGES if before[n] != after[n]} == expected
+
+
+@pytest.mark.parametrize("distribution", ["prefect", "pydantic", "matplotlib"])
+def test_an_upgrade_of_a_package_that_computes_nothing_keeps_every_key(monkeypatch, distribution):
+    import tasks.caching as caching
+
+    before = _stage_keys()
+    monkeypatch.setattr(caching, "versions", _bumped(distribution))
+    assert _stage_keys() == before
+
+
+def test_only_the_packages_a_closure_imports_enter_its_key(package_copy, monkeypatch):
+    import tasks.caching as caching
+
+    (package_copy / "tasks" / "probe_adapter.py").write_text(
+        "import numpy as np\n\n\ndef run(x):\n    from skimage import measure\n\n"
+        "    return measure.label(np.asarray(x))\n"
+    )
+    roots = ("tasks.probe_adapter",)
+    root = str(package_copy)
+    assert caching.closure_packages(roots, root) == ("numpy", "scikit-image")
+
+    def key():
+        return StageCode(stage="probe", modules=roots, root=root).compute_key(None, {}, {})
+
+    before = key()
+    monkeypatch.setattr(caching, "versions", _bumped("scipy"))  # not imported: same key
+    assert key() == before
+    monkeypatch.setattr(caching, "versions", _bumped("scikit-image"))  # imported in a function
+    assert key() != before
+
+
+def test_one_versions_function_for_keys_provenance_publish_key_and_reports():
+    import flows.patient
+    import storage.evaluation_report
+    import storage.provenance
+    import storage.versions
+    import tasks.caching
+
+    one = storage.versions.versions
+    assert tasks.caching.versions is one
+    assert storage.provenance.versions is one
+    assert flows.patient.versions is one
+    assert storage.evaluation_report.versions is one
+    recorded = one()
+    every_key_package = {d for dists in storage.versions.NUMERICAL_PACKAGES.values() for d in dists}
+    assert every_key_package <= set(recorded)  # provenance records what the keys hold
+    assert {"tumor3d", "python", "platform"} <= set(recorded)
