@@ -60,6 +60,7 @@ from storage.readers import check_modality, derive_patient_id, read_scan, sugges
 from storage.remote_publish import publish_folder
 from storage.slice_table import slice_table
 from storage.store import ArtifactRef, ArtifactStore, canonical_dumps, source_grid_from_metadata
+from storage.viewer import ASSETS_DIR, write_viewer_assets
 from tasks import stages
 from tasks.preprocess import preprocess_notes
 from tasks.runner import DirectRunner, PrefectRunner, StageRun
@@ -377,6 +378,8 @@ def patient_pipeline(
             reused = all(r.cached and not r.repaired for r in runner.runs)
             # publish_folder skips an unchanged upload, and with reuse a folder of the same key
             out_path = publish_folder(staged, f"{str(out_dir).rstrip('/')}/{pid}", reuse=reused)
+            # the viewer's shared script (unchanged bytes are read back, not uploaded)
+            publish_folder(Path(tmp) / ASSETS_DIR, f"{str(out_dir).rstrip('/')}/{ASSETS_DIR}")
         up_to_date = False
     else:
         out_path, report, up_to_date = publish_patient(
@@ -676,6 +679,7 @@ def publish_patient(
     inputs = [source.path] + _given_inputs(brain_mask, segmentation)
     check_output_not_input(out_dir / pid, inputs)
     key = publish_key(source, outputs, cfg, brain_mask, segmentation)
+    write_viewer_assets(out_dir)  # viewer.html's script, once per output folder
     reused = all(r.cached and not r.repaired for r in runs)
     if reused and published_is_current(out_dir / pid, key):
         clean_stale_staging(out_dir, pid)
@@ -721,12 +725,14 @@ def publish_patient(
         if tumour_found:  # no 0-vertex PLY files when there is no tumour
             put("tumor.ply", store.get_bytes(art["extract-surface"]["mesh"]))
             put("tumor_simplified.ply", store.get_bytes(art["simplify-mesh"]["mesh"]))
+        scan_image, scan_affine = store.get_volume(scan_ref)  # the viewer's MR slices
         files += write_surface_files(
             staging,
             tumour=store.get_mesh(art["extract-surface"]["mesh"]),
             simplified=store.get_mesh(art["simplify-mesh"]["mesh"]),
             brain=store.get_mesh(art["extract-brain-surface"]["brain_mesh"]),
             brain_viewer=store.get_mesh(art["extract-brain-surface"]["brain_mesh_viewer"]),
+            image_zyx=scan_image, affine=scan_affine, tumour_mask=slices_mask, brain_mask=brain,
             title=f"tumor3d: {pid}", tumor_color_rgb=cfg.render.color_rgb,
             brain_color_rgb=cfg.render.brain_color_rgb, brain_opacity=cfg.render.brain_opacity,
         )  # fmt: skip

@@ -123,6 +123,10 @@ def write_surface_files(
     simplified: Mesh,
     brain: Mesh,
     brain_viewer: Mesh,
+    image_zyx: np.ndarray,
+    affine: np.ndarray,
+    tumour_mask: np.ndarray,
+    brain_mask: np.ndarray,
     title: str,
     tumor_color_rgb: Sequence[float],
     brain_color_rgb: Sequence[float],
@@ -133,26 +137,35 @@ def write_surface_files(
     ``tumor.stl`` and ``tumor_simplified.stl`` (binary, LPS millimetres with
     ``SPACE=LPS`` in the header: STL carries no coordinate system, and 3D
     Slicer, which reads that header, assumes LPS without it) hold the
-    surface and the simplified surface. The viewer shows the simplified
-    tumour and ``brain_viewer`` (the brain reduced for the browser). Without
-    a tumour only the brain surface is written (there is nothing to view).
+    surface and the simplified surface. ``viewer.html``
+    (:func:`storage.viewer.viewer_html`) shows ``image_zyx`` (the scan,
+    ``affine`` to RAS) in three planes with ``tumour_mask`` and
+    ``brain_mask`` over it, beside the simplified tumour and
+    ``brain_viewer`` (the brain reduced for the browser) in 3-D; it is
+    written without a tumour too (the slices still show what was missed).
+    It loads the output folder's shared script
+    (:func:`storage.viewer.write_viewer_assets`). Without a tumour no tumour
+    surface file is written.
     """
     written = []
     if not brain.is_empty:
         (folder / "brain_mesh.ply").write_bytes(encode_ply(brain))
         written.append("brain_mesh.ply")
+    html = viewer_html(
+        image_zyx, affine, tumour_mask, brain_zyx=brain_mask,
+        tumour_mesh=None if tumour.is_empty else simplified,
+        brain_mesh=None if brain_viewer.is_empty else brain_viewer, title=title,
+        tumor_color_rgb=tumor_color_rgb, brain_color_rgb=brain_color_rgb,
+        brain_opacity=brain_opacity,
+    )  # fmt: skip
+    (folder / "viewer.html").write_text(html, encoding="utf-8")
+    written.append("viewer.html")
     if tumour.is_empty:
         return written
     (folder / "tumor_lps.vtk").write_bytes(encode_vtk_polydata(tumour, space="LPS"))
     (folder / "tumor.stl").write_bytes(encode_stl(tumour, space="LPS"))
     (folder / "tumor_simplified.stl").write_bytes(encode_stl(simplified, space="LPS"))
-    html = viewer_html(
-        simplified, None if brain_viewer.is_empty else brain_viewer, title=title,
-        tumor_color_rgb=tumor_color_rgb, brain_color_rgb=brain_color_rgb,
-        brain_opacity=brain_opacity,
-    )  # fmt: skip
-    (folder / "viewer.html").write_text(html, encoding="utf-8")
-    return [*written, "tumor_lps.vtk", "tumor.stl", "tumor_simplified.stl", "viewer.html"]
+    return [*written, "tumor_lps.vtk", "tumor.stl", "tumor_simplified.stl"]
 
 
 def _num(row: Mapping[str, Any], key: str) -> float | None:

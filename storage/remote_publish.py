@@ -185,7 +185,9 @@ def verify_folder(out: RemoteFolder, name: str) -> list[str]:
 def published_names(out: RemoteFolder) -> list[str]:
     """Sub-folders of ``<url>`` with a valid marker (published patients), sorted.
 
-    Hidden prefixes (the temporary uploads, the artifact store) are not patients.
+    Hidden prefixes (the temporary uploads, the artifact store) are not patients,
+    nor is ``_assets`` (the viewer's shared script): a patient id starts with a
+    letter or digit.
     """
     try:
         out.fs.invalidate_cache()
@@ -195,7 +197,7 @@ def published_names(out: RemoteFolder) -> list[str]:
     names = []
     for e in entries:
         name = str(e["name"]).rstrip("/").rsplit("/", 1)[-1]
-        if e.get("type") != "directory" or name.startswith("."):
+        if e.get("type") != "directory" or name.startswith((".", "_")):
             continue
         if read_marker(out, name) is not None:
             names.append(name)

@@ -367,8 +367,9 @@ def patient_report_html(data: Mapping[str, Any]) -> str:
         parts.append("<h2>3-D renders</h2>")
         if data.get("viewer"):
             parts.append(
-                f'<p><a href="{_link(data["viewer"], "viewer")}">Open the interactive '
-                "3-D viewer</a> (rotate, zoom, show or hide tumour and brain)</p>"
+                f'<p><a href="{_link(data["viewer"], "viewer")}">Open the viewer</a>: the MR '
+                "slices with the tumour mask in three planes beside the 3-D view (it loads "
+                "its script from the output folder's <code>_assets</code>)</p>"
             )
         parts.append('<div class="grid">')
         for name, path in renders.items():

@@ -13,6 +13,7 @@ import gzip
 import io
 import json
 import logging
+import re
 import shutil
 from pathlib import Path
 
@@ -33,6 +34,7 @@ from pydicom.uid import ExplicitVRLittleEndian, MRImageStorage, generate_uid
 from flows.patient import VOLUME_METHODS, run_patient
 from storage.formats import decode_ply
 from storage.phantom_io import write_phantom_patient
+from storage.viewer import NIIVUE_FILE
 from tasks.stages import STAGES
 from tumor3d.errors import InputError
 from tumor3d.phantom import make_phantom_patient
@@ -77,7 +79,9 @@ def test_first_run_computes_every_stage_and_publishes_all_outputs(first_run, pha
                  "brain_mesh.ply", "render_turntable.gif"):  # fmt: skip
         assert (folder / name).is_file(), name
     html = (folder / "viewer.html").read_text()
-    assert "<script" in html and 'src="http' not in html  # plotly.js embedded: no network
+    assert "<script" in html and 'src="http' not in html  # no network
+    # the viewer's one script is shared by the output folder's patients
+    assert f'src="../_assets/{NIIVUE_FILE}"' in html and (out / "_assets" / NIIVUE_FILE).is_file()
     # the LPS VTK surface is the RAS PLY surface with x and y negated
     import vtk
     from vtk.util.numpy_support import vtk_to_numpy
@@ -198,7 +202,7 @@ def test_tumour_free_patient_writes_no_empty_mesh_and_says_so(tmp_path):
     result = run_patient(image, tmp_path / "out", patient_id="clear1")
     folder = tmp_path / "out" / "clear1"
     assert not list(folder.glob("tumor*.ply")) and not list(folder.glob("render_*"))
-    assert not (folder / "viewer.html").exists()  # nothing to view
+    assert (folder / "viewer.html").is_file()  # the slices, to check what was missed
     assert (folder / "brain_mesh.ply").is_file()  # the brain is there all the same
     assert (folder / "tumor_mask.nii.gz").is_file()
     # the report says so, shows the overlays and links nothing that is not there
@@ -410,6 +414,27 @@ def test_published_report_loads_in_headless_chromium(first_run, tmp_path):
     shot = page.screenshot.astype(int)
     red = (shot[..., 0] > shot[..., 1] + 40) & (shot[..., 0] > shot[..., 2] + 40)
     assert red.sum() > 500, red.sum()
+
+
+@needs_chromium
+def test_published_viewer_shows_the_published_masks(first_run, tmp_path):
+    out, _ = first_run
+    for name in ("flowpat", "_assets"):  # a copy: the browser harness writes beside the page
+        shutil.copytree(out / name, tmp_path / "out" / name)
+    page = open_page(tmp_path / "out" / "flowpat" / "viewer.html", tmp_path, budget_ms=8000)
+    assert page.js_errors == []
+    assert serious_console_messages(page.console) == []
+    status = re.search(r'<p id="t3d-status"([^>]*)>', page.dom)
+    attrs = dict(re.findall(r'(data-[\w-]+)="([^"]*)"', status.group(1)))
+    assert attrs["data-state"] == "ready", page.dom[-2000:]
+    # the page holds every voxel of the published masks (cropped, never cut)
+    for key, name in (
+        ("data-tumour-voxels", "tumor_mask_slices"),
+        ("data-brain-voxels", "brain_mask"),
+    ):
+        published = np.asanyarray(nib.load(out / "flowpat" / f"{name}.nii.gz").dataobj) > 0
+        assert int(attrs[key]) == int(published.sum()) > 0, name
+    assert attrs["data-meshes"] == "tumour surface,brain surface"
 
 
 def test_summary_artifacts_are_on_the_patient_flow_run(first_run):
