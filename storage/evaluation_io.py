@@ -40,7 +40,7 @@ from tumor3d.evaluation import EvaluationCase
 from tumor3d.evaluation.emulate import emulate_thick_labels, emulate_thick_slices
 from tumor3d.evaluation.grids import grids_overlap, resample_nearest, same_grid
 
-__all__ = ["PreparedCase", "load_case", "prepare_case", "reference_mask"]
+__all__ = ["PreparedCase", "acquired_reference", "load_case", "prepare_case", "reference_mask"]
 
 
 @dataclass(frozen=True)
@@ -250,6 +250,33 @@ def _thin_brain_mask(row: ManifestRow, image: np.ndarray, affine: np.ndarray) ->
         ) from None
 
 
+def acquired_reference(
+    prepared: PreparedCase, reference: tuple[np.ndarray, np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The reference on the slices the pipeline reads: ``(mask, affine)``, in file order.
+
+    For an emulated row, the reference sampled (nearest) on the thin image's
+    grid and emulated like the image (tumour where the mean over a thick
+    slice's thin slices is >= 0.5), on the emulated image's grid; for a
+    native row, the reference as read (the caller samples it on the image's
+    grid). ``reference``, if given, is the row's :func:`reference_mask`
+    already read.
+    """
+    row = prepared.source
+    if row.reference is None:
+        raise InputError(f"patient {row.patient_id}: no reference given", str(row.image))
+    ref, ref_aff = reference if reference is not None else reference_mask(row)
+    if prepared.emulation is None:
+        return ref, ref_aff
+    e = prepared.emulation
+    thin_shape, thin_aff = tuple(e["thin_shape"]), np.asarray(e["thin_affine"])
+    ref_thin = resample_nearest(ref, ref_aff, thin_shape, thin_aff)
+    lab = emulate_thick_labels(
+        ref_thin, thin_aff, axis=e["axis"], step_mm=e["step_mm"], thickness_mm=e["thickness_mm"]
+    )
+    return lab.volume, lab.affine
+
+
 def load_case(prepared: PreparedCase, output_dir: str | Path) -> EvaluationCase:
     """Read one patient's published outputs and its reference into an EvaluationCase.
 
@@ -285,19 +312,13 @@ def load_case(prepared: PreparedCase, output_dir: str | Path) -> EvaluationCase:
     row = prepared.source
     if row.reference is not None:
         reference, ref_aff = reference_mask(row)
-        if prepared.emulation is not None:
-            e = prepared.emulation
-            thin_shape, thin_aff = tuple(e["thin_shape"]), np.asarray(e["thin_affine"])
-            ref_thin = resample_nearest(reference, ref_aff, thin_shape, thin_aff)
-            lab = emulate_thick_labels(
-                ref_thin, thin_aff, axis=e["axis"], step_mm=e["step_mm"],
-                thickness_mm=e["thickness_mm"],
-            )  # fmt: skip
-            ref_slices = lab.volume
-            if not same_grid(ref_slices.shape, lab.affine, pred_slices.shape, acq_aff):
-                raise InputError(f"patient {pid}: the emulated reference does not match the "
-                                 "emulated image's grid", str(out))  # fmt: skip
-        else:
+        ref_slices, slices_aff = acquired_reference(prepared, (reference, ref_aff))
+        if prepared.emulation is not None and not same_grid(
+            ref_slices.shape, slices_aff, pred_slices.shape, acq_aff
+        ):
+            raise InputError(f"patient {pid}: the emulated reference does not match the "
+                             "emulated image's grid", str(out))  # fmt: skip
+        if prepared.emulation is None:
             ref_slices = resample_nearest(reference, ref_aff, pred_slices.shape, acq_aff)
         on_ref = resample_nearest(pred_fine, fine_aff, reference.shape, ref_aff)
     elif prepared.reference_kind == "tumor_free":

@@ -140,6 +140,7 @@ def segment_task(
             "quality_score": float(result.review.quality_score),
             "review_figures": {k: _json_float(v) for k, v in result.review.figures.items()},
             "model": learned["model"].meta.get("name", "shipped"),
+            "model_sha256": learned["model"].digest(),  # of its arrays and metadata
         }
     return StageOutput(
         stage="segment-tumor",

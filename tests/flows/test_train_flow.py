@@ -1,0 +1,142 @@
+"""``tumor3d train``: models learned from a manifest's labelled patients (issue 28 item 2).
+
+Two FLAIR phantoms with their truth as the reference and one tumour-free
+phantom train a small model; the model, read back without pickle, segments
+an unseen phantom close to its truth (the independent expectation); a
+re-run with the same store takes every patient's stages from the cache and
+writes the same model; a row without a reference is refused in one line.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from flows.cli import app
+from flows.train import run_training
+from storage.manifest import write_manifest
+from storage.phantom_io import write_phantom_patient
+from tumor3d.errors import InputError
+from tumor3d.evaluation.metrics import dice
+from tumor3d.learned.forest import ForestModel
+from tumor3d.learned.rows import rows_from_bytes
+from tumor3d.phantom import make_phantom_patient
+from tumor3d.segment import segment_tumor
+
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
+
+ROUNDS = 30
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("train-in")
+    rows = [
+        write_phantom_patient(
+            make_phantom_patient(s, modality="flair", patient_id=f"tr{s}", n_slices=14),
+            folder / f"tr{s}",
+        )
+        for s in (11, 12)
+    ]
+    free = make_phantom_patient(13, modality="flair", patient_id="tr13n", n_slices=14,
+                                tumor=False)  # fmt: skip
+    rows.append(write_phantom_patient(free, folder / "tr13n"))
+    manifest = write_manifest(rows, folder / "manifest.csv")
+    out = tmp_path_factory.mktemp("train-out")
+    result = run_training(manifest, out / "model", num_rounds=ROUNDS, command="test")
+    return manifest, out, result
+
+
+def test_the_model_is_written_with_its_card(trained):
+    _, out, result = trained
+    assert set(result.models) == {"hyper"}  # FLAIR only: the FLAIR/T2 family
+    data = (out / "model" / "hyper.npz").read_bytes()
+    model = ForestModel.from_bytes(data)
+    assert model.meta["training_cases"] == ["tr11", "tr12", "tr13n"]
+    assert model.meta["threshold"] == 0.5 and model.meta["prior"] == "robust"
+    card = json.loads((out / "model" / "training.json").read_text())
+    import hashlib
+
+    assert card["models"]["hyper"]["sha256"] == hashlib.sha256(data).hexdigest()
+    by_id = {c["patient_id"]: c for c in card["cases"]}
+    assert by_id["tr13n"]["lesion_rows"] == 0 < by_id["tr11"]["lesion_rows"]
+    assert by_id["tr11"]["reference_kind"] == "truth"
+
+
+def test_the_trained_model_segments_an_unseen_phantom(trained):
+    _, out, _ = trained
+    model = ForestModel.from_bytes((out / "model" / "hyper.npz").read_bytes())
+    patient = make_phantom_patient(5, modality="flair", n_slices=14)
+    from tumor3d.detect import detect_abnormal_slices
+    from tumor3d.lesion import left_right_axis
+    from tumor3d.preprocess import preprocess_volume
+
+    scan = patient.scan
+    spacing = (scan.slice_step_mm, *scan.pixel_spacing_mm)
+    pre = preprocess_volume(scan.image, spacing_mm=spacing)
+    lr = left_right_axis(scan.affine)
+    det = detect_abnormal_slices(
+        pre.enhanced, pre.brain_mask, modality="flair", spacing_mm=spacing, lr_axis=lr
+    )
+    seg = segment_tumor(
+        pre.enhanced, pre.brain_mask, det, modality="flair", method="learned",
+        spacing_mm=spacing, lr_axis=lr, image=scan.image, model=model,
+    )  # fmt: skip
+    truth = np.asarray(patient.slice_masks) > 0.5
+    assert dice(seg.tumor_mask, truth) > 0.8
+
+
+def test_a_rerun_takes_every_patient_from_the_cache(trained):
+    manifest, out, first = trained
+    again = run_training(
+        manifest, out / "model2", store_dir=str(out / "model" / ".tumor3d-store"),
+        num_rounds=ROUNDS, command="test",
+    )  # fmt: skip
+    assert again.cached_patients == 3
+    assert [c["rows_digest"] for c in again.cases] == [c["rows_digest"] for c in first.cases]
+    a = ForestModel.from_bytes((out / "model" / "hyper.npz").read_bytes())
+    b = ForestModel.from_bytes((out / "model2" / "hyper.npz").read_bytes())
+    assert a.digest() == b.digest()  # deterministic training on the same rows
+
+
+def test_stored_rows_are_never_unpickled(trained):
+    _, out, _ = trained
+    buf = io.BytesIO()
+    np.savez(buf, x=np.array([object()], dtype=object), y=np.zeros(1, np.uint8),
+             w=np.zeros(1, np.float32))  # fmt: skip
+    with pytest.raises(InputError, match="not training rows"):
+        rows_from_bytes(buf.getvalue(), source="planted")
+
+
+def test_a_row_without_reference_is_refused_in_one_line(tmp_path):
+    patient = make_phantom_patient(3, modality="flair", patient_id="noref", n_slices=10)
+    row = write_phantom_patient(patient, tmp_path / "noref")
+    import dataclasses
+
+    manifest = write_manifest(
+        [dataclasses.replace(row, reference=None, reference_labels=None, reference_kind=None)],
+        tmp_path / "m.csv",
+    )
+    res = CliRunner().invoke(app, ["train", str(manifest), "--out", str(tmp_path / "model")])
+    assert res.exit_code == 2, res.output
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "noref" in lines[0] and "reference" in lines[0], res.output
+    assert not (tmp_path / "model").exists()
+
+
+def test_provenance_names_the_model_a_learned_run_used(tmp_path):
+    """The learned method's model digest reaches provenance.json (issue 28 item 2)."""
+    from flows.patient import run_patient
+    from tumor3d.learned.shipped import shipped_model
+
+    patient = make_phantom_patient(4, modality="flair", patient_id="prov", n_slices=12)
+    row = write_phantom_patient(patient, tmp_path / "in")
+    result = run_patient(row.image, tmp_path / "out", patient_id="prov", modality="flair")
+    prov = json.loads((tmp_path / "out" / "prov" / "provenance.json").read_text())
+    assert prov["segmentation"]["method"] == "learned"
+    assert prov["segmentation"]["model_sha256"] == shipped_model("flair").digest()
+    assert result.metrics["segment_method"] == "learned"
