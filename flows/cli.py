@@ -353,6 +353,7 @@ def _preflight(
     store: str | Path | None = None,
     brain_mask: Path | None = None,
     segmentation: Path | None = None,
+    layout: str = "default",
     **read_kw: Any,
 ) -> None:
     """Check the destination, read the input and open the store before starting Prefect.
@@ -367,13 +368,17 @@ def _preflight(
     started for nothing. An ``s3://`` output or store is reached (one line
     naming the URL if it cannot be) instead, never made a local folder.
     """
+    from storage import bids
     from storage.inputs import input_digest, input_location
     from storage.objectstore import is_url, open_store
     from storage.publish import check_destination
     from storage.readers import derive_patient_id, read_scan, suggest_patient_id
+    from tumor3d.errors import InputError
     from tumor3d.scan import validate_patient_id
 
     out = _location(out)
+    if bids.check_layout(layout) == "bids" and isinstance(out, str):
+        raise InputError("--layout bids writes a local folder: give a local --out", path=out)
     if isinstance(out, str):
         _preflight_remote(
             input_path, out, patient_id, modality, store, brain_mask, segmentation, **read_kw
@@ -383,9 +388,11 @@ def _preflight(
     if input_path.exists():
         pid = validate_patient_id(patient_id) if patient_id else derive_patient_id(input_path)
         given = [input_path] + [m for m in (brain_mask, segmentation) if m is not None]
+        if layout == "bids":  # a BIDS participant label; OUT's description absent or ours
+            bids.check_dataset_root(out, given)
         # the content is hashed only if a record of another location is there to compare
         check_destination(
-            out / pid, given,
+            out / bids.folder_name(pid, layout), given,
             derived_from=None if patient_id else (lambda: input_digest(input_path)),
             location=input_location(input_path), suggestion=suggest_patient_id(input_path),
         )  # fmt: skip
@@ -572,6 +579,15 @@ DaskWorkers = Annotated[
 Workers = Annotated[
     int | None, typer.Option(min=1, help="Patients at a time (default: the CPU cores).")
 ]
+Layout = Annotated[
+    str,
+    typer.Option(
+        "--layout",
+        help="default: OUT/<id>/ as tumor3d names it; bids: BIDS derivatives, "
+        "OUT/sub-<label>/anat/sub-<label>_desc-tumor_mask.nii.gz ... with JSON sidecars and "
+        "OUT/dataset_description.json (the label: the id's letters and digits).",
+    ),
+]
 CohortStore = Annotated[
     str | None,
     typer.Option(
@@ -630,6 +646,7 @@ def run(
             "renders and report are made from it.",
         ),
     ] = None,
+    layout: Layout = "default",
     verbose: Verbose = False,
 ) -> None:
     """Reconstruct one patient's tumour: masks, meshes, renders and volumes under OUT/<id>/."""
@@ -645,8 +662,9 @@ def run(
         assumed = modality is None
         modality = DEFAULT_MODALITY if modality is None else modality
         _preflight(
-            input_path, out, patient_id, modality, store, brain_mask, segmentation, **read_kw
-        )
+            input_path, out, patient_id, modality, store, brain_mask, segmentation, layout,
+            **read_kw,
+        )  # fmt: skip
         result = _run_with_progress(
             input_path=input_path,
             out_dir=_location(out),
@@ -656,6 +674,7 @@ def run(
             store_dir=None if store is None else str(store),
             brain_mask=None if brain_mask is None else str(brain_mask),
             segmentation=None if segmentation is None else str(segmentation),
+            layout=layout,
             **read_kw,
         )
     except _HANDLED as exc:
@@ -675,6 +694,7 @@ def cohort(
     max_voxels: MaxVoxels = MAX_VOXELS_DEFAULT,
     dask_address: DaskAddress = None,
     dask_workers: DaskWorkers = None,
+    layout: Layout = "default",
     verbose: Verbose = False,
 ) -> None:
     """Run every patient of a manifest, N at a time: OUT/<id>/, OUT/cohort.parquet, OUT/cohort.md.
@@ -708,7 +728,7 @@ def cohort(
         ):
             result = run_cohort(
                 rows, out, config=cfg, workers=workers, max_voxels=max_voxels,
-                store_dir=store, dask=dask,
+                store_dir=store, dask=dask, layout=layout,
             )  # fmt: skip
     except _HANDLED as exc:
         raise _fail(exc) from None
@@ -1041,68 +1061,6 @@ def evaluate(
 
 
 # ----------------------------------------------------------------- end of evaluate block
-
-
-@app.command()
-def train(
-    manifest: Annotated[
-        Path, typer.Argument(help="Manifest CSV of labelled patients (a reference column).")
-    ],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the models.")],
-    config: Annotated[Path | None, typer.Option(help="YAML configuration file.")] = None,
-    store: Annotated[
-        Path | None, typer.Option(help="Artifact store (default OUT/.tumor3d-store).")
-    ] = None,
-    threshold: Annotated[
-        float, typer.Option(min=0.0, max=1.0, help="FLAIR/T2 model's probability threshold.")
-    ] = 0.5,
-    t1c_threshold: Annotated[
-        float, typer.Option(min=0.0, max=1.0, help="T1c model's probability threshold.")
-    ] = 0.65,
-    keep_fraction: Annotated[
-        float, typer.Option(min=0.0, max=1.0, help="Keep lesion parts this fraction of the main.")
-    ] = 1.0,
-    rounds: Annotated[int, typer.Option(min=1, help="Boosting rounds.")] = 150,
-    verbose: Verbose = False,
-) -> None:
-    """Train the learned segmentation on labelled patients: OUT/<family>.npz, OUT/training.json.
-
-    Every row needs a reference (or reference_kind tumor_free); emulate_step_mm rows
-    are emulated as the evaluation does. Each patient's stages are cached like a
-    cohort's. Needs the train extra (pip install 'tumor3d[train]'). Exit code 0, 2
-    for a bad manifest, row or configuration, 3 for an environment error.
-    """
-    import shlex
-
-    from flows.train import run_training
-
-    try:
-        cfg = _load_config(config)
-        _check_out_dir(out)
-        command = "tumor3d " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-        with _ctrl_c_ends("Ctrl-C stopped the training; a re-run continues from the cache"):
-            with _prefect():
-                result = run_training(
-                    manifest, out, config=cfg, store_dir=None if store is None else str(store),
-                    threshold=threshold, t1c_threshold=t1c_threshold,
-                    keep_fraction=keep_fraction, num_rounds=rounds, command=command,
-                )  # fmt: skip
-    except _HANDLED as exc:
-        raise _fail(exc) from None
-    table = Table(title="Training", title_justify="left")
-    for col in ("model", "patients", "rows", "lesion rows", "file"):
-        table.add_column(col)
-    for family, path in result.models.items():
-        cases = [c for c in result.cases if c.get("family") == family]
-        table.add_row(
-            family, str(len(cases)), str(sum(c["rows"] for c in cases)),
-            str(sum(c["lesion_rows"] for c in cases)), escape(path),
-        )  # fmt: skip
-    console.print(table)
-    console.print(
-        f"{result.cached_patients} of {len(result.cases)} patients' stages from the cache; "
-        f"card: [bold]{escape(str(Path(result.out_dir) / 'training.json'))}[/]"
-    )
 
 
 def main() -> None:  # pragma: no cover - console entry

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextvars
 import dataclasses
+import functools
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -46,6 +47,7 @@ from flows.patient import (
     prepare_segmentation,
     prepare_source,
 )
+from storage import bids
 from storage.cohort_report import (
     cohort_markdown,
     cohort_output_files,
@@ -192,6 +194,7 @@ def _run_one(
     cfg: PipelineConfig,
     store: ArtifactStore,
     max_voxels: int = MAX_VOXELS_DEFAULT,
+    layout: str = "default",
 ) -> PatientOutcome:
     """One lane: prepare, run every stage, publish; any failure becomes an outcome."""
     pid = str(row.get("patient_id"))
@@ -210,8 +213,9 @@ def _run_one(
         seg = None if not seg_path else prepare_segmentation(seg_path, source, out_dir=out_dir)
         prepared = True
         result = patient_pipeline(
-            source, out_dir, cfg, store, runs=runs, brain_mask=given, segmentation=seg
-        )
+            source, out_dir, cfg, store, runs=runs, brain_mask=given, segmentation=seg,
+            layout=layout,
+        )  # fmt: skip
     except Exception as exc:  # failure isolation: record and let the others finish
         done = len(runs)
         if not prepared:
@@ -247,6 +251,7 @@ def cohort_flow(
     workers: int = 1,
     store_dir: str | None = None,
     max_voxels: int = MAX_VOXELS_DEFAULT,
+    layout: str = "default",
 ) -> CohortResult:
     """Run the single-patient pipeline for every row, ``workers`` patients at a time.
 
@@ -269,6 +274,9 @@ def cohort_flow(
         Artifact store shared by all patients; default ``DIR/.tumor3d-store``.
     max_voxels : int
         Refuse an input whose header declares more voxels (that row fails).
+    layout : {"default", "bids"}
+        ``"bids"``: patients under ``DIR/sub-<label>/`` as BIDS derivatives
+        (:mod:`storage.bids`).
     """
     t0 = time.perf_counter()
     cfg = parse_config(config or {}, source="config")
@@ -276,7 +284,7 @@ def cohort_flow(
     logger = get_run_logger()
     logger.info("cohort of %d patients, %d workers, config %s", len(rows), workers,
                 config_digest(cfg)[:12])  # fmt: skip
-    listed = {str(r.get("patient_id")) for r in rows}
+    listed = {bids.folder_name(str(r.get("patient_id")), layout) for r in rows}
     remote = RemoteFolder(out_dir) if is_url(out_dir) else None
     published = published_patient_ids(out_dir) if remote is None else published_names(remote)
     removed = [pid for pid in published if pid not in listed]
@@ -284,12 +292,10 @@ def cohort_flow(
         logger.warning("%d published patient(s) no longer in the manifest, kept: %s",
                        len(removed), ", ".join(removed))  # fmt: skip
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="tumor3d-lane") as pool:
-        futures = [
-            pool.submit(
-                contextvars.copy_context().run, _run_one, row, out_dir, cfg, store, max_voxels
-            )
-            for row in rows
-        ]
+        lane = functools.partial(
+            _run_one, out_dir=out_dir, cfg=cfg, store=store, max_voxels=max_voxels, layout=layout
+        )
+        futures = [pool.submit(contextvars.copy_context().run, lane, row) for row in rows]
         outcomes = [f.result() for f in futures]
     wall = time.perf_counter() - t0
     table = cohort_table([o.model_dump() for o in outcomes])
@@ -328,23 +334,34 @@ def _default_store(out_dir: str | Path) -> str | Path:
 _INPUT_COLUMNS = ("image", "brain_mask", "segmentation")
 
 
-def _validate_rows(rows: list[dict[str, Any]], out_dir: Path | None) -> None:
-    seen: set[str] = set()
+def _validate_rows(
+    rows: list[dict[str, Any]], out_dir: Path | None, layout: str = "default"
+) -> None:
+    seen: dict[str, str] = {}
     for i, row in enumerate(rows, start=1):
         pid = row.get("patient_id")
         if not pid or "image" not in row:
             raise InputError(f"manifest row {i}: needs patient_id and image")
-        if pid in seen:
-            raise InputError(f"manifest row {i}: duplicate patient_id {pid!r}")
-        seen.add(pid)
+        try:
+            folder = bids.folder_name(str(pid), layout)
+        except InputError as exc:
+            raise InputError(f"manifest row {i}: {exc}") from None
+        if folder in seen:
+            what = "patient_id" if folder == pid else f"folder {folder} (as {seen[folder]!r})"
+            raise InputError(f"manifest row {i}: duplicate {what} {pid!r}")
+        seen[folder] = str(pid)
         # never publish over an input (checked for every row before any work); inputs
         # are local files, so an object-store output (out_dir None) cannot hold one
         if out_dir is not None:
             given = [row[k] for k in _INPUT_COLUMNS if row.get(k)]
-            check_destination(out_dir / pid, given)
+            check_destination(out_dir / folder, given)
     if out_dir is not None:  # nor over another row's input (a mask kept in its folder)
         inputs = [r[k] for r in rows for k in _INPUT_COLUMNS if r.get(k)]
-        check_outputs_not_inputs([out_dir / r["patient_id"] for r in rows], inputs)
+        check_outputs_not_inputs([out_dir / f for f in seen], inputs)
+        if layout == "bids":  # OUT/dataset_description.json: absent or ours, never an input
+            bids.check_dataset_root(out_dir, inputs)
+    elif layout == "bids":
+        raise InputError("--layout bids writes a local folder: give a local --out")
 
 
 def run_cohort(
@@ -356,6 +373,7 @@ def run_cohort(
     store_dir: str | Path | None = None,
     max_voxels: int = MAX_VOXELS_DEFAULT,
     dask: DaskSpec | None = None,
+    layout: str = "default",
 ) -> CohortResult:
     """Run :func:`cohort_flow` on a manifest CSV or a list of rows.
 
@@ -378,6 +396,9 @@ def run_cohort(
     dask : DaskSpec, optional
         Run the stages on a Dask cluster (:mod:`flows.dask_runner`) instead of
         the default local threads.
+    layout : {"default", "bids"}
+        ``"bids"``: BIDS derivatives (:mod:`storage.bids`); every patient id
+        must give a valid, distinct participant label (checked before any work).
 
     Raises
     ------
@@ -402,7 +423,7 @@ def run_cohort(
     ):
         raise InputError(f"workers must be an integer >= 1, got {workers!r}")
     out: str | Path = str(out_dir).rstrip("/") if is_url(out_dir) else Path(out_dir)
-    _validate_rows(rows, None if isinstance(out, str) else out)
+    _validate_rows(rows, None if isinstance(out, str) else out, bids.check_layout(layout))
     if isinstance(out, str):
         RemoteFolder(out).check()  # one line naming the URL, before any patient starts
     store_at = _default_store(out) if store_dir is None else store_dir
@@ -424,4 +445,5 @@ def run_cohort(
             rows=[_json_row(r) for r in rows], out_dir=str(out),
             config=cfg.model_dump(mode="json"), workers=n,
             store_dir=None if store_dir is None else str(store_dir), max_voxels=int(max_voxels),
+            layout=layout,
         )  # fmt: skip

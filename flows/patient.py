@@ -31,7 +31,7 @@ from prefect import flow, get_run_logger
 from pydantic import BaseModel, ConfigDict
 
 from flows.artifacts import publish_patient_artifacts
-from storage import nifti
+from storage import bids, nifti
 from storage.brain_mask import GivenBrainMask, read_given_brain_mask
 from storage.formats import encode_parquet
 from storage.given_segmentation import GivenSegmentation, read_given_segmentation
@@ -347,6 +347,7 @@ def patient_pipeline(
     runs: list[StageRun] | None = None,
     brain_mask: GivenBrainMask | None = None,
     segmentation: GivenSegmentation | None = None,
+    layout: str = "default",
 ) -> PatientResult:
     """Run every stage for one patient (inside a flow) and publish the results.
 
@@ -355,10 +356,12 @@ def patient_pipeline(
     (:func:`prepare_brain_mask`) replaces the skull removal; it is stored
     as an artifact and recorded in the notes and ``provenance.json``;
     ``segmentation`` (:func:`prepare_segmentation`) likewise replaces the
-    segment-tumor stage's mask.
+    segment-tumor stage's mask. ``layout`` ``"bids"`` publishes BIDS derivatives
+    (:mod:`storage.bids`) to ``out_dir/sub-<label>/``, a local ``out_dir`` only.
     """
     t0 = time.perf_counter()
     pid = source.patient_id
+    check_layout_destination(source, out_dir, layout, brain_mask, segmentation)
     runner = PrefectRunner(store, pid, total=len(stages.STAGES), runs=runs)
     mask_ref = _store_brain_mask(store, brain_mask)
     seg_ref = _store_segmentation(store, segmentation)
@@ -384,12 +387,37 @@ def patient_pipeline(
     else:
         out_path, report, up_to_date = publish_patient(
             store, Path(out_dir), source, outputs, runner.runs, metrics, cfg, brain_mask,
-            segmentation,
+            segmentation, layout=layout,
         )  # fmt: skip
     return PatientResult(
         patient_id=pid, output_dir=str(out_path), metrics=metrics, stages=runner.runs,
         flow_seconds=flow_seconds, notes=notes, report=report, up_to_date=up_to_date,
     )  # fmt: skip
+
+
+def check_layout_destination(
+    source: InputSource,
+    out_dir: str | Path,
+    layout: str,
+    brain_mask: GivenBrainMask | None = None,
+    segmentation: GivenSegmentation | None = None,
+) -> None:
+    """Before any work: ``layout`` known; for BIDS a valid label, a local ``out_dir`` of ours.
+
+    :func:`storage.bids.participant_label` (one line naming the id) and
+    :func:`storage.bids.check_dataset_root` (``OUT/dataset_description.json``
+    absent or a tumor3d derivative's, never an input).
+    """
+    if bids.check_layout(layout) != "bids":
+        return
+    bids.participant_label(source.patient_id)
+    if is_url(out_dir):
+        raise InputError(
+            "--layout bids writes a local folder (dataset_description.json beside the "
+            "subjects): give a local --out",
+            path=str(out_dir),
+        )
+    bids.check_dataset_root(out_dir, [source.path] + _given_inputs(brain_mask, segmentation))
 
 
 def run_notes(
@@ -455,6 +483,7 @@ def patient_flow(
     max_voxels: int = MAX_VOXELS_DEFAULT,
     brain_mask: str | None = None,
     segmentation: str | None = None,
+    layout: str = "default",
 ) -> PatientResult:
     """Reconstruct one patient's tumour and publish masks, meshes, renders and metrics.
 
@@ -489,6 +518,9 @@ def patient_flow(
     segmentation : str, optional
         A tumour mask on the input's voxel grid (tumour = values > 0.5) used
         instead of the segment-tumor stage's (:func:`prepare_segmentation`).
+    layout : {"default", "bids"}
+        ``"bids"``: BIDS derivatives under ``<out_dir>/sub-<label>/`` with
+        ``<out_dir>/dataset_description.json`` (:mod:`storage.bids`).
     """
     cfg = parse_config(config or {}, source="config")
     source = prepare_source(
@@ -504,7 +536,9 @@ def patient_flow(
     logger = get_run_logger()
     digest = config_digest(cfg)[:12]
     logger.info("patient %s: %s (config %s)", source.patient_id, source.name, digest)
-    result = patient_pipeline(source, out_dir, cfg, store, brain_mask=given, segmentation=seg)
+    result = patient_pipeline(
+        source, out_dir, cfg, store, brain_mask=given, segmentation=seg, layout=layout
+    )
     publish_patient_artifacts(result.report)
     logger.info("patient %s: published %s", source.patient_id, result.output_dir)
     return result
@@ -582,7 +616,8 @@ def _metrics_row(
 
 #: The modules whose code writes a published folder (with :data:`__name__`, this one).
 PUBLISHER_MODULES = (
-    "storage.formats", "storage.nifti", "storage.patient_outputs", "storage.provenance",
+    "storage.bids", "storage.formats", "storage.nifti", "storage.patient_outputs",
+    "storage.provenance",
     "storage.publish", "storage.slice_table", "tumor3d.review",
 )  # fmt: skip
 
@@ -609,6 +644,7 @@ def publish_key(
     cfg: PipelineConfig,
     brain_mask: GivenBrainMask | None = None,
     segmentation: GivenSegmentation | None = None,
+    layout: str = "default",
 ) -> str:
     """SHA-256 of everything a published folder is made from.
 
@@ -631,6 +667,8 @@ def publish_key(
         doc["brain_mask"] = brain_mask.provenance()
     if segmentation is not None:
         doc["segmentation"] = segmentation.provenance()
+    if layout != "default":  # the default layout's keys stay those published before
+        doc["layout"] = layout
     return hashlib.sha256(canonical_dumps(doc).encode()).hexdigest()
 
 
@@ -640,14 +678,23 @@ def _current_report(
     outputs: dict[str, StageOutput],
     runs: list[StageRun],
     metrics: dict[str, Any],
+    label: str | None = None,
 ) -> dict[str, Any]:
-    """The report content of an up-to-date published folder, for this run's artifacts."""
+    """The report content of an up-to-date published folder, for this run's artifacts.
+
+    ``label``: a BIDS folder (``sub-<label>``), whose files are found under their BIDS paths.
+    """
     det = store.get_table(outputs["detect-abnormal"].artifacts["detection"])
     abnormal = det.loc[det["abnormal"].astype(bool), "slice_index"].astype(int).tolist()
     files = sorted(f.name for f in folder.iterdir() if f.is_file() and f.name != PUBLISH_MANIFEST)
+    names = None
+    if label is not None:
+        names = {k: v for k, v in bids.bids_names(label).items() if (folder / v).is_file()}
+        files += list(names)
     return patient_report_data(
         metrics, stage_runs=[r.model_dump() for r in runs], abnormal_slices=abnormal,
         files=files, provenance=json.loads((folder / "provenance.json").read_text()),
+        names=names,
     )  # fmt: skip
 
 
@@ -661,6 +708,8 @@ def publish_patient(
     cfg: PipelineConfig,
     brain_mask: GivenBrainMask | None = None,
     segmentation: GivenSegmentation | None = None,
+    *,
+    layout: str = "default",
 ) -> tuple[Path, dict[str, Any], bool]:
     """Write the patient's outputs to a staging folder, then swap it into ``out_dir/<id>``.
 
@@ -674,21 +723,31 @@ def publish_patient(
     Returns the folder, the report's content (:func:`storage.patient_outputs.
     patient_report_data`, also the Prefect artifacts' source) and whether
     the folder was already up to date (nothing written).
+
+    ``layout="bids"``: the same files, renamed and with sidecars, in
+    ``out_dir/sub-<label>/`` (:func:`storage.bids.relayout`), and the dataset's
+    ``dataset_description.json`` and ``.bidsignore`` in ``out_dir``.
     """
     pid = source.patient_id
+    folder = bids.folder_name(pid, layout)
+    label = bids.participant_label(pid) if layout == "bids" else None
     inputs = [source.path] + _given_inputs(brain_mask, segmentation)
-    check_output_not_input(out_dir / pid, inputs)
-    key = publish_key(source, outputs, cfg, brain_mask, segmentation)
+    check_output_not_input(out_dir / folder, inputs)
+    key = publish_key(source, outputs, cfg, brain_mask, segmentation, layout)
     write_viewer_assets(out_dir)  # viewer.html's script, once per output folder
+    raw = bids.raw_source(source.path) if label is not None else None
+    if label is not None:
+        bids.check_dataset_root(out_dir, inputs)
+        bids.write_dataset_files(out_dir, None if raw is None else raw[0])
     reused = all(r.cached and not r.repaired for r in runs)
-    if reused and published_is_current(out_dir / pid, key):
-        clean_stale_staging(out_dir, pid)
+    if reused and published_is_current(out_dir / folder, key):
+        clean_stale_staging(out_dir, folder)
         try:
-            report = _current_report(out_dir / pid, store, outputs, runs, metrics)
+            report = _current_report(out_dir / folder, store, outputs, runs, metrics, label)
         except (OSError, ValueError):  # changed since the check: publish again
             pass
         else:
-            return out_dir / pid, report, True
+            return out_dir / folder, report, True
     scan_ref = outputs["ingest-scan"].artifacts["scan"]
     grid = source_grid_from_metadata(scan_ref.metadata)
     tumour_found = bool(metrics["tumour_found"])
@@ -700,7 +759,7 @@ def publish_patient(
         def same_input(final: Path) -> None:
             check_same_input(final, source.digest, location=location)
 
-    with staged_folder(out_dir, pid, check=same_input) as staging:
+    with staged_folder(out_dir, folder, check=same_input) as staging:
         files: list[str] = []
 
         def put(name: str, data: bytes) -> None:
@@ -780,25 +839,22 @@ def publish_patient(
             else brain_mask.provenance()
         )
         provenance["segmentation"] = (
-            {
-                "given": False,
-                "method": outputs["segment-tumor"].values.get("segment_method"),
-                # the learned method's model: its name and digest (absent for the others)
-                **{
-                    k: outputs["segment-tumor"].values[k]
-                    for k in ("model", "model_sha256")
-                    if k in outputs["segment-tumor"].values
-                },
-            }
+            {"given": False, "method": outputs["segment-tumor"].values.get("segment_method")}
             if segmentation is None
             else segmentation.provenance()
         )
         (staging / "provenance.json").write_text(json.dumps(provenance, indent=2) + "\n")
         files.append("provenance.json")
+        names = None
+        if label is not None:  # BIDS names, sidecars and GIFTI surfaces (storage.bids)
+            names = bids.relayout(
+                staging, label, files, metrics=metrics, volume_methods=VOLUME_METHODS,
+                raw_uri=None if raw is None else f"bids:raw:{raw[1]}",
+            )  # fmt: skip
         report = patient_report_data(
             metrics, stage_runs=[r.model_dump() for r in runs], abnormal_slices=abnormal,
-            files=files, provenance=provenance,
+            files=files, provenance=provenance, names=names,
         )  # fmt: skip
         write_report(staging, report)
         write_publish_manifest(staging, key)
-    return out_dir / pid, report, False
+    return out_dir / folder, report, False

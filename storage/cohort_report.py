@@ -218,10 +218,18 @@ def cohort_page_rows(
         if ok:
             row["notes"] = row_notes(r)
             row["volumes_mm3"] = vols
-            if exists(f"{pid}/render_anterior.png"):
-                row["thumbnail"] = f"{pid}/render_anterior.png"
-            if exists(f"{pid}/report.html"):
-                row["report"] = f"{pid}/report.html"
+            # the folder published (sub-<label> in the BIDS layout), else the id
+            done = r.get("output_dir")
+            folder = Path(str(done)).name if isinstance(done, str) and done else pid
+            for thumb in (
+                f"{folder}/render_anterior.png",
+                f"{folder}/figures/{folder}_desc-anterior_render.png",  # storage.bids
+            ):
+                if exists(thumb):
+                    row["thumbnail"] = thumb
+                    break
+            if exists(f"{folder}/report.html"):
+                row["report"] = f"{folder}/report.html"
         rows.append(row)
     return rows
 

@@ -186,6 +186,7 @@ def patient_report_data(
     abnormal_slices: Sequence[int],
     files: Iterable[str],
     provenance: Mapping[str, Any] | None = None,
+    names: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
     """The input of :func:`storage.report_html.patient_report_html` for one patient.
 
@@ -202,8 +203,13 @@ def patient_report_data(
         to these).
     provenance : mapping, optional
         The ``provenance.json`` record.
+    names : mapping, optional
+        Default file name -> its path relative to the report, for a layout
+        that moves files (``--layout bids``, :func:`storage.bids.relayout`);
+        ``files`` are then the default names.
     """
     present = set(files)
+    where = dict(names or {})
     found = bool(metrics.get("tumour_found", True))
     vols = {
         key: _num(metrics, f"volume_{key}_mm3")
@@ -269,13 +275,17 @@ def patient_report_data(
     data["stage_seconds"] = {str(r["stage"]): float(r["compute_seconds"]) for r in runs}
     data["stage_cached"] = {str(r["stage"]): bool(r["cached"]) for r in runs}
     data["renders"] = {
-        name: f"render_{name}.png" for name in RENDER_ORDER if f"render_{name}.png" in present
+        name: where.get(f"render_{name}.png", f"render_{name}.png")
+        for name in RENDER_ORDER
+        if f"render_{name}.png" in present
     }
     if "render_turntable.gif" in present:
-        data["turntable"] = "render_turntable.gif"
-    data["overlays"] = {cap: name for name, cap in OVERLAYS.items() if name in present}
+        data["turntable"] = where.get("render_turntable.gif", "render_turntable.gif")
+    data["overlays"] = {
+        cap: where.get(name, name) for name, cap in OVERLAYS.items() if name in present
+    }
     if "viewer.html" in present:
-        data["viewer"] = "viewer.html"
+        data["viewer"] = where.get("viewer.html", "viewer.html")
     if provenance is not None:
         data["provenance"] = dict(provenance)
     return data
