@@ -839,7 +839,16 @@ def publish_patient(
             else brain_mask.provenance()
         )
         provenance["segmentation"] = (
-            {"given": False, "method": outputs["segment-tumor"].values.get("segment_method")}
+            {
+                "given": False,
+                "method": outputs["segment-tumor"].values.get("segment_method"),
+                # the learned method's model: its name and digest (absent for the others)
+                **{
+                    k: outputs["segment-tumor"].values[k]
+                    for k in ("model", "model_sha256")
+                    if k in outputs["segment-tumor"].values
+                },
+            }
             if segmentation is None
             else segmentation.provenance()
         )
