@@ -27,8 +27,9 @@ the brain and tumour plus :data:`CROP_MARGIN_MM`, the image scaled to 8 bits
 between its 0.5th and 99.5th percentiles inside that box (a display copy;
 the right button still adjusts the contrast), the finest axis subsampled
 when the crop exceeds ``max_voxels``; the meshes as base64 float32 vertices
-and uint16/uint32 faces. About 0.3-1 MB per patient
-(``benchmarks/bench_viewer.py``). The same inputs give the same bytes.
+and uint16/uint32 faces. 1.0 MB for the demo phantom (30 thick slices,
+``benchmarks/bench_viewer.py``); the image of a 1-mm 3-D FLAIR (BraTS,
+155 x 240 x 240) takes 1.04 MB of it. The same inputs give the same bytes.
 
 When it has drawn, the page records what it loaded in its status element
 (``id="t3d-status"``, ``data-state="ready"``, the tumour and brain voxel
@@ -50,6 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from storage.nifti import encode_nifti
+from storage.store import StoreError
 from tumor3d.errors import InputError
 from tumor3d.mesh import Mesh
 from tumor3d.validation import check_affine
@@ -94,9 +96,9 @@ def viewer_assets() -> dict[str, bytes]:
 
     Raises
     ------
-    RuntimeError
+    StoreError
         When the packaged script is missing or not the vendored release
-        (a broken installation).
+        (a broken installation: one line saying so, no traceback).
     """
     files = {}
     root = resources.files("storage").joinpath("assets")
@@ -104,9 +106,12 @@ def viewer_assets() -> dict[str, bytes]:
         try:
             files[name] = root.joinpath(packaged).read_bytes()
         except OSError as exc:
-            raise RuntimeError(f"the viewer's packaged {packaged} cannot be read: {exc}") from exc
+            raise StoreError(
+                f"the viewer's packaged storage/assets/{packaged} cannot be read "
+                f"({exc.strerror or exc}): reinstall tumor3d"
+            ) from None
     if hashlib.sha256(files[NIIVUE_FILE]).hexdigest() != NIIVUE_SHA256:
-        raise RuntimeError(
+        raise StoreError(
             f"storage/assets/niivue.umd.js is not NiiVue {NIIVUE_VERSION} "
             "(SHA-256 differs from storage/assets/README.md): reinstall tumor3d"
         )
@@ -121,10 +126,11 @@ def write_viewer_assets(out_dir: str | Path) -> list[str]:
     temporary name in the same folder, fsynced and renamed over the final
     name, so a reader never sees it half-written.
     """
+    assets = viewer_assets()
     folder = Path(out_dir) / ASSETS_DIR
     folder.mkdir(parents=True, exist_ok=True)
     written = []
-    for name, data in viewer_assets().items():
+    for name, data in assets.items():
         final = folder / name
         try:
             if final.is_file() and final.stat().st_size == len(data) and final.read_bytes() == data:

@@ -233,6 +233,16 @@ def test_the_vendored_script_is_the_recorded_niivue_release():
     assert files[NIIVUE_FILE].startswith(b"(function(")  # the UMD bundle (global `niivue`)
 
 
+def test_a_broken_installation_is_one_environment_error(monkeypatch, tmp_path):
+    import storage.viewer as viewer_mod
+    from storage.store import StoreError
+
+    monkeypatch.setattr(viewer_mod, "NIIVUE_SHA256", "0" * 64)
+    with pytest.raises(StoreError, match="is not NiiVue 0.69.0.*reinstall tumor3d"):
+        write_viewer_assets(tmp_path)
+    assert not (tmp_path / ASSETS_DIR).exists()  # nothing written
+
+
 def test_assets_are_written_once_and_repaired_when_changed(tmp_path):
     assert write_viewer_assets(tmp_path) == [NIIVUE_FILE, NIIVUE_LICENSES_FILE]
     folder = tmp_path / ASSETS_DIR
