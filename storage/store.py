@@ -381,7 +381,14 @@ class ArtifactStore:
         return np.ascontiguousarray(arr), affine
 
     def put_scan(self, scan: Scan) -> ArtifactRef:
-        """Store a `Scan`: its image as float32 NIfTI plus its geometry as metadata."""
+        """Store a `Scan`: its image as float32 NIfTI plus its geometry as metadata.
+
+        Not its patient id: the artifact, its digest and every cache key built
+        on it depend on the content alone (the same file under two ids is one
+        artifact), and a cached result never carries an id that publishing
+        could attach to another patient. The caller names the patient again
+        on reading (:meth:`get_scan`).
+        """
         grid = scan.source_grid
         extra = {
             "pixel_spacing_mm": list(scan.pixel_spacing_mm),
@@ -389,7 +396,6 @@ class ArtifactStore:
             "slice_thickness_mm": float(scan.slice_thickness_mm),
             "slice_gap_mm": None if scan.slice_gap_mm is None else float(scan.slice_gap_mm),
             "modality": scan.modality,
-            "patient_id": scan.patient_id,
             "source": scan.source,
             "source_grid": {
                 "shape": list(grid.shape),
@@ -401,10 +407,10 @@ class ArtifactStore:
             extra["skipped_files"] = list(scan.skipped_files)
         return self.put_volume(scan.image, scan.affine, kind="scan", dtype="float32", extra=extra)
 
-    def get_scan(self, ref: ArtifactRef) -> Scan:
-        """Load a `Scan` stored by :meth:`put_scan`."""
+    def get_scan(self, ref: ArtifactRef, *, patient_id: str) -> Scan:
+        """Load a `Scan` stored by :meth:`put_scan`, as patient ``patient_id``."""
         image, affine = self.get_volume(ref)
-        return scan_from_metadata(image, affine, ref.metadata)
+        return scan_from_metadata(image, affine, ref.metadata, patient_id=patient_id)
 
     def put_mesh(self, mesh: Mesh, *, extra: dict[str, Any] | None = None) -> ArtifactRef:
         """Store a mesh as binary PLY (RAS mm)."""
@@ -441,8 +447,10 @@ class ArtifactStore:
         return json.loads(self.get_bytes(ref))
 
 
-def scan_from_metadata(image: np.ndarray, affine: np.ndarray, meta: dict[str, Any]) -> Scan:
-    """Rebuild a `Scan` from its image, affine and stored metadata."""
+def scan_from_metadata(
+    image: np.ndarray, affine: np.ndarray, meta: dict[str, Any], *, patient_id: str
+) -> Scan:
+    """Rebuild a `Scan` from its image, affine and stored metadata, as patient ``patient_id``."""
     return Scan(
         image=image,
         affine=affine,
@@ -451,7 +459,7 @@ def scan_from_metadata(image: np.ndarray, affine: np.ndarray, meta: dict[str, An
         slice_thickness_mm=meta["slice_thickness_mm"],
         slice_gap_mm=meta["slice_gap_mm"],
         modality=meta["modality"],
-        patient_id=meta["patient_id"],
+        patient_id=patient_id,
         source=meta["source"],
         source_grid=source_grid_from_metadata(meta),
         skipped_files=tuple(meta.get("skipped_files", ())),

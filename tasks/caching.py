@@ -19,8 +19,14 @@ style of ``prefect/cache_policies.py`` (combined with ``+`` into Prefect's
   (the ``config`` parameter, a pydantic model);
 * :class:`InputArtifacts` -- every other input: artifact references by their
   content digest only (which covers dtype, shape, spacing and affine),
-  pydantic models by their fields, plain values as they are. Parameters in
+  pydantic models by their fields (less those a model lists in
+  ``__cache_exclude__``: the user input's location and patient id, see
+  :class:`tasks.spec.InputSource`), plain values as they are. Parameters in
   :data:`IGNORED_INPUTS` (the store location) do not count.
+
+No key holds a patient id (issue 29): the same file under two ids is one
+computation, and no cached output carries an id (the scan artifact does not
+store it); the flow names the patient when it publishes.
 
 The flow run id is *not* part of the key, so a result computed by any earlier
 run is reused; Prefect's default policy would key on the run id, and its
@@ -72,7 +78,8 @@ __all__ = [
 
 #: Bump when the on-disk form of any artifact (NIfTI/PLY/parquet/PNG/JSON
 #: encoding, metadata layout, digest rule) changes incompatibly.
-ARTIFACT_FORMAT_VERSION = "1"
+#: 2: a scan artifact's metadata no longer holds the patient id (issue 29).
+ARTIFACT_FORMAT_VERSION = "2"
 
 #: Task parameters that locate things but do not change the result.
 IGNORED_INPUTS = frozenset({"store_root"})

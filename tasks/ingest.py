@@ -14,6 +14,10 @@ __all__ = ["SPEC", "ingest_task"]
 def ingest_task(source: InputSource, store_root: str) -> StageOutput:
     """Read the user's input (NIfTI, DICOM series, image stack) into a stored `Scan`.
 
+    Keyed and stored by content only: the patient id is neither in the key
+    nor in the stored scan or the values (issue 29), so the same file under
+    another id is a cache hit and nothing cached names a patient.
+
     ``header_notes``: the repairs nibabel made to a NIfTI header on reading,
     one note naming the file (informational; never printed by nibabel).
     """

@@ -83,7 +83,11 @@ class InputSource(BaseModel):
     """The user's input, identified by content for caching.
 
     ``path`` is where to read it; ``digest`` (of the file, or of every file of
-    a folder, plus sidecars) and ``name`` are what the cache key sees.
+    a folder, plus sidecars), ``name`` and the reading options are what the
+    cache key sees. The patient id is not (issue 29): the same file under
+    another id is the same scan, so every stage's key depends on the content
+    alone; no stage output carries the id (the scan artifact does not store
+    it), and the flow names the patient when it publishes.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -104,8 +108,9 @@ class InputSource(BaseModel):
     #: then never replaces another input's results (``storage.publish.check_same_input``).
     id_derived: bool = False
 
-    #: Where the input lives, and how its id was chosen, do not change what it is.
-    __cache_exclude__: ClassVar[frozenset[str]] = frozenset({"path", "id_derived"})
+    #: Where the input lives, which patient it is published as, and how that id was
+    #: chosen, do not change what it is.
+    __cache_exclude__: ClassVar[frozenset[str]] = frozenset({"path", "patient_id", "id_derived"})
 
 
 @dataclass(frozen=True)

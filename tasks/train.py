@@ -62,9 +62,9 @@ def training_rows_task(
         ref, _zyx_affine(ref_affine), image.shape, _zyx_affine(scan_affine)
     ).astype(bool)
     if reference.metadata.get("tumor_free") is not True and not label.any():
-        raise InputError(
-            f"patient {scan.metadata.get('patient_id')}: the reference has no tumour on the "
-            "slices of the image (does it cover the same part of the head?)"
+        raise InputError(  # the flow names the patient (a scan artifact holds no id)
+            "the reference has no tumour on the slices of the image "
+            "(does it cover the same part of the head?)"
         )
     det = SliceDetection.from_records(store.get_table(detection).to_dict("records"))
     meta = lesion.metadata["lesion"]

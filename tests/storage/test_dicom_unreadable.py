@@ -55,7 +55,8 @@ def test_skip_unreadable_skips_and_lists_the_files(tmp_path):
     scan2 = read_scan(folder, skip_unreadable=True)
     assert scan2.skipped_files == scan.skipped_files
     store = ArtifactStore(tmp_path / "store")
-    assert store.get_scan(store.put_scan(scan2)).skipped_files == scan.skipped_files
+    back = store.get_scan(store.put_scan(scan2), patient_id="p1")
+    assert back.skipped_files == scan.skipped_files
 
 
 def test_notes_and_previews_beside_the_series_are_not_unreadable(tmp_path):

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import gzip
+import json
 import os
 
 import numpy as np
@@ -113,13 +115,20 @@ def test_scan_round_trip_keeps_geometry(store):
     affine = np.array([[-0.9, 0, 0, 1], [0, 0, 5, 2], [0, -0.8, 0, 3], [0, 0, 0, 1]], float)
     grid = SourceGrid(shape=(4, 2, 3), affine=np.eye(4), axes=(1, 2, 0))
     scan = Scan(img, affine, (0.8, 0.9), 5.0, 2.0, 3.0, "flair", "p01", "test", grid)
-    back = store.get_scan(store.put_scan(scan))
+    ref = store.put_scan(scan)
+    back = store.get_scan(ref, patient_id="p01")
     np.testing.assert_array_equal(back.image, scan.image)
     np.testing.assert_allclose(back.affine, scan.affine)
     assert back.pixel_spacing_mm == scan.pixel_spacing_mm
     assert (back.slice_step_mm, back.slice_thickness_mm, back.slice_gap_mm) == (5.0, 2.0, 3.0)
     assert (back.modality, back.patient_id, back.source) == ("flair", "p01", "test")
     assert back.source_grid.axes == grid.axes and back.source_grid.shape == grid.shape
+    # the patient id is not stored (issue 29): the same image under another id is the
+    # same artifact, and the reader names the patient
+    assert "p01" not in json.dumps(ref.metadata)
+    other = dataclasses.replace(scan, patient_id="p02")
+    assert store.put_scan(other) == ref
+    assert store.get_scan(ref, patient_id="p02").patient_id == "p02"
 
 
 def test_ply_round_trip_and_slicer_header():

@@ -301,6 +301,19 @@ def test_input_source_location_is_not_part_of_the_key():
     assert _key("ingest-scan", {"source": a}, mods) != _key("ingest-scan", {"source": c}, mods)
 
 
+def test_input_source_patient_id_is_not_part_of_the_key_but_its_content_is():
+    # issue 29: the same file under another id is the same computation
+    a = InputSource(path="/data/a/flair.nii.gz", name="flair.nii.gz", digest="d" * 64,
+                    modality="flair", patient_id="p1")  # fmt: skip
+    mods = ("tasks.ingest",)
+    key = _key("ingest-scan", {"source": a}, mods)
+    same = a.model_copy(update={"patient_id": "p2", "id_derived": True})
+    assert _key("ingest-scan", {"source": same}, mods) == key
+    for change in ({"modality": "t2"}, {"name": "other.nii.gz"}, {"slice_gap_mm": 1.0},
+                   {"series_uid": "1.2.3"}, {"skip_unreadable": True}):  # fmt: skip
+        assert _key("ingest-scan", {"source": a.model_copy(update=change)}, mods) != key, change
+
+
 def test_arrays_cannot_sneak_into_keys():
     with pytest.raises(TypeError, match="ndarray"):
         fingerprint(np.zeros(3))
