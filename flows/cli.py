@@ -1004,6 +1004,13 @@ def evaluate(
     phantoms: Annotated[
         int, typer.Option(min=0, help="Also generate N phantom patients (truth as reference).")
     ] = 0,
+    evaluation: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Registered evaluation to run (repeat): segmentation (the default), "
+            "interpolation (Table 4 on the references), simplification (Figure 10)."
+        ),
+    ] = None,
     verbose: Verbose = False,
 ) -> None:
     """Run the cohort and compare each patient with its reference: OUT/REPORT.md and tables.
@@ -1025,6 +1032,9 @@ def evaluate(
     try:
         specs = parse_config_specs(config)
         _load_configs(specs)  # fail fast on a bad configuration
+        from tumor3d.evaluation import selected_evaluations
+
+        selected_evaluations(evaluation)  # fail fast on an unknown evaluation
         for m in manifest:
             read_manifest_rows(m)  # fail fast on a bad manifest (header, missing file)
         command = "tumor3d " + " ".join(shlex.quote(a) for a in sys.argv[1:])
@@ -1032,7 +1042,7 @@ def evaluate(
             result = run_evaluation(
                 manifest, out, config_files=specs, workers=workers,
                 store_dir=None if store is None else str(store), phantoms=phantoms,
-                command=command,
+                command=command, evaluations=evaluation,
             )  # fmt: skip
     except _HANDLED as exc:
         raise _fail(exc) from None

@@ -14,7 +14,8 @@
    (one artifact store ``DIR/.tumor3d-store`` shared by all configurations,
    so a re-run, or a stage configured alike, is a cache hit);
 4. compare each published patient with its reference by every registered
-   evaluation (:func:`tumor3d.evaluation.registered_evaluations`);
+   evaluation (:func:`tumor3d.evaluation.selected_evaluations`: the default
+   ones, or those named with ``--evaluation``);
 5. write ``DIR/evaluation.parquet`` (one row per configuration and patient),
    ``DIR/evaluation_slices.parquet`` (per acquired slice), the Bland-Altman
    plots and ``DIR/REPORT.md`` (:mod:`storage.evaluation_report`).
@@ -41,7 +42,7 @@ from storage.manifest import ManifestRow, RowProblem, read_manifest_rows
 from storage.store import atomic_write_bytes
 from tumor3d.config import parse_config
 from tumor3d.errors import InputError
-from tumor3d.evaluation import registered_evaluations
+from tumor3d.evaluation import selected_evaluations
 
 __all__ = [
     "EvaluationResult",
@@ -170,6 +171,7 @@ def evaluate_flow(
     store_dir: str | None = None,
     phantoms: int = 0,
     command: str | None = None,
+    evaluations: list[str] | None = None,
 ) -> EvaluationResult:
     """Run the cohort for each configuration and evaluate it against the references.
 
@@ -192,6 +194,9 @@ def evaluate_flow(
         as reference) under ``<out_dir>/phantoms/``.
     command : str, optional
         The command line, for the report.
+    evaluations : list of str, optional
+        Registered evaluations to run (:func:`tumor3d.evaluation.
+        selected_evaluations`); default the default ones (``segmentation``).
     """
     from storage.evaluation_report import write_report
 
@@ -201,6 +206,7 @@ def evaluate_flow(
     out.mkdir(parents=True, exist_ok=True)
     store = Path(store_dir) if store_dir else out / ".tumor3d-store"
     configs = _load_configs(config_files or {"default": None})
+    chosen = selected_evaluations(evaluations)  # an unknown name: before any work
 
     rows: list[ManifestRow] = []
     skipped: list[dict[str, Any]] = []
@@ -233,7 +239,6 @@ def evaluate_flow(
     for s in skipped:
         logger.warning("skipped: %s", s["reason"])
 
-    evaluations = registered_evaluations()
     patient_rows: list[dict[str, Any]] = []
     slice_rows: list[dict[str, Any]] = []
     for cname, cfg in configs.items():
@@ -262,7 +267,7 @@ def evaluate_flow(
             base["notes"] = str(o.metrics.get("notes") or "")
             try:
                 case = load_case(p, o.output_dir)
-                for ev in evaluations.values():
+                for ev in chosen.values():
                     got = ev.fn(case)
                     base.update(got.patient)
                     for srow in got.slices:
@@ -281,7 +286,7 @@ def evaluate_flow(
     res.report = write_report(
         out, patients, slices,
         configs=configs, config_files=config_files or {"default": None},
-        prepared=prepared, skipped=skipped, evaluations=evaluations,
+        prepared=prepared, skipped=skipped, evaluations=chosen,
         command=command, elapsed_s=time.perf_counter() - t0,
     )  # fmt: skip
     return res
@@ -324,10 +329,11 @@ def run_evaluation(
     store_dir: str | Path | None = None,
     phantoms: int = 0,
     command: str | None = None,
+    evaluations: Sequence[str] | None = None,
 ) -> EvaluationResult:
     """Run :func:`evaluate_flow` (arguments as there) from Python code."""
     return evaluate_flow(
         [str(m) for m in manifests], str(out_dir), config_files=config_files, workers=workers,
         store_dir=None if store_dir is None else str(store_dir), phantoms=phantoms,
-        command=command,
+        command=command, evaluations=None if evaluations is None else list(evaluations),
     )  # fmt: skip

@@ -123,3 +123,24 @@ def test_evaluate_scores_the_phantom_commands_own_manifest(tmp_path, prefect_har
     table3 = report.split("## Table 3")[1].split("\n## ")[0]
     for pid in ("phantom000", "phantom001n"):
         assert f"| {pid} |" in table2 and f"| {pid} |" in table3
+
+
+def test_the_geometry_evaluations_run_when_named(evaluated, tmp_path):
+    """--evaluation interpolation/simplification: their columns and report sections
+    (issue 30); the cohort itself comes from the cache of the first evaluation."""
+    from flows.evaluate import run_evaluation
+
+    result, out = evaluated
+    manifest = next((out.parent / "in").glob("*.csv"))
+    again = run_evaluation(
+        [manifest], tmp_path / "geo", store_dir=out / ".tumor3d-store", command="pytest",
+        evaluations=["interpolation", "simplification"],
+    )  # fmt: skip
+    df = pd.read_parquet(tmp_path / "geo" / "evaluation.parquet")
+    ok = df[df["status"] == "ok"]
+    assert len(ok) == 2
+    assert ok["interp_se_eps_percent"].notna().all()
+    assert ok["simp_curvature_p60_eq11_mm"].notna().all()
+    assert "dice_3d" not in df.columns  # segmentation was not asked for
+    report = again.report.read_text()
+    assert "### interpolation (default)" in report and "### simplification (default)" in report

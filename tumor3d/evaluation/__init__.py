@@ -8,7 +8,9 @@
   resampling between voxel grids;
 * :mod:`tumor3d.evaluation.registry` -- the registry of evaluations that
   ``tumor3d evaluate`` runs (:func:`register_evaluation`);
-* :mod:`tumor3d.evaluation.segmentation` -- the built-in evaluation.
+* :mod:`tumor3d.evaluation.segmentation` -- the built-in (default) evaluation;
+* :mod:`tumor3d.evaluation.geometry` -- the interpolation (Table 4) and
+  simplification (Figure 10) evaluations, run when named.
 
 No file I/O here: the flow (``flows/evaluate.py``) loads and writes.
 """
@@ -18,6 +20,13 @@ from tumor3d.evaluation.registry import (
     EvaluationRows,
     register_evaluation,
     registered_evaluations,
+    selected_evaluations,
 )
 
-__all__ = ["EvaluationCase", "EvaluationRows", "register_evaluation", "registered_evaluations"]
+__all__ = [
+    "EvaluationCase",
+    "EvaluationRows",
+    "register_evaluation",
+    "registered_evaluations",
+    "selected_evaluations",
+]

@@ -42,11 +42,13 @@ __all__ = [
     "EvaluationRows",
     "register_evaluation",
     "registered_evaluations",
+    "selected_evaluations",
 ]
 
 #: Modules whose import registers evaluations; add one line per new module.
 EVALUATION_MODULES: tuple[str, ...] = (
     "tumor3d.evaluation.segmentation",
+    "tumor3d.evaluation.geometry",
 )
 
 #: Kinds of reference a case may have.
@@ -146,6 +148,8 @@ class Evaluation:
     description: str
     fn: Callable[[EvaluationCase], EvaluationRows]
     summarize: Callable[[list[dict[str, Any]]], str] | None = None
+    #: Run when the user names no evaluation (the costly ones are asked for by name).
+    default: bool = True
 
 
 _REGISTRY: dict[str, Evaluation] = {}
@@ -156,6 +160,7 @@ def register_evaluation(
     *,
     description: str,
     summarize: Callable[[list[dict[str, Any]]], str] | None = None,
+    default: bool = True,
 ) -> Callable[[Callable[[EvaluationCase], EvaluationRows]], Callable]:
     """Decorator registering ``fn(case) -> EvaluationRows`` under ``name``.
 
@@ -167,6 +172,9 @@ def register_evaluation(
         One line for the report.
     summarize : callable, optional
         ``summarize(patient_rows) -> markdown`` for one configuration.
+    default : bool
+        Run when no evaluation is named (``tumor3d evaluate`` without
+        ``--evaluation``); False for the ones asked for by name.
     """
     if not isinstance(name, str) or not name:
         raise InputError(f"evaluation name must be a non-empty string, got {name!r}")
@@ -175,7 +183,7 @@ def register_evaluation(
         old = _REGISTRY.get(name)
         if old is not None and old.fn.__qualname__ != fn.__qualname__:
             raise InputError(f"an evaluation named {name!r} is already registered")
-        _REGISTRY[name] = Evaluation(name, description, fn, summarize)
+        _REGISTRY[name] = Evaluation(name, description, fn, summarize, bool(default))
         return fn
 
     return deco
@@ -186,3 +194,34 @@ def registered_evaluations() -> dict[str, Evaluation]:
     for module in EVALUATION_MODULES:
         importlib.import_module(module)
     return dict(_REGISTRY)
+
+
+def selected_evaluations(names: list[str] | tuple[str, ...] | None = None) -> dict[str, Evaluation]:
+    """The evaluations to run: the named ones (in that order), or the default ones.
+
+    Raises
+    ------
+    InputError
+        For a name that is not registered (the message lists the registered ones).
+
+    Examples
+    --------
+    >>> list(selected_evaluations())
+    ['segmentation']
+    >>> list(selected_evaluations(["segmentation", "interpolation"]))
+    ['segmentation', 'interpolation']
+    >>> try:
+    ...     selected_evaluations(["volumes"])
+    ... except InputError as exc:
+    ...     print(exc.problem)
+    no evaluation named 'volumes' (registered: interpolation, segmentation, simplification)
+    """
+    every = registered_evaluations()
+    if not names:
+        return {k: ev for k, ev in every.items() if ev.default}
+    unknown = [n for n in names if n not in every]
+    if unknown:
+        raise InputError(
+            f"no evaluation named {unknown[0]!r} (registered: {', '.join(sorted(every))})"
+        )
+    return {n: every[n] for n in dict.fromkeys(names)}
