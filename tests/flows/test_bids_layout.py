@@ -222,3 +222,16 @@ def test_a_cohort_in_the_bids_layout(published, tmp_path):
     with pytest.raises(InputError, match="manifest row 2: duplicate folder sub-7"):
         run_cohort(twice, tmp_path / "c3", store_dir=str(base / "store"), layout="bids")
     assert not (tmp_path / "c2").exists() and not (tmp_path / "c3").exists()
+
+
+def test_a_default_folder_of_the_same_name_is_not_taken_as_current(published, tmp_path):
+    """The layout is in the publish key: OUT/sub-bp1 of the default layout is republished."""
+    image, base, _, _ = published
+    store = str(base / "store")
+    run_patient(image, tmp_path, patient_id="sub-bp1", store_dir=store)
+    assert (tmp_path / "sub-bp1" / "tumor_mask.nii.gz").is_file()
+    # the same id, so the same input, outputs and configuration: only the layout differs
+    again = run_patient(image, tmp_path, patient_id="sub-bp1", store_dir=store, layout="bids")
+    assert not again.up_to_date
+    assert (tmp_path / "sub-bp1" / "anat" / "sub-bp1_desc-tumor_mask.nii.gz").is_file()
+    assert not (tmp_path / "sub-bp1" / "tumor_mask.nii.gz").exists()
