@@ -6,7 +6,9 @@ tumour mask over it and the brain mask on demand, and beside them a 3-D
 pane with the tumour surface inside the translucent brain surface. Clicking
 or dragging in a plane moves the cross-hair (the other planes follow), the
 wheel steps through slices, the right button drags the contrast, dragging
-the 3-D pane rotates it; check boxes show or hide each layer.
+the 3-D pane rotates it; check boxes show or hide each layer. The display is
+radiological by default (the patient's right on the screen's left, as the
+overlay mosaics and the renders show it), neurological at a click.
 
 It is drawn by NiiVue (``@niivue/niivue``, BSD-2-Clause; WebGL2), the
 viewer of the neuroimaging field, vendored unmodified in
@@ -305,6 +307,7 @@ def viewer_html(
     tumor_color_rgb: Sequence[float] = (0.85, 0.35, 0.3),
     brain_color_rgb: Sequence[float] = (0.78, 0.78, 0.82),
     brain_opacity: float = 0.25,
+    radiological: bool = True,
     assets_href: str = f"../{ASSETS_DIR}",
     margin_mm: float = CROP_MARGIN_MM,
     max_voxels: int = MAX_VIEWER_VOXELS,
@@ -329,6 +332,10 @@ def viewer_html(
         Surface colours, components in [0, 1].
     brain_opacity : float
         Opacity of the brain surface, in (0, 1].
+    radiological : bool
+        Radiological display (the patient's right on the screen's left, as
+        the overlay mosaics and the renders show it) or neurological; a check
+        box of the page switches it.
     assets_href : str
         Relative URL of the folder that holds :data:`NIIVUE_FILE`.
     margin_mm, max_voxels
@@ -352,6 +359,8 @@ def viewer_html(
         or not (0.0 < brain_opacity <= 1.0)
     ):
         raise InputError(f"brain_opacity must lie in (0, 1], got {brain_opacity!r}")
+    if not isinstance(radiological, bool):
+        raise InputError(f"radiological must be True or False, got {radiological!r}")
     if not isinstance(assets_href, str) or "://" in assets_href or assets_href.startswith("/"):
         raise InputError(f"assets_href must be a relative URL, got {assets_href!r}")
     tumour_rgb = _rgb255(tumor_color_rgb, "tumor_color_rgb")
@@ -375,6 +384,7 @@ def viewer_html(
         "image": _b64(encode_nifti(u8.transpose(2, 1, 0), aff, dtype=np.uint8)),
         "tumour_mask": _b64(encode_nifti(small[0].transpose(2, 1, 0), aff, dtype=np.uint8)),
         "centre_mm": centre,
+        "radiological": radiological,
         "meshes": [],
     }
     if brain_zyx is not None:
@@ -394,6 +404,7 @@ def viewer_html(
         src_js=json.dumps(src),
         data=payload,
         brain_row="" if brain_zyx is None else _BRAIN_ROW,
+        radiological_checked=" checked" if radiological else "",
     )
 
 
@@ -432,6 +443,8 @@ body {{ display: flex; flex-direction: column; }}
 value="0.5"></label>
 {brain_row}
 <span id="t3d-meshes"></span>
+<label title="radiological: the patient's right on the screen's left"><input type="checkbox"
+id="t3d-radiological"{radiological_checked}> radiological</label>
 <button type="button" id="t3d-centre">centre on the tumour</button>
 <span id="t3d-where"></span>
 </div>
@@ -485,6 +498,7 @@ value="0.5"></label>
     meshThicknessOn2D: 0,
     multiplanarShowRender: niivue.SHOW_RENDER.ALWAYS,
     multiplanarLayout: niivue.MULTIPLANAR_TYPE.GRID,
+    isRadiologicalConvention: data.radiological,
     logLevel: "error",
     loadingText: "loading"
   }});
@@ -541,6 +555,12 @@ value="0.5"></label>
     }}
     shown.addEventListener("change", maskOpacity);
     opacity.addEventListener("input", maskOpacity);
+    var radio = document.getElementById("t3d-radiological");
+    radio.addEventListener("change", function () {{
+      nv.setRadiologicalConvention(radio.checked);
+      status.setAttribute("data-radiological", String(radio.checked));
+    }});
+    status.setAttribute("data-radiological", String(data.radiological));
     var brainBox = document.getElementById("t3d-brainmask");
     if (brainBox) brainBox.addEventListener("change", function () {{
       nv.setOpacity(brainIdx, brainBox.checked ? 0.35 : 0);

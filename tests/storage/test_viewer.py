@@ -179,6 +179,13 @@ def test_the_cross_hair_starts_inside_a_tumour_of_two_parts(head):
     assert any(np.allclose(data["centre_mm"], p) for p in inside)
 
 
+def test_the_display_convention_is_a_choice(head):
+    assert _embedded(_page(head))["radiological"] is True
+    page = _page(head, radiological=False)
+    assert _embedded(page)["radiological"] is False
+    assert 'id="t3d-radiological">' in page and 'id="t3d-radiological" checked>' in _page(head)
+
+
 def test_page_without_brain_or_meshes(head):
     page = viewer_html(head["image"], AFFINE, np.zeros(SHAPE, bool))
     data = _embedded(page)
@@ -198,6 +205,7 @@ def test_page_without_brain_or_meshes(head):
         ({"assets_href": "https://cdn.example/x"}, "relative URL"),
         ({"assets_href": "/abs"}, "relative URL"),
         ({"max_voxels": 0}, "max_voxels"),
+        ({"radiological": "yes"}, "radiological must be True or False"),
         ({"margin_mm": -1.0}, "margin_mm"),
         ({"image_zyx": np.zeros((3, 3)), "tumour_zyx": np.zeros((3, 3))}, "3-D"),
     ],
@@ -307,9 +315,10 @@ def test_viewer_shows_the_mask_on_three_planes_beside_the_3d_view(head, tmp_path
         assert box.sum() > 100, (plane, box.sum())
         cols = np.nonzero(box)[1]
         centre_side[plane] = (cols.mean() - w / 2) / w
-    # neurological convention (the page's L marker on the left): the patient's right on
-    # the right of the axial and coronal planes; posterior on the left of the sagittal one
-    assert centre_side["axial"] > 0.1 and centre_side["coronal"] > 0.1
+    # radiological display (as the overlays and renders): the patient's right on the left
+    # of the axial and coronal planes; posterior on the left of the sagittal one
+    assert status["data-radiological"] == "true"
+    assert centre_side["axial"] < -0.1 and centre_side["coronal"] < -0.1
     assert centre_side["sagittal"] < -0.03
     # outside the four panes nothing is red (the overlay stays inside its planes)
     inside = np.zeros(red.shape, bool)
