@@ -18,7 +18,7 @@ __all__ = ["BRAIN_SURFACE_SPACING_MM", "VIEWER_BRAIN_MAX_FACES", "SPEC", "brain_
 #: Grid spacing of the translucent brain surface (a context surface, not a measurement).
 BRAIN_SURFACE_SPACING_MM = 2.0
 
-#: Face budget of the brain in ``viewer.html`` (plotly.js holds and draws it in the browser).
+#: Face budget of the brain in ``viewer.html`` (the browser holds and draws it).
 VIEWER_BRAIN_MAX_FACES = 8000
 
 

@@ -3,7 +3,7 @@
 :func:`brain_surface` reconstructs the brain's outer surface from the
 thick-slice brain mask of skull removal (the paper reconstructs the brain
 surface as well as the tumour); :func:`display_mesh` reduces it to a face
-budget for the interactive viewer, where plotly.js has to hold and draw it.
+budget for the browser viewer (``viewer.html``), which holds and draws it.
 Both are pure (arrays in, :class:`~tumor3d.mesh.Mesh` out). The
 ``extract-brain-surface`` stage (``tasks/brain_surface.py``) computes them
 once per brain mask, so the renders, ``brain_mesh.ply`` and ``viewer.html``

@@ -44,7 +44,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
 
 STAGE_NAMES = list(STAGES)
 # Every name component is searched for on its own, so none may be a common word
-# (the embedded plotly.js of viewer.html contains "Private", for example).
+# (a published file may contain "Private" in its embedded data, for example).
 SECRET = {"PatientName": "Zzyzx^Quintessa^Vexqorit", "PatientID": "PHI-99331177",
           "PatientBirthDate": "19531207"}  # fmt: skip
 
