@@ -120,11 +120,6 @@ def _with_parents(name: str) -> list[str]:
     return [".".join(parts[: i + 1]) for i in range(len(parts))]
 
 
-def _imports_of(name: str, path: Path, root: Path) -> set[str]:
-    """Project modules named by the import statements of one module (any depth)."""
-    return set(_parse_module(name, str(path), str(root), path.read_bytes()).imports)
-
-
 def _syntax_digest_of(name: str, path: Path, root: Path) -> str:
     """SHA-256 of one module's syntax tree without docstrings (:func:`syntax_dump`)."""
     return _parse_module(name, str(path), str(root), path.read_bytes()).syntax_sha256
@@ -178,30 +173,86 @@ def _drop_docstring(node: ast.AST) -> None:
 class _ModuleSyntax:
     """What the digests need from one module's source: its imports and its syntax.
 
-    ``imports``: the project modules it imports; ``packages``: the top-level
-    names of the other packages it imports (``numpy``, ``skimage``, ...).
+    ``imports``: the project modules it imports; ``lazy``: those imported only
+    by a module-level ``__getattr__`` (PEP 562: run when an attribute the
+    module does not define is asked for); ``requests``: ``(module, name)``
+    for every name it takes from a project module (``from m import name``,
+    ``m.name`` after ``import m``); ``defined``: the names its top level
+    binds; ``packages``: the top-level names of the other packages it
+    imports (``numpy``, ``skimage``, ...).
     """
 
     imports: frozenset[str]
+    lazy: frozenset[str]
+    requests: frozenset[tuple[str, str]]
+    defined: frozenset[str]
     packages: frozenset[str]
     syntax_sha256: str
 
 
+#: Attributes every module has without binding them.
+_MODULE_ATTRIBUTES = frozenset(
+    {"__name__", "__file__", "__doc__", "__path__", "__spec__", "__loader__", "__package__",
+     "__dict__", "__builtins__", "__cached__"}
+)  # fmt: skip
+
+
+def _top_level_names(body: list[ast.stmt]) -> set[str]:
+    """Names a module body binds (into ``if``/``try``/``with`` blocks, not functions)."""
+    names: set[str] = set()
+    for node in body:
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+            names.add(node.name)
+        elif isinstance(node, ast.Import | ast.ImportFrom):
+            names.update((a.asname or a.name.split(".")[0]) for a in node.names)
+        elif isinstance(node, ast.Assign | ast.AnnAssign | ast.AugAssign):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            for t in targets:
+                names.update(n.id for n in ast.walk(t) if isinstance(n, ast.Name))
+        elif isinstance(node, ast.If | ast.Try | ast.With):
+            for block in ("body", "orelse", "finalbody"):
+                names |= _top_level_names(getattr(node, block, []))
+            for handler in getattr(node, "handlers", []):
+                names |= _top_level_names(handler.body)
+    return names
+
+
+def _project_modules(found: set[str], root: Path) -> set[str]:
+    out: set[str] = set()
+    for mod in found:
+        if mod.split(".")[0] in PROJECT_PACKAGES:
+            out.update(m for m in _with_parents(mod) if _module_file(m, root) is not None)
+    return out
+
+
 @cache
 def _parse_module(name: str, path_str: str, root_str: str, source: bytes) -> _ModuleSyntax:
-    """Parse one module once per process and content: its project imports and syntax digest."""
+    """Parse one module once per process and content: its imports and syntax digest."""
     path, root = Path(path_str), Path(root_str)
     with _AST_LOCK:
         tree = ast.parse(source, filename=path_str)
     is_package = path.name == "__init__.py"
     package = name if is_package else name.rpartition(".")[0]
+    getattr_fn = [
+        n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "__getattr__"
+    ]
+    in_getattr = {id(n) for fn in getattr_fn for n in ast.walk(fn)}
     found: set[str] = set()
+    found_lazy: set[str] = set()
     absolute: set[str] = set()  # top-level names of absolute imports
+    bound: dict[str, str] = {}  # local name -> project module, by ``import m``
+    requests: set[tuple[str, str]] = set()
+    attributes: list[ast.Attribute] = []
     for node in ast.walk(tree):  # one walk: the imports, and docstrings dropped
         _drop_docstring(node)
+        into = found_lazy if id(node) in in_getattr else found
         if isinstance(node, ast.Import):
-            found.update(alias.name for alias in node.names)
+            into.update(alias.name for alias in node.names)
             absolute.update(alias.name.split(".")[0] for alias in node.names)
+            for alias in node.names:
+                if alias.name.split(".")[0] in PROJECT_PACKAGES:
+                    local = alias.asname or alias.name.split(".")[0]
+                    bound[local] = alias.name if alias.asname else alias.name.split(".")[0]
         elif isinstance(node, ast.ImportFrom):
             if not node.level and node.module:
                 absolute.add(node.module.split(".")[0])
@@ -211,19 +262,32 @@ def _parse_module(name: str, path_str: str, root_str: str, source: bytes) -> _Mo
                 base = ".".join([*anchor, *([node.module] if node.module else [])])
             else:
                 base = node.module or ""
-            found.add(base)
+            into.add(base)
             # ``from pkg import mod`` imports the submodule ``pkg.mod``
             for alias in node.names:
                 if _module_file(f"{base}.{alias.name}", root) is not None:
-                    found.add(f"{base}.{alias.name}")
-    out: set[str] = set()
-    for mod in found:
-        if mod.split(".")[0] in PROJECT_PACKAGES:
-            out.update(m for m in _with_parents(mod) if _module_file(m, root) is not None)
+                    into.add(f"{base}.{alias.name}")
+                else:
+                    requests.add((base, alias.name))
+        elif isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
+            attributes.append(node)
+    for node in attributes:  # ``m.name`` after ``import m`` (project modules only)
+        module = bound.get(node.value.id)  # type: ignore[attr-defined]
+        if module is not None and (module, node.attr) not in requests:
+            if _module_file(f"{module}.{node.attr}", root) is None:
+                requests.add((module, node.attr))
+    out = _project_modules(found, root)
+    lazy = _project_modules(found_lazy, root) - out
     dump = ast.dump(tree, annotate_fields=True, include_attributes=False)  # as syntax_dump
     syntax = hashlib.sha256(dump.encode()).hexdigest()
-    packages = frozenset(absolute - set(PROJECT_PACKAGES))
-    return _ModuleSyntax(imports=frozenset(out), packages=packages, syntax_sha256=syntax)
+    return _ModuleSyntax(
+        imports=frozenset(out),
+        lazy=frozenset(lazy),
+        requests=frozenset(r for r in requests if r[0].split(".")[0] in PROJECT_PACKAGES),
+        defined=frozenset(_top_level_names(tree.body) | _MODULE_ATTRIBUTES),
+        packages=frozenset(absolute - set(PROJECT_PACKAGES)),
+        syntax_sha256=syntax,
+    )
 
 
 @cache
@@ -232,7 +296,12 @@ def module_closure(roots: tuple[str, ...], root: str | None = None) -> tuple[str
 
     An AST walk over the import statements (top level and inside functions)
     of the project packages :data:`PROJECT_PACKAGES`; third-party imports are
-    ignored. Cached: computed once per process.
+    ignored. The imports of a module-level ``__getattr__`` (PEP 562, as
+    ``tumor3d/__init__.py`` imports :mod:`tumor3d.api` on first use of
+    ``tumor3d.reconstruct``) count only when a module of the closure asks
+    that module for a name its top level does not bind (``from tumor3d
+    import reconstruct``, ``tumor3d.reconstruct``): importing ``tumor3d``
+    does not run them. Cached: computed once per process.
 
     Parameters
     ----------
@@ -253,21 +322,28 @@ def module_closure(roots: tuple[str, ...], root: str | None = None) -> tuple[str
         If a root module has no source file under ``root``.
     """
     base = Path(root) if root is not None else PROJECT_ROOT
-    seen: set[str] = set()
+    seen: dict[str, _ModuleSyntax] = {}
     todo: list[str] = []
     for name in roots:
         if _module_file(name, base) is None:
             raise ValueError(f"cannot locate the source of module {name!r} under {base}")
         todo.extend(_with_parents(name))
     while todo:
-        name = todo.pop()
-        if name in seen:
-            continue
-        path = _module_file(name, base)
-        if path is None:
-            continue
-        seen.add(name)
-        todo.extend(_imports_of(name, path, base) - seen)
+        while todo:
+            name = todo.pop()
+            if name in seen:
+                continue
+            path = _module_file(name, base)
+            if path is None:
+                continue
+            seen[name] = _parse_module(name, str(path), str(base), path.read_bytes())
+            todo.extend(seen[name].imports - seen.keys())
+        # a package's lazy imports (PEP 562 ``__getattr__``) run when a module of the
+        # closure asks it for a name its top level does not bind
+        for module, name in {r for info in seen.values() for r in info.requests}:
+            info = seen.get(module)
+            if info is not None and name not in info.defined:
+                todo.extend(info.lazy - seen.keys())
     return tuple(sorted(seen))
 
 

@@ -88,6 +88,29 @@ def test_closure_follows_the_imports_the_old_table_missed():
         assert "storage.nifti" in stage.code_modules, stage.name
 
 
+def test_closure_holds_a_packages_lazy_imports_only_when_asked_for_a_lazy_name(package_copy):
+    # tumor3d/__init__.py imports tumor3d.api in its PEP 562 __getattr__ (on the first use
+    # of tumor3d.reconstruct): `import tumor3d` alone does not run it, so a stage whose
+    # code never asks for it does not hold the whole package (issue 31: the right keys move)
+    root = str(package_copy)
+    probes = {
+        "plain": "import tumor3d\n\nVERSION = tumor3d.__version__\n",
+        "from_import": "def run(x):\n    from tumor3d import reconstruct\n\n"
+                       "    return reconstruct(x)\n",
+        "attribute": "import tumor3d\n\n\ndef run(x):\n    return tumor3d.reconstruct(x)\n",
+        "aliased": "import tumor3d as t3\n\n\ndef run(x):\n    return t3.Reconstruction\n",
+    }  # fmt: skip
+    for name, text in probes.items():
+        (package_copy / "tasks" / f"probe_{name}.py").write_text(text)
+    closures = {n: module_closure((f"tasks.probe_{n}",), root) for n in probes}
+    assert "tumor3d.api" not in closures["plain"]
+    for name in ("from_import", "attribute", "aliased"):
+        assert "tumor3d.api" in closures[name], name
+        assert "tumor3d.scan" in closures[name], name  # and what the api imports
+    for spec in STAGES.values():  # no stage asks for the lazy names today
+        assert "tumor3d.api" not in spec.code_modules, spec.name
+
+
 def test_closure_rejects_unknown_module():
     with pytest.raises(ValueError, match="cannot locate"):
         module_closure(("tasks.no_such_adapter",))
