@@ -235,3 +235,19 @@ def test_a_default_folder_of_the_same_name_is_not_taken_as_current(published, tm
     assert not again.up_to_date
     assert (tmp_path / "sub-bp1" / "anat" / "sub-bp1_desc-tumor_mask.nii.gz").is_file()
     assert not (tmp_path / "sub-bp1" / "tumor_mask.nii.gz").exists()
+
+
+def test_the_cohort_command_refuses_an_id_that_is_no_label_in_one_line(published, tmp_path):
+    image, _, _, _ = published
+    manifest = tmp_path / "m.csv"
+    manifest.write_text(f"patient_id,image,modality\nok1,{image},t2\npat_2,{image},t2\n")
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        app, ["cohort", str(manifest), "--out", str(out), "--layout", "bids"]
+    )
+    assert result.exit_code == 2, result.output
+    assert "manifest row 2: patient id 'pat_2' is not a BIDS participant label" in result.output
+    assert "Traceback" not in result.output
+    assert not out.exists() or not [p for p in out.iterdir() if not p.name.startswith(".")]
+    bad = CliRunner().invoke(app, ["cohort", str(manifest), "--out", str(out), "--layout", "x"])
+    assert bad.exit_code == 2 and "--layout must be one of default, bids" in bad.output
