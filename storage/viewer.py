@@ -566,7 +566,16 @@ id="t3d-radiological"{radiological_checked}> radiological</label>
       nv.setOpacity(brainIdx, brainBox.checked ? 0.35 : 0);
     }});
     var where = document.getElementById("t3d-where");
-    nv.onLocationChange = function (loc) {{ where.textContent = loc.string || ""; }};
+    // the cursor: RAS millimetres, the display intensity and the masks at that voxel
+    nv.onLocationChange = function (loc) {{
+      var mm = Array.prototype.slice.call(loc.mm || [], 0, 3), v = loc.values || [];
+      var text = "cursor RAS " + mm.map(function (c) {{ return c.toFixed(1); }}).join(", ") +
+        " mm";
+      if (v[0]) text += "; MR " + Math.round(v[0].value);
+      if (v[1]) text += "; tumour mask: " + (v[1].value > 0 ? "yes" : "no");
+      if (brainIdx >= 0 && v[2]) text += "; brain mask: " + (v[2].value > 0 ? "yes" : "no");
+      where.textContent = text;
+    }};
     centre();
     document.getElementById("t3d-centre").addEventListener("click", centre);
     status.textContent = "Red: the tumour mask on the MR slices" +

@@ -296,8 +296,15 @@ def _publish(tmp_path: Path, page: str) -> Path:
 
 
 @needs_chromium
+def _cursor(dom: str) -> str:
+    m = re.search(r'<span id="t3d-where">([^<]*)</span>', dom)
+    assert m is not None
+    return html.unescape(m.group(1))
+
+
 def test_viewer_shows_the_mask_on_three_planes_beside_the_3d_view(head, tmp_path):
-    shown = open_page(_publish(tmp_path, _page(head)), tmp_path, size=(1000, 800))
+    page = _page(head)
+    shown = open_page(_publish(tmp_path, page), tmp_path, size=(1000, 800))
     assert shown.js_errors == []
     assert serious_console_messages(shown.console) == []
     status = _status(shown.dom)
@@ -306,6 +313,10 @@ def test_viewer_shows_the_mask_on_three_planes_beside_the_3d_view(head, tmp_path
     assert int(status["data-tumour-voxels"]) == int(head["tumour"].sum())
     assert int(status["data-brain-voxels"]) == int(head["brain"].sum())
     assert status["data-meshes"] == "tumour surface,brain surface"
+    # the view opens on the tumour: the cursor's voxel is in both masks, at the centre given
+    centre = ", ".join(f"{c:.1f}" for c in _embedded(page)["centre_mm"])
+    assert _cursor(shown.dom).startswith(f"cursor RAS {centre} mm; MR ")
+    assert _cursor(shown.dom).endswith("; tumour mask: yes; brain mask: yes")
     tiles = {t["plane"]: t["box"] for t in json.loads(status["data-tiles"])}
     assert set(tiles) == {"axial", "coronal", "sagittal", "3-D"}
     red = _red(shown.screenshot)
@@ -337,6 +348,7 @@ def test_without_a_tumour_no_plane_shows_red(head, tmp_path):
     assert shown.js_errors == []
     status = _status(shown.dom)
     assert status["data-state"] == "ready" and status["data-tumour-voxels"] == "0"
+    assert _cursor(shown.dom).endswith("; tumour mask: no; brain mask: yes")  # in the brain
     tiles = json.loads(status["data-tiles"])
     red = _red(shown.screenshot)
     for t in tiles:
