@@ -275,6 +275,13 @@ def _status(dom: str) -> dict[str, str]:
     return {k: html.unescape(v) for k, v in re.findall(r'(data-[\w-]+)="([^"]*)"', m.group(1))}
 
 
+def _status_text(dom: str) -> str:
+    """What the status element says (not the page's script, which holds every message)."""
+    m = re.search(r'<p id="t3d-status"[^>]*>(.*?)</p>', dom, flags=re.S)
+    assert m is not None
+    return html.unescape(m.group(1))
+
+
 def _red(img: np.ndarray) -> np.ndarray:
     """The tumour overlay's colour: red well above green and blue."""
     rgb = img.astype(int)
@@ -364,8 +371,23 @@ def test_a_page_moved_out_of_its_output_folder_says_what_it_misses(head, tmp_pat
     shown = open_page(path, tmp_path, budget_ms=3000)
     status = _status(shown.dom)
     assert status["data-state"] == "error"
-    assert f"../_assets/{NIIVUE_FILE}" in shown.dom and "is missing" in shown.dom
+    said = _status_text(shown.dom)
+    assert f"../_assets/{NIIVUE_FILE}" in said and "is missing" in said
     assert "t3d-gl" in shown.dom and 'id="t3d-pane" style="display: none;"' in shown.dom
+
+
+@needs_chromium
+def test_a_browser_without_webgl2_says_so(head, tmp_path):
+    no_webgl2 = (
+        "<head><script>var g = HTMLCanvasElement.prototype.getContext;"
+        "HTMLCanvasElement.prototype.getContext = function (t, o) {"
+        "return t === 'webgl2' ? null : g.call(this, t, o); };</script>"
+    )
+    path = _publish(tmp_path, _page(head).replace("<head>", no_webgl2, 1))
+    shown = open_page(path, tmp_path, budget_ms=3000)
+    assert shown.js_errors == []
+    assert _status(shown.dom)["data-state"] == "error"
+    assert "it needs WebGL2" in _status_text(shown.dom)
 
 
 @needs_chromium
