@@ -82,6 +82,8 @@ class ServerInfo:
     api_url: str
     log: str = ""
     started_utc: str = ""
+    #: The warm command runner beside it (:mod:`flows.daemon`), 0 if none.
+    runner_pid: int = 0
 
 
 @dataclass(frozen=True)
@@ -104,6 +106,11 @@ class ServerStatus:
             return f"no tumor3d Prefect server running (state file {self.state_file} absent)"
         i = self.info
         where = f"pid {i.pid}, {i.api_url}, log {i.log}"
+        if i.runner_pid:
+            from flows.daemon import DAEMON_MODULE
+
+            alive = _pid_is_our_server(i.runner_pid, DAEMON_MODULE)
+            where += f"; runner pid {i.runner_pid} ({'up' if alive else 'gone'})"
         return {
             "running": f"running and healthy: {where}",
             "unhealthy": f"process alive but the API does not answer /health: {where}",
@@ -137,8 +144,8 @@ def _write_state(info: ServerInfo) -> None:
     os.replace(tmp, path)
 
 
-def _pid_is_our_server(pid: int) -> bool:
-    """The process exists and (where /proc can tell) runs this server module."""
+def _pid_is_our_server(pid: int, module: str = SERVER_MODULE) -> bool:
+    """The process exists and (where /proc can tell) runs ``module`` (this server's)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -153,7 +160,7 @@ def _pid_is_our_server(pid: int) -> bool:
             return True
         if not args or not args[0]:  # a zombie
             return False
-        return SERVER_MODULE.encode() in args
+        return module.encode() in args
     return True
 
 
@@ -211,6 +218,42 @@ def _spawn(port: int, *, parent: int | None, ephemeral: bool, log: Path | None) 
             out.close()
 
 
+def _spawn_runner(log: Path) -> int:
+    """Start the warm command runner (:mod:`flows.daemon`) in the background; its pid.
+
+    Same environment as the server's command (so a later command in it is
+    served), own session, output appended to ``log``.
+    """
+    from flows.daemon import DAEMON_MODULE
+
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(_PROJECT_ROOT), *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])]
+    )
+    with open(log, "ab") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", DAEMON_MODULE],
+            env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
+            start_new_session=True, cwd=str(_PROJECT_ROOT),
+        )  # fmt: skip
+    return proc.pid
+
+
+def _stop_runner(pid: int) -> None:
+    from flows.daemon import DAEMON_MODULE, socket_path
+
+    if pid > 0 and _pid_is_our_server(pid, DAEMON_MODULE):
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGTERM)
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and _pid_is_our_server(pid, DAEMON_MODULE):
+            with contextlib.suppress(ChildProcessError):
+                if os.waitpid(pid, os.WNOHANG)[0] == pid:
+                    break
+            time.sleep(0.05)
+    socket_path().unlink(missing_ok=True)
+
+
 def _wait_healthy(proc: subprocess.Popen, api_url: str, timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -265,7 +308,10 @@ def start_server(
     if status.state == "running" and status.info is not None:
         return status.info, False
     if status.state == "unhealthy" and status.info is not None:
+        _stop_runner(status.info.runner_pid)
         _terminate(status.info.pid)
+    elif status.state == "stale" and status.info is not None:
+        _stop_runner(status.info.runner_pid)
     folder = state_dir()
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -285,12 +331,17 @@ def start_server(
     except ServerError:
         _state_file().unlink(missing_ok=True)
         raise
+    if not os.environ.get("TUMOR3D_NO_DAEMON"):  # the warm runner of run/demo
+        info = ServerInfo(**{**asdict(info), "runner_pid": _spawn_runner(folder / "runner.log")})
+        _write_state(info)
     return info, True
 
 
 def stop_server() -> ServerStatus:
     """Stop the background server and remove its state file; returns the status before."""
     status = server_status()
+    if status.info is not None:
+        _stop_runner(status.info.runner_pid)
     if status.info is not None and status.state in ("running", "unhealthy"):
         _terminate(status.info.pid)
     _state_file().unlink(missing_ok=True)
