@@ -15,9 +15,14 @@ TUMOR3D_DATA_DIR ?= ../shared/data
 demo: setup
 	$(BIN)/tumor3d demo --out $(DEMO_OUT); rc=$$?; [ $$rc -eq 0 ] || [ $$rc -eq 4 ] || exit $$rc
 
-# The test suite plus the doctests of every package (examples in docstrings must run).
+# The test suite plus the doctests of every package (examples in docstrings must run),
+# in TEST_WORKERS processes (pytest-xdist). A whole file goes to one worker
+# (--dist loadfile): its module fixtures (a flow run that several tests inspect) run
+# once; each worker has its own Prefect home and test server (tests/conftest.py).
+# TEST_WORKERS=0 runs everything in this process.
+TEST_WORKERS ?= 2
 test: setup
-	$(BIN)/python -m pytest -q tests --doctest-modules tumor3d storage tasks flows
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile tests --doctest-modules tumor3d storage tasks flows
 
 setup: system-deps $(STAMP)
 

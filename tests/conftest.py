@@ -4,6 +4,13 @@ Prefect runs against a throw-away home folder (never the user's
 ~/.prefect), with analytics off; flow tests share one temporary Prefect
 server started by ``prefect_test_harness`` with a generous start-up timeout.
 These variables must be set before Prefect is first imported.
+
+Under pytest-xdist (``make test``: ``-n 2 --dist loadfile``) every worker is its
+own process that imports this file: its own Prefect home, its own test server,
+its own temporary folders. The numba kernels are read from the cache that
+``python -m tumor3d.warmup`` filled at install time (numba writes a cache entry
+to a temporary file and renames it, so two workers compiling one kernel do not
+corrupt it).
 """
 
 from __future__ import annotations
@@ -30,6 +37,18 @@ def prefect_harness():
 
     with prefect_test_harness(server_startup_timeout=PREFECT_STARTUP_TIMEOUT_S):
         yield
+
+
+def pytest_collection_modifyitems(config, items):
+    """The files with end-to-end (``slow``) tests run first, each file in its own order.
+
+    With ``--dist loadfile`` a worker takes whole files as it frees up: the long
+    files first and the many short ones after them keep both workers busy to the
+    end (a long file started last would leave the other worker idle). Every
+    worker collects the same items and sorts them the same way.
+    """
+    slow_files = {item.path for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.path not in slow_files)  # stable: file order kept
 
 
 def pytest_sessionfinish(session, exitstatus):
