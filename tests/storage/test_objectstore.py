@@ -164,6 +164,17 @@ def _rows(folder, seeds):
     return rows
 
 
+@pytest.fixture(scope="module")
+def local_pair(tmp_path_factory, prefect_harness):
+    """Phantoms s3p0 and s3p1 and their cohort with a local store and a local ``--out``:
+    the reference that the S3 runs of several tests must equal (only read by them)."""
+    folder = tmp_path_factory.mktemp("s3-local")
+    rows = _rows(folder / "in", [0, 1])
+    local = run_cohort(rows, folder / "local", workers=2)
+    assert local.exit_code == 0, [p.error for p in local.patients]
+    return rows, local, folder / "local"
+
+
 def test_an_unreachable_endpoint_fails_in_one_line_before_any_patient(
     s3_endpoint, tmp_path, monkeypatch
 ):
@@ -317,9 +328,10 @@ def test_a_corrupted_object_is_detected_after_the_copy_and_after_publication(
 
 @pytest.mark.slow
 @pytest.mark.usefixtures("prefect_harness")
-def test_cohort_with_an_s3_store_matches_a_local_store_and_reruns_from_cache(s3_endpoint, tmp_path):
-    rows = _rows(tmp_path / "in", [0, 1])
-    local = run_cohort(rows, tmp_path / "local", workers=2)
+def test_cohort_with_an_s3_store_matches_a_local_store_and_reruns_from_cache(
+    s3_endpoint, local_pair, tmp_path
+):
+    rows, local, _ = local_pair
     url = f"s3://{BUCKET}/cohort"
     first = run_cohort(rows, tmp_path / "out", workers=2, store_dir=url)
     assert first.exit_code == 0
@@ -361,7 +373,7 @@ def test_dask_worker_processes_share_the_s3_store_and_its_cache(s3_endpoint, tmp
 @pytest.mark.slow
 @pytest.mark.usefixtures("prefect_harness")
 def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patients(
-    s3_endpoint, tmp_path, monkeypatch
+    s3_endpoint, local_pair, tmp_path, monkeypatch
 ):
     """``--out s3://``: every patient's objects are the bytes of its local staging folder
     (captured as handed to the uploader), the same files and deterministic bytes as a
@@ -380,9 +392,8 @@ def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patient
         }
         return real(folder, url, **kwargs)
 
+    rows, local, local_out = local_pair
     monkeypatch.setattr(patient_mod, "publish_folder", spy)
-    rows = _rows(tmp_path / "in", [0, 1])
-    local = run_cohort(rows, tmp_path / "local", workers=2)
     url = f"s3://{BUCKET}/outs"
     first = run_cohort(rows, url, workers=2)
     assert first.exit_code == 0, [p.error for p in first.patients]
@@ -397,7 +408,7 @@ def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patient
         for rel, data in files.items():
             assert _body(s3_endpoint, f"outs/{pid}/{rel}") == data, rel
         assert verify_folder(out, pid) == []
-        local_dir = tmp_path / "local" / pid
+        local_dir = local_out / pid
         local_files = {
             p.relative_to(local_dir).as_posix() for p in local_dir.rglob("*") if p.is_file()
         }
@@ -458,18 +469,20 @@ def test_run_with_an_s3_output_or_store_writes_the_bucket_not_a_local_folder(
 
 @pytest.mark.slow
 @pytest.mark.usefixtures("prefect_harness")
-def test_a_fully_cached_cohort_rerun_to_s3_uploads_no_patient_object(s3_endpoint, tmp_path):
-    rows = _rows(tmp_path / "in", [4, 5])
+def test_a_fully_cached_cohort_rerun_to_s3_uploads_no_patient_object(s3_endpoint, local_pair):
+    # the first publish to S3 takes its stages from the local reference run's store (what
+    # it uploads is not the question here); the re-run after it must upload nothing
+    rows, _, local_out = local_pair
+    store = local_out / ".tumor3d-store"
     url = f"s3://{BUCKET}/again"
-    first = run_cohort(rows, url, workers=1, store_dir=tmp_path / "st")
+    first = run_cohort(rows, url, workers=1, store_dir=store)
     assert first.exit_code in (0, 4)
     before = {k: v for k, v in _stamps(s3_endpoint, "again/").items() if "/s3p" in f"/{k}"}
     assert len(before) > 2 * 5
     time.sleep(1.1)  # LastModified has a resolution of a second
-    again = run_cohort(rows, url, workers=1, store_dir=tmp_path / "st")
+    again = run_cohort(rows, url, workers=1, store_dir=store)
     assert all(s.cached for p in again.patients for s in p.stages)
     after = {k: v for k, v in _stamps(s3_endpoint, "again/").items() if "/s3p" in f"/{k}"}
     assert after == before  # no object of a patient's folder rewritten
     for p in again.patients:
         assert verify_folder(RemoteFolder(url), p.patient_id) == []
-
