@@ -455,15 +455,17 @@ def test_summary_artifacts_are_on_the_patient_flow_run(first_run):
     assert f"| Eq. 7 (slices) | {row['volume_eq7_mm3']:,.1f} | {row['volume_eq7_ml']:.3f} |" in md
 
 
-def test_run_name_is_the_patient_id_derived_from_the_file(nifti_input, tmp_path):
+def test_run_name_is_the_patient_id_derived_from_the_file(nifti_input, first_run, tmp_path):
     """Issue 33: the run is named after the id it publishes under, not the file name."""
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterName
 
-    result = run_patient(nifti_input, tmp_path / "out")  # no --patient-id: from the name
+    store = str(first_run[0] / ".tumor3d-store")  # the stages from the first run's cache
+    result = run_patient(nifti_input, tmp_path / "out", store_dir=store)  # id from the name
     assert result.patient_id == "flowpat_t2" and nifti_input.name == "flowpat_t2.nii.gz"
     with get_client(sync_client=True) as client:
-        names = FlowRunFilter(name=FlowRunFilterName(any_=["patient-flowpat_t2",
-                                                           "patient-flowpat_t2.nii.gz"]))
+        names = FlowRunFilter(
+            name=FlowRunFilterName(any_=["patient-flowpat_t2", "patient-flowpat_t2.nii.gz"])
+        )
         runs = client.read_flow_runs(flow_run_filter=names)
     assert {r.name for r in runs} == {"patient-flowpat_t2"}
