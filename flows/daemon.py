@@ -60,12 +60,21 @@ def socket_path() -> Path:
 def code_fingerprint(root: Path = _ROOT) -> str:
     """Paths, sizes and modification times of the project's files (a few ms).
 
-    Every ``.py`` file and shipped model of the packages: any edit, install
-    or checkout changes it, so a runner started before it is not used.
+    Every ``.py`` file and shipped model of the packages, and the
+    site-packages folders (a package installed, upgraded or removed): any
+    edit, install or checkout changes it, so a runner started before it is
+    not used.
     """
     import hashlib
 
     h = hashlib.sha256()
+    import sysconfig
+
+    for where in {sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]}:
+        try:  # a package installed, upgraded or removed changes its folder's entries
+            h.update(f"{where}\0{os.stat(where).st_mtime_ns}\n".encode())
+        except OSError:
+            pass
     for pkg in _PACKAGES:
         base = root / pkg
         if not base.is_dir():
@@ -241,6 +250,9 @@ def _child(conn: socket.socket, hello: dict, fds: list[int]) -> None:  # pragma:
         os.chdir(hello["cwd"])
         sys.argv = ["tumor3d", *hello["argv"]]
         _send(conn, {"accepted": True, "pid": os.getpid()})
+        from flows.server import EXIT_HOOKS
+
+        EXIT_HOOKS.append(lambda c: _send(conn, {"exit": int(c)}))
         import atexit
 
         from rich.console import Console

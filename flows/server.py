@@ -414,17 +414,21 @@ def prefect_api(on_temporary_start: Callable[[], None] | None = None) -> Iterato
     """Run the body against a Prefect API; yields where it is (see the module docstring).
 
     ``on_temporary_start`` is called (to print a message) only when a
-    temporary server is really started.
+    temporary server is really started. While the body runs, a server that
+    goes away (nothing listens on its port any more: killed, stopped) ends
+    the command with one line and exit code 3 (:func:`_watch_server`)
+    instead of minutes of Prefect's retries and tracebacks.
     """
     configured = _configured_api_url()
     if configured:
         check_configured_api()
-        yield configured
+        with _watch_server(configured):
+            yield configured
         return
     status = server_status()
     if status.state == "running" and status.info is not None:
         # its clients were made for this URL: they drain at exit on their own
-        with _use_api(status.info.api_url, drain=False):
+        with _use_api(status.info.api_url, drain=False), _watch_server(status.info.api_url):
             yield status.info.api_url
         return
     if on_temporary_start is not None:
@@ -434,10 +438,68 @@ def prefect_api(on_temporary_start: Callable[[], None] | None = None) -> Iterato
     proc = _spawn(port, parent=os.getpid(), ephemeral=True, log=None)
     try:
         _wait_healthy(proc, api_url, _startup_timeout_s())
-        with _use_api(api_url, drain=True):
+        with _use_api(api_url, drain=True), _watch_server(api_url):
             yield api_url
     finally:
         _terminate(proc.pid, grace_s=5.0)
+
+
+#: Called with the exit code just before a command ends because its server went away
+#: (the warm runner's copy reports the code to its client).
+EXIT_HOOKS: list[Callable[[int], None]] = []
+#: Seconds between two looks at the server's port, and refusals in a row that end the command.
+_WATCH_PERIOD_S, _WATCH_REFUSALS = 1.0, 3
+
+
+def _refused(api_url: str) -> bool:
+    """True only if nothing listens on the API's port (a slow server is not refused)."""
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(api_url)
+    port = parts.port or (443 if parts.scheme == "https" else 80)
+    try:
+        with socket.create_connection((parts.hostname or "127.0.0.1", port), timeout=5.0):
+            return False
+    except ConnectionRefusedError:
+        return True
+    except OSError:  # a timeout, an unreachable network for a moment: not proof
+        return False
+
+
+@contextlib.contextmanager
+def _watch_server(api_url: str) -> Iterator[None]:
+    """End the command (one line, exit 3) if the server stops listening while the body runs.
+
+    Prefect's clients retry a vanished server for minutes, printing each
+    retry, then fail with tracebacks. Nothing is left half-published: a
+    patient folder is swapped in whole or not at all, and a re-run continues
+    from the cache.
+    """
+    stop = threading.Event()
+
+    def watch() -> None:
+        refusals = 0
+        while not stop.wait(_WATCH_PERIOD_S):
+            refusals = refusals + 1 if _refused(api_url) else 0
+            if refusals >= _WATCH_REFUSALS and not stop.is_set():
+                with contextlib.suppress(Exception):
+                    sys.stderr.write(
+                        f"error: the Prefect server {api_url} stopped answering during the "
+                        "command (results published before it are complete; a re-run "
+                        "continues from the cache)\n"
+                    )
+                    sys.stderr.flush()
+                for hook in EXIT_HOOKS:
+                    with contextlib.suppress(Exception):
+                        hook(3)
+                os._exit(3)
+
+    thread = threading.Thread(target=watch, name="tumor3d-server-watch", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
 
 
 # ---------------------------------------------------------------- the server process

@@ -1,0 +1,56 @@
+"""A Prefect server that goes away during a command ends it in one line, exit 3 (issue 29).
+
+Prefect's clients retried a killed background server for about 170 s, then
+failed with two tracebacks. :func:`flows.server._watch_server` looks at the
+server's port while the command runs; nothing listening there three times in
+a row ends the command. Run in a child process (it ends with ``os._exit``),
+against a plain TCP listener standing in for the server.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+SCRIPT = """
+import socket, sys, time
+import flows.server as s
+s._WATCH_PERIOD_S = 0.2
+srv = socket.socket(); srv.bind(("127.0.0.1", 0)); srv.listen(8)
+port = srv.getsockname()[1]
+s.EXIT_HOOKS.append(lambda code: print(f"hook {code}", flush=True))
+with s._watch_server(f"http://127.0.0.1:{port}/api"):
+    time.sleep(1.5)            # the server answers: nothing happens
+    if sys.argv[1] == "kill":
+        srv.close()            # the server goes away
+    time.sleep(8)
+print("body finished", flush=True)
+"""
+
+
+def _run(mode: str):
+    t0 = time.monotonic()
+    res = subprocess.run(
+        [sys.executable, "-c", SCRIPT, mode], capture_output=True, text=True, timeout=60,
+        cwd=str(ROOT),
+    )  # fmt: skip
+    return res, time.monotonic() - t0
+
+
+def test_a_vanished_server_ends_the_command_in_one_line():
+    res, wall = _run("kill")
+    assert res.returncode == 3, res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "stopped answering" in lines[0], res.stderr
+    assert "hook 3" in res.stdout and "body finished" not in res.stdout
+    assert wall < 8  # well before the body's own end
+
+
+def test_a_server_that_stays_is_left_alone():
+    res, _ = _run("keep")
+    assert res.returncode == 0, res.stderr
+    assert "body finished" in res.stdout and res.stderr.strip() == ""
