@@ -111,7 +111,7 @@ def _slot(F, f, v):  # pragma: no cover - numba
     return -1
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _gather_star(v, F, face_alive, head, nxt, out):  # pragma: no cover - numba
     """Write the live faces around ``v`` into ``out``; return their number.
 
@@ -246,7 +246,7 @@ def _sum_sq_edges(p0x, p0y, p0z, p1x, p1y, p1z, p2x, p2y, p2z):  # pragma: no co
 # ---------------------------------------------------------------------------
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _check_star_geometry(
     i, j, px, py, pz, V, F, star, n, want_cost, min_quality
 ):  # pragma: no cover - numba
@@ -297,7 +297,81 @@ def _check_star_geometry(
     return True, cost, sq
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _star_table(i, V, F, star, n, gab, gs):  # pragma: no cover - numba
+    """Opposite vertices ``(a, b)``, their positions and ``n(t)`` of each face around ``v_i``.
+
+    The per-face quantities of :func:`_check_star_geometry` that do not depend on
+    ``v_j`` (the same operations, so the same bits), computed once per popped vertex.
+    """
+    vix = V[i, 0]
+    viy = V[i, 1]
+    viz = V[i, 2]
+    for k in range(n):
+        f = star[k]
+        r = _slot(F, f, i)
+        a = F[f, (r + 1) % 3]
+        b = F[f, (r + 2) % 3]
+        gab[k, 0] = a
+        gab[k, 1] = b
+        ax = V[a, 0]
+        ay = V[a, 1]
+        az = V[a, 2]
+        bx = V[b, 0]
+        by = V[b, 1]
+        bz = V[b, 2]
+        gs[k, 0] = ax
+        gs[k, 1] = ay
+        gs[k, 2] = az
+        gs[k, 3] = bx
+        gs[k, 4] = by
+        gs[k, 5] = bz
+        n0x, n0y, n0z = _tri_normal(vix, viy, viz, ax, ay, az, bx, by, bz)
+        gs[k, 6] = n0x
+        gs[k, 7] = n0y
+        gs[k, 8] = n0z
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _star_geometry_table(
+    j, vix, viy, viz, px, py, pz, gab, gs, n, min_quality
+):  # pragma: no cover - numba
+    """:func:`_check_star_geometry` (``want_cost``) on the table of :func:`_star_table`."""
+    cost = 0.0
+    sq = 0.0
+    for k in range(n):
+        if gab[k, 0] == j or gab[k, 1] == j:
+            continue
+        ax = gs[k, 0]
+        ay = gs[k, 1]
+        az = gs[k, 2]
+        bx = gs[k, 3]
+        by = gs[k, 4]
+        bz = gs[k, 5]
+        n0x = gs[k, 6]
+        n0y = gs[k, 7]
+        n0z = gs[k, 8]
+        n1x, n1y, n1z = _tri_normal(px, py, pz, ax, ay, az, bx, by, bz)
+        if n0x * n1x + n0y * n1y + n0z * n1z <= 0.0:
+            return False, 0.0, 0.0
+        l2 = _sum_sq_edges(px, py, pz, ax, ay, az, bx, by, bz)
+        norm1 = math.sqrt(n1x * n1x + n1y * n1y + n1z * n1z)
+        if not norm1 > 1e-12 * l2:
+            return False, 0.0, 0.0
+        s_new = _SQRT3x4 * 0.5 * norm1 / l2
+        if s_new < min_quality:
+            l2o = _sum_sq_edges(vix, viy, viz, ax, ay, az, bx, by, bz)
+            norm0 = math.sqrt(n0x * n0x + n0y * n0y + n0z * n0z)
+            s_old = _SQRT3x4 * 0.5 * norm0 / l2o if l2o > 0.0 else 0.0
+            if s_new < s_old:
+                return False, 0.0, 0.0
+        vol = abs((px - vix) * n0x + (py - viy) * n0y + (pz - viz) * n0z) / 6.0
+        cost += vol * (1.0 - s_new)
+        sq += 1.0 - s_new
+    return True, cost, sq
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _prepare_i(i, F, face_alive, head, nxt, mark, stamp, si):  # pragma: no cover - numba
     """Gather the star of ``v_i`` into ``si`` and stamp its neighbours; return ``(n_i, stamp)``."""
     ni = _gather_star(i, F, face_alive, head, nxt, si)
@@ -311,7 +385,7 @@ def _prepare_i(i, F, face_alive, head, nxt, mark, stamp, si):  # pragma: no cove
     return ni, s1
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _check_topology_j(
     i, ni, si, s1, j, F, face_alive, locked, head, nxt, mark, sj, max_star
 ):  # pragma: no cover - numba
@@ -391,6 +465,14 @@ def _check_collapse_j(
 def _collapse(i, j, px, py, pz, V, F, face_alive, vertex_alive, head, nxt, buf):  # pragma: no cover
     """Collapse ``v_i -> v_j`` and put ``v_j`` at p; return the number of faces removed."""
     n = _gather_star(i, F, face_alive, head, nxt, buf)
+    return _collapse_star(i, j, px, py, pz, V, F, face_alive, vertex_alive, head, nxt, buf, n)
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _collapse_star(
+    i, j, px, py, pz, V, F, face_alive, vertex_alive, head, nxt, buf, n
+):  # pragma: no cover - numba
+    """:func:`_collapse` with the star of ``v_i`` already gathered in ``buf[:n]``."""
     removed = 0
     for k in range(n):
         f = buf[k]
@@ -411,7 +493,7 @@ def _collapse(i, j, px, py, pz, V, F, face_alive, vertex_alive, head, nxt, buf):
     return removed
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _neighbours(v, F, star, n, out):  # pragma: no cover - numba
     """Neighbours of a fan vertex: the vertex after ``v`` in each face of its star."""
     for k in range(n):
@@ -517,7 +599,7 @@ def _vless(ka, va, kb, vb):  # pragma: no cover - numba
     return va < vb
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _vheap_up(hk, hv, pos, p, key, v):  # pragma: no cover - numba
     """Move the hole at ``p`` up until ``(key, v)`` fits, and put it there."""
     while p > 0:
@@ -534,7 +616,7 @@ def _vheap_up(hk, hv, pos, p, key, v):  # pragma: no cover - numba
     pos[v] = p
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _vheap_down(hk, hv, pos, size, p, key, v):  # pragma: no cover - numba
     """Move the hole at ``p`` down until ``(key, v)`` fits, and put it there."""
     while True:
@@ -555,7 +637,7 @@ def _vheap_down(hk, hv, pos, size, p, key, v):  # pragma: no cover - numba
     pos[v] = p
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _vheap_remove(hk, hv, pos, size, v):  # pragma: no cover - numba
     """Remove ``v`` (which must be in the heap); return the new size."""
     p = pos[v]
@@ -572,7 +654,7 @@ def _vheap_remove(hk, hv, pos, size, v):  # pragma: no cover - numba
     return size
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _vheap_set(hk, hv, pos, size, v, key):  # pragma: no cover - numba
     """Insert ``v`` with ``key``, or change its key; return the new size."""
     p = pos[v]
@@ -591,7 +673,7 @@ def _vheap_set(hk, hv, pos, size, v, key):  # pragma: no cover - numba
 # ---------------------------------------------------------------------------
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _curvature_at(v, V, F, star, n, fbuf, ibuf):  # pragma: no cover - numba
     """Discrete Gaussian ``K`` and mean ``H`` curvature at a fan vertex [Dyn01].
 
@@ -712,6 +794,8 @@ def run_vertex_priority(
     ibuf = np.empty((cap, 2), dtype=np.int64)
     cand_j = np.empty(cap, dtype=np.int64)
     cand_f = np.empty((cap, 3))
+    gab = np.empty((cap, 2), dtype=np.int64)
+    gs = np.empty((cap, 9))
     mark = np.zeros(nv, dtype=np.int64)
     stamp = np.zeros(1, dtype=np.int64)
 
@@ -765,6 +849,11 @@ def run_vertex_priority(
         # the topological checks in order of increasing (cost, sum(1 - S), length, j)
         # ([A24]) until one passes: the same choice as checking every edge, cheaper
         nc = 0
+        if ni <= si.shape[0]:
+            _star_table(vi, V, F, si, ni, gab, gs)
+        vix = V[vi, 0]
+        viy = V[vi, 1]
+        viz = V[vi, 2]
         for k in range(ni):
             j = ring[k]
             if locked[j]:
@@ -772,7 +861,9 @@ def run_vertex_priority(
             px = V[j, 0]
             py = V[j, 1]
             pz = V[j, 2]
-            ok, cost, sq = _check_star_geometry(vi, j, px, py, pz, V, F, si, ni, True, min_quality)
+            ok, cost, sq = _star_geometry_table(
+                j, vix, viy, viz, px, py, pz, gab, gs, ni, min_quality
+            )
             if not ok:
                 continue
             cand_j[nc] = j
@@ -809,9 +900,10 @@ def run_vertex_priority(
         if best_j == -1:
             in_c[vi] = False  # [A23]
             continue
-        n_faces -= _collapse(
+        # the star of v_i is still si[:ni]: the checks only walked v_j's list
+        n_faces -= _collapse_star(
             vi, best_j, V[best_j, 0], V[best_j, 1], V[best_j, 2],
-            V, F, face_alive, vertex_alive, head, nxt, sbuf,
+            V, F, face_alive, vertex_alive, head, nxt, si, ni,
         )  # fmt: skip
         n_collapses += 1
         in_c[vi] = False
