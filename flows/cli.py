@@ -81,7 +81,9 @@ def _main(
     version: Annotated[
         bool,
         typer.Option(
-            "--version", callback=_print_version, is_eager=True,
+            "--version",
+            callback=_print_version,
+            is_eager=True,
             help="Print the installed version and exit.",
         ),
     ] = False,
@@ -370,7 +372,7 @@ def _preflight(
     """
     from storage import bids
     from storage.inputs import input_digest, input_location
-    from storage.objectstore import is_url, open_store
+    from storage.objectstore import default_store_location, is_url, open_store
     from storage.publish import check_destination
     from storage.readers import derive_patient_id, read_scan, suggest_patient_id
     from tumor3d.errors import InputError
@@ -402,11 +404,10 @@ def _preflight(
     from storage.store import ArtifactStore
 
     check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
-    # flows.patient.default_store_dir, without importing Prefect for it
     if store is not None and is_url(store):
         open_store(str(store)).check()  # type: ignore[attr-defined]
     else:
-        ArtifactStore(store if store is not None else out / ".tumor3d-store")
+        ArtifactStore(store if store is not None else default_store_location(out))
 
 
 def _preflight_remote(
@@ -420,7 +421,7 @@ def _preflight_remote(
     **read_kw: Any,
 ) -> None:
     """:func:`_preflight` for an ``s3://`` output: inputs are local, so none can lie in it."""
-    from storage.objectstore import is_url, open_store
+    from storage.objectstore import default_store_location, is_url, open_store
     from storage.readers import read_scan
     from storage.remote_publish import RemoteFolder
     from storage.store import ArtifactStore
@@ -431,7 +432,7 @@ def _preflight_remote(
 
     check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
     RemoteFolder(out).check()  # one line naming the URL
-    at = store if store is not None else f"{out.rstrip('/')}/.tumor3d-store"
+    at = store if store is not None else default_store_location(out)
     if is_url(at):
         open_store(str(at)).check()  # type: ignore[attr-defined]
     else:

@@ -57,7 +57,7 @@ from storage.cohort_report import (
     write_cohort_outputs,
 )
 from storage.manifest import ManifestRow, read_manifest
-from storage.objectstore import ObjectStore, is_url, open_store
+from storage.objectstore import ObjectStore, default_store_location, is_url, open_store
 from storage.publish import check_destination, check_outputs_not_inputs
 from storage.remote_publish import RemoteFolder, publish_files, published_names
 from storage.store import ArtifactStore
@@ -325,9 +325,7 @@ def cohort_flow(
 
 def _default_store(out_dir: str | Path) -> str | Path:
     """``DIR/.tumor3d-store``, or ``<url>/.tumor3d-store`` for an object-store ``--out``."""
-    if is_url(out_dir):
-        return f"{str(out_dir).rstrip('/')}/.tumor3d-store"
-    return Path(out_dir) / ".tumor3d-store"
+    return default_store_location(out_dir)
 
 
 #: A row's columns naming input files (never inside any row's output folder).

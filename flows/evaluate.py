@@ -39,6 +39,7 @@ from prefect import flow, get_run_logger
 from storage.evaluation_io import PreparedCase, load_case, prepare_case
 from storage.formats import encode_parquet
 from storage.manifest import ManifestRow, RowProblem, read_manifest_rows
+from storage.objectstore import default_store_location
 from storage.store import atomic_write_bytes
 from tumor3d.config import parse_config
 from tumor3d.errors import InputError
@@ -204,7 +205,7 @@ def evaluate_flow(
     logger = get_run_logger()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    store = Path(store_dir) if store_dir else out / ".tumor3d-store"
+    store = Path(store_dir) if store_dir else default_store_location(out)
     configs = _load_configs(config_files or {"default": None})
     chosen = selected_evaluations(evaluations)  # an unknown name: before any work
 

@@ -36,7 +36,7 @@ from storage.brain_mask import GivenBrainMask, read_given_brain_mask
 from storage.formats import encode_parquet
 from storage.given_segmentation import GivenSegmentation, read_given_segmentation
 from storage.inputs import input_digest, input_location
-from storage.objectstore import is_url, open_store
+from storage.objectstore import default_store_location, is_url, open_store
 from storage.patient_outputs import (
     join_notes,
     patient_report_data,
@@ -114,7 +114,6 @@ VOLUME_LABELS: dict[str, str] = {
 }
 
 
-
 class PatientResult(BaseModel):
     """What :func:`patient_flow` returns: where the outputs are and the headline numbers."""
 
@@ -140,11 +139,9 @@ class PatientResult(BaseModel):
 def default_store_dir(out_dir: str | Path) -> Path | str:
     """The artifact store used when none is given: ``<out_dir>/.tumor3d-store``.
 
-    A URL for an object-store ``out_dir`` (``s3://bucket/x/.tumor3d-store``).
+    :func:`storage.objectstore.default_store_location`, the one definition.
     """
-    if is_url(out_dir):
-        return f"{str(out_dir).rstrip('/')}/.tumor3d-store"
-    return Path(out_dir) / ".tumor3d-store"
+    return default_store_location(out_dir)
 
 
 def config_digest(cfg: PipelineConfig) -> str:

@@ -16,8 +16,9 @@ then one model per family (FLAIR + T2 ``hyper``, T1c ``t1c``) present in
 the manifest is trained on its patients' rows (LightGBM, the ``train``
 extra) and written as ``DIR/<family>.npz`` (plain arrays, no pickle) with
 ``DIR/training.json`` (the cases, their input digests, the parameters and
-the model digests). Use a model with ``segment.model_dir: DIR`` in the
-configuration (or ship it in ``tumor3d/learned/models``).
+the model digests). A model is used by shipping it: copied over
+``tumor3d/learned/models/<family>.npz``, whose bytes are in the
+segment-tumor stage's cache key.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from prefect import flow, get_run_logger
 from flows.patient import prepare_brain_mask, prepare_source
 from storage.evaluation_io import acquired_reference, prepare_case
 from storage.manifest import ManifestRow, read_manifest
-from storage.objectstore import open_store
+from storage.objectstore import default_store_location, open_store
 from storage.store import ArtifactStore, atomic_write_bytes
 from tasks import stages
 from tasks.runner import PrefectRunner
@@ -183,8 +184,9 @@ def train_flow(
     rows = read_manifest(manifest)
     _check_rows(rows, str(manifest))
     out = Path(out_dir)
-    store = open_store(store_dir or out / ".tumor3d-store")
-    work = Path(store_dir or out / ".tumor3d-store") / "emulated"
+    where = store_dir or default_store_location(out)
+    store = open_store(where)
+    work = Path(where) / "emulated"
     by_family: dict[str, list[tuple[TrainingRows, dict[str, Any]]]] = {}
     cached = 0
     for row in rows:

@@ -50,7 +50,18 @@ from storage.store import (
     canonical_dumps,
 )
 
-__all__ = ["ObjectStore", "check_reachable", "is_url", "open_fs", "open_store"]
+__all__ = [
+    "STORE_DIRNAME",
+    "ObjectStore",
+    "check_reachable",
+    "default_store_location",
+    "is_url",
+    "open_fs",
+    "open_store",
+]
+
+#: The artifact store's folder inside the output when no ``--store`` is given.
+STORE_DIRNAME = ".tumor3d-store"
 
 #: Seconds to wait for an S3 endpoint to accept a connection.
 S3_CONNECT_TIMEOUT_S = 5
@@ -60,6 +71,22 @@ def is_url(location: str | os.PathLike[str]) -> bool:
     """True for ``scheme://...`` locations (an object store), False for paths."""
     text = os.fspath(location)
     return "://" in text and not text.startswith("file://")
+
+
+def default_store_location(out_dir: str | os.PathLike[str]) -> Path | str:
+    """The artifact store used when none is given: ``<out_dir>/.tumor3d-store``.
+
+    A URL for an object-store ``out_dir`` (``s3://bucket/x/.tumor3d-store``).
+    The one definition of the default (every command and flow uses it).
+
+    >>> str(default_store_location("out"))
+    'out/.tumor3d-store'
+    >>> default_store_location("s3://bucket/run/")
+    's3://bucket/run/.tumor3d-store'
+    """
+    if is_url(out_dir):
+        return f"{os.fspath(out_dir).rstrip('/')}/{STORE_DIRNAME}"
+    return Path(out_dir) / STORE_DIRNAME
 
 
 def open_store(location: str | os.PathLike[str]) -> ArtifactStore:

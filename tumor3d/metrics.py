@@ -193,8 +193,11 @@ def voxel_volume_mm3(affine: np.ndarray) -> float:
     return vol
 
 
-def relative_error_percent(estimate: float, truth: float) -> float:
+def relative_error_percent(estimate: float, truth: float, *, zero_truth: str = "raise") -> float:
     """Relative error of an estimate, Eq. 9: ``|est - truth| / truth * 100``.
+
+    The one implementation of Eq. 9 (the evaluation's
+    :func:`tumor3d.evaluation.metrics.relative_error_percent` calls it).
 
     Parameters
     ----------
@@ -202,6 +205,9 @@ def relative_error_percent(estimate: float, truth: float) -> float:
         Estimated value (e.g. pixel count or volume), finite.
     truth : float
         Reference value, finite and > 0 (Eq. 9's denominator N_g).
+    zero_truth : {"raise", "nan"}
+        A zero reference (a tumour-free case): Eq. 9 is undefined there;
+        ``"raise"`` refuses it (InputError), ``"nan"`` returns NaN.
 
     Returns
     -------
@@ -212,8 +218,14 @@ def relative_error_percent(estimate: float, truth: float) -> float:
     --------
     >>> round(relative_error_percent(3841, 3785), 4)
     1.4795
+    >>> relative_error_percent(12, 0, zero_truth="nan")
+    nan
     """
+    if zero_truth not in ("raise", "nan"):
+        raise InputError(f"zero_truth must be 'raise' or 'nan', got {zero_truth!r}")
     est = _finite(estimate, "estimate")
+    if zero_truth == "nan" and _finite(truth, "truth") == 0.0:
+        return float("nan")
     ref = _positive(truth, "truth", "units")
     return abs(est - ref) / ref * 100.0
 

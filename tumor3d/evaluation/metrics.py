@@ -169,11 +169,12 @@ def relative_error_percent(n_pred: float, n_ref: float) -> float:
     Returns
     -------
     float
-        Percent; ``nan`` when ``N_g = 0`` (undefined).
+        Percent; ``nan`` when ``N_g = 0`` (undefined). Counts are checked
+        (>= 0) here; Eq. 9 itself is :func:`tumor3d.metrics.relative_error_percent`.
     """
-    p = _count(n_pred, "n_pred")
-    g = _count(n_ref, "n_ref")
-    return float("nan") if g == 0 else abs(p - g) / g * 100.0
+    from tumor3d.metrics import relative_error_percent as eq9
+
+    return eq9(_count(n_pred, "n_pred"), _count(n_ref, "n_ref"), zero_truth="nan")
 
 
 def signed_percent_error(estimate: float, reference: float) -> float:
