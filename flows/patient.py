@@ -620,19 +620,15 @@ PUBLISHER_MODULES = (
 
 
 def _publisher_code_digest() -> str:
-    """SHA-256 of the sources of this module and of :data:`PUBLISHER_MODULES`' closure.
+    """The code digest of this module and :data:`PUBLISHER_MODULES`' closure.
 
-    Unlike a stage's code digest, the store codecs are included: they encode
+    :func:`tasks.caching.code_digest` (syntax trees: a comment or docstring
+    does not republish), with the store codecs included: they encode
     published files too.
     """
-    from tasks.caching import PROJECT_ROOT, module_closure
+    from tasks.caching import code_digest
 
-    h = hashlib.sha256(Path(__file__).read_bytes())
-    for name in module_closure(PUBLISHER_MODULES):
-        base = PROJECT_ROOT.joinpath(*name.split("."))
-        path = base / "__init__.py" if base.is_dir() else base.with_suffix(".py")
-        h.update(b"\0" + name.encode() + b"\0" + path.read_bytes())
-    return h.hexdigest()
+    return code_digest((__name__, *PUBLISHER_MODULES), include_codecs=True)
 
 
 def publish_key(

@@ -348,20 +348,23 @@ def module_closure(roots: tuple[str, ...], root: str | None = None) -> tuple[str
 
 
 @cache
-def code_digest(roots: tuple[str, ...], root: str | None = None) -> str:
+def code_digest(
+    roots: tuple[str, ...], root: str | None = None, *, include_codecs: bool = False
+) -> str:
     """SHA-256 of :data:`ARTIFACT_FORMAT_VERSION` and the code of the closure of ``roots``.
 
     Each module contributes its name and the digest of its syntax tree
     without docstrings (:func:`syntax_dump`: comments, docstrings and blank
     lines do not count; any change of behaviour does), plus the bytes of
     its :data:`DATA_FILES`. Store codecs in :data:`FORMAT_MODULES`
-    contribute only through the format version. Cached: computed once per
-    process (and each module parsed once per process and content).
+    contribute only through the format version, unless ``include_codecs``
+    (the publish key: they encode published files too). Cached: computed
+    once per process (and each module parsed once per process and content).
     """
     base = Path(root) if root is not None else PROJECT_ROOT
     h = hashlib.sha256(f"artifact-format={ARTIFACT_FORMAT_VERSION}\0".encode())
     for name in module_closure(roots, root):
-        if name in FORMAT_MODULES:
+        if name in FORMAT_MODULES and not include_codecs:
             continue
         path = _module_file(name, base)
         assert path is not None  # the closure holds only located modules
