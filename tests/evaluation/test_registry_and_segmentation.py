@@ -37,7 +37,13 @@ def test_builtin_is_registered():
     assert evals["segmentation"].description
 
 
-def test_register_a_new_evaluation_and_reject_a_clash():
+def test_register_a_new_evaluation_and_reject_a_clash(monkeypatch):
+    # a copy of the registry for this test: the probe must not stay registered for the
+    # tests and doctests after it (selected_evaluations' doctest lists the defaults)
+    import tumor3d.evaluation.registry as registry
+
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+
     @register_evaluation("unit-test-eval", description="counts slices")
     def count(case):
         return EvaluationRows(patient={"n": int(case.pred_slices.shape[case.slice_axis])})
