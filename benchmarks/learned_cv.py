@@ -52,11 +52,17 @@ from storage.readers import read_scan  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.evaluation.metrics import dice  # noqa: E402
 from tumor3d.interpolate import interpolate_stack  # noqa: E402
+from tumor3d.learned.context import context_features  # noqa: E402
 from tumor3d.learned.features import compute_features  # noqa: E402
 from tumor3d.learned.forest import predict_proba  # noqa: E402
 from tumor3d.learned.review import review_features  # noqa: E402
 from tumor3d.learned.segment import keep_main_lesion  # noqa: E402
-from tumor3d.learned.training import TrainingRows, sample_rows, train_forest  # noqa: E402
+from tumor3d.learned.training import (  # noqa: E402
+    TrainingRows,
+    sample_indices,
+    sample_rows,
+    train_forest,
+)
 from tumor3d.lesion import left_right_axis  # noqa: E402
 from tumor3d.preprocess import preprocess_volume  # noqa: E402
 
@@ -495,6 +501,13 @@ def main(argv=None) -> int:
         "here (the shipped models: tumor3d/learned/models)",
     )
     ap.add_argument("--save-prob", default=None, help="folder for out-of-fold probabilities")
+    ap.add_argument(
+        "--auto-context",
+        action="store_true",
+        help="learned: a second forest on the features plus context features of the "
+        "first's out-of-fold probability (tumor3d.learned.context); inner folds = the "
+        "other outer folds; --json gets the second stage's rows, <json>.stage1.json the first's",
+    )
     args = ap.parse_args(argv)
     data = data_dir()
     if not data.is_dir():
@@ -517,11 +530,15 @@ def main(argv=None) -> int:
     print(f"prepared {len(preps)} cases in {time.perf_counter() - t0:.0f} s", flush=True)
     rows: list[dict] = []
     if args.method == "learned":
-        if args.cv_rows:  # the cross-validation of an earlier run of the same command
+        if args.auto_context:
+            if args.cv_rows or args.train_offsets != [OFFSET]:
+                ap.error("--auto-context runs its own cross-validation at offset 2 only")
+            rows = run_auto_context_cv(preps, folds, args, cfg)
+        elif args.cv_rows:  # the cross-validation of an earlier run of the same command
             rows = json.loads(Path(args.cv_rows).read_text())
         else:
             rows = run_learned_cv(preps, folds, args, cfg)
-        if args.final:
+        if args.final and not args.auto_context:
             write_final_models(preps, rows, args, cfg)
     else:
         rows = run_configured(preps, args.method, cfg)
@@ -591,6 +608,196 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
 FAMILIES = (("hyper", ("flair", "t2")), ("t1c", ("t1c",)))
 
 
+def _family(p: Prepared) -> str:
+    return "t1c" if p.spec.modality == "t1c" else "hyper"
+
+
+def _min_voxels(p: Prepared) -> int:
+    return max(1, int(round(20.0 / float(np.prod(p.spacing_mm)))))
+
+
+def _final_mask(p: Prepared, prob: np.ndarray, args, cfg) -> np.ndarray:
+    mask = keep_main_lesion(
+        prob,
+        _threshold(args, _family(p)),
+        keep_fraction=args.keep_fraction,
+        min_voxels=_min_voxels(p),
+    )
+    mask[mask.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
+    return mask
+
+
+def _context_rows(p: Prepared, feats, sel: np.ndarray, prob: np.ndarray, args) -> np.ndarray:
+    """Stage-2 feature rows (features + context of ``prob``) of the row numbers ``sel``."""
+    lesion = keep_main_lesion(
+        prob,
+        _threshold(args, _family(p)),
+        keep_fraction=args.keep_fraction,
+        min_voxels=_min_voxels(p),
+    )
+    ctx = context_features(
+        prob, lesion, candidates=feats.candidates, index=feats.index[sel], spacing_mm=p.spacing_mm
+    )
+    return np.hstack([feats.values[sel], ctx])
+
+
+def run_auto_context_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> list[dict]:
+    """Two-stage (auto-context) cross-validation; returns the second stage's rows.
+
+    Outer fold ``k``: stage 1 is trained on the folds other than ``k``; stage 2
+    on the features plus the context of the stage-1 probability that each
+    training patient (fold ``j``) gets from a stage-1 model trained on the
+    folds other than ``j`` and ``k`` (out-of-fold inside the training set).
+    The held-out patients get stage 1 (folds other than ``k``), then stage 2.
+    With ``--final``: stage 1 on every case, stage 2 on the context of every
+    case's out-of-fold stage-1 probability, both in ``<family>.npz``
+    (:func:`write_two_stage`).
+    """
+    import tempfile
+
+    k_folds = args.folds
+    scratch = tempfile.TemporaryDirectory(dir=args.cache, prefix="ac-features-")
+    fdir = Path(scratch.name)
+
+    def fpath(p: Prepared) -> Path:
+        return fdir / (p.spec.name.replace("/", "__") + ".npz")
+
+    def load(p: Prepared):
+        from tumor3d.learned.features import PatientFeatures
+
+        with np.load(fpath(p), allow_pickle=False) as z:
+            return PatientFeatures(
+                z["values"], z["index"], tuple(int(v) for v in z["shape"]), z["candidates"]
+            )
+
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(0)  # as _training_rows: the same stage-1 rows
+    rows1: dict[str, TrainingRows] = {}
+    sel_of: dict[str, np.ndarray] = {}
+    for p in preps:
+        f = _features(p)
+        sel, y, w = sample_indices(f, p.ref, rng=rng)
+        rows1[p.spec.name] = TrainingRows(f.values[sel], y, w)
+        sel_of[p.spec.name] = sel
+        np.savez(
+            fpath(p),
+            values=f.values,
+            index=f.index,
+            shape=np.array(f.shape),
+            candidates=f.candidates,
+        )
+    print(f"features and rows in {time.perf_counter() - t0:.0f} s", flush=True)
+
+    def fit(parts: list[TrainingRows], label: str):
+        t1 = time.perf_counter()
+        m = train_forest(TrainingRows.concatenate(parts))
+        print(
+            f"{label}: {sum(len(r.y) for r in parts)} rows, {time.perf_counter() - t1:.0f} s",
+            flush=True,
+        )
+        return m
+
+    def fam_train(exclude: set[int], fam: str, mods) -> list[Prepared]:
+        return [
+            p for p in preps if folds[p.spec.patient] not in exclude and p.spec.modality in mods
+        ]
+
+    stage1: dict[tuple[int, ...], dict[str, object]] = {}
+    for k in range(k_folds):
+        for j in range(k + 1, k_folds):
+            stage1[(j, k)] = {
+                fam: fit(
+                    [rows1[p.spec.name] for p in fam_train({j, k}, fam, mods)], f"s1 -{j}{k} {fam}"
+                )
+                for fam, mods in FAMILIES
+            }
+        stage1[(k,)] = {
+            fam: fit([rows1[p.spec.name] for p in fam_train({k}, fam, mods)], f"s1 -{k} {fam}")
+            for fam, mods in FAMILIES
+        }
+    rows2: dict[tuple[str, int], TrainingRows] = {}
+    rows_final: dict[str, TrainingRows] = {}
+    prob1_of: dict[str, np.ndarray] = {}
+    out1: list[dict] = []
+    t0 = time.perf_counter()
+    for p in preps:
+        j = folds[p.spec.patient]
+        fam = _family(p)
+        f = load(p)
+        sel = sel_of[p.spec.name]
+        r1 = rows1[p.spec.name]
+        for k in range(k_folds):
+            model = stage1[(k,) if k == j else (max(j, k), min(j, k))][fam]
+            prob = np.zeros(f.shape, np.float32)
+            prob.ravel()[f.index] = predict_proba(model, f.values)
+            if k != j:
+                rows2[(p.spec.name, k)] = TrainingRows(
+                    _context_rows(p, f, sel, prob, args), r1.y, r1.w
+                )
+                continue
+            prob1_of[p.spec.name] = prob
+            if args.final:
+                rows_final[p.spec.name] = TrainingRows(
+                    _context_rows(p, f, sel, prob, args), r1.y, r1.w
+                )
+            row = score(p, _final_mask(p, prob, args, cfg), cfg)
+            row["fold"] = j
+            out1.append(row)
+    print(
+        f"stage-1 out-of-fold maps and context rows in {time.perf_counter() - t0:.0f} s", flush=True
+    )
+    out: list[dict] = []
+    for k in range(k_folds):
+        models2 = {
+            fam: fit([rows2[(p.spec.name, k)] for p in fam_train({k}, fam, mods)], f"s2 -{k} {fam}")
+            for fam, mods in FAMILIES
+        }
+        for p in preps:
+            if folds[p.spec.patient] != k:
+                continue
+            f = load(p)
+            prob1 = prob1_of[p.spec.name]
+            x2 = _context_rows(p, f, np.arange(f.index.size), prob1, args)
+            prob = np.zeros(f.shape, np.float32)
+            prob.ravel()[f.index] = predict_proba(models2[_family(p)], x2)
+            if args.save_prob:
+                d = Path(args.save_prob)
+                d.mkdir(parents=True, exist_ok=True)
+                np.savez_compressed(
+                    d / (p.spec.name.replace("/", "__") + ".npz"),
+                    prob=prob.astype(np.float16),
+                    prob1=prob1.astype(np.float16),
+                )
+            mask = _final_mask(p, prob, args, cfg)
+            row = score(p, mask, cfg)
+            row["fold"] = k
+            row.update(review_features(prob, mask, p.spacing_mm, prior=p.prior))
+            out.append(row)
+            r1 = next(r for r in out1 if r["case"] == row["case"])
+            print(
+                f"  {row['case']}: 3d {r1['dice3d']:.3f} -> {row['dice3d']:.3f} "
+                f"vol {r1['vol_err']:+.1f}% -> {row['vol_err']:+.1f}% "
+                f"rec {row['recall']:.2f} spec {row['spec']:.2f}",
+                flush=True,
+            )
+    if args.json:
+        Path(args.json).with_suffix(".stage1.json").write_text(json.dumps(out1, indent=1))
+    print("stage 1 (the same run):")
+    print(summarise(out1))
+    if args.final:
+        dest = Path(args.final)
+        dest.mkdir(parents=True, exist_ok=True)
+        for fam, mods in FAMILIES:
+            train = [p for p in preps if p.spec.modality in mods]
+            meta = _model_meta(fam, mods, train, out, args)
+            m1 = fit([rows1[p.spec.name] for p in train], f"final s1 {fam}")
+            m2 = fit([rows_final[p.spec.name] for p in train], f"final s2 {fam}")
+            write_two_stage(dest / f"{fam}.npz", m1, m2, meta)
+            print(f"wrote {dest}/{fam}.npz ({len(train)} cases, two stages)")
+    scratch.cleanup()
+    return out
+
+
 def _training_rows(preps: list[Prepared], args, cfg) -> dict[str, TrainingRows]:
     rng = np.random.default_rng(0)
     out = {}
@@ -628,31 +835,46 @@ def _training_rows(preps: list[Prepared], args, cfg) -> dict[str, TrainingRows]:
 
 def write_final_models(preps: list[Prepared], cv_rows: list[dict], args, cfg) -> None:
     """Train each family on every case and write ``<family>.npz`` with its model card data."""
-    import datetime
-
     rows_of = _training_rows(preps, args, cfg)
     out = Path(args.final)
     out.mkdir(parents=True, exist_ok=True)
     for fam, mods in FAMILIES:
         train = [p for p in preps if p.spec.modality in mods]
-        groups = sorted({p.spec.group for p in train})
-        cv = {g: _group_figures([r for r in cv_rows if r["group"] == g]) for g in groups}
-        meta = {
-            "name": f"tumor3d-{fam}-{datetime.date.today().isoformat()}",
-            "family": fam,
-            "modalities": list(mods),
-            "threshold": _threshold(args, fam),
-            "keep_fraction": args.keep_fraction,
-            "prior": "robust" if args.prior else None,
-            "training_cases": [p.spec.name for p in train],
-            "cross_validation": cv,
-            "command": "python benchmarks/learned_cv.py --method learned " + " ".join(sys.argv[1:]),
-        }
+        meta = _model_meta(fam, mods, train, cv_rows, args)
         model = train_forest(
             TrainingRows.concatenate([rows_of[p.spec.name] for p in train]), meta=meta
         )
         (out / f"{fam}.npz").write_bytes(model.to_bytes())
         print(f"wrote {out / f'{fam}.npz'}: {len(train)} cases, {model.roots.size} trees")
+
+
+def _model_meta(fam: str, mods, train: list[Prepared], cv_rows: list[dict], args) -> dict:
+    """The shipped model's card data: cut, training cases, cross-validated figures, command."""
+    import datetime
+
+    groups = sorted({p.spec.group for p in train})
+    cv = {g: _group_figures([r for r in cv_rows if r["group"] == g]) for g in groups}
+    return {
+        "name": f"tumor3d-{fam}-{datetime.date.today().isoformat()}",
+        "family": fam,
+        "modalities": list(mods),
+        "threshold": _threshold(args, fam),
+        "keep_fraction": args.keep_fraction,
+        "prior": "robust" if args.prior else None,
+        "auto_context": bool(getattr(args, "auto_context", False)),
+        "training_cases": [p.spec.name for p in train],
+        "cross_validation": cv,
+        "command": "python benchmarks/learned_cv.py --method learned " + " ".join(sys.argv[1:]),
+    }
+
+
+def write_two_stage(path: Path, stage1, stage2, meta: dict) -> None:
+    """One ``.npz``: the stage-1 forest with ``meta``, the auto-context stage as its context."""
+    from dataclasses import replace
+
+    m2 = replace(stage2, meta={**stage2.meta, "stage": "auto-context"})
+    model = replace(stage1, meta={**stage1.meta, **meta}, context=m2)
+    Path(path).write_bytes(model.to_bytes())
 
 
 def _threshold(args, family: str) -> float:

@@ -4,6 +4,7 @@ Usage::
 
     python benchmarks/learned_report.py --learned learned.json --default default.json \\
         [--review "<text printed by benchmarks/review_cv.py>"] --out reports/learned_cv.md
+    python benchmarks/learned_report.py --compare before.json after.json
 
 Both runs must cover the same cases; the learned rows are out-of-fold (each
 case scored by models that never saw its patient), the default's need no
@@ -69,10 +70,45 @@ def targets(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def paired(base: list[dict], new: list[dict]) -> str:
+    """Per group, the same cases under two variants: 3-D Dice, its paired change, volumes."""
+    by_case = {r["case"]: r for r in base}
+    lines = [
+        "| group | n | 3-D Dice before -> after (median after) | paired change mean ± sd "
+        "| better / worse by > 0.01 | volume error mean abs before -> after "
+        "| within 10 % / beyond 25 % before -> after |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for g in GROUPS:
+        pairs = [(by_case[r["case"]], r) for r in new if r["group"] == g and r["case"] in by_case]
+        if not pairs:
+            continue
+        a = np.array([p[0]["dice3d"] for p in pairs], float)
+        b = np.array([p[1]["dice3d"] for p in pairs], float)
+        ea = np.abs(np.array([p[0]["vol_err"] for p in pairs], float))
+        eb = np.abs(np.array([p[1]["vol_err"] for p in pairs], float))
+        d = b - a
+        lines.append(
+            f"| {g} | {len(pairs)} | {np.nanmean(a):.3f} -> {np.nanmean(b):.3f}"
+            f" ({np.nanmedian(b):.3f}) | {np.nanmean(d):+.3f} ± {np.nanstd(d):.3f}"
+            f" | {int(np.sum(d > 0.01))} / {int(np.sum(d < -0.01))}"
+            f" | {np.nanmean(ea):.1f} % -> {np.nanmean(eb):.1f} %"
+            f" | {int(np.sum(ea <= 10))} / {int(np.sum(ea > 25))} -> "
+            f"{int(np.sum(eb <= 10))} / {int(np.sum(eb > 25))} |"
+        )
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--learned", required=True)
-    ap.add_argument("--default", required=True)
+    ap.add_argument(
+        "--compare",
+        nargs=2,
+        metavar=("BEFORE", "AFTER"),
+        help="print the paired per-group table of two runs' rows (same cases) and stop",
+    )
+    ap.add_argument("--learned")
+    ap.add_argument("--default")
     ap.add_argument(
         "--other",
         nargs="*",
@@ -80,8 +116,14 @@ def main(argv=None) -> int:
         help="NAME=rows.json of other methods (paper, multiotsu) for the same cases",
     )
     ap.add_argument("--review", default="")
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--out")
     args = ap.parse_args(argv)
+    if args.compare:
+        before, after = (json.loads(Path(p).read_text()) for p in args.compare)
+        print(paired(before, after))
+        return 0
+    if not (args.learned and args.default and args.out):
+        ap.error("--learned, --default and --out are needed (or --compare)")
     learned = json.loads(Path(args.learned).read_text())
     default = json.loads(Path(args.default).read_text())
     others = ""

@@ -263,3 +263,134 @@ def test_default_on_an_unseen_flair_phantom_is_the_shipped_model_and_accurate():
     dy, dx = p.scan.pixel_spacing_mm
     truth_eq7_mm3 = float(np.asarray(p.slice_masks).sum()) * dy * dx * p.scan.slice_step_mm
     assert abs(r.volumes_mm3["eq7"] - truth_eq7_mm3) / truth_eq7_mm3 < 0.10
+
+
+# --------------------------------------------------------------------------- auto-context
+
+
+def test_context_features_read_the_first_stage_map_around_each_pixel():
+    """Independent expectations on a square lesion map: rings, slices, distances."""
+    from tumor3d.learned.context import CONTEXT_NAMES, context_features
+
+    p = np.zeros((4, 80, 80), np.float32)
+    p[1, 5:75, 5:75] = 0.8  # one slice holds the lesion
+    p[1, 12, 12] = 1.0
+    lesion = p > 0.5
+    tissue = np.ones(p.shape, bool)
+    pix = [(1, 40, 40), (1, 2, 40), (2, 40, 40), (3, 40, 40), (0, 78, 1)]
+    idx = np.ravel_multi_index(tuple(np.array(pix).T), p.shape)
+    c = context_features(p, lesion, candidates=tissue, index=idx, spacing_mm=(5.0, 0.5, 0.5))
+    col = {n: c[:, i] for i, n in enumerate(CONTEXT_NAMES)}
+    assert c.shape == (5, len(CONTEXT_NAMES))
+    assert col["s1_prob"].tolist() == pytest.approx([0.8, 0.0, 0.0, 0.0, 0.0])
+    # the ring (10 mm = 20 px) of the centre lies inside the square, of the edge pixel half out
+    assert col["s1_ring_min"][0] == pytest.approx(0.8, abs=1e-3)
+    assert col["s1_ring_min"][1] == 0.0 and col["s1_ring_max"][1] > 0.7
+    # 0.5 mm pixels: the centre is 35 px = 17.5 mm inside, the edge pixel 3 px = 1.5 mm outside
+    assert col["s1_distance_mm"][0] == pytest.approx(-17.5)
+    assert col["s1_distance_mm"][1] == pytest.approx(1.5)
+    # the next slice: one 5 mm step away in 3-D, the one after two
+    assert col["s1_distance_3d_mm"][2] == pytest.approx(5.0)
+    assert col["s1_distance_3d_mm"][3] == pytest.approx(10.0)
+    assert col["s1_neighbour_max"][2] > 0.7 and col["s1_neighbour_max"][3] < 0.01
+    assert col["s1_slice_max"].tolist() == pytest.approx([1.0, 1.0, 0.0, 0.0, 0.0])
+    assert col["s1_slice_mean"][0] == pytest.approx(float(p[1].mean()))
+    assert col["s1_slice_area"].tolist() == pytest.approx([1.0, 1.0, 0.0, 0.0, 0.0])
+    with pytest.raises(InputError, match="one 3-D shape"):
+        context_features(p, lesion[:2], candidates=tissue, index=idx, spacing_mm=(5, 1, 1))
+
+
+def _small(seed: int, modality: str = "flair"):
+    p = make_phantom_patient(seed, modality=modality, matrix_size=(96, 96))
+    return p.scan, np.asarray(p.slice_masks) > 0.5
+
+
+def test_auto_context_stage_two_sees_out_of_fold_maps_only(monkeypatch):
+    """The first-stage models whose maps train the second stage never saw that patient:
+    with two patients of two sequences each, every out-of-fold fit holds exactly the
+    other patient's rows."""
+    from tumor3d.learned import training
+
+    cases, spacing, sizes = [], [], {}
+    for seed in (1, 2):
+        for mod in ("flair", "t2"):
+            scan, truth = _small(seed, mod)
+            cases.append((_features(scan), truth))
+            spacing.append(scan.spacing_zyx_mm)
+    small = {"n_lesion": 300, "n_far": 300, "n_band": 200}
+    rng = np.random.default_rng(0)
+    for i, (f, lab) in enumerate(cases):
+        sizes[i] = training.sample_rows(f, lab, rng=rng, **small).y.size
+    fits: list[int] = []
+    real = training.train_forest
+
+    def spy(rows, **kw):
+        fits.append(rows.y.size)
+        return real(rows, **kw)
+
+    monkeypatch.setattr(training, "train_forest", spy)
+    model = training.train_auto_context(
+        cases,
+        spacing_mm=spacing,
+        patients=["a", "a", "b", "b"],
+        folds=5,
+        sample=small,
+        num_rounds=10,
+        params={"min_data_in_leaf": 20},
+    )
+    patient_rows = [sizes[0] + sizes[1], sizes[2] + sizes[3]]
+    # fold 0 holds patient a: its map comes from a fit on b alone; then b's from a alone
+    assert fits[:2] == [patient_rows[1], patient_rows[0]]
+    assert fits[2:] == [sum(patient_rows)] * 2  # the final stages: every row
+    assert model.context is not None and model.context.context is None
+    with pytest.raises(InputError, match="two patients"):
+        training.train_auto_context(cases[:2], spacing_mm=spacing[:2], patients=["a", "a"])
+
+
+@pytest.fixture(scope="module")
+def tiny_two_stage() -> ForestModel:
+    from tumor3d.learned.training import train_auto_context
+
+    cases, spacing = [], []
+    for seed in (1, 2, 3):
+        scan, truth = _phantom(seed)
+        cases.append((_features(scan), truth))
+        spacing.append(scan.spacing_zyx_mm)
+    return train_auto_context(
+        cases,
+        spacing_mm=spacing,
+        folds=3,
+        threshold=0.5,
+        keep_fraction=0.3,
+        sample={"n_lesion": 1500, "n_far": 1500, "n_band": 1000},
+        num_rounds=40,
+        params={"min_data_in_leaf": 20},
+    )
+
+
+def test_two_stage_model_round_trips_and_finds_an_unseen_phantom_tumour(tiny_two_stage):
+    from tumor3d.learned.context import CONTEXT_NAMES
+
+    back = ForestModel.from_bytes(tiny_two_stage.to_bytes())
+    assert back.context is not None and back.digest() == tiny_two_stage.digest()
+    assert tuple(back.context.meta["feature_names"]) == FEATURE_NAMES + CONTEXT_NAMES
+    one_stage = ForestModel.from_bytes(back.to_bytes())
+    import dataclasses
+
+    assert dataclasses.replace(one_stage, context=None).digest() != back.digest()
+    scan, truth = _phantom(7)
+    kw = dict(
+        spacing_mm=scan.spacing_zyx_mm, modality="flair", lr_axis=left_right_axis(scan.affine)
+    )
+    seg = segment_learned(scan.image, model=back, **kw)
+    assert dice(seg.mask, truth) > 0.75
+    assert abs(int(seg.mask.sum()) - int(truth.sum())) / truth.sum() < 0.3
+    # the answer is the second stage's: without it the probability differs
+    first = segment_learned(scan.image, model=dataclasses.replace(back, context=None), **kw)
+    assert not np.allclose(first.probability, seg.probability)
+    # a second stage of other features is refused
+    other = dataclasses.replace(
+        back, context=dataclasses.replace(back.context, meta={"feature_names": ["a"]})
+    )
+    with pytest.raises(InputError, match="retrain"):
+        segment_learned(scan.image, model=other, **kw)

@@ -48,6 +48,10 @@ class ForestModel:
     meta : dict
         JSON-able description: ``feature_names``, ``threshold`` (probability
         cut), training cases, scores, ... (see ``reports/model_card.md``).
+    context : ForestModel or None
+        An auto-context second stage (:mod:`tumor3d.learned.context`): a
+        forest on the features plus the context features of this forest's
+        probability, whose probability is the model's answer. None = one stage.
     """
 
     feature: np.ndarray
@@ -57,8 +61,14 @@ class ForestModel:
     value: np.ndarray
     roots: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
+    context: ForestModel | None = None
 
     def __post_init__(self) -> None:
+        if self.context is not None:
+            if not isinstance(self.context, ForestModel):
+                raise InputError("a forest's context stage must be a ForestModel")
+            if self.context.context is not None:
+                raise InputError("a forest has at most two stages")
         n = self.feature.shape[0]
         for name in ("threshold", "left", "right", "value"):
             if getattr(self, name).shape != (n,):
@@ -82,10 +92,17 @@ class ForestModel:
         return int(self.feature.max(initial=-1)) + 1
 
     def to_bytes(self) -> bytes:
-        """The model as ``.npz`` bytes: the arrays and ``meta`` as JSON (no pickle)."""
+        """The model as ``.npz`` bytes: the arrays and ``meta`` as JSON (no pickle).
+
+        A second stage's arrays and metadata are stored beside, prefixed ``context_``.
+        """
         buf = io.BytesIO()
-        meta = np.frombuffer(json.dumps(self.meta, sort_keys=True).encode(), dtype=np.uint8)
-        np.savez_compressed(buf, meta=meta, **{k: getattr(self, k) for k in _ARRAYS})
+        arrays = {k: getattr(self, k) for k in _ARRAYS}
+        arrays["meta"] = _json_bytes(self.meta)
+        if self.context is not None:
+            arrays.update({_CTX + k: getattr(self.context, k) for k in _ARRAYS})
+            arrays[_CTX + "meta"] = _json_bytes(self.context.meta)
+        np.savez_compressed(buf, **arrays)
         return buf.getvalue()
 
     @classmethod
@@ -93,19 +110,30 @@ class ForestModel:
         """Read :meth:`to_bytes`; never unpickles. ``source`` names it in errors."""
         try:
             with np.load(io.BytesIO(data), allow_pickle=False) as z:
-                arrays = {k: np.array(z[k]) for k in _ARRAYS}
-                meta = json.loads(bytes(z["meta"]).decode())
+                stages = [""] + ([_CTX] if _CTX + "feature" in z.files else [])
+                read = [
+                    (
+                        {k: np.array(z[pre + k]) for k in _ARRAYS},
+                        json.loads(bytes(z[pre + "meta"]).decode()),
+                    )
+                    for pre in stages
+                ]
         except (OSError, ValueError, KeyError, UnicodeDecodeError) as exc:
             raise InputError(f"{source}: not a tumor3d forest model ({exc})") from None
-        return cls(
-            arrays["feature"].astype(np.int32),
-            arrays["threshold"].astype(np.float64),
-            arrays["left"].astype(np.int32),
-            arrays["right"].astype(np.int32),
-            arrays["value"].astype(np.float64),
-            arrays["roots"].astype(np.int32),
-            meta,
-        )
+        context = None
+        for arrays, meta in reversed(read):
+            context = cls(
+                arrays["feature"].astype(np.int32),
+                arrays["threshold"].astype(np.float64),
+                arrays["left"].astype(np.int32),
+                arrays["right"].astype(np.int32),
+                arrays["value"].astype(np.float64),
+                arrays["roots"].astype(np.int32),
+                meta,
+                context,
+            )
+        assert context is not None
+        return context
 
     def digest(self) -> str:
         """SHA-256 of the arrays and metadata (independent of the compression)."""
@@ -114,7 +142,17 @@ class ForestModel:
             a = np.ascontiguousarray(getattr(self, k))
             h.update(k.encode() + str(a.dtype).encode() + a.tobytes())
         h.update(json.dumps(self.meta, sort_keys=True).encode())
+        if self.context is not None:
+            h.update(b"context" + self.context.digest().encode())
         return h.hexdigest()
+
+
+#: Prefix of the second stage's arrays in the ``.npz``.
+_CTX = "context_"
+
+
+def _json_bytes(meta: dict[str, Any]) -> np.ndarray:
+    return np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
 
 
 def forest_from_lightgbm_dump(

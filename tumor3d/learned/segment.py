@@ -18,6 +18,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError
+from tumor3d.learned.context import CONTEXT_NAMES, context_features
 from tumor3d.learned.features import FEATURE_NAMES, compute_features
 from tumor3d.learned.forest import ForestModel, predict_proba
 
@@ -102,7 +103,8 @@ def segment_learned(
     image : (z, y, x) ndarray of real numbers
         The slices as acquired. Not modified.
     model : ForestModel
-        Trained on :data:`~tumor3d.learned.features.FEATURE_NAMES`.
+        Trained on :data:`~tumor3d.learned.features.FEATURE_NAMES`; with a
+        ``context`` stage (auto-context), that stage's probability is the answer.
     spacing_mm : (3,) tuple of float
         ``(slice step, row, column)`` in mm.
     modality : {"flair", "t2", "t1c"}
@@ -120,21 +122,35 @@ def segment_learned(
     """
     if not isinstance(model, ForestModel):
         raise InputError(f"model must be a ForestModel, got {type(model).__name__}")
-    names = model.meta.get("feature_names")
-    if names and tuple(names) != FEATURE_NAMES:
-        raise InputError(
-            "the model was trained on other features than this version of tumor3d computes; "
-            "retrain it (tumor3d train)"
-        )
-    t = float(model.meta.get("threshold", 0.5) if threshold is None else threshold)
-    kf = float(model.meta.get("keep_fraction", 0.3) if keep_fraction is None else keep_fraction)
+    stages = [(model, FEATURE_NAMES)]
+    if model.context is not None:
+        stages.append((model.context, FEATURE_NAMES + CONTEXT_NAMES))
+    for stage, expected in stages:
+        names = stage.meta.get("feature_names")
+        if names and tuple(names) != expected:
+            raise InputError(
+                "the model was trained on other features than this version of tumor3d "
+                "computes; retrain it (tumor3d train)"
+            )
+    t_model = float(model.meta.get("threshold", 0.5))
+    kf_model = float(model.meta.get("keep_fraction", 0.3))
+    t = t_model if threshold is None else float(threshold)
+    kf = kf_model if keep_fraction is None else float(keep_fraction)
     feats = compute_features(
         image, spacing_mm=spacing_mm, modality=modality, lr_axis=lr_axis, prior=prior
     )
-    prob = np.zeros(feats.shape, dtype=np.float32)
-    prob.ravel()[feats.index] = predict_proba(model, feats.values)
     # a lesion of less than ~20 mm3 is noise at any slice thickness
     voxel_mm3 = float(np.prod(spacing_mm))
     min_voxels = max(1, int(round(20.0 / voxel_mm3)))
+    prob = np.zeros(feats.shape, dtype=np.float32)
+    prob.ravel()[feats.index] = predict_proba(model, feats.values)
+    if model.context is not None:
+        # auto-context: the first stage's lesion at the model's own cut, as in training
+        first = keep_main_lesion(prob, t_model, keep_fraction=kf_model, min_voxels=min_voxels)
+        ctx = context_features(
+            prob, first, candidates=feats.candidates, index=feats.index, spacing_mm=spacing_mm
+        )
+        prob = np.zeros(feats.shape, dtype=np.float32)
+        prob.ravel()[feats.index] = predict_proba(model.context, np.hstack([feats.values, ctx]))
     mask = keep_main_lesion(prob, t, keep_fraction=kf, min_voxels=min_voxels)
     return LearnedSegmentation(mask, prob, t)
