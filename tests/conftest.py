@@ -39,8 +39,15 @@ def prefect_harness():
         yield
 
 
+# The files that take longest (a few minutes each on 2 busy cores: a numba warm-up
+# into an empty cache, Dask worker processes killed and restarted, a cohort command
+# interrupted and re-run, S3 cohorts), longest first.
+LONGEST_FILES = ("test_warmup.py", "test_dask.py", "test_cohort_interrupt.py",
+                 "test_objectstore.py")  # fmt: skip
+
+
 def pytest_collection_modifyitems(config, items):
-    """The files with end-to-end (``slow``) tests run first, each file in its own order.
+    """The longest files, then the other files with ``slow`` tests, then the rest.
 
     With ``--dist loadfile`` a worker takes whole files as it frees up: the long
     files first and the many short ones after them keep both workers busy to the
@@ -48,7 +55,13 @@ def pytest_collection_modifyitems(config, items):
     worker collects the same items and sorts them the same way.
     """
     slow_files = {item.path for item in items if item.get_closest_marker("slow")}
-    items.sort(key=lambda item: item.path not in slow_files)  # stable: file order kept
+
+    def rank(item):  # stable sort: the order inside a file is kept
+        if item.path.name in LONGEST_FILES:
+            return LONGEST_FILES.index(item.path.name)
+        return len(LONGEST_FILES) + (item.path not in slow_files)
+
+    items.sort(key=rank)
 
 
 def pytest_sessionfinish(session, exitstatus):
