@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,6 +24,16 @@ import numba
 import numpy as np
 
 from tumor3d.errors import InputError
+
+# The prediction runs on numba's parallel layer, OpenMP first: numba tries TBB
+# first and prints a warning when the TBB already loaded in the process is too
+# old (Open3D, which the render stage imports, ships one), then falls back; OpenMP
+# (libgomp) is thread-safe, as a cohort's parallel lanes need. A user's own
+# NUMBA_THREADING_LAYER or NUMBA_THREADING_LAYER_PRIORITY is left alone.
+if not os.environ.get("NUMBA_THREADING_LAYER_PRIORITY") and (
+    os.environ.get("NUMBA_THREADING_LAYER", "default") == "default"
+):
+    numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 __all__ = ["ForestModel", "forest_from_lightgbm_dump", "predict_logit", "predict_proba"]
 
