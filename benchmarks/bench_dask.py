@@ -61,6 +61,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=20, help="phantom patients")
     parser.add_argument("--report", type=Path, default=ROOT / "reports" / "benchmarks.md")
+    parser.add_argument(
+        "--widths", type=int, nargs="+", default=[1, 2], help="lanes / Dask workers to compare"
+    )
     args = parser.parse_args()
 
     from prefect.testing.utilities import prefect_test_harness
@@ -69,14 +72,14 @@ def main() -> None:
     os.environ["PREFECT_HOME"] = str(work / "prefect-home")
     rows = write_phantom_cohort(args.n, "bd", work)
 
-    peers = [
-        ("local, 1 lane", 1, None),
-        ("local, 2 lanes", 2, None),
-        ("dask, 1 worker", None, DaskSpec(n_workers=1)),
-        ("dask, 2 workers", None, DaskSpec(n_workers=2)),
+    peers = [(f"local, {w} lane{'s' if w > 1 else ''}", w, None) for w in args.widths] + [
+        (f"dask, {w} worker{'s' if w > 1 else ''}", None, DaskSpec(n_workers=w))
+        for w in args.widths
     ]
+    width = {name: (lanes or dask.n_workers) for name, lanes, dask in peers}
     wall: dict[str, float] = {}
     outside: dict[str, float] = {}
+    compute: dict[str, float] = {}
     with prefect_test_harness(server_startup_timeout=240):
         run_cohort(rows[:1], work / "warmup", workers=1)
         for i, (name, lanes, dask) in enumerate(peers):
@@ -86,40 +89,46 @@ def main() -> None:
             assert res.exit_code == 0, [p.error for p in res.failed]
             assert not any(s.cached for p in res.patients for s in p.stages)
             outside[name] = _outside_stages_s(res)
+            compute[name] = sum(s.compute_seconds or 0.0 for p in res.patients for s in p.stages)
             print(f"{name}: {wall[name]:.1f} s")
 
     commit = subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
     ).stdout.strip()
-    lw1, lw2 = wall["local, 1 lane"], wall["local, 2 lanes"]
-    dw1, dw2 = wall["dask, 1 worker"], wall["dask, 2 workers"]
     lines = [
         SECTION,
         "",
-        f"Produced by `python benchmarks/bench_dask.py --n {args.n}` on "
+        f"Produced by `python benchmarks/bench_dask.py --n {args.n} --widths "
+        f"{' '.join(map(str, args.widths))}` on "
         f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores (shared "
-        f"with other jobs: read the ratios), Python {platform.python_version()}; "
+        f"with other jobs: read the ratios; load average {os.getloadavg()[0]:.1f} at the end), "
+        f"Python {platform.python_version()}; "
         f"{commit or 'no git'}. {args.n} default phantoms (30 slices of 256 x 256), every run "
         "cold (fresh store), one temporary Prefect server; Dask runs start a LocalCluster of "
         "worker processes (one thread each) inside the run, start-up included.",
         "",
-        "| runner | wall time (s) | per patient (s) | lane time outside stages, per patient (s) |",
-        "|---|---:|---:|---:|",
+        "| runner | wall time (s) | per patient (s) | lane time outside stages, per patient (s) "
+        "| orchestration, 1 - compute / (width x wall) |",
+        "|---|---:|---:|---:|---:|",
     ]
     for name, _, _ in peers:
+        share = 1.0 - compute[name] / (wall[name] * width[name])
         lines.append(
-            f"| {name} | {wall[name]:.1f} | {wall[name] / args.n:.2f} | {outside[name]:.2f} |"
+            f"| {name} | {wall[name]:.1f} | {wall[name] / args.n:.2f} | {outside[name]:.2f} "
+            f"| {100 * share:.0f} % |"
         )
-    lines += [
-        "",
-        "| ratio | value |",
-        "|---|---:|",
-        f"| local speed-up, 1 -> 2 lanes | {lw1 / lw2:.2f} x |",
-        f"| Dask speed-up, 1 -> 2 workers | {dw1 / dw2:.2f} x |",
-        f"| Dask 1 worker / local 1 lane (wall) | {dw1 / lw1:.2f} |",
-        f"| Dask 2 workers / local 2 lanes (wall) | {dw2 / lw2:.2f} |",
-        "",
-    ]
+    w0 = args.widths[0]
+    l0 = wall[next(n for n, lanes, _ in peers if lanes == w0)]
+    d0 = wall[next(n for n, _, d in peers if d is not None and d.n_workers == w0)]
+    lines += ["", "| ratio | value |", "|---|---:|"]
+    for w in args.widths:
+        lw = wall[next(n for n, lanes, _ in peers if lanes == w)]
+        dw = wall[next(n for n, _, d in peers if d is not None and d.n_workers == w)]
+        if w != w0:
+            lines.append(f"| local speed-up, {w0} -> {w} lanes | {l0 / lw:.2f} x |")
+            lines.append(f"| Dask speed-up, {w0} -> {w} workers | {d0 / dw:.2f} x |")
+        lines.append(f"| Dask {w} / local {w} (wall) | {dw / lw:.2f} |")
+    lines.append("")
     section = "\n".join(lines) + "\n"
     report = args.report
     report.parent.mkdir(parents=True, exist_ok=True)
