@@ -139,7 +139,7 @@ def forward(argv: list[str]) -> int | None:
         sys.stderr.flush()
         socket.send_fds(sock, [json.dumps(hello).encode() + b"\n"], fds)
         reply = _read_line(sock)
-    except (OSError, ValueError):
+    except Exception:  # no runner, a closed stdin (cron), ...: run in this process
         sock.close()
         return None
     if reply is None or not reply.get("accepted"):

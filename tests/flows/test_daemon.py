@@ -105,3 +105,16 @@ def test_the_fingerprint_follows_the_files(tmp_path, monkeypatch):
     assert code_fingerprint(tmp_path) != first
     monkeypatch.setenv("TUMOR3D_HOME", str(tmp_path / "h"))
     assert socket_path() == tmp_path / "h" / "run.sock"
+
+
+def test_a_client_without_stdin_runs_in_process(runner, tmp_path):
+    """A scheduled job may have no standard input: not served, never a traceback."""
+    before = _served(runner)
+    res = subprocess.run(
+        [sys.executable, "-c", "import sys; assert sys.stdin is None; " + CLIENT, "run",
+         "missing.nii.gz", "--out", "out"],
+        env=_env(runner), cwd=str(tmp_path), capture_output=True, text=True, timeout=300,
+        preexec_fn=lambda: os.close(0),  # fd 0 closed: Python starts with sys.stdin None
+    )  # fmt: skip
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert _served(runner) == before
