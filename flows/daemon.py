@@ -253,8 +253,6 @@ def _child(conn: socket.socket, hello: dict, fds: list[int]) -> None:  # pragma:
         from flows.server import EXIT_HOOKS
 
         EXIT_HOOKS.append(lambda c: _send(conn, {"exit": int(c)}))
-        import atexit
-
         from rich.console import Console
 
         import flows.cli as cli
@@ -262,21 +260,11 @@ def _child(conn: socket.socket, hello: dict, fds: list[int]) -> None:  # pragma:
         cli.console = Console()  # the client's terminal: colours and width as in-process
         cli.err_console = Console(stderr=True)
         try:
-            cli.app(args=hello["argv"], prog_name="tumor3d")
-            code = 0
-        except SystemExit as exc:
-            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-            if isinstance(exc.code, str):
-                print(exc.code, file=sys.stderr)
+            code = cli.run_command(hello["argv"], prog_name="tumor3d")
         except KeyboardInterrupt:
             print("interrupted", file=sys.stderr)
             code = 130
-        atexit._run_exitfuncs()
-        for stream in (sys.stdout, sys.stderr):
-            try:
-                stream.flush()
-            except (OSError, ValueError):
-                pass
+            cli.finish_process()
     except BaseException as exc:  # never a traceback on the client's terminal
         try:
             print(f"error: the background runner failed: {exc}".splitlines()[0], file=sys.stderr)

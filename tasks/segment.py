@@ -23,7 +23,7 @@ from tumor3d.learned.shipped import shipped_model
 from tumor3d.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
 from tumor3d.segment import lesion_definition, resolve_method, segment_tumor
 
-__all__ = ["SPEC", "lesion_from_artifact", "segment_task"]
+__all__ = ["SPEC", "lesion_from_artifact", "load_detection", "segment_task"]
 
 
 def _f(v: Any, missing: float = float("nan")) -> float:
@@ -58,6 +58,22 @@ def lesion_from_artifact(mask: np.ndarray, meta: dict[str, Any]) -> LesionResult
         else MirrorPlane(int(plane["lr_axis"]), float(plane["yaw_deg"]), float(plane["offset_mm"])),
         bool(meta.get("midline", False)),  # absent from artifacts written before step 3f
     )
+
+
+def load_detection(
+    store: Any, detection: ArtifactRef, lesion: ArtifactRef, *, with_lesion: bool = True
+) -> tuple[SliceDetection, dict[str, Any]]:
+    """The detect stage's :class:`SliceDetection` and its lesion artifact's metadata.
+
+    With ``with_lesion``, the lesion model it computed (if it did) is put back
+    on the detection, so the robust method does not compute it again.
+    """
+    det = SliceDetection.from_records(store.get_table(detection).to_dict("records"))
+    meta = lesion.metadata["lesion"]
+    if with_lesion and meta.get("computed"):
+        lesion_mask, _ = store.get_volume(lesion)
+        det = dataclasses.replace(det, lesion=lesion_from_artifact(lesion_mask, meta))
+    return det, meta
 
 
 @stage_task("segment-tumor")
@@ -101,12 +117,8 @@ def segment_task(
     image, affine = store.get_volume(enhanced)
     brain, _ = store.get_volume(brain_mask)
     exterior = store.get_volume(head_exterior)[0].astype(bool)
-    det = SliceDetection.from_records(store.get_table(detection).to_dict("records"))
-    meta = lesion.metadata["lesion"]
     needs_lesion = config.method in ("auto", "robust", "learned")
-    if needs_lesion and meta.get("computed"):
-        lesion_mask, _ = store.get_volume(lesion)
-        det = dataclasses.replace(det, lesion=lesion_from_artifact(lesion_mask, meta))
+    det, meta = load_detection(store, detection, lesion, with_lesion=needs_lesion)
     modality = scan.metadata["modality"]
     learned: dict[str, Any] = {}
     if resolve_method(config.method, modality, det) == "learned":  # the acquired image, a model

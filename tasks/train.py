@@ -13,21 +13,18 @@ never pickled.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
 from storage.objectstore import open_store
 from storage.store import ArtifactRef
-from tasks.segment import lesion_from_artifact
+from tasks.segment import load_detection
 from tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
 from tumor3d.config import SegmentConfig
-from tumor3d.detect import SliceDetection
 from tumor3d.errors import InputError
 from tumor3d.evaluation.grids import resample_nearest
 from tumor3d.learned.rows import patient_rows, rows_to_bytes
 from tumor3d.lesion import left_right_axis
-from tumor3d.segment import segment_tumor
+from tumor3d.segment import learned_prior
 
 __all__ = ["SPEC", "training_rows_task"]
 
@@ -66,22 +63,16 @@ def training_rows_task(
             "the reference has no tumour on the slices of the image "
             "(does it cover the same part of the head?)"
         )
-    det = SliceDetection.from_records(store.get_table(detection).to_dict("records"))
-    meta = lesion.metadata["lesion"]
-    if meta.get("computed"):
-        lesion_mask, _ = store.get_volume(lesion)
-        det = dataclasses.replace(det, lesion=lesion_from_artifact(lesion_mask, meta))
+    det, meta = load_detection(store, detection, lesion)
     modality = scan.metadata["modality"]
     spacing_mm = scan_spacing_mm(scan)
     lr_axis = left_right_axis(affine)
     # the prior exactly as the learned method computes it at inference
-    # (tumor3d.segment._segment_learned): the robust method on the same slices
-    prior = segment_tumor(
+    prior = learned_prior(
         enhanced_img,
         brain,
         det,
         modality=modality,
-        method="robust",
         min_tumor_pixels=config.min_tumor_pixels,
         lesion=meta["params"],
         spacing_mm=spacing_mm,

@@ -996,6 +996,37 @@ def segment_tumor(
     )
 
 
+def learned_prior(
+    enhanced: np.ndarray,
+    brain_mask: np.ndarray,
+    detection: SliceDetection,
+    *,
+    modality: str,
+    min_tumor_pixels: int,
+    lesion: Mapping[str, Any] | None,
+    spacing_mm: tuple[float, float, float] | None,
+    lr_axis: int | None,
+    head_exterior: np.ndarray | None,
+) -> SegmentationResult:
+    """The learned method's prior: the robust method on the same slices.
+
+    One definition for inference (:func:`_segment_learned`) and training
+    (``tasks/train.py``), so the model is trained on the prior it is given.
+    """
+    return segment_tumor(
+        enhanced,
+        brain_mask,
+        detection,
+        modality=modality,
+        method="robust",
+        min_tumor_pixels=min_tumor_pixels,
+        lesion=lesion,
+        spacing_mm=spacing_mm,
+        lr_axis=lr_axis,
+        head_exterior=head_exterior,
+    )
+
+
 def _segment_learned(
     enhanced: np.ndarray,
     brain_mask: np.ndarray,
@@ -1023,12 +1054,11 @@ def _segment_learned(
     img = np.asarray(image)
     if img.shape != np.shape(enhanced):
         raise InputError(f"image has shape {img.shape} but enhanced has {np.shape(enhanced)}")
-    prior = segment_tumor(
+    prior = learned_prior(
         enhanced,
         brain_mask,
         detection,
         modality=modality,
-        method="robust",
         min_tumor_pixels=min_tumor_pixels,
         lesion=lesion,
         spacing_mm=spacing_mm,
