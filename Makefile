@@ -69,7 +69,7 @@ real-data: setup
 # failed) still publishes the report, which names the failures.
 EVAL_OUT ?= eval-out
 evaluate: setup
-	TUMOR3D_DATA_DIR="$(TUMOR3D_DATA_DIR)" $(BIN)/python -m flows.cli evaluate \
+	TUMOR3D_DATA_DIR="$(TUMOR3D_DATA_DIR)" $(BIN)/python -m tumor3d evaluate \
 	    configs/evaluation/real_cases.csv --phantoms 10 \
 	    --config default=configs/default.yaml --config paper=configs/paper.yaml \
 	    --config peer_multiotsu=configs/peer_multiotsu.yaml \

@@ -5,8 +5,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from storage.phantom_io import write_phantom_patient
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.phantom_io import write_phantom_patient
 
 
 def write_phantom_cohort(n: int, prefix: str, work: Path) -> list:

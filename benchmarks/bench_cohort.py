@@ -3,8 +3,8 @@
 Peers, in one process after a warm-up (numba compilation, Open3D start):
 
 * ``direct``: every patient's nine stages called in order without Prefect
-  (:func:`flows.patient.run_stages_direct`), one patient after another;
-* ``cohort, cold``: :func:`flows.cohort.run_cohort` into a fresh output folder
+  (:func:`tumor3d.flows.patient.run_stages_direct`), one patient after another;
+* ``cohort, cold``: :func:`tumor3d.flows.cohort.run_cohort` into a fresh output folder
   and store (every stage computes), ``W`` patients at a time;
 * ``cohort, cached``: the same call again (every stage a cache hit; the
   published folders already hold this result, so nothing is rewritten);
@@ -50,10 +50,10 @@ sys.path.insert(0, str(ROOT))
 
 from _cohort_bench import replace_report_section, write_phantom_cohort  # noqa: E402
 
-from flows.cohort import run_cohort  # noqa: E402
-from flows.patient import run_stages_direct  # noqa: E402
-from storage.publish import PUBLISH_MANIFEST  # noqa: E402
-from tasks import stages  # noqa: E402
+from tumor3d.flows.cohort import run_cohort  # noqa: E402
+from tumor3d.flows.patient import run_stages_direct  # noqa: E402
+from tumor3d.storage.publish import PUBLISH_MANIFEST  # noqa: E402
+from tumor3d.tasks import stages  # noqa: E402
 
 SECTION = "## Cohort flow"
 

@@ -44,8 +44,8 @@ os.environ["PYTHONPATH"] = os.pathsep.join(
 
 from _cohort_bench import replace_report_section, write_phantom_cohort  # noqa: E402
 
-from flows.cohort import run_cohort  # noqa: E402
-from flows.dask_runner import DaskSpec  # noqa: E402
+from tumor3d.flows.cohort import run_cohort  # noqa: E402
+from tumor3d.flows.dask_runner import DaskSpec  # noqa: E402
 
 SECTION = "## Dask runner scaling"
 

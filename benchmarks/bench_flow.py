@@ -5,7 +5,7 @@ Open3D shader compilation):
 
 * ``direct``: the nine stage functions called in order without Prefect
   (each task's undecorated function, ``task.fn``, through the flow's own
-  wiring :func:`flows.patient.run_stages`), same store, same I/O;
+  wiring :func:`tumor3d.flows.patient.run_stages`), same store, same I/O;
 * ``flow, cold``: ``run_patient`` into a fresh store (every stage computes);
 * ``flow, cached``: ``run_patient`` again (every stage a cache hit).
 
@@ -39,10 +39,10 @@ os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from flows.patient import run_patient, run_stages_direct  # noqa: E402
-from storage.phantom_io import write_phantom_patient  # noqa: E402
-from tasks import stages  # noqa: E402
+from tumor3d.flows.patient import run_patient, run_stages_direct  # noqa: E402
 from tumor3d.phantom import make_phantom_patient  # noqa: E402
+from tumor3d.storage.phantom_io import write_phantom_patient  # noqa: E402
+from tumor3d.tasks import stages  # noqa: E402
 
 N_SLICES = 31
 

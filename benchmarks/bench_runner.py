@@ -42,8 +42,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args(argv)
-    from storage.phantom_io import write_phantom_patient
     from tumor3d.phantom import make_phantom_patient
+    from tumor3d.storage.phantom_io import write_phantom_patient
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-runner-"))
     env = {k: v for k, v in os.environ.items() if not k.startswith(("TUMOR3D_", "PREFECT_API"))}

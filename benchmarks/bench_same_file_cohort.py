@@ -31,8 +31,8 @@ sys.path.insert(0, str(ROOT))
 
 from _cohort_bench import write_phantom_cohort  # noqa: E402
 
-from flows.cohort import run_cohort  # noqa: E402
-from flows.patient import run_stages_direct  # noqa: E402
+from tumor3d.flows.cohort import run_cohort  # noqa: E402
+from tumor3d.flows.patient import run_stages_direct  # noqa: E402
 
 
 def main() -> None:

@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _tumor3d(*args: str, env: dict[str, str]) -> float:
     t0 = time.perf_counter()
     subprocess.run(
-        [sys.executable, "-m", "flows.cli", *args],
+        [sys.executable, "-m", "tumor3d.flows.cli", *args],
         env=env, cwd=str(ROOT), check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
     return time.perf_counter() - t0
@@ -73,7 +73,7 @@ def main() -> None:
         load_after = os.getloadavg()
     finally:
         subprocess.run(
-            [sys.executable, "-m", "flows.cli", "server", "stop"], env=env, cwd=str(ROOT),
+            [sys.executable, "-m", "tumor3d.flows.cli", "server", "stop"], env=env, cwd=str(ROOT),
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
         )  # fmt: skip
         shutil.rmtree(tmp, ignore_errors=True)

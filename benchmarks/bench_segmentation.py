@@ -27,19 +27,19 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from storage.manifest import data_dir  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.detect import detect_abnormal_slices  # noqa: E402
 from tumor3d.lesion import left_right_axis  # noqa: E402
 from tumor3d.preprocess import preprocess_volume  # noqa: E402
 from tumor3d.segment import segment_tumor  # noqa: E402
+from tumor3d.storage.manifest import data_dir  # noqa: E402
 
 
 def _volume() -> tuple[np.ndarray, tuple[float, float, float], int | None, str]:
     """(image, spacing_mm (z, y, x), left-right axis, description)."""
     f = data_dir() / "brats2013_pat0003" / "flair.nii.gz"
     if f.is_file():
-        from storage.readers import read_scan
+        from tumor3d.storage.readers import read_scan
 
         scan = read_scan(f, modality="flair")
         spacing = (scan.slice_step_mm, *scan.pixel_spacing_mm)

@@ -2,9 +2,9 @@
 
 The demo phantom (seed 7, as ``make demo``) is run through the pipeline in
 this process (no Prefect), then the page is built as publishing builds it
-(:func:`storage.viewer.viewer_html`: the scan cropped to the brain box, the
+(:func:`tumor3d.storage.viewer.viewer_html`: the scan cropped to the brain box, the
 tumour and brain masks, the simplified tumour and the brain reduced to
-:data:`tasks.brain_surface.VIEWER_BRAIN_MAX_FACES` faces). Printed: the page
+:data:`tumor3d.tasks.brain_surface.VIEWER_BRAIN_MAX_FACES` faces). Printed: the page
 size and what each embedded part takes, the time to build it, and the
 shared ``_assets`` files written once per output folder (NiiVue's script
 and licences), against the plotly page each patient carried before
@@ -27,11 +27,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from flows.patient import run_stages_direct  # noqa: E402
-from storage.phantom_io import write_phantom_patient  # noqa: E402
-from storage.store import ArtifactStore  # noqa: E402
-from storage.viewer import NIIVUE_VERSION, viewer_assets, viewer_html  # noqa: E402
+from tumor3d.flows.patient import run_stages_direct  # noqa: E402
 from tumor3d.phantom import make_phantom_patient  # noqa: E402
+from tumor3d.storage.phantom_io import write_phantom_patient  # noqa: E402
+from tumor3d.storage.store import ArtifactStore  # noqa: E402
+from tumor3d.storage.viewer import NIIVUE_VERSION, viewer_assets, viewer_html  # noqa: E402
 
 
 def main() -> int:

@@ -28,10 +28,10 @@ from scipy import ndimage as ndi
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from storage.manifest import data_dir  # noqa: E402
-from storage.readers import read_scan  # noqa: E402
 from tumor3d.brain_extraction import extract_brain  # noqa: E402
 from tumor3d.preprocess import remove_skull, to_uint8  # noqa: E402
+from tumor3d.storage.manifest import data_dir  # noqa: E402
+from tumor3d.storage.readers import read_scan  # noqa: E402
 
 VOLUMES = [
     ("thick_t1c_brain2/image.nii.gz", "t1c"),

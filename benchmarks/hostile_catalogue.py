@@ -41,7 +41,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
-from flows.cli import app  # noqa: E402
+from tumor3d.flows.cli import app  # noqa: E402
 
 CLI = CliRunner()
 
@@ -141,8 +141,8 @@ _PHANTOM: dict[str, object] = {}
 def _phantom_run(tmp: Path):
     """One small phantom run, cold, shared by the store and cache items: (image, out, result)."""
     if "out" not in _PHANTOM:
-        from storage.phantom_io import write_phantom_patient
         from tumor3d.phantom import make_phantom_patient
+        from tumor3d.storage.phantom_io import write_phantom_patient
 
         folder = tmp / "shared-phantom"
         row = write_phantom_patient(
@@ -183,7 +183,7 @@ def dicom_folder_replaced_by_its_own_output(tmp: Path):
 
 @item("silent wrong number")
 def sheared_affine_slab_height_is_the_plane_spacing(tmp: Path):
-    from storage.readers import read_scan
+    from tumor3d.storage.readers import read_scan
 
     affine = np.diag([1.0, 1.0, 5.0, 1.0])
     affine[0, 2] = 3.0  # the slice-axis column is 5.83 mm long, the planes 5 mm apart
@@ -301,8 +301,8 @@ def _second_patient(tmp: Path) -> Path:
     """A second phantom patient (cat5) run into the shared output and store: its image."""
     image, out = _phantom_run(tmp)
     if "image5" not in _PHANTOM:
-        from storage.phantom_io import write_phantom_patient
         from tumor3d.phantom import make_phantom_patient
+        from tumor3d.storage.phantom_io import write_phantom_patient
 
         row = write_phantom_patient(
             make_phantom_patient(5, patient_id="cat5", n_slices=16), out.parent / "in5"
@@ -315,7 +315,7 @@ def _second_patient(tmp: Path) -> Path:
 
 def _healed(image: Path, out: Path) -> bool:
     """A further run of cat3 is all cache hits (the bad record was rewritten)."""
-    from tasks.stages import STAGES
+    from tumor3d.tasks.stages import STAGES
 
     res = _console("run", image, "--out", out, "--patient-id", "cat3")
     return res.exit_code == 0 and res.output.count("\tcache hit") == len(STAGES)
@@ -535,7 +535,7 @@ def kill_9_leaves_no_temporary_server(tmp: Path):
     env.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "240")
     image = _nifti(tmp / "x.nii.gz", np.random.default_rng(0).random((32, 32, 6)) + 1)
     run = subprocess.Popen(
-        [sys.executable, "-m", "flows.cli", "run", str(image), "--out", str(tmp / "o")],
+        [sys.executable, "-m", "tumor3d.flows.cli", "run", str(image), "--out", str(tmp / "o")],
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=str(ROOT),
     )  # fmt: skip
     child = None
@@ -544,7 +544,7 @@ def kill_9_leaves_no_temporary_server(tmp: Path):
         for task in Path(f"/proc/{run.pid}/task").glob("*"):
             with contextlib.suppress(OSError):
                 for kid in (task / "children").read_text().split():
-                    if b"flows.server" in Path(f"/proc/{kid}/cmdline").read_bytes():
+                    if b"tumor3d.flows.server" in Path(f"/proc/{kid}/cmdline").read_bytes():
                         child = int(kid)
         time.sleep(0.3)
     if child is None:
@@ -603,13 +603,13 @@ def unwritable_output_folder_under_proc(tmp: Path):
 
 _FULL_DISK = """
 import errno, sys
-import storage.store as store
+import tumor3d.storage.store as store
 
 def full(path, data):
     raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
 store.atomic_write_bytes = full
-from flows.cli import app
+from tumor3d.flows.cli import app
 sys.argv = ["tumor3d", *sys.argv[1:]]
 app()
 """
@@ -760,7 +760,7 @@ def second_run_is_all_cache_hits_and_piped_output_is_plain(tmp: Path):
     res = _cli("run", image, "--out", out, "--patient-id", "cat3")
     wall = time.perf_counter() - t0
     hits = res.output.count("\tcache hit")
-    from tasks.stages import STAGES
+    from tumor3d.tasks.stages import STAGES
 
     n = len(STAGES)  # 10 stages (the catalogue once counted 9)
     return (res.exit_code == 0 and hits == n), (
@@ -780,8 +780,8 @@ def flow_runs_are_named_after_the_patient(tmp: Path):
 
 @item("everyday use")
 def no_empty_meshes_without_tumour(tmp: Path):
-    from storage.phantom_io import write_phantom_patient
     from tumor3d.phantom import make_phantom_patient
+    from tumor3d.storage.phantom_io import write_phantom_patient
 
     row = write_phantom_patient(
         make_phantom_patient(4, patient_id="free4", n_slices=12, tumor=False), tmp / "in"
@@ -796,7 +796,7 @@ def no_empty_meshes_without_tumour(tmp: Path):
 def nrrd_and_metaimage_inputs(tmp: Path):
     import SimpleITK as sitk
 
-    from storage.readers import read_scan
+    from tumor3d.storage.readers import read_scan
 
     data = (np.random.default_rng(0).random((4, 12, 12)) * 100 + 1).astype(np.float32)
     shapes = []
@@ -848,8 +848,8 @@ def _own_home_env(tmp: Path) -> dict[str, str]:
 
 
 def _small_phantom(tmp: Path, seed: int, pid: str) -> Path:
-    from storage.phantom_io import write_phantom_patient
     from tumor3d.phantom import make_phantom_patient
+    from tumor3d.storage.phantom_io import write_phantom_patient
 
     patient = make_phantom_patient(seed, patient_id=pid, n_slices=16)
     return write_phantom_patient(patient, tmp / "in" / pid).image
@@ -928,7 +928,7 @@ def same_file_under_many_ids_is_cache_hits(tmp: Path):
     )
     res = _console("cohort", tmp / "m.csv", "--out", tmp / "o", "--workers", "1")
     hits = res.output.count("\tcache hit")
-    from tasks.stages import STAGES
+    from tumor3d.tasks.stages import STAGES
 
     want = (n - 1) * len(STAGES)
     named = all(_metrics(tmp / "o", f"id{i}")["patient_id"] == f"id{i}" for i in range(n))
@@ -964,7 +964,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", nargs="*", default=None, help="Run only these items (names).")
     args = parser.parse_args(argv)
 
-    from flows.server import prefect_api
+    from tumor3d.flows.server import prefect_api
 
     verdicts: list[Verdict] = []
     tmp_root = Path(tempfile.mkdtemp(prefix="tumor3d-hostile-"))

@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from storage.manifest import data_dir
 from tumor3d.evaluation.interpolation import (
     ITK_METHOD,
     drifting_tumour_phantom,
@@ -35,6 +34,7 @@ from tumor3d.evaluation.interpolation import (
     table4_rows,
 )
 from tumor3d.interpolate import _DEFAULT_METHOD, _DEFAULT_PARTS
+from tumor3d.storage.manifest import data_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPERT = ["brats2013_pat0003", "brats2013_pat0004", "brats2013_pat0005"]

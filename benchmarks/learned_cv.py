@@ -47,8 +47,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from real_segmentation import emulate_thick  # noqa: E402
 
-from storage.manifest import data_dir  # noqa: E402
-from storage.readers import read_scan  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.evaluation.metrics import dice  # noqa: E402
 from tumor3d.interpolate import interpolate_stack  # noqa: E402
@@ -65,6 +63,8 @@ from tumor3d.learned.training import (  # noqa: E402
 )
 from tumor3d.lesion import left_right_axis  # noqa: E402
 from tumor3d.preprocess import preprocess_volume  # noqa: E402
+from tumor3d.storage.manifest import data_dir  # noqa: E402
+from tumor3d.storage.readers import read_scan  # noqa: E402
 
 STEP = 5
 OFFSET = 2

@@ -356,8 +356,8 @@ def geometry_rows(cfg: PipelineConfig, n: int, normal: int) -> list[str]:
 
 def demo_rows(configs: dict[str, PipelineConfig], seed: int = 7) -> tuple[list[str], list[str]]:
     """The demo patient end to end (every stage, no Prefect): volumes and phase times."""
-    from flows.patient import VOLUME_LABELS, VOLUME_METHODS, run_stages_direct
-    from storage.phantom_io import write_phantom_patient
+    from tumor3d.flows.patient import VOLUME_LABELS, VOLUME_METHODS, run_stages_direct
+    from tumor3d.storage.phantom_io import write_phantom_patient
 
     work = Path(tempfile.mkdtemp(prefix="tumor3d-paper-"))
     patient = make_phantom_patient(seed, patient_id=f"demo{seed:03d}")
@@ -415,7 +415,7 @@ RENDERS = {
 
 def _save_renders(store_dir: Path, artifacts: dict, config_name: str) -> list[str]:
     """Copy the demo's renders to ``reports/``; markdown image lines."""
-    from storage.store import ArtifactStore
+    from tumor3d.storage.store import ArtifactStore
 
     store = ArtifactStore(store_dir)
     lines = []
@@ -441,9 +441,9 @@ REAL_CASES = (
 
 def real_rows(configs: dict[str, PipelineConfig]) -> list[str]:
     """Eq. 7 on the real cases of ``$TUMOR3D_DATA_DIR`` against the reference label's volume."""
-    from flows.patient import run_stages_direct
-    from storage.evaluation_io import prepare_case, reference_mask
-    from storage.manifest import read_manifest
+    from tumor3d.flows.patient import run_stages_direct
+    from tumor3d.storage.evaluation_io import prepare_case, reference_mask
+    from tumor3d.storage.manifest import read_manifest
 
     manifest = ROOT / "configs" / "evaluation" / "real_cases.csv"
     try:
@@ -759,7 +759,8 @@ def main() -> None:
             "## The demo patient (`tumor3d demo`, phantom seed 7), every stage",
             "",
             "`tumor3d demo --config configs/paper.yaml` runs the same stages under Prefect; "
-            "here they run in-process (`flows.patient.run_stages_direct`). The paper reports "
+            "here they run in-process (`tumor3d.flows.patient.run_stages_direct`). "
+            "The paper reports "
             "one volume, 215.26 mm3, of a patient of its own.",
             "",
             *demo_vol,

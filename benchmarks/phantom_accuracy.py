@@ -25,11 +25,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from flows.patient import VOLUME_LABELS, VOLUME_METHODS, run_stages_direct  # noqa: E402
-from storage.phantom_io import write_phantom_patient  # noqa: E402
-from storage.store import ArtifactStore  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
+from tumor3d.flows.patient import VOLUME_LABELS, VOLUME_METHODS, run_stages_direct  # noqa: E402
 from tumor3d.phantom import make_phantom_patient  # noqa: E402
+from tumor3d.storage.phantom_io import write_phantom_patient  # noqa: E402
+from tumor3d.storage.store import ArtifactStore  # noqa: E402
 
 
 def _dice(a: np.ndarray, b: np.ndarray) -> float:

@@ -52,8 +52,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import real_segmentation as rs  # noqa: E402
 
-from storage.readers import read_scan  # noqa: E402
 from tumor3d.lesion import _depth_mm, left_right_axis  # noqa: E402
+from tumor3d.storage.readers import read_scan  # noqa: E402
 
 MARGIN_MM = 5.0  # replaced beyond the label (the oedema's edge, the blend)
 BLEND_MM = 2.0

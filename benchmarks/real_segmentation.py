@@ -67,14 +67,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from storage.manifest import data_dir  # noqa: E402  (re-exported: rs.data_dir)
-from storage.readers import read_scan  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.detect import detect_abnormal_slices  # noqa: E402
 from tumor3d.interpolate import interpolate_stack  # noqa: E402
 from tumor3d.lesion import left_right_axis  # noqa: E402
 from tumor3d.preprocess import preprocess_volume  # noqa: E402
 from tumor3d.segment import segment_tumor  # noqa: E402
+from tumor3d.storage.manifest import data_dir  # noqa: E402  (re-exported: rs.data_dir)
+from tumor3d.storage.readers import read_scan  # noqa: E402
 
 STEP = 5  # slab step, thin slices (5 mm at 1 mm)
 

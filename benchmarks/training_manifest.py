@@ -33,9 +33,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from learned_cv import PHANTOM_SEED0, case_specs  # noqa: E402
 
-from storage.manifest import ManifestRow, data_dir, write_manifest  # noqa: E402
-from storage.phantom_io import write_phantom_patient  # noqa: E402
 from tumor3d.phantom import make_phantom_patient  # noqa: E402
+from tumor3d.storage.manifest import ManifestRow, data_dir, write_manifest  # noqa: E402
+from tumor3d.storage.phantom_io import write_phantom_patient  # noqa: E402
 
 #: The paper's acquisition emulated on 1 mm BraTS volumes (2 mm slices every 5 mm).
 STEP_MM, THICKNESS_MM = 5.0, 2.0

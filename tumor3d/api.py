@@ -14,7 +14,7 @@ is cached or written.
 
 The core stays pure: arrays (or a :class:`~tumor3d.scan.Scan`) go in. A path
 is read, and an array with its affine is turned into a ``Scan``, by
-:mod:`storage.readers`, imported only then.
+:mod:`tumor3d.storage.readers`, imported only then.
 """
 
 from __future__ import annotations
@@ -156,7 +156,7 @@ def _config(config: PipelineConfig | Mapping[str, Any] | str | None) -> Pipeline
 def _brain_notes(
     brain: np.ndarray, spacing: tuple[float, float, float], extraction: str, tissue_slices: int
 ) -> list[str]:
-    """The brain-mask notes of the pipeline (``tasks.preprocess.preprocess_notes``)."""
+    """The brain-mask notes of the pipeline (``tumor3d.tasks.preprocess.preprocess_notes``)."""
     from tumor3d.preprocess import brain_coverage_note, brain_size_note, brain_volume_note
 
     per_slice = np.count_nonzero(brain, axis=(1, 2))
@@ -267,7 +267,7 @@ def reconstruct_scan(
         from tumor3d.learned.shipped import shipped_model
 
         learned = {"image": scan.image, "model": shipped_model(scan.modality)}
-    # segment-tumor (a given segmentation replaces it, as tasks.segment does)
+    # segment-tumor (a given segmentation replaces it, as tumor3d.tasks.segment does)
     if tumour_given is not None:
         from tumor3d.given_segmentation import given_definition, given_segmentation
 
@@ -314,7 +314,7 @@ def reconstruct_scan(
         brain_mask_note="brain mask given: no skull removal" if given is not None else None,
         brain_notes=_brain_notes(brain, spacing, extraction, tissue_slice_count(pre.original_u8)),
     )
-    if tumour_given is not None:  # informational, as flows.patient.run_notes
+    if tumour_given is not None:  # informational, as tumor3d.flows.patient.run_notes
         said = f" ({segmentation_name})" if segmentation_name else ""
         notes.append(f"segmentation: given{said}")
     review = review_status(doubts, segmentation=segmentation_values(seg))
@@ -418,7 +418,7 @@ def reconstruct(
         )
     if affine is not None:
         raise InputError("affine is for an array input; a file carries its own")
-    from storage.readers import read_scan
+    from tumor3d.storage.readers import read_scan
 
     scan = read_scan(image, modality=mod, patient_id=patient_id,
                      slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm)  # fmt: skip
@@ -429,7 +429,7 @@ def reconstruct(
             if mask.shape == scan.source_grid.shape:  # the file's voxel order
                 mask = np.ascontiguousarray(mask.transpose(scan.source_grid.axes[::-1]))
         else:
-            from storage.brain_mask import read_given_brain_mask
+            from tumor3d.storage.brain_mask import read_given_brain_mask
 
             mask = read_given_brain_mask(brain_mask, scan).mask
     tumour, name = None, None
@@ -438,7 +438,7 @@ def reconstruct(
         if tumour.shape == scan.source_grid.shape:  # the file's voxel order
             tumour = np.ascontiguousarray(tumour.transpose(scan.source_grid.axes[::-1]))
     elif segmentation is not None:
-        from storage.given_segmentation import read_given_segmentation
+        from tumor3d.storage.given_segmentation import read_given_segmentation
 
         given_seg = read_given_segmentation(segmentation, scan)
         tumour, name = given_seg.mask, given_seg.name
@@ -465,8 +465,8 @@ def _scan_from_array(
         raise InputError(f"affine must be a finite invertible 4x4 matrix, got shape {aff.shape}")
     if data.ndim != 3:
         raise InputError(f"image must be a 3-D array, got shape {data.shape}")
-    from storage.readers.common import scan_from_volume
     from tumor3d.scan import validate_patient_id
+    from tumor3d.storage.readers.common import scan_from_volume
     from tumor3d.validation import check_positive
 
     if slice_thickness_mm is not None:

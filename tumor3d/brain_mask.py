@@ -1,7 +1,7 @@
 """A brain mask given by the user instead of the one skull removal finds.
 
 The rules (pure: arrays in, arrays out; reading the file is
-:mod:`storage.brain_mask`'s):
+:mod:`tumor3d.storage.brain_mask`'s):
 
 * **Grid.** The mask must lie on the image's voxel grid: the same shape and
   an affine that places every voxel centre within :data:`GRID_TOL_VOXELS`

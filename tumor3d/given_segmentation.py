@@ -1,7 +1,7 @@
 """A tumour segmentation given by the user instead of the one the segment stage computes.
 
 The rules (pure: arrays in, arrays out; reading the file is
-:mod:`storage.given_segmentation`'s):
+:mod:`tumor3d.storage.given_segmentation`'s):
 
 * **Grid.** The mask lies on the image's voxel grid, checked as a given
   brain mask is (:func:`tumor3d.brain_mask.check_same_grid`: the same shape,

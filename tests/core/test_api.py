@@ -53,7 +53,7 @@ def test_a_phantom_gives_its_known_volume_masks_and_a_closed_mesh(phantom, resul
 
 
 def test_an_array_with_its_affine_and_a_file_give_the_same_result(phantom, result, tmp_path):
-    from storage.phantom_io import write_phantom_patient
+    from tumor3d.storage.phantom_io import write_phantom_patient
 
     grid = phantom.scan.source_grid
     arr = tumor3d.reconstruct(
@@ -71,10 +71,13 @@ def test_an_array_with_its_affine_and_a_file_give_the_same_result(phantom, resul
 
 
 def test_the_api_agrees_with_the_pipeline_stage_for_stage(phantom, result, tmp_path):
-    """The same core functions in the same order as flows.patient.run_stages (no Prefect run)."""
-    from flows.patient import run_notes, run_stages_direct
-    from storage.phantom_io import write_phantom_patient
+    """The same core functions in the same order as tumor3d.flows.patient.run_stages.
+
+    No Prefect run.
+    """
+    from tumor3d.flows.patient import run_notes, run_stages_direct
     from tumor3d.review import review_status
+    from tumor3d.storage.phantom_io import write_phantom_patient
 
     row = write_phantom_patient(phantom, tmp_path / "in")
     runner = run_stages_direct(row.image, tmp_path / "store", patient_id="api3", modality="t2")

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import tumor3d
-from storage.phantom_io import write_phantom_patient
 from tumor3d.errors import InputError
 from tumor3d.given_segmentation import binarize_segmentation, given_segmentation
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.phantom_io import write_phantom_patient
 
 
 @pytest.fixture(scope="module")

@@ -8,15 +8,15 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from storage.phantom_io import write_phantom_cohort
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.phantom_io import write_phantom_cohort
 
 pytestmark = [pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory, prefect_harness):
-    from flows.evaluate import run_evaluation
+    from tumor3d.flows.evaluate import run_evaluation
 
     root = tmp_path_factory.mktemp("evalflow")
     patients = [make_phantom_patient(s, patient_id=f"ph{s}") for s in (0, 1)]
@@ -81,7 +81,7 @@ def test_report_has_the_tables_and_plot(evaluated):
 
 
 def test_cli_rejects_a_bad_manifest_and_config_with_exit_2(tmp_path):
-    from flows.cli import app
+    from tumor3d.flows.cli import app
 
     bad = tmp_path / "m.csv"
     bad.write_text("patient_id,image\n")
@@ -96,7 +96,7 @@ def test_cli_rejects_a_bad_manifest_and_config_with_exit_2(tmp_path):
 
 
 def test_evaluate_has_help():
-    from flows.cli import app
+    from tumor3d.flows.cli import app
 
     r = CliRunner().invoke(app, ["evaluate", "--help"])
     assert r.exit_code == 0 and "NAME=FILE" in r.output
@@ -105,7 +105,7 @@ def test_evaluate_has_help():
 def test_evaluate_scores_the_phantom_commands_own_manifest(tmp_path, prefect_harness):
     """Issue 33: `tumor3d phantom` then `tumor3d evaluate` on its manifest (was: exit 1,
     the tumour-free row refused, Tables 2 and 3 without a row)."""
-    from flows.cli import app
+    from tumor3d.flows.cli import app
 
     runner = CliRunner()
     made = runner.invoke(app, ["phantom", "--out", str(tmp_path / "ph"), "--n", "2",
@@ -128,7 +128,7 @@ def test_evaluate_scores_the_phantom_commands_own_manifest(tmp_path, prefect_har
 def test_the_geometry_evaluations_run_when_named(evaluated, tmp_path):
     """--evaluation interpolation/simplification: their columns and report sections
     (issue 30); the cohort itself comes from the cache of the first evaluation."""
-    from flows.evaluate import run_evaluation
+    from tumor3d.flows.evaluate import run_evaluation
 
     result, out = evaluated
     manifest = next((out.parent / "in").glob("*.csv"))

@@ -1,4 +1,4 @@
-"""storage.evaluation_io: preparing manifest rows for evaluation (bad input, emulation files)."""
+"""tumor3d.storage.evaluation_io: preparing manifest rows for evaluation (bad input, emulation)."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from storage import nifti
-from storage.evaluation_io import prepare_case, reference_mask
-from storage.manifest import ManifestRow
-from storage.readers import read_nifti_scan
 from tumor3d.errors import InputError
+from tumor3d.storage import nifti
+from tumor3d.storage.evaluation_io import prepare_case, reference_mask
+from tumor3d.storage.manifest import ManifestRow
+from tumor3d.storage.readers import read_nifti_scan
 
 
 def _write(path, array, affine, dtype="float32"):
@@ -103,8 +103,8 @@ def test_emulation_needs_nifti_and_no_overrides(thin, tmp_path):
 
 def test_brain_mask_is_emulated_like_the_image_onto_the_run_grid(thin, tmp_path):
     """Issue 7: slab = mean of its thin slices of (values > 0.5), brain where >= 0.5."""
-    from storage.brain_mask import read_given_brain_mask
-    from storage.readers import read_scan
+    from tumor3d.storage.brain_mask import read_given_brain_mask
+    from tumor3d.storage.readers import read_scan
 
     image, seg, _, _, aff = thin
     values = np.zeros((12, 10, 20), np.float32)

@@ -129,7 +129,7 @@ def test_evaluations_are_chosen_by_name_and_the_default_is_segmentation():
 
 
 def test_an_unknown_evaluation_is_one_line_before_any_work(tmp_path):
-    from flows.cli import app
+    from tumor3d.flows.cli import app
 
     res = CliRunner().invoke(
         app, ["evaluate", "--phantoms", "1", "--evaluation", "volume", "--out", str(tmp_path / "e")]

@@ -12,7 +12,11 @@ from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterFlowRunId
 from prefect.runtime import flow_run
 
-from flows.artifacts import artifact_key, publish_cohort_artifacts, publish_patient_artifacts
+from tumor3d.flows.artifacts import (
+    artifact_key,
+    publish_cohort_artifacts,
+    publish_patient_artifacts,
+)
 
 pytestmark = pytest.mark.usefixtures("prefect_harness")
 

@@ -1,7 +1,7 @@
 """--layout bids: a phantom published as BIDS derivatives (issue 33, item 4).
 
 The tree, the names (checked with a regex of BIDS 1.9's entity order written
-here, independently of storage.bids: the bids-validator, a Deno/npm program,
+here, independently of tumor3d.storage.bids: the bids-validator, a Deno/npm program,
 is not installed), every NIfTI re-read by nibabel on the input's grid with
 the default layout's voxel counts, the dataset description and sidecars, the
 GIFTI surfaces against the PLY files, a re-run that is up to date, and the
@@ -22,12 +22,12 @@ from headless_chromium import unresolved_links
 from typer.testing import CliRunner
 
 import tumor3d
-from flows.cli import app
-from flows.patient import run_patient
-from storage.formats import decode_ply
-from storage.phantom_io import write_phantom_patient
 from tumor3d.errors import InputError
+from tumor3d.flows.cli import app
+from tumor3d.flows.patient import run_patient
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.formats import decode_ply
+from tumor3d.storage.phantom_io import write_phantom_patient
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
 
@@ -199,7 +199,7 @@ def test_an_input_in_a_bids_dataset_is_named_as_the_raw_source(published, tmp_pa
 
 
 def test_a_cohort_in_the_bids_layout(published, tmp_path):
-    from flows.cohort import run_cohort
+    from tumor3d.flows.cohort import run_cohort
 
     image, base, _, _ = published
     rows = [{"patient_id": "bp1", "image": str(image), "modality": "t2"}]

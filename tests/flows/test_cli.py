@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
 from tumor3d.errors import InputError
+from tumor3d.flows.cli import app
 
 runner = CliRunner()
 
@@ -85,8 +85,8 @@ def test_invalid_config_names_the_key(tmp_path):
 def test_phantom_command_writes_patients_truth_and_a_readable_manifest(tmp_path):
     import json
 
-    from storage.manifest import read_manifest
-    from storage.readers import read_scan
+    from tumor3d.storage.manifest import read_manifest
+    from tumor3d.storage.readers import read_scan
 
     out = tmp_path / "cohort"
     result = runner.invoke(app, ["phantom", "--out", str(out), "--n", "2", "--normal", "1"])
@@ -206,9 +206,9 @@ def _raiser(exc):
 def test_environment_errors_are_one_line_with_exit_code_3(tmp_path, monkeypatch, exc, expected):
     import errno
 
-    import flows.cli as cli
-    from flows.server import ServerError
-    from storage.store import StoreError
+    import tumor3d.flows.cli as cli
+    from tumor3d.flows.server import ServerError
+    from tumor3d.storage.store import StoreError
 
     error = {
         "store": StoreError(
@@ -229,7 +229,7 @@ def test_environment_errors_are_one_line_with_exit_code_3(tmp_path, monkeypatch,
 def test_exit_codes_are_documented_in_the_cli_docstring_and_readme():
     from pathlib import Path
 
-    import flows.cli as cli
+    import tumor3d.flows.cli as cli
 
     assert "3 -- environment error" in cli.__doc__
     readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
@@ -248,7 +248,7 @@ def test_console_entry_keeps_exit_codes_and_flushes_output(tmp_path):
 
     def cli(*args):
         return subprocess.run(
-            [sys.executable, "-m", "flows.cli", *args],
+            [sys.executable, "-m", "tumor3d.flows.cli", *args],
             env=env, capture_output=True, text=True, timeout=300, cwd=str(root),
         )  # fmt: skip
 
@@ -264,7 +264,7 @@ def test_commands_run_without_flow_heartbeats_unless_asked(monkeypatch):
     """The heartbeat thread's join cost ~0.9 s per command; the user's setting wins."""
     from prefect.settings import get_current_settings
 
-    import flows.cli as cli
+    import tumor3d.flows.cli as cli
 
     monkeypatch.delenv("PREFECT_FLOWS_HEARTBEAT_FREQUENCY", raising=False)
     with cli._no_heartbeats():
@@ -351,7 +351,7 @@ def test_brain_mask_option_is_in_the_help_of_run():
 
 def test_run_refuses_to_replace_another_inputs_results_under_a_derived_id(tmp_path):
     """pat3/flair.nii.gz then pat4/flair.nii.gz into one --out: both derive the id 'flair'."""
-    from storage.inputs import input_digest
+    from tumor3d.storage.inputs import input_digest
 
     rng = np.random.default_rng(2)
     (tmp_path / "pat3").mkdir()
@@ -360,7 +360,7 @@ def test_run_refuses_to_replace_another_inputs_results_under_a_derived_id(tmp_pa
     second = _nifti(tmp_path / "pat4" / "flair.nii.gz", rng.random((12, 12, 4)) + 1)
     done = tmp_path / "out" / "flair"  # what the run of the first left
     done.mkdir(parents=True)
-    from storage.inputs import input_location
+    from tumor3d.storage.inputs import input_location
 
     record = json.dumps({
         "versions": {"tumor3d": "0.1.0"},
@@ -393,7 +393,7 @@ def test_run_refuses_to_replace_a_folder_of_the_users_own_files(tmp_path):
 
 def test_the_modality_is_case_insensitive_for_run_as_for_a_manifest(tmp_path):
     """An audit: `run --modality FLAIR` was refused while a manifest's FLAIR was accepted."""
-    from flows.patient import prepare_source
+    from tumor3d.flows.patient import prepare_source
 
     image = _nifti(tmp_path / "scan.nii.gz", np.random.default_rng(4).random((12, 12, 4)) + 1)
     assert prepare_source(image, modality="FLAIR").modality == "flair"
@@ -405,7 +405,7 @@ def test_the_modality_is_case_insensitive_for_run_as_for_a_manifest(tmp_path):
 def test_version_option_prints_the_installed_version():
     from importlib.metadata import version
 
-    from flows.cli import app
+    from tumor3d.flows.cli import app
 
     result = CliRunner().invoke(app, ["--version"])
     assert result.exit_code == 0 and result.output.strip() == f"tumor3d {version('tumor3d')}"
@@ -414,8 +414,8 @@ def test_version_option_prints_the_installed_version():
 def test_exit_code_of_a_result_to_check_is_documented():
     from pathlib import Path
 
-    import flows.cli as cli
-    from flows.cohort import EXIT_CHECK, exit_code_of
+    import tumor3d.flows.cli as cli
+    from tumor3d.flows.cohort import EXIT_CHECK, exit_code_of
 
     assert cli.EXIT_CHECK == EXIT_CHECK == 4 and "* 4 -- " in cli.__doc__
     assert exit_code_of(["ok", "check"]) == 4 and exit_code_of(["check", "failed"]) == 1
@@ -427,7 +427,7 @@ def test_exit_code_of_a_result_to_check_is_documented():
 def test_run_says_the_modality_it_uses_and_when_it_is_the_default(tmp_path, monkeypatch):
     import types
 
-    import flows.cli as cli
+    import tumor3d.flows.cli as cli
 
     seen = {}  # what the flow was given (the flow itself is tested elsewhere)
     good = _nifti(tmp_path / "good.nii.gz", np.random.default_rng(4).random((12, 12, 4)) + 1)
@@ -449,7 +449,7 @@ def test_run_says_the_modality_it_uses_and_when_it_is_the_default(tmp_path, monk
 def test_prefect_run_records_stay_off_the_console_without_verbose():
     import logging
 
-    from flows.cli import _NoFailureTracebacks
+    from tumor3d.flows.cli import _NoFailureTracebacks
 
     keep = _NoFailureTracebacks()
 

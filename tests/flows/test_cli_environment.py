@@ -26,13 +26,13 @@ ROOT = Path(__file__).resolve().parents[2]
 FULL_DISK = textwrap.dedent(
     """
     import errno, sys
-    import storage.store as store
+    import tumor3d.storage.store as store
 
     def full(path, data):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
     store.atomic_write_bytes = full  # the disk is full from the first artifact on
-    from flows.cli import app
+    from tumor3d.flows.cli import app
     sys.argv = ["tumor3d", *sys.argv[1:]]
     app()
     """
@@ -80,7 +80,7 @@ def test_a_prefect_api_url_pointing_at_nothing_is_one_line_exit_3(tmp_path, comm
         target = tmp_path / "m.csv"
         target.write_text(f"patient_id,image,modality\np1,{image},t2\n")
     res = subprocess.run(
-        [sys.executable, "-m", "flows.cli", command, str(target), "--out", str(out)],
+        [sys.executable, "-m", "tumor3d.flows.cli", command, str(target), "--out", str(out)],
         env=env, capture_output=True, text=True, timeout=300, cwd=str(ROOT),
     )  # fmt: skip
     assert res.returncode == 3, res.stdout + res.stderr

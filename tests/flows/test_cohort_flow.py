@@ -14,13 +14,13 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
-from flows.cohort import run_cohort
-from storage.manifest import ManifestRow, write_manifest
-from storage.phantom_io import write_phantom_patient
-from tasks.stages import STAGES
 from tumor3d.errors import InputError
+from tumor3d.flows.cli import app
+from tumor3d.flows.cohort import run_cohort
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.manifest import ManifestRow, write_manifest
+from tumor3d.storage.phantom_io import write_phantom_patient
+from tumor3d.tasks.stages import STAGES
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
 
@@ -110,7 +110,7 @@ def test_cohort_table_artifact_is_on_the_cohort_flow_run(first):
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
 
-    from flows.artifacts import artifact_key
+    from tumor3d.flows.artifacts import artifact_key
 
     out, _ = first
     key = artifact_key("tumor3d", "cohort", out.name)

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import pytest
 
-from storage.manifest import write_manifest
-from storage.phantom_io import write_phantom_patient
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.manifest import write_manifest
+from tumor3d.storage.phantom_io import write_phantom_patient
 
 pytestmark = pytest.mark.slow
 
@@ -44,7 +44,7 @@ def _cohort(manifest, out, home):
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_API")}
     env.update(TUMOR3D_HOME=str(home / "t3d"), PREFECT_HOME=str(home / "prefect"))
     return subprocess.Popen(
-        [sys.executable, "-m", "flows.cli", "cohort", str(manifest), "--out", str(out),
+        [sys.executable, "-m", "tumor3d.flows.cli", "cohort", str(manifest), "--out", str(out),
          "--workers", "2"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
         start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),

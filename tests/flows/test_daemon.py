@@ -1,7 +1,7 @@
 """The warm command runner (issue 32 item 2): ``run``/``demo`` served by a forked copy.
 
-A runner process (``python -m flows.daemon``) with its own state folder; the
-console script (:func:`flows.daemon.main`) in separate processes. Checked:
+A runner process (``python -m tumor3d.flows.daemon``) with its own state folder; the
+console script (:func:`tumor3d.flows.daemon.main`) in separate processes. Checked:
 a forwarded command keeps its one-line error and exit code on the client's
 own stderr; a client whose environment differs, or that asks to stay
 in-process, is not served (the runner's log says which commands it served);
@@ -19,12 +19,12 @@ from pathlib import Path
 
 import pytest
 
-from flows.daemon import code_fingerprint, socket_path
+from tumor3d.flows.daemon import code_fingerprint, socket_path
 
 pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[2]
-CLIENT = "import sys; from flows.daemon import main; sys.argv[0] = 'tumor3d'; main()"
+CLIENT = "import sys; from tumor3d.flows.daemon import main; sys.argv[0] = 'tumor3d'; main()"
 
 
 def _env(home: Path, **extra: str) -> dict[str, str]:
@@ -38,7 +38,7 @@ def runner(tmp_path_factory):
     home = tmp_path_factory.mktemp("home")
     log = open(home / "runner.log", "wb")  # noqa: SIM115
     proc = subprocess.Popen(
-        [sys.executable, "-m", "flows.daemon"], env=_env(home), stdout=log,
+        [sys.executable, "-m", "tumor3d.flows.daemon"], env=_env(home), stdout=log,
         stderr=subprocess.STDOUT, cwd=str(ROOT),
     )  # fmt: skip
     sock = home / "run.sock"

@@ -19,14 +19,14 @@ import time
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
-from flows.cohort import run_cohort
-from flows.dask_runner import ClusterError, DaskSpec
-from storage.manifest import write_manifest
-from storage.phantom_io import write_phantom_patient
-from tasks.stages import STAGES
 from tumor3d.errors import InputError
+from tumor3d.flows.cli import app
+from tumor3d.flows.cohort import run_cohort
+from tumor3d.flows.dask_runner import ClusterError, DaskSpec
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.manifest import write_manifest
+from tumor3d.storage.phantom_io import write_phantom_patient
+from tumor3d.tasks.stages import STAGES
 
 distributed = pytest.importorskip("distributed", reason="Dask extra not installed")
 pytest.importorskip("prefect_dask", reason="prefect-dask not installed")
@@ -132,7 +132,7 @@ def test_a_worker_killed_mid_stage_the_cohort_finishes_and_a_rerun_completes(tmp
     import signal
     import threading
 
-    from tasks.progress import use_reporter
+    from tumor3d.tasks.progress import use_reporter
 
     rows = _rows(tmp_path / "in", [0, 1, 2])
     out = tmp_path / "out"

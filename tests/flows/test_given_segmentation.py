@@ -22,11 +22,11 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
-from storage.formats import decode_ply
-from storage.phantom_io import write_phantom_patient
-from tasks.stages import STAGES
+from tumor3d.flows.cli import app
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.formats import decode_ply
+from tumor3d.storage.phantom_io import write_phantom_patient
+from tumor3d.tasks.stages import STAGES
 
 runner = CliRunner()
 STAGE_NAMES = list(STAGES)

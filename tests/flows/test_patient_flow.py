@@ -31,14 +31,14 @@ from headless_chromium import (
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import ExplicitVRLittleEndian, MRImageStorage, generate_uid
 
-from flows.patient import VOLUME_METHODS, run_patient
-from storage.formats import decode_ply
-from storage.phantom_io import write_phantom_patient
-from storage.viewer import NIIVUE_FILE
-from tasks.stages import STAGES
 from tumor3d.errors import InputError
+from tumor3d.flows.patient import VOLUME_METHODS, run_patient
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.formats import decode_ply
+from tumor3d.storage.phantom_io import write_phantom_patient
+from tumor3d.storage.viewer import NIIVUE_FILE
 from tumor3d.surface import is_watertight, mesh_volume_mm3
+from tumor3d.tasks.stages import STAGES
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
 
@@ -86,7 +86,7 @@ def test_first_run_computes_every_stage_and_publishes_all_outputs(first_run, pha
     import vtk
     from vtk.util.numpy_support import vtk_to_numpy
 
-    from storage.formats import decode_ply
+    from tumor3d.storage.formats import decode_ply
 
     reader = vtk.vtkPolyDataReader()
     reader.SetFileName(str(folder / "tumor_lps.vtk"))

@@ -16,10 +16,10 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from flows.patient import run_patient
-from storage.phantom_io import write_phantom_patient
-from tasks.stages import STAGES
+from tumor3d.flows.patient import run_patient
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.phantom_io import write_phantom_patient
+from tumor3d.tasks.stages import STAGES
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
 

@@ -9,7 +9,8 @@ import sys
 
 import pytest
 
-from storage.publish import (
+from tumor3d.errors import InputError
+from tumor3d.storage.publish import (
     PUBLISH_MANIFEST,
     check_destination,
     check_output_not_input,
@@ -18,7 +19,6 @@ from storage.publish import (
     clean_stale_staging,
     staged_folder,
 )
-from tumor3d.errors import InputError
 
 #: What tumor3d writes: the publish manifest, and provenance naming its version.
 MANIFEST = json.dumps({"format": 1, "key": "k", "files": {}})
@@ -203,7 +203,7 @@ def test_prepare_source_applies_the_destination_rules_before_any_work(tmp_path):
     import nibabel as nib
     import numpy as np
 
-    from flows.patient import prepare_source
+    from tumor3d.flows.patient import prepare_source
 
     rng = np.random.default_rng(0)
     for folder in ("pat3", "pat4"):
@@ -224,7 +224,7 @@ def test_prepare_source_applies_the_destination_rules_before_any_work(tmp_path):
 
 
 def test_a_cohort_row_whose_folder_is_not_a_result_is_refused_before_any_work(tmp_path):
-    from flows.cohort import _validate_rows
+    from tumor3d.flows.cohort import _validate_rows
 
     (tmp_path / "pat1").mkdir()
     (tmp_path / "pat1" / "notes.txt").write_text("mine")
@@ -239,7 +239,7 @@ def test_a_full_disk_while_publishing_names_the_folder(tmp_path):
     """Issue 29: ENOSPC from a write names no file; the error names the folder published."""
     import errno
 
-    from flows.cli import EXIT_ENVIRONMENT, _error_line
+    from tumor3d.flows.cli import EXIT_ENVIRONMENT, _error_line
 
     with pytest.raises(OSError) as exc:
         with staged_folder(tmp_path, "pat") as staging:

@@ -14,10 +14,10 @@ import os
 import pandas as pd
 import pytest
 
-from flows.patient import run_patient
-from storage.phantom_io import write_phantom_patient
-from storage.publish import PUBLISH_MANIFEST
+from tumor3d.flows.patient import run_patient
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.phantom_io import write_phantom_patient
+from tumor3d.storage.publish import PUBLISH_MANIFEST
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
 

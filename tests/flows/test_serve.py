@@ -17,12 +17,12 @@ import sys
 import pandas as pd
 import pytest
 
-from flows.serve import cohort_deployment, scheduled_cohort_flow
-from storage.manifest import write_manifest
-from storage.phantom_io import write_phantom_patient
-from tasks.stages import STAGES
 from tumor3d.errors import InputError
+from tumor3d.flows.serve import cohort_deployment, scheduled_cohort_flow
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.manifest import write_manifest
+from tumor3d.storage.phantom_io import write_phantom_patient
+from tumor3d.tasks.stages import STAGES
 
 
 def _row(seed: int, folder):
@@ -49,7 +49,7 @@ def test_deployment_carries_the_cron_schedule_and_parameters(tmp_path):
         "dask_address": None,
         "dask_workers": None,
     }
-    assert dep.entrypoint == "flows.serve.scheduled_cohort_flow"
+    assert dep.entrypoint == "tumor3d.flows.serve.scheduled_cohort_flow"
     assert dep.flow_name == "tumor3d-scheduled-cohort"
 
 
@@ -119,12 +119,12 @@ def test_a_triggered_run_computes_only_the_added_patient_and_reports_removed(tmp
 def test_cli_serve_builds_the_deployment_and_hands_it_to_prefect(tmp_path, monkeypatch):
     from typer.testing import CliRunner
 
-    import flows.serve
-    from flows.cli import app
+    import tumor3d.flows.serve
+    from tumor3d.flows.cli import app
 
     manifest = write_manifest([_row(0, tmp_path)], tmp_path / "m.csv")
     served = []
-    monkeypatch.setattr(flows.serve, "serve_cohort", served.append)
+    monkeypatch.setattr(tumor3d.flows.serve, "serve_cohort", served.append)
     args = ["serve", str(manifest), "--out", str(tmp_path / "o"), "--name", "n1"]
     ok = CliRunner().invoke(app, [*args, "--cron", "30 1 * * 1-5", "--workers", "2"])
     assert ok.exit_code == 0, ok.output

@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-import flows.server as server
-from flows.cli import app
+import tumor3d.flows.server as server
+from tumor3d.flows.cli import app
 
 pytestmark = pytest.mark.slow
 
@@ -139,7 +139,8 @@ def test_kill_9_of_a_run_leaves_no_temporary_server(home, tmp_path):
     )
     log = open(tmp_path / "run.log", "wb")  # noqa: SIM115
     run = subprocess.Popen(
-        [sys.executable, "-m", "flows.cli", "run", str(image), "--out", str(tmp_path / "out")],
+        [sys.executable, "-m", "tumor3d.flows.cli", "run", str(image),
+         "--out", str(tmp_path / "out")],
         env=env,
         stdout=log,
         stderr=subprocess.STDOUT,

@@ -1,7 +1,7 @@
 """A Prefect server that goes away during a command ends it in one line, exit 3 (issue 29).
 
 Prefect's clients retried a killed background server for about 170 s, then
-failed with two tracebacks. :func:`flows.server._watch_server` looks at the
+failed with two tracebacks. :func:`tumor3d.flows.server._watch_server` looks at the
 server's port while the command runs; nothing listening there three times in
 a row ends the command. Run in a child process (it ends with ``os._exit``),
 against a plain TCP listener standing in for the server.
@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 SCRIPT = """
 import socket, sys, time
-import flows.server as s
+import tumor3d.flows.server as s
 s._WATCH_PERIOD_S = 0.2
 srv = socket.socket(); srv.bind(("127.0.0.1", 0)); srv.listen(8)
 port = srv.getsockname()[1]

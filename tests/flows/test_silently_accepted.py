@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import EXIT_INPUT, app
-from storage.readers import read_scan
 from tumor3d.config import parse_config
 from tumor3d.errors import ConfigError, InputError
+from tumor3d.flows.cli import EXIT_INPUT, app
+from tumor3d.storage.readers import read_scan
 
 runner = CliRunner()
 
@@ -74,7 +74,7 @@ def test_numbers_stay_numbers():
 
 
 def test_a_config_that_is_not_utf8_is_one_line(tmp_path):
-    from flows.serve import load_config_file
+    from tumor3d.flows.serve import load_config_file
 
     res = _run_with_config(tmp_path, b"render: {}\n# \xff\xfe\n")
     _one_line(res, "c.yaml", "not UTF-8", "0xff")

@@ -16,16 +16,16 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from flows.cli import app
-from flows.train import run_training
-from storage.manifest import write_manifest
-from storage.phantom_io import write_phantom_patient
 from tumor3d.errors import InputError
 from tumor3d.evaluation.metrics import dice
+from tumor3d.flows.cli import app
+from tumor3d.flows.train import run_training
 from tumor3d.learned.forest import ForestModel
 from tumor3d.learned.rows import rows_from_bytes
 from tumor3d.phantom import make_phantom_patient
 from tumor3d.segment import segment_tumor
+from tumor3d.storage.manifest import write_manifest
+from tumor3d.storage.phantom_io import write_phantom_patient
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
 
@@ -130,7 +130,7 @@ def test_a_row_without_reference_is_refused_in_one_line(tmp_path):
 
 def test_provenance_names_the_model_a_learned_run_used(tmp_path):
     """The learned method's model digest reaches provenance.json (issue 28 item 2)."""
-    from flows.patient import run_patient
+    from tumor3d.flows.patient import run_patient
     from tumor3d.learned.shipped import shipped_model
 
     patient = make_phantom_patient(4, modality="flair", patient_id="prov", n_slices=12)

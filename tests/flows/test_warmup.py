@@ -16,12 +16,12 @@ pytestmark = pytest.mark.slow
 _FIRST_PATIENT = """
 import sys
 from numba.core import event
-from storage.phantom_io import write_phantom_patient
+from tumor3d.storage.phantom_io import write_phantom_patient
 from tumor3d.phantom import make_phantom_patient
 
 patient = make_phantom_patient(5, n_slices=12, matrix_size=(112, 112), patient_id="warm5")
 row = write_phantom_patient(patient, sys.argv[1])
-from flows.patient import run_stages_direct
+from tumor3d.flows.patient import run_stages_direct
 
 with event.install_recorder("numba:compile") as rec:
     runner = run_stages_direct(row.image, sys.argv[2], patient_id="warm5", modality="t2")

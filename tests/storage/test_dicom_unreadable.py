@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from dicom_factory import write_series
 
-from storage.readers import read_dicom_series, read_scan
-from storage.store import ArtifactStore
 from tumor3d.errors import InputError
+from tumor3d.storage.readers import read_dicom_series, read_scan
+from tumor3d.storage.store import ArtifactStore
 
 
 def corrupt(path, seed=0, size=3000):

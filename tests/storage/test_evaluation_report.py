@@ -13,7 +13,7 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 
-from storage.evaluation_report import write_report
+from tumor3d.storage.evaluation_report import write_report
 
 NOTE = "tumour on the last slice of the scan (slice 3, 0-based): it may continue"
 

@@ -16,12 +16,12 @@ import pytest
 import SimpleITK as sitk
 from typer.testing import CliRunner
 
-from flows.cli import EXIT_INPUT, app
-from flows.cohort import run_cohort
-from storage.inputs import detached_data_files, input_digest, input_files
-from storage.publish import check_output_not_input, check_outputs_not_inputs
-from storage.readers import read_scan
 from tumor3d.errors import InputError
+from tumor3d.flows.cli import EXIT_INPUT, app
+from tumor3d.flows.cohort import run_cohort
+from tumor3d.storage.inputs import detached_data_files, input_digest, input_files
+from tumor3d.storage.publish import check_output_not_input, check_outputs_not_inputs
+from tumor3d.storage.readers import read_scan
 
 runner = CliRunner()
 

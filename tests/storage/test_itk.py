@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from storage.readers import read_scan
 from tumor3d.errors import InputError
+from tumor3d.storage.readers import read_scan
 
 SUFFIXES = [".nrrd", ".nhdr", ".mha", ".mhd"]
 
@@ -109,7 +109,7 @@ def test_itk_vector_and_2d_images_are_refused(tmp_path):
 
 @pytest.mark.parametrize("suffix", [".nhdr", ".mhd"])
 def test_input_digest_of_a_detached_header_covers_its_data_file(tmp_path, suffix):
-    from storage.inputs import input_digest
+    from tumor3d.storage.inputs import input_digest
 
     f = tmp_path / f"v{suffix}"
     data = phantom_ijk((8, 8, 3))

@@ -19,7 +19,6 @@ import nibabel as nib
 import numpy as np
 import pytest
 
-from storage.readers import read_scan
 from tumor3d.config import PipelineConfig
 from tumor3d.detect import detect_abnormal_slices
 from tumor3d.lesion import left_right_axis
@@ -27,6 +26,7 @@ from tumor3d.phantom import make_phantom_patient
 from tumor3d.preprocess import preprocess_volume
 from tumor3d.scan import zyx_index_to_ras
 from tumor3d.segment import segment_tumor
+from tumor3d.storage.readers import read_scan
 
 
 def _save(path, data_xyz, affine):

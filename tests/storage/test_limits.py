@@ -10,10 +10,10 @@ import pytest
 from dicom_factory import write_series
 from PIL import Image
 
-from storage.readers import read_scan
 from tumor3d.config import load_yaml, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import ConfigError, InputError
+from tumor3d.storage.readers import read_scan
 
 
 def alias_bomb(levels: int = 6, fan: int = 10, key: str = "render") -> str:
@@ -130,7 +130,7 @@ def test_dicom_series_size_is_checked_before_decoding(tmp_path):
 
 
 def test_read_nifti_checks_the_declared_size(tmp_path):
-    from storage.nifti import read_nifti
+    from tumor3d.storage.nifti import read_nifti
 
     f = _nifti_header_only(tmp_path / "ref.nii.gz", (2048, 2048, 300))
     with pytest.raises(InputError, match=r"ref\.nii\.gz: the header declares 2048 x 2048 x 300"):

@@ -1,4 +1,4 @@
-"""Tests of storage.manifest: cohort CSV reading, validation and writing."""
+"""Tests of tumor3d.storage.manifest: cohort CSV reading, validation and writing."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from storage.manifest import ManifestRow, read_manifest, read_manifest_rows, write_manifest
 from tumor3d.errors import InputError
+from tumor3d.storage.manifest import ManifestRow, read_manifest, read_manifest_rows, write_manifest
 
 HEADER = "patient_id,image,modality,reference,reference_labels,slice_thickness_mm,slice_gap_mm\n"
 

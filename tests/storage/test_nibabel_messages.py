@@ -15,10 +15,10 @@ import struct
 import nibabel as nib
 import numpy as np
 
-from flows.patient import run_notes, run_stages_direct
-from storage.phantom_io import write_phantom_patient
-from storage.readers import read_scan
+from tumor3d.flows.patient import run_notes, run_stages_direct
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.phantom_io import write_phantom_patient
+from tumor3d.storage.readers import read_scan
 
 NOTE = "hdr.nii: nibabel repaired the NIfTI header on reading: qform_code 7 not valid; setting to 0"
 

@@ -1,4 +1,4 @@
-"""Tests of storage.nifti: deterministic encoding and writing back on the source grid."""
+"""Tests of tumor3d.storage.nifti: deterministic encoding and writing back on the source grid."""
 
 from __future__ import annotations
 
@@ -8,15 +8,15 @@ import nibabel as nib
 import numpy as np
 import pytest
 
-from storage.nifti import (
+from tumor3d.errors import InputError
+from tumor3d.storage.nifti import (
     decode_nifti,
     encode_nifti,
     mask_to_source_nifti_bytes,
     read_nifti,
     volume_to_source_nifti_bytes,
 )
-from storage.readers import read_scan
-from tumor3d.errors import InputError
+from tumor3d.storage.readers import read_scan
 
 OBLIQUE = np.array(
     [

@@ -20,12 +20,14 @@ moto_server = pytest.importorskip(
     "moto.server", reason="moto[server] not installed (pip install 'moto[server]')"
 )
 
-from flows.cli import app  # noqa: E402
-from flows.cohort import run_cohort  # noqa: E402
-from storage.manifest import write_manifest  # noqa: E402
-from storage.objectstore import ObjectStore, open_store  # noqa: E402
-from storage.phantom_io import write_phantom_patient  # noqa: E402
-from storage.remote_publish import (  # noqa: E402
+from tumor3d.flows.cli import app  # noqa: E402
+from tumor3d.flows.cohort import run_cohort  # noqa: E402
+from tumor3d.mesh import Mesh  # noqa: E402
+from tumor3d.phantom import make_phantom_patient  # noqa: E402
+from tumor3d.storage.manifest import write_manifest  # noqa: E402
+from tumor3d.storage.objectstore import ObjectStore, open_store  # noqa: E402
+from tumor3d.storage.phantom_io import write_phantom_patient  # noqa: E402
+from tumor3d.storage.remote_publish import (  # noqa: E402
     MARKER,
     RemoteFolder,
     publish_folder,
@@ -33,10 +35,8 @@ from storage.remote_publish import (  # noqa: E402
     read_marker,
     verify_folder,
 )
-from storage.store import ArtifactStore, CorruptArtifactError, StoreError  # noqa: E402
-from tasks.caching import stage_cache_policy  # noqa: E402
-from tumor3d.mesh import Mesh  # noqa: E402
-from tumor3d.phantom import make_phantom_patient  # noqa: E402
+from tumor3d.storage.store import ArtifactStore, CorruptArtifactError, StoreError  # noqa: E402
+from tumor3d.tasks.caching import stage_cache_policy  # noqa: E402
 
 BUCKET = "tumor3d-test"
 
@@ -110,9 +110,9 @@ def test_same_digests_names_and_bytes_as_the_local_store(s3_endpoint, tmp_path):
 
 
 def test_cache_keys_do_not_depend_on_the_store_location():
-    policy = stage_cache_policy("preprocess", ("tasks.preprocess",))
+    policy = stage_cache_policy("preprocess", ("tumor3d.tasks.preprocess",))
     ref = {"kind": "scan", "digest": "a" * 64, "relpath": "objects/aa/x.nii.gz"}
-    from storage.store import ArtifactRef
+    from tumor3d.storage.store import ArtifactRef
 
     inputs = {"scan": ArtifactRef(**ref), "store_root": "/srv/store"}
     local_key = policy.compute_key(None, inputs, {})
@@ -214,7 +214,7 @@ def test_a_missing_bucket_is_refused_for_the_store_and_for_the_outputs(
     assert not (tmp_path / "st").exists()  # nothing started
 
 
-# -- publishing outputs to the object store (storage.remote_publish) -------------------
+# -- publishing outputs to the object store (tumor3d.storage.remote_publish) -------------------
 
 
 def _folder(root, files: dict[str, bytes]):
@@ -359,7 +359,7 @@ def test_dask_worker_processes_share_the_s3_store_and_its_cache(s3_endpoint, tmp
     """Two Dask worker *processes* (--dask-workers 2): the store, the Prefect result
     block and the endpoint from the environment reach them; a re-run is all hits."""
     pytest.importorskip("prefect_dask", reason="prefect-dask not installed")
-    from flows.dask_runner import DaskSpec
+    from tumor3d.flows.dask_runner import DaskSpec
 
     rows = _rows(tmp_path / "in", [0, 1])
     url = f"s3://{BUCKET}/dask"
@@ -379,7 +379,7 @@ def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patient
     (captured as handed to the uploader), the same files and deterministic bytes as a
     local ``--out``, a marker per patient and for the cohort files; a re-run without a
     patient reports it removed (a prefix without a marker is no patient)."""
-    import flows.patient as patient_mod
+    import tumor3d.flows.patient as patient_mod
 
     staged: dict[str, dict[str, bytes]] = {}
     real = patient_mod.publish_folder

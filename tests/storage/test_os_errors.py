@@ -10,11 +10,11 @@ import nibabel as nib
 import numpy as np
 import pytest
 
-from storage import store as store_module
-from storage.inputs import input_digest
-from storage.readers import read_scan
-from storage.store import ArtifactStore, StoreError
 from tumor3d.errors import InputError, os_error_text
+from tumor3d.storage import store as store_module
+from tumor3d.storage.inputs import input_digest
+from tumor3d.storage.readers import read_scan
+from tumor3d.storage.store import ArtifactStore, StoreError
 
 
 def small_nifti(path):

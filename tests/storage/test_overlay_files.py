@@ -7,7 +7,7 @@ import io
 import numpy as np
 from PIL import Image
 
-from storage.patient_outputs import OVERLAY_TILE_PX, write_overlays
+from tumor3d.storage.patient_outputs import OVERLAY_TILE_PX, write_overlays
 
 RED = np.array((255, 40, 40), dtype=np.uint8)
 

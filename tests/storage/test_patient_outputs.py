@@ -1,12 +1,12 @@
-"""Tests of storage.patient_outputs and the cohort page rows: links only to what exists."""
+"""Tests of tumor3d.storage.patient_outputs and the cohort page rows: links only to what exists."""
 
 from __future__ import annotations
 
 import pandas as pd
 
-from storage.cohort_report import cohort_page_rows, write_cohort_outputs
-from storage.patient_outputs import join_notes, patient_report_data, split_notes
-from storage.report_html import patient_report_html
+from tumor3d.storage.cohort_report import cohort_page_rows, write_cohort_outputs
+from tumor3d.storage.patient_outputs import join_notes, patient_report_data, split_notes
+from tumor3d.storage.report_html import patient_report_html
 
 METRICS = {
     "patient_id": "p1", "volume_eq7_mm3": 21774.9, "volume_eq7_ml": 21.7749,
@@ -117,8 +117,8 @@ def test_cohort_rows_link_existing_files_of_published_patients_only(tmp_path):
 
 
 def test_the_report_says_what_is_measured_and_on_which_sequence_the_diameters_are():
-    from storage.report_html import patient_report_markdown, patient_summary_table
     from tumor3d.segment import lesion_definition
+    from tumor3d.storage.report_html import patient_report_markdown, patient_summary_table
 
     words = lesion_definition("robust", "flair")
     metrics = {**METRICS, "modality": "flair", "segment_method": "robust", "measured": words}

@@ -1,4 +1,4 @@
-"""Tests of storage.readers: NIfTI, DICOM series and image stacks -> Scan."""
+"""Tests of tumor3d.storage.readers: NIfTI, DICOM series and image stacks -> Scan."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import yaml
 from dicom_factory import PHI, write_non_image_dicom, write_series
 from PIL import Image
 
-from storage.readers import choose_slice_axis, derive_patient_id, read_scan
 from tumor3d.errors import InputError
+from tumor3d.storage.readers import choose_slice_axis, derive_patient_id, read_scan
 
 # --------------------------------------------------------------------------- helpers
 

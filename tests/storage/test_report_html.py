@@ -1,4 +1,4 @@
-"""Tests of storage.report_html: patient report, markdown summary, cohort page."""
+"""Tests of tumor3d.storage.report_html: patient report, markdown summary, cohort page."""
 
 from __future__ import annotations
 
@@ -14,8 +14,10 @@ from headless_chromium import (
     unresolved_links,
 )
 
-from storage.formats import encode_png
-from storage.report_html import (
+from tumor3d.errors import InputError
+from tumor3d.render import render_views, turntable_gif
+from tumor3d.storage.formats import encode_png
+from tumor3d.storage.report_html import (
     EQ7_PRECISION_DEFINITION,
     VOLUME_DEFINITIONS,
     cohort_report_html,
@@ -23,8 +25,6 @@ from storage.report_html import (
     patient_report_markdown,
     patient_summary_table,
 )
-from tumor3d.errors import InputError
-from tumor3d.render import render_views, turntable_gif
 from tumor3d.surface import extract_surface
 
 

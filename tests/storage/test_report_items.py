@@ -7,8 +7,8 @@ from html.parser import HTMLParser
 import numpy as np
 from headless_chromium import needs_chromium, open_page, serious_console_messages
 
-from storage.formats import encode_png
-from storage.report_html import patient_report_html
+from tumor3d.storage.formats import encode_png
+from tumor3d.storage.report_html import patient_report_html
 
 MAGENTA = (255, 0, 255)
 

@@ -11,12 +11,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from storage import formats
-from storage.inputs import input_digest
-from storage.store import ArtifactStore, StoreError, atomic_write_bytes
 from tumor3d.errors import InputError
 from tumor3d.mesh import Mesh
 from tumor3d.scan import Scan, SourceGrid
+from tumor3d.storage import formats
+from tumor3d.storage.inputs import input_digest
+from tumor3d.storage.store import ArtifactStore, StoreError, atomic_write_bytes
 
 
 @pytest.fixture

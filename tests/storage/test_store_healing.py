@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from storage.store import ArtifactStore, CorruptArtifactError, StoreError
+from tumor3d.storage.store import ArtifactStore, CorruptArtifactError, StoreError
 
 
 @pytest.fixture

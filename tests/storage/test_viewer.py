@@ -1,4 +1,4 @@
-"""Tests of storage.viewer: the slice-and-3-D viewer page and its shared JavaScript."""
+"""Tests of tumor3d.storage.viewer: the slice-and-3-D viewer page and its shared JavaScript."""
 
 from __future__ import annotations
 
@@ -13,8 +13,10 @@ import numpy as np
 import pytest
 from headless_chromium import needs_chromium, open_page, serious_console_messages
 
-from storage.nifti import decode_nifti
-from storage.viewer import (
+from tumor3d.errors import InputError
+from tumor3d.mesh import Mesh
+from tumor3d.storage.nifti import decode_nifti
+from tumor3d.storage.viewer import (
     ASSETS_DIR,
     NIIVUE_FILE,
     NIIVUE_LICENSES_FILE,
@@ -25,8 +27,6 @@ from storage.viewer import (
     viewer_volume,
     write_viewer_assets,
 )
-from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
 from tumor3d.surface import extract_surface
 
 # A head on a thick-slice grid (1.5 x 1.5 x 5 mm), the tumour on the patient's right
@@ -234,7 +234,8 @@ def test_the_vendored_script_is_the_recorded_niivue_release():
     assert set(files) == {NIIVUE_FILE, NIIVUE_LICENSES_FILE}
     assert NIIVUE_VERSION in NIIVUE_FILE
     assert hashlib.sha256(files[NIIVUE_FILE]).hexdigest() == NIIVUE_SHA256
-    readme = (Path(__file__).parents[2] / "storage" / "assets" / "README.md").read_text()
+    assets = Path(__file__).parents[2] / "tumor3d" / "storage" / "assets"
+    readme = (assets / "README.md").read_text()
     assert NIIVUE_SHA256 in readme and f"**{NIIVUE_VERSION}**" in readme
     licences = files[NIIVUE_LICENSES_FILE].decode()
     assert "BSD 2-Clause License" in licences and "Copyright (c) 2021, Niivue" in licences
@@ -242,8 +243,8 @@ def test_the_vendored_script_is_the_recorded_niivue_release():
 
 
 def test_a_broken_installation_is_one_environment_error(monkeypatch, tmp_path):
-    import storage.viewer as viewer_mod
-    from storage.store import StoreError
+    import tumor3d.storage.viewer as viewer_mod
+    from tumor3d.storage.store import StoreError
 
     monkeypatch.setattr(viewer_mod, "NIIVUE_SHA256", "0" * 64)
     with pytest.raises(StoreError, match="is not NiiVue 0.69.0.*reinstall tumor3d"):

@@ -10,16 +10,16 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from flows.patient import run_stages_direct
-from storage.patient_outputs import join_notes, split_notes
-from storage.phantom_io import write_phantom_patient
-from storage.store import ArtifactStore
-from tasks import stages
-from tasks.preprocess import preprocess_notes
-from tasks.spec import StageOutput
 from tumor3d.config import PipelineConfig, SimplifyConfig
+from tumor3d.flows.patient import run_stages_direct
 from tumor3d.mesh import Mesh
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.patient_outputs import join_notes, split_notes
+from tumor3d.storage.phantom_io import write_phantom_patient
+from tumor3d.storage.store import ArtifactStore
+from tumor3d.tasks import stages
+from tumor3d.tasks.preprocess import preprocess_notes
+from tumor3d.tasks.spec import StageOutput
 
 
 @pytest.fixture(scope="module")
@@ -132,8 +132,8 @@ def test_preprocess_counts_the_slices_with_brain_and_with_tissue(tumour_run):
 def test_preprocess_tissue_slices_leave_out_constant_background_slices(tmp_path, below_min):
     import nibabel as nib
 
-    from storage.readers import read_scan
     from tumor3d.config import PreprocessConfig
+    from tumor3d.storage.readers import read_scan
 
     # slices beyond the head of one constant gray, as a skull-stripped volume's background:
     # the image's minimum, or below it (a z-scored volume's negative background)
@@ -196,7 +196,7 @@ def test_interpolate_stage_resolves_the_automatic_slice_count_in_the_core(tumour
 
 
 def test_slice_table_rows_match_detection(tumour_run):
-    from storage.slice_table import slice_table
+    from tumor3d.storage.slice_table import slice_table
 
     run, store = tumour_run
     det = store.get_table(run.outputs["detect-abnormal"].artifacts["detection"])
@@ -282,9 +282,9 @@ def test_the_lesion_artifact_metadata_round_trips_the_mirror_plane():
     # the mid-sagittal plane (JSON-able: plain floats and ints)
     import json
 
-    from tasks.detect import lesion_metadata
-    from tasks.segment import lesion_from_artifact
     from tumor3d.lesion import LesionResult, MirrorPlane, NormalModel
+    from tumor3d.tasks.detect import lesion_metadata
+    from tumor3d.tasks.segment import lesion_from_artifact
 
     mask = np.zeros((2, 4, 4), dtype=bool)
     mask[1, 1:3, 1:3] = True

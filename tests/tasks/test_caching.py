@@ -11,8 +11,9 @@ import sys
 import numpy as np
 import pytest
 
-from storage.store import ArtifactRef
-from tasks.caching import (
+from tumor3d.config import SimplifyConfig
+from tumor3d.storage.store import ArtifactRef
+from tumor3d.tasks.caching import (
     FORMAT_MODULES,
     PROJECT_PACKAGES,
     PROJECT_ROOT,
@@ -25,11 +26,10 @@ from tasks.caching import (
     module_closure,
     stage_cache_policy,
 )
-from tasks.spec import InputSource
-from tasks.stages import STAGES
-from tumor3d.config import SimplifyConfig
+from tumor3d.tasks.spec import InputSource
+from tumor3d.tasks.stages import STAGES
 
-MODULES = ("tasks.simplify",)
+MODULES = ("tumor3d.tasks.simplify",)
 
 
 def _key(stage, inputs, modules=MODULES, root=None):
@@ -77,7 +77,7 @@ def test_closure_holds_every_module_the_adapter_imports(stage, runtime_imports):
     loaded = runtime_imports[spec.adapter_module]
     assert spec.adapter_module in loaded and spec.entry.__module__ in loaded
     assert loaded <= closure, f"imported but not in the digest: {sorted(loaded - closure)}"
-    assert "tasks.stages" not in closure
+    assert "tumor3d.tasks.stages" not in closure
 
 
 def test_closure_follows_the_imports_the_old_table_missed():
@@ -85,7 +85,7 @@ def test_closure_follows_the_imports_the_old_table_missed():
     assert "tumor3d.scan" in STAGES["simplify-mesh"].code_modules
     assert "tumor3d.scan" in STAGES["measure-volume"].code_modules
     for stage in STAGES.values():  # every volume write goes through it
-        assert "storage.nifti" in stage.code_modules, stage.name
+        assert "tumor3d.storage.nifti" in stage.code_modules, stage.name
 
 
 def test_closure_holds_a_packages_lazy_imports_only_when_asked_for_a_lazy_name(package_copy):
@@ -101,8 +101,8 @@ def test_closure_holds_a_packages_lazy_imports_only_when_asked_for_a_lazy_name(p
         "aliased": "import tumor3d as t3\n\n\ndef run(x):\n    return t3.Reconstruction\n",
     }  # fmt: skip
     for name, text in probes.items():
-        (package_copy / "tasks" / f"probe_{name}.py").write_text(text)
-    closures = {n: module_closure((f"tasks.probe_{n}",), root) for n in probes}
+        (package_copy / "tumor3d" / "tasks" / f"probe_{name}.py").write_text(text)
+    closures = {n: module_closure((f"tumor3d.tasks.probe_{n}",), root) for n in probes}
     assert "tumor3d.api" not in closures["plain"]
     for name in ("from_import", "attribute", "aliased"):
         assert "tumor3d.api" in closures[name], name
@@ -113,7 +113,7 @@ def test_closure_holds_a_packages_lazy_imports_only_when_asked_for_a_lazy_name(p
 
 def test_closure_rejects_unknown_module():
     with pytest.raises(ValueError, match="cannot locate"):
-        module_closure(("tasks.no_such_adapter",))
+        module_closure(("tumor3d.tasks.no_such_adapter",))
 
 
 @pytest.fixture
@@ -143,8 +143,8 @@ _BEHAVIOUR_EDIT = "\n_CACHE_KEY_PROBE = 1\n"
 
 @pytest.mark.parametrize(
     "module",
-    ["tumor3d.scan", "tumor3d.simplify.qem", "storage.nifti", "tumor3d.metrics",
-     "tasks.surface", "tumor3d.detect", "storage.readers", "tumor3d.errors"],
+    ["tumor3d.scan", "tumor3d.simplify.qem", "tumor3d.storage.nifti", "tumor3d.metrics",
+     "tumor3d.tasks.surface", "tumor3d.detect", "tumor3d.storage.readers", "tumor3d.errors"],
 )  # fmt: skip
 def test_editing_a_module_changes_exactly_the_keys_whose_closure_holds_it(package_copy, module):
     before = _keys(package_copy)
@@ -162,7 +162,7 @@ def test_editing_a_module_changes_exactly_the_keys_whose_closure_holds_it(packag
 
 def test_a_behaviour_edit_in_one_adapter_invalidates_only_that_stage(package_copy):
     before = _keys(package_copy)
-    f = package_copy / "tasks" / "render.py"
+    f = package_copy / "tumor3d" / "tasks" / "render.py"
     f.write_text(f.read_text() + _BEHAVIOUR_EDIT)
     after = _keys(package_copy)
     assert {n for n in STAGES if before[n] != after[n]} == {"render-views"}
@@ -247,7 +247,7 @@ def test_a_constant_or_an_operator_moves_the_keys_of_the_stages_holding_the_modu
 def test_a_function_left_with_only_its_docstring_digests_as_pass():
     import ast
 
-    from tasks.caching import syntax_dump
+    from tumor3d.tasks.caching import syntax_dump
 
     doc = syntax_dump(ast.parse('def f():\n    """Nothing."""\n'))
     assert doc == syntax_dump(ast.parse("def f():\n    pass\n"))
@@ -264,7 +264,7 @@ def test_store_codecs_enter_keys_through_the_format_version_only(package_copy, m
     f = package_copy.joinpath(*module.split(".")).with_suffix(".py")
     f.write_text(f.read_text() + _BEHAVIOUR_EDIT)  # a code change, not only a comment
     assert _keys(package_copy) == before
-    import tasks.caching as caching
+    import tumor3d.tasks.caching as caching
 
     monkeypatch.setattr(caching, "ARTIFACT_FORMAT_VERSION", "999")
     bumped = _keys(package_copy)
@@ -273,8 +273,8 @@ def test_store_codecs_enter_keys_through_the_format_version_only(package_copy, m
 
 def test_closure_is_computed_once_per_process():
     module_closure.cache_clear()
-    module_closure(("tasks.measure",))
-    module_closure(("tasks.measure",))
+    module_closure(("tumor3d.tasks.measure",))
+    module_closure(("tumor3d.tasks.measure",))
     assert module_closure.cache_info().hits >= 1
 
 
@@ -319,7 +319,7 @@ def test_input_source_location_is_not_part_of_the_key():
                     modality="flair", patient_id="p1")  # fmt: skip
     b = a.model_copy(update={"path": "/moved/flair.nii.gz"})
     c = a.model_copy(update={"digest": "e" * 64})
-    mods = ("tasks.ingest",)
+    mods = ("tumor3d.tasks.ingest",)
     assert _key("ingest-scan", {"source": a}, mods) == _key("ingest-scan", {"source": b}, mods)
     assert _key("ingest-scan", {"source": a}, mods) != _key("ingest-scan", {"source": c}, mods)
 
@@ -328,7 +328,7 @@ def test_input_source_patient_id_is_not_part_of_the_key_but_its_content_is():
     # issue 29: the same file under another id is the same computation
     a = InputSource(path="/data/a/flair.nii.gz", name="flair.nii.gz", digest="d" * 64,
                     modality="flair", patient_id="p1")  # fmt: skip
-    mods = ("tasks.ingest",)
+    mods = ("tumor3d.tasks.ingest",)
     key = _key("ingest-scan", {"source": a}, mods)
     same = a.model_copy(update={"patient_id": "p2", "id_derived": True})
     assert _key("ingest-scan", {"source": same}, mods) == key
@@ -356,7 +356,7 @@ def test_code_digests_parse_under_one_lock_and_agree_across_threads(package_copy
     import ast
     from concurrent.futures import ThreadPoolExecutor
 
-    import tasks.caching as caching
+    import tumor3d.tasks.caching as caching
 
     real_parse = ast.parse
     unlocked = []
@@ -382,7 +382,7 @@ def test_a_retrained_shipped_model_changes_exactly_the_segment_key(package_copy)
     """The learned models are data, not modules: their bytes enter the key of every stage
     whose code closure holds the module that reads them (``DATA_FILES``), the segment
     stage's among them, and no other stage's."""
-    from tasks.caching import DATA_FILES
+    from tumor3d.tasks.caching import DATA_FILES
 
     before = _keys(package_copy)
     model = package_copy / DATA_FILES["tumor3d.learned.shipped"][0]
@@ -402,7 +402,7 @@ def test_a_retrained_shipped_model_changes_exactly_the_segment_key(package_copy)
 
 def _bumped(distribution: str):
     """A stand-in for ``versions()`` reporting another version of ``distribution``."""
-    from storage.versions import versions
+    from tumor3d.storage.versions import versions
 
     real = versions()
     assert distribution in real, f"{distribution} is not among the recorded packages"
@@ -418,7 +418,7 @@ def _stage_keys() -> dict[str, str]:
 def test_a_numerical_package_upgrade_moves_the_keys_of_the_stages_importing_it(
     monkeypatch, distribution
 ):
-    import tasks.caching as caching
+    import tumor3d.tasks.caching as caching
 
     before = _stage_keys()
     assert _stage_keys() == before  # the same versions, the same keys
@@ -434,7 +434,7 @@ def test_a_numerical_package_upgrade_moves_the_keys_of_the_stages_importing_it(
 
 @pytest.mark.parametrize("distribution", ["prefect", "pydantic", "matplotlib"])
 def test_an_upgrade_of_a_package_that_computes_nothing_keeps_every_key(monkeypatch, distribution):
-    import tasks.caching as caching
+    import tumor3d.tasks.caching as caching
 
     before = _stage_keys()
     monkeypatch.setattr(caching, "versions", _bumped(distribution))
@@ -442,13 +442,13 @@ def test_an_upgrade_of_a_package_that_computes_nothing_keeps_every_key(monkeypat
 
 
 def test_only_the_packages_a_closure_imports_enter_its_key(package_copy, monkeypatch):
-    import tasks.caching as caching
+    import tumor3d.tasks.caching as caching
 
-    (package_copy / "tasks" / "probe_adapter.py").write_text(
+    (package_copy / "tumor3d" / "tasks" / "probe_adapter.py").write_text(
         "import numpy as np\n\n\ndef run(x):\n    from skimage import measure\n\n"
         "    return measure.label(np.asarray(x))\n"
     )
-    roots = ("tasks.probe_adapter",)
+    roots = ("tumor3d.tasks.probe_adapter",)
     root = str(package_copy)
     assert caching.closure_packages(roots, root) == ("numpy", "scikit-image")
 
@@ -463,18 +463,19 @@ def test_only_the_packages_a_closure_imports_enter_its_key(package_copy, monkeyp
 
 
 def test_one_versions_function_for_keys_provenance_publish_key_and_reports():
-    import flows.patient
-    import storage.evaluation_report
-    import storage.provenance
-    import storage.versions
-    import tasks.caching
+    import tumor3d.flows.patient
+    import tumor3d.storage.evaluation_report
+    import tumor3d.storage.provenance
+    import tumor3d.storage.versions
+    import tumor3d.tasks.caching
 
-    one = storage.versions.versions
-    assert tasks.caching.versions is one
-    assert storage.provenance.versions is one
-    assert flows.patient.versions is one
-    assert storage.evaluation_report.versions is one
+    one = tumor3d.storage.versions.versions
+    assert tumor3d.tasks.caching.versions is one
+    assert tumor3d.storage.provenance.versions is one
+    assert tumor3d.flows.patient.versions is one
+    assert tumor3d.storage.evaluation_report.versions is one
     recorded = one()
-    every_key_package = {d for dists in storage.versions.NUMERICAL_PACKAGES.values() for d in dists}
+    numerical = tumor3d.storage.versions.NUMERICAL_PACKAGES
+    every_key_package = {d for dists in numerical.values() for d in dists}
     assert every_key_package <= set(recorded)  # provenance records what the keys hold
     assert {"tumor3d", "python", "platform"} <= set(recorded)

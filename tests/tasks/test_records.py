@@ -17,15 +17,15 @@ from pathlib import Path
 
 import pytest
 
-from storage.store import ArtifactStore
-from tasks.records import (
+from tumor3d.storage.store import ArtifactStore
+from tumor3d.tasks.records import (
     SERIALIZER_TYPE,
     ScreenedResultFolder,
     StageOutputSerializer,
     UntrustedRecord,
     screen_record,
 )
-from tasks.spec import StageOutput
+from tumor3d.tasks.spec import StageOutput
 
 KEY = "a" * 64
 OTHER = "b" * 64
@@ -111,7 +111,7 @@ def test_the_result_folder_never_reads_or_writes_through_a_symlink(tmp_path):
 
 
 def test_a_fifo_or_an_oversized_record_is_refused_without_blocking(tmp_path):
-    from tasks.records import MAX_RECORD_BYTES
+    from tumor3d.tasks.records import MAX_RECORD_BYTES
 
     (tmp_path / "results").mkdir()
     folder = ScreenedResultFolder(basepath=str(tmp_path / "results"))
@@ -128,9 +128,9 @@ def test_a_fifo_or_an_oversized_record_is_refused_without_blocking(tmp_path):
 
 @pytest.fixture(scope="module")
 def two_patients(tmp_path_factory):
-    from flows.patient import run_patient
-    from storage.phantom_io import write_phantom_patient
+    from tumor3d.flows.patient import run_patient
     from tumor3d.phantom import make_phantom_patient
+    from tumor3d.storage.phantom_io import write_phantom_patient
 
     base = tmp_path_factory.mktemp("records")
     images = {}
@@ -147,7 +147,7 @@ def two_patients(tmp_path_factory):
 
 
 def _rerun(images, out, pid="p1"):
-    from flows.patient import run_patient
+    from tumor3d.flows.patient import run_patient
 
     return run_patient(images[pid], out, patient_id=pid)
 

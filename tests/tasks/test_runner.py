@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from storage.store import ArtifactStore
-from tasks.runner import PrefectRunner
-from tasks.spec import StageOutput
+from tumor3d.storage.store import ArtifactStore
+from tumor3d.tasks.runner import PrefectRunner
+from tumor3d.tasks.spec import StageOutput
 
 
 def _cached_output(store: ArtifactStore) -> StageOutput:
@@ -49,7 +49,7 @@ def test_a_cache_hit_whose_artifact_is_missing_is_recomputed(tmp_path):
 
 
 def test_why_refused_names_an_unreadable_record():
-    from tasks.records import why_refused
+    from tumor3d.tasks.records import why_refused
 
     assert "not JSON" in why_refused(b'{"metadata": {"storage_key": ', "0" * 32)
 
@@ -62,9 +62,9 @@ def test_a_record_prefect_cannot_read_is_a_named_miss_not_a_silent_one(tmp_path)
     A torn record (a truncated file) of one stage makes Prefect recompute it;
     the stage run now says why, and the next run is all hits again.
     """
-    from flows.patient import run_patient
-    from storage.phantom_io import write_phantom_patient
+    from tumor3d.flows.patient import run_patient
     from tumor3d.phantom import make_phantom_patient
+    from tumor3d.storage.phantom_io import write_phantom_patient
 
     row = write_phantom_patient(make_phantom_patient(5, patient_id="rec5", n_slices=12), tmp_path)
     out = tmp_path / "out"

@@ -1,6 +1,6 @@
 """One labelled patient as training rows of the learned model, and rows as plain bytes.
 
-The training command (``tumor3d train``, :mod:`flows.train`) turns each
+The training command (``tumor3d train``, :mod:`tumor3d.flows.train`) turns each
 labelled patient of a manifest into rows with :func:`patient_rows`: the
 features the model sees at inference (:func:`tumor3d.learned.features.
 compute_features`, with the robust method's mask of the same slices as the

@@ -8,7 +8,7 @@ Each model is an ``.npz`` of plain arrays plus JSON metadata
 (:meth:`tumor3d.learned.forest.ForestModel.from_bytes`, ``allow_pickle=False``)
 in ``tumor3d/learned/models/``: ``hyper.npz`` (FLAIR and T2, whole tumour)
 and ``t1c.npz`` (T1c, tumour core). Their bytes enter the segment stage's
-cache key (``tasks.caching.DATA_FILES``), so a retrained model recomputes.
+cache key (``tumor3d.tasks.caching.DATA_FILES``), so a retrained model recomputes.
 """
 
 from __future__ import annotations

@@ -1,0 +1,447 @@
+"""Cohort flow: the single-patient pipeline for every manifest row, N patients at a time.
+
+Wiring only. :func:`cohort_flow` runs :func:`tumor3d.flows.patient.patient_pipeline`
+for each row in a pool of ``workers`` lanes; each lane submits its stages to
+the flow's task runner (threads, ``workers`` wide), so N patients compute at
+once and a different task runner (Dask) can be given to the flow with
+``cohort_flow.with_options(task_runner=...)`` without touching the stages:
+:func:`run_cohort` does so for ``dask=DaskSpec(...)``
+(:mod:`tumor3d.flows.dask_runner`). The store may be a folder or an object-store URL
+(:mod:`tumor3d.storage.objectstore`); either is checked before any patient starts.
+So may ``DIR``: with ``s3://bucket/prefix`` each patient is staged locally and
+published to ``<url>/<patient_id>/`` with a completion marker written last
+(:mod:`tumor3d.storage.remote_publish`); the store then defaults to
+``<url>/.tumor3d-store``.
+
+Patients published in ``DIR`` by an earlier run but no longer in the rows are
+reported (``CohortResult.removed``, ``cohort.md``), never deleted.
+
+Failure isolation: a patient that fails (unreadable image, no brain found,
+any exception) is recorded with its status, the failing stage and a one-line
+error; the others finish and are published. Nothing is half-written under any
+patient's final folder (:mod:`tumor3d.storage.publish`). ``DIR/cohort.parquet`` and
+``DIR/cohort.md`` summarise the cohort (:mod:`tumor3d.storage.cohort_report`).
+"""
+
+from __future__ import annotations
+
+import contextvars
+import dataclasses
+import functools
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from prefect import flow, get_run_logger, tags
+from pydantic import BaseModel, ConfigDict, Field
+
+from tumor3d.config import PipelineConfig, parse_config
+from tumor3d.constants import MAX_VOXELS_DEFAULT
+from tumor3d.errors import InputError
+from tumor3d.flows.artifacts import publish_cohort_artifacts
+from tumor3d.flows.dask_runner import DaskSpec, check_scheduler, cohort_task_runner
+from tumor3d.flows.patient import (
+    VOLUME_LABELS,
+    config_digest,
+    patient_pipeline,
+    prepare_brain_mask,
+    prepare_segmentation,
+    prepare_source,
+)
+from tumor3d.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
+from tumor3d.storage import bids
+from tumor3d.storage.cohort_report import (
+    cohort_markdown,
+    cohort_output_files,
+    cohort_table,
+    cohort_title,
+    published_patient_ids,
+    write_cohort_outputs,
+)
+from tumor3d.storage.manifest import ManifestRow, read_manifest
+from tumor3d.storage.objectstore import ObjectStore, default_store_location, is_url, open_store
+from tumor3d.storage.publish import check_destination, check_outputs_not_inputs
+from tumor3d.storage.remote_publish import RemoteFolder, publish_files, published_names
+from tumor3d.storage.store import ArtifactStore
+from tumor3d.tasks import stages
+from tumor3d.tasks.progress import ProgressEvent, report
+from tumor3d.tasks.runner import StageRun
+
+__all__ = [
+    "CohortResult",
+    "EXIT_CHECK",
+    "PatientOutcome",
+    "cohort_flow",
+    "default_workers",
+    "exit_code_of",
+    "one_line_error",
+    "run_cohort",
+]
+
+#: Longest error message kept per patient (characters).
+_MAX_ERROR = 300
+
+
+class PatientOutcome(BaseModel):
+    """How one manifest row went.
+
+    Parameters
+    ----------
+    patient_id : str
+    status : {"ok", "check", "failed"}
+        ``check``: completed, but the tool's own checks doubt the result
+        (:mod:`tumor3d.review`; the metrics' ``review_reasons`` say why).
+    failed_stage : str or None
+        The stage that raised (``prepare-input`` before the first stage,
+        ``publish`` after the last).
+    error : str or None
+        One line: exception type and message.
+    output_dir : str or None
+        ``DIR/<patient_id>`` when ok.
+    metrics : dict
+        That patient's ``metrics.parquet`` row when ok, else empty.
+    stages : list of StageRun
+        The stages that completed.
+    row : dict
+        The manifest row as given (extra columns passed through).
+    """
+
+    model_config = ConfigDict(frozen=True)
+
+    patient_id: str
+    status: str
+    failed_stage: str | None = None
+    error: str | None = None
+    output_dir: str | None = None
+    metrics: dict[str, Any] = Field(default_factory=dict)
+    stages: list[StageRun] = Field(default_factory=list)
+    row: dict[str, Any] = Field(default_factory=dict)
+
+
+class CohortResult(BaseModel):
+    """What :func:`cohort_flow` returns."""
+
+    model_config = ConfigDict(frozen=True)
+
+    patients: list[PatientOutcome]
+    removed: list[str] = Field(default_factory=list)
+    """Patients published in ``out_dir`` by an earlier run but no longer in the manifest
+    (reported, their folders kept)."""
+    out_dir: str = ""
+    workers: int = 1
+    wall_seconds: float = 0.0
+
+    @property
+    def failed(self) -> list[PatientOutcome]:
+        """The patients that failed."""
+        return [p for p in self.patients if p.status == STATUS_FAILED]
+
+    @property
+    def to_check(self) -> list[PatientOutcome]:
+        """The patients that completed with status ``check``."""
+        return [p for p in self.patients if p.status == STATUS_CHECK]
+
+    @property
+    def exit_code(self) -> int:
+        """1 when some patient failed, else 4 when some needs a check, else 0."""
+        return exit_code_of([p.status for p in self.patients])
+
+
+#: Exit code of a command whose results completed but some need a human's check.
+EXIT_CHECK = 4
+
+
+def exit_code_of(statuses: list[str]) -> int:
+    """A command's exit code from its patients' statuses (:mod:`tumor3d.review`).
+
+    1 when some failed, else :data:`EXIT_CHECK` (4) when some has status
+    ``check``, else 0.
+
+    >>> exit_code_of(["ok", "ok"]), exit_code_of(["ok", "check"]), exit_code_of(["check", "failed"])
+    (0, 4, 1)
+    """
+    if STATUS_FAILED in statuses:
+        return 1
+    return EXIT_CHECK if STATUS_CHECK in statuses else 0
+
+
+def default_workers() -> int:
+    """Patients at a time by default: the number of CPU cores."""
+    return max(1, os.cpu_count() or 1)
+
+
+def one_line_error(exc: BaseException) -> str:
+    """``Type: first line of the message``, at most 300 characters."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    line = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+    return line if len(line) <= _MAX_ERROR else line[: _MAX_ERROR - 3] + "..."
+
+
+def _row_dict(row: ManifestRow | dict[str, Any]) -> dict[str, Any]:
+    data = dataclasses.asdict(row) if dataclasses.is_dataclass(row) else dict(row)
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in data.items()}
+
+
+def _json_row(row: dict[str, Any]) -> dict[str, Any]:
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in row.items()}
+
+
+def _run_one(
+    row: dict[str, Any],
+    out_dir: str,
+    cfg: PipelineConfig,
+    store: ArtifactStore,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
+    layout: str = "default",
+) -> PatientOutcome:
+    """One lane: prepare, run every stage, publish; any failure becomes an outcome."""
+    pid = str(row.get("patient_id"))
+    names = list(stages.STAGES)
+    runs: list[StageRun] = []
+    prepared = False
+    try:
+        source = prepare_source(
+            row["image"], patient_id=pid, modality=row.get("modality") or "t2",
+            series_uid=row.get("series_uid"), slice_thickness_mm=row.get("slice_thickness_mm"),
+            slice_gap_mm=row.get("slice_gap_mm"), max_voxels=max_voxels, out_dir=out_dir,
+        )  # fmt: skip
+        mask = row.get("brain_mask")
+        given = None if not mask else prepare_brain_mask(mask, source, out_dir=out_dir)
+        seg_path = row.get("segmentation")
+        seg = None if not seg_path else prepare_segmentation(seg_path, source, out_dir=out_dir)
+        prepared = True
+        result = patient_pipeline(
+            source, out_dir, cfg, store, runs=runs, brain_mask=given, segmentation=seg,
+            layout=layout,
+        )  # fmt: skip
+    except Exception as exc:  # failure isolation: record and let the others finish
+        done = len(runs)
+        if not prepared:
+            stage = "prepare-input"
+        else:
+            stage = names[done] if done < len(names) else "publish"
+        report(ProgressEvent(pid, stage, "failed", done, len(names)))
+        return PatientOutcome(
+            patient_id=pid, status=STATUS_FAILED, failed_stage=stage, error=one_line_error(exc),
+            stages=list(runs), row=_json_row(row),
+        )  # fmt: skip
+    report(ProgressEvent(pid, "published", "published", len(names), len(names)))
+    return PatientOutcome(
+        patient_id=pid, status=str(result.metrics.get("status", STATUS_OK)),
+        output_dir=result.output_dir, metrics=result.metrics,
+        stages=result.stages, row=_json_row(row),
+    )  # fmt: skip
+
+
+def _cohort_run_name() -> str:
+    from prefect.runtime import flow_run
+
+    params = flow_run.parameters
+    name = Path(str(params.get("out_dir", "cohort"))).name
+    return f"cohort-{name}-{len(params.get('rows') or [])}-patients"
+
+
+@flow(name="tumor3d-cohort", flow_run_name=_cohort_run_name, persist_result=False)
+def cohort_flow(
+    rows: list[dict[str, Any]],
+    out_dir: str,
+    config: dict[str, Any] | None = None,
+    workers: int = 1,
+    store_dir: str | None = None,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
+    layout: str = "default",
+) -> CohortResult:
+    """Run the single-patient pipeline for every row, ``workers`` patients at a time.
+
+    Parameters
+    ----------
+    rows : list of dict
+        Manifest rows (``patient_id``, ``image``, ``modality``, optional
+        ``slice_thickness_mm``, ``slice_gap_mm``, ``series_uid``,
+        ``brain_mask``, ``segmentation``; other keys are passed through to the
+        outcome). A row whose image, brain mask or segmentation is missing or
+        bad fails alone, at ``prepare-input``.
+    out_dir : str
+        ``DIR``: patients under ``DIR/<patient_id>/``, plus ``cohort.parquet``
+        and ``cohort.md``.
+    config : dict, optional
+        Pipeline configuration for every patient.
+    workers : int
+        Patients at a time (>= 1).
+    store_dir : str, optional
+        Artifact store shared by all patients; default ``DIR/.tumor3d-store``.
+    max_voxels : int
+        Refuse an input whose header declares more voxels (that row fails).
+    layout : {"default", "bids"}
+        ``"bids"``: patients under ``DIR/sub-<label>/`` as BIDS derivatives
+        (:mod:`tumor3d.storage.bids`).
+    """
+    t0 = time.perf_counter()
+    cfg = parse_config(config or {}, source="config")
+    store = open_store(store_dir or _default_store(out_dir))
+    logger = get_run_logger()
+    logger.info("cohort of %d patients, %d workers, config %s", len(rows), workers,
+                config_digest(cfg)[:12])  # fmt: skip
+    listed = {bids.folder_name(str(r.get("patient_id")), layout) for r in rows}
+    remote = RemoteFolder(out_dir) if is_url(out_dir) else None
+    published = published_patient_ids(out_dir) if remote is None else published_names(remote)
+    removed = [pid for pid in published if pid not in listed]
+    if removed:
+        logger.warning("%d published patient(s) no longer in the manifest, kept: %s",
+                       len(removed), ", ".join(removed))  # fmt: skip
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="tumor3d-lane") as pool:
+        lane = functools.partial(
+            _run_one, out_dir=out_dir, cfg=cfg, store=store, max_voxels=max_voxels, layout=layout
+        )
+        futures = [pool.submit(contextvars.copy_context().run, lane, row) for row in rows]
+        outcomes = [f.result() for f in futures]
+    wall = time.perf_counter() - t0
+    table = cohort_table([o.model_dump() for o in outcomes])
+    markdown = cohort_markdown(
+        table, volume_labels=VOLUME_LABELS, stage_names=list(stages.STAGES),
+        title=cohort_title(Path(out_dir).name), wall_seconds=wall, workers=workers,
+        removed=removed,
+    )  # fmt: skip
+    if remote is None:
+        write_cohort_outputs(out_dir, table, markdown)
+    else:  # temporary keys, copy, read-back digests, marker last (tumor3d.storage.remote_publish)
+        done = set(published_names(remote))
+        files = cohort_output_files(
+            table, markdown, out_dir, name=Path(out_dir).name,
+            exists=lambda rel: rel.split("/", 1)[0] in done and remote.exists(rel),
+        )  # fmt: skip
+        publish_files(remote, "", files, exclusive=False)
+    publish_cohort_artifacts(table, name=Path(out_dir).name)
+    for o in outcomes:
+        if o.status == STATUS_FAILED:
+            logger.warning("patient %s failed at %s: %s", o.patient_id, o.failed_stage, o.error)
+    return CohortResult(
+        patients=outcomes, removed=removed, out_dir=str(out_dir), workers=workers,
+        wall_seconds=wall,
+    )  # fmt: skip
+
+
+def _default_store(out_dir: str | Path) -> str | Path:
+    """``DIR/.tumor3d-store``, or ``<url>/.tumor3d-store`` for an object-store ``--out``."""
+    return default_store_location(out_dir)
+
+
+#: A row's columns naming input files (never inside any row's output folder).
+_INPUT_COLUMNS = ("image", "brain_mask", "segmentation")
+
+
+def _validate_rows(
+    rows: list[dict[str, Any]], out_dir: Path | None, layout: str = "default"
+) -> None:
+    seen: dict[str, str] = {}
+    for i, row in enumerate(rows, start=1):
+        pid = row.get("patient_id")
+        if not pid or "image" not in row:
+            raise InputError(f"manifest row {i}: needs patient_id and image")
+        try:
+            folder = bids.folder_name(str(pid), layout)
+        except InputError as exc:
+            raise InputError(f"manifest row {i}: {exc}") from None
+        if folder in seen:
+            what = "patient_id" if folder == pid else f"folder {folder} (as {seen[folder]!r})"
+            raise InputError(f"manifest row {i}: duplicate {what} {pid!r}")
+        seen[folder] = str(pid)
+        # never publish over an input (checked for every row before any work); inputs
+        # are local files, so an object-store output (out_dir None) cannot hold one
+        if out_dir is not None:
+            given = [row[k] for k in _INPUT_COLUMNS if row.get(k)]
+            check_destination(out_dir / folder, given)
+    if out_dir is not None:  # nor over another row's input (a mask kept in its folder)
+        inputs = [r[k] for r in rows for k in _INPUT_COLUMNS if r.get(k)]
+        check_outputs_not_inputs([out_dir / f for f in seen], inputs)
+        if layout == "bids":  # OUT/dataset_description.json: absent or ours, never an input
+            bids.check_dataset_root(out_dir, inputs)
+    elif layout == "bids":
+        raise InputError("--layout bids writes a local folder: give a local --out")
+
+
+def run_cohort(
+    manifest: str | Path | list[ManifestRow],
+    out_dir: str | Path,
+    *,
+    config: dict[str, Any] | None = None,
+    workers: int | None = None,
+    store_dir: str | Path | None = None,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
+    dask: DaskSpec | None = None,
+    layout: str = "default",
+) -> CohortResult:
+    """Run :func:`cohort_flow` on a manifest CSV or a list of rows.
+
+    Parameters
+    ----------
+    manifest : path or list of ManifestRow
+        Read with :func:`tumor3d.storage.manifest.read_manifest` when a path (a row
+        whose image is absent is kept and fails alone).
+    out_dir : path
+        ``DIR``.
+    config : dict, optional
+        Pipeline configuration (validated first).
+    workers : int, optional
+        Patients at a time; default :func:`default_workers`, or with Dask the
+        cluster's number of workers.
+    store_dir : path, optional
+        Shared artifact store; default ``DIR/.tumor3d-store``.
+    max_voxels : int
+        Refuse an input whose header declares more voxels (that row fails).
+    dask : DaskSpec, optional
+        Run the stages on a Dask cluster (:mod:`tumor3d.flows.dask_runner`) instead of
+        the default local threads.
+    layout : {"default", "bids"}
+        ``"bids"``: BIDS derivatives (:mod:`tumor3d.storage.bids`); every patient id
+        must give a valid, distinct participant label (checked before any work).
+
+    Raises
+    ------
+    InputError
+        An invalid manifest or configuration, or an output folder holding an
+        input (before any work).
+    ClusterError
+        A Dask scheduler that does not answer (before any work).
+    StoreError
+        An object store whose endpoint, bucket or credentials do not work
+        (before any work).
+    """
+    rows_in = (
+        read_manifest(manifest, require_files=False)
+        if isinstance(manifest, str | Path)
+        else list(manifest)
+    )
+    rows = [_row_dict(r) for r in rows_in]
+    cfg = parse_config(config or {}, source="config")
+    if workers is not None and (
+        isinstance(workers, bool) or not isinstance(workers, int) or workers < 1
+    ):
+        raise InputError(f"workers must be an integer >= 1, got {workers!r}")
+    out: str | Path = str(out_dir).rstrip("/") if is_url(out_dir) else Path(out_dir)
+    _validate_rows(rows, None if isinstance(out, str) else out, bids.check_layout(layout))
+    if isinstance(out, str):
+        RemoteFolder(out).check()  # one line naming the URL, before any patient starts
+    store_at = _default_store(out) if store_dir is None else store_dir
+    if is_url(store_at):
+        store = open_store(str(store_at))
+        assert isinstance(store, ObjectStore)
+        store.check()  # one line naming the URL, before any patient starts
+    n = default_workers() if workers is None else workers
+    if dask is not None and dask.address:
+        n_cluster = check_scheduler(dask.address)  # one line, before any patient starts
+        n = max(1, n_cluster) if workers is None else workers
+    elif dask is not None and dask.n_workers and workers is None:
+        n = dask.n_workers
+    if isinstance(out, Path):
+        out.mkdir(parents=True, exist_ok=True)
+    flow_fn = cohort_flow.with_options(task_runner=cohort_task_runner(n, dask))
+    with tags(f"config:{config_digest(cfg)[:12]}", "cohort"):
+        return flow_fn(
+            rows=[_json_row(r) for r in rows], out_dir=str(out),
+            config=cfg.model_dump(mode="json"), workers=n,
+            store_dir=None if store_dir is None else str(store_dir), max_voxels=int(max_voxels),
+            layout=layout,
+        )  # fmt: skip

@@ -1,0 +1,184 @@
+"""Task runners of the cohort flow: local threads (default) or a Dask cluster.
+
+Wiring only. :func:`cohort_task_runner` picks the task runner that
+:func:`tumor3d.flows.cohort.cohort_flow` submits its stages to:
+
+* default -- Prefect's ``ThreadPoolTaskRunner`` (``workers`` threads in the
+  flow's process);
+* ``dask_workers=N`` -- a temporary ``distributed.LocalCluster`` of ``N``
+  worker processes, one thread each, through ``prefect-dask``'s
+  ``DaskTaskRunner``;
+* ``dask_address="tcp://HOST:PORT"`` -- an existing Dask scheduler.
+
+The scheduler is contacted *before* any patient starts
+(:func:`check_scheduler`): an unreachable address is a one-line
+:class:`ClusterError`, which the CLI prints with exit code 3 (environment error). Every worker must
+see the artifact store at the same location (a shared path or an ``s3://``
+URL) and import this project (same code, same ``PYTHONPATH``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from typing import Any
+
+from tumor3d.errors import InputError, Tumor3DError
+
+__all__ = [
+    "ClusterError",
+    "DaskSpec",
+    "EagerDaskTaskRunner",
+    "check_scheduler",
+    "cohort_task_runner",
+]
+
+try:  # the optional extra ``tumor3d[dask]``
+    from prefect_dask import DaskTaskRunner as _DaskTaskRunner
+except ImportError:  # pragma: no cover - without the extra
+    _DaskTaskRunner = None
+
+#: Seconds to wait for a Dask scheduler to answer before giving up.
+CONNECT_TIMEOUT_S = 10.0
+
+
+class ClusterError(Tumor3DError):
+    """A Dask scheduler that cannot be reached (an environment problem, exit code 3)."""
+
+
+if _DaskTaskRunner is not None:
+
+    class EagerDaskTaskRunner(_DaskTaskRunner):
+        """``DaskTaskRunner`` that connects when the flow starts, not at the first submit.
+
+        The cohort flow submits from several lane threads at once; prefect-dask
+        creates its client lazily on first use, so without this two lanes could
+        race to create two clusters.
+        """
+
+        def __enter__(self) -> EagerDaskTaskRunner:
+            super().__enter__()
+            _ = self.client
+            return self
+
+else:  # pragma: no cover - without the extra
+    EagerDaskTaskRunner = None
+
+
+class DaskSpec:
+    """Where the cohort's stages run: a Dask address, a local cluster size, or neither.
+
+    Parameters
+    ----------
+    address : str, optional
+        ``tcp://HOST:PORT`` of an existing scheduler.
+    n_workers : int, optional
+        Size of a temporary local cluster (worker processes, one thread each).
+    processes : bool
+        Local cluster workers as processes (default) or threads in this
+        process (``False``: faster to start, but the GIL-bound parts of a stage
+        then share one interpreter).
+    """
+
+    def __init__(
+        self,
+        address: str | None = None,
+        n_workers: int | None = None,
+        *,
+        processes: bool = True,
+    ) -> None:
+        if address and n_workers:
+            raise InputError("give either --dask-address or --dask-workers, not both")
+        if n_workers is not None and (
+            isinstance(n_workers, bool) or not isinstance(n_workers, int) or n_workers < 1
+        ):
+            raise InputError(f"--dask-workers must be an integer >= 1, got {n_workers!r}")
+        if address is not None and not str(address).strip():
+            raise InputError("--dask-address is empty")
+        self.address = address
+        self.n_workers = n_workers
+        self.processes = processes
+
+    @property
+    def enabled(self) -> bool:
+        """True when the stages run on Dask."""
+        return bool(self.address or self.n_workers)
+
+    def describe(self) -> str:
+        """One line for logs and the cohort report."""
+        if self.address:
+            return f"Dask scheduler {self.address}"
+        if self.n_workers:
+            kind = "processes" if self.processes else "threads"
+            return f"local Dask cluster of {self.n_workers} worker {kind}"
+        return "local threads"
+
+
+def check_scheduler(address: str, *, timeout_s: float = CONNECT_TIMEOUT_S) -> int:
+    """Connect to a Dask scheduler once and return its number of workers.
+
+    Raises
+    ------
+    ClusterError
+        If the scheduler does not answer within ``timeout_s`` (one line
+        naming the address).
+    """
+    try:
+        import distributed
+    except ImportError:
+        raise InputError(
+            "Dask needs the optional dependencies: pip install 'tumor3d[dask]'"
+        ) from None
+    try:
+        with distributed.Client(address, timeout=timeout_s, set_as_default=False) as client:
+            info = client.scheduler_info()
+    except (OSError, TimeoutError, ValueError) as exc:
+        text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ClusterError(
+            f"Dask scheduler {address}: cannot connect within {timeout_s:g} s ({text}); "
+            "start the scheduler or fix --dask-address"
+        ) from None
+    return len(info.get("workers", {}))
+
+
+def _dask_runner_class() -> Any:
+    if EagerDaskTaskRunner is None:
+        raise InputError(
+            "Dask needs the optional dependencies: pip install 'tumor3d[dask]' "
+            "(prefect-dask, dask, distributed)"
+        )
+    return EagerDaskTaskRunner
+
+
+def cohort_task_runner(workers: int, spec: DaskSpec | None = None) -> Any:
+    """The task runner for a cohort: threads, a local Dask cluster or a remote scheduler.
+
+    Parameters
+    ----------
+    workers : int
+        Threads of the default runner (patients at a time).
+    spec : DaskSpec, optional
+        Dask settings; None or disabled gives the thread runner.
+    """
+    from prefect.task_runners import ThreadPoolTaskRunner
+
+    if spec is None or not spec.enabled:
+        return ThreadPoolTaskRunner(max_workers=workers)
+    runner_cls = _dask_runner_class()
+    # distributed logs every client connection at INFO (prefect-dask opens one per
+    # task on the workers): keep them out of the progress display; -v/--verbose
+    # or DASK_LOGGING__DISTRIBUTED=info brings them back
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+    if os.environ.get("PREFECT_LOGGING_LEVEL", "").upper() in ("WARNING", "ERROR", "CRITICAL"):
+        logging.getLogger("distributed").setLevel(logging.WARNING)
+    if spec.address:
+        return runner_cls(address=spec.address)
+    return runner_cls(
+        cluster_class="distributed.LocalCluster",
+        cluster_kwargs={
+            "n_workers": spec.n_workers,
+            "threads_per_worker": 1,
+            "processes": spec.processes,
+            "dashboard_address": None,
+        },
+    )

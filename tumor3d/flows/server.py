@@ -1,0 +1,555 @@
+"""The local Prefect server the commands talk to: a background one, or a temporary one.
+
+Which Prefect API a command uses (:func:`prefect_api`), in order:
+
+1. ``PREFECT_API_URL``, when the environment or the Prefect profile sets it
+   (the user's own server, Prefect Cloud, the test harness): used as is.
+2. The **background server** of ``tumor3d server start``, when its state file
+   names a live process that answers ``/api/health``.
+3. Otherwise a **temporary server** is started for this command (the
+   "starting Prefect" message is printed only then) and stopped when the
+   command ends. It is a child process that watches its parent: on Linux the
+   kernel sends it SIGTERM when the command dies (``prctl(PR_SET_PDEATHSIG)``),
+   and on every platform a watchdog thread polls ``os.getppid()`` and stops it,
+   so a ``kill -9`` of the command never leaves an orphaned server behind.
+
+State folder: ``$TUMOR3D_HOME``, default ``~/.tumor3d``. The background
+server's state is ``server.json`` there (pid, port, API URL, log file, start
+time) and its log ``server.log``. A state file whose process is gone (a reboot,
+a ``kill -9``) is stale: ``status`` says so and ``start``/``stop`` remove it.
+Both servers use Prefect's own database under ``PREFECT_HOME`` (default
+``~/.prefect``), so runs made with either appear in the UI of the background
+server (``http://127.0.0.1:PORT``).
+
+The server process itself is ``python -m tumor3d.flows.server --port P [--parent PID]
+[--ephemeral]``: uvicorn serving ``prefect.server.api.server:create_app``, the
+app Prefect's own ``prefect server start`` and ephemeral server serve.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from tumor3d.errors import Tumor3DError
+
+__all__ = [
+    "SERVER_MODULE",
+    "STATE_ENV",
+    "ServerError",
+    "ServerInfo",
+    "ServerStatus",
+    "check_configured_api",
+    "healthy",
+    "prefect_api",
+    "server_status",
+    "start_server",
+    "state_dir",
+    "stop_server",
+]
+
+#: Environment variable naming the state folder (default ``~/.tumor3d``).
+STATE_ENV = "TUMOR3D_HOME"
+#: The module run as the server process (``python -m tumor3d.flows.server``).
+SERVER_MODULE = "tumor3d.flows.server"
+_PROJECT_ROOT = Path(__file__).resolve().parents[2]
+_PR_SET_PDEATHSIG = 1
+
+
+class ServerError(Tumor3DError):
+    """The Prefect server could not be started, reached or stopped (an environment error)."""
+
+
+@dataclass(frozen=True)
+class ServerInfo:
+    """A running server: its process, where it listens, where it logs."""
+
+    pid: int
+    port: int
+    api_url: str
+    log: str = ""
+    started_utc: str = ""
+    #: The warm command runner beside it (:mod:`tumor3d.flows.daemon`), 0 if none.
+    runner_pid: int = 0
+
+
+@dataclass(frozen=True)
+class ServerStatus:
+    """What ``tumor3d server status`` reports.
+
+    ``state`` is ``"running"`` (process alive and healthy), ``"unhealthy"``
+    (process alive, API not answering), ``"stale"`` (state file names a dead
+    process) or ``"stopped"`` (no state file).
+    """
+
+    state: str
+    state_file: str
+    info: ServerInfo | None = None
+
+    @property
+    def line(self) -> str:
+        """One line for a user."""
+        if self.info is None:
+            return f"no tumor3d Prefect server running (state file {self.state_file} absent)"
+        i = self.info
+        where = f"pid {i.pid}, {i.api_url}, log {i.log}"
+        if i.runner_pid:
+            from tumor3d.flows.daemon import DAEMON_MODULE
+
+            alive = _pid_is_our_server(i.runner_pid, DAEMON_MODULE)
+            where += f"; runner pid {i.runner_pid} ({'up' if alive else 'gone'})"
+        return {
+            "running": f"running and healthy: {where}",
+            "unhealthy": f"process alive but the API does not answer /health: {where}",
+            "stale": f"stale state file {self.state_file}: process {i.pid} is gone",
+        }[self.state]
+
+
+def state_dir() -> Path:
+    """The state folder: ``$TUMOR3D_HOME`` or ``~/.tumor3d``."""
+    env = os.environ.get(STATE_ENV)
+    return Path(env).expanduser() if env else Path.home() / ".tumor3d"
+
+
+def _state_file() -> Path:
+    return state_dir() / "server.json"
+
+
+def _read_state() -> ServerInfo | None:
+    try:
+        data = json.loads(_state_file().read_text())
+        return ServerInfo(**{k: data[k] for k in ServerInfo.__dataclass_fields__ if k in data})
+    except (OSError, ValueError, TypeError, KeyError):
+        return None
+
+
+def _write_state(info: ServerInfo) -> None:
+    path = _state_file()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(asdict(info), indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def _pid_is_our_server(pid: int, module: str = SERVER_MODULE) -> bool:
+    """The process exists and (where /proc can tell) runs ``module`` (this server's)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return False  # someone else's process took the pid
+    cmdline = Path(f"/proc/{pid}/cmdline")
+    if cmdline.exists():
+        try:
+            args = cmdline.read_bytes().split(b"\0")
+        except OSError:
+            return True
+        if not args or not args[0]:  # a zombie
+            return False
+        return module.encode() in args
+    return True
+
+
+def healthy(api_url: str, timeout_s: float = 2.0) -> bool:
+    """True if ``<api_url>/health`` answers 200."""
+    try:
+        with urllib.request.urlopen(f"{api_url.rstrip('/')}/health", timeout=timeout_s) as r:
+            return r.status == 200
+    except (OSError, urllib.error.URLError, ValueError):
+        return False
+
+
+def server_status() -> ServerStatus:
+    """Whether the background server is running, and where."""
+    info = _read_state()
+    where = str(_state_file())
+    if info is None:
+        return ServerStatus("stopped", where)
+    if not _pid_is_our_server(info.pid):
+        return ServerStatus("stale", where, info)
+    return ServerStatus("running" if healthy(info.api_url) else "unhealthy", where, info)
+
+
+def _free_port() -> int:
+    with contextlib.closing(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _spawn(port: int, *, parent: int | None, ephemeral: bool, log: Path | None) -> subprocess.Popen:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(_PROJECT_ROOT), *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])]
+    )
+    env.pop("PREFECT_API_URL", None)  # the server must not talk to another server
+    args = [sys.executable, "-m", SERVER_MODULE, "--port", str(port)]
+    if parent is not None:
+        args += ["--parent", str(parent)]
+    if ephemeral:
+        args.append("--ephemeral")
+    out = open(log, "ab") if log is not None else subprocess.DEVNULL  # noqa: SIM115
+    try:
+        return subprocess.Popen(
+            args,
+            env=env,
+            stdin=subprocess.DEVNULL,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            # the background server leaves the terminal's session (no SIGINT from ^C)
+            start_new_session=parent is None,
+            cwd=str(_PROJECT_ROOT),
+        )
+    finally:
+        if log is not None:
+            out.close()
+
+
+def _spawn_runner(log: Path) -> int:
+    """Start the warm command runner (:mod:`tumor3d.flows.daemon`) in the background; its pid.
+
+    Same environment as the server's command (so a later command in it is
+    served), own session, output appended to ``log``.
+    """
+    from tumor3d.flows.daemon import DAEMON_MODULE
+
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(_PROJECT_ROOT), *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])]
+    )
+    with open(log, "ab") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", DAEMON_MODULE],
+            env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
+            start_new_session=True, cwd=str(_PROJECT_ROOT),
+        )  # fmt: skip
+    return proc.pid
+
+
+def _stop_runner(pid: int) -> None:
+    from tumor3d.flows.daemon import DAEMON_MODULE, socket_path
+
+    if pid > 0 and _pid_is_our_server(pid, DAEMON_MODULE):
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGTERM)
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and _pid_is_our_server(pid, DAEMON_MODULE):
+            with contextlib.suppress(ChildProcessError):
+                if os.waitpid(pid, os.WNOHANG)[0] == pid:
+                    break
+            time.sleep(0.05)
+    socket_path().unlink(missing_ok=True)
+
+
+def _wait_healthy(proc: subprocess.Popen, api_url: str, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise ServerError(f"the Prefect server exited with code {proc.returncode} at start-up")
+        if healthy(api_url, timeout_s=1.0):
+            return
+        time.sleep(0.2)
+    _terminate(proc.pid)
+    raise ServerError(
+        f"the Prefect server did not answer {api_url}/health within {timeout_s:.0f} s "
+        "(PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS raises the limit)"
+    )
+
+
+def _startup_timeout_s() -> float:
+    try:
+        return float(os.environ.get("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120"))
+    except ValueError:
+        return 120.0
+
+
+def _terminate(pid: int, grace_s: float = 10.0) -> None:
+    """SIGTERM, then SIGKILL after ``grace_s``; reaps the process if it is our child."""
+    try:
+        os.kill(pid, signal.SIGTERM)
+    except ProcessLookupError:
+        return
+    deadline = time.monotonic() + grace_s
+    while time.monotonic() < deadline:
+        with contextlib.suppress(ChildProcessError):
+            if os.waitpid(pid, os.WNOHANG)[0] == pid:
+                return
+        if not _pid_is_our_server(pid):
+            return
+        time.sleep(0.1)
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGKILL)
+    with contextlib.suppress(ChildProcessError):
+        os.waitpid(pid, 0)
+
+
+def start_server(
+    port: int | None = None, timeout_s: float | None = None
+) -> tuple[ServerInfo, bool]:
+    """Start the background server (or find the one running): ``(info, started_now)``.
+
+    A stale state file is replaced. Raises :class:`ServerError` when the
+    server does not become healthy in time (the process is then stopped).
+    """
+    status = server_status()
+    if status.state == "running" and status.info is not None:
+        return status.info, False
+    if status.state == "unhealthy" and status.info is not None:
+        _stop_runner(status.info.runner_pid)
+        _terminate(status.info.pid)
+    elif status.state == "stale" and status.info is not None:
+        _stop_runner(status.info.runner_pid)
+    folder = state_dir()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ServerError(f"{folder}: cannot create the state folder ({exc.strerror})") from None
+    log = folder / "server.log"
+    port = port or _free_port()
+    api_url = f"http://127.0.0.1:{port}/api"
+    proc = _spawn(port, parent=None, ephemeral=False, log=log)
+    info = ServerInfo(
+        pid=proc.pid, port=port, api_url=api_url, log=str(log),
+        started_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    )  # fmt: skip
+    _write_state(info)
+    try:
+        _wait_healthy(proc, api_url, timeout_s or _startup_timeout_s())
+    except ServerError:
+        _state_file().unlink(missing_ok=True)
+        raise
+    if not os.environ.get("TUMOR3D_NO_DAEMON"):  # the warm runner of run/demo
+        info = ServerInfo(**{**asdict(info), "runner_pid": _spawn_runner(folder / "runner.log")})
+        _write_state(info)
+    return info, True
+
+
+def stop_server() -> ServerStatus:
+    """Stop the background server and remove its state file; returns the status before."""
+    status = server_status()
+    if status.info is not None:
+        _stop_runner(status.info.runner_pid)
+    if status.info is not None and status.state in ("running", "unhealthy"):
+        _terminate(status.info.pid)
+    _state_file().unlink(missing_ok=True)
+    return status
+
+
+# ---------------------------------------------------------------- use in a command
+
+
+def _configured_api_url() -> str | None:
+    from prefect.settings import PREFECT_API_URL
+
+    return PREFECT_API_URL.value() or None
+
+
+def check_configured_api(timeout_s: float = 5.0) -> None:
+    """Refuse, in one line, a ``PREFECT_API_URL`` that does not answer ``/health``.
+
+    Called before any work (nothing is created for a run that cannot start);
+    does nothing when no API is configured (the background or a temporary
+    server is used then).
+
+    Raises
+    ------
+    ServerError
+        Naming the URL and what to do (exit code 3 on the command line).
+    """
+    url = _configured_api_url()
+    if url and not healthy(url, timeout_s=timeout_s):
+        raise ServerError(
+            f"the Prefect API {url} (PREFECT_API_URL) does not answer {url.rstrip('/')}/health: "
+            "start that server, or unset PREFECT_API_URL to use `tumor3d server start`'s "
+            "or a temporary one"
+        )
+
+
+def _drain_prefect_workers() -> None:
+    """Send the buffered logs and events before the server they go to stops."""
+    from prefect.events.worker import EventsWorker
+    from prefect.logging.handlers import APILogWorker
+
+    with contextlib.suppress(Exception):
+        APILogWorker.drain_all(timeout=10)
+    with contextlib.suppress(Exception):
+        EventsWorker.drain_all(timeout=10)
+
+
+@contextlib.contextmanager
+def _use_api(api_url: str, *, drain: bool) -> Iterator[None]:
+    import prefect.context
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    with temporary_settings(updates={PREFECT_API_URL: api_url}):
+        # threads that did not copy this context see the same settings
+        global_ctx = getattr(prefect.context, "_temporary_global_settings_context", None)
+        with (
+            global_ctx(prefect.context.get_settings_context())
+            if global_ctx
+            else contextlib.nullcontext()
+        ):
+            try:
+                yield
+            finally:
+                if drain:  # a temporary server stops next: send what is buffered first
+                    _drain_prefect_workers()
+
+
+@contextlib.contextmanager
+def prefect_api(on_temporary_start: Callable[[], None] | None = None) -> Iterator[str]:
+    """Run the body against a Prefect API; yields where it is (see the module docstring).
+
+    ``on_temporary_start`` is called (to print a message) only when a
+    temporary server is really started. While the body runs, a server that
+    goes away (nothing listens on its port any more: killed, stopped) ends
+    the command with one line and exit code 3 (:func:`_watch_server`)
+    instead of minutes of Prefect's retries and tracebacks.
+    """
+    configured = _configured_api_url()
+    if configured:
+        check_configured_api()
+        with _watch_server(configured):
+            yield configured
+        return
+    status = server_status()
+    if status.state == "running" and status.info is not None:
+        # its clients were made for this URL: they drain at exit on their own
+        with _use_api(status.info.api_url, drain=False), _watch_server(status.info.api_url):
+            yield status.info.api_url
+        return
+    if on_temporary_start is not None:
+        on_temporary_start()
+    port = _free_port()
+    api_url = f"http://127.0.0.1:{port}/api"
+    proc = _spawn(port, parent=os.getpid(), ephemeral=True, log=None)
+    try:
+        _wait_healthy(proc, api_url, _startup_timeout_s())
+        with _use_api(api_url, drain=True), _watch_server(api_url):
+            yield api_url
+    finally:
+        _terminate(proc.pid, grace_s=5.0)
+
+
+#: Called with the exit code just before a command ends because its server went away
+#: (the warm runner's copy reports the code to its client).
+EXIT_HOOKS: list[Callable[[int], None]] = []
+#: Seconds between two looks at the server's port, and refusals in a row that end the command.
+_WATCH_PERIOD_S, _WATCH_REFUSALS = 1.0, 3
+
+
+def _refused(api_url: str) -> bool:
+    """True only if nothing listens on the API's port (a slow server is not refused)."""
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(api_url)
+    port = parts.port or (443 if parts.scheme == "https" else 80)
+    try:
+        with socket.create_connection((parts.hostname or "127.0.0.1", port), timeout=5.0):
+            return False
+    except ConnectionRefusedError:
+        return True
+    except OSError:  # a timeout, an unreachable network for a moment: not proof
+        return False
+
+
+@contextlib.contextmanager
+def _watch_server(api_url: str) -> Iterator[None]:
+    """End the command (one line, exit 3) if the server stops listening while the body runs.
+
+    Prefect's clients retry a vanished server for minutes, printing each
+    retry, then fail with tracebacks. Nothing is left half-published: a
+    patient folder is swapped in whole or not at all, and a re-run continues
+    from the cache.
+    """
+    stop = threading.Event()
+
+    def watch() -> None:
+        refusals = 0
+        while not stop.wait(_WATCH_PERIOD_S):
+            refusals = refusals + 1 if _refused(api_url) else 0
+            if refusals >= _WATCH_REFUSALS and not stop.is_set():
+                with contextlib.suppress(Exception):
+                    sys.stderr.write(
+                        f"error: the Prefect server {api_url} stopped answering during the "
+                        "command (results published before it are complete; a re-run "
+                        "continues from the cache)\n"
+                    )
+                    sys.stderr.flush()
+                for hook in EXIT_HOOKS:
+                    with contextlib.suppress(Exception):
+                        hook(3)
+                os._exit(3)
+
+    thread = threading.Thread(target=watch, name="tumor3d-server-watch", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+
+
+# ---------------------------------------------------------------- the server process
+
+
+def _watch_parent(parent: int) -> None:
+    """Stop this process when ``parent`` dies (it is then re-parented)."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(Exception):
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(0)
+
+    def watchdog() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os.kill(os.getpid(), signal.SIGTERM)  # uvicorn's graceful shutdown
+        time.sleep(10.0)
+        os._exit(0)
+
+    threading.Thread(target=watchdog, name="tumor3d-parent-watchdog", daemon=True).start()
+
+
+def _serve(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog=f"python -m {SERVER_MODULE}")
+    parser.add_argument("--port", type=int, required=True)
+    parser.add_argument("--parent", type=int, default=None, help="stop when this pid dies")
+    parser.add_argument("--ephemeral", action="store_true", help="no UI, no services")
+    args = parser.parse_args(argv)
+    if args.parent is not None:
+        _watch_parent(args.parent)
+    os.environ["PREFECT__SERVER_FINAL"] = "1"
+    if args.ephemeral:
+        os.environ["PREFECT__SERVER_EPHEMERAL"] = "1"
+        os.environ["PREFECT_UI_ENABLED"] = "0"
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    import uvicorn
+
+    uvicorn.run(
+        "prefect.server.api.server:create_app",
+        factory=True,
+        host="127.0.0.1",
+        port=args.port,
+        log_level="error",
+        lifespan="on",
+    )
+
+
+if __name__ == "__main__":  # pragma: no cover - the server process
+    _serve()

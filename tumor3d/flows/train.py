@@ -1,0 +1,252 @@
+"""Training flow: the learned segmentation's models from a manifest of labelled patients.
+
+``tumor3d train MANIFEST --out DIR`` (:func:`run_training`). For every row
+(a cohort manifest with a ``reference`` column, or ``reference_kind``
+``tumor_free``; ``emulate_step_mm`` rows are emulated as the evaluation
+does, :func:`tumor3d.storage.evaluation_io.prepare_case`):
+
+1. the pipeline's ingest-scan, preprocess and detect-abnormal stages (the
+   same cached Prefect tasks as ``run`` and ``cohort``: a store shared with
+   a cohort run reuses them);
+2. the training-rows stage (:mod:`tumor3d.tasks.train`), cached by content like
+   every stage: the reference on the acquired slices, the features with the
+   robust method's mask as the prior, the sampled rows;
+
+then one model per family (FLAIR + T2 ``hyper``, T1c ``t1c``) present in
+the manifest is trained on its patients' rows (LightGBM, the ``train``
+extra) and written as ``DIR/<family>.npz`` (plain arrays, no pickle) with
+``DIR/training.json`` (the cases, their input digests, the parameters and
+the model digests). A model is used by shipping it: copied over
+``tumor3d/learned/models/<family>.npz``, whose bytes are in the
+segment-tumor stage's cache key.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from prefect import flow, get_run_logger
+
+from tumor3d.config import PipelineConfig, parse_config
+from tumor3d.errors import InputError
+from tumor3d.flows.patient import prepare_brain_mask, prepare_source
+from tumor3d.learned.rows import rows_from_bytes
+from tumor3d.learned.shipped import MODEL_FAMILIES
+from tumor3d.learned.training import NUM_ROUNDS, TrainingRows, train_forest
+from tumor3d.storage.evaluation_io import acquired_reference, prepare_case
+from tumor3d.storage.manifest import ManifestRow, read_manifest
+from tumor3d.storage.objectstore import default_store_location, open_store
+from tumor3d.storage.store import ArtifactStore, atomic_write_bytes
+from tumor3d.tasks import stages
+from tumor3d.tasks.runner import PrefectRunner
+from tumor3d.tasks.train import SPEC as TRAINING_ROWS
+
+__all__ = ["TrainResult", "run_training", "train_flow"]
+
+#: The stages before the training rows (the pipeline's, shared with run/cohort).
+_PIPELINE_STAGES = ("ingest-scan", "preprocess", "detect-abnormal")
+
+
+@dataclass
+class TrainResult:
+    """What a training run wrote and from what."""
+
+    out_dir: str
+    models: dict[str, str] = field(default_factory=dict)  # family -> model file
+    cases: list[dict[str, Any]] = field(default_factory=list)
+    cached_patients: int = 0
+
+
+def _check_rows(rows: list[ManifestRow], where: str) -> None:
+    for i, r in enumerate(rows, start=1):
+        if r.reference is None and r.reference_kind != "tumor_free":
+            raise InputError(
+                f"manifest row {i} ({r.patient_id}): training needs a reference "
+                "(column reference, or reference_kind tumor_free)",
+                where,
+            )
+        if r.segmentation is not None:
+            raise InputError(
+                f"manifest row {i} ({r.patient_id}): a segmentation column has no use in "
+                "training (the reference is the label)",
+                where,
+            )
+
+
+def _patient_rows(
+    row: ManifestRow, cfg: PipelineConfig, store: ArtifactStore, work_dir: Path
+) -> tuple[TrainingRows, dict[str, Any]]:
+    """One patient through the cached stages; its rows and a description."""
+    prepared = prepare_case(row, work_dir)
+    run_row = prepared.run_row
+    source = prepare_source(
+        run_row.image, patient_id=row.patient_id, modality=row.modality,
+        slice_thickness_mm=run_row.slice_thickness_mm, slice_gap_mm=run_row.slice_gap_mm,
+    )  # fmt: skip
+    given = None
+    if run_row.brain_mask is not None:
+        from tumor3d.flows.patient import _store_brain_mask
+
+        given = _store_brain_mask(store, prepare_brain_mask(run_row.brain_mask, source))
+    root = str(store.root)
+    runner = PrefectRunner(store, row.patient_id, len(_PIPELINE_STAGES) + 1)
+    S = stages.STAGES
+    scan = runner.run(S["ingest-scan"], source=source, store_root=root).artifacts["scan"]
+    pre = runner.run(
+        S["preprocess"], scan=scan, config=cfg.preprocess, store_root=root, brain_mask=given
+    )
+    enhanced, brain = pre.artifacts["enhanced"], pre.artifacts["brain_mask"]
+    detected = runner.run(
+        S["detect-abnormal"], scan=scan, enhanced=enhanced, brain_mask=brain, config=cfg.detect,
+        store_root=root,
+    )  # fmt: skip
+    if row.reference is not None:
+        ref, ref_affine = acquired_reference(prepared)
+        meta = {"tumor_free": False}
+    else:  # tumor_free: an empty label on the scan's grid
+        import numpy as np
+
+        shape = tuple(scan.metadata["shape_zyx"])[::-1]
+        ref, ref_affine = np.zeros(shape, bool), np.asarray(scan.metadata["affine"])
+        meta = {"tumor_free": True}
+    # the reference in file order with its affine: stored as (z, y, x) = its transpose
+    ref_art = store.put_volume(ref.transpose(2, 1, 0), ref_affine, kind="mask", extra=meta)
+    out = runner.run(
+        TRAINING_ROWS, scan=scan, enhanced=enhanced, brain_mask=brain,
+        detection=detected.artifacts["detection"], lesion=detected.artifacts["lesion"],
+        head_exterior=pre.artifacts["head_exterior"], reference=ref_art, config=cfg.segment,
+        store_root=root,
+    )  # fmt: skip
+    ref_rows = out.artifacts["rows"]
+    rows = rows_from_bytes(store.get_bytes(ref_rows), source=f"{row.patient_id} training rows")
+    case = {
+        "patient_id": row.patient_id,
+        "modality": row.modality,
+        "image": run_row.image.name if row.emulate_step_mm is None else row.image.name,
+        "image_sha256": source.digest,
+        "acquisition": prepared.acquisition,
+        "reference_kind": prepared.reference_kind,
+        "rows": int(out.values["n_rows"]),
+        "lesion_rows": int(out.values["n_lesion_rows"]),
+        "rows_digest": ref_rows.digest,
+        "cached": all(r.cached for r in runner.runs),
+    }
+    return rows, case
+
+
+def _train_run_name() -> str:
+    from prefect.runtime import flow_run
+
+    return f"train-{Path(str(flow_run.parameters.get('out_dir', 'model'))).name}"
+
+
+@flow(name="tumor3d-train", flow_run_name=_train_run_name, persist_result=False)
+def train_flow(
+    manifest: str,
+    out_dir: str,
+    config: dict[str, Any] | None = None,
+    store_dir: str | None = None,
+    threshold: float = 0.5,
+    t1c_threshold: float = 0.65,
+    keep_fraction: float = 1.0,
+    num_rounds: int = NUM_ROUNDS,
+    command: str = "",
+) -> TrainResult:
+    """Train the learned segmentation's models on a manifest's labelled patients.
+
+    Parameters
+    ----------
+    manifest : str
+        Cohort manifest CSV; every row has a ``reference`` (or is ``tumor_free``).
+    out_dir : str
+        Where ``<family>.npz`` and ``training.json`` are written.
+    config : dict, optional
+        Pipeline configuration (preprocess, detect and the robust prior's
+        segment settings); the same as the runs the model will serve.
+    store_dir : str, optional
+        Artifact store (default ``out_dir/.tumor3d-store``); share one with
+        ``cohort`` to reuse its stages.
+    threshold, t1c_threshold : float
+        Probability threshold written into the FLAIR/T2 and the T1c model.
+    keep_fraction : float
+        Written into the models (:func:`tumor3d.learned.segment.keep_main_lesion`).
+    num_rounds : int
+        Boosting rounds.
+    command : str
+        The command line, recorded in the models and ``training.json``.
+    """
+    logger = get_run_logger()
+    cfg = parse_config(config or {}, source="config")
+    rows = read_manifest(manifest)
+    _check_rows(rows, str(manifest))
+    out = Path(out_dir)
+    where = store_dir or default_store_location(out)
+    store = open_store(where)
+    work = Path(where) / "emulated"
+    by_family: dict[str, list[tuple[TrainingRows, dict[str, Any]]]] = {}
+    cached = 0
+    for row in rows:
+        try:
+            patient = _patient_rows(row, cfg, store, work)
+        except InputError as exc:
+            raise InputError(f"patient {row.patient_id}: {exc.problem}", exc.path) from None
+        cached += int(patient[1]["cached"])
+        logger.info("%s: %d rows%s", row.patient_id, patient[1]["rows"],
+                    " (cached)" if patient[1]["cached"] else "")  # fmt: skip
+        by_family.setdefault(MODEL_FAMILIES[row.modality], []).append(patient)
+    result = TrainResult(out_dir=str(out), cached_patients=cached)
+    files: dict[str, bytes] = {}
+    for family, patients in sorted(by_family.items()):
+        mods = sorted(m for m, f in MODEL_FAMILIES.items() if f == family)
+        meta = {
+            "name": f"tumor3d-{family}-{datetime.date.today().isoformat()}",
+            "family": family,
+            "modalities": mods,
+            "threshold": float(t1c_threshold if family == "t1c" else threshold),
+            "keep_fraction": float(keep_fraction),
+            "prior": "robust",
+            "training_cases": [c["patient_id"] for _, c in patients],
+            "command": command,
+        }
+        model = train_forest(
+            TrainingRows.concatenate([r for r, _ in patients]), num_rounds=num_rounds, meta=meta
+        )
+        files[f"{family}.npz"] = model.to_bytes()
+        result.models[family] = str(out / f"{family}.npz")
+        for _, case in patients:
+            case["family"] = family
+        result.cases += [c for _, c in patients]
+        logger.info("%s model: %d patients, %d trees, digest %s", family, len(patients),
+                    model.roots.size, model.digest()[:12])  # fmt: skip
+    card = {
+        "command": command,
+        "manifest": str(manifest),
+        "threshold": threshold,
+        "t1c_threshold": t1c_threshold,
+        "keep_fraction": keep_fraction,
+        "num_rounds": num_rounds,
+        "models": {
+            f.removesuffix(".npz"): {"file": f, "sha256": _sha256(b)} for f, b in files.items()
+        },
+        "cases": result.cases,
+    }
+    files["training.json"] = (json.dumps(card, indent=2) + "\n").encode()
+    out.mkdir(parents=True, exist_ok=True)
+    for name, data in files.items():  # each file whole or absent
+        atomic_write_bytes(out / name, data)
+    return result
+
+
+def _sha256(data: bytes) -> str:
+    import hashlib
+
+    return hashlib.sha256(data).hexdigest()
+
+
+def run_training(manifest: str | Path, out_dir: str | Path, **kwargs: Any) -> TrainResult:
+    """Run :func:`train_flow` (keyword arguments as its parameters)."""
+    return train_flow(str(manifest), str(out_dir), **kwargs)

@@ -1,0 +1,355 @@
+"""The artifact store on an object store (``s3://bucket/prefix``, any fsspec URL).
+
+:class:`ObjectStore` is a backend beside the local
+:class:`~tumor3d.storage.store.ArtifactStore` with the same interface and the same
+digests and object names (``<url>/objects/<d[:2]>/<d>.<suffix>``), so cache
+keys, :class:`~tumor3d.storage.store.ArtifactRef` values and stage results do not
+depend on where the store lives. Only the raw-bytes layer differs; the typed
+helpers (``put_volume``, ``get_mesh``, ...) are the local class's own.
+
+* **Atomic publication**: an object is written under a temporary key
+  ``<url>/tmp/<name>.<random>``, then copied to its final key and the
+  temporary key removed; a writer killed before the copy leaves only a
+  ``tmp/`` key, never a partial object under a final name. (An S3 PUT is
+  itself all-or-nothing; the temporary key keeps the discipline of the local
+  store and holds for fsspec back-ends without that guarantee.)
+* **Digest verified on read**: a mismatch moves the object to
+  ``<url>/quarantine/<name>.<utc time>-<random>`` and raises
+  :class:`~tumor3d.storage.store.CorruptArtifactError`, as locally. Repairs are
+  recorded as one small JSON object each under ``<url>/repairs/`` (object
+  stores have no append).
+* **Prefect's results** (the cached stage outputs) live under
+  ``<url>/prefect-results`` through Prefect's ``RemoteFileSystem``
+  (:func:`tumor3d.tasks.runner.result_storage_for`), so every worker finds every
+  cache hit.
+
+Credentials and endpoint come from the usual environment of the back-end
+(for S3: ``AWS_ACCESS_KEY_ID``, ``AWS_SECRET_ACCESS_KEY``, ``AWS_REGION``, and
+``AWS_ENDPOINT_URL`` for an S3-compatible server such as MinIO), so Dask
+workers given the same environment open the same store.
+:func:`open_store` picks the backend from the location; :meth:`ObjectStore.check`
+contacts the endpoint once, before any patient starts.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import uuid
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+from tumor3d.storage.store import (
+    ArtifactRef,
+    ArtifactStore,
+    CorruptArtifactError,
+    Repair,
+    StoreError,
+    canonical_dumps,
+)
+
+__all__ = [
+    "STORE_DIRNAME",
+    "ObjectStore",
+    "check_reachable",
+    "default_store_location",
+    "is_url",
+    "open_fs",
+    "open_store",
+]
+
+#: The artifact store's folder inside the output when no ``--store`` is given.
+STORE_DIRNAME = ".tumor3d-store"
+
+#: Seconds to wait for an S3 endpoint to accept a connection.
+S3_CONNECT_TIMEOUT_S = 5
+
+
+def is_url(location: str | os.PathLike[str]) -> bool:
+    """True for ``scheme://...`` locations (an object store), False for paths."""
+    text = os.fspath(location)
+    return "://" in text and not text.startswith("file://")
+
+
+def default_store_location(out_dir: str | os.PathLike[str]) -> Path | str:
+    """The artifact store used when none is given: ``<out_dir>/.tumor3d-store``.
+
+    A URL for an object-store ``out_dir`` (``s3://bucket/x/.tumor3d-store``).
+    The one definition of the default (every command and flow uses it).
+
+    >>> str(default_store_location("out"))
+    'out/.tumor3d-store'
+    >>> default_store_location("s3://bucket/run/")
+    's3://bucket/run/.tumor3d-store'
+    """
+    if is_url(out_dir):
+        return f"{os.fspath(out_dir).rstrip('/')}/{STORE_DIRNAME}"
+    return Path(out_dir) / STORE_DIRNAME
+
+
+def open_store(location: str | os.PathLike[str]) -> ArtifactStore:
+    """The artifact store at ``location``: :class:`ObjectStore` for a URL, else local.
+
+    Cheap (no network call): tasks call it for every stage.
+    """
+    if is_url(location):
+        return ObjectStore(os.fspath(location))
+    return ArtifactStore(location)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _storage_options(protocol: str) -> dict[str, Any]:
+    if protocol in ("s3", "s3a"):
+        endpoint = os.environ.get("AWS_ENDPOINT_URL_S3") or os.environ.get("AWS_ENDPOINT_URL")
+        return {
+            # explicit, so that fsspec's instance cache keys on the endpoint too
+            **({"endpoint_url": endpoint} if endpoint else {}),
+            # another worker may have written an object since we listed: never trust a listing
+            "use_listings_cache": False,
+            "config_kwargs": {
+                "connect_timeout": S3_CONNECT_TIMEOUT_S,
+                "read_timeout": 120,
+                "retries": {"max_attempts": 3, "mode": "standard"},
+            },
+        }
+    return {}
+
+
+def open_fs(url: str) -> tuple[Any, str]:
+    """The fsspec file system and root key of ``url`` (the same options as the store's).
+
+    Raises
+    ------
+    InputError
+        If the URL's scheme has no fsspec back-end installed.
+    """
+    from tumor3d.errors import InputError
+
+    try:
+        import fsspec
+    except ImportError:  # pragma: no cover - fsspec comes with Prefect
+        raise InputError("an object store needs fsspec", url) from None
+    url = url.rstrip("/")
+    protocol = url.split("://", 1)[0]
+    try:
+        fs, base = fsspec.core.url_to_fs(url, **_storage_options(protocol))
+    except (ImportError, ValueError) as exc:
+        raise InputError(
+            f"cannot open this location ({_first_line(exc)}); for s3:// install "
+            "'tumor3d[s3]' (s3fs)",
+            url,
+        ) from None
+    return fs, base.rstrip("/")
+
+
+def check_reachable(fs: Any, base: str, url: str, *, what: str = "artifact store") -> None:
+    """Contact the endpoint once: list the bucket of ``base``.
+
+    Raises
+    ------
+    StoreError
+        One line naming ``url`` when the endpoint, bucket or credentials do
+        not work (call it before any patient starts).
+    """
+    bucket = base.split("/", 1)[0]
+    try:
+        fs.ls(bucket, detail=False)  # a real request (exists() hides errors)
+    except FileNotFoundError:
+        raise StoreError(f"{url}: the bucket {bucket!r} does not exist") from None
+    except Exception as exc:  # botocore/aiohttp raise many types; all mean "unreachable"
+        raise StoreError(
+            f"{url}: cannot reach the {what} ({type(exc).__name__}: "
+            f"{_first_line(exc)[:200]}); check AWS_ENDPOINT_URL and the credentials"
+        ) from None
+
+
+class ObjectStore(ArtifactStore):
+    """Content-addressed artifacts under an fsspec URL (``s3://bucket/prefix``).
+
+    Parameters
+    ----------
+    url : str
+        The store's root URL; nothing is created until the first write.
+
+    Raises
+    ------
+    InputError
+        If the URL's scheme has no fsspec back-end installed (``s3`` needs
+        ``s3fs``: ``pip install 'tumor3d[s3]'``).
+    """
+
+    def __init__(self, url: str) -> None:  # noqa: D107 - documented on the class
+        # The local constructor (a folder, mkdir) does not apply; the attributes it sets do.
+        self.url = url.rstrip("/")
+        self.fs, self._base = open_fs(self.url)
+        self.root = self.url  # type: ignore[assignment]  # a URL, not a Path
+        self.repairs: list[Repair] = []
+
+    def __repr__(self) -> str:
+        return f"ObjectStore({self.url!r})"
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (ObjectStore, (self.url,))
+
+    # -- locations ---------------------------------------------------------
+    def _key(self, relpath: str) -> str:
+        return f"{self._base}/{relpath}"
+
+    def path(self, ref: ArtifactRef) -> str:  # type: ignore[override]
+        """URL of an artifact's object."""
+        return f"{self.url}/{ref.relpath}"
+
+    def exists(self, ref: ArtifactRef) -> bool:
+        """True if the artifact's object is present."""
+        try:
+            return bool(self.fs.isfile(self._key(ref.relpath)))
+        except OSError:
+            return False
+
+    @property
+    def storage_options(self) -> dict[str, Any]:
+        """The fsspec options this store opens its URL with (JSON-able)."""
+        return _storage_options(self.url.split("://", 1)[0])
+
+    def check(self) -> None:
+        """Contact the endpoint once: list the store's root.
+
+        Raises
+        ------
+        StoreError
+            One line naming the URL when the endpoint, bucket or credentials
+            do not work (call it before any patient starts).
+        """
+        check_reachable(self.fs, self._base, self.url)
+
+    # -- healing -----------------------------------------------------------
+    def _record(self, repair: Repair) -> Repair:
+        self.repairs.append(repair)
+        name = f"repairs/{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-{uuid.uuid4().hex}.json"
+        try:
+            self.fs.pipe_file(self._key(name), json.dumps(asdict(repair), sort_keys=True).encode())
+        except OSError:
+            pass  # the log is informative; the repair itself is done
+        return repair
+
+    def _quarantine_key(self, relpath: str, detail: str) -> Repair:
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        moved: str | None = f"quarantine/{Path(relpath).name}.{stamp}-{uuid.uuid4().hex[:8]}"
+        try:
+            self.fs.copy(self._key(relpath), self._key(moved))
+            self.fs.rm_file(self._key(relpath))
+        except FileNotFoundError:  # another worker moved or rewrote it first
+            moved = None
+        return self._record(
+            Repair(
+                relpath=relpath,
+                action="quarantined",
+                detail=detail,
+                quarantined_to=moved,
+                time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            )
+        )
+
+    def read_repairs(self) -> list[Repair]:
+        """Every repair recorded under ``<url>/repairs/``, oldest first."""
+        try:
+            keys = sorted(self.fs.find(self._key("repairs")))
+        except FileNotFoundError:
+            return []
+        out = []
+        for key in keys:
+            try:
+                out.append(Repair(**json.loads(self.fs.cat_file(key))))
+            except (OSError, ValueError, TypeError):
+                continue
+        return out
+
+    # -- raw bytes ---------------------------------------------------------
+    def _write_atomically(self, relpath: str, data: bytes) -> None:
+        """Write under a temporary key, copy to the final key, remove the temporary one."""
+        tmp = self._key(f"tmp/{Path(relpath).name}.{os.getpid()}-{uuid.uuid4().hex[:8]}")
+        try:
+            self.fs.pipe_file(tmp, data)
+            self.fs.copy(tmp, self._key(relpath))
+        finally:
+            try:
+                self.fs.rm_file(tmp)
+            except (OSError, FileNotFoundError):
+                pass
+
+    def put_bytes(
+        self, data: bytes, *, kind: str, suffix: str, metadata: dict[str, Any] | None = None
+    ) -> ArtifactRef:
+        """Store bytes (temporary key, then copy) and return their reference.
+
+        Same rules as :meth:`ArtifactStore.put_bytes`: an object already
+        holding exactly these bytes is left alone, one with other bytes is
+        rewritten and the repair recorded. Raises :class:`StoreError` (one
+        line naming the URL) when the object cannot be written.
+        """
+        meta = json.loads(canonical_dumps(metadata or {}))
+        digest = self.digest_of(data, kind=kind, metadata=meta)
+        relpath = f"objects/{digest[:2]}/{digest}{suffix}"
+        key = self._key(relpath)
+        try:
+            existing: bytes | None = self.fs.cat_file(key)
+        except FileNotFoundError:
+            existing = None
+        except OSError:
+            existing = None
+        if existing != data:
+            try:
+                self._write_atomically(relpath, data)
+            except Exception as exc:  # a denied PUT, an endpoint gone mid-run, ...
+                raise StoreError(
+                    f"{self.url}/{relpath}: cannot write the artifact ({_first_line(exc)[:200]})"
+                ) from None
+            if existing is not None:
+                self._record(
+                    Repair(
+                        relpath=relpath,
+                        action="rewritten",
+                        detail=f"{relpath}: existing content did not match its digest; rewritten",
+                        time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                    )
+                )
+        return ArtifactRef(kind=kind, digest=digest, relpath=relpath, metadata=meta)
+
+    def get_bytes(self, ref: ArtifactRef, *, verify: bool = True) -> bytes:
+        """Read an artifact's bytes, checking its digest unless ``verify`` is False.
+
+        Raises
+        ------
+        StoreError
+            If the object is missing or cannot be read.
+        CorruptArtifactError
+            If its content does not match the digest; it has then been moved
+            to ``quarantine/`` so that recomputing the stage heals the store.
+        """
+        url = self.path(ref)
+        try:
+            data = self.fs.cat_file(self._key(ref.relpath))
+        except FileNotFoundError:
+            raise StoreError(f"artifact {ref.kind} {ref.digest[:12]} is missing: {url}") from None
+        except Exception as exc:
+            raise StoreError(
+                f"{url}: cannot read the artifact ({_first_line(exc)[:200]})"
+            ) from None
+        if verify and self.digest_of(data, kind=ref.kind, metadata=ref.metadata) != ref.digest:
+            repair = self._quarantine_key(
+                ref.relpath, f"{ref.relpath}: content does not match its digest; quarantined"
+            )
+            where = repair.quarantined_to or "(already moved)"
+            raise CorruptArtifactError(
+                f"artifact {url} is corrupted (digest mismatch); moved to {where} so the "
+                "stage that made it can recompute it",
+                ref=ref,
+                repair=repair,
+            )
+        return data

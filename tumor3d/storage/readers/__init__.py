@@ -1,0 +1,264 @@
+"""Input readers: a NIfTI/NRRD/MetaImage file, a DICOM series or 2-D images -> `Scan`.
+
+The package's modules: :mod:`~tumor3d.storage.readers.common` (shared checks and the
+volume geometry rules), :mod:`~tumor3d.storage.readers.nifti`,
+:mod:`~tumor3d.storage.readers.itk` (NRRD, MetaImage), :mod:`~tumor3d.storage.readers.dicom`,
+:mod:`~tumor3d.storage.readers.stack`; every public name is importable from here.
+
+:func:`read_scan` is the one entry point. It dispatches on what ``path`` is:
+
+* a ``.nii`` / ``.nii.gz`` file -> :func:`read_nifti_scan`;
+* a ``.nrrd`` / ``.nhdr`` / ``.mha`` / ``.mhd`` file -> :func:`read_itk_scan`
+  (SimpleITK; LPS converted to RAS, the same slice-axis rule as NIfTI);
+* a folder holding a ``stack.yaml`` (or ``slices.yaml``) sidecar ->
+  :func:`read_image_stack` (2-D PNG/TIFF/JPEG slices);
+* any other folder -> :func:`read_dicom_series` (one DICOM series).
+
+Every reader returns a :class:`tumor3d.scan.Scan`: a float32 ``(z, y, x)``
+image with ``z`` the slice axis, an affine mapping the voxel index
+``(x, y, z, 1)`` to RAS mm, and a :class:`tumor3d.scan.SourceGrid` that
+writes Scan-grid arrays back in the input's own voxel grid.
+
+Slice axis of a NIfTI, NRRD or MetaImage volume (the one rule)
+--------------------------------------------------------------
+The voxel spacings are the norms of the affine's first three columns. The
+voxel axis with the **coarsest spacing** is the slice axis. When several axes
+are within 1 % of the coarsest spacing (e.g. an isotropic 1 mm volume), the
+one among them whose direction is **closest to superior-inferior** (largest
+``|S|`` component of its unit affine column) is chosen, i.e. axial; an exact
+tie goes to the highest voxel axis. The voxel axes are only permuted (never
+resampled, never flipped) so that the slice axis becomes ``z``; the two other
+axes keep their source order as ``(x, y)``. See :func:`choose_slice_axis`.
+The two in-plane axes must be perpendicular; the slice step is the distance
+between slice planes, ``|det A| / |c_x x c_y|``, which on a sheared grid is
+less than the slice-axis column's length
+(:func:`tumor3d.scan.slice_plane_spacing_mm`).
+
+Slice thickness and gap
+-----------------------
+``slice_step_mm`` (centre to centre) always comes from the geometry (the
+affine, the DICOM positions, or thickness + gap for an image stack). The
+nominal thickness comes from, in this order: the ``slice_thickness_mm``
+argument; the file (the BIDS JSON sidecar's ``SliceThickness`` beside a NIfTI
+file, ``x.nii.gz`` -> ``x.json``; DICOM ``SliceThickness``; the stack
+sidecar); else it equals the step. The gap is ``step - thickness`` unless
+``slice_gap_mm`` is given, in which case thickness + gap must equal the step
+within 1 % (an ``InputError`` otherwise); if the thickness is not known at
+all it is then ``step - gap``.
+
+DICOM geometry
+--------------
+Slices are sorted by ``ImagePositionPatient`` projected on the slice normal
+``n = r x c`` (``r = IOP[0:3]``, the direction of increasing column index;
+``c = IOP[3:6]``, of increasing row index), never by file name or
+``InstanceNumber``. The affine, in LPS, has columns ``r * PixelSpacing[1]``
+(x = column index), ``c * PixelSpacing[0]`` (y = row index), ``n * step``
+(z = sorted slice index) and origin the first sorted slice's position; its
+first two rows are negated to give RAS (DICOM PS3.3 C.7.6.2.1.1). A
+gantry-tilted stack (positions drifting within the slice plane by more than
+0.1 pixel, but along a straight line) keeps its geometry: the z column is the
+mean position step ``(p_last - p_first) / (n - 1)``, not perpendicular to the
+slices, and ``slice_step_mm`` is still the distance between slice planes.
+
+Image stack convention
+----------------------
+2-D slices carry no patient geometry, so a display convention is used:
+increasing column index points to the patient's left, increasing row index
+to posterior and increasing slice index (the sidecar's ``order``, or the
+natural sort of the file names) to superior, i.e. the affine is
+``diag(-dx, -dy, step, 1)`` with ``step = thickness + gap`` and origin 0.
+
+Protected health information
+----------------------------
+Patient ids come from the caller or from the file/folder name, never from
+DICOM ``PatientName``/``PatientID``; ``Scan.source`` holds only the reader
+kind, the file or folder name and the number of slices.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from tumor3d.errors import InputError, os_error_path, os_error_text
+from tumor3d.scan import MODALITIES, Scan, validate_patient_id
+from tumor3d.storage.readers.common import (
+    MAX_VOXELS_DEFAULT,
+    NIFTI_SUFFIXES,
+    REL_TOL,
+    _check_override,
+    check_field_of_view,
+    check_max_voxels,
+    check_modality,
+    choose_slice_axis,
+    derive_patient_id,
+    suggest_patient_id,
+)
+from tumor3d.storage.readers.dicom import (
+    DICOM_FILE_SUFFIXES,
+    _NoDicomImagesError,
+    read_dicom_series,
+)
+from tumor3d.storage.readers.itk import ITK_SUFFIXES, read_itk_scan
+from tumor3d.storage.readers.nifti import read_nifti_scan
+from tumor3d.storage.readers.stack import (
+    IMAGE_STACK_SUFFIXES,
+    STACK_SIDECAR_NAMES,
+    _list_stack_images,
+    read_image_stack,
+)
+
+__all__ = [
+    "IMAGE_STACK_SUFFIXES",
+    "ITK_SUFFIXES",
+    "MAX_VOXELS_DEFAULT",
+    "MODALITIES",
+    "REL_TOL",
+    "STACK_SIDECAR_NAMES",
+    "check_modality",
+    "choose_slice_axis",
+    "derive_patient_id",
+    "read_dicom_series",
+    "read_image_stack",
+    "read_itk_scan",
+    "read_nifti_scan",
+    "read_scan",
+    "suggest_patient_id",
+]
+
+
+def read_scan(
+    path: str | os.PathLike[str],
+    *,
+    modality: str | None = None,
+    patient_id: str | None = None,
+    series_uid: str | None = None,
+    slice_thickness_mm: float | None = None,
+    slice_gap_mm: float | None = None,
+    skip_unreadable: bool = False,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
+) -> Scan:
+    """Read one patient's slice stack from a NIfTI file or a folder.
+
+    Parameters
+    ----------
+    path : str or path-like
+        A ``.nii``/``.nii.gz`` file, an NRRD/MetaImage file (``.nrrd``,
+        ``.nhdr``, ``.mha``, ``.mhd``), a DICOM series folder, or a folder
+        of 2-D PNG/TIFF/JPEG slices with a ``stack.yaml`` sidecar.
+    modality : {"t2", "flair", "t1c"}, optional
+        MR sequence (case-insensitive). ``None`` means ``"t2"``, except for
+        an image stack whose sidecar names a modality.
+    patient_id : str, optional
+        Folder-safe id; default :func:`derive_patient_id` of ``path``.
+    series_uid : str, optional
+        SeriesInstanceUID to pick when a DICOM folder holds several series.
+    slice_thickness_mm, slice_gap_mm : float, optional
+        Override the nominal slice thickness (> 0) and inter-slice gap
+        (>= 0) that the input states (see the module docstring).
+    skip_unreadable : bool
+        DICOM only: skip files that cannot be read as DICOM instead of
+        stopping with an error that names them; the skipped file names are
+        in ``Scan.skipped_files`` (see :func:`read_dicom_series`).
+    max_voxels : int
+        Refuse a volume whose header (NIfTI, NRRD, MetaImage; for DICOM and
+        image stacks rows x columns x files) declares more voxels, before
+        reading it.
+        Default :data:`tumor3d.constants.MAX_VOXELS_DEFAULT` (512 million).
+
+    Returns
+    -------
+    Scan
+        float32 ``(z, y, x)`` image with its geometry and source grid.
+
+    Raises
+    ------
+    InputError
+        If the path is missing, unsupported or unreadable, holds a single
+        2-D image, a constant volume or non-finite values, spans more than any
+        MR scanner images (:func:`tumor3d.storage.readers.common.check_field_of_view`),
+        or if a parameter is invalid. The message names the file and the problem; operating-
+        system errors (permissions, I/O) are mapped to one such line.
+    """
+    p = Path(path)
+    try:
+        scan = _read_scan(
+            p,
+            modality=modality,
+            patient_id=patient_id,
+            series_uid=series_uid,
+            slice_thickness_mm=slice_thickness_mm,
+            slice_gap_mm=slice_gap_mm,
+            skip_unreadable=skip_unreadable,
+            max_voxels=max_voxels,
+        )
+    except OSError as exc:  # permissions, a vanished mount, an I/O error: one line
+        raise InputError(
+            f"cannot read the input ({os_error_text(exc)})", os_error_path(exc, p)
+        ) from None
+    check_field_of_view(scan.image.shape, scan.pixel_spacing_mm, scan.slice_step_mm, str(p))
+    return scan
+
+
+def _read_scan(
+    p: Path,
+    *,
+    modality: str | None,
+    patient_id: str | None,
+    series_uid: str | None,
+    slice_thickness_mm: float | None,
+    slice_gap_mm: float | None,
+    skip_unreadable: bool,
+    max_voxels: int,
+) -> Scan:
+    if not p.exists():
+        raise InputError("no such file or folder", str(p))
+    mod = None if modality is None else check_modality(modality)
+    pid = derive_patient_id(p) if patient_id is None else validate_patient_id(patient_id)
+    thickness = _check_override("slice_thickness_mm", slice_thickness_mm, allow_zero=False)
+    gap = _check_override("slice_gap_mm", slice_gap_mm, allow_zero=True)
+    limit = check_max_voxels(max_voxels)
+    common = {"patient_id": pid, "slice_thickness_mm": thickness, "slice_gap_mm": gap}
+
+    if p.is_file():
+        lower = p.name.lower()
+        if lower.endswith(NIFTI_SUFFIXES):
+            return read_nifti_scan(p, modality=mod or "t2", max_voxels=limit, **common)
+        if lower.endswith(ITK_SUFFIXES):
+            return read_itk_scan(p, modality=mod or "t2", max_voxels=limit, **common)
+        if lower.endswith(IMAGE_STACK_SUFFIXES + DICOM_FILE_SUFFIXES):
+            raise InputError(
+                "a single 2-D image was given where a stack is needed: at least 2 slices "
+                "are needed (give the folder of a DICOM series, or a folder of 2-D slices "
+                f"with {STACK_SIDECAR_NAMES[0]})",
+                str(p),
+            )
+        raise InputError(
+            f"unsupported file type {''.join(p.suffixes) or '(no extension)'!r}: give a NIfTI "
+            "file (.nii, .nii.gz), an NRRD or MetaImage file (.nrrd, .nhdr, .mha, .mhd), "
+            "a DICOM series folder, or a folder of 2-D "
+            f"PNG/TIFF/JPEG slices with {STACK_SIDECAR_NAMES[0]}",
+            str(p),
+        )
+    if not p.is_dir():
+        raise InputError("neither a regular file nor a folder", str(p))
+    if any((p / name).is_file() for name in STACK_SIDECAR_NAMES):
+        return read_image_stack(p, modality=mod, max_voxels=limit, **common)
+    try:
+        return read_dicom_series(
+            p,
+            modality=mod or "t2",
+            series_uid=series_uid,
+            skip_unreadable=skip_unreadable,
+            max_voxels=limit,
+            **common,
+        )
+    except _NoDicomImagesError:
+        if _list_stack_images(p):
+            raise InputError(
+                f"missing sidecar {STACK_SIDECAR_NAMES[0]} (or {STACK_SIDECAR_NAMES[1]}) "
+                "describing pixel_spacing_mm, slice_thickness_mm and slice_gap_mm of the "
+                "2-D slices in this folder",
+                str(p / STACK_SIDECAR_NAMES[0]),
+            ) from None
+        raise

@@ -1,0 +1,474 @@
+"""Content-addressed artifact store.
+
+Each artifact is a file under ``<root>/objects/<d[:2]>/<d>.<suffix>`` where
+``d`` is the SHA-256 digest of the artifact's kind, its canonical metadata
+(dtype, shape, spacing and affine for images) and its bytes. Files are
+written under a temporary name in the same folder, flushed and renamed, so a
+crash never leaves a half-written artifact under its final name. Nothing is
+ever unpickled: images are NIfTI, meshes PLY, tables parquet, renders PNG,
+small records JSON.
+
+A store that heals
+------------------
+Reads verify the digest. A file whose content no longer matches its digest
+(bit rot, a hand edit) is *quarantined*: moved to
+``<root>/quarantine/<name>.<utc time>-<random>`` (kept for inspection, never
+deleted) and a :class:`CorruptArtifactError` is raised, so that the stage
+that made it can be run again and write it afresh. :meth:`ArtifactStore.verify`
+does the same check without raising (for a cached stage's outputs).
+:meth:`ArtifactStore.put_bytes` rewrites an existing object whose bytes
+differ from the new ones (same size or not). Every repair is a
+:class:`Repair`, kept in :attr:`ArtifactStore.repairs` and appended as one
+JSON line to ``<root>/repairs.jsonl``, so the task layer can say what was
+repaired.
+
+Tasks pass :class:`ArtifactRef` values around (a few hundred bytes), never
+arrays.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+import uuid
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from pydantic import BaseModel, ConfigDict, Field
+
+from tumor3d.errors import InputError, Tumor3DError, os_error_path, os_error_text
+from tumor3d.mesh import Mesh
+from tumor3d.scan import Scan, SourceGrid
+from tumor3d.storage import formats, nifti
+
+__all__ = [
+    "ArtifactRef",
+    "ArtifactStore",
+    "CorruptArtifactError",
+    "Repair",
+    "StoreError",
+    "atomic_write_bytes",
+    "canonical_dumps",
+]
+
+_DIGEST_PREFIX = b"tumor3d-artifact-v1\0"
+
+
+class StoreError(Tumor3DError):
+    """A missing, corrupted or unwritable artifact (an environment problem, not bad input)."""
+
+
+@dataclass(frozen=True)
+class Repair:
+    """One repair the store made.
+
+    Parameters
+    ----------
+    relpath : str
+        The object's path relative to the store root.
+    action : str
+        ``"quarantined"`` (content did not match the digest; moved aside) or
+        ``"rewritten"`` (an existing object with other bytes was replaced
+        by :meth:`ArtifactStore.put_bytes`).
+    detail : str
+        One line for a log.
+    quarantined_to : str or None
+        Where the bad file now is (relative to the root), if quarantined.
+    time_utc : str
+        ISO 8601 time of the repair.
+    """
+
+    relpath: str
+    action: str
+    detail: str
+    quarantined_to: str | None = None
+    time_utc: str = ""
+
+
+class CorruptArtifactError(StoreError):
+    """An artifact whose content did not match its digest; it has been quarantined.
+
+    The stage that produced ``ref`` should be run again (its output will be
+    written afresh). ``repair`` says where the bad file went.
+    """
+
+    def __init__(self, message: str, *, ref: ArtifactRef, repair: Repair) -> None:
+        super().__init__(message)
+        self.ref = ref
+        self.repair = repair
+
+
+class ArtifactRef(BaseModel):
+    """A small, JSON-serialisable reference to an artifact in the store.
+
+    Parameters
+    ----------
+    kind : str
+        ``scan``, ``image``, ``mask``, ``mesh``, ``table``, ``png`` or ``json``.
+    digest : str
+        Hex SHA-256 of kind, canonical metadata and bytes.
+    relpath : str
+        Path of the file relative to the store root.
+    metadata : dict
+        Canonical, JSON-able description (shape, dtype, affine, ...).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    kind: str
+    digest: str = Field(pattern=r"^[0-9a-f]{64}$")
+    relpath: str
+    metadata: dict[str, Any] = Field(default_factory=dict)
+
+
+def canonical_dumps(obj: Any) -> str:
+    """JSON with sorted keys and no whitespace; NaN is refused."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file and a rename.
+
+    The temporary file lives in the destination folder (same file system),
+    is fsynced, then atomically renamed over ``path``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _utc_now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+def _affine_list(affine: np.ndarray) -> list[list[float]]:
+    return [[float(v) for v in row] for row in np.asarray(affine, dtype=np.float64)]
+
+
+class ArtifactStore:
+    """A folder of content-addressed artifacts.
+
+    Parameters
+    ----------
+    root : path
+        The store folder; created if missing.
+
+    Raises
+    ------
+    InputError
+        If ``root`` is a file or lies below one (one line naming it).
+    StoreError
+        If it cannot be created for another reason: no permission, a
+        read-only mount, a full disk (an environment error).
+    """
+
+    def __init__(self, root: str | os.PathLike[str]) -> None:
+        self.root = Path(root).resolve()
+        if self.root.exists() and not self.root.is_dir():
+            raise InputError("the artifact store must be a folder, but this is a file", self.root)
+        try:
+            (self.root / "objects").mkdir(parents=True, exist_ok=True)
+        except (NotADirectoryError, FileExistsError) as exc:  # a path component is a file
+            raise InputError(
+                f"cannot create the artifact store ({os_error_text(exc)})",
+                os_error_path(exc, self.root),
+            ) from None
+        except OSError as exc:  # no permission, a read-only mount, a full disk
+            raise StoreError(
+                f"{os_error_path(exc, self.root)}: cannot create the artifact store "
+                f"({os_error_text(exc)})"
+            ) from None
+        self.repairs: list[Repair] = []
+        """Repairs made through this instance (also in ``<root>/repairs.jsonl``)."""
+
+    # -- healing -----------------------------------------------------------
+    def _record(self, repair: Repair) -> Repair:
+        self.repairs.append(repair)
+        line = json.dumps(asdict(repair), sort_keys=True) + "\n"
+        try:
+            with open(self.root / "repairs.jsonl", "a", encoding="utf-8") as fh:
+                fh.write(line)
+        except OSError:
+            pass  # the log is informative; the repair itself is done
+        return repair
+
+    def _quarantine(self, path: Path, detail: str) -> Repair:
+        """Move a bad object aside (never delete it) so that it can be rewritten."""
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        target = self.root / "quarantine" / f"{path.name}.{stamp}-{uuid.uuid4().hex[:8]}"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.replace(path, target)
+            moved: str | None = target.relative_to(self.root).as_posix()
+        except FileNotFoundError:  # another process moved or rewrote it first
+            moved = None
+        return self._record(
+            Repair(
+                relpath=path.relative_to(self.root).as_posix(),
+                action="quarantined",
+                detail=detail,
+                quarantined_to=moved,
+                time_utc=_utc_now(),
+            )
+        )
+
+    def read_repairs(self) -> list[Repair]:
+        """Every repair recorded in ``<root>/repairs.jsonl``, oldest first.
+
+        Tasks open their own store instances, so a flow that wants to say
+        what a run repaired compares ``len(store.read_repairs())`` before and
+        after the run. Unparsable lines (a torn write) are skipped.
+        """
+        path = self.root / "repairs.jsonl"
+        try:
+            lines = path.read_text(encoding="utf-8").splitlines()
+        except FileNotFoundError:
+            return []
+        except OSError as exc:
+            raise StoreError(f"{path}: cannot read the repair log ({os_error_text(exc)})") from None
+        out = []
+        for line in lines:
+            try:
+                out.append(Repair(**json.loads(line)))
+            except (ValueError, TypeError):
+                continue
+        return out
+
+    def verify(self, ref: ArtifactRef) -> bool:
+        """True if the artifact is present and intact.
+
+        A present file whose digest does not match is quarantined (see the
+        module docstring) and False is returned, so the caller recomputes
+        the stage that made it. A missing file gives False.
+        """
+        try:
+            self.get_bytes(ref)
+        except StoreError:  # missing, unreadable or corrupted (then quarantined)
+            return False
+        return True
+
+    # -- raw bytes ---------------------------------------------------------
+    @staticmethod
+    def digest_of(data: bytes, *, kind: str, metadata: dict[str, Any]) -> str:
+        """Digest of an artifact: SHA-256 of kind, canonical metadata and bytes."""
+        h = hashlib.sha256(_DIGEST_PREFIX)
+        h.update(canonical_dumps({"kind": kind, "metadata": metadata}).encode())
+        h.update(b"\0")
+        h.update(data)
+        return h.hexdigest()
+
+    def put_bytes(
+        self, data: bytes, *, kind: str, suffix: str, metadata: dict[str, Any] | None = None
+    ) -> ArtifactRef:
+        """Store bytes (atomically) and return their reference.
+
+        Raises :class:`StoreError` (one line naming the file) when the
+        object cannot be written (a full disk, a read-only mount).
+
+        An object that already exists with exactly these bytes is left
+        alone; one with other bytes (a corrupted copy, even of the same size)
+        is rewritten and the repair recorded (:attr:`repairs`).
+        """
+        meta = json.loads(canonical_dumps(metadata or {}))
+        digest = self.digest_of(data, kind=kind, metadata=meta)
+        relpath = f"objects/{digest[:2]}/{digest}{suffix}"
+        path = self.root / relpath
+        try:
+            existing = path.read_bytes() if path.is_file() else None
+        except OSError:
+            existing = None
+        if existing != data:
+            try:
+                atomic_write_bytes(path, data)
+            except OSError as exc:  # a full disk, a read-only mount, ...
+                raise StoreError(
+                    f"{path}: cannot write the artifact ({os_error_text(exc)})"
+                ) from None
+            if existing is not None:
+                self._record(
+                    Repair(
+                        relpath=relpath,
+                        action="rewritten",
+                        detail=f"{relpath}: existing content did not match its digest; rewritten",
+                        time_utc=_utc_now(),
+                    )
+                )
+        return ArtifactRef(kind=kind, digest=digest, relpath=relpath, metadata=meta)
+
+    def path(self, ref: ArtifactRef) -> Path:
+        """Absolute path of an artifact's file."""
+        return self.root / ref.relpath
+
+    def exists(self, ref: ArtifactRef) -> bool:
+        """True if the artifact's file is present."""
+        return self.path(ref).is_file()
+
+    def get_bytes(self, ref: ArtifactRef, *, verify: bool = True) -> bytes:
+        """Read an artifact's bytes, checking its digest unless ``verify`` is False.
+
+        Raises
+        ------
+        StoreError
+            If the file is missing or cannot be read.
+        CorruptArtifactError
+            If its content does not match the digest; the file has then
+            been quarantined, so that recomputing the stage heals the store.
+        """
+        path = self.path(ref)
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            raise StoreError(f"artifact {ref.kind} {ref.digest[:12]} is missing: {path}") from None
+        except OSError as exc:
+            raise StoreError(f"{path}: cannot read the artifact ({exc.strerror or exc})") from None
+        if verify and self.digest_of(data, kind=ref.kind, metadata=ref.metadata) != ref.digest:
+            repair = self._quarantine(
+                path, f"{ref.relpath}: content does not match its digest; quarantined"
+            )
+            where = repair.quarantined_to or "(already moved)"
+            raise CorruptArtifactError(
+                f"artifact {path} is corrupted (digest mismatch); moved to {where} so the "
+                "stage that made it can recompute it",
+                ref=ref,
+                repair=repair,
+            )
+        return data
+
+    # -- typed helpers -----------------------------------------------------
+    def put_volume(
+        self,
+        array_zyx: np.ndarray,
+        affine: np.ndarray,
+        *,
+        kind: str = "image",
+        dtype: str | None = None,
+        extra: dict[str, Any] | None = None,
+    ) -> ArtifactRef:
+        """Store a ``(z, y, x)`` volume as NIfTI; ``affine`` maps ``(x, y, z, 1)`` to RAS."""
+        arr = np.asarray(array_zyx)
+        if arr.ndim != 3:
+            raise ValueError(f"a volume must be 3-D (z, y, x), got shape {arr.shape}")
+        dt = np.dtype(dtype or (np.uint8 if arr.dtype == bool else arr.dtype))
+        data = nifti.encode_nifti(arr.transpose(2, 1, 0), affine, dtype=dt)
+        meta = {
+            "dtype": dt.name,
+            "shape_zyx": list(arr.shape),
+            "affine": _affine_list(affine),
+            **(extra or {}),
+        }
+        return self.put_bytes(data, kind=kind, suffix=".nii.gz", metadata=meta)
+
+    def get_volume(self, ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
+        """Load a volume: ``(array (z, y, x), affine)``; masks come back as bool."""
+        arr_xyz, affine = nifti.decode_nifti(self.get_bytes(ref))
+        arr = np.asarray(arr_xyz).transpose(2, 1, 0)
+        if ref.kind == "mask":
+            arr = arr > 0
+        return np.ascontiguousarray(arr), affine
+
+    def put_scan(self, scan: Scan) -> ArtifactRef:
+        """Store a `Scan`: its image as float32 NIfTI plus its geometry as metadata.
+
+        Not its patient id: the artifact, its digest and every cache key built
+        on it depend on the content alone (the same file under two ids is one
+        artifact), and a cached result never carries an id that publishing
+        could attach to another patient. The caller names the patient again
+        on reading (:meth:`get_scan`).
+        """
+        grid = scan.source_grid
+        extra = {
+            "pixel_spacing_mm": list(scan.pixel_spacing_mm),
+            "slice_step_mm": float(scan.slice_step_mm),
+            "slice_thickness_mm": float(scan.slice_thickness_mm),
+            "slice_gap_mm": None if scan.slice_gap_mm is None else float(scan.slice_gap_mm),
+            "modality": scan.modality,
+            "source": scan.source,
+            "source_grid": {
+                "shape": list(grid.shape),
+                "affine": _affine_list(grid.affine),
+                "axes": list(grid.axes),
+            },
+        }
+        if scan.skipped_files:  # only when present, so other scans keep their digests
+            extra["skipped_files"] = list(scan.skipped_files)
+        return self.put_volume(scan.image, scan.affine, kind="scan", dtype="float32", extra=extra)
+
+    def get_scan(self, ref: ArtifactRef, *, patient_id: str) -> Scan:
+        """Load a `Scan` stored by :meth:`put_scan`, as patient ``patient_id``."""
+        image, affine = self.get_volume(ref)
+        return scan_from_metadata(image, affine, ref.metadata, patient_id=patient_id)
+
+    def put_mesh(self, mesh: Mesh, *, extra: dict[str, Any] | None = None) -> ArtifactRef:
+        """Store a mesh as binary PLY (RAS mm)."""
+        meta = {"n_vertices": mesh.n_vertices, "n_faces": mesh.n_faces, **(extra or {})}
+        return self.put_bytes(formats.encode_ply(mesh), kind="mesh", suffix=".ply", metadata=meta)
+
+    def get_mesh(self, ref: ArtifactRef) -> Mesh:
+        """Load a mesh."""
+        return formats.decode_ply(self.get_bytes(ref), name=str(self.path(ref)))
+
+    def put_table(self, table: pd.DataFrame | list[dict[str, Any]]) -> ArtifactRef:
+        """Store a table as parquet."""
+        df = table if isinstance(table, pd.DataFrame) else pd.DataFrame(table)
+        meta = {"columns": [str(c) for c in df.columns], "n_rows": len(df)}
+        return self.put_bytes(
+            formats.encode_parquet(df), kind="table", suffix=".parquet", metadata=meta
+        )
+
+    def get_table(self, ref: ArtifactRef) -> pd.DataFrame:
+        """Load a table."""
+        return formats.decode_parquet(self.get_bytes(ref))
+
+    def put_png(self, rgb: np.ndarray, *, extra: dict[str, Any] | None = None) -> ArtifactRef:
+        """Store an RGB image as PNG."""
+        meta = {"shape": list(np.shape(rgb)), **(extra or {})}
+        return self.put_bytes(formats.encode_png(rgb), kind="png", suffix=".png", metadata=meta)
+
+    def put_json(self, obj: Any) -> ArtifactRef:
+        """Store a small JSON document."""
+        return self.put_bytes(canonical_dumps(obj).encode(), kind="json", suffix=".json")
+
+    def get_json(self, ref: ArtifactRef) -> Any:
+        """Load a JSON document."""
+        return json.loads(self.get_bytes(ref))
+
+
+def scan_from_metadata(
+    image: np.ndarray, affine: np.ndarray, meta: dict[str, Any], *, patient_id: str
+) -> Scan:
+    """Rebuild a `Scan` from its image, affine and stored metadata, as patient ``patient_id``."""
+    return Scan(
+        image=image,
+        affine=affine,
+        pixel_spacing_mm=tuple(meta["pixel_spacing_mm"]),
+        slice_step_mm=meta["slice_step_mm"],
+        slice_thickness_mm=meta["slice_thickness_mm"],
+        slice_gap_mm=meta["slice_gap_mm"],
+        modality=meta["modality"],
+        patient_id=patient_id,
+        source=meta["source"],
+        source_grid=source_grid_from_metadata(meta),
+        skipped_files=tuple(meta.get("skipped_files", ())),
+    )
+
+
+def source_grid_from_metadata(meta: dict[str, Any]) -> SourceGrid:
+    """The `SourceGrid` recorded in a scan artifact's metadata."""
+    sg = meta["source_grid"]
+    return SourceGrid(
+        shape=tuple(sg["shape"]), affine=np.asarray(sg["affine"]), axes=tuple(sg["axes"])
+    )

@@ -1,0 +1,103 @@
+"""Adapter of the detect-abnormal stage (spec section 2).
+
+The robust detection computes the patient lesion model
+(:func:`tumor3d.lesion.segment_hyperintense_lesion`); its mask and scalars
+are stored as the ``lesion`` artifact, which the segment stage reuses (the
+model runs once per patient). Without the robust detection the artifact
+holds an empty mask marked ``computed: false`` and the lesion parameters,
+so that a robust segmentation computes the model itself.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from tumor3d.config import DetectConfig
+from tumor3d.detect import detect_abnormal_slices
+from tumor3d.lesion import LesionResult, left_right_axis
+from tumor3d.storage.objectstore import open_store
+from tumor3d.storage.store import ArtifactRef
+from tumor3d.tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
+
+__all__ = ["SPEC", "detect_task", "lesion_metadata"]
+
+
+def _num(v: float) -> float | None:
+    """JSON-able float: None for NaN and infinities."""
+    return float(v) if math.isfinite(float(v)) else None
+
+
+def lesion_metadata(lesion: LesionResult | None, params: dict[str, Any]) -> dict[str, Any]:
+    """The ``lesion`` artifact's metadata: whether it was computed, its scalars, its params."""
+    meta: dict[str, Any] = {"computed": lesion is not None, "params": dict(params)}
+    if lesion is not None:
+        m = lesion.model
+        meta.update(
+            median=_num(m.median),
+            sigma=_num(m.sigma),
+            seed_threshold=_num(m.seed_threshold),
+            csf_threshold=_num(m.csf_threshold),
+            lesion_gray=_num(lesion.lesion_gray),
+            grow_threshold=_num(lesion.grow_threshold),
+            n_components=int(lesion.n_components),
+            midline=bool(lesion.midline),
+            mirror_plane=None
+            if lesion.plane is None
+            else {
+                "lr_axis": int(lesion.plane.axis),
+                "yaw_deg": float(lesion.plane.yaw_deg),
+                "offset_mm": float(lesion.plane.offset_mm),
+            },
+        )
+    return meta
+
+
+@stage_task("detect-abnormal")
+def detect_task(
+    scan: ArtifactRef,
+    enhanced: ArtifactRef,
+    brain_mask: ArtifactRef,
+    config: DetectConfig,
+    store_root: str,
+) -> StageOutput:
+    """Abnormal-slice detection (histogram modes, or the patient's lesion model)."""
+    store = open_store(store_root)
+    image, affine = store.get_volume(enhanced)
+    brain, _ = store.get_volume(brain_mask)
+    detection = detect_abnormal_slices(
+        image,
+        brain,
+        modality=scan.metadata["modality"],
+        spacing_mm=scan_spacing_mm(scan),
+        lr_axis=left_right_axis(affine),
+        **config.model_dump(),
+    )
+    abnormal = np.flatnonzero(detection.abnormal)
+    lesion = detection.lesion
+    mask = lesion.mask if lesion is not None else np.zeros(image.shape, dtype=bool)
+    meta = lesion_metadata(lesion, config.lesion.model_dump())
+    return StageOutput(
+        stage="detect-abnormal",
+        artifacts={
+            "detection": store.put_table(detection.to_records()),
+            "lesion": store.put_volume(mask, affine, kind="mask", extra={"lesion": meta}),
+        },
+        values={
+            "n_abnormal_slices": int(abnormal.size),
+            "abnormal_slices": abnormal.tolist(),
+            "lesion_computed": lesion is not None,
+        },
+    )
+
+
+SPEC = StageSpec(
+    name="detect-abnormal",
+    task=detect_task,
+    entry=detect_abnormal_slices,
+    config_model=DetectConfig,
+    inputs={"scan": "scan", "enhanced": "image", "brain_mask": "mask"},
+    outputs={"detection": "table", "lesion": "mask"},
+)

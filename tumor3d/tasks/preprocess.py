@@ -1,0 +1,95 @@
+"""Adapter of the preprocess stage (spec section 1)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from tumor3d.config import PreprocessConfig
+from tumor3d.preprocess import (
+    brain_coverage_note,
+    brain_size_note,
+    brain_volume_note,
+    preprocess_volume,
+    tissue_slice_count,
+)
+from tumor3d.storage.objectstore import open_store
+from tumor3d.storage.store import ArtifactRef
+from tumor3d.tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
+
+__all__ = ["SPEC", "preprocess_notes", "preprocess_task"]
+
+
+@stage_task("preprocess")
+def preprocess_task(
+    scan: ArtifactRef,
+    config: PreprocessConfig,
+    store_root: str,
+    brain_mask: ArtifactRef | None = None,
+) -> StageOutput:
+    """Median, unsharp masking, equalisation and skull removal.
+
+    ``brain_mask``, a given mask on the scan's grid (``--brain-mask``, the
+    manifest's ``brain_mask``), replaces the skull removal; as an input
+    artifact, its content enters the cache key.
+    """
+    store = open_store(store_root)
+    image, affine = store.get_volume(scan)
+    given = None if brain_mask is None else store.get_volume(brain_mask)[0]
+    spacing = scan_spacing_mm(scan)
+    result = preprocess_volume(image, **config.model_dump(), spacing_mm=spacing, brain_mask=given)
+    brain_voxels = int(np.count_nonzero(result.brain_mask))
+    per_slice = np.count_nonzero(result.brain_mask, axis=(1, 2))
+    # the air outside a raw head; all False when there is none (skull-stripped, given)
+    exterior = result.head_exterior
+    if exterior is None:
+        exterior = np.zeros(result.brain_mask.shape, dtype=bool)
+    return StageOutput(
+        stage="preprocess",
+        artifacts={
+            "enhanced": store.put_volume(result.enhanced, affine, dtype="uint8"),
+            "brain_mask": store.put_volume(result.brain_mask, affine, kind="mask"),
+            "head_exterior": store.put_volume(exterior, affine, kind="mask"),
+        },
+        values={
+            "brain_voxels": brain_voxels,
+            "brain_volume_ml": brain_voxels * float(np.prod(spacing)) / 1000.0,
+            "brain_extraction": result.brain_extraction,
+            "brain_slices": int(np.count_nonzero(per_slice)),
+            "brain_max_slice_mm2": float(per_slice.max()) * float(spacing[1]) * float(spacing[2]),
+            "tissue_slices": tissue_slice_count(result.original_u8),
+        },
+    )
+
+
+def preprocess_notes(values: Mapping[str, Any]) -> list[str]:
+    """The run's notes on the brain mask, from the preprocess stage's values.
+
+    A mask larger than any skull holds (:func:`tumor3d.preprocess.brain_volume_note`),
+    smaller than any human brain (:func:`tumor3d.preprocess.brain_size_note`, a given
+    mask too: a wrong voxel size in the header shrinks it as well), or found on too
+    few of the slices that hold tissue
+    (:func:`tumor3d.preprocess.brain_coverage_note`; not for a given mask, which is
+    the user's). Values without the slice counts give no coverage note; the stage
+    always stores them, and its code enters its cache key, so none reach here from
+    an older cache.
+    """
+    notes = [brain_volume_note(values.get("brain_volume_ml", 0.0))]
+    if "brain_max_slice_mm2" in values:  # a mask of the user's too: theirs may be off
+        notes.append(brain_size_note(values["brain_max_slice_mm2"]))
+    if values.get("brain_extraction") != "given":
+        slices = (values.get("brain_slices", 0), values.get("tissue_slices", 0))
+        notes.append(brain_coverage_note(*slices, values.get("brain_extraction", "")))
+    return [n for n in notes if n]
+
+
+SPEC = StageSpec(
+    name="preprocess",
+    task=preprocess_task,
+    entry=preprocess_volume,
+    config_model=PreprocessConfig,
+    inputs={"scan": "scan", "brain_mask": "mask"},
+    outputs={"enhanced": "image", "brain_mask": "mask", "head_exterior": "mask"},
+)

@@ -1,0 +1,190 @@
+"""Adapter of the segment-tumor stage (spec section 3).
+
+The robust method reuses the lesion model of the detect stage (its
+``lesion`` artifact: mask and scalars); when the detection did not compute
+it (histogram detection), the model is computed here with the parameters
+that artifact records (``detect.lesion``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from tumor3d.config import SegmentConfig
+from tumor3d.detect import SliceDetection
+from tumor3d.given_segmentation import given_definition, given_segmentation
+from tumor3d.learned.shipped import shipped_model
+from tumor3d.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
+from tumor3d.segment import lesion_definition, resolve_method, segment_tumor
+from tumor3d.storage.objectstore import open_store
+from tumor3d.storage.store import ArtifactRef
+from tumor3d.tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
+
+__all__ = ["SPEC", "lesion_from_artifact", "load_detection", "segment_task"]
+
+
+def _f(v: Any, missing: float = float("nan")) -> float:
+    return missing if v is None else float(v)
+
+
+def _json_float(v: float) -> float | None:
+    """A figure as JSON allows it (None for inf and NaN)."""
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def lesion_from_artifact(mask: np.ndarray, meta: dict[str, Any]) -> LesionResult | None:
+    """The :class:`LesionResult` stored by the detect stage; None if it was not computed."""
+    if not meta.get("computed"):
+        return None
+    model = NormalModel(
+        _f(meta["median"]),
+        _f(meta["sigma"]),
+        _f(meta["seed_threshold"]),
+        _f(meta["csf_threshold"], float("inf")),
+    )
+    plane = meta.get("mirror_plane")
+    return LesionResult(
+        np.asarray(mask, dtype=bool),
+        model,
+        _f(meta["lesion_gray"]),
+        _f(meta["grow_threshold"]),
+        int(meta["n_components"]),
+        None
+        if plane is None
+        else MirrorPlane(int(plane["lr_axis"]), float(plane["yaw_deg"]), float(plane["offset_mm"])),
+        bool(meta.get("midline", False)),  # absent from artifacts written before step 3f
+    )
+
+
+def load_detection(
+    store: Any, detection: ArtifactRef, lesion: ArtifactRef, *, with_lesion: bool = True
+) -> tuple[SliceDetection, dict[str, Any]]:
+    """The detect stage's :class:`SliceDetection` and its lesion artifact's metadata.
+
+    With ``with_lesion``, the lesion model it computed (if it did) is put back
+    on the detection, so the robust method does not compute it again.
+    """
+    det = SliceDetection.from_records(store.get_table(detection).to_dict("records"))
+    meta = lesion.metadata["lesion"]
+    if with_lesion and meta.get("computed"):
+        lesion_mask, _ = store.get_volume(lesion)
+        det = dataclasses.replace(det, lesion=lesion_from_artifact(lesion_mask, meta))
+    return det, meta
+
+
+@stage_task("segment-tumor")
+def segment_task(
+    scan: ArtifactRef,
+    enhanced: ArtifactRef,
+    brain_mask: ArtifactRef,
+    detection: ArtifactRef,
+    lesion: ArtifactRef,
+    head_exterior: ArtifactRef,
+    config: SegmentConfig,
+    store_root: str,
+    given_mask: ArtifactRef | None = None,
+) -> StageOutput:
+    """Tumour segmentation: the lesion model (robust), wavelet + histogram FCM, or the peer.
+
+    ``given_mask``, the user's segmentation on the scan's grid (``--segmentation``,
+    its file name in the artifact's ``given_file``), replaces the method: stored as
+    is, method ``"given"``; as an input artifact its content enters the cache key.
+    """
+    store = open_store(store_root)
+    if given_mask is not None:
+        mask, mask_affine = store.get_volume(given_mask)
+        res = given_segmentation(mask.astype(bool), spacing_mm=scan_spacing_mm(scan))
+        name = given_mask.metadata.get("given_file")
+        return StageOutput(
+            stage="segment-tumor",
+            artifacts={
+                "tumor_mask_slices": store.put_volume(res.tumor_mask, mask_affine, kind="mask"),
+                "segmentation": store.put_table(res.to_records()),
+            },
+            values={
+                "tumor_pixels_total": int(np.sum(res.tumor_pixels)),
+                "n_tumor_slices": int(np.count_nonzero(res.tumor_pixels)),
+                "caveats": list(res.caveats),
+                "modality": scan.metadata["modality"],
+                "segment_method": res.method,
+                "measured": given_definition(name),
+            },
+        )
+    image, affine = store.get_volume(enhanced)
+    brain, _ = store.get_volume(brain_mask)
+    exterior = store.get_volume(head_exterior)[0].astype(bool)
+    needs_lesion = config.method in ("auto", "robust", "learned")
+    det, meta = load_detection(store, detection, lesion, with_lesion=needs_lesion)
+    modality = scan.metadata["modality"]
+    learned: dict[str, Any] = {}
+    if resolve_method(config.method, modality, det) == "learned":  # the acquired image, a model
+        learned = {"image": store.get_volume(scan)[0], "model": shipped_model(modality)}
+    result = segment_tumor(
+        image,
+        brain,
+        det,
+        modality=modality,
+        spacing_mm=scan_spacing_mm(scan),
+        lr_axis=left_right_axis(affine),
+        lesion=meta["params"],
+        # the air outside a raw head (none stored for a skull-stripped one): scalp caveat
+        head_exterior=exterior if exterior.any() else None,
+        **config.model_dump(),
+        **learned,
+    )
+    artifacts = {
+        "tumor_mask_slices": store.put_volume(result.tumor_mask, affine, kind="mask"),
+        "segmentation": store.put_table(result.to_records()),
+    }
+    review: dict[str, Any] = {}
+    if result.probability is not None:
+        artifacts["tumor_probability"] = store.put_volume(
+            result.probability.astype(np.float32), affine, kind="image"
+        )
+    if result.review is not None:  # read by tumor3d.review.review_status
+        review = {
+            "needs_review": bool(result.review.needs_review),
+            "review_reasons": list(result.review.reasons),
+            "quality_score": float(result.review.quality_score),
+            "review_figures": {k: _json_float(v) for k, v in result.review.figures.items()},
+            "model": learned["model"].meta.get("name", "shipped"),
+            "model_sha256": learned["model"].digest(),  # of its arrays and metadata
+        }
+    return StageOutput(
+        stage="segment-tumor",
+        artifacts=artifacts,
+        values={
+            **review,
+            "tumor_pixels_total": int(np.sum(result.tumor_pixels)),
+            "n_tumor_slices": int(np.count_nonzero(result.tumor_pixels)),
+            # where the volume may be wrong, in words (the run's notes say them)
+            "caveats": list(result.caveats),
+            # which method ran and what its mask (every volume) holds, in words
+            "modality": modality,
+            "segment_method": result.method,
+            "measured": lesion_definition(result.method, modality),
+        },
+    )
+
+
+SPEC = StageSpec(
+    name="segment-tumor",
+    task=segment_task,
+    entry=segment_tumor,
+    config_model=SegmentConfig,
+    inputs={
+        "scan": "scan",
+        "enhanced": "image",
+        "brain_mask": "mask",
+        "detection": "table",
+        "lesion": "mask",
+        "head_exterior": "mask",
+        "given_mask": "mask",  # a given segmentation (optional)
+    },
+    # tumor_probability: the learned method only
+    outputs={"tumor_mask_slices": "mask", "segmentation": "table", "tumor_probability": "image"},
+)
