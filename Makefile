@@ -22,7 +22,7 @@ demo: setup
 # TEST_WORKERS=0 runs everything in this process.
 TEST_WORKERS ?= 2
 test: setup
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile tests --doctest-modules tumor3d storage tasks flows
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile tests --doctest-modules tumor3d
 
 setup: system-deps $(STAMP)
 

@@ -22,7 +22,7 @@ from tumor3d.evaluation.interpolation import (
     itk_available,
     itk_contour_interpolate,
 )
-from tumor3d.interpolate import interpolate_stack
+from tumor3d.geometry.interpolate import interpolate_stack
 
 CONFIGS = {
     "default (shape-edt, matched, taper)": {

@@ -25,14 +25,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tumor3d.config import PipelineConfig  # noqa: E402
-from tumor3d.detect import detect_abnormal_slices  # noqa: E402
+from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
 from tumor3d.learned.features import compute_features  # noqa: E402
 from tumor3d.learned.forest import predict_proba  # noqa: E402
 from tumor3d.learned.shipped import shipped_model  # noqa: E402
-from tumor3d.lesion import left_right_axis  # noqa: E402
 from tumor3d.phantom import make_phantom_patient  # noqa: E402
-from tumor3d.preprocess import preprocess_volume  # noqa: E402
-from tumor3d.segment import segment_tumor  # noqa: E402
+from tumor3d.segmentation.detect import detect_abnormal_slices  # noqa: E402
+from tumor3d.segmentation.lesion import left_right_axis  # noqa: E402
+from tumor3d.segmentation.segment import segment_tumor  # noqa: E402
 
 
 def best_of(fn, repeat: int) -> float:

@@ -8,7 +8,7 @@ inside a marching-cubes ellipsoid brain of ~170,000 faces (70 x 72 x 60 mm,
 1 mm voxels), off-centre. Peers, in one process, after a warm-up (numba
 compilation; Open3D's Mesa shader cache):
 
-* ``numpy, 8 views``: :func:`tumor3d.render.render_views` with the default
+* ``numpy, 8 views``: :func:`tumor3d.visual.render.render_views` with the default
   numba z-buffer renderer (median of ``--repeats``);
 * ``numpy, 1 view``: the same call with one anatomical view and no cut-away:
   the fixed cost (scene set-up, normals, clipping) against the per-view cost;
@@ -38,8 +38,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tumor3d.render import render_views  # noqa: E402
-from tumor3d.surface import extract_surface  # noqa: E402
+from tumor3d.geometry.surface import extract_surface  # noqa: E402
+from tumor3d.visual.render import render_views  # noqa: E402
 
 
 def scene():

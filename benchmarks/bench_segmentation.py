@@ -28,10 +28,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tumor3d.config import parse_config  # noqa: E402
-from tumor3d.detect import detect_abnormal_slices  # noqa: E402
-from tumor3d.lesion import left_right_axis  # noqa: E402
-from tumor3d.preprocess import preprocess_volume  # noqa: E402
-from tumor3d.segment import segment_tumor  # noqa: E402
+from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
+from tumor3d.segmentation.detect import detect_abnormal_slices  # noqa: E402
+from tumor3d.segmentation.lesion import left_right_axis  # noqa: E402
+from tumor3d.segmentation.segment import segment_tumor  # noqa: E402
 from tumor3d.storage.manifest import data_dir  # noqa: E402
 
 

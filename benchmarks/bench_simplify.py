@@ -15,7 +15,7 @@ exponent ``t ~ F^k`` is fitted by least squares on log-log over the sizes.
 Peak memory of the paper's method on the largest mesh: the process's peak
 resident set (``VmHWM``, reset just before the call) during the call.
 
-It also times :func:`tumor3d.surface.extract_surface` on a 512 x 512 x 300
+It also times :func:`tumor3d.geometry.surface.extract_surface` on a 512 x 512 x 300
 mask holding a large phantom tumour.
 
 Usage::
@@ -36,9 +36,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from tumor3d.geometry.surface import extract_surface, is_watertight  # noqa: E402
 from tumor3d.phantom import random_tumor_shape  # noqa: E402
 from tumor3d.simplify import simplify_mesh  # noqa: E402
-from tumor3d.surface import extract_surface, is_watertight  # noqa: E402
 
 #: voxel sizes (mm) of a 60 mm phantom tumour giving about 125k ... 1M faces
 SPACINGS_MM = (0.55, 0.39, 0.275, 0.19)

@@ -1,8 +1,8 @@
 """Brain-mask volumes of remove_skull and extract_brain on the real volumes.
 
 For each raw head of the data folder prints the brain volume (mL) of the
-current per-slice :func:`tumor3d.preprocess.remove_skull` and of
-:func:`tumor3d.brain_extraction.extract_brain`, the Dice against
+current per-slice :func:`tumor3d.imaging.preprocess.remove_skull` and of
+:func:`tumor3d.imaging.brain_extraction.extract_brain`, the Dice against
 ``brainmask.nii.gz`` where there is one (BraTS), and the time; writes a
 montage of the mask contours (red: extract_brain, blue: remove_skull).
 
@@ -28,8 +28,8 @@ from scipy import ndimage as ndi
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tumor3d.brain_extraction import extract_brain  # noqa: E402
-from tumor3d.preprocess import remove_skull, to_uint8  # noqa: E402
+from tumor3d.imaging.brain_extraction import extract_brain  # noqa: E402
+from tumor3d.imaging.preprocess import remove_skull, to_uint8  # noqa: E402
 from tumor3d.storage.manifest import data_dir  # noqa: E402
 from tumor3d.storage.readers import read_scan  # noqa: E402
 

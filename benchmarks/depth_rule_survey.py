@@ -1,7 +1,7 @@
-"""Step 3b of the lesion model (``tumor3d.lesion``): how deep do candidates reach?
+"""Step 3b of the lesion model (``tumor3d.segmentation.lesion``): how deep do candidates reach?
 
 Lists every candidate lesion of every case of ``benchmarks/real_segmentation.py``
-*before* the depth rule (steps 2, 3, 3c and 6 of ``tumor3d/lesion.py``: the
+*before* the depth rule (steps 2, 3, 3c and 6 of ``tumor3d/segmentation/lesion.py``: the
 significant asymmetric seed components, all of them, not only the largest),
 at 2 mm every 5 mm and at the native slices, with its depth percentiles
 divided by the brain's median depth, and whether it lies in the reference
@@ -9,7 +9,7 @@ divided by the brain's median depth, and whether it lies in the reference
 case's tumour (its largest candidate in the reference) and the largest value
 of a false candidate that the rule rejects at the 75th percentile (the
 superficial ones the rule exists for). ``reports/segmentation.md`` gives the
-figures and the choice of ``tumor3d.lesion.DEPTH_PERCENTILE``.
+figures and the choice of ``tumor3d.segmentation.lesion.DEPTH_PERCENTILE``.
 
 Usage::
 
@@ -30,8 +30,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import real_segmentation as rs  # noqa: E402
 
-from tumor3d import lesion as L  # noqa: E402
-from tumor3d.preprocess import preprocess_volume  # noqa: E402
+from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
+from tumor3d.segmentation import lesion as L  # noqa: E402
 
 PERCENTILES = (50, 75, 90, 95, 100)
 

@@ -33,7 +33,7 @@ from tumor3d.evaluation.interpolation import (
     kth_slice_rows,
     table4_rows,
 )
-from tumor3d.interpolate import _DEFAULT_METHOD, _DEFAULT_PARTS
+from tumor3d.geometry.interpolate import _DEFAULT_METHOD, _DEFAULT_PARTS
 from tumor3d.storage.manifest import data_dir
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -302,7 +302,7 @@ def main() -> int:
         f"({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {time.time() - t_start:.0f} s). "
         "Methods: LG = linear mask interpolation (mask variant of [A14]); SO = city-block "
         "shape-based; SE = Algorithm 1 (chamfer, one centroid per slice); -EDT = exact "
-        "Euclidean distance; parts = matched parts (tumor3d.interpolate); ITK = ITK's "
+        "Euclidean distance; parts = matched parts (tumor3d.geometry.interpolate); ITK = ITK's "
         "MorphologicalContourInterpolator"
         + ("" if have_itk else " (NOT INSTALLED: no ITK column)")
         + f". The pipeline default is **{DEFAULT_LABEL}** "

@@ -49,7 +49,8 @@ from real_segmentation import emulate_thick  # noqa: E402
 
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.evaluation.metrics import dice  # noqa: E402
-from tumor3d.interpolate import interpolate_stack  # noqa: E402
+from tumor3d.geometry.interpolate import interpolate_stack  # noqa: E402
+from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
 from tumor3d.learned.context import context_features  # noqa: E402
 from tumor3d.learned.features import compute_features  # noqa: E402
 from tumor3d.learned.forest import predict_proba  # noqa: E402
@@ -61,8 +62,7 @@ from tumor3d.learned.training import (  # noqa: E402
     sample_rows,
     train_forest,
 )
-from tumor3d.lesion import left_right_axis  # noqa: E402
-from tumor3d.preprocess import preprocess_volume  # noqa: E402
+from tumor3d.segmentation.lesion import left_right_axis  # noqa: E402
 from tumor3d.storage.manifest import data_dir  # noqa: E402
 from tumor3d.storage.readers import read_scan  # noqa: E402
 
@@ -356,8 +356,8 @@ def cached_prepare(spec: CaseSpec, cfg, with_prior: bool, cache: str | None) -> 
 
 def robust_mask(pre, modality: str, spacing_mm, lr_axis, cfg) -> np.ndarray:
     """The robust method's segmentation (detect + segment) of preprocessed slices."""
-    from tumor3d.detect import detect_abnormal_slices
-    from tumor3d.segment import segment_tumor
+    from tumor3d.segmentation.detect import detect_abnormal_slices
+    from tumor3d.segmentation.segment import segment_tumor
 
     det = detect_abnormal_slices(
         pre.enhanced,
@@ -902,8 +902,8 @@ def _group_figures(rs: list[dict]) -> dict:
 
 
 def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
-    from tumor3d.detect import detect_abnormal_slices
-    from tumor3d.segment import segment_tumor
+    from tumor3d.segmentation.detect import detect_abnormal_slices
+    from tumor3d.segmentation.segment import segment_tumor
 
     out = []
     seg_cfg = cfg.segment.model_dump()

@@ -46,11 +46,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tumor3d.config import PipelineConfig, parse_config  # noqa: E402
-from tumor3d.detect import detect_abnormal_slices  # noqa: E402
+from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
 from tumor3d.metrics import volume_eq7_mm3  # noqa: E402
 from tumor3d.phantom import make_phantom_patient  # noqa: E402
-from tumor3d.preprocess import preprocess_volume  # noqa: E402
-from tumor3d.segment import segment_tumor  # noqa: E402
+from tumor3d.segmentation.detect import detect_abnormal_slices  # noqa: E402
+from tumor3d.segmentation.segment import segment_tumor  # noqa: E402
 
 CONFIGS = ROOT / "configs"
 
@@ -872,12 +872,13 @@ REAL_NOTE = [
     "cluster accepted on either. algoseg T2: the paper's Otsu skull removal, applied to a "
     "volume that is already skull-stripped, keeps 97,613 of its 207,339 brain voxels (on T2 "
     "the 2-class Otsu threshold separates CSF and lesion from the rest; the reason the "
-    "default takes the lower multi-Otsu threshold, `tumor3d.preprocess.remove_skull`); k >= 3 "
+    "default takes the lower multi-Otsu threshold, `tumor3d.imaging.preprocess.remove_skull`); "
+    "k >= 3 "
     "on 4 of the 13 slices left, 2 flagged, not linked across slices. With the brain taken as "
     "the volume's foreground (`brain_extraction: auto`) k >= 3 on 21 of 28 and 10 of 26 "
     "slices, 3 and 5 flagged, and the T2 case keeps 6,366 tumour pixels: still far from the "
     "reference. The default's `auto` resolves to the robust lesion model on these cases "
-    "(premise check, `tumor3d.detect.paper_premise_holds`).",
+    "(premise check, `tumor3d.segmentation.detect.paper_premise_holds`).",
 ]
 
 

@@ -37,7 +37,7 @@ offset 2), the per-slab Dice of the segmented slabs against the slab reference
   the volume's centre, so that no gray level is blurred and the masked
   background stays exact), scored against the turned label: a head not
   straight in the scanner; the symmetry rule mirrors about the estimated
-  mid-sagittal plane (:func:`tumor3d.lesion.symmetry_plane`).
+  mid-sagittal plane (:func:`tumor3d.segmentation.lesion.symmetry_plane`).
 
 A second table gives the tumour volume (Eq. 7, mL) of the volumes without an
 expert tumour label (the tumour-free ones and the clinical T1c, whose label is
@@ -63,7 +63,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import real_segmentation as rs  # noqa: E402
 
-from tumor3d.lesion import left_right_axis  # noqa: E402
+from tumor3d.segmentation.lesion import left_right_axis  # noqa: E402
 
 BIAS = 0.15  # +- share of the multiplicative field
 NOISE = 0.08  # Rician noise: SD of each component, share of the brain's median gray

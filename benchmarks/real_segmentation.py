@@ -20,7 +20,7 @@ relative to the repository root):
   (``--no-tumor-modality`` for another).
 
 Detect and segment get the scan's voxel spacing and left-right axis
-(:func:`tumor3d.lesion.left_right_axis` of its affine), as the stage adapters
+(:func:`tumor3d.segmentation.lesion.left_right_axis` of its affine), as the stage adapters
 pass them.
 
 Thick-slice emulation (the paper's 2 mm slices every 5 mm): slab ``i`` is the
@@ -68,11 +68,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tumor3d.config import parse_config  # noqa: E402
-from tumor3d.detect import detect_abnormal_slices  # noqa: E402
-from tumor3d.interpolate import interpolate_stack  # noqa: E402
-from tumor3d.lesion import left_right_axis  # noqa: E402
-from tumor3d.preprocess import preprocess_volume  # noqa: E402
-from tumor3d.segment import segment_tumor  # noqa: E402
+from tumor3d.geometry.interpolate import interpolate_stack  # noqa: E402
+from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
+from tumor3d.segmentation.detect import detect_abnormal_slices  # noqa: E402
+from tumor3d.segmentation.lesion import left_right_axis  # noqa: E402
+from tumor3d.segmentation.segment import segment_tumor  # noqa: E402
 from tumor3d.storage.manifest import data_dir  # noqa: E402  (re-exported: rs.data_dir)
 from tumor3d.storage.readers import read_scan  # noqa: E402
 

@@ -8,7 +8,7 @@ Cases:
   cases in ``$TUMOR3D_DATA_DIR/brats2013_pat000{3,4,5}`` (skipped with a
   message when the data are absent).
 
-Each case is meshed with :func:`tumor3d.surface.extract_surface` and
+Each case is meshed with :func:`tumor3d.geometry.surface.extract_surface` and
 simplified by ``curvature`` (the paper's Algorithm 2), ``memoryless``
 (Lindstrom-Turk) and ``qem`` (QSlim, fast-simplification) at P = 20 ... 90 %;
 :func:`tumor3d.evaluation.simplification.simplification_rows` measures each
@@ -42,9 +42,9 @@ sys.path.insert(0, str(ROOT))
 
 from tumor3d.config import RenderConfig  # noqa: E402
 from tumor3d.evaluation.simplification import simplification_rows  # noqa: E402
+from tumor3d.geometry.surface import extract_surface, is_watertight  # noqa: E402
 from tumor3d.phantom import random_tumor_shape  # noqa: E402
 from tumor3d.simplify import simplify_mesh  # noqa: E402
-from tumor3d.surface import extract_surface, is_watertight  # noqa: E402
 
 METHODS = ("curvature", "memoryless", "qem")
 PERCENTS = (20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0, 90.0)
@@ -85,7 +85,7 @@ def figure9(case, mesh, out_dir: Path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from tumor3d.render import render_views
+    from tumor3d.visual.render import render_views
 
     cfg = RenderConfig(width=360, height=300, azimuths_deg=(30.0,)).model_dump()
     fig, axes = plt.subplots(1, len(FIG9_PERCENTS), figsize=(3.2 * len(FIG9_PERCENTS), 3.2))

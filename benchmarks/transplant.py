@@ -61,7 +61,7 @@ import real_segmentation as rs  # noqa: E402
 from pseudo_healthy import pseudo_healthy  # noqa: E402
 
 from tumor3d.config import parse_config  # noqa: E402
-from tumor3d.lesion import left_right_axis  # noqa: E402
+from tumor3d.segmentation.lesion import left_right_axis  # noqa: E402
 
 DONORS = ("pat0003", "pat0004", "pat0005", "flair_algoseg")
 HOSTS = ("pat0004", "pat0005")

@@ -12,7 +12,7 @@ marching cubes, simplification and the volumes with Eq. 7's predicted
 precision; renders, overlays and files are left to the command line. Nothing
 is cached or written.
 
-The core stays pure: arrays (or a :class:`~tumor3d.scan.Scan`) go in. A path
+The core stays pure: arrays (or a :class:`~tumor3d.imaging.scan.Scan`) go in. A path
 is read, and an array with its affine is turned into a ``Scan``, by
 :mod:`tumor3d.storage.readers`, imported only then.
 """
@@ -29,12 +29,12 @@ import numpy as np
 
 from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.errors import InputError
-from tumor3d.lesion import left_right_axis
-from tumor3d.measures import clinical_measures
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.measures import clinical_measures
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.imaging.scan import MODALITIES, Scan, slab_height_mm
 from tumor3d.metrics import measure_volumes
-from tumor3d.review import review_status, run_notes
-from tumor3d.scan import MODALITIES, Scan, slab_height_mm
+from tumor3d.segmentation.lesion import left_right_axis
+from tumor3d.segmentation.review import review_status, run_notes
 
 __all__ = ["Reconstruction", "reconstruct", "reconstruct_scan", "segmentation_values"]
 
@@ -55,7 +55,7 @@ class Reconstruction:
     patient_id, modality : str
     status : {"ok", "check"}
         ``check``: the tool's own checks doubt the result; ``review_reasons``
-        say why (:mod:`tumor3d.review`).
+        say why (:mod:`tumor3d.segmentation.review`).
     review_reasons : tuple of str
     notes : tuple of str
         Every note of the run (the reasons included).
@@ -157,7 +157,7 @@ def _brain_notes(
     brain: np.ndarray, spacing: tuple[float, float, float], extraction: str, tissue_slices: int
 ) -> list[str]:
     """The brain-mask notes of the pipeline (``tumor3d.tasks.preprocess.preprocess_notes``)."""
-    from tumor3d.preprocess import brain_coverage_note, brain_size_note, brain_volume_note
+    from tumor3d.imaging.preprocess import brain_coverage_note, brain_size_note, brain_volume_note
 
     per_slice = np.count_nonzero(brain, axis=(1, 2))
     notes = [
@@ -206,7 +206,7 @@ def reconstruct_scan(
     segmentation: np.ndarray | None = None,
     segmentation_name: str | None = None,
 ) -> Reconstruction:
-    """Run the pipeline's stages on a :class:`~tumor3d.scan.Scan` (pure: arrays in and out).
+    """Run the pipeline's stages on a :class:`~tumor3d.imaging.scan.Scan` (pure: arrays in and out).
 
     Parameters
     ----------
@@ -218,20 +218,20 @@ def reconstruct_scan(
         of skull removal.
     segmentation : (z, y, x) ndarray, optional
         A tumour mask on the scan's grid (tumour = values > 0.5), used instead
-        of the segmentation (:mod:`tumor3d.given_segmentation`); detection
+        of the segmentation (:mod:`tumor3d.segmentation.given_segmentation`); detection
         still runs, nothing trims the mask.
     segmentation_name : str, optional
         Its file name, said in ``measured`` and the notes.
     """
-    from tumor3d.detect import detect_abnormal_slices
-    from tumor3d.interpolate import interpolate_stack
+    from tumor3d.geometry.interpolate import interpolate_stack
+    from tumor3d.imaging.preprocess import preprocess_volume, tissue_slice_count
     from tumor3d.pipeline import tumour_surface
-    from tumor3d.preprocess import preprocess_volume, tissue_slice_count
-    from tumor3d.segment import lesion_definition, resolve_method, segment_tumor
+    from tumor3d.segmentation.detect import detect_abnormal_slices
+    from tumor3d.segmentation.segment import lesion_definition, resolve_method, segment_tumor
     from tumor3d.simplify import simplify_mesh, target_face_count
 
     if not isinstance(scan, Scan):
-        raise InputError(f"scan must be a tumor3d.scan.Scan, got {type(scan).__name__}")
+        raise InputError(f"scan must be a tumor3d.imaging.scan.Scan, got {type(scan).__name__}")
     cfg = _config(config)
     given = None
     if brain_mask is not None:
@@ -241,7 +241,7 @@ def reconstruct_scan(
         given = np.nan_to_num(given.astype(np.float64), nan=0.0) > 0.5
     tumour_given = None
     if segmentation is not None:
-        from tumor3d.given_segmentation import binarize_segmentation
+        from tumor3d.segmentation.given_segmentation import binarize_segmentation
 
         tumour_given = binarize_segmentation(segmentation)
         if tumour_given.shape != scan.shape:
@@ -269,7 +269,7 @@ def reconstruct_scan(
         learned = {"image": scan.image, "model": shipped_model(scan.modality)}
     # segment-tumor (a given segmentation replaces it, as tumor3d.tasks.segment does)
     if tumour_given is not None:
-        from tumor3d.given_segmentation import given_definition, given_segmentation
+        from tumor3d.segmentation.given_segmentation import given_definition, given_segmentation
 
         seg = given_segmentation(tumour_given, spacing_mm=spacing)
         measured = given_definition(segmentation_name)
@@ -305,7 +305,7 @@ def reconstruct_scan(
             mesh_vertices=None if surface.is_empty else surface.vertices,
         )  # fmt: skip
     )
-    # notes and status (tumor3d.review), as the pipeline's
+    # notes and status (tumor3d.segmentation.review), as the pipeline's
     extraction = "given" if given is not None else str(pre.brain_extraction)
     notes, doubts = run_notes(
         tumour_found=not surface.is_empty,
@@ -352,7 +352,7 @@ def reconstruct(
     image : path, ndarray or Scan
         A NIfTI, NRRD or MetaImage file, a DICOM series folder or a folder
         of 2-D slices (as ``tumor3d run``); or a 3-D array in its file's voxel
-        order ``(i, j, k)`` with ``affine``; or a :class:`~tumor3d.scan.Scan`.
+        order ``(i, j, k)`` with ``affine``; or a :class:`~tumor3d.imaging.scan.Scan`.
     affine : (4, 4) ndarray
         With an array: voxel index ``(i, j, k, 1)`` -> RAS mm (as NIfTI;
         nibabel's ``img.affine``). Required then (voxel sizes are never
@@ -465,7 +465,7 @@ def _scan_from_array(
         raise InputError(f"affine must be a finite invertible 4x4 matrix, got shape {aff.shape}")
     if data.ndim != 3:
         raise InputError(f"image must be a 3-D array, got shape {data.shape}")
-    from tumor3d.scan import validate_patient_id
+    from tumor3d.imaging.scan import validate_patient_id
     from tumor3d.storage.readers.common import scan_from_volume
     from tumor3d.validation import check_positive
 

@@ -77,7 +77,7 @@ class PreprocessConfig(_StageConfig):
     """Preprocessing (spec section 1).
 
     ``sharpen`` and ``equalize`` default to False, a measured deviation from
-    the paper's chain (see ``tumor3d.preprocess.preprocess_volume``):
+    the paper's chain (see ``tumor3d.imaging.preprocess.preprocess_volume``):
     per-slice histogram equalisation flattens the histogram whose modes
     section 2 counts, and the unsharp kernel adds noise/edge modes. Set
     both to True for the paper's literal chain.
@@ -112,7 +112,7 @@ class PreprocessConfig(_StageConfig):
         description="skull_strip = [A3] skull removal; foreground = the volume is already "
         "skull-stripped (voxels above its constant minimum, whole brain kept); head = 3-D "
         "brain extraction in mm for a raw clinical head whose scalp the per-slice skull "
-        "removal keeps (tumor3d.brain_extraction); auto = foreground when >= "
+        "removal keeps (tumor3d.imaging.brain_extraction); auto = foreground when >= "
         "masked_background_fraction of the voxels equal the minimum, else skull_strip.",
     )
     masked_background_fraction: float = Field(
@@ -134,12 +134,12 @@ class PreprocessConfig(_StageConfig):
 
 
 class LesionConfig(_StageConfig):
-    """The patient lesion model of the robust method (:mod:`tumor3d.lesion`).
+    """The patient lesion model of the robust method (:mod:`tumor3d.segmentation.lesion`).
 
     One section, ``detect.lesion``: the detect stage computes the model once
     (its slices flag the abnormal slices) and the segment stage reuses its
     mask. The fields are the keywords of
-    :func:`tumor3d.lesion.segment_hyperintense_lesion`.
+    :func:`tumor3d.segmentation.lesion.segment_hyperintense_lesion`.
     """
 
     smoothing_mm: float = Field(
@@ -276,14 +276,15 @@ class DetectConfig(_StageConfig):
     )
     method: Literal["auto", "robust", "histogram"] = Field(
         "auto",
-        description="robust = slices holding a patient-level lesion (tumor3d.lesion); "
+        description="robust = slices holding a patient-level lesion (tumor3d.segmentation.lesion); "
         "histogram = the paper's mode count ([A5], [A6]); auto = robust on FLAIR/T1c, "
         "on T2 histogram where >= 95 % of the slices show 3 modes (the paper's premise) "
         "and robust otherwise, histogram without modality.",
     )
     lesion: LesionConfig = Field(
         default_factory=lambda: LesionConfig(),
-        description="robust: the patient lesion model (tumor3d.lesion), computed once by the "
+        description="robust: the patient lesion model (tumor3d.segmentation.lesion), computed once "
+        "by the "
         "detect stage and reused by the segment stage.",
     )
     lesion_min_slice_mm2: float = Field(
@@ -312,7 +313,8 @@ class SegmentConfig(_StageConfig):
 
     method: Literal["auto", "robust", "paper", "multiotsu", "learned"] = Field(
         "auto",
-        description="robust = patient-pooled lesion model (tumor3d.lesion); paper = wavelet + "
+        description="robust = patient-pooled lesion model (tumor3d.segmentation.lesion); "
+        "paper = wavelet + "
         "histogram FCM per slice ([A7], [A8]); multiotsu = peer (brightest of 4 classes); "
         "learned = the robust mask refined by the shipped boosted forest (tumor3d.learned, "
         "reports/model_card.md), with a probability map and a review; "
@@ -391,7 +393,7 @@ class InterpolateConfig(_StageConfig):
         "taper",
         description="Beyond the first and last tumour slices: none = flat caps (the paper); "
         "taper = the end shape eroded linearly to nothing at the next acquired slice "
-        "(unbiased for smooth objects; see tumor3d.interpolate).",
+        "(unbiased for smooth objects; see tumor3d.geometry.interpolate).",
     )
     parts: Literal["matched", "whole"] = Field(
         "matched",
@@ -431,7 +433,7 @@ class SimplifyConfig(_StageConfig):
 class RenderConfig(_StageConfig):
     """Rendering of the tumour inside the brain (spec section 7, [A25]).
 
-    The fields are the keywords of :func:`tumor3d.render.render_views`.
+    The fields are the keywords of :func:`tumor3d.visual.render.render_views`.
     ``renderer`` defaults to the numba z-buffer renderer: on this project's
     reference machine (llvmpipe, no GPU) it renders 8 views of a
     100,000-face tumour with a 170,000-face brain ~70x faster than Open3D's

@@ -10,7 +10,7 @@
 * :func:`measure_volumes` -- the measure stage: every volume of one patient,
   with the rule of which slices Eq. 7 sums (:data:`EQ7_SLICE_RULES`).
 
-Mesh volume and area are in :mod:`tumor3d.surface`.
+Mesh volume and area are in :mod:`tumor3d.geometry.surface`.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from typing import Any, Literal
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
-from tumor3d.surface import mesh_volume_mm3
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import mesh_volume_mm3
 
 __all__ = [
     "EQ7_SLICE_RULES",
@@ -381,7 +381,9 @@ def measure_volumes(
     mesh_volumes = []
     for m in (mesh, mesh_simplified):
         if m is not None and not isinstance(m, Mesh):
-            raise TypeError(f"mesh must be a tumor3d.mesh.Mesh or None, got {type(m).__name__}")
+            raise TypeError(
+                f"mesh must be a tumor3d.geometry.mesh.Mesh or None, got {type(m).__name__}"
+            )
         mesh_volumes.append(0.0 if m is None or m.is_empty else float(mesh_volume_mm3(m)))
     return VolumeMeasurement(
         volume_eq7_mm3=float(eq7),

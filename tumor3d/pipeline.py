@@ -8,7 +8,7 @@
 
 The Eq. 7 slice rule lives in :func:`tumor3d.metrics.measure_volumes`; the
 automatic slice count (``slices_between=None``) in
-:func:`tumor3d.interpolate.interpolate_stack`.
+:func:`tumor3d.geometry.interpolate.interpolate_stack`.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 from tumor3d.errors import NoSurfaceError
-from tumor3d.mesh import Mesh
-from tumor3d.surface import extract_surface, is_watertight
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import extract_surface, is_watertight
 
 __all__ = ["empty_mesh", "is_closed_surface", "tumour_surface"]
 
@@ -39,7 +39,7 @@ def tumour_surface(mask: np.ndarray, affine: np.ndarray, **options: Any) -> Mesh
     affine : (4, 4) ndarray
         ``(x, y, z, 1)`` -> RAS mm.
     **options
-        Passed to :func:`tumor3d.surface.extract_surface` (``level``,
+        Passed to :func:`tumor3d.geometry.surface.extract_surface` (``level``,
         ``padding``, ...; :class:`~tumor3d.config.SurfaceConfig`).
 
     Returns
@@ -61,7 +61,7 @@ def tumour_surface(mask: np.ndarray, affine: np.ndarray, **options: Any) -> Mesh
 
 
 def is_closed_surface(mesh: Mesh) -> bool:
-    """True for a non-empty watertight mesh (see :func:`tumor3d.surface.is_watertight`).
+    """True for a non-empty watertight mesh (see :func:`tumor3d.geometry.surface.is_watertight`).
 
     Examples
     --------
@@ -69,5 +69,5 @@ def is_closed_surface(mesh: Mesh) -> bool:
     False
     """
     if not isinstance(mesh, Mesh):
-        raise TypeError(f"mesh must be a tumor3d.mesh.Mesh, got {type(mesh).__name__}")
+        raise TypeError(f"mesh must be a tumor3d.geometry.mesh.Mesh, got {type(mesh).__name__}")
     return bool(not mesh.is_empty and is_watertight(mesh))

@@ -1,9 +1,9 @@
 """Compile every numba kernel once, ahead of the first patient: ``python -m tumor3d.warmup``.
 
 The kernels (the simplifier's collapse engine in :mod:`tumor3d.simplify`,
-the exact distance transforms of :mod:`tumor3d.distance`, the tree walk of
+the exact distance transforms of :mod:`tumor3d.geometry.distance`, the tree walk of
 the learned segmentation (:mod:`tumor3d.learned.forest`), the z-buffer
-renderer of :mod:`tumor3d.render` and the phantom rasteriser of
+renderer of :mod:`tumor3d.visual.render` and the phantom rasteriser of
 :mod:`tumor3d.phantom.raster`) are ``numba.njit(cache=True)``: compiled
 on their first call in a process and written to numba's cache (by default
 ``__pycache__`` beside their source; ``NUMBA_CACHE_DIR`` elsewhere), which
@@ -42,8 +42,8 @@ def warm_up() -> dict[str, float]:
     from tumor3d.api import reconstruct_scan
     from tumor3d.config import PipelineConfig
     from tumor3d.phantom import make_phantom_patient
-    from tumor3d.render import render_views
     from tumor3d.simplify import METHODS, simplify_mesh
+    from tumor3d.visual.render import render_views
 
     patient = step(
         "phantom (raster)",

@@ -10,8 +10,8 @@ import pytest
 
 import tumor3d
 from tumor3d.errors import ConfigError, InputError
+from tumor3d.geometry.surface import is_watertight
 from tumor3d.phantom import make_phantom_patient
-from tumor3d.surface import is_watertight
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +76,7 @@ def test_the_api_agrees_with_the_pipeline_stage_for_stage(phantom, result, tmp_p
     No Prefect run.
     """
     from tumor3d.flows.patient import run_notes, run_stages_direct
-    from tumor3d.review import review_status
+    from tumor3d.segmentation.review import review_status
     from tumor3d.storage.phantom_io import write_phantom_patient
 
     row = write_phantom_patient(phantom, tmp_path / "in")

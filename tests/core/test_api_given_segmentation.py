@@ -8,8 +8,8 @@ import pytest
 
 import tumor3d
 from tumor3d.errors import InputError
-from tumor3d.given_segmentation import binarize_segmentation, given_segmentation
 from tumor3d.phantom import make_phantom_patient
+from tumor3d.segmentation.given_segmentation import binarize_segmentation, given_segmentation
 from tumor3d.storage.phantom_io import write_phantom_patient
 
 

@@ -1,12 +1,12 @@
-"""Tests of tumor3d.brain_extraction on synthetic heads (no real data)."""
+"""Tests of tumor3d.imaging.brain_extraction on synthetic heads (no real data)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from tumor3d.brain_extraction import extract_brain
 from tumor3d.errors import InputError
+from tumor3d.imaging.brain_extraction import extract_brain
 
 BRAIN, SKULL, SCALP = 100, 15, 210
 SEMI_AXES_MM = np.array([60.0, 75.0, 65.0])  # brain (z, y, x) semi-axes
@@ -107,7 +107,7 @@ def test_preprocess_head_option_uses_the_extraction_and_needs_the_spacing():
     # brain_extraction="head" of preprocess_volume is this extraction, on the
     # 8-bit image the pipeline works on, and says so; without the spacing it is a
     # clear error
-    from tumor3d.preprocess import preprocess_volume
+    from tumor3d.imaging.preprocess import preprocess_volume
 
     spacing = (6.5, 0.8, 0.8)
     image, brain, scalp = _head(spacing)

@@ -1,17 +1,20 @@
-"""tumor3d.brain_mask: the rules of a given brain mask (grid, brain = values > 0.5, refusals)."""
+"""tumor3d.imaging.brain_mask: the rules of a given brain mask.
+
+Grid, brain = values > 0.5, refusals.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from tumor3d.brain_mask import (
+from tumor3d.errors import InputError
+from tumor3d.imaging.brain_mask import (
     GRID_TOL_VOXELS,
     binarize_brain_mask,
     check_same_grid,
     grid_offset_voxels,
 )
-from tumor3d.errors import InputError
 
 
 @pytest.fixture

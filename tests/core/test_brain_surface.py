@@ -1,14 +1,14 @@
-"""Tests of tumor3d.brain_surface.display_mesh: the brain reduced for the viewer."""
+"""Tests of tumor3d.geometry.brain_surface.display_mesh: the brain reduced for the viewer."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from tumor3d.brain_surface import display_mesh
 from tumor3d.errors import InputError
+from tumor3d.geometry.brain_surface import display_mesh
+from tumor3d.geometry.surface import extract_surface, mesh_volume_mm3
 from tumor3d.pipeline import is_closed_surface
-from tumor3d.surface import extract_surface, mesh_volume_mm3
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +54,7 @@ def _ball_slices(radius_mm, pixel_mm, step_mm, n_px=48):
 
 def test_the_grid_is_coarsened_over_an_extent_larger_than_its_budget(monkeypatch):
     """The surface stays a closed ball of about its volume, on a grid within the budget."""
-    import tumor3d.brain_surface as bs
+    import tumor3d.geometry.brain_surface as bs
 
     mask, aff = _ball_slices(60.0, 3.0, 6.0)
     true_ml = 4.0 / 3.0 * np.pi * 60.0**3 / 1000.0
@@ -62,7 +62,7 @@ def test_the_grid_is_coarsened_over_an_extent_larger_than_its_budget(monkeypatch
     budget = 20_000  # far below the 2 mm grid's ~1.4 M voxels: about a 5 mm grid
     monkeypatch.setattr(bs, "MAX_GRID_VOXELS", budget)
     seen = []
-    from tumor3d import surface
+    from tumor3d.geometry import surface
 
     original = surface.extract_surface
 

@@ -1,4 +1,4 @@
-"""Caveats of a segmentation (tumor3d.caveats): said exactly when their situation holds.
+"""Caveats (tumor3d.segmentation.caveats): said exactly when their situation holds.
 
 Independent expectations: the plane's signed distance against the textbook
 point-to-line distance, the end-slice and midline situations built on
@@ -12,17 +12,22 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tumor3d.caveats import (
+from tumor3d.errors import InputError
+from tumor3d.segmentation.caveats import (
     midline_caveat,
     scalp_caveat,
     scan_end_caveat,
     segmentation_caveats,
     symmetric_caveat,
 )
-from tumor3d.detect import SliceDetection
-from tumor3d.errors import InputError
-from tumor3d.lesion import SYMMETRY_TOLERANCE_MM, LesionResult, MirrorPlane, NormalModel
-from tumor3d.segment import segment_tumor
+from tumor3d.segmentation.detect import SliceDetection
+from tumor3d.segmentation.lesion import (
+    SYMMETRY_TOLERANCE_MM,
+    LesionResult,
+    MirrorPlane,
+    NormalModel,
+)
+from tumor3d.segmentation.segment import segment_tumor
 
 SHAPE = (6, 96, 96)
 PIXEL_MM = (0.8, 0.8)

@@ -10,16 +10,16 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
-from tumor3d.simplify import simplify_mesh, target_face_count
-from tumor3d.simplify.curvature import simplify_curvature, vertex_curvatures
-from tumor3d.simplify.memoryless import simplify_memoryless
-from tumor3d.surface import (
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import (
     edge_manifold_report,
     extract_surface,
     is_watertight,
     mesh_volume_mm3,
 )
+from tumor3d.simplify import simplify_mesh, target_face_count
+from tumor3d.simplify.curvature import simplify_curvature, vertex_curvatures
+from tumor3d.simplify.memoryless import simplify_memoryless
 
 # ---------------------------------------------------------------------------
 # meshes
@@ -353,5 +353,5 @@ def test_simplify_curvature_validation(ellipsoid, kwargs, match):
 
 
 def test_simplify_memoryless_rejects_non_mesh():
-    with pytest.raises(InputError, match="tumor3d.mesh.Mesh"):
+    with pytest.raises(InputError, match="tumor3d.geometry.mesh.Mesh"):
         simplify_memoryless("mesh", target_faces=4)

@@ -25,15 +25,15 @@ from tumor3d.config import (
     SurfaceConfig,
     parse_config,
 )
-from tumor3d.detect import detect_abnormal_slices
 from tumor3d.errors import ConfigError
-from tumor3d.interpolate import interpolate_stack
-from tumor3d.lesion import LESION_DEFAULTS, segment_hyperintense_lesion
-from tumor3d.preprocess import preprocess_volume
-from tumor3d.render import render_views
-from tumor3d.segment import segment_tumor
+from tumor3d.geometry.interpolate import interpolate_stack
+from tumor3d.geometry.surface import extract_surface
+from tumor3d.imaging.preprocess import preprocess_volume
+from tumor3d.segmentation.detect import detect_abnormal_slices
+from tumor3d.segmentation.lesion import LESION_DEFAULTS, segment_hyperintense_lesion
+from tumor3d.segmentation.segment import segment_tumor
 from tumor3d.simplify import simplify_mesh
-from tumor3d.surface import extract_surface
+from tumor3d.visual.render import render_views
 
 PAIRS = [
     (PreprocessConfig, preprocess_volume),

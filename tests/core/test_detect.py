@@ -1,4 +1,4 @@
-"""Tests of tumor3d.detect (specification section 2)."""
+"""Tests of tumor3d.segmentation.detect (specification section 2)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,13 @@ from hypothesis import strategies as st
 from simple_phantom import make_head_phantom
 
 from tumor3d.config import DetectConfig, PreprocessConfig
-from tumor3d.detect import SliceDetection, count_histogram_modes, detect_abnormal_slices
 from tumor3d.errors import InputError
-from tumor3d.preprocess import preprocess_volume
+from tumor3d.imaging.preprocess import preprocess_volume
+from tumor3d.segmentation.detect import (
+    SliceDetection,
+    count_histogram_modes,
+    detect_abnormal_slices,
+)
 
 DEFAULTS = DetectConfig().model_dump()
 MODE_KEYS = ("n_bins", "smoothing_sigma_bins", "min_mode_area", "min_peak_distance_bins")
@@ -267,8 +271,8 @@ def test_a_robust_slice_is_abnormal_by_its_lesion_area_in_mm2(monkeypatch, pixel
     # pixels the rule is that area (at 0.5 mm 32 and 128 pixels: a count in pixels would
     # flag slice 1 too); at 2 mm pixels it is the 20 pixels it has at 1 mm (80 mm2):
     # 2, 8 and 24 pixels flag slice 3 only
-    import tumor3d.detect as detect_module
-    from tumor3d.lesion import LesionResult, NormalModel
+    import tumor3d.segmentation.detect as detect_module
+    from tumor3d.segmentation.lesion import LesionResult, NormalModel
 
     n = int(round(64 / pixel_mm))
     shape = (5, n, n)

@@ -1,4 +1,4 @@
-"""Tests of tumor3d.distance (spec section 4, [A11], [A29])."""
+"""Tests of tumor3d.geometry.distance (spec section 4, [A11], [A29])."""
 
 from __future__ import annotations
 
@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-from tumor3d.distance import (
+from tumor3d.errors import InputError
+from tumor3d.geometry.distance import (
     chamfer_distance,
     cityblock_distance,
     euclidean_distance_mm,
     signed_distance,
 )
-from tumor3d.errors import InputError
 
 SQRT2 = math.sqrt(2.0)
 # max of chamfer(1, sqrt2) / Euclidean, reached at 22.5 degrees

@@ -1,4 +1,4 @@
-"""Tests of tumor3d.interpolate (spec section 4, Algorithm 1)."""
+"""Tests of tumor3d.geometry.interpolate (spec section 4, Algorithm 1)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from tumor3d.config import InterpolateConfig
 from tumor3d.errors import InputError
-from tumor3d.interpolate import (
+from tumor3d.geometry.interpolate import (
     InterpolatedStack,
     chamfer_distance,
     interpolate_gray_slices,

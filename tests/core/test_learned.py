@@ -18,8 +18,8 @@ from tumor3d.learned.features import FEATURE_NAMES, compute_features, tissue_for
 from tumor3d.learned.forest import ForestModel, forest_from_lightgbm_dump, predict_proba
 from tumor3d.learned.review import review_features, review_segmentation
 from tumor3d.learned.segment import keep_main_lesion, segment_learned
-from tumor3d.lesion import left_right_axis
 from tumor3d.phantom.patient import make_phantom_patient
+from tumor3d.segmentation.lesion import left_right_axis
 
 lgb = pytest.importorskip("lightgbm")
 
@@ -218,8 +218,8 @@ def test_review_flags_a_doubtful_map_and_passes_a_confident_one():
 
 
 def test_segment_tumor_learned_needs_the_image_and_a_model():
-    from tumor3d.detect import SliceDetection
-    from tumor3d.segment import segment_tumor
+    from tumor3d.segmentation.detect import SliceDetection
+    from tumor3d.segmentation.segment import segment_tumor
 
     shape = (4, 32, 32)
     det = SliceDetection.from_records(

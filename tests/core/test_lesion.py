@@ -1,4 +1,6 @@
-"""Patient-level lesion decision of tumor3d.lesion (steps 3b, 3c, 3e, 6 of its docstring, and more).
+"""Patient-level lesion decision of tumor3d.segmentation.lesion.
+
+Steps 3b, 3c, 3e, 6 of its docstring, and more.
 
 Synthetic volumes: an ellipsoidal brain of one tissue with noise, a bright
 structure planted where the rule under test applies. Each rule is checked both
@@ -13,9 +15,9 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-import tumor3d.lesion as lesion_module
+import tumor3d.segmentation.lesion as lesion_module
 from tumor3d.errors import InputError
-from tumor3d.lesion import (
+from tumor3d.segmentation.lesion import (
     SYMMETRIC_REGAIN_MM,
     SYMMETRY_TOLERANCE_MM,
     MirrorPlane,
@@ -335,10 +337,10 @@ def test_bad_lr_axis_and_spacing_are_errors():
 
 def _t2_phantom_robust(seed: int, tumor: bool = True):
     from tumor3d.config import DetectConfig, PreprocessConfig, SegmentConfig
-    from tumor3d.detect import detect_abnormal_slices
+    from tumor3d.imaging.preprocess import preprocess_volume
     from tumor3d.phantom import make_phantom_patient
-    from tumor3d.preprocess import preprocess_volume
-    from tumor3d.segment import segment_tumor
+    from tumor3d.segmentation.detect import detect_abnormal_slices
+    from tumor3d.segmentation.segment import segment_tumor
 
     ph = make_phantom_patient(seed, tumor=tumor)
     scan = ph.scan
@@ -370,8 +372,8 @@ def test_robust_on_a_tumour_free_t2_phantom_is_empty():
 
 
 def test_auto_on_t2_takes_the_paper_method_only_where_its_premise_holds():
-    from tumor3d.detect import SliceDetection
-    from tumor3d.segment import resolve_method
+    from tumor3d.segmentation.detect import SliceDetection
+    from tumor3d.segmentation.segment import resolve_method
 
     def det(n_modes):
         nz = len(n_modes)
@@ -497,7 +499,7 @@ def test_asymmetric_dark_structure_reached_through_a_mirrored_bridge_stays_out()
 def _counting(monkeypatch, module):
     """Count the calls of ``module.patient_lesion`` (still computing); each call's
     record is the keywords the lesion model itself received."""
-    import tumor3d.lesion as lesion_mod
+    import tumor3d.segmentation.lesion as lesion_mod
 
     calls = []
 
@@ -520,10 +522,10 @@ def _counting(monkeypatch, module):
 def test_segment_reuses_the_lesion_of_the_robust_detection(monkeypatch):
     import dataclasses
 
-    import tumor3d.detect as detect_mod
-    import tumor3d.segment as segment_mod
-    from tumor3d.detect import detect_abnormal_slices
-    from tumor3d.segment import segment_tumor
+    import tumor3d.segmentation.detect as detect_mod
+    import tumor3d.segmentation.segment as segment_mod
+    from tumor3d.segmentation.detect import detect_abnormal_slices
+    from tumor3d.segmentation.segment import segment_tumor
 
     brain = _brain()
     lesion = _ball((6, 5, 12), 10)
@@ -553,7 +555,7 @@ def test_segment_reuses_the_lesion_of_the_robust_detection(monkeypatch):
 
 
 def test_histogram_detection_leaves_the_lesion_model_to_segment():
-    from tumor3d.detect import detect_abnormal_slices
+    from tumor3d.segmentation.detect import detect_abnormal_slices
 
     brain = _brain()
     img = _image(brain, [(_ball((6, 5, 12), 10), 190.0)])
@@ -562,7 +564,7 @@ def test_histogram_detection_leaves_the_lesion_model_to_segment():
 
 
 def test_bad_lesion_parameters_are_errors_naming_them():
-    from tumor3d.lesion import lesion_params
+    from tumor3d.segmentation.lesion import lesion_params
 
     with pytest.raises(InputError, match="seed_sigmas"):
         lesion_params({"seed_sigmas": 0.0})
@@ -572,7 +574,7 @@ def test_bad_lesion_parameters_are_errors_naming_them():
 
 
 def _grow_local_naive(mask, img, allowed, model, floor_sigmas, rings):
-    """The growth of ``tumor3d.lesion._grow_local`` written out on the whole volume."""
+    """The growth of ``tumor3d.segmentation.lesion._grow_local`` written out on the whole volume."""
     f = img.astype(np.float32)
     floor = model.median + floor_sigmas * model.sigma
     for _ in range(rings):
@@ -590,7 +592,7 @@ def _grow_local_naive(mask, img, allowed, model, floor_sigmas, rings):
 def test_local_growth_on_the_lesion_box_equals_the_whole_volume(seed):
     # the growth works on the lesion's box only: it must give the same pixels as on the
     # whole volume, also with the lesion at the volume's edge (reflecting borders)
-    from tumor3d.lesion import NormalModel, _grow_local
+    from tumor3d.segmentation.lesion import NormalModel, _grow_local
 
     rng = np.random.default_rng(seed)
     shape = (9, 80, 90)
@@ -611,7 +613,7 @@ def test_local_growth_on_the_lesion_box_equals_the_whole_volume(seed):
 
 
 def test_depth_on_the_coarse_grid_is_within_a_grid_step_of_the_exact_depth():
-    from tumor3d.lesion import DEPTH_GRID_MM, _depth_mm
+    from tumor3d.segmentation.lesion import DEPTH_GRID_MM, _depth_mm
 
     brain = _brain()
     spacing = (1.0, 1.0, 1.0)
@@ -652,7 +654,7 @@ def test_faint_wall_of_a_joined_cavity_joins_with_it(monkeypatch):
     # 80 % without 5c; 46 % before step 4b, which joins the rim's pieces the growth
     # reaches); 5c decides it by the step-4 rule once the core is known, and adds
     # nothing outside the truth
-    import tumor3d.lesion as lesion_mod
+    import tumor3d.segmentation.lesion as lesion_mod
 
     brain = _brain()
     z, y, x = _grid_mm()
@@ -764,7 +766,7 @@ def test_a_chain_of_satellites_each_within_1_cm_joins():
 
 
 def test_satellite_reach_is_measured_through_the_voxel_spacing():
-    from tumor3d.lesion import _reached
+    from tumor3d.segmentation.lesion import _reached
 
     mask = np.zeros((8, 9, 9), bool)
     mask[0, 4, 4] = True
@@ -913,7 +915,7 @@ def test_a_dark_structure_beside_the_far_part_does_not_join_as_a_cavity(monkeypa
 def test_inner_half_of_a_flipped_brain_is_the_flipped_inner_half(shape, seed):
     # step 3d decides voxel by voxel on the depth of a coarse grid anchored at the
     # array's first voxel; its inner half must have no preferred side all the same
-    from tumor3d.lesion import _inner_half
+    from tumor3d.segmentation.lesion import _inner_half
 
     rng = np.random.default_rng(seed)
     brain = ndi.gaussian_filter(rng.normal(size=shape), (1, 4, 4)) > -0.3  # irregular
@@ -1213,8 +1215,8 @@ def test_a_midline_lesion_is_flagged_through_detection_and_segmentation(pad):
     # step 3f's flag travels from the lesion model (on the brain's box) through the
     # detection to the segmentation's notes; the brain off the array's centre makes the
     # box's pixel frame differ from the volume's
-    from tumor3d.detect import detect_abnormal_slices
-    from tumor3d.segment import segment_tumor
+    from tumor3d.segmentation.detect import detect_abnormal_slices
+    from tumor3d.segmentation.segment import segment_tumor
 
     img, brain, ball = _midline_image(6.0)
     widths = ((0, 0), (0, 0), pad)

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from tumor3d.errors import InputError
-from tumor3d.measures import (
+from tumor3d.geometry.measures import (
     cavalieri_alpha,
     cavalieri_precision,
     max_diameter_mm,

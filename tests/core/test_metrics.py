@@ -158,7 +158,7 @@ def test_mm3_to_ml():
 
 def _cube_mesh(side: float):
     """A closed, outward cube of edge ``side`` mm (volume side**3)."""
-    from tumor3d.mesh import Mesh
+    from tumor3d.geometry.mesh import Mesh
 
     v = np.array([[x, y, z] for x in (0, side) for y in (0, side) for z in (0, side)], float)
     quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]

@@ -1,4 +1,4 @@
-"""Tests of tumor3d.overlay: slice mosaics with mask contours."""
+"""Tests of tumor3d.visual.overlay: slice mosaics with mask contours."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from tumor3d.errors import InputError
-from tumor3d.overlay import overlay_mosaic, slice_positions_mm
+from tumor3d.visual.overlay import overlay_mosaic, slice_positions_mm
 
 RED = (255, 40, 40)
 

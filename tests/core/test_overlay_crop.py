@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from tumor3d.errors import InputError
-from tumor3d.overlay import overlay_mosaic
+from tumor3d.visual.overlay import overlay_mosaic
 
 RED = (255, 40, 40)
 

@@ -28,11 +28,11 @@ import numpy as np
 import pytest
 
 from tumor3d.config import PipelineConfig, parse_config
-from tumor3d.detect import detect_abnormal_slices
+from tumor3d.imaging.preprocess import preprocess_volume
 from tumor3d.metrics import volume_eq7_mm3
 from tumor3d.phantom import make_phantom_patient
-from tumor3d.preprocess import preprocess_volume
-from tumor3d.segment import segment_tumor
+from tumor3d.segmentation.detect import detect_abnormal_slices
+from tumor3d.segmentation.segment import segment_tumor
 
 PAPER_YAML = Path(__file__).resolve().parents[2] / "configs" / "paper.yaml"
 

@@ -16,15 +16,15 @@ import numpy as np
 import pytest
 
 from tumor3d.config import PipelineConfig, parse_config
-from tumor3d.detect import SliceDetection, detect_abnormal_slices
-from tumor3d.interpolate import InterpolatedStack, interpolate_stack
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.interpolate import InterpolatedStack, interpolate_stack
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import is_watertight, mesh_volume_mm3
+from tumor3d.imaging.preprocess import preprocess_volume
 from tumor3d.metrics import VolumeMeasurement, measure_volumes
 from tumor3d.phantom import PhantomPatient, make_phantom_patient
 from tumor3d.pipeline import tumour_surface
-from tumor3d.preprocess import preprocess_volume
-from tumor3d.segment import SegmentationResult, segment_tumor
-from tumor3d.surface import is_watertight, mesh_volume_mm3
+from tumor3d.segmentation.detect import SliceDetection, detect_abnormal_slices
+from tumor3d.segmentation.segment import SegmentationResult, segment_tumor
 
 TUMOUR_SEEDS = [0, 1, 2, 3, 4]
 TUMOUR_FREE_SEEDS = [0, 1]

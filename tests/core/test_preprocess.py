@@ -1,4 +1,4 @@
-"""Tests of tumor3d.preprocess (specification section 1)."""
+"""Tests of tumor3d.imaging.preprocess (specification section 1)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from simple_phantom import LABELS, make_head_phantom
 
 from tumor3d.config import PreprocessConfig
 from tumor3d.errors import InputError
-from tumor3d.preprocess import (
+from tumor3d.imaging.preprocess import (
     equalize_slices,
     preprocess_volume,
     remove_skull,
@@ -284,7 +284,7 @@ def test_zscored_skull_stripped_volume_keeps_the_whole_brain():
     tissue = np.clip(rng.normal(0.0, 1.0, (nz, n, n)), -3.0, None)
     vol = np.where(brain2d, tissue, -3.16).astype(np.float32)
     vol[0, 32, 32] = 1e4  # one extreme outlier voxel
-    from tumor3d.preprocess import preprocess_volume
+    from tumor3d.imaging.preprocess import preprocess_volume
 
     res = preprocess_volume(vol)  # brain_extraction="auto" -> foreground
     expect = np.broadcast_to(brain2d, vol.shape)
@@ -310,7 +310,7 @@ def test_a_resampled_skull_stripped_volume_keeps_its_brain():
     # a resampling (linear interpolation in float64) leaves the masked background equal
     # up to a few ulps: some of it just below the mask value, so that "exactly the
     # minimum" held 0.01 % of the voxels and the volume was taken for a raw head
-    from tumor3d.preprocess import preprocess_volume
+    from tumor3d.imaging.preprocess import preprocess_volume
 
     exact, brain = _zscored_brain(-3.16)
     rng = np.random.default_rng(2)
@@ -329,7 +329,7 @@ def test_a_resampled_skull_stripped_volume_keeps_its_brain():
 def test_a_zero_background_below_negative_tissue_is_the_background():
     # a brain z-scored to negative and positive values with the mask's 0 around it: the
     # background is the value the mask left (0), not the volume's minimum
-    from tumor3d.preprocess import preprocess_volume
+    from tumor3d.imaging.preprocess import preprocess_volume
 
     vol, brain = _zscored_brain(0.0)
     assert vol.min() < 0.0
@@ -339,7 +339,7 @@ def test_a_zero_background_below_negative_tissue_is_the_background():
 
 
 def test_brain_extraction_rejects_unknown_mode():
-    from tumor3d.preprocess import preprocess_volume
+    from tumor3d.imaging.preprocess import preprocess_volume
 
     with pytest.raises(InputError, match="brain_extraction"):
         preprocess_volume(np.arange(27.0).reshape(3, 3, 3), brain_extraction="bet")
@@ -348,7 +348,7 @@ def test_brain_extraction_rejects_unknown_mode():
 def test_fill_holes_per_slice_matches_slice_by_slice_filling():
     from scipy import ndimage as ndi
 
-    from tumor3d.preprocess import fill_holes_per_slice
+    from tumor3d.imaging.preprocess import fill_holes_per_slice
 
     rng = np.random.default_rng(0)
     mask = rng.random((5, 40, 40)) > 0.6
@@ -368,7 +368,7 @@ def _random_masks(rng, n):
 def test_fill_holes_per_slice_matches_scipy_per_slice_on_random_masks():
     from scipy import ndimage as ndi
 
-    from tumor3d.preprocess import fill_holes_per_slice
+    from tumor3d.imaging.preprocess import fill_holes_per_slice
 
     rng = np.random.default_rng(11)
     for mask in _random_masks(rng, 150):
@@ -387,7 +387,7 @@ def test_fill_holes_per_slice_matches_scipy_per_slice_on_random_masks():
 def test_median3_fast_path_matches_scipy_rank_filter():
     from scipy import ndimage as ndi
 
-    from tumor3d.preprocess import _median_stack
+    from tumor3d.imaging.preprocess import _median_stack
 
     rng = np.random.default_rng(12)
     for _ in range(150):
@@ -404,7 +404,7 @@ def _naive_remove_skull(stack, radius, threshold):
     from scipy import ndimage as ndi
     from skimage.morphology import disk
 
-    from tumor3d.preprocess import _skull_threshold
+    from tumor3d.imaging.preprocess import _skull_threshold
 
     footprint = disk(radius).astype(bool) if radius > 0 else None
     mask = np.zeros(stack.shape, dtype=bool)
@@ -430,7 +430,7 @@ def _naive_keep_nested(mask):
     from scipy import ndimage as ndi
     from skimage.morphology import disk
 
-    from tumor3d.preprocess import _NESTING_MAX_OUTSIDE, _NESTING_TOLERANCE_PX
+    from tumor3d.imaging.preprocess import _NESTING_MAX_OUTSIDE, _NESTING_TOLERANCE_PX
 
     areas = mask.sum(axis=(1, 2))
     if not areas.any():
@@ -482,7 +482,7 @@ def test_remove_skull_matches_per_slice_reference_on_random_stacks():
 
 
 def test_keep_nested_slices_matches_sequential_walk():
-    from tumor3d.preprocess import _keep_nested_slices
+    from tumor3d.imaging.preprocess import _keep_nested_slices
 
     rng = np.random.default_rng(14)
     yy, xx = np.mgrid[:40, :40]
@@ -525,7 +525,7 @@ def test_the_air_outside_a_raw_head_is_found_and_no_brain_voxel_comes_near_it():
     """Anatomy: the brain lies at least the scalp plus skull (5 mm) inside the head."""
     from scipy import ndimage as ndi
 
-    from tumor3d.brain_extraction import SCALP_SKULL_MIN_MM
+    from tumor3d.imaging.brain_extraction import SCALP_SKULL_MIN_MM
     from tumor3d.phantom.patient import make_phantom_patient
 
     scan = make_phantom_patient(2).scan
@@ -586,7 +586,7 @@ def test_the_background_range_sample_does_not_alias_with_the_rows():
     """A review: a stride of size // 200,000 that is a multiple of the row length samples
     one column only; if that column is background, the range (and tolerance) is 0 and a
     resampled background (equal up to a few ulps) is lost."""
-    from tumor3d.preprocess import masked_background
+    from tumor3d.imaging.preprocess import masked_background
 
     rng = np.random.default_rng(3)
     shape = (10_000, 20, 20)  # size // 200_000 = 20: a multiple of the row length

@@ -1,4 +1,4 @@
-"""Tests of tumor3d.render: the tumour inside a translucent brain, cut-aways, labels.
+"""Tests of tumor3d.visual.render: the tumour inside a translucent brain, cut-aways, labels.
 
 Most tests use the numpy (numba z-buffer) renderer, which is exact and fast;
 the Open3D tests need a working offscreen renderer (open3d with Mesa) and
@@ -16,8 +16,9 @@ from PIL import Image, ImageDraw
 from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
-from tumor3d.render import (
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import extract_surface
+from tumor3d.visual.render import (
     ANATOMICAL_VIEWS,
     _clip_by_plane,
     _font,
@@ -28,7 +29,6 @@ from tumor3d.render import (
     turntable_gif,
     vertex_normals,
 )
-from tumor3d.surface import extract_surface
 
 BG = (0.2, 0.4, 0.6)
 BG_U8 = np.round(np.array(BG) * 255).astype(int)  # (51, 102, 153)
@@ -623,7 +623,7 @@ _EMPTY = Mesh(np.zeros((0, 3)), np.zeros((0, 3), int))
 @pytest.mark.parametrize(
     ("mesh", "kwargs", "match"),
     [
-        ((OCTA_V, OCTA_F), {}, "tumor must be a tumor3d.mesh.Mesh"),
+        ((OCTA_V, OCTA_F), {}, "tumor must be a tumor3d.geometry.mesh.Mesh"),
         (_EMPTY, {}, "empty tumor mesh"),
         (_OCTA, {"brain": _EMPTY}, "empty brain mesh"),
         (_OCTA, {"width": 64.0}, "width must be an integer"),
@@ -650,7 +650,7 @@ def test_render_views_validation(mesh, kwargs, match):
 
 
 def test_vertex_normals_rejects_non_mesh():
-    with pytest.raises(InputError, match="tumor3d.mesh.Mesh"):
+    with pytest.raises(InputError, match="tumor3d.geometry.mesh.Mesh"):
         vertex_normals(OCTA_V)
 
 
@@ -658,7 +658,7 @@ def test_importing_render_does_not_import_open3d():
     import subprocess
     import sys
 
-    code = "import sys, tumor3d.render; sys.exit('open3d' in sys.modules)"
+    code = "import sys, tumor3d.visual.render; sys.exit('open3d' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
 
 
@@ -668,8 +668,8 @@ def test_importing_render_does_not_import_open3d():
 
 
 def test_brain_surface_from_thick_slices_matches_the_ellipsoid():
-    from tumor3d.render import brain_surface
-    from tumor3d.surface import is_watertight, mesh_volume_mm3
+    from tumor3d.geometry.surface import is_watertight, mesh_volume_mm3
+    from tumor3d.visual.render import brain_surface
 
     radii = np.array([40.0, 48.0, 36.0])  # x, y, z mm
     # acquired slices: 1 mm pixels, 5 mm slice step, LPS-like flipped in-plane axes

@@ -1,10 +1,10 @@
-"""tumor3d.review: one rule decides ok / check / failed and the reasons."""
+"""tumor3d.segmentation.review: one rule decides ok / check / failed and the reasons."""
 
 from __future__ import annotations
 
 import pytest
 
-from tumor3d.review import STATUSES, review_status, segmentation_review
+from tumor3d.segmentation.review import STATUSES, review_status, segmentation_review
 
 
 def test_no_doubt_is_ok_and_needs_no_review():

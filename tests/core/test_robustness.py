@@ -4,13 +4,13 @@ Each test pins one rule with an independent expectation (a small hand-built
 array whose right answer is obvious, or the phantom's ground truth) and fails
 if the rule is switched off:
 
-- ``tumor3d.preprocess._keep_nested_slices`` (scalp discs beyond the brain);
-- ``tumor3d.segment``: the T2 CSF pin and the populous-unmatched rule of
+- ``tumor3d.imaging.preprocess._keep_nested_slices`` (scalp discs beyond the brain);
+- ``tumor3d.segmentation.segment``: the T2 CSF pin and the populous-unmatched rule of
   ``_choose_tumor_cluster``, the brain rim of ``_tumor_component``,
   ``max_brain_fraction``, the 3-D grouping (``_largest_linked_group``),
   the tips (``_extend_tips``: partial volume, third tissue excluded) and
   ``_refine_boundary``;
-- ``tumor3d.interpolate.interpolate_stack(..., end_caps="taper")``.
+- ``tumor3d.geometry.interpolate.interpolate_stack(..., end_caps="taper")``.
 """
 
 from __future__ import annotations
@@ -19,19 +19,19 @@ import numpy as np
 import pytest
 
 from tumor3d.config import PipelineConfig
-from tumor3d.detect import SliceDetection
 from tumor3d.errors import InputError
-from tumor3d.interpolate import interpolate_pair, interpolate_stack
+from tumor3d.geometry.interpolate import interpolate_pair, interpolate_stack
+from tumor3d.geometry.surface import extract_surface, mesh_volume_mm3
+from tumor3d.imaging.preprocess import _keep_nested_slices, preprocess_volume
 from tumor3d.phantom import make_phantom_patient
-from tumor3d.preprocess import _keep_nested_slices, preprocess_volume
-from tumor3d.segment import (
+from tumor3d.segmentation.detect import SliceDetection
+from tumor3d.segmentation.segment import (
     _choose_tumor_cluster,
     _largest_linked_group,
     _refine_boundary,
     _tumor_component,
     segment_tumor,
 )
-from tumor3d.surface import extract_surface, mesh_volume_mm3
 
 SCALP, CSF_LABEL, GM_LABEL, WM_LABEL, TUMOUR_LABEL = 1, 3, 4, 5, 6
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from tumor3d.errors import InputError
-from tumor3d.scan import Scan, SourceGrid, validate_patient_id, zyx_index_to_ras
+from tumor3d.imaging.scan import Scan, SourceGrid, validate_patient_id, zyx_index_to_ras
 
 
 def _scan(**overrides):

@@ -1,4 +1,4 @@
-"""Tests of tumor3d.segment (specification section 3)."""
+"""Tests of tumor3d.segmentation.segment (specification section 3)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import pytest
 from simple_phantom import FLAIR_INTENSITY, make_head_phantom
 
 from tumor3d.config import DetectConfig, PreprocessConfig, SegmentConfig
-from tumor3d.detect import SliceDetection, detect_abnormal_slices
 from tumor3d.errors import InputError
-from tumor3d.preprocess import preprocess_volume
-from tumor3d.segment import fcm_memberships, fuzzy_cmeans_histogram, segment_tumor
+from tumor3d.imaging.preprocess import preprocess_volume
+from tumor3d.segmentation.detect import SliceDetection, detect_abnormal_slices
+from tumor3d.segmentation.segment import fcm_memberships, fuzzy_cmeans_histogram, segment_tumor
 
 DEFAULTS = SegmentConfig().model_dump()
 FCM_DEFAULTS = {k: DEFAULTS[k] for k in ("fuzziness", "tol", "max_num_iter")}
@@ -352,7 +352,7 @@ def test_multiotsu_peer_segments_the_flair_blob():
 
 
 def test_auto_method_resolves_by_modality():
-    from tumor3d.segment import resolve_method
+    from tumor3d.segmentation.segment import resolve_method
 
     # the learned method on FLAIR and T1c: chosen by cross-validation (reports/learned_cv.md)
     assert resolve_method("auto", "FLAIR") == "learned"
@@ -379,7 +379,7 @@ def test_robust_on_a_brain_without_any_tissue_contrast_is_empty():
 
 
 def test_histogram_fcm_matches_naive_pixel_fcm_of_tumor3d_fcm():
-    from tumor3d.fcm import fuzzy_cmeans_pixels
+    from tumor3d.segmentation.fcm import fuzzy_cmeans_pixels
 
     rng = np.random.default_rng(2)
     pixels = np.clip(np.concatenate([rng.normal(m, 6, 300) for m in (60, 120, 200)]), 0, 255)
@@ -402,14 +402,14 @@ def test_histogram_fcm_matches_naive_pixel_fcm_of_tumor3d_fcm():
     ],
 )
 def test_lesion_definition_names_what_each_method_measures(method, modality, words):
-    from tumor3d.segment import lesion_definition
+    from tumor3d.segmentation.segment import lesion_definition
 
     assert words in lesion_definition(method, modality)
     assert ("oedema" in lesion_definition(method, modality)) == (method == "robust")
 
 
 def test_lesion_definition_refuses_an_unresolved_method_or_unknown_modality():
-    from tumor3d.segment import lesion_definition
+    from tumor3d.segmentation.segment import lesion_definition
 
     with pytest.raises(InputError, match="no definition for method 'auto'"):
         lesion_definition("auto", "flair")

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import extract_surface, is_watertight, mesh_volume_mm3
 from tumor3d.simplify import METHODS, simplify_mesh, target_face_count
 from tumor3d.simplify.curvature import vertex_curvatures
 from tumor3d.simplify.qem import simplify_qem
-from tumor3d.surface import extract_surface, is_watertight, mesh_volume_mm3
 
 SPACING_ZYX = (1.0, 0.9, 0.9)
 RADIUS_MM = 12.0
@@ -223,7 +223,7 @@ _TETRA = Mesh(
 @pytest.mark.parametrize(
     ("mesh", "kwargs", "match"),
     [
-        ("mesh", {"reduction_percent": 50.0}, "tumor3d.mesh.Mesh"),
+        ("mesh", {"reduction_percent": 50.0}, "tumor3d.geometry.mesh.Mesh"),
         (_TETRA, {"reduction_percent": 50.0, "method": "magic"}, "unknown simplification method"),
         (_TETRA, {"reduction_percent": 50.0, "agg": 3.0}, r"unknown option\(s\) \['agg'\]"),
         (_TETRA, {"reduction_percent": -5.0}, r"\[0, 100\)"),
@@ -251,7 +251,7 @@ def test_simplify_qem_validation(kwargs, match):
 
 
 def test_simplify_qem_rejects_non_mesh():
-    with pytest.raises(InputError, match="tumor3d.mesh.Mesh"):
+    with pytest.raises(InputError, match="tumor3d.geometry.mesh.Mesh"):
         simplify_qem([1, 2, 3], target_faces=1)
 
 

@@ -23,10 +23,10 @@ import numba
 import numpy as np
 import pytest
 
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import extract_surface
 from tumor3d.simplify import _engine
 from tumor3d.simplify._prepare import DEFAULT_TOLERANCES, prepare
-from tumor3d.surface import extract_surface
 
 
 def _blob(seed: int) -> Mesh:

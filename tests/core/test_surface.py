@@ -1,4 +1,4 @@
-"""Tests of tumor3d.surface: marching cubes, cleaning, volume/area, edge topology."""
+"""Tests of tumor3d.geometry.surface: marching cubes, cleaning, volume/area, edge topology."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError, NoSurfaceError
-from tumor3d.mesh import Mesh
-from tumor3d.surface import (
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import (
     clean_mesh,
     edge_manifold_report,
     extract_surface,
@@ -323,7 +323,7 @@ def test_extract_surface_validation(mask, affine, kwargs, match):
 
 
 def test_measurements_reject_non_mesh():
-    with pytest.raises(InputError, match="must be a tumor3d.mesh.Mesh"):
+    with pytest.raises(InputError, match="must be a tumor3d.geometry.mesh.Mesh"):
         mesh_volume_mm3((CUBE_V, CUBE_F))
 
 

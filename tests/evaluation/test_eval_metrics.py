@@ -244,7 +244,7 @@ def test_point_set_distances_brute_force_and_sphere_meshes():
     np.testing.assert_allclose(d.pred_to_ref, brute.min(axis=1))
     np.testing.assert_allclose(d.ref_to_pred, brute.min(axis=0))
     # marching-cubes surfaces of two concentric balls (anisotropic voxels): HD = r2 - r1
-    from tumor3d.surface import extract_surface
+    from tumor3d.geometry.surface import extract_surface
 
     spacing = (2.0, 1.0, 1.0)  # (z, y, x)
     shape = (20, 40, 40)

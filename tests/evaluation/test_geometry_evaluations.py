@@ -27,7 +27,7 @@ from tumor3d.evaluation.geometry import (
     evaluate_simplification,
 )
 from tumor3d.evaluation.registry import EvaluationCase
-from tumor3d.surface import extract_surface
+from tumor3d.geometry.surface import extract_surface
 
 
 def _case(reference, reference_affine, *, slice_axis=2, acquired_affine=None, extras=None):

@@ -17,7 +17,7 @@ from tumor3d.evaluation.interpolation import (
     kth_slice_rows,
     table4_rows,
 )
-from tumor3d.interpolate import interpolate_pair, interpolation_error_percent
+from tumor3d.geometry.interpolate import interpolate_pair, interpolation_error_percent
 
 
 def naive_thick(label, k, thickness, phase, oversample=200):

@@ -16,9 +16,9 @@ from tumor3d.evaluation.simplification import (
     vertex_hausdorff,
     volume_change_percent,
 )
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import extract_surface, mesh_area_mm2
 from tumor3d.simplify import simplify_mesh
-from tumor3d.surface import extract_surface, mesh_area_mm2
 
 
 def _ball(radius_vox=8.0):
@@ -136,7 +136,7 @@ def test_simplification_rows(ball):
 @pytest.mark.parametrize(
     ("call", "match"),
     [
-        (lambda m: vertex_hausdorff("x", m), "mesh_a must be a tumor3d.mesh.Mesh"),
+        (lambda m: vertex_hausdorff("x", m), "mesh_a must be a tumor3d.geometry.mesh.Mesh"),
         (lambda m: surface_distances(m, Mesh(np.zeros((0, 3)), np.zeros((0, 3), int))), "empty"),
         (lambda m: sample_surface(m, -1), "n_samples"),
         (lambda m: sample_surface(m, 2.5), "n_samples"),

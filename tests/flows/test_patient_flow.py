@@ -33,11 +33,11 @@ from pydicom.uid import ExplicitVRLittleEndian, MRImageStorage, generate_uid
 
 from tumor3d.errors import InputError
 from tumor3d.flows.patient import VOLUME_METHODS, run_patient
+from tumor3d.geometry.surface import is_watertight, mesh_volume_mm3
 from tumor3d.phantom import make_phantom_patient
 from tumor3d.storage.formats import decode_ply
 from tumor3d.storage.phantom_io import write_phantom_patient
 from tumor3d.storage.viewer import NIIVUE_FILE
-from tumor3d.surface import is_watertight, mesh_volume_mm3
 from tumor3d.tasks.stages import STAGES
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]

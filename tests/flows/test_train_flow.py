@@ -23,7 +23,7 @@ from tumor3d.flows.train import run_training
 from tumor3d.learned.forest import ForestModel
 from tumor3d.learned.rows import rows_from_bytes
 from tumor3d.phantom import make_phantom_patient
-from tumor3d.segment import segment_tumor
+from tumor3d.segmentation.segment import segment_tumor
 from tumor3d.storage.manifest import write_manifest
 from tumor3d.storage.phantom_io import write_phantom_patient
 
@@ -71,9 +71,9 @@ def test_the_trained_model_segments_an_unseen_phantom(trained):
     _, out, _ = trained
     model = ForestModel.from_bytes((out / "model" / "hyper.npz").read_bytes())
     patient = make_phantom_patient(5, modality="flair", n_slices=14)
-    from tumor3d.detect import detect_abnormal_slices
-    from tumor3d.lesion import left_right_axis
-    from tumor3d.preprocess import preprocess_volume
+    from tumor3d.imaging.preprocess import preprocess_volume
+    from tumor3d.segmentation.detect import detect_abnormal_slices
+    from tumor3d.segmentation.lesion import left_right_axis
 
     scan = patient.scan
     spacing = (scan.slice_step_mm, *scan.pixel_spacing_mm)

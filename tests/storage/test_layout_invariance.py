@@ -20,12 +20,12 @@ import numpy as np
 import pytest
 
 from tumor3d.config import PipelineConfig
-from tumor3d.detect import detect_abnormal_slices
-from tumor3d.lesion import left_right_axis
+from tumor3d.imaging.preprocess import preprocess_volume
+from tumor3d.imaging.scan import zyx_index_to_ras
 from tumor3d.phantom import make_phantom_patient
-from tumor3d.preprocess import preprocess_volume
-from tumor3d.scan import zyx_index_to_ras
-from tumor3d.segment import segment_tumor
+from tumor3d.segmentation.detect import detect_abnormal_slices
+from tumor3d.segmentation.lesion import left_right_axis
+from tumor3d.segmentation.segment import segment_tumor
 from tumor3d.storage.readers import read_scan
 
 

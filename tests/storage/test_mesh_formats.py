@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import extract_surface
 from tumor3d.storage.formats import encode_ply, encode_stl, encode_vtk_polydata, ras_to_lps
-from tumor3d.surface import extract_surface
 
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 

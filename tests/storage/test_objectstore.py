@@ -22,7 +22,7 @@ moto_server = pytest.importorskip(
 
 from tumor3d.flows.cli import app  # noqa: E402
 from tumor3d.flows.cohort import run_cohort  # noqa: E402
-from tumor3d.mesh import Mesh  # noqa: E402
+from tumor3d.geometry.mesh import Mesh  # noqa: E402
 from tumor3d.phantom import make_phantom_patient  # noqa: E402
 from tumor3d.storage.manifest import write_manifest  # noqa: E402
 from tumor3d.storage.objectstore import ObjectStore, open_store  # noqa: E402

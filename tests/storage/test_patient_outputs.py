@@ -67,7 +67,7 @@ def test_each_note_reaches_the_report_whole_even_with_the_separator_inside_it():
 
 
 def test_brain_volume_note_is_one_note():
-    from tumor3d.preprocess import brain_volume_note
+    from tumor3d.imaging.preprocess import brain_volume_note
 
     note = brain_volume_note(3257.0)
     assert note is not None and split_notes(join_notes([note])) == [note]
@@ -117,7 +117,7 @@ def test_cohort_rows_link_existing_files_of_published_patients_only(tmp_path):
 
 
 def test_the_report_says_what_is_measured_and_on_which_sequence_the_diameters_are():
-    from tumor3d.segment import lesion_definition
+    from tumor3d.segmentation.segment import lesion_definition
     from tumor3d.storage.report_html import patient_report_markdown, patient_summary_table
 
     words = lesion_definition("robust", "flair")

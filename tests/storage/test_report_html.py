@@ -15,7 +15,7 @@ from headless_chromium import (
 )
 
 from tumor3d.errors import InputError
-from tumor3d.render import render_views, turntable_gif
+from tumor3d.geometry.surface import extract_surface
 from tumor3d.storage.formats import encode_png
 from tumor3d.storage.report_html import (
     EQ7_PRECISION_DEFINITION,
@@ -25,7 +25,7 @@ from tumor3d.storage.report_html import (
     patient_report_markdown,
     patient_summary_table,
 )
-from tumor3d.surface import extract_surface
+from tumor3d.visual.render import render_views, turntable_gif
 
 
 def _data(**extra):

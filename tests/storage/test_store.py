@@ -12,8 +12,8 @@ import pandas as pd
 import pytest
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
-from tumor3d.scan import Scan, SourceGrid
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.imaging.scan import Scan, SourceGrid
 from tumor3d.storage import formats
 from tumor3d.storage.inputs import input_digest
 from tumor3d.storage.store import ArtifactStore, StoreError, atomic_write_bytes

@@ -14,7 +14,8 @@ import pytest
 from headless_chromium import needs_chromium, open_page, serious_console_messages
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import extract_surface
 from tumor3d.storage.nifti import decode_nifti
 from tumor3d.storage.viewer import (
     ASSETS_DIR,
@@ -27,7 +28,6 @@ from tumor3d.storage.viewer import (
     viewer_volume,
     write_viewer_assets,
 )
-from tumor3d.surface import extract_surface
 
 # A head on a thick-slice grid (1.5 x 1.5 x 5 mm), the tumour on the patient's right
 # (x > centre: +x is R in RAS) and posterior (y < centre: +y is A).
@@ -199,7 +199,7 @@ def test_page_without_brain_or_meshes(head):
         ({"tumour_zyx": np.zeros((2, 2, 2), bool)}, "tumour mask has shape"),
         ({"brain_zyx": np.zeros((2, 2, 2), bool)}, "brain mask has shape"),
         ({"affine": np.zeros((4, 4))}, "affine"),
-        ({"tumour_mesh": np.zeros((3, 3))}, "tumour_mesh must be a tumor3d.mesh.Mesh"),
+        ({"tumour_mesh": np.zeros((3, 3))}, "tumour_mesh must be a tumor3d.geometry.mesh.Mesh"),
         ({"brain_opacity": 0.0}, "brain_opacity"),
         ({"tumor_color_rgb": (2, 0, 0)}, "tumor_color_rgb"),
         ({"assets_href": "https://cdn.example/x"}, "relative URL"),

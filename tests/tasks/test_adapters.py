@@ -12,7 +12,7 @@ import pytest
 
 from tumor3d.config import PipelineConfig, SimplifyConfig
 from tumor3d.flows.patient import run_stages_direct
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh
 from tumor3d.phantom import make_phantom_patient
 from tumor3d.storage.patient_outputs import join_notes, split_notes
 from tumor3d.storage.phantom_io import write_phantom_patient
@@ -187,7 +187,7 @@ def test_stage_outputs_are_sealed_and_detect_edits(tumour_run):
 
 
 def test_interpolate_stage_resolves_the_automatic_slice_count_in_the_core(tumour_run):
-    from tumor3d.interpolate import slices_between_auto
+    from tumor3d.geometry.interpolate import slices_between_auto
 
     run, _ = tumour_run
     scan = run.outputs["ingest-scan"].values
@@ -210,10 +210,10 @@ def test_slice_table_rows_match_detection(tumour_run):
 
 
 def _count_lesion_runs(monkeypatch):
-    import tumor3d.detect as detect_mod
-    import tumor3d.lesion as lesion_mod
-    import tumor3d.segment as segment_mod
-    from tumor3d.lesion import patient_lesion, segment_hyperintense_lesion
+    import tumor3d.segmentation.detect as detect_mod
+    import tumor3d.segmentation.lesion as lesion_mod
+    import tumor3d.segmentation.segment as segment_mod
+    from tumor3d.segmentation.lesion import patient_lesion, segment_hyperintense_lesion
 
     calls: list[str] = []
     for mod in (detect_mod, segment_mod):
@@ -241,7 +241,7 @@ def test_the_lesion_model_runs_once_in_detect_and_segment_keeps_its_mask(tmp_pat
     image = write_phantom_patient(patient, tmp_path / "in").image
     cfg = {"detect": {"method": "robust"}, "segment": {"method": "robust"}}
     run = run_stages_direct(image, tmp_path / "store", config=cfg, patient_id="once2")
-    assert calls == [("tumor3d.detect", 2.0, True)]
+    assert calls == [("tumor3d.segmentation.detect", 2.0, True)]
     store = ArtifactStore(tmp_path / "store")
     det_out = run.outputs["detect-abnormal"]
     assert det_out.values["lesion_computed"] is True
@@ -272,7 +272,7 @@ def test_histogram_detection_then_robust_segment_uses_the_detect_lesion_params(
         "segment": {"method": "robust"},
     }
     run = run_stages_direct(image, tmp_path / "store", config=cfg, patient_id="hist2")
-    assert calls == [("tumor3d.segment", 2.5, True)]
+    assert calls == [("tumor3d.segmentation.segment", 2.5, True)]
     assert run.outputs["detect-abnormal"].values["lesion_computed"] is False
     assert run.outputs["segment-tumor"].values["tumor_pixels_total"] > 0
 
@@ -282,7 +282,7 @@ def test_the_lesion_artifact_metadata_round_trips_the_mirror_plane():
     # the mid-sagittal plane (JSON-able: plain floats and ints)
     import json
 
-    from tumor3d.lesion import LesionResult, MirrorPlane, NormalModel
+    from tumor3d.segmentation.lesion import LesionResult, MirrorPlane, NormalModel
     from tumor3d.tasks.detect import lesion_metadata
     from tumor3d.tasks.segment import lesion_from_artifact
 
@@ -311,7 +311,7 @@ def test_the_lesion_artifact_metadata_round_trips_the_mirror_plane():
 
 
 def test_preprocess_notes_say_when_the_brain_is_smaller_than_any_human_brain():
-    from tumor3d.preprocess import MIN_BRAIN_SLICE_MM2
+    from tumor3d.imaging.preprocess import MIN_BRAIN_SLICE_MM2
 
     base = {"brain_volume_ml": 1.7, "brain_slices": 20, "tissue_slices": 26,
             "brain_extraction": "foreground"}  # fmt: skip

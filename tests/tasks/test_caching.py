@@ -81,9 +81,9 @@ def test_closure_holds_every_module_the_adapter_imports(stage, runtime_imports):
 
 
 def test_closure_follows_the_imports_the_old_table_missed():
-    assert "tumor3d.scan" in STAGES["extract-surface"].code_modules  # zyx_index_to_ras
-    assert "tumor3d.scan" in STAGES["simplify-mesh"].code_modules
-    assert "tumor3d.scan" in STAGES["measure-volume"].code_modules
+    assert "tumor3d.imaging.scan" in STAGES["extract-surface"].code_modules  # zyx_index_to_ras
+    assert "tumor3d.imaging.scan" in STAGES["simplify-mesh"].code_modules
+    assert "tumor3d.imaging.scan" in STAGES["measure-volume"].code_modules
     for stage in STAGES.values():  # every volume write goes through it
         assert "tumor3d.storage.nifti" in stage.code_modules, stage.name
 
@@ -106,7 +106,7 @@ def test_closure_holds_a_packages_lazy_imports_only_when_asked_for_a_lazy_name(p
     assert "tumor3d.api" not in closures["plain"]
     for name in ("from_import", "attribute", "aliased"):
         assert "tumor3d.api" in closures[name], name
-        assert "tumor3d.scan" in closures[name], name  # and what the api imports
+        assert "tumor3d.imaging.scan" in closures[name], name  # and what the api imports
     for spec in STAGES.values():  # no stage asks for the lazy names today
         assert "tumor3d.api" not in spec.code_modules, spec.name
 
@@ -143,8 +143,9 @@ _BEHAVIOUR_EDIT = "\n_CACHE_KEY_PROBE = 1\n"
 
 @pytest.mark.parametrize(
     "module",
-    ["tumor3d.scan", "tumor3d.simplify.qem", "tumor3d.storage.nifti", "tumor3d.metrics",
-     "tumor3d.tasks.surface", "tumor3d.detect", "tumor3d.storage.readers", "tumor3d.errors"],
+    ["tumor3d.imaging.scan", "tumor3d.simplify.qem", "tumor3d.storage.nifti", "tumor3d.metrics",
+     "tumor3d.tasks.surface", "tumor3d.segmentation.detect", "tumor3d.storage.readers",
+     "tumor3d.errors"],
 )  # fmt: skip
 def test_editing_a_module_changes_exactly_the_keys_whose_closure_holds_it(package_copy, module):
     before = _keys(package_copy)
@@ -170,7 +171,7 @@ def test_a_behaviour_edit_in_one_adapter_invalidates_only_that_stage(package_cop
 
 # -- code digests from the syntax tree (issue 31) -------------------------------
 
-#: Appended to tumor3d/scan.py: a constant, a function with a docstring and a comment.
+#: Appended to tumor3d/imaging/scan.py: a constant, a function with a docstring and a comment.
 _SCAN_PROBE = '''
 
 _PROBE_LIMIT = 2
@@ -183,14 +184,14 @@ def _probe(a, b):
 
 
 def _edit_scan(root, text: str) -> None:
-    target = _module_file("tumor3d.scan", root)
+    target = _module_file("tumor3d.imaging.scan", root)
     target.write_text(text)
 
 
 @pytest.fixture
 def scan_probe(package_copy):
-    """A package copy whose tumor3d/scan.py ends with :data:`_SCAN_PROBE`; its original text."""
-    target = _module_file("tumor3d.scan", package_copy)
+    """A package copy whose tumor3d/imaging/scan.py ends with :data:`_SCAN_PROBE`; its text."""
+    target = _module_file("tumor3d.imaging.scan", package_copy)
     original = target.read_text() + _SCAN_PROBE
     target.write_text(original)
     return package_copy, original
@@ -238,7 +239,7 @@ def test_a_constant_or_an_operator_moves_the_keys_of_the_stages_holding_the_modu
     after = _keys(root)
     expected = {
         n for n, spec in STAGES.items()
-        if "tumor3d.scan" in module_closure((spec.adapter_module,), str(root))
+        if "tumor3d.imaging.scan" in module_closure((spec.adapter_module,), str(root))
     }  # fmt: skip
     assert expected
     assert {n for n in STAGES if before[n] != after[n]} == expected

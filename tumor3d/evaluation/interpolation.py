@@ -22,7 +22,7 @@ Methods are named as in the paper: ``LG`` (linear mask interpolation, the
 mask variant of [A14]), ``SO`` (city-block shape-based), ``SE`` (Algorithm
 1, chamfer, one centroid per slice), then the variants of this project
 (``-EDT``: exact Euclidean distance; ``parts``: matched parts, see
-:mod:`tumor3d.interpolate`) and ``ITK``, the MorphologicalContourInterpolator
+:mod:`tumor3d.geometry.interpolate`) and ``ITK``, the MorphologicalContourInterpolator
 of ITK (Zukic et al. 2016, the "fill between slices" of 3D Slicer and
 ITK-SNAP), an optional peer (``pip install 'tumor3d[peers]'``).
 
@@ -47,9 +47,13 @@ from typing import Any
 import numpy as np
 from scipy import ndimage as ndi
 
-from tumor3d.distance import as_mask
 from tumor3d.errors import InputError
-from tumor3d.interpolate import interpolate_pair, interpolate_stack, interpolation_error_percent
+from tumor3d.geometry.distance import as_mask
+from tumor3d.geometry.interpolate import (
+    interpolate_pair,
+    interpolate_stack,
+    interpolation_error_percent,
+)
 
 __all__ = [
     "ITK_METHOD",
@@ -62,7 +66,7 @@ __all__ = [
     "table4_rows",
 ]
 
-#: label -> keyword arguments of :func:`tumor3d.interpolate.interpolate_stack`.
+#: label -> keyword arguments of :func:`tumor3d.geometry.interpolate.interpolate_stack`.
 METHODS: dict[str, dict[str, str]] = {
     "LG": {"method": "linear", "parts": "whole"},
     "SO": {"method": "shape", "parts": "whole"},

@@ -15,7 +15,7 @@ For one patient against its reference (:class:`EvaluationCase`):
   (:mod:`tumor3d.evaluation.metrics`) between the boundary voxels on that
   grid (``hd95_mm``, ``hd_max_mm``); and between the published
   marching-cubes surface (``tumor.ply``) and the reference's own
-  marching-cubes surface (:func:`tumor3d.surface.extract_surface`), vertex
+  marching-cubes surface (:func:`tumor3d.geometry.surface.extract_surface`), vertex
   to nearest vertex (``hd95_surface_mm``, ``hd_max_surface_mm``);
 * volumes: each method of ``metrics.parquet`` against the reference volume
   (reference voxels x voxel volume), signed % error.
@@ -130,7 +130,7 @@ def evaluate_segmentation(case: EvaluationCase) -> EvaluationRows:
         hd95_s = hdmax_s = nan
         mesh = case.extras.get("mesh_tumor")
         if mesh is not None and len(mesh.vertices) and reference.any():
-            from tumor3d.surface import extract_surface
+            from tumor3d.geometry.surface import extract_surface
 
             # extract_surface takes (z, y, x) with an affine of (x, y, z): the
             # reference's own (i0, i1, i2) order reversed, with its affine unchanged

@@ -1,6 +1,6 @@
 r"""Evaluation of mesh simplification (spec section 9, Eq. 11, [A28]).
 
-Pure functions on :class:`~tumor3d.mesh.Mesh` objects that return numbers or
+Pure functions on :class:`~tumor3d.geometry.mesh.Mesh` objects that return numbers or
 table rows (lists of flat dicts); the evaluation registry calls
 :func:`simplification_rows`.
 
@@ -33,8 +33,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
-from tumor3d.surface import edge_manifold_report, is_watertight, mesh_volume_mm3
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import edge_manifold_report, is_watertight, mesh_volume_mm3
 
 __all__ = [
     "sample_surface",
@@ -48,7 +48,7 @@ __all__ = [
 
 def _check_mesh(mesh: Any, name: str) -> Mesh:
     if not isinstance(mesh, Mesh):
-        raise InputError(f"{name} must be a tumor3d.mesh.Mesh, got {type(mesh).__name__}")
+        raise InputError(f"{name} must be a tumor3d.geometry.mesh.Mesh, got {type(mesh).__name__}")
     if mesh.is_empty:
         raise InputError(f"{name} is empty (no faces)")
     return mesh

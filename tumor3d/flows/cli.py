@@ -24,7 +24,7 @@ problem, never a traceback; nothing is published under the final names):
   status ``check``: the tool's own checks doubt it (a segmentation caveat, a
   brain mask that makes the volume unreliable, skipped files, a segmentation
   that asks for review); the summary says why (:data:`EXIT_CHECK`,
-  :mod:`tumor3d.review`). A cohort with failures exits 1.
+  :mod:`tumor3d.segmentation.review`). A cohort with failures exits 1.
 
 User-supplied strings are escaped before Rich prints them. When stdout is not
 a terminal, progress is one plain line per stage instead of a progress bar.
@@ -99,7 +99,7 @@ EXIT_ENVIRONMENT = 3
 EXIT_CHECK = 4
 #: Exit code of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
 EXIT_INTERRUPTED = 130
-#: Rich style of each status (tumor3d.review).
+#: Rich style of each status (tumor3d.segmentation.review).
 _STATUS_STYLE = {"ok": "bold green", "check": "bold yellow", "failed": "bold red"}
 
 
@@ -256,7 +256,7 @@ class _PlainReporter:
 
 
 def _patient_exit_code(result: Any) -> int:
-    """0 for status ok, :data:`EXIT_CHECK` for check (tumor3d.review)."""
+    """0 for status ok, :data:`EXIT_CHECK` for check (tumor3d.segmentation.review)."""
     return EXIT_CHECK if result.metrics.get("status") == "check" else 0
 
 
@@ -264,7 +264,7 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     """Print a patient's volumes (mm3 and mL, by method), slices, stage times and status.
 
     The status comes last: ``ok``, or ``check`` with the reasons the tool's
-    own checks doubt the result (:mod:`tumor3d.review`).
+    own checks doubt the result (:mod:`tumor3d.segmentation.review`).
     """
     from tumor3d.flows.patient import VOLUME_LABELS, VOLUME_METHODS
     from tumor3d.storage.patient_outputs import split_notes
@@ -371,7 +371,7 @@ def _preflight(
     naming the URL if it cannot be) instead, never made a local folder.
     """
     from tumor3d.errors import InputError
-    from tumor3d.scan import validate_patient_id
+    from tumor3d.imaging.scan import validate_patient_id
     from tumor3d.storage import bids
     from tumor3d.storage.inputs import input_digest, input_location
     from tumor3d.storage.objectstore import default_store_location, is_url, open_store

@@ -50,7 +50,7 @@ from tumor3d.flows.patient import (
     prepare_segmentation,
     prepare_source,
 )
-from tumor3d.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
+from tumor3d.segmentation.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
 from tumor3d.storage import bids
 from tumor3d.storage.cohort_report import (
     cohort_markdown,
@@ -92,7 +92,7 @@ class PatientOutcome(BaseModel):
     patient_id : str
     status : {"ok", "check", "failed"}
         ``check``: completed, but the tool's own checks doubt the result
-        (:mod:`tumor3d.review`; the metrics' ``review_reasons`` say why).
+        (:mod:`tumor3d.segmentation.review`; the metrics' ``review_reasons`` say why).
     failed_stage : str or None
         The stage that raised (``prepare-input`` before the first stage,
         ``publish`` after the last).
@@ -154,7 +154,7 @@ EXIT_CHECK = 4
 
 
 def exit_code_of(statuses: list[str]) -> int:
-    """A command's exit code from its patients' statuses (:mod:`tumor3d.review`).
+    """A command's exit code from its patients' statuses (:mod:`tumor3d.segmentation.review`).
 
     1 when some failed, else :data:`EXIT_CHECK` (4) when some has status
     ``check``, else 0.

@@ -34,10 +34,10 @@ from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
 from tumor3d.flows.artifacts import publish_patient_artifacts
+from tumor3d.imaging.scan import validate_patient_id
 from tumor3d.metrics import EQ7_SLICE_RULES
-from tumor3d.review import NO_TUMOUR_NOTE, Review, review_status
-from tumor3d.review import run_notes as review_notes
-from tumor3d.scan import validate_patient_id
+from tumor3d.segmentation.review import NO_TUMOUR_NOTE, Review, review_status
+from tumor3d.segmentation.review import run_notes as review_notes
 from tumor3d.storage import bids, nifti
 from tumor3d.storage.brain_mask import GivenBrainMask, read_given_brain_mask
 from tumor3d.storage.formats import encode_parquet
@@ -429,8 +429,8 @@ def run_notes(
 ) -> tuple[list[str], list[str]]:
     """The run's notes (summary, metrics, provenance) and those that doubt the result.
 
-    :func:`tumor3d.review.run_notes` on the stages' values: the doubts make
-    the status ``check`` (:func:`tumor3d.review.review_status`). A given
+    :func:`tumor3d.segmentation.review.run_notes` on the stages' values: the doubts make
+    the status ``check`` (:func:`tumor3d.segmentation.review.review_status`). A given
     segmentation adds an informational note (``segmentation: given (FILE, ...)``),
     as do nibabel's repairs of the input's NIfTI header (the ingest-scan stage's
     ``header_notes``).
@@ -591,7 +591,7 @@ def _metrics_row(
     review: Review,
 ) -> dict[str, Any]:
     row: dict[str, Any] = {"patient_id": pid}
-    # ok or check (a failed run publishes no metrics); tumor3d.review decides
+    # ok or check (a failed run publishes no metrics); tumor3d.segmentation.review decides
     row["status"] = review.status
     row["needs_review"] = review.needs_review
     row["review_reasons"] = join_notes(review.reasons)
@@ -620,7 +620,7 @@ def _metrics_row(
 PUBLISHER_MODULES = (
     "tumor3d.storage.bids", "tumor3d.storage.formats", "tumor3d.storage.nifti",
     "tumor3d.storage.patient_outputs", "tumor3d.storage.provenance",
-    "tumor3d.storage.publish", "tumor3d.storage.slice_table", "tumor3d.review",
+    "tumor3d.storage.publish", "tumor3d.storage.slice_table", "tumor3d.segmentation.review",
 )  # fmt: skip
 
 

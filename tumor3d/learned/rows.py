@@ -4,7 +4,7 @@ The training command (``tumor3d train``, :mod:`tumor3d.flows.train`) turns each
 labelled patient of a manifest into rows with :func:`patient_rows`: the
 features the model sees at inference (:func:`tumor3d.learned.features.
 compute_features`, with the robust method's mask of the same slices as the
-prior, as :func:`tumor3d.segment.segment_tumor` computes it for the learned
+prior, as :func:`tumor3d.segmentation.segment.segment_tumor` computes it for the learned
 method), sampled by :func:`tumor3d.learned.training.sample_rows` with a
 generator seeded per patient (so a patient's rows do not depend on which
 other patients are trained with it, and a cached stage stays valid).

@@ -109,7 +109,7 @@ def segment_learned(
         ``(slice step, row, column)`` in mm.
     modality : {"flair", "t2", "t1c"}
     lr_axis : {1, 2} or None
-        Left-right array axis (:func:`tumor3d.lesion.left_right_axis`).
+        Left-right array axis (:func:`tumor3d.segmentation.lesion.left_right_axis`).
     threshold, keep_fraction : float, optional
         Override the model's own (``model.meta``; defaults 0.5 and 0.3).
     prior : (z, y, x) ndarray of bool, optional

@@ -9,6 +9,7 @@ from typing import Any, Literal
 import numpy as np
 
 from tumor3d.errors import InputError
+from tumor3d.imaging.scan import Scan, SourceGrid, validate_patient_id
 from tumor3d.phantom.head import _T_CSF_MM, _Head, _random_head
 from tumor3d.phantom.raster import (
     _MONOMIALS,
@@ -20,7 +21,6 @@ from tumor3d.phantom.raster import (
     _render,
 )
 from tumor3d.phantom.shape import TumorShape, _scaled_shape, random_tumor_shape, tumor_volume_mm3
-from tumor3d.scan import Scan, SourceGrid, validate_patient_id
 from tumor3d.validation import check_int, check_positive
 
 # Presets: in-plane matrix (rows, columns) and pixel spacing in mm.

@@ -23,7 +23,7 @@ Methods
 Input requirements
 ------------------
 ``curvature`` and ``memoryless`` need a closed, consistently oriented
-2-manifold (what :func:`tumor3d.surface.extract_surface` returns); any other
+2-manifold (what :func:`tumor3d.geometry.surface.extract_surface` returns); any other
 mesh is refused with an :class:`~tumor3d.errors.InputError` that counts its
 boundary, non-manifold and inconsistent edges. Vertices where several closed
 fans touch (pinches) are accepted and left untouched. ``qem`` accepts any
@@ -40,11 +40,11 @@ from typing import Any, Literal
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import is_watertight, orient_outward
 from tumor3d.simplify.curvature import simplify_curvature
 from tumor3d.simplify.memoryless import simplify_memoryless
 from tumor3d.simplify.qem import simplify_qem
-from tumor3d.surface import is_watertight, orient_outward
 
 __all__ = [
     "METHODS",
@@ -122,7 +122,7 @@ def simplify_mesh(
     ----------
     mesh : Mesh
         A surface, normally closed and outward-oriented (from
-        :func:`tumor3d.surface.extract_surface`). It is not modified.
+        :func:`tumor3d.geometry.surface.extract_surface`). It is not modified.
     method : {"curvature", "memoryless", "qem"}, optional
         Simplification method (see the module docstring). The default,
         ``memoryless``, preserves the enclosed volume exactly and never
@@ -167,7 +167,7 @@ def simplify_mesh(
         consistently oriented 2-manifold.
     """
     if not isinstance(mesh, Mesh):
-        raise InputError(f"mesh must be a tumor3d.mesh.Mesh, got {type(mesh).__name__}")
+        raise InputError(f"mesh must be a tumor3d.geometry.mesh.Mesh, got {type(mesh).__name__}")
     if method not in _METHODS:
         raise InputError(f"unknown simplification method {method!r}; choose one of {METHODS}")
     func, allowed = _METHODS[method]

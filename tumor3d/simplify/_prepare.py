@@ -7,9 +7,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import edge_manifold_report
 from tumor3d.simplify import _engine
-from tumor3d.surface import edge_manifold_report
 
 __all__ = ["CollapseTolerances", "EngineInput", "check_target", "prepare"]
 
@@ -58,7 +58,7 @@ class EngineInput:
 def check_target(mesh: Mesh, target_faces: int) -> int:
     """Validate ``mesh`` and ``target_faces`` (``1 <= target <= F0``)."""
     if not isinstance(mesh, Mesh):
-        raise InputError(f"mesh must be a tumor3d.mesh.Mesh, got {type(mesh).__name__}")
+        raise InputError(f"mesh must be a tumor3d.geometry.mesh.Mesh, got {type(mesh).__name__}")
     if isinstance(target_faces, bool) or not isinstance(target_faces, (int, np.integer)):
         raise InputError(f"target_faces must be an integer, got {target_faces!r}")
     if not 1 <= target_faces <= mesh.n_faces:
@@ -96,6 +96,6 @@ def prepare(mesh: Mesh, method: str, *, compact_index: bool = False) -> EngineIn
             f"2-manifold mesh; this one has {r['n_boundary_edges']} boundary, "
             f"{r['n_nonmanifold_edges']} non-manifold and {r['n_inconsistent_edges']} "
             f"inconsistently oriented edges and {r['n_degenerate_faces']} degenerate faces "
-            "(clean it with tumor3d.surface.clean_mesh, or use method='qem')"
+            "(clean it with tumor3d.geometry.surface.clean_mesh, or use method='qem')"
         )
     return EngineInput(vertices, faces, head, nxt, status)

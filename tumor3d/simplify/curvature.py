@@ -65,7 +65,7 @@ from typing import Any, Literal
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh
 from tumor3d.simplify import _engine
 from tumor3d.simplify._prepare import DEFAULT_TOLERANCES, check_target, prepare
 
@@ -97,7 +97,7 @@ def vertex_curvatures(mesh: Mesh) -> np.ndarray:
         On a mesh that is not a closed oriented manifold.
     """
     if not isinstance(mesh, Mesh):
-        raise InputError(f"mesh must be a tumor3d.mesh.Mesh, got {type(mesh).__name__}")
+        raise InputError(f"mesh must be a tumor3d.geometry.mesh.Mesh, got {type(mesh).__name__}")
     if mesh.is_empty:
         raise InputError("cannot compute curvatures of an empty mesh")
     arr = prepare(mesh, "curvature")

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh
 from tumor3d.simplify import _engine
 from tumor3d.simplify._prepare import DEFAULT_TOLERANCES, check_target, prepare
 

@@ -40,8 +40,8 @@ from typing import Any
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
-from tumor3d.surface import clean_mesh, orient_outward
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.surface import clean_mesh, orient_outward
 
 __all__ = ["simplify_qem"]
 
@@ -82,7 +82,7 @@ def simplify_qem(
         On a bad target or aggressiveness.
     """
     if not isinstance(mesh, Mesh):
-        raise InputError(f"mesh must be a tumor3d.mesh.Mesh, got {type(mesh).__name__}")
+        raise InputError(f"mesh must be a tumor3d.geometry.mesh.Mesh, got {type(mesh).__name__}")
     if isinstance(target_faces, bool) or not isinstance(target_faces, (int, np.integer)):
         raise InputError(f"target_faces must be an integer, got {target_faces!r}")
     if not 1 <= target_faces <= mesh.n_faces:

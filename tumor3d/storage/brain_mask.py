@@ -1,7 +1,7 @@
 """A given brain mask file (``tumor3d run --brain-mask FILE``, manifest column ``brain_mask``).
 
 :func:`read_given_brain_mask` reads the mask file, checks it against its
-image (a :class:`tumor3d.scan.Scan` as the readers made it) and returns a
+image (a :class:`tumor3d.imaging.scan.Scan` as the readers made it) and returns a
 :class:`GivenBrainMask`: the brain on the Scan's ``(z, y, x)`` grid, ready
 for the preprocess stage, with the file's name and SHA-256 for provenance.
 
@@ -11,7 +11,7 @@ image-stack folder read by :func:`tumor3d.storage.readers.read_scan` (which refu
 a constant volume). It must be on the *image's own voxel grid as read*: the
 same voxel shape and affine (for a DICOM image, that of its sorted slices;
 the published ``brain_mask.nii.gz`` of an earlier run always is). Brain =
-voxels > 0.5 (:mod:`tumor3d.brain_mask`). Every problem is one
+voxels > 0.5 (:mod:`tumor3d.imaging.brain_mask`). Every problem is one
 :class:`~tumor3d.errors.InputError` line naming the mask file.
 """
 
@@ -25,10 +25,10 @@ from typing import Any
 
 import numpy as np
 
-from tumor3d.brain_mask import binarize_brain_mask, check_same_grid
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError, os_error_path, os_error_text
-from tumor3d.scan import Scan
+from tumor3d.imaging.brain_mask import binarize_brain_mask, check_same_grid
+from tumor3d.imaging.scan import Scan
 from tumor3d.storage.inputs import input_digest
 from tumor3d.storage.readers import ITK_SUFFIXES, read_scan
 from tumor3d.storage.readers.common import NIFTI_SUFFIXES

@@ -3,7 +3,7 @@
 ``cohort.html`` (:func:`cohort_page_rows` + :func:`tumor3d.storage.report_html.cohort_report_html`)
 sits beside ``cohort.parquet``: one row per patient with its anterior render
 as thumbnail, its volumes, its status (``ok``, ``check`` or ``failed``:
-:mod:`tumor3d.review`; the failing stage and error of a failed patient), its
+:mod:`tumor3d.segmentation.review`; the failing stage and error of a failed patient), its
 notes (why to check first) and a link to its ``report.html``, and a
 distribution plot of the Eq. 7 volumes. Links are relative (``<patient_id>/report.html``) and made
 only to files that exist, and never to a failed patient's folder (which may
@@ -18,7 +18,7 @@ from typing import Any
 
 import pandas as pd
 
-from tumor3d.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
+from tumor3d.segmentation.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
 from tumor3d.storage.formats import encode_parquet
 from tumor3d.storage.patient_outputs import split_notes
 from tumor3d.storage.report_html import cohort_report_html

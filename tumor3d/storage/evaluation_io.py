@@ -28,11 +28,11 @@ from typing import Any
 
 import numpy as np
 
-from tumor3d.brain_mask import binarize_brain_mask, check_same_grid
 from tumor3d.errors import InputError
 from tumor3d.evaluation import EvaluationCase
 from tumor3d.evaluation.emulate import emulate_thick_labels, emulate_thick_slices
 from tumor3d.evaluation.grids import grids_overlap, resample_nearest, same_grid
+from tumor3d.imaging.brain_mask import binarize_brain_mask, check_same_grid
 from tumor3d.storage import nifti
 from tumor3d.storage.brain_mask import read_brain_mask_volume
 from tumor3d.storage.formats import decode_parquet, decode_ply

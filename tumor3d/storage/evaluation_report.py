@@ -186,7 +186,8 @@ def write_report(
         for s in skipped:
             tag = "file absent" if s["missing_file"] else "invalid"
             parts.append(f"- {s['patient_id'] or ('row ' + str(s['row']))} ({tag}): {s['reason']}")
-    # the notes each run said about its own result (tumor3d.caveats, "no tumour found", a
+    # the notes each run said about its own result (tumor3d.segmentation.caveats, "no tumour
+    # found", a
     # brain mask larger than a skull, ...), one line per configuration and note, with the
     # cases that said it, so that a reader can see whether they point at the worst cases
     noted: dict[tuple[str, str], list[str]] = {}

@@ -30,7 +30,7 @@ import pyarrow.parquet as pq
 from PIL import Image
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh
 
 __all__ = [
     "decode_parquet",

@@ -4,9 +4,9 @@
 brain mask: NIfTI, NRRD, MetaImage, or a DICOM / image-stack folder, read
 by :func:`tumor3d.storage.brain_mask.read_brain_mask_volume`), checks it against its
 image with the brain mask's grid rule (same shape, voxel centres within 0.01
-voxel: :func:`tumor3d.brain_mask.check_same_grid`) and returns a
+voxel: :func:`tumor3d.imaging.brain_mask.check_same_grid`) and returns a
 :class:`GivenSegmentation`: the tumour (values > 0.5,
-:mod:`tumor3d.given_segmentation`) on the Scan's ``(z, y, x)`` grid, with
+:mod:`tumor3d.segmentation.given_segmentation`) on the Scan's ``(z, y, x)`` grid, with
 the file's name and SHA-256 for provenance. Every problem is one
 :class:`~tumor3d.errors.InputError` line naming the file. The file is only
 read.
@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from tumor3d.brain_mask import check_same_grid
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
-from tumor3d.given_segmentation import binarize_segmentation, given_definition
-from tumor3d.scan import Scan
+from tumor3d.imaging.brain_mask import check_same_grid
+from tumor3d.imaging.scan import Scan
+from tumor3d.segmentation.given_segmentation import binarize_segmentation, given_definition
 from tumor3d.storage.brain_mask import brain_mask_sha256, read_brain_mask_volume
 
 __all__ = ["GivenSegmentation", "read_given_segmentation"]

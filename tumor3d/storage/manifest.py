@@ -64,7 +64,7 @@ from pathlib import Path
 
 from tumor3d.errors import InputError
 from tumor3d.evaluation.registry import REFERENCE_KINDS as CASE_REFERENCE_KINDS
-from tumor3d.scan import MODALITIES, validate_patient_id
+from tumor3d.imaging.scan import MODALITIES, validate_patient_id
 
 __all__ = [
     "DATA_DIR_DEFAULT",
@@ -106,7 +106,7 @@ class ManifestRow:
     Parameters
     ----------
     patient_id : str
-        Folder-safe id (:func:`tumor3d.scan.validate_patient_id`).
+        Folder-safe id (:func:`tumor3d.imaging.scan.validate_patient_id`).
     image : Path
         Absolute path of the input scan (file or folder).
     modality : str

@@ -7,7 +7,7 @@ sform and qform both hold the affine (code 1, scanner), units are mm.
 
 The ``*_to_source_nifti_bytes`` helpers write Scan-grid ``(z, y, x)``
 arrays back in the input's own voxel grid and affine through
-:class:`tumor3d.scan.SourceGrid`, so that a mask overlays its input voxel
+:class:`tumor3d.imaging.scan.SourceGrid`, so that a mask overlays its input voxel
 for voxel in any viewer.
 """
 
@@ -21,7 +21,7 @@ import numpy as np
 
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
-from tumor3d.scan import SourceGrid
+from tumor3d.imaging.scan import SourceGrid
 from tumor3d.validation import check_affine, check_int
 
 __all__ = [
@@ -212,7 +212,7 @@ def volume_to_source_nifti_bytes(
     """Write a volume on another grid of the scan's world space in source axis order.
 
     The axes (and affine columns) are permuted as the source's are (see
-    :meth:`tumor3d.scan.SourceGrid.to_source_with_affine`); no resampling,
+    :meth:`tumor3d.imaging.scan.SourceGrid.to_source_with_affine`); no resampling,
     so every voxel keeps its world position.
 
     Parameters

@@ -17,11 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from tumor3d.mesh import Mesh
-from tumor3d.overlay import overlay_mosaic
+from tumor3d.geometry.mesh import Mesh
 from tumor3d.storage.formats import encode_ply, encode_png, encode_stl, encode_vtk_polydata
 from tumor3d.storage.report_html import patient_report_html
 from tumor3d.storage.viewer import viewer_html
+from tumor3d.visual.overlay import overlay_mosaic
 
 __all__ = [
     "NOTES_SEPARATOR",
@@ -218,7 +218,7 @@ def patient_report_data(
     }
     data: dict[str, Any] = {
         "patient_id": str(metrics["patient_id"]),
-        # ok or check (tumor3d.review); a metrics row from before the status: ok
+        # ok or check (tumor3d.segmentation.review); a metrics row from before the status: ok
         "status": str(metrics.get("status") or "ok"),
         "review_reasons": split_notes(metrics.get("review_reasons")),
         "tumour_found": found,

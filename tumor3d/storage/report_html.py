@@ -12,10 +12,10 @@ Patient input (:func:`patient_report_html`, :func:`patient_report_markdown`)
 A mapping with the keys (all but ``patient_id`` optional)::
 
     patient_id        str
-    status            str: "ok", "check" or "failed" (:mod:`tumor3d.review`)
+    status            str: "ok", "check" or "failed" (:mod:`tumor3d.segmentation.review`)
     review_reasons    list of str: why a human should check (status "check")
     measured          str, what the mask (every volume) holds, in words
-                      (:func:`tumor3d.segment.lesion_definition`)
+                      (:func:`tumor3d.segmentation.segment.lesion_definition`)
     volumes_mm3       {"eq7": float, "voxel": float, "mesh": float,
                        "mesh_simplified": float}  (any subset; None = n/a)
     eq7_precision     {"ce": float, "ci95_low_mm3": float, "ci95_high_mm3": float}

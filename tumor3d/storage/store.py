@@ -42,8 +42,8 @@ import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field
 
 from tumor3d.errors import InputError, Tumor3DError, os_error_path, os_error_text
-from tumor3d.mesh import Mesh
-from tumor3d.scan import Scan, SourceGrid
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.imaging.scan import Scan, SourceGrid
 from tumor3d.storage import formats, nifti
 
 __all__ = [

@@ -53,7 +53,7 @@ from pathlib import Path
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh
 from tumor3d.storage.nifti import encode_nifti
 from tumor3d.storage.store import StoreError
 from tumor3d.validation import check_affine
@@ -367,7 +367,9 @@ def viewer_html(
     brain_rgb = _rgb255(brain_color_rgb, "brain_color_rgb")
     for mesh, name in ((tumour_mesh, "tumour_mesh"), (brain_mesh, "brain_mesh")):
         if mesh is not None and not isinstance(mesh, Mesh):
-            raise InputError(f"{name} must be a tumor3d.mesh.Mesh, got {type(mesh).__name__}")
+            raise InputError(
+                f"{name} must be a tumor3d.geometry.mesh.Mesh, got {type(mesh).__name__}"
+            )
     shape = np.shape(image_zyx)
     _mask(tumour_zyx, shape, "the tumour mask")
     if brain_zyx is not None:

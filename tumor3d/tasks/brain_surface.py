@@ -7,7 +7,7 @@ render setting nor a new tumour surface recomputes it.
 
 from __future__ import annotations
 
-from tumor3d.brain_surface import brain_surface, display_mesh
+from tumor3d.geometry.brain_surface import brain_surface, display_mesh
 from tumor3d.pipeline import empty_mesh
 from tumor3d.storage.objectstore import open_store
 from tumor3d.storage.store import ArtifactRef

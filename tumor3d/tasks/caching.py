@@ -37,7 +37,7 @@ The code of the artifact store's own codecs and back-ends
 :data:`FORMAT_MODULES`) are not hashed: the on-disk
 form of artifacts is covered by :data:`ARTIFACT_FORMAT_VERSION`, bumped by
 hand when it changes. The modules they import are walked and hashed as any
-other (``tumor3d/storage/nifti.py``, ``tumor3d/scan.py``, ...). The syntax tree's
+other (``tumor3d/storage/nifti.py``, ``tumor3d/imaging/scan.py``, ...). The syntax tree's
 form is Python's (``ast.dump``): another Python version may give other keys.
 """
 

@@ -1,7 +1,7 @@
 """Adapter of the detect-abnormal stage (spec section 2).
 
 The robust detection computes the patient lesion model
-(:func:`tumor3d.lesion.segment_hyperintense_lesion`); its mask and scalars
+(:func:`tumor3d.segmentation.lesion.segment_hyperintense_lesion`); its mask and scalars
 are stored as the ``lesion`` artifact, which the segment stage reuses (the
 model runs once per patient). Without the robust detection the artifact
 holds an empty mask marked ``computed: false`` and the lesion parameters,
@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 
 from tumor3d.config import DetectConfig
-from tumor3d.detect import detect_abnormal_slices
-from tumor3d.lesion import LesionResult, left_right_axis
+from tumor3d.segmentation.detect import detect_abnormal_slices
+from tumor3d.segmentation.lesion import LesionResult, left_right_axis
 from tumor3d.storage.objectstore import open_store
 from tumor3d.storage.store import ArtifactRef
 from tumor3d.tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task

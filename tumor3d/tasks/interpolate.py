@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from tumor3d.config import InterpolateConfig
-from tumor3d.interpolate import interpolate_stack
+from tumor3d.geometry.interpolate import interpolate_stack
 from tumor3d.storage.objectstore import open_store
 from tumor3d.storage.store import ArtifactRef
 from tumor3d.tasks.spec import StageOutput, StageSpec, stage_task

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from tumor3d.measures import clinical_measures
+from tumor3d.geometry.measures import clinical_measures
+from tumor3d.imaging.scan import slab_height_mm
 from tumor3d.metrics import measure_volumes
-from tumor3d.scan import slab_height_mm
 from tumor3d.storage.objectstore import open_store
 from tumor3d.storage.store import ArtifactRef
 from tumor3d.tasks.spec import StageOutput, StageSpec, stage_task

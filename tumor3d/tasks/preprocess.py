@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from tumor3d.config import PreprocessConfig
-from tumor3d.preprocess import (
+from tumor3d.imaging.preprocess import (
     brain_coverage_note,
     brain_size_note,
     brain_volume_note,
@@ -67,11 +67,11 @@ def preprocess_task(
 def preprocess_notes(values: Mapping[str, Any]) -> list[str]:
     """The run's notes on the brain mask, from the preprocess stage's values.
 
-    A mask larger than any skull holds (:func:`tumor3d.preprocess.brain_volume_note`),
-    smaller than any human brain (:func:`tumor3d.preprocess.brain_size_note`, a given
+    A mask larger than any skull holds (:func:`tumor3d.imaging.preprocess.brain_volume_note`),
+    smaller than any human brain (:func:`tumor3d.imaging.preprocess.brain_size_note`, a given
     mask too: a wrong voxel size in the header shrinks it as well), or found on too
     few of the slices that hold tissue
-    (:func:`tumor3d.preprocess.brain_coverage_note`; not for a given mask, which is
+    (:func:`tumor3d.imaging.preprocess.brain_coverage_note`; not for a given mask, which is
     the user's). Values without the slice counts give no coverage note; the stage
     always stores them, and its code enters its cache key, so none reach here from
     an older cache.

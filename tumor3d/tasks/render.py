@@ -5,10 +5,10 @@ from __future__ import annotations
 from typing import Any
 
 from tumor3d.config import RenderConfig
-from tumor3d.render import render_views, turntable_gif
 from tumor3d.storage.objectstore import open_store
 from tumor3d.storage.store import ArtifactRef
 from tumor3d.tasks.spec import StageOutput, StageSpec, stage_task
+from tumor3d.visual.render import render_views, turntable_gif
 
 __all__ = ["SPEC", "render_task"]
 

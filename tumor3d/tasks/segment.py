@@ -14,11 +14,11 @@ from typing import Any
 import numpy as np
 
 from tumor3d.config import SegmentConfig
-from tumor3d.detect import SliceDetection
-from tumor3d.given_segmentation import given_definition, given_segmentation
 from tumor3d.learned.shipped import shipped_model
-from tumor3d.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
-from tumor3d.segment import lesion_definition, resolve_method, segment_tumor
+from tumor3d.segmentation.detect import SliceDetection
+from tumor3d.segmentation.given_segmentation import given_definition, given_segmentation
+from tumor3d.segmentation.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
+from tumor3d.segmentation.segment import lesion_definition, resolve_method, segment_tumor
 from tumor3d.storage.objectstore import open_store
 from tumor3d.storage.store import ArtifactRef
 from tumor3d.tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
@@ -145,7 +145,7 @@ def segment_task(
         artifacts["tumor_probability"] = store.put_volume(
             result.probability.astype(np.float32), affine, kind="image"
         )
-    if result.review is not None:  # read by tumor3d.review.review_status
+    if result.review is not None:  # read by tumor3d.segmentation.review.review_status
         review = {
             "needs_review": bool(result.review.needs_review),
             "review_reasons": list(result.review.reasons),

@@ -19,8 +19,8 @@ from tumor3d.config import SegmentConfig
 from tumor3d.errors import InputError
 from tumor3d.evaluation.grids import resample_nearest
 from tumor3d.learned.rows import patient_rows, rows_to_bytes
-from tumor3d.lesion import left_right_axis
-from tumor3d.segment import learned_prior
+from tumor3d.segmentation.lesion import left_right_axis
+from tumor3d.segmentation.segment import learned_prior
 from tumor3d.storage.objectstore import open_store
 from tumor3d.storage.store import ArtifactRef
 from tumor3d.tasks.segment import load_detection

@@ -14,9 +14,9 @@ volume geometry rules), :mod:`~tumor3d.storage.readers.nifti`,
   :func:`read_image_stack` (2-D PNG/TIFF/JPEG slices);
 * any other folder -> :func:`read_dicom_series` (one DICOM series).
 
-Every reader returns a :class:`tumor3d.scan.Scan`: a float32 ``(z, y, x)``
+Every reader returns a :class:`tumor3d.imaging.scan.Scan`: a float32 ``(z, y, x)``
 image with ``z`` the slice axis, an affine mapping the voxel index
-``(x, y, z, 1)`` to RAS mm, and a :class:`tumor3d.scan.SourceGrid` that
+``(x, y, z, 1)`` to RAS mm, and a :class:`tumor3d.imaging.scan.SourceGrid` that
 writes Scan-grid arrays back in the input's own voxel grid.
 
 Slice axis of a NIfTI, NRRD or MetaImage volume (the one rule)
@@ -32,7 +32,7 @@ axes keep their source order as ``(x, y)``. See :func:`choose_slice_axis`.
 The two in-plane axes must be perpendicular; the slice step is the distance
 between slice planes, ``|det A| / |c_x x c_y|``, which on a sheared grid is
 less than the slice-axis column's length
-(:func:`tumor3d.scan.slice_plane_spacing_mm`).
+(:func:`tumor3d.imaging.scan.slice_plane_spacing_mm`).
 
 Slice thickness and gap
 -----------------------
@@ -81,7 +81,7 @@ import os
 from pathlib import Path
 
 from tumor3d.errors import InputError, os_error_path, os_error_text
-from tumor3d.scan import MODALITIES, Scan, validate_patient_id
+from tumor3d.imaging.scan import MODALITIES, Scan, validate_patient_id
 from tumor3d.storage.readers.common import (
     MAX_VOXELS_DEFAULT,
     NIFTI_SUFFIXES,

@@ -22,7 +22,7 @@ from tumor3d.constants import (
     SHEAR_TOL,
 )
 from tumor3d.errors import InputError
-from tumor3d.scan import (
+from tumor3d.imaging.scan import (
     MODALITIES,
     Scan,
     SourceGrid,
@@ -119,7 +119,7 @@ def derive_patient_id(path: str | os.PathLike[str]) -> str:
     ``.mhd``) is stripped from a file name; every character outside
     ``[A-Za-z0-9._-]`` becomes ``_``; leading ``.``, ``_`` and ``-`` are
     dropped and the result is cut to 128 characters. It is then checked
-    by :func:`tumor3d.scan.validate_patient_id`.
+    by :func:`tumor3d.imaging.scan.validate_patient_id`.
 
     Parameters
     ----------
@@ -232,7 +232,7 @@ def scan_from_volume(
     permuted (never resampled or flipped) so that it becomes ``z``; the
     pixel spacings are the in-plane column lengths, which must be
     perpendicular; the slice step is the distance between slice planes
-    (:func:`tumor3d.scan.slice_plane_spacing_mm`, less than the column
+    (:func:`tumor3d.imaging.scan.slice_plane_spacing_mm`, less than the column
     length on a sheared grid).
 
     Parameters

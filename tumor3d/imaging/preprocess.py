@@ -36,8 +36,8 @@ from scipy import ndimage as ndi
 from skimage.filters import threshold_multiotsu, threshold_otsu
 from skimage.morphology import disk
 
-from tumor3d.brain_extraction import extract_brain, head_around_brain, head_exterior
 from tumor3d.errors import InputError
+from tumor3d.imaging.brain_extraction import extract_brain, head_around_brain, head_exterior
 
 __all__ = [
     "MaskedBackground",
@@ -73,8 +73,8 @@ class PreprocessResult:
     head_exterior : ndarray of bool or None
         Where the brain was found inside a raw head (``"skull_strip"``,
         ``"head"``) and the volume shows a head around it
-        (:func:`tumor3d.brain_extraction.head_around_brain`): the air outside
-        the head (:func:`tumor3d.brain_extraction.head_exterior`), which no
+        (:func:`tumor3d.imaging.brain_extraction.head_around_brain`): the air outside
+        the head (:func:`tumor3d.imaging.brain_extraction.head_exterior`), which no
         brain voxel comes within the scalp and skull's thickness of. None for a
         skull-stripped volume (``"foreground"``), a given mask, and a volume
         of the brain alone.
@@ -936,7 +936,7 @@ def preprocess_volume(
         ``skull_strip``: :func:`remove_skull` (the paper's step 4);
         ``foreground``: :func:`foreground_brain_mask` (the volume is already
         skull-stripped: keep the whole brain, no rim eaten); ``head``:
-        :func:`tumor3d.brain_extraction.extract_brain`, a 3-D extraction in mm
+        :func:`tumor3d.imaging.brain_extraction.extract_brain`, a 3-D extraction in mm
         for raw clinical heads where the per-slice skull removal keeps the
         scalp (measured on the raw heads of ``../shared/data``: 1.2-1.5 L
         brains instead of 2.6-3.3 L heads; not the default, because on the

@@ -4,7 +4,7 @@
 thick-slice brain mask of skull removal (the paper reconstructs the brain
 surface as well as the tumour); :func:`display_mesh` reduces it to a face
 budget for the browser viewer (``viewer.html``), which holds and draws it.
-Both are pure (arrays in, :class:`~tumor3d.mesh.Mesh` out). The
+Both are pure (arrays in, :class:`~tumor3d.geometry.mesh.Mesh` out). The
 ``extract-brain-surface`` stage (``tumor3d/tasks/brain_surface.py``) computes them
 once per brain mask, so the renders, ``brain_mesh.ply`` and ``viewer.html``
 share one surface and a change of the render settings or of the tumour does
@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh
 
 __all__ = ["MAX_GRID_VOXELS", "brain_surface", "display_mesh"]
 
@@ -37,7 +37,7 @@ def brain_surface(brain_mask: np.ndarray, affine: np.ndarray, *, spacing_mm: flo
     trilinearly onto an isotropic grid of ``spacing_mm`` covering the same
     extent (coarser where that grid would exceed :data:`MAX_GRID_VOXELS`),
     and the brain is ``{d < 0}``; its surface is
-    :func:`tumor3d.surface.extract_surface` of that grid. At 2 mm a brain
+    :func:`tumor3d.geometry.surface.extract_surface` of that grid. At 2 mm a brain
     gives some 30,000-60,000 faces, plenty for a translucent context surface
     and cheap to render. Only the largest connected component is kept. An
     empty slice counts as far outside, so the surface ends flat at the
@@ -65,7 +65,7 @@ def brain_surface(brain_mask: np.ndarray, affine: np.ndarray, *, spacing_mm: flo
     """
     from scipy import ndimage as ndi
 
-    from tumor3d.surface import extract_surface
+    from tumor3d.geometry.surface import extract_surface
 
     mask = np.asarray(brain_mask)
     if mask.ndim != 3 or mask.dtype != bool and not np.isin(mask, (0, 1)).all():
@@ -153,7 +153,7 @@ def display_mesh(mesh: Mesh, max_faces: int) -> Mesh:
     from tumor3d.simplify import simplify_mesh
 
     if not isinstance(mesh, Mesh):
-        raise InputError(f"mesh must be a tumor3d.mesh.Mesh, got {type(mesh).__name__}")
+        raise InputError(f"mesh must be a tumor3d.geometry.mesh.Mesh, got {type(mesh).__name__}")
     if (
         isinstance(max_faces, bool)
         or not isinstance(max_faces, (int, np.integer))

@@ -98,7 +98,7 @@ this 2-core machine, shared with other jobs:
   so an in-process renderer would be a process-killing hazard.
 
 So every :func:`render_views` call runs ONE renderer in a fresh child
-process (``python -m tumor3d.render``) that renders all the views of the
+process (``python -m tumor3d.visual.render``) that renders all the views of the
 call: every geometry is uploaded once and shown or hidden per view. The
 scene goes to the child's stdin and the images come back on a private copy
 of its stdout, as ``.npy`` bytes (no pickle, no temporary files);
@@ -125,9 +125,9 @@ from typing import Any
 import numba
 import numpy as np
 
-from tumor3d.brain_surface import brain_surface
 from tumor3d.errors import InputError
-from tumor3d.mesh import Mesh
+from tumor3d.geometry.brain_surface import brain_surface
+from tumor3d.geometry.mesh import Mesh
 
 __all__ = [
     "ANATOMICAL_VIEWS",
@@ -295,7 +295,7 @@ def vertex_normals(mesh: Mesh) -> np.ndarray:
         Unit outward normals.
     """
     if not isinstance(mesh, Mesh):
-        raise InputError(f"mesh must be a tumor3d.mesh.Mesh, got {type(mesh).__name__}")
+        raise InputError(f"mesh must be a tumor3d.geometry.mesh.Mesh, got {type(mesh).__name__}")
     return _vertex_normals(mesh.vertices, mesh.faces)
 
 
@@ -452,7 +452,7 @@ def _check_names(value: Sequence[str], name: str, allowed: Sequence[str]) -> tup
 
 def _check_mesh(mesh: Any, name: str) -> Mesh:
     if not isinstance(mesh, Mesh):
-        raise InputError(f"{name} must be a tumor3d.mesh.Mesh, got {type(mesh).__name__}")
+        raise InputError(f"{name} must be a tumor3d.geometry.mesh.Mesh, got {type(mesh).__name__}")
     if mesh.is_empty:
         raise InputError(f"cannot render an empty {name} mesh (it has no faces)")
     return mesh
@@ -491,7 +491,7 @@ def render_views(
     ----------
     tumor : Mesh
         Non-empty tumour surface in RAS mm, faces counter-clockwise seen
-        from outside (as :func:`tumor3d.surface.extract_surface` gives).
+        from outside (as :func:`tumor3d.geometry.surface.extract_surface` gives).
     brain : Mesh, optional
         The brain surface in the same RAS frame, drawn translucent around
         the tumour (opaque and clipped in the cut-aways). Without it the
@@ -1065,11 +1065,11 @@ def _run_worker(request: dict[str, np.ndarray], timeout_s: float) -> np.ndarray:
     buf = io.BytesIO()
     np.savez(buf, **request)
     env = dict(os.environ)
-    package_root = str(Path(__file__).resolve().parent.parent)
+    package_root = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH", "")) if p)
     try:
         proc = subprocess.run(
-            [sys.executable, "-m", "tumor3d.render"],
+            [sys.executable, "-m", "tumor3d.visual.render"],
             input=buf.getvalue(),
             capture_output=True,
             timeout=timeout_s,
@@ -1117,7 +1117,7 @@ def _error_tail(stderr: bytes, n_lines: int = 20) -> str:
 
 
 def _worker_main() -> int:
-    """Entry point of ``python -m tumor3d.render``: stdin request -> stdout images."""
+    """Entry point of ``python -m tumor3d.visual.render``: stdin request -> stdout images."""
     out_fd = os.dup(1)  # private copy of the real stdout, for the images only
     os.dup2(2, 1)  # Filament prints on stdout: divert everything else to stderr
     sys.stdout = sys.stderr

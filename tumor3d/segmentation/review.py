@@ -6,7 +6,7 @@ command's exit code):
 
 * ``failed`` -- the run did not complete (an error);
 * ``check`` -- it completed, but the tool's own checks doubt the result: a
-  caveat of the segmentation (:mod:`tumor3d.caveats`), a brain mask whose
+  caveat of the segmentation (:mod:`tumor3d.segmentation.caveats`), a brain mask whose
   size or coverage makes the volume unreliable, input files skipped as
   unreadable, or a segmentation method that asks for review itself
   (``needs_review`` with ``review_reasons`` and ``quality_score`` in the

@@ -3,7 +3,7 @@
 :func:`extract_brain` finds the brain in a ``(z, y, x)`` 8-bit head volume
 whose scalp, skull, face and neck are still present. It replaces the
 per-slice "Otsu, 2-pixel opening, largest component" of
-:func:`tumor3d.preprocess.remove_skull` [A3] where that recipe keeps the
+:func:`tumor3d.imaging.preprocess.remove_skull` [A3] where that recipe keeps the
 whole head (scalp fat and skull marrow joined to the brain by thin bright
 bridges through the skull). Every size is anatomical and in mm, so the same
 constants work from 0.8 mm to 4 mm pixels and from 1 mm to 7 mm slices.
@@ -51,7 +51,7 @@ intensity range, Smith 2002, doi:10.1002/hbm.10062):
 Not for skull-stripped input: there the head surface *is* the brain
 surface, the depth restriction of step 5 keeps the core 10 mm inside it
 and step 6 restores only 5 mm, so a rim of about 5 mm is lost
-(:func:`tumor3d.preprocess.foreground_brain_mask` is the path for such
+(:func:`tumor3d.imaging.preprocess.foreground_brain_mask` is the path for such
 volumes).
 
 Known weaknesses (measured, see ``benchmarks/brain_extraction_eval.py``):
@@ -183,7 +183,7 @@ def _check_inputs(image_u8: object, spacing_mm: object) -> tuple[np.ndarray, np.
         )
     if image.dtype != np.uint8:
         raise InputError(
-            f"extract_brain needs a uint8 volume (see tumor3d.preprocess.to_uint8), "
+            f"extract_brain needs a uint8 volume (see tumor3d.imaging.preprocess.to_uint8), "
             f"got dtype {image.dtype}"
         )
     if min(image.shape) == 0:

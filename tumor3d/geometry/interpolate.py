@@ -4,7 +4,7 @@ Thick-slice MR leaves gaps of several millimetres between the acquired
 slices. This module inserts ``m`` synthetic masks between every pair of
 consecutive abnormal slices so that the stacked volume has near-isotropic
 voxels before marching cubes. The distance transforms live in
-:mod:`tumor3d.distance`.
+:mod:`tumor3d.geometry.distance`.
 
 Methods
 -------
@@ -16,7 +16,7 @@ Methods
     ``parts="whole"`` this is Algorithm 1 exactly (``configs/paper.yaml``).
 ``"enhanced-edt"`` (SE-EDT)
     The same with the exact Euclidean distance transform in mm
-    (:func:`tumor3d.distance.euclidean_distance_mm`). The exact EDT is O(N)
+    (:func:`tumor3d.geometry.distance.euclidean_distance_mm`). The exact EDT is O(N)
     [MQR03], so the paper's O(N^2) for interpolation (Table 5, [A29]) is
     wrong for both transforms.
 ``"shape"`` (SO)
@@ -100,7 +100,8 @@ from typing import Literal
 import numpy as np
 from scipy import ndimage as ndi
 
-from tumor3d.distance import (
+from tumor3d.errors import InputError
+from tumor3d.geometry.distance import (
     _signed_distance,
     as_mask,
     chamfer_distance,
@@ -108,7 +109,6 @@ from tumor3d.distance import (
     half_step,
     signed_distance,
 )
-from tumor3d.errors import InputError
 
 __all__ = [
     "METHODS",
@@ -437,7 +437,7 @@ def interpolate_pair(
     3. shift ``mask_a`` by ``round(C - C_s)`` and ``mask_b`` by
        ``round(C - C_t)`` (integer shifts, zero fill);
     4. ``d_t = (1 - t) d_a + t d_b`` of the chamfer signed distances
-       (:func:`tumor3d.distance.signed_distance`) and ``R' = {d_t >= 0}``;
+       (:func:`tumor3d.geometry.distance.signed_distance`) and ``R' = {d_t >= 0}``;
     5. (the originals are kept unchanged by :func:`interpolate_stack`);
     6. ``C_z = (1 - t) C_s + t C_t``;
     7. the output is ``R'`` shifted by ``round(C_z - centroid(R'))`` ([A13]),

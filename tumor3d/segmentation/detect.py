@@ -17,8 +17,8 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError
-from tumor3d.lesion import LesionResult, area_in_pixels, patient_lesion
-from tumor3d.scan import MODALITIES
+from tumor3d.imaging.scan import MODALITIES
+from tumor3d.segmentation.lesion import LesionResult, area_in_pixels, patient_lesion
 
 __all__ = [
     "HistogramModes",
@@ -71,7 +71,7 @@ class SliceDetection:
     lesion : LesionResult or None
         The patient lesion model when the robust method ran (its mask over
         all slices, before the abnormal-slice restriction); reused by
-        :func:`tumor3d.segment.segment_tumor`'s robust method so that the
+        :func:`tumor3d.segmentation.segment.segment_tumor`'s robust method so that the
         model runs once. Not part of :meth:`to_records`.
     """
 
@@ -493,13 +493,13 @@ def detect_abnormal_slices(
     premise holds (:func:`paper_premise_holds`: three tissue modes on
     nearly every slice) and ``"robust"`` otherwise, and ``"histogram"`` when
     ``modality`` is None, for the reason given in
-    :func:`tumor3d.segment.resolve_method`); both record the histogram modes
+    :func:`tumor3d.segmentation.segment.resolve_method`); both record the histogram modes
     of every slice (``n_modes``, ``peaks_gray``: the seeds of the paper's
     segmentation).
 
     ``method="robust"``: a slice is abnormal when it holds at least
     ``lesion_min_slice_mm2`` of a lesion found by
-    :func:`tumor3d.lesion.segment_hyperintense_lesion` over the whole
+    :func:`tumor3d.segmentation.lesion.segment_hyperintense_lesion` over the whole
     patient: the normal-tissue intensity model is learned across all
     slices (median / MAD of the smoothed brain), a region is abnormal when
     it falls above it over a significant cross-section on at least
@@ -537,22 +537,23 @@ def detect_abnormal_slices(
         adapter passes the scan's modality.
     lesion : mapping, optional
         Robust method: keywords of
-        :func:`tumor3d.lesion.segment_hyperintense_lesion` (the fields of
+        :func:`tumor3d.segmentation.lesion.segment_hyperintense_lesion` (the fields of
         ``tumor3d.config.LesionConfig``, ``detect.lesion`` of the pipeline);
-        None or missing keys = :data:`tumor3d.lesion.LESION_DEFAULTS`.
+        None or missing keys = :data:`tumor3d.segmentation.lesion.LESION_DEFAULTS`.
     lesion_min_slice_mm2 : float
         Robust method: a slice is abnormal when it holds at least this much
         lesion (mm2 through the pixel spacing, as pixels of 1 mm on coarser
-        pixels: :func:`tumor3d.lesion.area_in_pixels`; the lesion itself must
+        pixels: :func:`tumor3d.segmentation.lesion.area_in_pixels`; the lesion itself must
         be significant elsewhere).
     spacing_mm : (3,) tuple of float, optional
         Voxel spacing ``(slice step, row, column)`` in mm (robust method: the
         in-plane lengths and areas and the depth rule of
-        :mod:`tumor3d.lesion`, ``lesion_min_slice_mm2``); None = 1 mm voxels.
+        :mod:`tumor3d.segmentation.lesion`, ``lesion_min_slice_mm2``); None = 1 mm voxels.
         The adapter passes the scan's.
     lr_axis : {1, 2} or None
         Robust method: the left-right array axis (symmetry rule of
-        :mod:`tumor3d.lesion`, :func:`tumor3d.lesion.left_right_axis` of the
+        :mod:`tumor3d.segmentation.lesion`, :func:`~tumor3d.segmentation.lesion.left_right_axis`
+        of the
         scan's affine); None skips the rule. The adapter passes it.
 
     Returns

@@ -11,7 +11,7 @@ looks as trustworthy as any other:
   continue beyond the scanned range; every volume may then underestimate
   it.
 - **The tumour reaches the brain's midline** (robust method). The
-  symmetry rule of :mod:`tumor3d.lesion` (step 3c) counts a bright voxel
+  symmetry rule of :mod:`tumor3d.segmentation.lesion` (step 3c) counts a bright voxel
   as lesion only where its mirror image is not bright too: it cannot tell
   the far side of a tumour that crosses the midline (its mirror is the
   tumour itself) from a bilateral normal structure. Within half the
@@ -25,12 +25,12 @@ looks as trustworthy as any other:
   there, nearly all missed; the algoseg FLAIR and T2, about 2 mL) and on
   two whose mask is wrong at the midline (pat0003 T1c, the clinical
   brain2 T1c); never on a lateral tumour. On FLAIR, step 3d of
-  :mod:`tumor3d.lesion` now takes the deep crossing back in part (native
+  :mod:`tumor3d.segmentation.lesion` now takes the deep crossing back in part (native
   pat0003: 7.3 of those 12.4 mL, was 0.3; the algoseg FLAIR 1.2 of 2.1 mL,
   was 0.2), so the caveat still holds there: a part may be missing.
 - **The lesion was found without the symmetry rule's confirmation**
   (robust method, FLAIR). A lesion centred on the midline leaves the
-  symmetry rule no asymmetric seed; step 3f of :mod:`tumor3d.lesion` then
+  symmetry rule no asymmetric seed; step 3f of :mod:`tumor3d.segmentation.lesion` then
   finds it by its brightness and depth alone, without the evidence that
   tells a tumour from bilateral normal tissue (``LesionResult.midline``).
   The run says so, with the share of the mask that is its own mirror image,
@@ -42,12 +42,12 @@ looks as trustworthy as any other:
 
 - **The tumour comes near the air outside the head** (a raw head, its
   brain found by skull removal). Every brain voxel lies at least the
-  thinnest scalp plus skull (:data:`tumor3d.brain_extraction.
+  thinnest scalp plus skull (:data:`tumor3d.imaging.brain_extraction.
   SCALP_SKULL_MIN_MM`, 5 mm) inside the head's surface, so tumour voxels
   nearer the air are scalp that the brain mask kept and the lesion grew
   into (scalp fat and marrow are bright on FLAIR and T1). The air is
   given only where the volume shows a head around the brain
-  (:func:`tumor3d.brain_extraction.head_around_brain`). Measured
+  (:func:`tumor3d.imaging.brain_extraction.head_around_brain`). Measured
   (``reports/segmentation.md``): the raw TCGA FLAIR, whose mask keeps the
   scalp on its top slices, has 3.52 mL of tumour within 5 mm of the air on
   slices 14-15 and 19-22; every phantom's tumour lies 14-35 mm from it;
@@ -64,9 +64,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage as ndi
 
-from tumor3d.brain_extraction import SCALP_SKULL_MIN_MM
 from tumor3d.errors import InputError
-from tumor3d.lesion import (
+from tumor3d.imaging.brain_extraction import SCALP_SKULL_MIN_MM
+from tumor3d.segmentation.lesion import (
     LESION_DEFAULTS,
     SYMMETRY_TOLERANCE_MM,
     MirrorPlane,
@@ -148,7 +148,7 @@ def midline_caveat(
     ``plane``; the caveat is said when the mask holds at least
     ``min_region_mm2`` of band area on each of ``min_slices`` consecutive
     slices (the lesion model's significance rule, with its pixel count on
-    pixels coarser than 1 mm: :func:`tumor3d.lesion.area_in_pixels`).
+    pixels coarser than 1 mm: :func:`tumor3d.segmentation.lesion.area_in_pixels`).
 
     Parameters
     ----------
@@ -291,7 +291,7 @@ def segmentation_caveats(
     model's ``LesionResult.midline``: step 3f found it) says
     :func:`symmetric_caveat` in place of :func:`midline_caveat`.
     ``spacing_mm`` None means 1 mm voxels. The significance rule defaults to
-    the lesion model's (:data:`tumor3d.lesion.LESION_DEFAULTS`).
+    the lesion model's (:data:`tumor3d.segmentation.lesion.LESION_DEFAULTS`).
     """
     m = _mask3d(tumor_mask)
     sp = (1.0, 1.0, 1.0) if spacing_mm is None else tuple(float(v) for v in spacing_mm)

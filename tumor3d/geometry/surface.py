@@ -51,8 +51,8 @@ import numpy as np
 from skimage.measure import marching_cubes
 
 from tumor3d.errors import InputError, NoSurfaceError
-from tumor3d.mesh import Mesh
-from tumor3d.scan import zyx_index_to_ras
+from tumor3d.geometry.mesh import Mesh
+from tumor3d.imaging.scan import zyx_index_to_ras
 
 __all__ = [
     "clean_mesh",
@@ -102,7 +102,7 @@ def _check_binary_mask(mask: np.ndarray, name: str = "mask") -> np.ndarray:
 
 def _check_mesh(mesh: Mesh) -> Mesh:
     if not isinstance(mesh, Mesh):
-        raise InputError(f"mesh must be a tumor3d.mesh.Mesh, got {type(mesh).__name__}")
+        raise InputError(f"mesh must be a tumor3d.geometry.mesh.Mesh, got {type(mesh).__name__}")
     return mesh
 
 
@@ -397,7 +397,7 @@ def extract_surface(
        allow_degenerate=False)``, [A16]; never the hole-prone
        ``'lorensen'`` table);
     3. undo the crop and padding offsets and map the ``(z, y, x)`` indices to
-       RAS mm with :func:`tumor3d.scan.zyx_index_to_ras`, so anisotropic
+       RAS mm with :func:`tumor3d.imaging.scan.zyx_index_to_ras`, so anisotropic
        spacing, rotations and flips of the affine are honoured exactly;
     4. weld identical vertices, drop degenerate and duplicate faces;
     5. orient the faces outward (counter-clockwise seen from outside:

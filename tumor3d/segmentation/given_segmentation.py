@@ -4,7 +4,7 @@ The rules (pure: arrays in, arrays out; reading the file is
 :mod:`tumor3d.storage.given_segmentation`'s):
 
 * **Grid.** The mask lies on the image's voxel grid, checked as a given
-  brain mask is (:func:`tumor3d.brain_mask.check_same_grid`: the same shape,
+  brain mask is (:func:`tumor3d.imaging.brain_mask.check_same_grid`: the same shape,
   voxel centres within 0.01 voxel). Nothing is resampled.
 * **Tumour** = voxels whose value is ``> 0.5`` (:data:`TUMOUR_THRESHOLD`),
   so a 0/1 label, a 0/255 mask and a probability map all work. A multi-label
@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from tumor3d.caveats import segmentation_caveats
 from tumor3d.errors import InputError
-from tumor3d.segment import SegmentationResult
+from tumor3d.segmentation.caveats import segmentation_caveats
+from tumor3d.segmentation.segment import SegmentationResult
 
 __all__ = [
     "GIVEN_METHOD",
@@ -78,7 +78,7 @@ def given_segmentation(
 
     ``tumor_pixels`` (Eq. 8's ``N_i``) counts the mask per slice, ``selection``
     is ``"given"`` on every slice holding tumour, and the caveats are those
-    of the mask's extent (:func:`tumor3d.caveats.segmentation_caveats`
+    of the mask's extent (:func:`tumor3d.segmentation.caveats.segmentation_caveats`
     without a symmetry plane or a head exterior: those judge a method's
     mask, not the user's).
     """

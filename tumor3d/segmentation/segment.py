@@ -31,18 +31,18 @@ from scipy.optimize import linear_sum_assignment
 from skimage.filters import threshold_multiotsu
 from skimage.morphology import disk
 
-from tumor3d.caveats import segmentation_caveats
-from tumor3d.detect import SliceDetection, _check_pair, paper_premise_holds
 from tumor3d.errors import InputError
-from tumor3d.fcm import (
+from tumor3d.imaging.scan import MODALITIES
+from tumor3d.segmentation.caveats import segmentation_caveats
+from tumor3d.segmentation.detect import SliceDetection, _check_pair, paper_premise_holds
+from tumor3d.segmentation.fcm import (
     FCMDiagnostics,
     _check_fcm_params,
     _fcm_histogram,
     fcm_memberships,
     fuzzy_cmeans_histogram,
 )
-from tumor3d.lesion import lesion_params, patient_lesion
-from tumor3d.scan import MODALITIES
+from tumor3d.segmentation.lesion import lesion_params, patient_lesion
 
 __all__ = [
     "FCMDiagnostics",
@@ -90,7 +90,7 @@ class SegmentationResult:
         none ran).
     caveats : tuple of str
         Where the mask's volume may be wrong, in words
-        (:func:`tumor3d.caveats.segmentation_caveats`): tumour on the scan's
+        (:func:`tumor3d.segmentation.caveats.segmentation_caveats`): tumour on the scan's
         first or last slice; a tumour reaching the midline (robust method).
         Empty when there is nothing to say.
     method : str
@@ -754,7 +754,7 @@ def resolve_method(
 
     On T2, ``"paper"`` when the detection's histograms show the three tissue
     modes the paper assumes on nearly every slice
-    (:func:`tumor3d.detect.paper_premise_holds`), otherwise ``"robust"``;
+    (:func:`tumor3d.segmentation.detect.paper_premise_holds`), otherwise ``"robust"``;
     ``"paper"`` for an unknown modality or without a detection. Measured
     (``reports/segmentation.md``): on the T2 phantoms (three modes on every
     slice) the paper's method is exact and the robust one over-segments the
@@ -806,7 +806,7 @@ def segment_tumor(
     and on T2 ``"paper"`` where the paper's premise holds (three tissue modes
     on nearly every slice), ``"robust"`` otherwise (:func:`resolve_method`).
 
-    - ``"robust"``: :func:`tumor3d.lesion.segment_hyperintense_lesion`,
+    - ``"robust"``: :func:`tumor3d.segmentation.lesion.segment_hyperintense_lesion`,
       patient-pooled normal-tissue model, in-plane smoothing as spatial
       regularisation, 3-D connectivity across slices, partial-volume
       boundary, enclosed core filled; restricted to the slices ``detection``
@@ -854,23 +854,24 @@ def segment_tumor(
         Peer: number of multi-Otsu classes (2-6).
     lesion : mapping, optional
         Robust method without ``detection.lesion``: keywords of
-        :func:`tumor3d.lesion.segment_hyperintense_lesion` (the fields of
+        :func:`tumor3d.segmentation.lesion.segment_hyperintense_lesion` (the fields of
         ``tumor3d.config.LesionConfig``); None = its defaults. Ignored when
         the detection carries the lesion (it was computed with them).
     spacing_mm : (3,) tuple of float, optional
         Voxel spacing ``(slice step, row, column)`` in mm (robust method: the
-        depth rule of :mod:`tumor3d.lesion`, and the midline caveat, whose
+        depth rule of :mod:`tumor3d.segmentation.lesion`, and the midline caveat, whose
         band is measured in mm from ``detection.lesion.plane``: pass the
         spacing the detection used); None = 1 mm voxels. The adapter passes
         the scan's.
     lr_axis : {1, 2} or None
         Robust method: the left-right array axis (symmetry rule of
-        :mod:`tumor3d.lesion`, :func:`tumor3d.lesion.left_right_axis` of the
+        :mod:`tumor3d.segmentation.lesion`, :func:`~tumor3d.segmentation.lesion.left_right_axis`
+        of the
         scan's affine); None skips the rule. The adapter passes it.
     head_exterior : (z, y, x) ndarray of bool, optional
         The air outside a raw head (``PreprocessResult.head_exterior``): the
         caveats then say where the tumour comes nearer it than any brain can
-        (:func:`tumor3d.caveats.scalp_caveat`). None (a skull-stripped
+        (:func:`tumor3d.segmentation.caveats.scalp_caveat`). None (a skull-stripped
         volume, a given brain mask) skips that caveat.
     image : (z, y, x) ndarray of real numbers, optional
         Learned method: the slices as acquired (the scan's own intensities,

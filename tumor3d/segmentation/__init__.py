@@ -1,0 +1,9 @@
+"""Segmentation: which slices are abnormal and where the tumour is (spec sections 3-4).
+
+:mod:`~tumor3d.segmentation.detect` (abnormal slices), :mod:`~tumor3d.segmentation.segment`
+(the methods: paper, robust, learned, multi-Otsu peer), :mod:`~tumor3d.segmentation.fcm`
+(the paper's fuzzy c-means), :mod:`~tumor3d.segmentation.lesion` (the patient's lesion
+model), :mod:`~tumor3d.segmentation.given_segmentation` (a user's mask),
+:mod:`~tumor3d.segmentation.caveats` and :mod:`~tumor3d.segmentation.review` (when a
+human should check). The learned models live in :mod:`tumor3d.learned`.
+"""
