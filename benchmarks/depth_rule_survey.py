@@ -31,7 +31,14 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import real_segmentation as rs  # noqa: E402
 
 from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
-from tumor3d.segmentation import lesion as L  # noqa: E402
+from tumor3d.segmentation.lesion import (  # noqa: E402
+    left_right_axis,
+    normal_model,
+    symmetry_plane,
+)
+from tumor3d.segmentation.lesion.candidates import _candidates, _depth_mm  # noqa: E402
+from tumor3d.segmentation.lesion.normal import _smooth_in_brain  # noqa: E402
+from tumor3d.segmentation.lesion.pixels import _pixel_lengths  # noqa: E402
 
 PERCENTILES = (50, 75, 90, 95, 100)
 
@@ -52,18 +59,18 @@ def survey(data: Path, cfg, native: bool) -> list[dict]:
         spacing = (step, *scan.pixel_spacing_mm)
         pre = preprocess_volume(img, **cfg.preprocess.model_dump(), spacing_mm=spacing)
         enhanced, brain = pre.enhanced, pre.brain_mask
-        px = L._pixel_lengths(spacing, lp.smoothing_mm, lp.min_region_mm2, lp.boundary_mm)
-        sm = L._smooth_in_brain(enhanced, brain, px.smoothing)
-        model = L.normal_model(sm, enhanced, brain, lp.seed_sigmas, case.modality)
-        axis = L.left_right_axis(scan.affine)
-        plane = None if axis is None else L.symmetry_plane(sm, brain, model, axis, spacing)
+        px = _pixel_lengths(spacing, lp.smoothing_mm, lp.min_region_mm2, lp.boundary_mm)
+        sm = _smooth_in_brain(enhanced, brain, px.smoothing)
+        model = normal_model(sm, enhanced, brain, lp.seed_sigmas, case.modality)
+        axis = left_right_axis(scan.affine)
+        plane = None if axis is None else symmetry_plane(sm, brain, model, axis, spacing)
         # every candidate before the decision rules: no depth (3b, spacing None) and no
         # contrast test (3e, the default contrast=False), so the survey sees them all
-        _, labels, ids, _, _, _ = L._candidates(
+        _, labels, ids, _, _, _ = _candidates(
             model, sm, enhanced, brain, px.smoothing, px.min_region, lp.min_slices,
             False, None, plane, spacing,
         )  # fmt: skip
-        depth = L._depth_mm(brain, spacing)
+        depth = _depth_mm(brain, spacing)
         brain_median = float(np.median(depth[brain]))
         for k, i in enumerate(ids):
             comp = labels == i

@@ -52,7 +52,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import real_segmentation as rs  # noqa: E402
 
-from tumor3d.segmentation.lesion import _depth_mm, left_right_axis  # noqa: E402
+from tumor3d.segmentation.lesion import left_right_axis  # noqa: E402
+from tumor3d.segmentation.lesion.candidates import _depth_mm  # noqa: E402
 from tumor3d.storage.readers import read_scan  # noqa: E402
 
 MARGIN_MM = 5.0  # replaced beyond the label (the oedema's edge, the blend)

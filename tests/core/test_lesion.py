@@ -15,16 +15,15 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-import tumor3d.segmentation.lesion as lesion_module
+import tumor3d.segmentation.lesion.candidates as lesion_candidates
+import tumor3d.segmentation.lesion.model as lesion_model
+import tumor3d.segmentation.lesion.normal as lesion_normal
 from tumor3d.errors import InputError
 from tumor3d.segmentation.lesion import (
     SYMMETRIC_REGAIN_MM,
     SYMMETRY_TOLERANCE_MM,
     MirrorPlane,
     NormalModel,
-    _deep_components,
-    _depth_mm,
-    _smooth_in_brain,
     left_right_axis,
     lesion_params,
     mirror_image,
@@ -33,6 +32,9 @@ from tumor3d.segmentation.lesion import (
     segment_hyperintense_lesion,
     symmetry_plane,
 )
+from tumor3d.segmentation.lesion.candidates import _deep_components, _depth_mm
+from tumor3d.segmentation.lesion.normal import _smooth_in_brain
+from tumor3d.segmentation.lesion.regions import _bounding_box
 
 SHAPE = (16, 96, 96)  # (z, y, x); x runs left-right
 SPACING = (3.0, 1.0, 1.0)  # mm: 3 mm slices, 1 mm pixels
@@ -231,7 +233,7 @@ def test_bilateral_structures_of_a_turned_head_are_no_lesion(monkeypatch):
     def straight(sm, b, model, axis, voxel_mm):
         return MirrorPlane(2, 0.0, float(np.nonzero(b)[2].mean()) * voxel_mm[2])
 
-    monkeypatch.setattr(lesion_module, "symmetry_plane", straight)
+    monkeypatch.setattr(lesion_model, "symmetry_plane", straight)
     found = _segment(img, brain, lr_axis=2)
     assert (found & pair).sum() > 0.4 * pair.sum()
 
@@ -499,7 +501,7 @@ def test_asymmetric_dark_structure_reached_through_a_mirrored_bridge_stays_out()
 def _counting(monkeypatch, module):
     """Count the calls of ``module.patient_lesion`` (still computing); each call's
     record is the keywords the lesion model itself received."""
-    import tumor3d.segmentation.lesion as lesion_mod
+    import tumor3d.segmentation.lesion.model as lesion_mod
 
     calls = []
 
@@ -592,7 +594,8 @@ def _grow_local_naive(mask, img, allowed, model, floor_sigmas, rings):
 def test_local_growth_on_the_lesion_box_equals_the_whole_volume(seed):
     # the growth works on the lesion's box only: it must give the same pixels as on the
     # whole volume, also with the lesion at the volume's edge (reflecting borders)
-    from tumor3d.segmentation.lesion import NormalModel, _grow_local
+    from tumor3d.segmentation.lesion import NormalModel
+    from tumor3d.segmentation.lesion.growth import _grow_local
 
     rng = np.random.default_rng(seed)
     shape = (9, 80, 90)
@@ -613,7 +616,7 @@ def test_local_growth_on_the_lesion_box_equals_the_whole_volume(seed):
 
 
 def test_depth_on_the_coarse_grid_is_within_a_grid_step_of_the_exact_depth():
-    from tumor3d.segmentation.lesion import DEPTH_GRID_MM, _depth_mm
+    from tumor3d.segmentation.lesion import DEPTH_GRID_MM
 
     brain = _brain()
     spacing = (1.0, 1.0, 1.0)
@@ -654,7 +657,7 @@ def test_faint_wall_of_a_joined_cavity_joins_with_it(monkeypatch):
     # 80 % without 5c; 46 % before step 4b, which joins the rim's pieces the growth
     # reaches); 5c decides it by the step-4 rule once the core is known, and adds
     # nothing outside the truth
-    import tumor3d.segmentation.lesion as lesion_mod
+    import tumor3d.segmentation.lesion.model as lesion_mod
 
     brain = _brain()
     z, y, x = _grid_mm()
@@ -766,7 +769,7 @@ def test_a_chain_of_satellites_each_within_1_cm_joins():
 
 
 def test_satellite_reach_is_measured_through_the_voxel_spacing():
-    from tumor3d.segmentation.lesion import _reached
+    from tumor3d.segmentation.lesion.growth import _reached
 
     mask = np.zeros((8, 9, 9), bool)
     mask[0, 4, 4] = True
@@ -817,31 +820,31 @@ def _crossing_tumour(dark_beside_far: bool = False, hole_mm: float = 0.0, lobe: 
 
 
 def _without_step_3d(monkeypatch):
-    original = lesion_module._candidates
+    original = lesion_model._candidates
 
     def no_crossing(*args):
         # the last two positional arguments: crossing (step 3d), contrast (step 3e)
         return original(*args[:-2], False, args[-1])
 
-    monkeypatch.setattr(lesion_module, "_candidates", no_crossing)
+    monkeypatch.setattr(lesion_model, "_candidates", no_crossing)
 
 
 def _record_refinements(monkeypatch) -> list:
     """Record ``(core, rings)`` of every step-4 refinement (in the brain box's frame)."""
     refined = []
-    original = lesion_module._refine
+    original = lesion_model._refine
 
     def recording(core, *args, **kwargs):
         refined.append((core.copy(), args[-1]))  # the last positional argument: the rings
         return original(core, *args, **kwargs)
 
-    monkeypatch.setattr(lesion_module, "_refine", recording)
+    monkeypatch.setattr(lesion_model, "_refine", recording)
     return refined
 
 
 def _model_box(brain: np.ndarray) -> tuple[slice, ...]:
     """The brain box the lesion model works in (its smoothing support of 2 px as padding)."""
-    return lesion_module._bounding_box(brain, int(np.ceil(4 * 2.0)) + 1)
+    return _bounding_box(brain, int(np.ceil(4 * 2.0)) + 1)
 
 
 # not T2: there the far part, bright with a bright mirror, is CSF to step 6 and seeds nothing,
@@ -888,7 +891,7 @@ def test_superficial_bilateral_bright_tissue_touching_the_lesion_is_not_taken_ac
     assert mask[lesion].mean() > 0.95
     assert not mask[far].any() and not mask[layer & (x > 5.0)].any()
     # precondition: were the whole brain "deep", the layer would join all round
-    monkeypatch.setattr(lesion_module, "_depth_mm", lambda b, sp: np.where(b, 1e3, 0.0))
+    monkeypatch.setattr(lesion_candidates, "_depth_mm", lambda b, sp: np.where(b, 1e3, 0.0))
     deep = _segment(img, brain, lr_axis=2)
     assert deep[far].mean() > 0.9
 
@@ -901,9 +904,9 @@ def test_a_dark_structure_beside_the_far_part_does_not_join_as_a_cavity(monkeypa
     assert mask[far].mean() > 0.95
     assert not mask[blob].any()
     # precondition: measured against the whole lesion's extent, the blob would join
-    original = lesion_module._asymmetric_cavity
+    original = lesion_model._asymmetric_cavity
     monkeypatch.setattr(
-        lesion_module,
+        lesion_model,
         "_asymmetric_cavity",
         lambda *a, **k: original(*a, **{**k, "extent_of": None}),
     )
@@ -915,7 +918,7 @@ def test_a_dark_structure_beside_the_far_part_does_not_join_as_a_cavity(monkeypa
 def test_inner_half_of_a_flipped_brain_is_the_flipped_inner_half(shape, seed):
     # step 3d decides voxel by voxel on the depth of a coarse grid anchored at the
     # array's first voxel; its inner half must have no preferred side all the same
-    from tumor3d.segmentation.lesion import _inner_half
+    from tumor3d.segmentation.lesion.candidates import _inner_half
 
     rng = np.random.default_rng(seed)
     brain = ndi.gaussian_filter(rng.normal(size=shape), (1, 4, 4)) > -0.3  # irregular
@@ -933,13 +936,13 @@ def test_the_cavity_extent_leaves_out_the_holes_of_the_far_part(monkeypatch):
     # taken before that filling, so the hole of the part across does not widen it
     brain, img, _, far, _, hole = _crossing_tumour(hole_mm=4.0)
     extents = []
-    original = lesion_module._asymmetric_cavity
+    original = lesion_model._asymmetric_cavity
 
     def recording(*args, **kwargs):
         extents.append(kwargs.get("extent_of"))
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(lesion_module, "_asymmetric_cavity", recording)
+    monkeypatch.setattr(lesion_model, "_asymmetric_cavity", recording)
     mask = _segment(img, brain, lr_axis=2)
     assert mask[far].mean() > 0.95 and mask[hole].all()  # the hole is filled (step 5)
     box = _model_box(brain)
@@ -1002,16 +1005,21 @@ def test_each_step_gets_its_length_in_pixels(monkeypatch, pixel_mm):
     # at 1 mm
     seen = {}
 
-    def spy(name, fn, pick):
+    def spy(name, fn, pick, module=lesion_model):
         def wrapped(*args, **kwargs):
             seen.setdefault(name, set()).add(pick(*args, **kwargs))
             return fn(*args, **kwargs)
 
-        monkeypatch.setattr(lesion_module, fn.__name__, wrapped)
+        monkeypatch.setattr(module, fn.__name__, wrapped)
 
-    spy("blur", lesion_module._smooth_in_brain, lambda img, b, sigma: sigma)
-    spy("region", lesion_module._significant_components, lambda seeds, n, k: n)
-    spy("rings", lesion_module._refine, lambda *a, **kw: (a[-1], kw["local_px"]))
+    spy("blur", lesion_model._smooth_in_brain, lambda img, b, sigma: sigma)
+    spy(
+        "region",
+        lesion_candidates._significant_components,
+        lambda seeds, n, k: n,
+        lesion_candidates,
+    )
+    spy("rings", lesion_model._refine, lambda *a, **kw: (a[-1], kw["local_px"]))
     brain = _brain()
     img = _image(brain, [(_ball((0, -8, 12), 9), 150.0)])
     k = int(round(1.0 / pixel_mm))
@@ -1042,7 +1050,7 @@ def test_the_normal_tail_level_splits_the_tail_beyond_the_seed_level():
     x = np.random.default_rng(0).normal(50.0, 4.0, 4_000_000)
     tail = x[x > m.seed_threshold]
     for q in (0.5, 0.25, 0.1):
-        share = float(np.mean(tail > lesion_module.normal_tail_level(m, q)))
+        share = float(np.mean(tail > lesion_normal.normal_tail_level(m, q)))
         assert share == pytest.approx(q, abs=0.01)
 
 
@@ -1072,7 +1080,7 @@ def test_a_region_at_the_normal_tails_level_is_no_lesion(lr_axis, monkeypatch):
         found = _segment(img, brain, modality="t1c", lr_axis=lr_axis)
         assert (found & region).sum() > 0.9 * region.sum()
         with monkeypatch.context() as m:
-            m.setattr(lesion_module, "TAIL_QUANTILE", 1.0)  # the tail level is the seed level
+            m.setattr(lesion_normal, "TAIL_QUANTILE", 1.0)  # the tail level is the seed level
             found = _segment(img, brain, lr_axis=lr_axis)
         assert (found & region).sum() > 0.9 * region.sum()
 
@@ -1125,7 +1133,7 @@ def test_a_faint_region_near_a_lesion_joins_only_by_touching_it(lr_axis, monkeyp
                 continue
             assert not mask[faint].any()
             with monkeypatch.context() as m:
-                m.setattr(lesion_module, "TAIL_QUANTILE", 1.0)
+                m.setattr(lesion_normal, "TAIL_QUANTILE", 1.0)
                 mask = _segment(img, brain, lr_axis=lr_axis)
             assert mask[faint].mean() > 0.8
 
@@ -1134,7 +1142,7 @@ def test_step_3e_on_components_equals_the_per_component_median():
     # the one-sort version against a naive median per component; tiny components too,
     # where every voxel counts
     m = NormalModel(median=100.0, sigma=4.0, seed_threshold=108.0, csf_threshold=np.inf)
-    level = lesion_module.normal_tail_level(m)
+    level = lesion_normal.normal_tail_level(m)
     mask = np.zeros((1, 3, 15), dtype=bool)
     sm = np.full(mask.shape, level + 50.0)
     # components along row 1, apart by one column: 1 voxel above the level; 2 straddling
@@ -1142,7 +1150,7 @@ def test_step_3e_on_components_equals_the_per_component_median():
     for cols, offs in (((0,), (1.0,)), ((2, 3), (-3.0, 1.0)), ((5, 6, 7), (-1.0, 1.0, 2.0))):
         for c, o in zip(cols, offs, strict=True):
             mask[0, 1, c], sm[0, 1, c] = True, level + o
-    got = lesion_module._passing_components(mask, sm, m)
+    got = lesion_normal._passing_components(mask, sm, m)
     assert got[0, 1].tolist()[:8] == [True, False, False, False, False, True, True, True]
     rng = np.random.default_rng(3)
     big = ndi.binary_opening(rng.random((6, 24, 24)) > 0.55)
@@ -1150,7 +1158,7 @@ def test_step_3e_on_components_equals_the_per_component_median():
     labels, n = ndi.label(big, structure=np.ones((3, 3, 3), dtype=bool))
     sm = sm + 2.0 * labels  # brighter with the label
     naive = np.isin(labels, [i for i in range(1, n + 1) if np.median(sm[labels == i]) >= level])
-    got = lesion_module._passing_components(big, sm, m)
+    got = lesion_normal._passing_components(big, sm, m)
     assert np.array_equal(got, naive) and naive.any() and (big & ~naive).any()
 
 
@@ -1167,7 +1175,7 @@ def test_a_lesion_centred_on_the_midline_is_found_on_flair(seed, monkeypatch):
     mask = _segment(img, brain, lr_axis=2)
     assert 2 * (mask & ball).sum() / (mask.sum() + ball.sum()) > 0.9
     with monkeypatch.context() as m:
-        m.setattr(lesion_module, "MIDLINE_LESIONS", False)
+        m.setattr(lesion_candidates, "MIDLINE_LESIONS", False)
         assert not _segment(img, brain, lr_axis=2).any()
     # FLAIR only (the deep bilateral bright structures of T2 and T1c lie at the midline)
     assert not _segment(img, brain, modality="t1c", lr_axis=2).any()
@@ -1178,7 +1186,7 @@ def test_a_faint_or_superficial_midline_region_is_no_lesion(monkeypatch):
     img, brain, ball = _midline_image(2.5)
     assert not _segment(img, brain, lr_axis=2).any()
     with monkeypatch.context() as m:
-        m.setattr(lesion_module, "TAIL_QUANTILE", 1.0)  # the tail level is the seed level
+        m.setattr(lesion_normal, "TAIL_QUANTILE", 1.0)  # the tail level is the seed level
         assert (_segment(img, brain, lr_axis=2) & ball).sum() > 0.8 * ball.sum()
     # a bright cap at the brain's front, across the midline: its deepest tenth lies
     # shallower than the brain's median depth
@@ -1190,7 +1198,7 @@ def test_a_faint_or_superficial_midline_region_is_no_lesion(monkeypatch):
     img = _image(brain, [(cap, 200.0)])
     assert not _segment(img, brain, lr_axis=2).any()
     with monkeypatch.context() as m:
-        m.setattr(lesion_module, "_deep_components", lambda labels, ids, *a, **k: ids)
+        m.setattr(lesion_candidates, "_deep_components", lambda labels, ids, *a, **k: ids)
         assert (_segment(img, brain, lr_axis=2) & cap).sum() > 0.8 * cap.sum()
 
 
@@ -1205,7 +1213,7 @@ def test_bilateral_structures_along_the_midline_are_no_midline_lesion(monkeypatc
     img = _image(brain, [(plates, 200.0)])
     assert not _segment(img, brain, lr_axis=2).any()
     with monkeypatch.context() as m:
-        m.setattr(lesion_module, "_straddles", lambda part, side: True)
+        m.setattr(lesion_candidates, "_straddles", lambda part, side: True)
         found = _segment(img, brain, lr_axis=2)
     assert (found & plates).sum() > 0.4 * plates.sum()  # one plate
 
@@ -1238,7 +1246,7 @@ def test_a_midline_lesion_is_flagged_through_detection_and_segmentation(pad):
 def test_a_part_straddles_the_plane_only_with_voxels_strictly_on_both_sides():
     # a voxel on the plane counts for neither side, so a mirrored image decides the same
     side = np.array([-1, 0, 1, 0, 0], dtype=np.int8)
-    straddles = lesion_module._straddles
+    straddles = lesion_candidates._straddles
     assert straddles(np.array([1, 0, 1, 0, 0], bool), side)
     assert not straddles(np.array([0, 1, 1, 0, 0], bool), side)
     assert not straddles(np.array([1, 1, 0, 0, 0], bool), side)  # the mirror of the above

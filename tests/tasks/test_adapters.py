@@ -211,7 +211,7 @@ def test_slice_table_rows_match_detection(tumour_run):
 
 def _count_lesion_runs(monkeypatch):
     import tumor3d.segmentation.detect as detect_mod
-    import tumor3d.segmentation.lesion as lesion_mod
+    import tumor3d.segmentation.lesion.model as lesion_mod
     import tumor3d.segmentation.segment as segment_mod
     from tumor3d.segmentation.lesion import patient_lesion, segment_hyperintense_lesion
 
