@@ -28,7 +28,7 @@ from pydantic import (
 )
 
 from tumor3d.constants import YAML_MAX_ALIASES, YAML_MAX_BYTES, YAML_MAX_EXPANDED_NODES
-from tumor3d.errors import ConfigError
+from tumor3d.errors import ConfigError, InputError
 from tumor3d.validation import short_repr
 
 __all__ = [
@@ -311,15 +311,13 @@ class SegmentConfig(_StageConfig):
     ``min_tumor_pixels`` applies to every method.
     """
 
-    method: Literal["auto", "robust", "paper", "multiotsu", "learned"] = Field(
+    method: str = Field(
         "auto",
-        description="robust = patient-pooled lesion model (tumor3d.segmentation.lesion); "
-        "paper = wavelet + "
-        "histogram FCM per slice ([A7], [A8]); multiotsu = peer (brightest of 4 classes); "
-        "learned = the robust mask refined by the shipped boosted forest (tumor3d.learned, "
-        "reports/model_card.md), with a probability map and a review; "
-        "auto = robust on FLAIR/T1c; on T2 paper where >= 95 % of the slices show 3 "
+        description="The segmentation method: a registered one "
+        "(tumor3d.segmentation.methods; `tumor3d methods` lists them), or auto = the "
+        "learned method on FLAIR/T1c; on T2 paper where >= 95 % of the slices show 3 "
         "histogram modes (the paper's premise), robust otherwise.",
+        json_schema_extra=lambda schema: _method_schema(schema),
     )
     wavelet: Literal["haar"] = "haar"
     fuzziness: float = Field(2.0, gt=1.0, le=5.0, description="FCM exponent m.")
@@ -364,10 +362,30 @@ class SegmentConfig(_StageConfig):
     )
     multiotsu_classes: int = Field(4, ge=2, le=6, description="multiotsu peer: classes.")
 
+    @field_validator("method")
+    @classmethod
+    def _registered_method(cls, value: str) -> str:
+        """``auto`` or a method of the registry; the error lists the registered ones."""
+        from tumor3d.segmentation.methods import check_method_name
+
+        try:
+            return check_method_name(value)
+        except InputError as exc:
+            raise ValueError(exc.problem) from None
+
     @model_validator(mode="before")
     @classmethod
     def _moved_keys(cls, data: Any) -> Any:
         return _refuse_moved_lesion_keys("segment", data)
+
+
+def _method_schema(schema: dict[str, Any]) -> None:
+    """JSON schema of ``segment.method``: the registered methods as its ``enum``, described."""
+    from tumor3d.segmentation.methods import method_names, registered_methods
+
+    schema["enum"] = list(method_names())
+    listed = "; ".join(f"{m.name} = {m.description}" for m in registered_methods().values())
+    schema["description"] = f"{schema.get('description', '')} Registered: {listed}."
 
 
 class InterpolateConfig(_StageConfig):

@@ -43,15 +43,27 @@ from tumor3d.segmentation.fcm import (
     fuzzy_cmeans_histogram,
 )
 from tumor3d.segmentation.lesion import lesion_params, patient_lesion
+from tumor3d.segmentation.methods import (
+    AUTO,
+    check_method_name,
+    method_names,
+    method_spec,
+    register_method,
+    registered_methods,
+)
 
 __all__ = [
     "FCMDiagnostics",
     "SegmentationResult",
     "fuzzy_cmeans_histogram",
     "fcm_memberships",
+    "learned_prior",
     "lesion_definition",
     "multiotsu_peer",
     "resolve_method",
+    "segment_multiotsu",
+    "segment_paper",
+    "segment_robust",
     "segment_tumor",
 ]
 
@@ -673,35 +685,11 @@ def _refine_boundary(
 
 # --------------------------------------------------------------------------- public entry point
 
-SEGMENT_METHODS = ("auto", "robust", "paper", "multiotsu", "learned")
-
-#: What each method's mask holds, by modality (:func:`lesion_definition`).
+#: What the robust and learned masks hold (their ``measures`` in the registry).
 _WHOLE_TUMOUR = (
     "whole tumour: the {seq}-hyperintense lesion with its enclosed necrotic core "
     "(oedema and non-enhancing tumour included, as the BraTS whole-tumour label)"
 )
-_LESION_DEFINITIONS = {
-    ("robust", "flair"): _WHOLE_TUMOUR.format(seq="FLAIR"),
-    ("robust", "t2"): _WHOLE_TUMOUR.format(seq="T2"),
-    ("robust", "t1c"): (
-        "enhancing tumour: the contrast-enhancing lesion with its enclosed necrotic core "
-        "(no oedema)"
-    ),
-    ("paper", None): (
-        "the tumour cluster of the paper's per-slice wavelet + fuzzy c-means segmentation "
-        "(Arakeri & Reddy 2013, section 3) on {seq}"
-    ),
-    ("learned", "flair"): _WHOLE_TUMOUR.format(seq="FLAIR"),
-    ("learned", "t2"): _WHOLE_TUMOUR.format(seq="T2"),
-    ("learned", "t1c"): (
-        "tumour core: the contrast-enhancing lesion with its enclosed necrotic core and "
-        "non-enhancing tumour (no oedema), as the BraTS labels 1 + 4 it was trained on"
-    ),
-    ("multiotsu", None): (
-        "the peer: the brightest of the multi-Otsu classes of the brain on {seq}, its "
-        "largest 3-D component"
-    ),
-}
 _SEQUENCE_NAMES = {"flair": "FLAIR", "t2": "T2", "t1c": "T1c"}
 
 
@@ -710,12 +698,13 @@ def lesion_definition(method: str, modality: str) -> str:
 
     The words a volume is reported with (summary, ``metrics.parquet``,
     report): a FLAIR volume of the robust method counts the oedema, a T1c
-    one does not.
+    one does not. Each method states them when it registers
+    (:func:`tumor3d.segmentation.methods.register_method`, ``measures``).
 
     Parameters
     ----------
-    method : {"robust", "paper", "multiotsu"}
-        The method that ran (``"auto"`` resolved, :func:`resolve_method`).
+    method : str
+        A registered method that ran (``"auto"`` resolved, :func:`resolve_method`).
     modality : {"t2", "flair", "t1c"}
 
     Raises
@@ -731,11 +720,12 @@ def lesion_definition(method: str, modality: str) -> str:
     mod = modality.strip().lower() if isinstance(modality, str) else modality
     if mod not in _SEQUENCE_NAMES:
         raise InputError(f"unknown modality {modality!r}: expected one of {MODALITIES}")
-    text = _LESION_DEFINITIONS.get((method, mod)) or _LESION_DEFINITIONS.get((method, None))
+    spec = registered_methods().get(method) if isinstance(method, str) else None
+    text = None if spec is None else (spec.measures.get(mod) or spec.measures.get(None))
     if text is None:
         raise InputError(
-            f"no definition for method {method!r}: expected one of robust, paper, multiotsu, "
-            "learned"
+            f"no definition for method {method!r}: expected one of "
+            f"{', '.join(method_names(auto=False))}"
         )
     return text.format(seq=_SEQUENCE_NAMES[mod])
 
@@ -801,7 +791,10 @@ def segment_tumor(
 ) -> SegmentationResult:
     """Segment the tumour of a patient's slices (specification section 3).
 
-    Methods (``SegmentConfig.method``); ``"auto"`` (default) is ``"learned"``
+    The method is looked up in the registry of segmentation methods
+    (:mod:`tumor3d.segmentation.methods`) and called with the keywords below
+    that it names. The registered ones (``SegmentConfig.method``) follow;
+    ``"auto"`` (default) is ``"learned"``
     on FLAIR and T1c (``"robust"`` when ``image`` or ``model`` is not given),
     and on T2 ``"paper"`` where the paper's premise holds (three tissue modes
     on nearly every slice), ``"robust"`` otherwise (:func:`resolve_method`).
@@ -844,8 +837,9 @@ def segment_tumor(
         Section 2 result for the same slices.
     modality : {"t2", "flair", "t1c"}
         Sequence (case-insensitive).
-    method : {"auto", "robust", "paper", "multiotsu"}
-        See above.
+    method : str
+        ``"auto"`` or a registered method
+        (:func:`tumor3d.segmentation.methods.method_names`); see above.
     wavelet, fuzziness, tol, max_num_iter, min_tumor_pixels, keep_largest_3d_component,
     component_tolerance_px, rim_px, max_brain_fraction, refine_boundary, min_tumor_slices
         Paper-method parameters (see :func:`_segment_paper`); the robust
@@ -891,50 +885,93 @@ def segment_tumor(
         On wrong dimensions, dtypes or shapes, a detection of another length,
         an unknown modality, method or wavelet, or an out-of-range parameter.
     """
-    if method not in SEGMENT_METHODS:
-        raise InputError(f"unknown segment method {method!r}: expected one of {SEGMENT_METHODS}")
+    check_method_name(method)  # "auto" or a registered method; else an error naming them
     requested = method
     method = resolve_method(
         method, modality, detection if isinstance(detection, SliceDetection) else None
     )
-    if method == "learned" and requested == "auto" and (image is None or model is None):
+    if method == "learned" and requested == AUTO and (image is None or model is None):
         method = "robust"  # "auto" without the acquired image or a model: the rule-based one
-    if method == "learned":
-        return _segment_learned(
-            enhanced,
-            brain_mask,
-            detection,
-            image=image,
-            model=model,
-            modality=modality,
-            min_tumor_pixels=min_tumor_pixels,
-            lesion=lesion,
-            spacing_mm=spacing_mm,
-            lr_axis=lr_axis,
-            head_exterior=head_exterior,
+    spec = method_spec(method)
+    mod = modality.strip().lower() if isinstance(modality, str) else modality
+    if mod in MODALITIES and mod not in spec.modalities:
+        raise InputError(
+            f"the {method} method does not segment {mod}: it takes {', '.join(spec.modalities)}"
         )
-    if method == "paper":
-        res = _segment_paper(
-            enhanced,
-            brain_mask,
-            detection,
-            modality=modality,
-            wavelet=wavelet,
-            fuzziness=fuzziness,
-            tol=tol,
-            max_num_iter=max_num_iter,
-            min_tumor_pixels=min_tumor_pixels,
-            keep_largest_3d_component=keep_largest_3d_component,
-            component_tolerance_px=component_tolerance_px,
-            rim_px=rim_px,
-            max_brain_fraction=max_brain_fraction,
-            refine_boundary=refine_boundary,
-            min_tumor_slices=min_tumor_slices,
-        )
-        caveats = segmentation_caveats(
-            res.tumor_mask, spacing_mm=spacing_mm, head_exterior=head_exterior
-        )
-        return replace(res, caveats=caveats, method="paper")
+    keywords = {
+        "modality": modality, "wavelet": wavelet, "fuzziness": fuzziness, "tol": tol,
+        "max_num_iter": max_num_iter, "min_tumor_pixels": min_tumor_pixels,
+        "keep_largest_3d_component": keep_largest_3d_component,
+        "component_tolerance_px": component_tolerance_px, "rim_px": rim_px,
+        "max_brain_fraction": max_brain_fraction, "refine_boundary": refine_boundary,
+        "min_tumor_slices": min_tumor_slices, "multiotsu_classes": multiotsu_classes,
+        "lesion": lesion, "spacing_mm": spacing_mm, "lr_axis": lr_axis,
+        "head_exterior": head_exterior, "image": image, "model": model,
+    }  # fmt: skip
+    result = spec.fn(enhanced, brain_mask, detection, **spec.arguments(keywords))
+    return result if result.method == method else replace(result, method=method)
+
+
+@register_method(
+    "paper",
+    description="the paper's per-slice wavelet + histogram fuzzy c-means ([A7], [A8])",
+    measures=(
+        "the tumour cluster of the paper's per-slice wavelet + fuzzy c-means segmentation "
+        "(Arakeri & Reddy 2013, section 3) on {seq}"
+    ),
+)
+def segment_paper(
+    enhanced: np.ndarray,
+    brain_mask: np.ndarray,
+    detection: SliceDetection,
+    *,
+    modality: str,
+    wavelet: str,
+    fuzziness: float,
+    tol: float,
+    max_num_iter: int,
+    min_tumor_pixels: int,
+    keep_largest_3d_component: bool,
+    component_tolerance_px: int,
+    rim_px: int,
+    max_brain_fraction: float,
+    refine_boundary: bool,
+    min_tumor_slices: int,
+    spacing_mm: tuple[float, float, float] | None,
+    head_exterior: np.ndarray | None,
+) -> SegmentationResult:
+    """The paper's method (:func:`_segment_paper`) with the caveats of its mask."""
+    res = _segment_paper(
+        enhanced,
+        brain_mask,
+        detection,
+        modality=modality,
+        wavelet=wavelet,
+        fuzziness=fuzziness,
+        tol=tol,
+        max_num_iter=max_num_iter,
+        min_tumor_pixels=min_tumor_pixels,
+        keep_largest_3d_component=keep_largest_3d_component,
+        component_tolerance_px=component_tolerance_px,
+        rim_px=rim_px,
+        max_brain_fraction=max_brain_fraction,
+        refine_boundary=refine_boundary,
+        min_tumor_slices=min_tumor_slices,
+    )
+    caveats = segmentation_caveats(
+        res.tumor_mask, spacing_mm=spacing_mm, head_exterior=head_exterior
+    )
+    return replace(res, caveats=caveats, method="paper")
+
+
+def _checked_inputs(
+    enhanced: np.ndarray,
+    brain_mask: np.ndarray,
+    detection: SliceDetection,
+    modality: str,
+    min_tumor_pixels: int,
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """The robust and peer methods' checks: ``(img, brain, modality)`` or an InputError."""
     img, brain = _check_pair(enhanced, brain_mask)
     if not isinstance(detection, SliceDetection):
         raise InputError("detection must be a SliceDetection")
@@ -945,34 +982,21 @@ def segment_tumor(
         raise InputError(f"unknown modality {modality!r}: expected one of {MODALITIES}")
     if int(min_tumor_pixels) < 1:
         raise InputError(f"min_tumor_pixels must be >= 1, got {min_tumor_pixels}")
-    nz = img.shape[0]
-    params = lesion_params(lesion)
-    if method == "multiotsu":
-        if not 2 <= int(multiotsu_classes) <= 6:
-            raise InputError(f"multiotsu_classes must lie in [2, 6], got {multiotsu_classes}")
-        tumor = multiotsu_peer(img, brain, classes=int(multiotsu_classes))
-        how = "multiotsu"
-        center = np.full(nz, np.nan)
-        ref = np.full(3, np.nan)
-        plane = None  # the peer has no symmetry rule
-        midline = False
-    else:
-        res = detection.lesion
-        if res is None:
-            res = patient_lesion(
-                img, brain, modality=mod, lesion=lesion, spacing_mm=spacing_mm, lr_axis=lr_axis
-            )
-        elif res.mask.shape != img.shape:
-            raise InputError(
-                f"detection.lesion has shape {res.mask.shape} but enhanced has {img.shape}"
-            )
-        # the lesion on the abnormal slices only (a copy: the detection's mask is kept)
-        tumor = res.mask & np.asarray(detection.abnormal, dtype=bool)[:, None, None]
-        how = "lesion"
-        center = np.full(nz, res.lesion_gray)
-        ref = np.array([res.model.median, res.model.sigma, res.model.seed_threshold])
-        plane = res.plane
-        midline = res.midline
+    return img, brain, mod
+
+
+def _slice_result(
+    tumor: np.ndarray,
+    detection: SliceDetection,
+    *,
+    how: str,
+    center: np.ndarray,
+    ref: np.ndarray,
+    min_tumor_pixels: int,
+    method: str,
+    caveat_keywords: dict[str, Any],
+) -> SegmentationResult:
+    """Slices under ``min_tumor_pixels`` cleared; the per-slice records and the caveats."""
     small = tumor.sum(axis=(1, 2)) < int(min_tumor_pixels)
     tumor[small] = False
     has = tumor.any(axis=(1, 2))
@@ -984,16 +1008,114 @@ def segment_tumor(
         reference_centers=ref,
         tumor_center_gray=center,
         selection=selection.astype(str),
-        caveats=segmentation_caveats(
-            tumor,
-            plane=plane,
-            spacing_mm=spacing_mm,
-            min_region_mm2=params["min_region_mm2"],
-            min_slices=params["min_slices"],
-            midline_lesion=midline,
-            head_exterior=head_exterior,
-        ),
+        caveats=segmentation_caveats(tumor, **caveat_keywords),
         method=method,
+    )
+
+
+@register_method(
+    "robust",
+    description="the patient-pooled normal-tissue model grown in 3-D "
+    "(tumor3d.segmentation.lesion), kept on the abnormal slices",
+    measures={
+        "flair": _WHOLE_TUMOUR.format(seq="FLAIR"),
+        "t2": _WHOLE_TUMOUR.format(seq="T2"),
+        "t1c": (
+            "enhancing tumour: the contrast-enhancing lesion with its enclosed necrotic core "
+            "(no oedema)"
+        ),
+    },
+    uses_lesion=True,
+)
+def segment_robust(
+    enhanced: np.ndarray,
+    brain_mask: np.ndarray,
+    detection: SliceDetection,
+    *,
+    modality: str,
+    min_tumor_pixels: int,
+    lesion: Mapping[str, Any] | None,
+    spacing_mm: tuple[float, float, float] | None,
+    lr_axis: int | None,
+    head_exterior: np.ndarray | None,
+) -> SegmentationResult:
+    """The robust method: the detection's lesion model (computed here if absent) on its slices."""
+    img, brain, mod = _checked_inputs(enhanced, brain_mask, detection, modality, min_tumor_pixels)
+    nz = img.shape[0]
+    params = lesion_params(lesion)
+    res = detection.lesion
+    if res is None:
+        res = patient_lesion(
+            img, brain, modality=mod, lesion=lesion, spacing_mm=spacing_mm, lr_axis=lr_axis
+        )
+    elif res.mask.shape != img.shape:
+        raise InputError(
+            f"detection.lesion has shape {res.mask.shape} but enhanced has {img.shape}"
+        )
+    # the lesion on the abnormal slices only (a copy: the detection's mask is kept)
+    tumor = res.mask & np.asarray(detection.abnormal, dtype=bool)[:, None, None]
+    return _slice_result(
+        tumor,
+        detection,
+        how="lesion",
+        center=np.full(nz, res.lesion_gray),
+        ref=np.array([res.model.median, res.model.sigma, res.model.seed_threshold]),
+        min_tumor_pixels=min_tumor_pixels,
+        method="robust",
+        caveat_keywords={
+            "plane": res.plane,
+            "spacing_mm": spacing_mm,
+            "min_region_mm2": params["min_region_mm2"],
+            "min_slices": params["min_slices"],
+            "midline_lesion": res.midline,
+            "head_exterior": head_exterior,
+        },
+    )
+
+
+@register_method(
+    "multiotsu",
+    description="the peer: the brightest multi-Otsu class of the brain, its largest 3-D component",
+    measures=(
+        "the peer: the brightest of the multi-Otsu classes of the brain on {seq}, its "
+        "largest 3-D component"
+    ),
+)
+def segment_multiotsu(
+    enhanced: np.ndarray,
+    brain_mask: np.ndarray,
+    detection: SliceDetection,
+    *,
+    modality: str,
+    min_tumor_pixels: int,
+    multiotsu_classes: int,
+    lesion: Mapping[str, Any] | None,
+    spacing_mm: tuple[float, float, float] | None,
+    head_exterior: np.ndarray | None,
+) -> SegmentationResult:
+    """The peer (:func:`multiotsu_peer`); ``detection`` only names the abnormal slices."""
+    img, brain, _ = _checked_inputs(enhanced, brain_mask, detection, modality, min_tumor_pixels)
+    nz = img.shape[0]
+    params = lesion_params(lesion)
+    if not 2 <= int(multiotsu_classes) <= 6:
+        raise InputError(f"multiotsu_classes must lie in [2, 6], got {multiotsu_classes}")
+    tumor = multiotsu_peer(img, brain, classes=int(multiotsu_classes))
+    return _slice_result(
+        tumor,
+        detection,
+        how="multiotsu",
+        center=np.full(nz, np.nan),
+        ref=np.full(3, np.nan),
+        min_tumor_pixels=min_tumor_pixels,
+        method="multiotsu",
+        caveat_keywords={
+            "plane": None,  # the peer has no symmetry rule
+            "spacing_mm": spacing_mm,
+            "min_region_mm2": params["min_region_mm2"],
+            "min_slices": params["min_slices"],
+            "midline_lesion": False,
+            "head_exterior": head_exterior,
+        },
     )
 
 
@@ -1028,6 +1150,21 @@ def learned_prior(
     )
 
 
+@register_method(
+    "learned",
+    description="the robust mask refined by the shipped boosted forest (tumor3d.learned, "
+    "reports/model_card.md), with a probability map and a review",
+    measures={
+        "flair": _WHOLE_TUMOUR.format(seq="FLAIR"),
+        "t2": _WHOLE_TUMOUR.format(seq="T2"),
+        "t1c": (
+            "tumour core: the contrast-enhancing lesion with its enclosed necrotic core and "
+            "non-enhancing tumour (no oedema), as the BraTS labels 1 + 4 it was trained on"
+        ),
+    },
+    uses_lesion=True,
+    needs_model=True,
+)
 def _segment_learned(
     enhanced: np.ndarray,
     brain_mask: np.ndarray,
