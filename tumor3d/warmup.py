@@ -3,7 +3,7 @@
 The kernels (the simplifier's collapse engine in :mod:`tumor3d.simplify`,
 the exact distance transforms of :mod:`tumor3d.geometry.distance`, the tree walk of
 the learned segmentation (:mod:`tumor3d.learned.forest`), the z-buffer
-renderer of :mod:`tumor3d.visual.render` and the phantom rasteriser of
+renderer of :mod:`tumor3d.visual.render.raster` and the phantom rasteriser of
 :mod:`tumor3d.phantom.raster`) are ``numba.njit(cache=True)``: compiled
 on their first call in a process and written to numba's cache (by default
 ``__pycache__`` beside their source; ``NUMBA_CACHE_DIR`` elsewhere), which

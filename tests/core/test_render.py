@@ -20,15 +20,13 @@ from tumor3d.geometry.mesh import Mesh
 from tumor3d.geometry.surface import extract_surface
 from tumor3d.visual.render import (
     ANATOMICAL_VIEWS,
-    _clip_by_plane,
-    _font,
-    _run_worker,
-    _surface_centroid,
-    _vertex_normals,
     render_views,
     turntable_gif,
     vertex_normals,
 )
+from tumor3d.visual.render.annotate import _font
+from tumor3d.visual.render.offscreen import _run_worker
+from tumor3d.visual.render.scene import _clip_by_plane, _surface_centroid, _vertex_normals
 
 BG = (0.2, 0.4, 0.6)
 BG_U8 = np.round(np.array(BG) * 255).astype(int)  # (51, 102, 153)

@@ -363,7 +363,7 @@ def _compose(
     """The mosaic of the windowed (uint8) slices ``gray``; ``index`` their volume indices."""
     from PIL import Image, ImageDraw
 
-    from tumor3d.visual.render import _font
+    from tumor3d.visual.render.annotate import _font
 
     nz, ny, nx = gray.shape
     dx = float(np.linalg.norm(aff[:3, 0]))
