@@ -364,3 +364,59 @@ def test_the_air_outside_a_raw_head_reaches_the_segment_stage_and_a_stripped_one
         again.outputs["preprocess"].artifacts["head_exterior"]
     )
     assert not ext2.any()
+
+
+def test_every_declared_input_is_produced_by_an_earlier_stage_of_the_same_kind():
+    from tumor3d.tasks.train import SPEC as TRAINING_ROWS
+
+    assert stages.wiring_errors(stages.STAGES.values()) == []
+    pipeline = [stages.STAGES[n] for n in ("ingest-scan", "preprocess", "detect-abnormal")]
+    assert stages.wiring_errors([*pipeline, TRAINING_ROWS]) == []
+    # independent expectation: the check catches each way a declaration goes wrong
+    surface = stages.STAGES["extract-surface"]
+    order = list(stages.STAGES.values())
+    swapped = [s for s in order if s is not surface]
+    swapped.insert(order.index(stages.STAGES["interpolate-slices"]), surface)  # too early
+    assert any("has not run before" in e for e in stages.wiring_errors(swapped))
+    from dataclasses import replace
+
+    from tumor3d.tasks.spec import Input
+
+    wrong = Input("mesh", "interpolate-slices.tumor_mask")
+    wrong_kind = replace(surface, inputs={"tumor_mask": wrong})
+    errors = stages.wiring_errors([s if s is not surface else wrong_kind for s in order])
+    assert errors == [
+        "extract-surface.tumor_mask: interpolate-slices.tumor_mask is 'mask', not 'mesh'"
+    ]
+    missing = replace(surface, inputs={"tumor_mask": Input("mask", "interpolate-slices.nothing")})
+    assert stages.wiring_errors([s if s is not surface else missing for s in order])
+
+
+def test_metrics_columns_come_from_the_stage_declarations(tumour_run):
+    run, _ = tumour_run
+    row = stages.metric_columns(run.outputs)
+    outs = run.outputs
+    # independent expectation: the columns the published metrics have always held
+    assert row["faces_mc"] == outs["extract-surface"].values["faces"]
+    assert row["faces_simplified"] == outs["simplify-mesh"].values["faces"]
+    assert row["faces_target"] == outs["simplify-mesh"].values["faces_target"]
+    assert row["mesh_watertight"] is outs["extract-surface"].values["watertight"]
+    assert row["slices_between"] == outs["interpolate-slices"].values["slices_between"]
+    assert row["segment_method"] == outs["segment-tumor"].values["segment_method"]
+    assert {k: row[k] for k in outs["measure-volume"].values} == outs["measure-volume"].values
+    for name, spec in stages.STAGES.items():  # every declared column has a description
+        if isinstance(spec.metrics, dict):
+            assert all(m.description for m in spec.metrics.values()), name
+
+
+def test_an_undeclared_product_is_refused(tmp_path):
+    from tumor3d.tasks.spec import Input, StageResult, stage
+
+    @stage("probe", entry=len, inputs={"mesh": Input("mesh", "extract-surface.mesh")},
+           outputs={"mesh": "mesh"})  # fmt: skip
+    def probe(mesh: object) -> StageResult:
+        return StageResult(artifacts={"other": mesh}, values={})
+
+    store = ArtifactStore(tmp_path)
+    with pytest.raises(TypeError, match="'other' is not declared"):
+        probe.task.fn(mesh=store.put_mesh(_tetrahedron()), store_root=str(store.root))

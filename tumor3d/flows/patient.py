@@ -287,7 +287,11 @@ def run_stages(
     brain_mask: ArtifactRef | None = None,
     segmentation: ArtifactRef | None = None,
 ) -> dict[str, Any]:
-    """The pipeline's wiring: every stage in order, each fed its inputs' references.
+    """The pipeline: every stage of :data:`tumor3d.tasks.stages.STAGES` in order.
+
+    Each is fed the references its declaration names
+    (:func:`tumor3d.tasks.stages.stage_inputs`: the source, an earlier stage's
+    product, a given mask) and its field of ``cfg``.
 
     ``run`` is a runner whose ``run(spec, **inputs)`` executes one stage and
     returns its :class:`~tumor3d.tasks.spec.StageOutput` (:class:`PrefectRunner`,
@@ -296,47 +300,10 @@ def run_stages(
     enters its cache key); ``segmentation``, a given tumour mask stored
     likewise, replaces the segment-tumor stage's mask. Returns stage name -> output.
     """
-    S = stages.STAGES
-    scan = run.run(S["ingest-scan"], source=source, store_root=root).artifacts["scan"]
-    pre = run.run(
-        S["preprocess"], scan=scan, config=cfg.preprocess, store_root=root, brain_mask=brain_mask
-    )
-    enhanced, brain = pre.artifacts["enhanced"], pre.artifacts["brain_mask"]
-    exterior = pre.artifacts["head_exterior"]
-    detected = run.run(
-        S["detect-abnormal"], scan=scan, enhanced=enhanced, brain_mask=brain, config=cfg.detect,
-        store_root=root,
-    )  # fmt: skip
-    # the detect stage computes the patient lesion model once; segment reuses its mask
-    det, lesion = detected.artifacts["detection"], detected.artifacts["lesion"]
-    seg = run.run(
-        S["segment-tumor"], scan=scan, enhanced=enhanced, brain_mask=brain, detection=det,
-        lesion=lesion, head_exterior=exterior, config=cfg.segment, store_root=root,
-        given_mask=segmentation,
-    )  # fmt: skip
-    itp = run.run(
-        S["interpolate-slices"], scan=scan, tumor_mask_slices=seg.artifacts["tumor_mask_slices"],
-        config=cfg.interpolate, store_root=root,
-    )  # fmt: skip
-    surface = run.run(
-        S["extract-surface"], tumor_mask=itp.artifacts["tumor_mask"], config=cfg.surface,
-        store_root=root,
-    )  # fmt: skip
-    simple = run.run(
-        S["simplify-mesh"], mesh=surface.artifacts["mesh"], config=cfg.simplify, store_root=root
-    )
-    brain_mesh = run.run(S["extract-brain-surface"], brain_mask=brain, store_root=root)
-    run.run(
-        S["render-views"], mesh=simple.artifacts["mesh"],
-        brain_mesh=brain_mesh.artifacts["brain_mesh"], config=cfg.render, store_root=root,
-    )  # fmt: skip
-    run.run(
-        S["measure-volume"], scan=scan, detection=det,
-        segmentation=seg.artifacts["segmentation"],
-        tumor_mask_slices=seg.artifacts["tumor_mask_slices"],
-        tumor_mask=itp.artifacts["tumor_mask"],
-        mesh=surface.artifacts["mesh"], mesh_simplified=simple.artifacts["mesh"], store_root=root,
-    )  # fmt: skip
+    given = {"brain_mask": brain_mask, "segmentation": segmentation}
+    for spec in stages.STAGES.values():
+        inputs = stages.stage_inputs(spec, run.outputs, source=source, cfg=cfg, given=given)
+        run.run(spec, **inputs, store_root=root)
     return run.outputs
 
 
@@ -597,15 +564,7 @@ def _metrics_row(
     row["review_reasons"] = join_notes(review.reasons)
     if review.quality_score is not None:  # a segmentation method that scores itself
         row["segmentation_quality_score"] = float(review.quality_score)
-    seg = outputs["segment-tumor"].values
-    row.update({k: seg[k] for k in ("modality", "segment_method", "measured")})
-    row.update(outputs["measure-volume"].values)
-    row["faces_mc"] = int(outputs["extract-surface"].values["faces"])
-    row["faces_simplified"] = int(outputs["simplify-mesh"].values["faces"])
-    row["faces_target"] = int(outputs["simplify-mesh"].values["faces_target"])
-    row["mesh_watertight"] = bool(outputs["extract-surface"].values["watertight"])
-    row["mesh_simplified_watertight"] = bool(outputs["simplify-mesh"].values["watertight"])
-    row["slices_between"] = int(outputs["interpolate-slices"].values["slices_between"])
+    row.update(stages.metric_columns(outputs))  # each stage's declared columns
     row["tumour_found"] = row["faces_mc"] > 0
     row["notes"] = join_notes(notes)
     for r in runs:

@@ -94,16 +94,13 @@ def _patient_rows(
         given = _store_brain_mask(store, prepare_brain_mask(run_row.brain_mask, source))
     root = str(store.root)
     runner = PrefectRunner(store, row.patient_id, len(_PIPELINE_STAGES) + 1)
-    S = stages.STAGES
-    scan = runner.run(S["ingest-scan"], source=source, store_root=root).artifacts["scan"]
-    pre = runner.run(
-        S["preprocess"], scan=scan, config=cfg.preprocess, store_root=root, brain_mask=given
-    )
-    enhanced, brain = pre.artifacts["enhanced"], pre.artifacts["brain_mask"]
-    detected = runner.run(
-        S["detect-abnormal"], scan=scan, enhanced=enhanced, brain_mask=brain, config=cfg.detect,
-        store_root=root,
-    )  # fmt: skip
+    for name in _PIPELINE_STAGES:  # wired from their declarations, as run_stages does
+        spec = stages.STAGES[name]
+        inputs = stages.stage_inputs(
+            spec, runner.outputs, source=source, cfg=cfg, given={"brain_mask": given}
+        )
+        runner.run(spec, **inputs, store_root=root)
+    scan = runner.outputs["ingest-scan"].artifacts["scan"]
     if row.reference is not None:
         ref, ref_affine = acquired_reference(prepared)
         meta = {"tumor_free": False}
@@ -115,12 +112,10 @@ def _patient_rows(
         meta = {"tumor_free": True}
     # the reference in file order with its affine: stored as (z, y, x) = its transpose
     ref_art = store.put_volume(ref.transpose(2, 1, 0), ref_affine, kind="mask", extra=meta)
-    out = runner.run(
-        TRAINING_ROWS, scan=scan, enhanced=enhanced, brain_mask=brain,
-        detection=detected.artifacts["detection"], lesion=detected.artifacts["lesion"],
-        head_exterior=pre.artifacts["head_exterior"], reference=ref_art, config=cfg.segment,
-        store_root=root,
-    )  # fmt: skip
+    inputs = stages.stage_inputs(
+        TRAINING_ROWS, runner.outputs, cfg=cfg, given={"reference": ref_art}
+    )
+    out = runner.run(TRAINING_ROWS, **inputs, store_root=root)
     ref_rows = out.artifacts["rows"]
     rows = rows_from_bytes(store.get_bytes(ref_rows), source=f"{row.patient_id} training rows")
     case = {

@@ -18,9 +18,8 @@ import numpy as np
 from tumor3d.config import DetectConfig
 from tumor3d.segmentation.detect import detect_abnormal_slices
 from tumor3d.segmentation.lesion import LesionResult, left_right_axis
-from tumor3d.storage.objectstore import open_store
-from tumor3d.storage.store import ArtifactRef
-from tumor3d.tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
+from tumor3d.tasks.kinds import Artifact, Tagged, Volume
+from tumor3d.tasks.spec import Input, StageResult, scan_spacing_mm, stage
 
 __all__ = ["SPEC", "detect_task", "lesion_metadata"]
 
@@ -55,21 +54,25 @@ def lesion_metadata(lesion: LesionResult | None, params: dict[str, Any]) -> dict
     return meta
 
 
-@stage_task("detect-abnormal")
-def detect_task(
-    scan: ArtifactRef,
-    enhanced: ArtifactRef,
-    brain_mask: ArtifactRef,
-    config: DetectConfig,
-    store_root: str,
-) -> StageOutput:
+@stage(
+    "detect-abnormal",
+    entry=detect_abnormal_slices,
+    config=DetectConfig,
+    inputs={
+        "scan": Input("scan", "ingest-scan.scan", load=False),  # modality and spacing
+        "enhanced": Input("image", "preprocess.enhanced"),
+        "brain_mask": Input("mask", "preprocess.brain_mask"),
+    },
+    outputs={"detection": "table", "lesion": "mask"},
+)
+def detect_abnormal(
+    scan: Artifact, enhanced: Volume, brain_mask: Volume, config: DetectConfig
+) -> StageResult:
     """Abnormal-slice detection (histogram modes, or the patient's lesion model)."""
-    store = open_store(store_root)
-    image, affine = store.get_volume(enhanced)
-    brain, _ = store.get_volume(brain_mask)
+    image, affine = enhanced
     detection = detect_abnormal_slices(
         image,
-        brain,
+        brain_mask.array,
         modality=scan.metadata["modality"],
         spacing_mm=scan_spacing_mm(scan),
         lr_axis=left_right_axis(affine),
@@ -79,11 +82,10 @@ def detect_task(
     lesion = detection.lesion
     mask = lesion.mask if lesion is not None else np.zeros(image.shape, dtype=bool)
     meta = lesion_metadata(lesion, config.lesion.model_dump())
-    return StageOutput(
-        stage="detect-abnormal",
+    return StageResult(
         artifacts={
-            "detection": store.put_table(detection.to_records()),
-            "lesion": store.put_volume(mask, affine, kind="mask", extra={"lesion": meta}),
+            "detection": detection.to_records(),
+            "lesion": Tagged(Volume(mask, affine), {"lesion": meta}),
         },
         values={
             "n_abnormal_slices": int(abnormal.size),
@@ -93,11 +95,5 @@ def detect_task(
     )
 
 
-SPEC = StageSpec(
-    name="detect-abnormal",
-    task=detect_task,
-    entry=detect_abnormal_slices,
-    config_model=DetectConfig,
-    inputs={"scan": "scan", "enhanced": "image", "brain_mask": "mask"},
-    outputs={"detection": "table", "lesion": "mask"},
-)
+SPEC = detect_abnormal
+detect_task = SPEC.task

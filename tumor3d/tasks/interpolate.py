@@ -6,34 +6,42 @@ import numpy as np
 
 from tumor3d.config import InterpolateConfig
 from tumor3d.geometry.interpolate import interpolate_stack
-from tumor3d.storage.objectstore import open_store
-from tumor3d.storage.store import ArtifactRef
-from tumor3d.tasks.spec import StageOutput, StageSpec, stage_task
+from tumor3d.tasks.kinds import Artifact, Volume
+from tumor3d.tasks.spec import Input, Metric, StageResult, stage
 
 __all__ = ["SPEC", "interpolate_task"]
 
 
-@stage_task("interpolate-slices")
-def interpolate_task(
-    scan: ArtifactRef, tumor_mask_slices: ArtifactRef, config: InterpolateConfig, store_root: str
-) -> StageOutput:
+@stage(
+    "interpolate-slices",
+    entry=interpolate_stack,
+    config=InterpolateConfig,
+    inputs={
+        "scan": Input("scan", "ingest-scan.scan", load=False),  # its slice geometry
+        "tumor_mask_slices": Input("mask", "segment-tumor.tumor_mask_slices"),
+    },
+    outputs={"tumor_mask": "mask"},
+    metrics={
+        "slices_between": Metric("slices_between", "slices interpolated between two acquired"),
+    },
+)
+def interpolate_slices(
+    scan: Artifact, tumor_mask_slices: Volume, config: InterpolateConfig
+) -> StageResult:
     """Shape-based interpolation of the missing slices.
 
     ``slices_between=None`` (automatic, [A10]) is resolved by the core from
     the scan's slice step and pixel spacing.
     """
-    store = open_store(store_root)
-    masks, affine = store.get_volume(tumor_mask_slices)
     stack = interpolate_stack(
-        masks,
+        tumor_mask_slices.array,
         **config.model_dump(),
         slice_step_mm=scan.metadata["slice_step_mm"],
         pixel_spacing_mm=tuple(scan.metadata["pixel_spacing_mm"]),
     )
-    fine_affine = stack.fine_affine(affine)
-    return StageOutput(
-        stage="interpolate-slices",
-        artifacts={"tumor_mask": store.put_volume(stack.mask, fine_affine, kind="mask")},
+    fine_affine = stack.fine_affine(tumor_mask_slices.affine)
+    return StageResult(
+        artifacts={"tumor_mask": Volume(stack.mask, fine_affine)},
         values={
             "slices_between": int(stack.slices_between),
             "n_fine_slices": int(stack.mask.shape[0]),
@@ -42,11 +50,5 @@ def interpolate_task(
     )
 
 
-SPEC = StageSpec(
-    name="interpolate-slices",
-    task=interpolate_task,
-    entry=interpolate_stack,
-    config_model=InterpolateConfig,
-    inputs={"scan": "scan", "tumor_mask_slices": "mask"},
-    outputs={"tumor_mask": "mask"},
-)
+SPEC = interpolate_slices
+interpolate_task = SPEC.task

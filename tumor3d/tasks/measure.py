@@ -2,74 +2,71 @@
 
 from __future__ import annotations
 
+import pandas as pd
+
 from tumor3d.geometry.measures import clinical_measures
+from tumor3d.geometry.mesh import Mesh
 from tumor3d.imaging.scan import slab_height_mm
 from tumor3d.metrics import measure_volumes
-from tumor3d.storage.objectstore import open_store
-from tumor3d.storage.store import ArtifactRef
-from tumor3d.tasks.spec import StageOutput, StageSpec, stage_task
+from tumor3d.tasks.kinds import Artifact, Volume
+from tumor3d.tasks.spec import ALL_VALUES, Input, StageResult, stage
 
 __all__ = ["SPEC", "measure_task"]
 
 
-@stage_task("measure-volume")
-def measure_task(
-    scan: ArtifactRef,
-    detection: ArtifactRef,
-    segmentation: ArtifactRef,
-    tumor_mask_slices: ArtifactRef,
-    tumor_mask: ArtifactRef,
-    mesh: ArtifactRef,
-    mesh_simplified: ArtifactRef,
-    store_root: str,
-) -> StageOutput:
+@stage(
+    "measure-volume",
+    entry=measure_volumes,
+    inputs={
+        "scan": Input("scan", "ingest-scan.scan", load=False),  # its slice geometry
+        "detection": Input("table", "detect-abnormal.detection"),
+        "segmentation": Input("table", "segment-tumor.segmentation"),
+        "tumor_mask_slices": Input("mask", "segment-tumor.tumor_mask_slices"),
+        "tumor_mask": Input("mask", "interpolate-slices.tumor_mask"),
+        "mesh": Input("mesh", "extract-surface.mesh"),
+        "mesh_simplified": Input("mesh", "simplify-mesh.mesh"),
+    },
+    outputs={"volumes": "table"},
+    # the volumes by every method (tumor3d.metrics.VolumeMeasurement.to_row) and the
+    # clinical measures (tumor3d.geometry.measures.clinical_measures), under their names
+    metrics=ALL_VALUES,
+)
+def measure_volume(
+    scan: Artifact,
+    detection: pd.DataFrame,
+    segmentation: pd.DataFrame,
+    tumor_mask_slices: Volume,
+    tumor_mask: Volume,
+    mesh: Mesh,
+    mesh_simplified: Mesh,
+) -> StageResult:
     """Tumour volume by Eq. 7 (with its predicted error), voxels and meshes; RANO diameters."""
-    store = open_store(store_root)
     meta = scan.metadata
-    det = store.get_table(detection)
-    seg = store.get_table(segmentation)
-    fine, fine_affine = store.get_volume(tumor_mask)
     dy, dx = meta["pixel_spacing_mm"]
     slab_mm = slab_height_mm(
         meta["slice_step_mm"], meta["slice_thickness_mm"], meta["slice_gap_mm"]
     )
-    surface = store.get_mesh(mesh)
     measured = measure_volumes(
-        seg["tumor_pixels"].to_numpy(),
-        det["abnormal"].to_numpy(dtype=bool),
-        fine,
-        fine_affine,
+        segmentation["tumor_pixels"].to_numpy(),
+        detection["abnormal"].to_numpy(dtype=bool),
+        tumor_mask.array,
+        tumor_mask.affine,
         pixel_area_mm2=dy * dx,
         slab_height_mm=slab_mm,
-        mesh=surface,
-        mesh_simplified=store.get_mesh(mesh_simplified),
+        mesh=mesh,
+        mesh_simplified=mesh_simplified,
     )
     row = measured.to_row()
-    slices_mask, _ = store.get_volume(tumor_mask_slices)
     row.update(
         clinical_measures(
-            slices_mask, pixel_spacing_mm=(dy, dx), slab_height_mm=slab_mm,
-            mesh_vertices=None if surface.is_empty else surface.vertices,
-        )  # fmt: skip
+            tumor_mask_slices.array,
+            pixel_spacing_mm=(dy, dx),
+            slab_height_mm=slab_mm,
+            mesh_vertices=None if mesh.is_empty else mesh.vertices,
+        )
     )
-    return StageOutput(
-        stage="measure-volume", artifacts={"volumes": store.put_table([row])}, values=row
-    )
+    return StageResult(artifacts={"volumes": [row]}, values=row)
 
 
-SPEC = StageSpec(
-    name="measure-volume",
-    task=measure_task,
-    entry=measure_volumes,
-    config_model=None,
-    inputs={
-        "scan": "scan",
-        "detection": "table",
-        "segmentation": "table",
-        "tumor_mask_slices": "mask",
-        "tumor_mask": "mask",
-        "mesh": "mesh",
-        "mesh_simplified": "mesh",
-    },
-    outputs={"volumes": "table"},
-)
+SPEC = measure_volume
+measure_task = SPEC.task

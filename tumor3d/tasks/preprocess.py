@@ -15,29 +15,34 @@ from tumor3d.imaging.preprocess import (
     preprocess_volume,
     tissue_slice_count,
 )
-from tumor3d.storage.objectstore import open_store
-from tumor3d.storage.store import ArtifactRef
-from tumor3d.tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
+from tumor3d.tasks.kinds import Artifact, Volume
+from tumor3d.tasks.spec import Input, StageResult, scan_spacing_mm, stage
 
 __all__ = ["SPEC", "preprocess_notes", "preprocess_task"]
 
 
-@stage_task("preprocess")
-def preprocess_task(
-    scan: ArtifactRef,
-    config: PreprocessConfig,
-    store_root: str,
-    brain_mask: ArtifactRef | None = None,
-) -> StageOutput:
+@stage(
+    "preprocess",
+    entry=preprocess_volume,
+    config=PreprocessConfig,
+    inputs={
+        "scan": Input("scan", "ingest-scan.scan", load=False),  # its image and spacing
+        # a given mask on the scan's grid (--brain-mask, the manifest's brain_mask)
+        "brain_mask": Input("mask", "given:brain_mask", optional=True),
+    },
+    outputs={"enhanced": "image", "brain_mask": "mask", "head_exterior": "mask"},
+)
+def preprocess(
+    scan: Artifact, config: PreprocessConfig, brain_mask: Volume | None = None
+) -> StageResult:
     """Median, unsharp masking, equalisation and skull removal.
 
     ``brain_mask``, a given mask on the scan's grid (``--brain-mask``, the
     manifest's ``brain_mask``), replaces the skull removal; as an input
     artifact, its content enters the cache key.
     """
-    store = open_store(store_root)
-    image, affine = store.get_volume(scan)
-    given = None if brain_mask is None else store.get_volume(brain_mask)[0]
+    image, affine = scan.load()
+    given = None if brain_mask is None else brain_mask.array
     spacing = scan_spacing_mm(scan)
     result = preprocess_volume(image, **config.model_dump(), spacing_mm=spacing, brain_mask=given)
     brain_voxels = int(np.count_nonzero(result.brain_mask))
@@ -46,12 +51,11 @@ def preprocess_task(
     exterior = result.head_exterior
     if exterior is None:
         exterior = np.zeros(result.brain_mask.shape, dtype=bool)
-    return StageOutput(
-        stage="preprocess",
+    return StageResult(
         artifacts={
-            "enhanced": store.put_volume(result.enhanced, affine, dtype="uint8"),
-            "brain_mask": store.put_volume(result.brain_mask, affine, kind="mask"),
-            "head_exterior": store.put_volume(exterior, affine, kind="mask"),
+            "enhanced": Volume(result.enhanced, affine, dtype="uint8"),
+            "brain_mask": Volume(result.brain_mask, affine),
+            "head_exterior": Volume(exterior, affine),
         },
         values={
             "brain_voxels": brain_voxels,
@@ -85,11 +89,5 @@ def preprocess_notes(values: Mapping[str, Any]) -> list[str]:
     return [n for n in notes if n]
 
 
-SPEC = StageSpec(
-    name="preprocess",
-    task=preprocess_task,
-    entry=preprocess_volume,
-    config_model=PreprocessConfig,
-    inputs={"scan": "scan", "brain_mask": "mask"},
-    outputs={"enhanced": "image", "brain_mask": "mask", "head_exterior": "mask"},
-)
+SPEC = preprocess
+preprocess_task = SPEC.task

@@ -12,6 +12,7 @@ import dataclasses
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from tumor3d.config import SegmentConfig
 from tumor3d.learned.shipped import shipped_model
@@ -19,9 +20,8 @@ from tumor3d.segmentation.detect import SliceDetection
 from tumor3d.segmentation.given_segmentation import given_definition, given_segmentation
 from tumor3d.segmentation.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
 from tumor3d.segmentation.segment import lesion_definition, resolve_method, segment_tumor
-from tumor3d.storage.objectstore import open_store
-from tumor3d.storage.store import ArtifactRef
-from tumor3d.tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
+from tumor3d.tasks.kinds import Artifact, Volume
+from tumor3d.tasks.spec import Input, Metric, StageResult, scan_spacing_mm, stage
 
 __all__ = ["SPEC", "lesion_from_artifact", "load_detection", "segment_task"]
 
@@ -61,49 +61,66 @@ def lesion_from_artifact(mask: np.ndarray, meta: dict[str, Any]) -> LesionResult
 
 
 def load_detection(
-    store: Any, detection: ArtifactRef, lesion: ArtifactRef, *, with_lesion: bool = True
+    detection: pd.DataFrame, lesion: Artifact, *, with_lesion: bool = True
 ) -> tuple[SliceDetection, dict[str, Any]]:
     """The detect stage's :class:`SliceDetection` and its lesion artifact's metadata.
 
     With ``with_lesion``, the lesion model it computed (if it did) is put back
     on the detection, so the robust method does not compute it again.
     """
-    det = SliceDetection.from_records(store.get_table(detection).to_dict("records"))
+    det = SliceDetection.from_records(detection.to_dict("records"))
     meta = lesion.metadata["lesion"]
     if with_lesion and meta.get("computed"):
-        lesion_mask, _ = store.get_volume(lesion)
-        det = dataclasses.replace(det, lesion=lesion_from_artifact(lesion_mask, meta))
+        det = dataclasses.replace(det, lesion=lesion_from_artifact(lesion.load().array, meta))
     return det, meta
 
 
-@stage_task("segment-tumor")
-def segment_task(
-    scan: ArtifactRef,
-    enhanced: ArtifactRef,
-    brain_mask: ArtifactRef,
-    detection: ArtifactRef,
-    lesion: ArtifactRef,
-    head_exterior: ArtifactRef,
+@stage(
+    "segment-tumor",
+    entry=segment_tumor,
+    config=SegmentConfig,
+    inputs={
+        "scan": Input("scan", "ingest-scan.scan", load=False),  # the image for `learned` only
+        "enhanced": Input("image", "preprocess.enhanced"),
+        "brain_mask": Input("mask", "preprocess.brain_mask"),
+        "detection": Input("table", "detect-abnormal.detection"),
+        "lesion": Input("mask", "detect-abnormal.lesion", load=False),  # the model, if computed
+        "head_exterior": Input("mask", "preprocess.head_exterior"),
+        # the user's segmentation on the scan's grid (--segmentation)
+        "given_mask": Input("mask", "given:segmentation", load=False, optional=True),
+    },
+    # tumor_probability: the learned method only
+    outputs={"tumor_mask_slices": "mask", "segmentation": "table", "tumor_probability": "image"},
+    metrics={
+        "modality": Metric("modality", "the input's modality (t2, flair, t1c)"),
+        "segment_method": Metric("segment_method", "the segmentation method that ran"),
+        "measured": Metric("measured", "what the mask, and so every volume, holds, in words"),
+    },
+)
+def segment(
+    scan: Artifact,
+    enhanced: Volume,
+    brain_mask: Volume,
+    detection: pd.DataFrame,
+    lesion: Artifact,
+    head_exterior: Volume,
     config: SegmentConfig,
-    store_root: str,
-    given_mask: ArtifactRef | None = None,
-) -> StageOutput:
+    given_mask: Artifact | None = None,
+) -> StageResult:
     """Tumour segmentation: the lesion model (robust), wavelet + histogram FCM, or the peer.
 
     ``given_mask``, the user's segmentation on the scan's grid (``--segmentation``,
     its file name in the artifact's ``given_file``), replaces the method: stored as
     is, method ``"given"``; as an input artifact its content enters the cache key.
     """
-    store = open_store(store_root)
     if given_mask is not None:
-        mask, mask_affine = store.get_volume(given_mask)
+        mask, mask_affine = given_mask.load()
         res = given_segmentation(mask.astype(bool), spacing_mm=scan_spacing_mm(scan))
         name = given_mask.metadata.get("given_file")
-        return StageOutput(
-            stage="segment-tumor",
+        return StageResult(
             artifacts={
-                "tumor_mask_slices": store.put_volume(res.tumor_mask, mask_affine, kind="mask"),
-                "segmentation": store.put_table(res.to_records()),
+                "tumor_mask_slices": Volume(res.tumor_mask, mask_affine),
+                "segmentation": res.to_records(),
             },
             values={
                 "tumor_pixels_total": int(np.sum(res.tumor_pixels)),
@@ -114,18 +131,17 @@ def segment_task(
                 "measured": given_definition(name),
             },
         )
-    image, affine = store.get_volume(enhanced)
-    brain, _ = store.get_volume(brain_mask)
-    exterior = store.get_volume(head_exterior)[0].astype(bool)
+    image, affine = enhanced
+    exterior = head_exterior.array.astype(bool)
     needs_lesion = config.method in ("auto", "robust", "learned")
-    det, meta = load_detection(store, detection, lesion, with_lesion=needs_lesion)
+    det, meta = load_detection(detection, lesion, with_lesion=needs_lesion)
     modality = scan.metadata["modality"]
     learned: dict[str, Any] = {}
     if resolve_method(config.method, modality, det) == "learned":  # the acquired image, a model
-        learned = {"image": store.get_volume(scan)[0], "model": shipped_model(modality)}
+        learned = {"image": scan.load().array, "model": shipped_model(modality)}
     result = segment_tumor(
         image,
-        brain,
+        brain_mask.array,
         det,
         modality=modality,
         spacing_mm=scan_spacing_mm(scan),
@@ -136,15 +152,13 @@ def segment_task(
         **config.model_dump(),
         **learned,
     )
-    artifacts = {
-        "tumor_mask_slices": store.put_volume(result.tumor_mask, affine, kind="mask"),
-        "segmentation": store.put_table(result.to_records()),
+    artifacts: dict[str, Any] = {
+        "tumor_mask_slices": Volume(result.tumor_mask, affine),
+        "segmentation": result.to_records(),
     }
     review: dict[str, Any] = {}
     if result.probability is not None:
-        artifacts["tumor_probability"] = store.put_volume(
-            result.probability.astype(np.float32), affine, kind="image"
-        )
+        artifacts["tumor_probability"] = Volume(result.probability.astype(np.float32), affine)
     if result.review is not None:  # read by tumor3d.segmentation.review.review_status
         review = {
             "needs_review": bool(result.review.needs_review),
@@ -154,8 +168,7 @@ def segment_task(
             "model": learned["model"].meta.get("name", "shipped"),
             "model_sha256": learned["model"].digest(),  # of its arrays and metadata
         }
-    return StageOutput(
-        stage="segment-tumor",
+    return StageResult(
         artifacts=artifacts,
         values={
             **review,
@@ -171,20 +184,5 @@ def segment_task(
     )
 
 
-SPEC = StageSpec(
-    name="segment-tumor",
-    task=segment_task,
-    entry=segment_tumor,
-    config_model=SegmentConfig,
-    inputs={
-        "scan": "scan",
-        "enhanced": "image",
-        "brain_mask": "mask",
-        "detection": "table",
-        "lesion": "mask",
-        "head_exterior": "mask",
-        "given_mask": "mask",  # a given segmentation (optional)
-    },
-    # tumor_probability: the learned method only
-    outputs={"tumor_mask_slices": "mask", "segmentation": "table", "tumor_probability": "image"},
-)
+SPEC = segment
+segment_task = SPEC.task

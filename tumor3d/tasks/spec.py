@@ -1,7 +1,13 @@
 """What every stage adapter shares: its declaration, its output and its task decorator.
 
-* :class:`StageSpec` -- one stage declared: name, core entry function,
-  configuration model, input and output artifact kinds, the Prefect task;
+* :func:`stage` -- declares one stage around its adapter function: name (spelled
+  once), core entry, configuration model, inputs (each with its kind and the
+  stage output, the user's source or the given artifact it comes from),
+  outputs by kind and the values that become ``metrics.parquet`` columns. The
+  adapter receives its inputs loaded by kind and returns a :class:`StageResult`
+  of plain values; the decorator stores them by kind
+  (:mod:`tumor3d.tasks.kinds`) and returns the :class:`StageSpec`;
+* :class:`StageSpec` -- one stage declared: the above plus the Prefect task;
 * :class:`StageOutput` -- what a stage task returns (small references, never
   arrays), sealed with a digest of its own content so that a cached result
   edited on disk is detected (:meth:`StageOutput.verify`);
@@ -16,21 +22,39 @@ import hashlib
 import inspect
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from prefect import task
 from pydantic import BaseModel, ConfigDict, Field
 
 from tumor3d.constants import MAX_VOXELS_DEFAULT
+from tumor3d.storage.objectstore import open_store
 from tumor3d.storage.store import ArtifactRef, canonical_dumps
 from tumor3d.tasks.caching import code_digest, module_closure, stage_cache_policy
+from tumor3d.tasks.kinds import Artifact, declared_kind, load, store_product
 
-__all__ = ["InputSource", "StageOutput", "StageSpec", "scan_spacing_mm", "stage_task"]
+__all__ = [
+    "ALL_VALUES",
+    "GIVEN",
+    "SOURCE",
+    "Input",
+    "InputSource",
+    "Metric",
+    "StageOutput",
+    "StageResult",
+    "StageSpec",
+    "scan_spacing_mm",
+    "stage",
+    "stage_task",
+]
 
 
-def scan_spacing_mm(scan: ArtifactRef) -> tuple[float, float, float]:
-    """``(slice step, row, column)`` voxel spacing in mm from a scan artifact's metadata."""
+def scan_spacing_mm(scan: Any) -> tuple[float, float, float]:
+    """``(slice step, row, column)`` voxel spacing in mm from a scan artifact's metadata.
+
+    ``scan``: an :class:`ArtifactRef` or an :class:`~tumor3d.tasks.kinds.Artifact` handle.
+    """
     dy, dx = scan.metadata["pixel_spacing_mm"]
     return (float(scan.metadata["slice_step_mm"]), float(dy), float(dx))
 
@@ -113,6 +137,69 @@ class InputSource(BaseModel):
     __cache_exclude__: ClassVar[frozenset[str]] = frozenset({"path", "patient_id", "id_derived"})
 
 
+#: Where an input comes from, besides another stage's output (``"<stage>.<artifact>"``).
+SOURCE = "source"  # the user's input (:class:`InputSource`)
+GIVEN = "given:"  # an artifact the flow provides: ``given:<name>`` (a given mask, a reference)
+
+
+@dataclass(frozen=True)
+class Input:
+    """One declared input of a stage.
+
+    Parameters
+    ----------
+    kind : str
+        Artifact kind (:data:`tumor3d.tasks.kinds.KINDS`), or ``"source"``.
+    source : str
+        ``"<stage>.<artifact>"`` (that stage's product, which must be of this
+        kind), ``"source"`` (the user's input) or ``"given:<name>"`` (an
+        artifact the flow provides, e.g. ``given:brain_mask``).
+    load : bool
+        True: the adapter receives the content (:mod:`tumor3d.tasks.kinds`);
+        False: an :class:`~tumor3d.tasks.kinds.Artifact` handle (metadata, and
+        the content on ``load()``).
+    optional : bool
+        May be None (a given artifact the user may not give).
+    """
+
+    kind: str
+    source: str
+    load: bool = True
+    optional: bool = False
+
+    @property
+    def producer(self) -> tuple[str, str] | None:
+        """``(stage, artifact)`` for another stage's product, else None."""
+        if self.source == SOURCE or self.source.startswith(GIVEN):
+            return None
+        stage_name, _, artifact = self.source.partition(".")
+        return stage_name, artifact
+
+
+@dataclass(frozen=True)
+class Metric:
+    """A stage value published as a ``metrics.parquet`` column.
+
+    ``value``: the key in :attr:`StageOutput.values`; ``description``: what
+    the column holds, with its unit (the column's name says the unit too).
+    """
+
+    value: str
+    description: str
+
+
+#: ``metrics=ALL_VALUES``: every value of the stage is a column under its own name.
+ALL_VALUES = "*"
+
+
+@dataclass(frozen=True)
+class StageResult:
+    """What an adapter returns: products by name (stored by their declared kind) and values."""
+
+    artifacts: Mapping[str, Any]
+    values: Mapping[str, Any]
+
+
 @dataclass(frozen=True)
 class StageSpec:
     """One pipeline stage, declared.
@@ -127,19 +214,30 @@ class StageSpec:
         The core function the adapter calls (for documentation and tests).
     config_model : type of pydantic.BaseModel or None
         The stage's configuration (``PipelineConfig`` field of that type), if any.
-    inputs : mapping of str to str
-        Task parameter -> artifact kind it expects (``scan``, ``mask``, ...),
-        or ``"source"`` for the user's input.
+    inputs : mapping of str to Input
+        Task parameter -> :class:`Input` (its kind and where it comes from).
     outputs : mapping of str to str
-        Artifact name in :attr:`StageOutput.artifacts` -> kind.
+        Artifact name (or ``fnmatch`` pattern) in :attr:`StageOutput.artifacts` -> kind.
+    metrics : mapping of str to Metric, or ``"*"``
+        ``metrics.parquet`` column -> the value it holds (:data:`ALL_VALUES`:
+        every value, under its own name).
     """
 
     name: str
     task: Any
     entry: Callable[..., Any]
     config_model: type[BaseModel] | None
-    inputs: Mapping[str, str]
+    inputs: Mapping[str, Input]
     outputs: Mapping[str, str]
+    metrics: Mapping[str, Metric] | str = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        # a bare kind: the user's source (``"source"``) or not wired
+        inputs = {
+            k: v if isinstance(v, Input) else Input(v, SOURCE if v == SOURCE else "")
+            for k, v in self.inputs.items()
+        }
+        object.__setattr__(self, "inputs", inputs)
 
     @property
     def adapter_module(self) -> str:
@@ -155,6 +253,87 @@ class StageSpec:
     def code_digest(self) -> str:
         """The stage's code digest (see :func:`tumor3d.tasks.caching.code_digest`)."""
         return code_digest((self.adapter_module,))
+
+    def metric_columns(self, values: Mapping[str, Any]) -> dict[str, Any]:
+        """The stage's ``metrics.parquet`` columns from its output's ``values``."""
+        if self.metrics == ALL_VALUES:
+            return dict(values)
+        assert not isinstance(self.metrics, str)
+        return {col: values[m.value] for col, m in self.metrics.items()}
+
+
+def stage(
+    name: str,
+    *,
+    entry: Callable[..., Any],
+    inputs: Mapping[str, Input],
+    outputs: Mapping[str, str],
+    config: type[BaseModel] | None = None,
+    metrics: Mapping[str, Metric] | str | None = None,
+) -> Callable[[Callable[..., StageResult]], StageSpec]:
+    """Declare a stage around its adapter function; returns the :class:`StageSpec`.
+
+    The adapter ``fn(**inputs, config=...)`` receives every input of
+    ``inputs`` loaded by its kind (:func:`tumor3d.tasks.kinds.load`; an
+    :class:`~tumor3d.tasks.kinds.Artifact` handle where ``load=False``; None
+    for an absent optional one) and ``config`` when the stage has one; it
+    returns a :class:`StageResult` whose products are stored under the kinds
+    ``outputs`` declares. The Prefect task (:func:`stage_task`) takes the
+    references instead, plus ``store_root``: its parameters, and so its cache
+    key, are the inputs' references by digest, the configuration and the
+    stage's code, whose closure is rooted at ``fn``'s module.
+    """
+
+    def decorate(fn: Callable[..., StageResult]) -> StageSpec:
+        def adapter(**kwargs: Any) -> StageOutput:
+            store = open_store(kwargs.pop("store_root"))
+            args: dict[str, Any] = {}
+            for key, value in kwargs.items():
+                spec = inputs.get(key)
+                if spec is None or value is None or spec.kind == SOURCE:
+                    args[key] = value  # the configuration, an absent input, the user's source
+                elif spec.load:
+                    args[key] = load(store, value)
+                else:
+                    args[key] = Artifact(value, store)
+            result = fn(**args)
+            stored = {}
+            for product, value in result.artifacts.items():
+                kind = declared_kind(outputs, product)
+                if kind is None:
+                    raise TypeError(f"stage {name}: product {product!r} is not declared")
+                stored[product] = store_product(store, kind, value)
+            return StageOutput(stage=name, artifacts=stored, values=dict(result.values))
+
+        params = [
+            inspect.Parameter(key, inspect.Parameter.KEYWORD_ONLY)
+            for key, i in inputs.items()
+            if not i.optional
+        ]
+        if config is not None:
+            params.append(inspect.Parameter("config", inspect.Parameter.KEYWORD_ONLY))
+        params.append(inspect.Parameter("store_root", inspect.Parameter.KEYWORD_ONLY))
+        params += [
+            inspect.Parameter(key, inspect.Parameter.KEYWORD_ONLY, default=None)
+            for key, i in inputs.items()
+            if i.optional
+        ]
+        adapter.__signature__ = inspect.Signature(params)  # type: ignore[attr-defined]
+        adapter.__name__ = fn.__name__
+        adapter.__qualname__ = fn.__qualname__
+        adapter.__doc__ = fn.__doc__
+        adapter.__module__ = fn.__module__  # the root of the stage's code closure
+        return StageSpec(
+            name=name,
+            task=stage_task(name)(adapter),
+            entry=entry,
+            config_model=config,
+            inputs=dict(inputs),
+            outputs=dict(outputs),
+            metrics={} if metrics is None else metrics,
+        )
+
+    return decorate
 
 
 def stage_task(name: str) -> Callable[[Callable[..., StageOutput]], Any]:

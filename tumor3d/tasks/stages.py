@@ -1,13 +1,22 @@
-"""The registry of pipeline stages, in pipeline order.
+"""The registry of pipeline stages, in pipeline order, and the wiring read from it.
 
 Each stage is declared by the :class:`~tumor3d.tasks.spec.StageSpec` of its adapter
-module (``tumor3d/tasks/ingest.py`` ... ``tumor3d/tasks/measure.py``); this module only
-collects them. No adapter imports this module, so editing it changes no
-stage's code digest.
+module (``tumor3d/tasks/ingest.py`` ... ``tumor3d/tasks/measure.py``); this module
+collects them (:data:`STAGES`), feeds a stage its inputs from the declarations
+(:func:`stage_inputs`: each input names the stage output, the user's source or
+the given artifact it comes from), checks that wiring (:func:`wiring_errors`)
+and gathers the declared ``metrics.parquet`` columns (:func:`metric_columns`).
+No adapter imports this module, so editing it changes no stage's code digest.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from pydantic import BaseModel
+
+from tumor3d.config import PipelineConfig
 from tumor3d.tasks import (
     brain_surface,
     detect,
@@ -20,7 +29,7 @@ from tumor3d.tasks import (
     simplify,
 )
 from tumor3d.tasks import surface as surface_adapter
-from tumor3d.tasks.spec import InputSource, StageOutput, StageSpec
+from tumor3d.tasks.spec import GIVEN, SOURCE, InputSource, StageOutput, StageSpec
 
 __all__ = [
     "STAGES",
@@ -28,6 +37,10 @@ __all__ = [
     "InputSource",
     "StageOutput",
     "StageSpec",
+    "config_field",
+    "metric_columns",
+    "stage_inputs",
+    "wiring_errors",
     "detect_task",
     "ingest_task",
     "interpolate_task",
@@ -72,3 +85,91 @@ measure_task = measure.measure_task
 def stage_modules(name: str) -> tuple[str, ...]:
     """Every project module whose source enters stage ``name``'s code digest."""
     return STAGES[name].code_modules
+
+
+def config_field(spec: StageSpec) -> str | None:
+    """The :class:`~tumor3d.config.PipelineConfig` field holding ``spec``'s configuration."""
+    if spec.config_model is None:
+        return None
+    model = spec.config_model
+    fields = [k for k, f in PipelineConfig.model_fields.items() if f.annotation is model]
+    if len(fields) != 1:
+        raise LookupError(f"stage {spec.name}: no single PipelineConfig field of its model")
+    return fields[0]
+
+
+def stage_inputs(
+    spec: StageSpec,
+    outputs: Mapping[str, StageOutput],
+    *,
+    source: InputSource | None = None,
+    cfg: BaseModel | None = None,
+    given: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The task inputs of ``spec`` (less ``store_root``), from its declarations.
+
+    Each declared input is taken from the output of the stage it names (in
+    ``outputs``, stage name -> output), the user's ``source``, or ``given``
+    (``given:<name>``: an artifact the flow stored, None when absent and the
+    input optional); ``config`` is the stage's field of ``cfg``.
+
+    Raises
+    ------
+    KeyError
+        An input whose stage has not run, or a required given artifact absent.
+    """
+    given = given or {}
+    kwargs: dict[str, Any] = {}
+    for name, declared in spec.inputs.items():
+        producer = declared.producer
+        if declared.source == SOURCE:
+            kwargs[name] = source
+        elif producer is not None:
+            kwargs[name] = outputs[producer[0]].artifacts[producer[1]]
+        else:
+            value = given.get(declared.source.removeprefix(GIVEN))
+            if value is None and not declared.optional:
+                raise KeyError(f"stage {spec.name}: input {name} ({declared.source}) not given")
+            kwargs[name] = value
+    field = config_field(spec)
+    if field is not None:
+        kwargs["config"] = getattr(cfg, field)
+    return kwargs
+
+
+def wiring_errors(specs: Iterable[StageSpec]) -> list[str]:
+    """What is wrong with running ``specs`` in this order: [] when every input is produced.
+
+    Every input taken from a stage must name an earlier stage and one of its
+    declared outputs, of the same kind; every other input is the source (of
+    kind ``source``) or a given artifact.
+    """
+    errors: list[str] = []
+    produced: dict[str, Mapping[str, str]] = {}
+    for spec in specs:
+        for name, declared in spec.inputs.items():
+            where = f"{spec.name}.{name}"
+            producer = declared.producer
+            if producer is None:
+                if (declared.source == SOURCE) != (declared.kind == SOURCE):
+                    errors.append(f"{where}: kind {declared.kind!r} from {declared.source!r}")
+                elif declared.source != SOURCE and not declared.source.startswith(GIVEN):
+                    errors.append(f"{where}: comes from nowhere ({declared.source!r})")
+                continue
+            stage_name, artifact = producer
+            if stage_name not in produced:
+                errors.append(f"{where}: {stage_name} has not run before {spec.name}")
+            elif produced[stage_name].get(artifact) != declared.kind:
+                got = produced[stage_name].get(artifact)
+                errors.append(f"{where}: {declared.source} is {got!r}, not {declared.kind!r}")
+        produced[spec.name] = spec.outputs
+    return errors
+
+
+def metric_columns(outputs: Mapping[str, StageOutput]) -> dict[str, Any]:
+    """The ``metrics.parquet`` columns the stages declare, from their outputs, in stage order."""
+    row: dict[str, Any] = {}
+    for name, spec in STAGES.items():
+        if name in outputs:
+            row.update(spec.metric_columns(outputs[name].values))
+    return row

@@ -4,22 +4,28 @@ from __future__ import annotations
 
 from tumor3d.config import SurfaceConfig
 from tumor3d.pipeline import is_closed_surface, tumour_surface
-from tumor3d.storage.objectstore import open_store
-from tumor3d.storage.store import ArtifactRef
-from tumor3d.tasks.spec import StageOutput, StageSpec, stage_task
+from tumor3d.tasks.kinds import Volume
+from tumor3d.tasks.spec import Input, Metric, StageResult, stage
 
 __all__ = ["SPEC", "surface_task"]
 
 
-@stage_task("extract-surface")
-def surface_task(tumor_mask: ArtifactRef, config: SurfaceConfig, store_root: str) -> StageOutput:
+@stage(
+    "extract-surface",
+    entry=tumour_surface,
+    config=SurfaceConfig,
+    inputs={"tumor_mask": Input("mask", "interpolate-slices.tumor_mask")},
+    outputs={"mesh": "mesh"},
+    metrics={
+        "faces_mc": Metric("faces", "faces of the marching-cubes surface"),
+        "mesh_watertight": Metric("watertight", "the marching-cubes surface is closed"),
+    },
+)
+def extract_surface(tumor_mask: Volume, config: SurfaceConfig) -> StageResult:
     """Marching cubes on the zero-padded interpolated mask (empty mesh when no tumour)."""
-    store = open_store(store_root)
-    mask, affine = store.get_volume(tumor_mask)
-    mesh = tumour_surface(mask, affine, **config.model_dump())
-    return StageOutput(
-        stage="extract-surface",
-        artifacts={"mesh": store.put_mesh(mesh)},
+    mesh = tumour_surface(tumor_mask.array, tumor_mask.affine, **config.model_dump())
+    return StageResult(
+        artifacts={"mesh": mesh},
         values={
             "faces": mesh.n_faces,
             "vertices": mesh.n_vertices,
@@ -28,11 +34,5 @@ def surface_task(tumor_mask: ArtifactRef, config: SurfaceConfig, store_root: str
     )
 
 
-SPEC = StageSpec(
-    name="extract-surface",
-    task=surface_task,
-    entry=tumour_surface,
-    config_model=SurfaceConfig,
-    inputs={"tumor_mask": "mask"},
-    outputs={"mesh": "mesh"},
-)
+SPEC = extract_surface
+surface_task = SPEC.task

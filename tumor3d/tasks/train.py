@@ -14,6 +14,7 @@ never pickled.
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 
 from tumor3d.config import SegmentConfig
 from tumor3d.errors import InputError
@@ -21,10 +22,9 @@ from tumor3d.evaluation.grids import resample_nearest
 from tumor3d.learned.rows import patient_rows, rows_to_bytes
 from tumor3d.segmentation.lesion import left_right_axis
 from tumor3d.segmentation.segment import learned_prior
-from tumor3d.storage.objectstore import open_store
-from tumor3d.storage.store import ArtifactRef
+from tumor3d.tasks.kinds import Artifact, Tagged, Volume
 from tumor3d.tasks.segment import load_detection
-from tumor3d.tasks.spec import StageOutput, StageSpec, scan_spacing_mm, stage_task
+from tumor3d.tasks.spec import Input, StageResult, scan_spacing_mm, stage
 
 __all__ = ["SPEC", "training_rows_task"]
 
@@ -36,25 +36,37 @@ def _zyx_affine(affine_xyz: np.ndarray) -> np.ndarray:
     return np.asarray(affine_xyz, dtype=float)[:, _XYZ_TO_ZYX]
 
 
-@stage_task("training-rows")
-def training_rows_task(
-    scan: ArtifactRef,
-    enhanced: ArtifactRef,
-    brain_mask: ArtifactRef,
-    detection: ArtifactRef,
-    lesion: ArtifactRef,
-    head_exterior: ArtifactRef,
-    reference: ArtifactRef,
+@stage(
+    "training-rows",
+    entry=patient_rows,
+    config=SegmentConfig,
+    inputs={
+        "scan": Input("scan", "ingest-scan.scan", load=False),  # its image and geometry
+        "enhanced": Input("image", "preprocess.enhanced"),
+        "brain_mask": Input("mask", "preprocess.brain_mask"),
+        "detection": Input("table", "detect-abnormal.detection"),
+        "lesion": Input("mask", "detect-abnormal.lesion", load=False),
+        "head_exterior": Input("mask", "preprocess.head_exterior"),
+        # the label on its own grid, marked tumor_free or not (the training flow stores it)
+        "reference": Input("mask", "given:reference", load=False),
+    },
+    outputs={"rows": "training-rows"},
+)
+def training_rows(
+    scan: Artifact,
+    enhanced: Volume,
+    brain_mask: Volume,
+    detection: pd.DataFrame,
+    lesion: Artifact,
+    head_exterior: Volume,
+    reference: Artifact,
     config: SegmentConfig,
-    store_root: str,
-) -> StageOutput:
+) -> StageResult:
     """The patient's training rows: features with the robust prior, sampled around the label."""
-    store = open_store(store_root)
-    image, scan_affine = store.get_volume(scan)
-    enhanced_img, affine = store.get_volume(enhanced)
-    brain, _ = store.get_volume(brain_mask)
-    exterior = store.get_volume(head_exterior)[0].astype(bool)
-    ref, ref_affine = store.get_volume(reference)
+    image, scan_affine = scan.load()
+    enhanced_img, affine = enhanced
+    exterior = head_exterior.array.astype(bool)
+    ref, ref_affine = reference.load()
     label = resample_nearest(
         ref, _zyx_affine(ref_affine), image.shape, _zyx_affine(scan_affine)
     ).astype(bool)
@@ -63,14 +75,14 @@ def training_rows_task(
             "the reference has no tumour on the slices of the image "
             "(does it cover the same part of the head?)"
         )
-    det, meta = load_detection(store, detection, lesion)
+    det, meta = load_detection(detection, lesion)
     modality = scan.metadata["modality"]
     spacing_mm = scan_spacing_mm(scan)
     lr_axis = left_right_axis(affine)
     # the prior exactly as the learned method computes it at inference
     prior = learned_prior(
         enhanced_img,
-        brain,
+        brain_mask.array,
         det,
         modality=modality,
         min_tumor_pixels=config.min_tumor_pixels,
@@ -82,15 +94,9 @@ def training_rows_task(
     rows = patient_rows(
         image, label, spacing_mm=spacing_mm, modality=modality, lr_axis=lr_axis, prior=prior
     )
-    ref_out = store.put_bytes(
-        rows_to_bytes(rows),
-        kind="training-rows",
-        suffix=".npz",
-        metadata={"n_rows": int(rows.y.size), "n_features": int(rows.x.shape[1])},
-    )
-    return StageOutput(
-        stage="training-rows",
-        artifacts={"rows": ref_out},
+    counts = {"n_rows": int(rows.y.size), "n_features": int(rows.x.shape[1])}
+    return StageResult(
+        artifacts={"rows": Tagged(rows_to_bytes(rows), counts)},
         values={
             "modality": modality,
             "n_rows": int(rows.y.size),
@@ -101,19 +107,5 @@ def training_rows_task(
     )
 
 
-SPEC = StageSpec(
-    name="training-rows",
-    task=training_rows_task,
-    entry=patient_rows,
-    config_model=SegmentConfig,
-    inputs={
-        "scan": "scan",
-        "enhanced": "image",
-        "brain_mask": "mask",
-        "detection": "table",
-        "lesion": "mask",
-        "head_exterior": "mask",
-        "reference": "mask",
-    },
-    outputs={"rows": "training-rows"},
-)
+SPEC = training_rows
+training_rows_task = SPEC.task
