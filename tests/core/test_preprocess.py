@@ -387,7 +387,7 @@ def test_fill_holes_per_slice_matches_scipy_per_slice_on_random_masks():
 def test_median3_fast_path_matches_scipy_rank_filter():
     from scipy import ndimage as ndi
 
-    from tumor3d.imaging.preprocess import _median_stack
+    from tumor3d.imaging.preprocess.filters import _median_stack
 
     rng = np.random.default_rng(12)
     for _ in range(150):
@@ -404,7 +404,7 @@ def _naive_remove_skull(stack, radius, threshold):
     from scipy import ndimage as ndi
     from skimage.morphology import disk
 
-    from tumor3d.imaging.preprocess import _skull_threshold
+    from tumor3d.imaging.preprocess.skull import _skull_threshold
 
     footprint = disk(radius).astype(bool) if radius > 0 else None
     mask = np.zeros(stack.shape, dtype=bool)
@@ -430,7 +430,7 @@ def _naive_keep_nested(mask):
     from scipy import ndimage as ndi
     from skimage.morphology import disk
 
-    from tumor3d.imaging.preprocess import _NESTING_MAX_OUTSIDE, _NESTING_TOLERANCE_PX
+    from tumor3d.imaging.preprocess.skull import _NESTING_MAX_OUTSIDE, _NESTING_TOLERANCE_PX
 
     areas = mask.sum(axis=(1, 2))
     if not areas.any():
@@ -482,7 +482,7 @@ def test_remove_skull_matches_per_slice_reference_on_random_stacks():
 
 
 def test_keep_nested_slices_matches_sequential_walk():
-    from tumor3d.imaging.preprocess import _keep_nested_slices
+    from tumor3d.imaging.preprocess.skull import _keep_nested_slices
 
     rng = np.random.default_rng(14)
     yy, xx = np.mgrid[:40, :40]

@@ -4,7 +4,7 @@ Each test pins one rule with an independent expectation (a small hand-built
 array whose right answer is obvious, or the phantom's ground truth) and fails
 if the rule is switched off:
 
-- ``tumor3d.imaging.preprocess._keep_nested_slices`` (scalp discs beyond the brain);
+- ``tumor3d.imaging.preprocess.skull._keep_nested_slices`` (scalp discs beyond the brain);
 - ``tumor3d.segmentation.segment``: the T2 CSF pin and the populous-unmatched rule of
   ``_choose_tumor_cluster``, the brain rim of ``_tumor_component``,
   ``max_brain_fraction``, the 3-D grouping (``_largest_linked_group``),
@@ -22,7 +22,8 @@ from tumor3d.config import PipelineConfig
 from tumor3d.errors import InputError
 from tumor3d.geometry.interpolate import interpolate_pair, interpolate_stack
 from tumor3d.geometry.surface import extract_surface, mesh_volume_mm3
-from tumor3d.imaging.preprocess import _keep_nested_slices, preprocess_volume
+from tumor3d.imaging.preprocess import preprocess_volume
+from tumor3d.imaging.preprocess.skull import _keep_nested_slices
 from tumor3d.phantom import make_phantom_patient
 from tumor3d.segmentation.detect import SliceDetection
 from tumor3d.segmentation.segment import (
