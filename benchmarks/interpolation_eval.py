@@ -33,7 +33,7 @@ from tumor3d.evaluation.interpolation import (
     kth_slice_rows,
     table4_rows,
 )
-from tumor3d.geometry.interpolate import _DEFAULT_METHOD, _DEFAULT_PARTS
+from tumor3d.geometry.interpolate.methods import _DEFAULT_METHOD, _DEFAULT_PARTS
 from tumor3d.storage.manifest import data_dir
 
 ROOT = Path(__file__).resolve().parents[1]
