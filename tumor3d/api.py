@@ -227,6 +227,7 @@ def reconstruct_scan(
     from tumor3d.imaging.preprocess import preprocess_volume, tissue_slice_count
     from tumor3d.pipeline import tumour_surface
     from tumor3d.segmentation.detect import detect_abnormal_slices
+    from tumor3d.segmentation.methods import method_spec, method_uses_lesion
     from tumor3d.segmentation.segment import lesion_definition, resolve_method, segment_tumor
     from tumor3d.simplify import simplify_mesh, target_face_count
 
@@ -260,10 +261,11 @@ def reconstruct_scan(
         pre.enhanced, brain, modality=scan.modality, spacing_mm=spacing, lr_axis=lr_axis,
         **cfg.detect.model_dump(),
     )  # fmt: skip
-    if cfg.segment.method not in ("auto", "robust", "learned"):  # reused only then
+    if not method_uses_lesion(cfg.segment.method):  # reused only then
         det = dataclasses.replace(det, lesion=None)
     learned: dict[str, Any] = {}
-    if tumour_given is None and resolve_method(cfg.segment.method, scan.modality, det) == "learned":
+    resolved = resolve_method(cfg.segment.method, scan.modality, det)
+    if tumour_given is None and method_spec(resolved).needs_model:
         from tumor3d.learned.shipped import shipped_model
 
         learned = {"image": scan.image, "model": shipped_model(scan.modality)}
@@ -393,11 +395,16 @@ def reconstruct(
         mask = None if brain_mask is None else np.asarray(brain_mask)
         tumour = None if segmentation is None else np.asarray(segmentation)
         return reconstruct_scan(image, config=config, brain_mask=mask, segmentation=tumour)
+    from tumor3d.storage.readers.options import ReadOptions
+
     mod = _modality(modality, None)
     cfg = _config(config)  # a bad configuration fails before the image is read
+    options = ReadOptions(  # the reading options, checked once
+        modality=mod, patient_id=patient_id, slice_thickness_mm=slice_thickness_mm,
+        slice_gap_mm=slice_gap_mm,
+    )  # fmt: skip
     if isinstance(image, np.ndarray):
-        scan = _scan_from_array(image, affine, mod, patient_id or "array",
-                                slice_thickness_mm, slice_gap_mm)  # fmt: skip
+        scan = _scan_from_array(image, affine, options)
         mask = None
         if brain_mask is not None:
             arr = np.asarray(brain_mask)
@@ -420,8 +427,7 @@ def reconstruct(
         raise InputError("affine is for an array input; a file carries its own")
     from tumor3d.storage.readers import read_scan
 
-    scan = read_scan(image, modality=mod, patient_id=patient_id,
-                     slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm)  # fmt: skip
+    scan = read_scan(image, options)
     mask = None
     if brain_mask is not None:
         if isinstance(brain_mask, np.ndarray):
@@ -447,14 +453,8 @@ def reconstruct(
     )
 
 
-def _scan_from_array(
-    data: np.ndarray,
-    affine: np.ndarray | None,
-    modality: str,
-    patient_id: str,
-    slice_thickness_mm: float | None,
-    slice_gap_mm: float | None,
-) -> Scan:
+def _scan_from_array(data: np.ndarray, affine: np.ndarray | None, options: Any) -> Scan:
+    """A Scan of an array in its file's voxel order (``options``: a checked ``ReadOptions``)."""
     if affine is None:
         raise InputError(
             "an array input needs its affine= (voxel index -> RAS mm): voxel sizes are never "
@@ -465,17 +465,10 @@ def _scan_from_array(
         raise InputError(f"affine must be a finite invertible 4x4 matrix, got shape {aff.shape}")
     if data.ndim != 3:
         raise InputError(f"image must be a 3-D array, got shape {data.shape}")
-    from tumor3d.imaging.scan import validate_patient_id
     from tumor3d.storage.readers.common import scan_from_volume
-    from tumor3d.validation import check_positive
-
-    if slice_thickness_mm is not None:
-        slice_thickness_mm = check_positive(slice_thickness_mm, "slice_thickness_mm", unit="mm")
-    if slice_gap_mm is not None:
-        slice_gap_mm = check_positive(slice_gap_mm, "slice_gap_mm", allow_zero=True, unit="mm")
 
     return scan_from_volume(
         np.asarray(data, dtype=np.float32), aff, where="array", source="array",
-        modality=modality, patient_id=validate_patient_id(patient_id),
-        slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm,
+        modality=options.modality, patient_id=options.patient_id or "array",
+        slice_thickness_mm=options.slice_thickness_mm, slice_gap_mm=options.slice_gap_mm,
     )  # fmt: skip

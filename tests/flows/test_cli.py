@@ -460,3 +460,13 @@ def test_prefect_run_records_stay_off_the_console_without_verbose():
     assert not keep.filter(record("prefect.flow_runs", logging.WARNING))
     assert not keep.filter(record("prefect.task_runs", logging.ERROR))
     assert keep.filter(record("prefect.client", logging.WARNING))
+
+
+def test_methods_lists_the_registered_segmentation_methods_and_formats():
+    from tumor3d.segmentation.methods import method_names
+    from tumor3d.storage.readers.registry import registered_readers
+
+    result = CliRunner().invoke(app, ["methods"], env={"COLUMNS": "200"})
+    assert result.exit_code == 0
+    rows = {line.split("│")[1].strip() for line in result.output.splitlines() if "│" in line}
+    assert set(method_names()) | set(registered_readers()) <= rows

@@ -350,15 +350,17 @@ def _location(where: str | Path) -> str | Path:
 def _preflight(
     input_path: Path,
     out: str | Path,
-    patient_id: str | None,
-    modality: str,
+    options: Any,
     store: str | Path | None = None,
     brain_mask: Path | None = None,
     segmentation: Path | None = None,
     layout: str = "default",
-    **read_kw: Any,
 ) -> None:
     """Check the destination, read the input and open the store before starting Prefect.
+
+    ``options``: the run's :class:`~tumor3d.storage.readers.options.ReadOptions`.
+    The scan read here is handed to the ingest stage, which does not read the
+    input again (:mod:`tumor3d.storage.readers.handoff`).
 
     Bad input then fails in a second, an output folder that is or holds the
     input (or the brain mask), holds files other than a tumor3d result, or
@@ -371,24 +373,23 @@ def _preflight(
     naming the URL if it cannot be) instead, never made a local folder.
     """
     from tumor3d.errors import InputError
-    from tumor3d.imaging.scan import validate_patient_id
     from tumor3d.storage import bids
     from tumor3d.storage.inputs import input_digest, input_location
     from tumor3d.storage.objectstore import default_store_location, is_url, open_store
     from tumor3d.storage.publish import check_destination
-    from tumor3d.storage.readers import derive_patient_id, read_scan, suggest_patient_id
+    from tumor3d.storage.readers import derive_patient_id, suggest_patient_id
+    from tumor3d.storage.readers.handoff import read_and_keep
 
     out = _location(out)
     if bids.check_layout(layout) == "bids" and isinstance(out, str):
         raise InputError("--layout bids writes a local folder: give a local --out", path=out)
     if isinstance(out, str):
-        _preflight_remote(
-            input_path, out, patient_id, modality, store, brain_mask, segmentation, **read_kw
-        )
+        _preflight_remote(input_path, out, options, store, brain_mask, segmentation)
         return
     _check_out_dir(out)
+    patient_id = options.patient_id  # checked by ReadOptions
     if input_path.exists():
-        pid = validate_patient_id(patient_id) if patient_id else derive_patient_id(input_path)
+        pid = patient_id if patient_id else derive_patient_id(input_path)
         given = [input_path] + [m for m in (brain_mask, segmentation) if m is not None]
         if layout == "bids":  # a BIDS participant label; OUT's description absent or ours
             bids.check_dataset_root(out, given)
@@ -398,8 +399,8 @@ def _preflight(
             derived_from=None if patient_id else (lambda: input_digest(input_path)),
             location=input_location(input_path), suggestion=suggest_patient_id(input_path),
         )  # fmt: skip
-    scan = read_scan(input_path, modality=modality, patient_id=patient_id, **read_kw)
-    _check_given_masks(scan, brain_mask, segmentation, read_kw.get("max_voxels"))
+    scan = read_and_keep(input_path, options)  # the ingest stage takes it: one read
+    _check_given_masks(scan, brain_mask, segmentation, options.max_voxels)
     from tumor3d.flows.server import check_configured_api
     from tumor3d.storage.store import ArtifactStore
 
@@ -413,21 +414,19 @@ def _preflight(
 def _preflight_remote(
     input_path: Path,
     out: str,
-    patient_id: str | None,
-    modality: str,
+    options: Any,
     store: str | Path | None = None,
     brain_mask: Path | None = None,
     segmentation: Path | None = None,
-    **read_kw: Any,
 ) -> None:
     """:func:`_preflight` for an ``s3://`` output: inputs are local, so none can lie in it."""
     from tumor3d.storage.objectstore import default_store_location, is_url, open_store
-    from tumor3d.storage.readers import read_scan
+    from tumor3d.storage.readers.handoff import read_and_keep
     from tumor3d.storage.remote_publish import RemoteFolder
     from tumor3d.storage.store import ArtifactStore
 
-    scan = read_scan(input_path, modality=modality, patient_id=patient_id, **read_kw)
-    _check_given_masks(scan, brain_mask, segmentation, read_kw.get("max_voxels"))
+    scan = read_and_keep(input_path, options)  # the ingest stage takes it: one read
+    _check_given_masks(scan, brain_mask, segmentation, options.max_voxels)
     from tumor3d.flows.server import check_configured_api
 
     check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
@@ -440,10 +439,9 @@ def _preflight_remote(
 
 
 def _check_given_masks(
-    scan: Any, brain_mask: Path | None, segmentation: Path | None, max_voxels: int | None
+    scan: Any, brain_mask: Path | None, segmentation: Path | None, limit: int
 ) -> None:
     """A given brain mask and segmentation checked against the image (one line naming the file)."""
-    limit = MAX_VOXELS_DEFAULT if max_voxels is None else max_voxels
     if brain_mask is not None:
         from tumor3d.storage.brain_mask import read_given_brain_mask
 
@@ -651,35 +649,33 @@ def run(
     verbose: Verbose = False,
 ) -> None:
     """Reconstruct one patient's tumour: masks, meshes, renders and volumes under OUT/<id>/."""
+    from tumor3d.storage.readers.handoff import forget_kept
+    from tumor3d.storage.readers.options import ReadOptions
+
     try:
         cfg = _load_config(config)
-        read_kw = {
-            "series_uid": series_uid,
-            "slice_thickness_mm": slice_thickness_mm,
-            "slice_gap_mm": slice_gap_mm,
-            "skip_unreadable": skip_unreadable_dicom,
-            "max_voxels": max_voxels,
-        }
         assumed = modality is None
         modality = DEFAULT_MODALITY if modality is None else modality
-        _preflight(
-            input_path, out, patient_id, modality, store, brain_mask, segmentation, layout,
-            **read_kw,
+        options = ReadOptions(  # the reading options, checked once and passed on as one
+            modality=modality, patient_id=patient_id, series_uid=series_uid,
+            slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm,
+            skip_unreadable=skip_unreadable_dicom, max_voxels=max_voxels,
         )  # fmt: skip
+        _preflight(input_path, out, options, store, brain_mask, segmentation, layout)
         result = _run_with_progress(
             input_path=input_path,
             out_dir=_location(out),
-            patient_id=patient_id,
             config=cfg,
-            modality=modality,
             store_dir=None if store is None else str(store),
             brain_mask=None if brain_mask is None else str(brain_mask),
             segmentation=None if segmentation is None else str(segmentation),
             layout=layout,
-            **read_kw,
+            **options.model_dump(),
         )
     except _HANDLED as exc:
         raise _fail(exc) from None
+    finally:
+        forget_kept()  # a scan the ingest stage did not need (its result was cached)
     _say_modality(modality, assumed)
     print_summary(result)
     raise typer.Exit(code=_patient_exit_code(result))
@@ -979,6 +975,27 @@ def server_status_cmd() -> None:
     status = server_status()
     console.print(escape(status.line), soft_wrap=True, highlight=False)
     raise typer.Exit(code=0 if status.state == "running" else 1)
+
+
+@app.command()
+def methods() -> None:
+    """List the segmentation methods (segment.method) and the input formats (their registries)."""
+    from tumor3d.segmentation.methods import AUTO, registered_methods
+    from tumor3d.storage.readers.registry import registered_readers
+
+    table = Table(title="Segmentation methods (segment.method)", title_justify="left")
+    for col in ("method", "what it is", "modalities"):
+        table.add_column(col)
+    table.add_row(AUTO, "the default: picks one of the below by modality (see the README)", "")
+    for m in sorted(registered_methods().values(), key=lambda m: m.name):
+        table.add_row(m.name, escape(m.description), ", ".join(m.modalities))
+    console.print(table)
+    formats = Table(title="Input formats", title_justify="left")
+    for col in ("reader", "give"):
+        formats.add_column(col)
+    for r in registered_readers().values():
+        formats.add_row(r.name, escape(r.accepts))
+    console.print(formats)
 
 
 # ----------------------------------------------------------------- evaluate (EVAL helper's block)

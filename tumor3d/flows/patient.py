@@ -34,7 +34,6 @@ from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
 from tumor3d.flows.artifacts import publish_patient_artifacts
-from tumor3d.imaging.scan import validate_patient_id
 from tumor3d.metrics import EQ7_SLICE_RULES
 from tumor3d.segmentation.review import NO_TUMOUR_NOTE, Review, review_status
 from tumor3d.segmentation.review import run_notes as review_notes
@@ -63,7 +62,8 @@ from tumor3d.storage.publish import (
     staged_folder,
     write_publish_manifest,
 )
-from tumor3d.storage.readers import check_modality, derive_patient_id, read_scan, suggest_patient_id
+from tumor3d.storage.readers import ReadOptions, derive_patient_id, suggest_patient_id
+from tumor3d.storage.readers.handoff import kept_or_read
 from tumor3d.storage.remote_publish import publish_folder
 from tumor3d.storage.slice_table import slice_table
 from tumor3d.storage.store import (
@@ -156,17 +156,17 @@ def config_digest(cfg: PipelineConfig) -> str:
 
 def prepare_source(
     input_path: str | Path,
+    options: ReadOptions | None = None,
     *,
-    patient_id: str | None = None,
-    modality: str = "t2",
-    series_uid: str | None = None,
-    slice_thickness_mm: float | None = None,
-    slice_gap_mm: float | None = None,
-    skip_unreadable: bool = False,
-    max_voxels: int = MAX_VOXELS_DEFAULT,
     out_dir: str | Path | None = None,
+    **option_keywords: Any,
 ) -> InputSource:
     """Validate the user's input and identify it by content.
+
+    ``options`` (a :class:`~tumor3d.storage.readers.options.ReadOptions`), or
+    its fields as keywords (``modality``, ``patient_id``, ``series_uid``,
+    ``slice_thickness_mm``, ``slice_gap_mm``, ``skip_unreadable``,
+    ``max_voxels``), say how to read it; the modality defaults to ``"t2"``.
 
     With ``out_dir``, also refuse (before any work) an output folder
     ``<out_dir>/<patient_id>`` that is or contains the input, that holds
@@ -179,11 +179,15 @@ def prepare_source(
         A missing input, unknown modality, unsafe patient id, or an output
         folder that would replace the input.
     """
+    if options is None:
+        options = ReadOptions(**option_keywords)  # checked here: one line naming the option
+    elif option_keywords:
+        raise TypeError("give prepare_source a ReadOptions or its fields, not both")
     path = Path(input_path).expanduser()
     if not path.exists():
         raise InputError("no such file or folder", path=str(path))
-    modality = check_modality(modality)  # case-insensitive, as the readers and manifests
-    pid = validate_patient_id(patient_id) if patient_id is not None else derive_patient_id(path)
+    patient_id = options.patient_id
+    pid = patient_id if patient_id is not None else derive_patient_id(path)
     digest = input_digest(path)
     if out_dir is not None and not is_url(out_dir):  # an object store holds no local input
         check_destination(
@@ -191,16 +195,10 @@ def prepare_source(
             location=input_location(path), suggestion=suggest_patient_id(path),
         )  # fmt: skip
     return InputSource(
+        **{**options.model_dump(), "modality": options.modality or "t2", "patient_id": pid},
         path=str(path.resolve()),
         name=path.name,
         digest=digest,
-        modality=modality,
-        patient_id=pid,
-        series_uid=series_uid,
-        slice_thickness_mm=slice_thickness_mm,
-        slice_gap_mm=slice_gap_mm,
-        skip_unreadable=bool(skip_unreadable),
-        max_voxels=int(max_voxels),
         id_derived=patient_id is None,
     )
 
@@ -226,12 +224,7 @@ def prepare_brain_mask(
     path = Path(mask_path).expanduser()
     if out_dir is not None and not is_url(out_dir):
         check_output_not_input(Path(out_dir) / source.patient_id, [path])
-    image = read_scan(
-        source.path, modality=source.modality, patient_id=source.patient_id,
-        series_uid=source.series_uid, slice_thickness_mm=source.slice_thickness_mm,
-        slice_gap_mm=source.slice_gap_mm, skip_unreadable=source.skip_unreadable,
-        max_voxels=source.max_voxels,
-    )  # fmt: skip
+    image = kept_or_read(source.path, ReadOptions.of(source))
     return read_given_brain_mask(path, image, max_voxels=source.max_voxels)
 
 
@@ -250,12 +243,7 @@ def prepare_segmentation(
     path = Path(mask_path).expanduser()
     if out_dir is not None and not is_url(out_dir):
         check_output_not_input(Path(out_dir) / source.patient_id, [path])
-    image = read_scan(
-        source.path, modality=source.modality, patient_id=source.patient_id,
-        series_uid=source.series_uid, slice_thickness_mm=source.slice_thickness_mm,
-        slice_gap_mm=source.slice_gap_mm, skip_unreadable=source.skip_unreadable,
-        max_voxels=source.max_voxels,
-    )  # fmt: skip
+    image = kept_or_read(source.path, ReadOptions.of(source))
     return read_given_segmentation(path, image, max_voxels=source.max_voxels)
 
 

@@ -9,7 +9,13 @@ from pathlib import Path
 
 from tumor3d.errors import InputError, os_error_path, os_error_text
 
-__all__ = ["detached_data_files", "input_digest", "input_files", "input_location"]
+__all__ = [
+    "detached_data_files",
+    "input_digest",
+    "input_files",
+    "input_location",
+    "input_signature",
+]
 
 _SIDECAR_SUFFIXES = (".json", ".yaml", ".yml")
 _CHUNK = 1 << 20
@@ -191,3 +197,29 @@ def _input_digest(p: Path) -> str:
             if side.is_file():
                 _hash_file(h, side, "sidecar" + suffix)
     return h.hexdigest()
+
+
+def input_signature(path: str | Path) -> tuple[tuple[str, int, int, int, int], ...] | None:
+    """What the file system says of every file :func:`input_digest` reads, without reading it.
+
+    Name, size, modification and change times (ns) and inode of the input,
+    its sidecars and detached data files (a folder: every regular file in
+    it), in order: equal signatures mean the content was not rewritten in
+    between (as far as the file system's timestamps tell). ``None`` if a file
+    cannot be examined.
+    """
+    p = Path(path)
+    try:
+        if p.is_dir():
+            files = sorted(f for f in p.rglob("*") if f.is_file())
+        else:
+            stem = _stem(p)
+            files = [p, *detached_data_files(p)]
+            files += [p.with_name(stem + s) for s in _SIDECAR_SUFFIXES
+                      if p.with_name(stem + s).is_file()]  # fmt: skip
+        stats = [(os.fspath(f), f.stat()) for f in files]
+    except (OSError, InputError):
+        return None
+    return tuple(
+        (name, st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino) for name, st in stats
+    )

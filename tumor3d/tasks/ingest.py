@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from tumor3d.storage.objectstore import open_store
-from tumor3d.storage.readers import read_scan
-from tumor3d.storage.readers.nifti import nibabel_header_notes
+from tumor3d.storage.readers import ReadOptions, read_scan
+from tumor3d.storage.readers.handoff import read_noting, take_kept
 from tumor3d.tasks.spec import InputSource, StageOutput, StageSpec, stage_task
 
 __all__ = ["SPEC", "ingest_task"]
@@ -20,18 +20,18 @@ def ingest_task(source: InputSource, store_root: str) -> StageOutput:
 
     ``header_notes``: the repairs nibabel made to a NIfTI header on reading,
     one note naming the file (informational; never printed by nibabel).
+
+    The scan ``tumor3d run`` read to check the input before starting is
+    taken instead of a second read when it is this input, unchanged, read
+    with these options (:mod:`tumor3d.storage.readers.handoff`); the key
+    does not depend on it.
     """
-    with nibabel_header_notes(source.name) as header_notes:
-        scan = read_scan(
-            source.path,
-            modality=source.modality,
-            patient_id=source.patient_id,
-            series_uid=source.series_uid,
-            slice_thickness_mm=source.slice_thickness_mm,
-            slice_gap_mm=source.slice_gap_mm,
-            skip_unreadable=source.skip_unreadable,
-            max_voxels=source.max_voxels,
-        )
+    options = ReadOptions.of(source)
+    # the scan the command line's check read, if it is this input unchanged: one read per run
+    kept = take_kept(source.path, options)
+    scan, header_notes = (
+        kept if kept is not None else read_noting(source.path, options, name=source.name)
+    )
     ref = open_store(store_root).put_scan(scan)
     return StageOutput(
         stage="ingest-scan",

@@ -5,7 +5,11 @@ volume geometry rules), :mod:`~tumor3d.storage.readers.nifti`,
 :mod:`~tumor3d.storage.readers.itk` (NRRD, MetaImage), :mod:`~tumor3d.storage.readers.dicom`,
 :mod:`~tumor3d.storage.readers.stack`; every public name is importable from here.
 
-:func:`read_scan` is the one entry point. It dispatches on what ``path`` is:
+:func:`read_scan` is the one entry point. It takes one
+:class:`~tumor3d.storage.readers.options.ReadOptions` (validated where the
+user's input entered) and dispatches on what ``path`` is, through the
+registry of formats (:mod:`~tumor3d.storage.readers.registry`: a new format
+is one registration):
 
 * a ``.nii`` / ``.nii.gz`` file -> :func:`read_nifti_scan`;
 * a ``.nrrd`` / ``.nhdr`` / ``.mha`` / ``.mhd`` file -> :func:`read_itk_scan`
@@ -79,32 +83,27 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 from tumor3d.errors import InputError, os_error_path, os_error_text
-from tumor3d.imaging.scan import MODALITIES, Scan, validate_patient_id
+from tumor3d.imaging.scan import MODALITIES, Scan
 from tumor3d.storage.readers.common import (
     MAX_VOXELS_DEFAULT,
-    NIFTI_SUFFIXES,
     REL_TOL,
-    _check_override,
     check_field_of_view,
-    check_max_voxels,
     check_modality,
     choose_slice_axis,
     derive_patient_id,
     suggest_patient_id,
 )
-from tumor3d.storage.readers.dicom import (
-    DICOM_FILE_SUFFIXES,
-    _NoDicomImagesError,
-    read_dicom_series,
-)
+from tumor3d.storage.readers.dicom import read_dicom_series
 from tumor3d.storage.readers.itk import ITK_SUFFIXES, read_itk_scan
 from tumor3d.storage.readers.nifti import read_nifti_scan
+from tumor3d.storage.readers.options import ReadOptions
+from tumor3d.storage.readers.registry import read_with_registry, registered_readers
 from tumor3d.storage.readers.stack import (
     IMAGE_STACK_SUFFIXES,
     STACK_SIDECAR_NAMES,
-    _list_stack_images,
     read_image_stack,
 )
 
@@ -115,6 +114,7 @@ __all__ = [
     "MODALITIES",
     "REL_TOL",
     "STACK_SIDECAR_NAMES",
+    "ReadOptions",
     "check_modality",
     "choose_slice_axis",
     "derive_patient_id",
@@ -123,48 +123,37 @@ __all__ = [
     "read_itk_scan",
     "read_nifti_scan",
     "read_scan",
+    "registered_readers",
     "suggest_patient_id",
 ]
 
 
 def read_scan(
-    path: str | os.PathLike[str],
-    *,
-    modality: str | None = None,
-    patient_id: str | None = None,
-    series_uid: str | None = None,
-    slice_thickness_mm: float | None = None,
-    slice_gap_mm: float | None = None,
-    skip_unreadable: bool = False,
-    max_voxels: int = MAX_VOXELS_DEFAULT,
+    path: str | os.PathLike[str], options: ReadOptions | None = None, **keywords: Any
 ) -> Scan:
-    """Read one patient's slice stack from a NIfTI file or a folder.
+    """Read one patient's slice stack from a file or a folder, with the registered reader.
 
     Parameters
     ----------
     path : str or path-like
         A ``.nii``/``.nii.gz`` file, an NRRD/MetaImage file (``.nrrd``,
         ``.nhdr``, ``.mha``, ``.mhd``), a DICOM series folder, or a folder
-        of 2-D PNG/TIFF/JPEG slices with a ``stack.yaml`` sidecar.
-    modality : {"t2", "flair", "t1c"}, optional
-        MR sequence (case-insensitive). ``None`` means ``"t2"``, except for
-        an image stack whose sidecar names a modality.
-    patient_id : str, optional
-        Folder-safe id; default :func:`derive_patient_id` of ``path``.
-    series_uid : str, optional
-        SeriesInstanceUID to pick when a DICOM folder holds several series.
-    slice_thickness_mm, slice_gap_mm : float, optional
-        Override the nominal slice thickness (> 0) and inter-slice gap
-        (>= 0) that the input states (see the module docstring).
-    skip_unreadable : bool
-        DICOM only: skip files that cannot be read as DICOM instead of
-        stopping with an error that names them; the skipped file names are
-        in ``Scan.skipped_files`` (see :func:`read_dicom_series`).
-    max_voxels : int
-        Refuse a volume whose header (NIfTI, NRRD, MetaImage; for DICOM and
-        image stacks rows x columns x files) declares more voxels, before
-        reading it.
-        Default :data:`tumor3d.constants.MAX_VOXELS_DEFAULT` (512 million).
+        of 2-D PNG/TIFF/JPEG slices with a ``stack.yaml`` sidecar: the
+        formats of :func:`~tumor3d.storage.readers.registry.registered_readers`.
+    options : ReadOptions, optional
+        How to read it (validated once where the user's input entered).
+    **keywords
+        Or the fields of :class:`ReadOptions` as keywords (not both):
+        ``modality`` (``None`` means ``"t2"``, except for an image stack
+        whose sidecar names a modality), ``patient_id`` (default
+        :func:`derive_patient_id` of ``path``), ``series_uid`` (the DICOM
+        series to pick when a folder holds several), ``slice_thickness_mm``
+        and ``slice_gap_mm`` (override what the input states, see the module
+        docstring), ``skip_unreadable`` (DICOM: skip files that cannot be
+        read, named in ``Scan.skipped_files``, see :func:`read_dicom_series`),
+        ``max_voxels`` (refuse a volume whose header declares more voxels,
+        before reading it; default :data:`tumor3d.constants.MAX_VOXELS_DEFAULT`,
+        512 million).
 
     Returns
     -------
@@ -177,21 +166,18 @@ def read_scan(
         If the path is missing, unsupported or unreadable, holds a single
         2-D image, a constant volume or non-finite values, spans more than any
         MR scanner images (:func:`tumor3d.storage.readers.common.check_field_of_view`),
-        or if a parameter is invalid. The message names the file and the problem; operating-
+        or if an option is invalid. The message names the file and the problem; operating-
         system errors (permissions, I/O) are mapped to one such line.
     """
+    if options is None:
+        options = ReadOptions(**keywords)
+    elif keywords:
+        raise TypeError("give read_scan the options as a ReadOptions or as keywords, not both")
+    elif not isinstance(options, ReadOptions):
+        raise TypeError(f"options must be a ReadOptions, got {type(options).__name__}")
     p = Path(path)
     try:
-        scan = _read_scan(
-            p,
-            modality=modality,
-            patient_id=patient_id,
-            series_uid=series_uid,
-            slice_thickness_mm=slice_thickness_mm,
-            slice_gap_mm=slice_gap_mm,
-            skip_unreadable=skip_unreadable,
-            max_voxels=max_voxels,
-        )
+        scan = _read_scan(p, options)
     except OSError as exc:  # permissions, a vanished mount, an I/O error: one line
         raise InputError(
             f"cannot read the input ({os_error_text(exc)})", os_error_path(exc, p)
@@ -200,65 +186,9 @@ def read_scan(
     return scan
 
 
-def _read_scan(
-    p: Path,
-    *,
-    modality: str | None,
-    patient_id: str | None,
-    series_uid: str | None,
-    slice_thickness_mm: float | None,
-    slice_gap_mm: float | None,
-    skip_unreadable: bool,
-    max_voxels: int,
-) -> Scan:
+def _read_scan(p: Path, options: ReadOptions) -> Scan:
     if not p.exists():
         raise InputError("no such file or folder", str(p))
-    mod = None if modality is None else check_modality(modality)
-    pid = derive_patient_id(p) if patient_id is None else validate_patient_id(patient_id)
-    thickness = _check_override("slice_thickness_mm", slice_thickness_mm, allow_zero=False)
-    gap = _check_override("slice_gap_mm", slice_gap_mm, allow_zero=True)
-    limit = check_max_voxels(max_voxels)
-    common = {"patient_id": pid, "slice_thickness_mm": thickness, "slice_gap_mm": gap}
-
-    if p.is_file():
-        lower = p.name.lower()
-        if lower.endswith(NIFTI_SUFFIXES):
-            return read_nifti_scan(p, modality=mod or "t2", max_voxels=limit, **common)
-        if lower.endswith(ITK_SUFFIXES):
-            return read_itk_scan(p, modality=mod or "t2", max_voxels=limit, **common)
-        if lower.endswith(IMAGE_STACK_SUFFIXES + DICOM_FILE_SUFFIXES):
-            raise InputError(
-                "a single 2-D image was given where a stack is needed: at least 2 slices "
-                "are needed (give the folder of a DICOM series, or a folder of 2-D slices "
-                f"with {STACK_SIDECAR_NAMES[0]})",
-                str(p),
-            )
-        raise InputError(
-            f"unsupported file type {''.join(p.suffixes) or '(no extension)'!r}: give a NIfTI "
-            "file (.nii, .nii.gz), an NRRD or MetaImage file (.nrrd, .nhdr, .mha, .mhd), "
-            "a DICOM series folder, or a folder of 2-D "
-            f"PNG/TIFF/JPEG slices with {STACK_SIDECAR_NAMES[0]}",
-            str(p),
-        )
-    if not p.is_dir():
-        raise InputError("neither a regular file nor a folder", str(p))
-    if any((p / name).is_file() for name in STACK_SIDECAR_NAMES):
-        return read_image_stack(p, modality=mod, max_voxels=limit, **common)
-    try:
-        return read_dicom_series(
-            p,
-            modality=mod or "t2",
-            series_uid=series_uid,
-            skip_unreadable=skip_unreadable,
-            max_voxels=limit,
-            **common,
-        )
-    except _NoDicomImagesError:
-        if _list_stack_images(p):
-            raise InputError(
-                f"missing sidecar {STACK_SIDECAR_NAMES[0]} (or {STACK_SIDECAR_NAMES[1]}) "
-                "describing pixel_spacing_mm, slice_thickness_mm and slice_gap_mm of the "
-                "2-D slices in this folder",
-                str(p / STACK_SIDECAR_NAMES[0]),
-            ) from None
-        raise
+    if options.patient_id is None:
+        options = options.model_copy(update={"patient_id": derive_patient_id(p)})
+    return read_with_registry(p, options)

@@ -31,6 +31,8 @@ from tumor3d.storage.readers.common import (
     check_voxel_count,
     derive_patient_id,
 )
+from tumor3d.storage.readers.options import ReadOptions
+from tumor3d.storage.readers.registry import NotThisFormat, register_reader
 
 __all__ = ["DICOM_FILE_SUFFIXES", "NOT_DICOM_SUFFIXES", "read_dicom_series"]
 
@@ -48,7 +50,7 @@ NOT_DICOM_SUFFIXES = (
 _TEXT_PROBE_BYTES = 4096
 
 
-class _NoDicomImagesError(InputError):
+class _NoDicomImagesError(NotThisFormat):
     """A folder without any DICOM image (lets read_scan suggest a stack sidecar)."""
 
 
@@ -436,3 +438,19 @@ def _dicom_float(ds: Any, tag: str, default: float, f: Path) -> float:
     if not math.isfinite(value):
         raise InputError(f"{tag} must be finite, got {raw!r}", str(f))
     return value
+
+
+@register_reader(
+    "dicom",
+    accepts="a DICOM series folder",
+    fallback=True,
+    slice_suffixes=DICOM_FILE_SUFFIXES,
+)
+def _read_dicom(path: Path, options: ReadOptions) -> Scan:
+    return read_dicom_series(
+        path,
+        modality=options.modality or "t2",
+        series_uid=options.series_uid,
+        skip_unreadable=options.skip_unreadable,
+        **options.common(),
+    )

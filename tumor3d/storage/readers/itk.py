@@ -41,6 +41,8 @@ from tumor3d.storage.readers.common import (
     derive_patient_id,
     scan_from_volume,
 )
+from tumor3d.storage.readers.options import ReadOptions
+from tumor3d.storage.readers.registry import register_reader
 
 __all__ = ["ITK_SUFFIXES", "itk_ras_affine", "read_itk_scan"]
 
@@ -194,3 +196,10 @@ def _itk_message(exc: BaseException) -> str:
         if ln.lower().startswith(("description:", "itk::error")):
             return ln.split(":", 1)[1].strip()[:200]
     return (lines[-1] if lines else type(exc).__name__)[:200]
+
+
+@register_reader(
+    "itk", accepts="an NRRD or MetaImage file (.nrrd, .nhdr, .mha, .mhd)", suffixes=ITK_SUFFIXES
+)
+def _read_itk_file(path: Path, options: ReadOptions) -> Scan:
+    return read_itk_scan(path, modality=options.modality or "t2", **options.common())

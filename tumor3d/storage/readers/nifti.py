@@ -29,6 +29,8 @@ from tumor3d.storage.readers.common import (
     derive_patient_id,
     scan_from_volume,
 )
+from tumor3d.storage.readers.options import ReadOptions
+from tumor3d.storage.readers.registry import register_reader
 
 __all__ = ["load_nifti_volume", "nibabel_header_notes", "quiet_nibabel", "read_nifti_scan"]
 
@@ -301,3 +303,8 @@ def _read_bids_sidecar(p: Path, step: float) -> float | None:
                 str(sidecar),
             )
     return thickness
+
+
+@register_reader("nifti", accepts="a NIfTI file (.nii, .nii.gz)", suffixes=NIFTI_SUFFIXES)
+def _read_nifti(path: Path, options: ReadOptions) -> Scan:
+    return read_nifti_scan(path, modality=options.modality or "t2", **options.common())

@@ -24,6 +24,8 @@ from tumor3d.storage.readers.common import (
     check_voxel_count,
     derive_patient_id,
 )
+from tumor3d.storage.readers.options import ReadOptions
+from tumor3d.storage.readers.registry import register_reader
 from tumor3d.validation import short_repr
 
 __all__ = ["IMAGE_STACK_SUFFIXES", "STACK_SIDECAR_NAMES", "read_image_stack"]
@@ -270,3 +272,30 @@ def _read_slice(f: Path) -> np.ndarray:
     if arr.ndim != 2:
         raise InputError(f"expected a 2-D grayscale or RGB image, got shape {arr.shape}", str(f))
     return arr
+
+
+def _has_sidecar(folder: Path) -> bool:
+    return any((folder / name).is_file() for name in STACK_SIDECAR_NAMES)
+
+
+def _missing_sidecar(folder: Path) -> InputError | None:
+    """Images but no sidecar (and no DICOM): name the sidecar to write."""
+    if not _list_stack_images(folder):
+        return None
+    return InputError(
+        f"missing sidecar {STACK_SIDECAR_NAMES[0]} (or {STACK_SIDECAR_NAMES[1]}) "
+        "describing pixel_spacing_mm, slice_thickness_mm and slice_gap_mm of the "
+        "2-D slices in this folder",
+        str(folder / STACK_SIDECAR_NAMES[0]),
+    )
+
+
+@register_reader(
+    "stack",
+    accepts=f"a folder of 2-D PNG/TIFF/JPEG slices with {STACK_SIDECAR_NAMES[0]}",
+    claims=_has_sidecar,
+    slice_suffixes=IMAGE_STACK_SUFFIXES,
+    hint=_missing_sidecar,
+)
+def _read_stack(path: Path, options: ReadOptions) -> Scan:
+    return read_image_stack(path, modality=options.modality, **options.common())
