@@ -379,7 +379,7 @@ def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patient
     (captured as handed to the uploader), the same files and deterministic bytes as a
     local ``--out``, a marker per patient and for the cohort files; a re-run without a
     patient reports it removed (a prefix without a marker is no patient)."""
-    import tumor3d.flows.patient as patient_mod
+    import tumor3d.tasks.publish as patient_mod  # where the uploads are made
 
     staged: dict[str, dict[str, bytes]] = {}
     real = patient_mod.publish_folder

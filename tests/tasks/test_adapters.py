@@ -71,7 +71,7 @@ def _tetrahedron() -> Mesh:
 def test_mesh_too_small_to_simplify_passes_through(tmp_path, percent):
     store = ArtifactStore(tmp_path)
     ref = store.put_mesh(_tetrahedron())
-    out = stages.simplify_task.fn(
+    out = stages.STAGES["simplify-mesh"].task.fn(
         mesh=ref, config=SimplifyConfig(reduction_percent=percent), store_root=str(store.root)
     )
     assert out.values["simplified"] is False
@@ -100,7 +100,7 @@ def test_measure_stage_counts_the_tumour_tip_beyond_the_abnormal_slices(tumour_r
         mesh=outs["extract-surface"].artifacts["mesh"],
         mesh_simplified=outs["simplify-mesh"].artifacts["mesh"], store_root=str(store.root),
     )  # fmt: skip
-    got = stages.measure_task.fn(**kwargs).values
+    got = stages.STAGES["measure-volume"].task.fn(**kwargs).values
     dy, dx = scan.metadata["pixel_spacing_mm"]
     slab = got["slab_height_mm"]
     # independent expectation: every segmented tumour pixel counts once

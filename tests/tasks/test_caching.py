@@ -464,16 +464,16 @@ def test_only_the_packages_a_closure_imports_enter_its_key(package_copy, monkeyp
 
 
 def test_one_versions_function_for_keys_provenance_publish_key_and_reports():
-    import tumor3d.flows.patient
     import tumor3d.storage.evaluation_report
     import tumor3d.storage.provenance
     import tumor3d.storage.versions
     import tumor3d.tasks.caching
+    import tumor3d.tasks.publish
 
     one = tumor3d.storage.versions.versions
     assert tumor3d.tasks.caching.versions is one
     assert tumor3d.storage.provenance.versions is one
-    assert tumor3d.flows.patient.versions is one
+    assert tumor3d.tasks.publish.versions is one  # the publish key
     assert tumor3d.storage.evaluation_report.versions is one
     recorded = one()
     numerical = tumor3d.storage.versions.NUMERICAL_PACKAGES

@@ -14,7 +14,7 @@ from pathlib import Path
 from tumor3d.tasks.caching import FORMAT_MODULES, code_digest
 
 ROOT = Path(__file__).resolve().parents[2]
-ROOTS = ("tumor3d.flows.patient", "tumor3d.storage.patient_outputs")
+ROOTS = ("tumor3d.tasks.publish", "tumor3d.storage.derivatives")
 
 
 def _copy(tmp_path: Path) -> Path:
@@ -39,9 +39,45 @@ def test_a_codec_counts_for_publishing_by_its_behaviour_only(tmp_path):
     assert code_digest(ROOTS, root) == stage_like  # a stage key ignores codecs (format version)
 
 
-def test_the_publisher_digest_is_the_code_digest():
-    from tumor3d.flows.patient import PUBLISHER_MODULES, _publisher_code_digest
+def test_the_publisher_digest_is_the_code_digest_of_the_table_encoders():
+    from tumor3d.storage.derivatives import encoder_modules
+    from tumor3d.tasks.publish import publisher_code_digest
 
-    assert _publisher_code_digest() == code_digest(
-        ("tumor3d.flows.patient", *PUBLISHER_MODULES), include_codecs=True
+    assert publisher_code_digest() == code_digest(
+        ("tumor3d.tasks.publish", *encoder_modules()), include_codecs=True
     )
+
+
+def test_the_publisher_closure_holds_every_module_that_writes_a_published_file():
+    from tumor3d.storage.derivatives import encoder_modules
+    from tumor3d.tasks.caching import module_closure
+
+    closure = set(module_closure(("tumor3d.tasks.publish", *encoder_modules())))
+    # independent expectation: the modules the publisher was written with (the former
+    # hand-kept list) and those the table's encoders call
+    writers = {
+        "tumor3d.storage.bids", "tumor3d.storage.formats", "tumor3d.storage.nifti",
+        "tumor3d.storage.patient_outputs", "tumor3d.storage.provenance",
+        "tumor3d.storage.publish", "tumor3d.storage.slice_table", "tumor3d.segmentation.review",
+        "tumor3d.storage.viewer", "tumor3d.storage.report_html", "tumor3d.storage.derivatives",
+        "tumor3d.storage.remote_publish", "tumor3d.visual.overlay",
+    }  # fmt: skip
+    assert writers <= closure, sorted(writers - closure)
+    assert "tumor3d.flows.patient" not in closure  # the flow's wiring republishes nothing
+
+
+def test_an_encoder_edit_republishes_and_a_comment_does_not(tmp_path):
+    root = str(_copy(tmp_path))
+    path = tmp_path / "tumor3d" / "storage" / "derivatives.py"
+    before = code_digest(ROOTS, root, include_codecs=True)
+    commented = path.read_text().replace("\n\ndef _viewer(", "\n\n# the viewer\ndef _viewer(", 1)
+    assert "# the viewer" in commented
+    path.write_text(commented)
+    code_digest.cache_clear()
+    assert code_digest(ROOTS, root, include_codecs=True) == before
+    text = path.read_text()
+    edited = text.replace('space="LPS"', 'space="RAS"', 1)
+    assert edited != text
+    path.write_text(edited)
+    code_digest.cache_clear()
+    assert code_digest(ROOTS, root, include_codecs=True) != before

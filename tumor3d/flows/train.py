@@ -87,17 +87,16 @@ def _patient_rows(
         run_row.image, patient_id=row.patient_id, modality=row.modality,
         slice_thickness_mm=run_row.slice_thickness_mm, slice_gap_mm=run_row.slice_gap_mm,
     )  # fmt: skip
-    given = None
+    mask = None
     if run_row.brain_mask is not None:
-        from tumor3d.flows.patient import _store_brain_mask
-
-        given = _store_brain_mask(store, prepare_brain_mask(run_row.brain_mask, source))
+        mask = prepare_brain_mask(run_row.brain_mask, source)
+    given = stages.store_given(store, brain_mask=mask)
     root = str(store.root)
     runner = PrefectRunner(store, row.patient_id, len(_PIPELINE_STAGES) + 1)
     for name in _PIPELINE_STAGES:  # wired from their declarations, as run_stages does
         spec = stages.STAGES[name]
         inputs = stages.stage_inputs(
-            spec, runner.outputs, source=source, cfg=cfg, given={"brain_mask": given}
+            spec, runner.outputs, source=source, cfg=cfg, given=given
         )
         runner.run(spec, **inputs, store_root=root)
     scan = runner.outputs["ingest-scan"].artifacts["scan"]

@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 
 from tumor3d.errors import InputError
+from tumor3d.storage import derivatives
 
 __all__ = [
     "BIDSIGNORE",
@@ -103,28 +104,24 @@ BIDSIGNORE = (
 _LABEL = re.compile(r"^[A-Za-z0-9]+$")
 _SUB_PREFIX = re.compile(r"^sub-([A-Za-z0-9]+)(?:_.*)?$")
 
-#: What each mask is (sidecar ``Type`` and ``Description``).
-_MASKS: dict[str, tuple[str, str, str]] = {
-    # default name: (BIDS stem after sub-<label>_, Type, Description)
+#: What each mask is (sidecar ``Type`` and ``Description``; its BIDS name: the derivatives table).
+_MASKS: dict[str, tuple[str, str]] = {
+    # default name: (Type, Description)
     "tumor_mask.nii.gz": (
-        "desc-tumor_mask",
         "Lesion",
         "tumour mask interpolated between the acquired slices (interpolate-slices stage), "
         "on the interpolated grid: the input's in-plane grid and orientation, with slices "
         "added between the acquired ones (its affine says where)",
     ),
     "tumor_mask_slices.nii.gz": (
-        "desc-tumorslices_mask",
         "Lesion",
         "tumour segmented on each acquired slice (segment-tumor stage), on the input's voxel grid",
     ),
     "brain_mask.nii.gz": (
-        "desc-brain_mask",
         "Brain",
         "brain mask of skull removal (preprocess stage), or the mask given with --brain-mask",
     ),
     "tumor_probability.nii.gz": (
-        "label-tumor_probseg",
         "",
         "the learned segmentation's tumour probability (0-1), on the input's voxel grid",
     ),
@@ -181,32 +178,14 @@ def folder_name(patient_id: str, layout: str = "default") -> str:
 def bids_names(label: str) -> dict[str, str]:
     """Default-layout file name -> path in ``sub-<label>/`` (every file this layout renames).
 
+    Read from the table of published files (:func:`tumor3d.storage.derivatives.bids_names`).
+
     >>> bids_names("01")["tumor_mask.nii.gz"]
     'anat/sub-01_desc-tumor_mask.nii.gz'
     >>> bids_names("01")["render_cut_axial.png"]
     'figures/sub-01_desc-cutaxial_render.png'
     """
-    sub = f"sub-{label}"
-    names = {k: f"anat/{sub}_{stem}.nii.gz" for k, (stem, _, _) in _MASKS.items()}
-    names.update(
-        {
-            "tumor.ply": f"anat/{sub}_tumor.ply",
-            "tumor_simplified.ply": f"anat/{sub}_desc-simplified_tumor.ply",
-            "brain_mesh.ply": f"anat/{sub}_brain.ply",
-            "tumor_lps.vtk": f"anat/{sub}_desc-lps_tumor.vtk",
-            "tumor.stl": f"anat/{sub}_desc-lps_tumor.stl",
-            "tumor_simplified.stl": f"anat/{sub}_desc-lpssimplified_tumor.stl",
-            "overlay_tumor.png": f"figures/{sub}_desc-tumor_overlay.png",
-            "overlay_brain.png": f"figures/{sub}_desc-brain_overlay.png",
-            "render_turntable.gif": f"figures/{sub}_desc-turntable_render.gif",
-        }
-    )
-    for view in (
-        "anterior", "posterior", "right", "left", "superior", "inferior",
-        "cut_axial", "cut_coronal", "cut_sagittal",
-    ):  # fmt: skip
-        names[f"render_{view}.png"] = f"figures/{sub}_desc-{view.replace('_', '')}_render.png"
-    return names
+    return derivatives.bids_names(label)
 
 
 #: GIFTI surfaces made from the PLY files (RAS): PLY name -> path in ``sub-<label>/``.
@@ -419,7 +398,7 @@ def _sidecars(
         "tumor_probability.nii.gz": raw,
     }
     out: dict[str, dict[str, Any]] = {}
-    for name, (_, kind, text) in _MASKS.items():
+    for name, (kind, text) in _MASKS.items():
         if name not in present:
             continue
         doc: dict[str, Any] = {}

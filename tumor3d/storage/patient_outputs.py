@@ -1,7 +1,7 @@
 """Writers of a patient's derived outputs: overlays, viewer files and ``report.html``.
 
-Called by :func:`tumor3d.flows.patient.publish_patient` with what it read from the
-artifact store; every file goes into the publishing staging folder (so
+Called through the table of published files (:mod:`tumor3d.storage.derivatives`)
+with what it read from the artifact store; every file goes into the publishing staging folder (so
 nothing is half-written under the final name). The report's content is
 assembled by :func:`patient_report_data` from the metrics row, the stage
 runs and the list of files actually written, so every link of
@@ -31,6 +31,7 @@ __all__ = [
     "OVERLAY_TILE_PX",
     "RENDER_ORDER",
     "join_notes",
+    "overlay_png",
     "patient_report_data",
     "split_notes",
     "write_overlays",
@@ -79,15 +80,22 @@ RENDER_ORDER = (
 )  # fmt: skip
 
 
-def write_overlays(
-    folder: Path,
+#: Overlay file -> (the mask it contours, the mosaic's title).
+_OVERLAY_MASKS = {
+    "overlay_tumor.png": ("tumour", "tumour contour (abnormal slices framed)"),
+    "overlay_brain.png": ("brain", "brain mask contour"),
+}
+
+
+def overlay_png(
+    name: str,
     image_zyx: np.ndarray,
     affine: np.ndarray,
     brain_zyx: np.ndarray,
     tumour_zyx: np.ndarray,
     abnormal_slices: Sequence[int],
-) -> list[str]:
-    """Slice mosaics with the tumour and the brain-mask contours; returns the file names.
+) -> bytes:
+    """One overlay of :data:`OVERLAYS` (``name``) as PNG bytes.
 
     Only the slices with brain (or tumour: one outside the brain mask stays
     visible) are shown, each cropped to the bounding box of the brain and
@@ -100,20 +108,28 @@ def write_overlays(
     brain = np.asarray(brain_zyx).astype(bool)
     tumour = np.asarray(tumour_zyx).astype(bool)
     region = brain | tumour
-    shown = region.any(axis=(1, 2))
-    masks = {"overlay_tumor.png": tumour, "overlay_brain.png": brain}
-    titles = {
-        "overlay_tumor.png": "tumour contour (abnormal slices framed)",
-        "overlay_brain.png": "brain mask contour",
-    }
-    for name, mask in masks.items():
-        rgb = overlay_mosaic(
-            image_zyx, mask, affine, abnormal_slices=abnormal, title=titles[name],
-            slices=shown, crop_mask=region, crop_margin=OVERLAY_MARGIN_VOXELS,
-            contour_px=OVERLAY_CONTOUR_PX, tile_px=OVERLAY_TILE_PX,
-        )  # fmt: skip
-        (folder / name).write_bytes(encode_png(rgb))
-    return list(masks)
+    which, title = _OVERLAY_MASKS[name]
+    rgb = overlay_mosaic(
+        image_zyx, tumour if which == "tumour" else brain, affine, abnormal_slices=abnormal,
+        title=title, slices=region.any(axis=(1, 2)), crop_mask=region,
+        crop_margin=OVERLAY_MARGIN_VOXELS, contour_px=OVERLAY_CONTOUR_PX, tile_px=OVERLAY_TILE_PX,
+    )  # fmt: skip
+    return encode_png(rgb)
+
+
+def write_overlays(
+    folder: Path,
+    image_zyx: np.ndarray,
+    affine: np.ndarray,
+    brain_zyx: np.ndarray,
+    tumour_zyx: np.ndarray,
+    abnormal_slices: Sequence[int],
+) -> list[str]:
+    """Both overlays (:func:`overlay_png`) written into ``folder``; returns the file names."""
+    for name in _OVERLAY_MASKS:
+        data = overlay_png(name, image_zyx, affine, brain_zyx, tumour_zyx, abnormal_slices)
+        (folder / name).write_bytes(data)
+    return list(_OVERLAY_MASKS)
 
 
 def write_surface_files(

@@ -12,7 +12,7 @@ from tumor3d.pipeline import empty_mesh
 from tumor3d.tasks.kinds import Volume
 from tumor3d.tasks.spec import Input, StageResult, stage
 
-__all__ = ["BRAIN_SURFACE_SPACING_MM", "VIEWER_BRAIN_MAX_FACES", "SPEC", "brain_surface_task"]
+__all__ = ["BRAIN_SURFACE_SPACING_MM", "VIEWER_BRAIN_MAX_FACES", "SPEC"]
 
 #: Grid spacing of the translucent brain surface (a context surface, not a measurement).
 BRAIN_SURFACE_SPACING_MM = 2.0
@@ -43,4 +43,3 @@ def extract_brain_surface(brain_mask: Volume) -> StageResult:
 
 
 SPEC = extract_brain_surface
-brain_surface_task = SPEC.task

@@ -21,7 +21,7 @@ from tumor3d.segmentation.lesion import LesionResult, left_right_axis
 from tumor3d.tasks.kinds import Artifact, Tagged, Volume
 from tumor3d.tasks.spec import Input, StageResult, scan_spacing_mm, stage
 
-__all__ = ["SPEC", "detect_task", "lesion_metadata"]
+__all__ = ["SPEC", "lesion_metadata"]
 
 
 def _num(v: float) -> float | None:
@@ -96,4 +96,3 @@ def detect_abnormal(
 
 
 SPEC = detect_abnormal
-detect_task = SPEC.task

@@ -9,7 +9,7 @@ from tumor3d.geometry.interpolate import interpolate_stack
 from tumor3d.tasks.kinds import Artifact, Volume
 from tumor3d.tasks.spec import Input, Metric, StageResult, stage
 
-__all__ = ["SPEC", "interpolate_task"]
+__all__ = ["SPEC"]
 
 
 @stage(
@@ -51,4 +51,3 @@ def interpolate_slices(
 
 
 SPEC = interpolate_slices
-interpolate_task = SPEC.task

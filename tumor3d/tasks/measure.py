@@ -11,7 +11,7 @@ from tumor3d.metrics import measure_volumes
 from tumor3d.tasks.kinds import Artifact, Volume
 from tumor3d.tasks.spec import ALL_VALUES, Input, StageResult, stage
 
-__all__ = ["SPEC", "measure_task"]
+__all__ = ["SPEC"]
 
 
 @stage(
@@ -69,4 +69,3 @@ def measure_volume(
 
 
 SPEC = measure_volume
-measure_task = SPEC.task

@@ -18,7 +18,7 @@ from tumor3d.imaging.preprocess import (
 from tumor3d.tasks.kinds import Artifact, Volume
 from tumor3d.tasks.spec import Input, StageResult, scan_spacing_mm, stage
 
-__all__ = ["SPEC", "preprocess_notes", "preprocess_task"]
+__all__ = ["SPEC", "preprocess_notes"]
 
 
 @stage(
@@ -90,4 +90,3 @@ def preprocess_notes(values: Mapping[str, Any]) -> list[str]:
 
 
 SPEC = preprocess
-preprocess_task = SPEC.task

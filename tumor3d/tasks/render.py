@@ -10,7 +10,7 @@ from tumor3d.tasks.kinds import Artifact, Tagged
 from tumor3d.tasks.spec import Input, StageResult, stage
 from tumor3d.visual.render import render_views, turntable_gif
 
-__all__ = ["SPEC", "render_task"]
+__all__ = ["SPEC"]
 
 
 @stage(
@@ -49,4 +49,3 @@ def render_tumour(mesh: Mesh, brain_mesh: Artifact, config: RenderConfig) -> Sta
 
 
 SPEC = render_tumour
-render_task = SPEC.task

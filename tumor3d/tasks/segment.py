@@ -23,7 +23,7 @@ from tumor3d.segmentation.segment import lesion_definition, resolve_method, segm
 from tumor3d.tasks.kinds import Artifact, Volume
 from tumor3d.tasks.spec import Input, Metric, StageResult, scan_spacing_mm, stage
 
-__all__ = ["SPEC", "lesion_from_artifact", "load_detection", "segment_task"]
+__all__ = ["SPEC", "lesion_from_artifact", "load_detection"]
 
 
 def _f(v: Any, missing: float = float("nan")) -> float:
@@ -185,4 +185,3 @@ def segment(
 
 
 SPEC = segment
-segment_task = SPEC.task

@@ -10,7 +10,7 @@ from tumor3d.pipeline import is_closed_surface
 from tumor3d.simplify import simplify_mesh, target_face_count
 from tumor3d.tasks.spec import Input, Metric, StageResult, stage
 
-__all__ = ["SPEC", "simplify_task"]
+__all__ = ["SPEC"]
 
 #: The smallest closed triangle mesh (a tetrahedron) has 4 faces.
 _MIN_SIMPLIFIED_FACES = 4
@@ -47,4 +47,3 @@ def simplify_surface(mesh: Mesh, config: SimplifyConfig) -> StageResult:
 
 
 SPEC = simplify_surface
-simplify_task = SPEC.task

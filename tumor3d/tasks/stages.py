@@ -17,6 +17,9 @@ from typing import Any
 from pydantic import BaseModel
 
 from tumor3d.config import PipelineConfig
+from tumor3d.storage.brain_mask import GivenBrainMask
+from tumor3d.storage.given_segmentation import GivenSegmentation
+from tumor3d.storage.store import ArtifactRef, ArtifactStore
 from tumor3d.tasks import (
     brain_surface,
     detect,
@@ -33,24 +36,15 @@ from tumor3d.tasks.spec import GIVEN, SOURCE, InputSource, StageOutput, StageSpe
 
 __all__ = [
     "STAGES",
-    "brain_surface_task",
     "InputSource",
     "StageOutput",
     "StageSpec",
     "config_field",
     "metric_columns",
     "stage_inputs",
-    "wiring_errors",
-    "detect_task",
-    "ingest_task",
-    "interpolate_task",
-    "measure_task",
-    "preprocess_task",
-    "render_task",
-    "segment_task",
-    "simplify_task",
     "stage_modules",
-    "surface_task",
+    "store_given",
+    "wiring_errors",
 ]
 
 #: Stage name -> its declaration, in the order the pipeline runs them.
@@ -70,17 +64,6 @@ STAGES: dict[str, StageSpec] = {
     )
 }
 
-ingest_task = ingest.ingest_task
-preprocess_task = preprocess.preprocess_task
-detect_task = detect.detect_task
-segment_task = segment.segment_task
-interpolate_task = interpolate.interpolate_task
-surface_task = surface_adapter.surface_task
-simplify_task = simplify.simplify_task
-brain_surface_task = brain_surface.brain_surface_task
-render_task = render.render_task
-measure_task = measure.measure_task
-
 
 def stage_modules(name: str) -> tuple[str, ...]:
     """Every project module whose source enters stage ``name``'s code digest."""
@@ -96,6 +79,31 @@ def config_field(spec: StageSpec) -> str | None:
     if len(fields) != 1:
         raise LookupError(f"stage {spec.name}: no single PipelineConfig field of its model")
     return fields[0]
+
+
+def store_given(
+    store: ArtifactStore,
+    *,
+    brain_mask: GivenBrainMask | None = None,
+    segmentation: GivenSegmentation | None = None,
+) -> dict[str, ArtifactRef | None]:
+    """The given artifacts of a run, stored: ``given:brain_mask``, ``given:segmentation``.
+
+    Content-addressed (the same mask, the same reference); a segmentation's
+    file name rides along in its metadata (``given_file``: the stage's
+    ``measured`` names it).
+    """
+    return {
+        "brain_mask": None
+        if brain_mask is None
+        else store.put_volume(brain_mask.mask, brain_mask.affine, kind="mask"),
+        "segmentation": None
+        if segmentation is None
+        else store.put_volume(
+            segmentation.mask, segmentation.affine, kind="mask",
+            extra={"given_file": segmentation.name},
+        ),  # fmt: skip
+    }
 
 
 def stage_inputs(

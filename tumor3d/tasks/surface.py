@@ -7,7 +7,7 @@ from tumor3d.pipeline import is_closed_surface, tumour_surface
 from tumor3d.tasks.kinds import Volume
 from tumor3d.tasks.spec import Input, Metric, StageResult, stage
 
-__all__ = ["SPEC", "surface_task"]
+__all__ = ["SPEC"]
 
 
 @stage(
@@ -35,4 +35,3 @@ def extract_surface(tumor_mask: Volume, config: SurfaceConfig) -> StageResult:
 
 
 SPEC = extract_surface
-surface_task = SPEC.task

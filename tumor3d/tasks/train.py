@@ -26,7 +26,7 @@ from tumor3d.tasks.kinds import Artifact, Tagged, Volume
 from tumor3d.tasks.segment import load_detection
 from tumor3d.tasks.spec import Input, StageResult, scan_spacing_mm, stage
 
-__all__ = ["SPEC", "training_rows_task"]
+__all__ = ["SPEC"]
 
 _XYZ_TO_ZYX = [2, 1, 0, 3]
 
@@ -108,4 +108,3 @@ def training_rows(
 
 
 SPEC = training_rows
-training_rows_task = SPEC.task
