@@ -128,7 +128,9 @@ def test_the_kept_scan_is_handed_over_once_for_the_same_input_and_options(tmp_pa
 
 def test_the_ingest_stage_takes_the_preflight_scan_and_keys_it_as_before(tmp_path, counted):
     from tumor3d.flows.patient import prepare_source
-    from tumor3d.tasks.ingest import ingest_task
+    from tumor3d.tasks.ingest import SPEC
+
+    ingest_task = SPEC.task
 
     path = _nifti(tmp_path / "a.nii.gz")
     options = ReadOptions(modality="flair", slice_gap_mm=0.0)

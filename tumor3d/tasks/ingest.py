@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
-from tumor3d.storage.objectstore import open_store
 from tumor3d.storage.readers import ReadOptions, read_scan
 from tumor3d.storage.readers.handoff import read_noting, take_kept
-from tumor3d.tasks.spec import InputSource, StageOutput, StageSpec, stage_task
+from tumor3d.tasks.spec import SOURCE, Input, InputSource, StageResult, stage
 
-__all__ = ["SPEC", "ingest_task"]
+__all__ = ["SPEC"]
 
 
-@stage_task("ingest-scan")
-def ingest_task(source: InputSource, store_root: str) -> StageOutput:
+@stage(
+    "ingest-scan",
+    entry=read_scan,
+    inputs={"source": Input(SOURCE, SOURCE)},
+    outputs={"scan": "scan"},
+)
+def ingest_scan(source: InputSource) -> StageResult:
     """Read the user's input (NIfTI, DICOM series, image stack) into a stored `Scan`.
 
     Keyed and stored by content only: the patient id is neither in the key
@@ -32,10 +36,8 @@ def ingest_task(source: InputSource, store_root: str) -> StageOutput:
     scan, header_notes = (
         kept if kept is not None else read_noting(source.path, options, name=source.name)
     )
-    ref = open_store(store_root).put_scan(scan)
-    return StageOutput(
-        stage="ingest-scan",
-        artifacts={"scan": ref},
+    return StageResult(
+        artifacts={"scan": scan},
         values={
             "n_slices": scan.n_slices,
             "shape_zyx": list(scan.shape),
@@ -49,11 +51,4 @@ def ingest_task(source: InputSource, store_root: str) -> StageOutput:
     )
 
 
-SPEC = StageSpec(
-    name="ingest-scan",
-    task=ingest_task,
-    entry=read_scan,
-    config_model=None,
-    inputs={"source": "source"},
-    outputs={"scan": "scan"},
-)
+SPEC = ingest_scan

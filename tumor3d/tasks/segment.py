@@ -19,6 +19,7 @@ from tumor3d.learned.shipped import shipped_model
 from tumor3d.segmentation.detect import SliceDetection
 from tumor3d.segmentation.given_segmentation import given_definition, given_segmentation
 from tumor3d.segmentation.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
+from tumor3d.segmentation.methods import method_spec, method_uses_lesion
 from tumor3d.segmentation.segment import lesion_definition, resolve_method, segment_tumor
 from tumor3d.tasks.kinds import Artifact, Volume
 from tumor3d.tasks.spec import Input, Metric, StageResult, scan_spacing_mm, stage
@@ -133,11 +134,10 @@ def segment(
         )
     image, affine = enhanced
     exterior = head_exterior.array.astype(bool)
-    needs_lesion = config.method in ("auto", "robust", "learned")
-    det, meta = load_detection(detection, lesion, with_lesion=needs_lesion)
+    det, meta = load_detection(detection, lesion, with_lesion=method_uses_lesion(config.method))
     modality = scan.metadata["modality"]
     learned: dict[str, Any] = {}
-    if resolve_method(config.method, modality, det) == "learned":  # the acquired image, a model
+    if method_spec(resolve_method(config.method, modality, det)).needs_model:  # image + model
         learned = {"image": scan.load().array, "model": shipped_model(modality)}
     result = segment_tumor(
         image,
