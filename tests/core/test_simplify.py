@@ -298,3 +298,24 @@ def test_curvature_tau_option_is_validated(sphere):
         simplify_mesh(mesh, method="curvature", reduction_percent=40.0, tau="often")
     with pytest.raises(InputError, match="unknown option"):
         simplify_mesh(mesh, method="memoryless", reduction_percent=40.0, tau="refresh")
+
+
+def test_curvature_ring_update_lazy_and_eager(sphere):
+    # step 6 lazy (default) or eager (the paper's order): both reach the target with
+    # a closed mesh of input vertices; the order of collapses, and so the mesh, differ
+    mesh, _ = sphere
+    target = target_face_count(mesh.n_faces, 60.0)
+    outs = {}
+    for ring_update in ("lazy", "eager"):
+        out, info = simplify_mesh(
+            mesh, method="curvature", reduction_percent=60.0, ring_update=ring_update,
+            return_info=True,
+        )  # fmt: skip
+        assert target - 1 <= out.n_faces <= target and info["stop_reason"] is None
+        assert is_watertight(out)
+        kept = {tuple(v) for v in np.round(mesh.vertices, 9)}
+        assert all(tuple(v) in kept for v in np.round(out.vertices, 9))
+        outs[ring_update] = out
+    assert not np.array_equal(outs["lazy"].vertices, outs["eager"].vertices)
+    with pytest.raises(InputError, match="ring_update must be one of"):
+        simplify_mesh(mesh, method="curvature", reduction_percent=40.0, ring_update="never")

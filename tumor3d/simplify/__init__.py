@@ -57,7 +57,7 @@ __all__ = [
 
 #: method name -> (function(mesh, *, target_faces, return_info, **options), allowed option names)
 _METHODS: dict[str, tuple[Callable[..., Any], frozenset[str]]] = {
-    "curvature": (simplify_curvature, frozenset({"curvedness", "tau"})),
+    "curvature": (simplify_curvature, frozenset({"curvedness", "tau", "ring_update"})),
     "memoryless": (simplify_memoryless, frozenset()),
     "qem": (simplify_qem, frozenset({"aggressiveness"})),
 }
@@ -140,7 +140,8 @@ def simplify_mesh(
     **options
         Method-specific tuning (``qem``: ``aggressiveness``; ``curvature``:
         ``tau``, ``"once"`` as in the paper or ``"refresh"`` to reach the
-        target, :func:`~tumor3d.simplify.curvature.simplify_curvature`).
+        target, and ``ring_update``, ``"lazy"`` or ``"eager"`` (the paper's
+        order), :func:`~tumor3d.simplify.curvature.simplify_curvature`).
 
     Returns
     -------

@@ -38,12 +38,12 @@ Two schedulers drive the engine:
   is one more branch in :func:`_edge_cost_place`.
 
 :func:`run_vertex_priority` keeps its candidates in an indexed heap (one
-entry per candidate vertex, its key changed in place when ``R`` is
-recomputed), ordered by ``(R, v)``: the same order of pops as a lazy-deletion
-heap on ``(R, v)``, without the stale entries (two thirds of the pops on a
-1 M-face mesh). :func:`run_edge_priority` uses lazy deletion (stale entries
-are recognised and skipped when popped) and compacts the heap when stale
-entries dominate, so memory stays ``O(n_faces)``.
+entry per candidate vertex, ordered by ``(R, v)``); with ``lazy``, a
+candidate whose star changed keeps its key until it reaches the top, where
+its ``R`` is recomputed (the re-evaluation of stale priorities of QEM
+implementations). :func:`run_edge_priority` uses lazy deletion (stale
+entries are recognised and skipped when popped) and compacts the heap when
+stale entries dominate, so memory stays ``O(n_faces)``.
 
 Index arrays (``F``, ``head``, ``nxt``) may be int64 or int32; the curvature
 method passes int32 when the corners fit (half the memory traffic of the
@@ -655,6 +655,35 @@ def _vheap_remove(hk, hv, pos, size, v):  # pragma: no cover - numba
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _vheap_pop(hk, hv, pos, size):  # pragma: no cover - numba
+    """Remove the top; return the new size.
+
+    Floyd's variant of :func:`_vheap_remove` at the top: the hole goes down
+    to a leaf along the smaller children (one comparison per level) and the
+    last entry comes up from there (usually a step or two).
+    """
+    pos[hv[0]] = -1
+    size -= 1
+    if size == 0:
+        return size
+    key = hk[size]
+    w = hv[size]
+    p = 0
+    while True:
+        c = 2 * p + 1
+        if c >= size:
+            break
+        if c + 1 < size and _vless(hk[c + 1], hv[c + 1], hk[c], hv[c]):
+            c += 1
+        hk[p] = hk[c]
+        hv[p] = hv[c]
+        pos[hv[p]] = p
+        p = c
+    _vheap_up(hk, hv, pos, p, key, w)
+    return size
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _vheap_set(hk, hv, pos, size, v, key):  # pragma: no cover - numba
     """Insert ``v`` with ``key``, or change its key; return the new size."""
     p = pos[v]
@@ -673,61 +702,205 @@ def _vheap_set(hk, hv, pos, size, v, key):  # pragma: no cover - numba
 # ---------------------------------------------------------------------------
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
-def _curvature_at(v, V, F, star, n, fbuf, ibuf):  # pragma: no cover - numba
-    """Discrete Gaussian ``K`` and mean ``H`` curvature at a fan vertex [Dyn01].
+# Cephes atan (S. L. Moshier, Cephes Math Library, atan.c): range reduction to
+# |x| <= 0.66 and a (4, 5) rational approximation; max error ~2 ulp (measured
+# against libm's atan2 on 5 M random arguments: 74 % identical, the rest 1-2 ulp)
+_ATAN_P = (-8.750608600031904122785e-1, -1.615753718733365076637e1,
+           -7.500855792314704667340e1, -1.228866684490136173410e2,
+           -6.485021904942025371773e1)  # fmt: skip
+_ATAN_Q = (2.485846490142306297962e1, 1.650270098316988542046e2,
+           4.328810604912902668951e2, 4.853903996359136964868e2,
+           1.945506571482613964425e2)  # fmt: skip
+_TAN3PI8 = 2.414213562373095
+_MOREBITS = 6.123233995736766e-17  # pi/2 - float(pi/2)
 
-    ``A = sum area(t_j)``, ``K = (2 pi - sum alpha_j) / (A / 3)``,
-    ``H = 1/4 sum ||e_j|| beta_j / (A / 3)``, ``beta_j`` the unsigned angle
-    between the unit normals of the two faces at edge ``e_j`` ([A18]).
-    Returns ``(K, H, A)``; ``A = 0`` flags a degenerate star.
-    """
-    area = 0.0
-    angle_sum = 0.0
+
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _atan_nonneg(x):  # pragma: no cover - numba
+    """``atan(x)`` for ``x >= 0`` (Cephes' reduction and rational approximation)."""
+    if x > _TAN3PI8:
+        y = 0.5 * math.pi
+        x = -1.0 / x
+        extra = _MOREBITS
+    elif x <= 0.66:
+        y = 0.0
+        extra = 0.0
+    else:
+        y = 0.25 * math.pi
+        x = (x - 1.0) / (x + 1.0)
+        extra = 0.5 * _MOREBITS
+    z = x * x
+    p = (((_ATAN_P[0] * z + _ATAN_P[1]) * z + _ATAN_P[2]) * z + _ATAN_P[3]) * z + _ATAN_P[4]
+    q = ((((z + _ATAN_Q[0]) * z + _ATAN_Q[1]) * z + _ATAN_Q[2]) * z + _ATAN_Q[3]) * z + _ATAN_Q[4]
+    z = x * (z * p / q) + x
+    return y + (z + extra)
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _angle(s, c):  # pragma: no cover - numba
+    """The angle in ``[0, pi]`` with sine ``s >= 0`` and cosine ``c`` (any common scale)."""
+    if c > 0.0:
+        return _atan_nonneg(s / c)
+    if c < 0.0:
+        return math.pi - _atan_nonneg(s / -c)
+    return 0.5 * math.pi if s > 0.0 else 0.0
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _face_terms(v, b, c, V, k, fbuf, ibuf, area, zr, zi, turns, n_pi):  # pragma: no cover
+    """Add face ``(v, b, c)`` (row ``k``) to the sums of :func:`_curvature_at`."""
     vx = V[v, 0]
     vy = V[v, 1]
     vz = V[v, 2]
-    for k in range(n):
-        f = star[k]
-        r = _slot(F, f, v)
-        b = F[f, (r + 1) % 3]
-        c = F[f, (r + 2) % 3]
-        e1x = V[b, 0] - vx
-        e1y = V[b, 1] - vy
-        e1z = V[b, 2] - vz
-        e2x = V[c, 0] - vx
-        e2y = V[c, 1] - vy
-        e2z = V[c, 2] - vz
-        cx = e1y * e2z - e1z * e2y
-        cy = e1z * e2x - e1x * e2z
-        cz = e1x * e2y - e1y * e2x
-        norm = math.sqrt(cx * cx + cy * cy + cz * cz)
-        area += 0.5 * norm
-        angle_sum += math.atan2(norm, e1x * e2x + e1y * e2y + e1z * e2z)
-        if norm > 0.0:
-            fbuf[k, 0] = cx / norm
-            fbuf[k, 1] = cy / norm
-            fbuf[k, 2] = cz / norm
-        else:
-            fbuf[k, 0] = 0.0
-            fbuf[k, 1] = 0.0
-            fbuf[k, 2] = 0.0
-        fbuf[k, 3] = math.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)  # |e| of edge v-b
-        ibuf[k, 0] = b
-        ibuf[k, 1] = c
+    e1x = V[b, 0] - vx
+    e1y = V[b, 1] - vy
+    e1z = V[b, 2] - vz
+    e2x = V[c, 0] - vx
+    e2y = V[c, 1] - vy
+    e2z = V[c, 2] - vz
+    cx = e1y * e2z - e1z * e2y
+    cy = e1z * e2x - e1x * e2z
+    cz = e1x * e2y - e1y * e2x
+    norm = math.sqrt(cx * cx + cy * cy + cz * cz)
+    dot = e1x * e2x + e1y * e2y + e1z * e2z
+    area += 0.5 * norm
+    if norm > 0.0:
+        below = zi < 0.0
+        t = zr * dot - zi * norm
+        zi = zr * norm + zi * dot
+        zr = t
+        if below and zi >= 0.0:
+            turns += 1
+        m = abs(zr) + abs(zi)
+        if m > 1e100 or m < 1e-100:
+            e = math.frexp(m)[1]
+            zr = math.ldexp(zr, -e)
+            zi = math.ldexp(zi, -e)
+    elif dot < 0.0:
+        n_pi += 1
+    fbuf[k, 0] = cx
+    fbuf[k, 1] = cy
+    fbuf[k, 2] = cz
+    fbuf[k, 3] = math.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)  # |e| of edge v-b
+    fbuf[k, 4] = e1x
+    fbuf[k, 5] = e1y
+    fbuf[k, 6] = e1z
+    ibuf[k, 0] = b
+    ibuf[k, 1] = c
+    return area, zr, zi, turns, n_pi
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _curvature_sums(n, fbuf, ibuf, area, zr, zi, turns, n_pi):  # pragma: no cover - numba
+    """``(K, H, A)`` from the rows of :func:`_face_terms` (see :func:`_curvature_at`)."""
     if not area > 0.0:
         return 0.0, 0.0, 0.0
+    arg = math.atan2(zi, zr)
+    if zi < 0.0:
+        turns += 1  # arg in (-pi, 0): the angle from the positive axis is arg + 2 pi
+    deficit = (2.0 * (1 - turns) - n_pi) * math.pi - arg
     hsum = 0.0
     for k in range(n):
         b = ibuf[k, 0]
         for m in range(n):
             if ibuf[m, 1] == b:  # face m is the other face at edge v-b
-                d = fbuf[k, 0] * fbuf[m, 0] + fbuf[k, 1] * fbuf[m, 1] + fbuf[k, 2] * fbuf[m, 2]
-                d = min(1.0, max(-1.0, d))
-                hsum += fbuf[k, 3] * math.acos(d)
+                dn = fbuf[k, 0] * fbuf[m, 0] + fbuf[k, 1] * fbuf[m, 1] + fbuf[k, 2] * fbuf[m, 2]
+                det = fbuf[m, 4] * fbuf[k, 0] + fbuf[m, 5] * fbuf[k, 1] + fbuf[m, 6] * fbuf[k, 2]
+                le = fbuf[k, 3]
+                hsum += le * _angle(abs(det) * le, dn)
                 break
     third = area / 3.0
-    return (2.0 * math.pi - angle_sum) / third, 0.25 * hsum / third, area
+    return deficit / third, 0.25 * hsum / third, area
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _curvature_at(v, V, F, star, n, fbuf, ibuf):  # pragma: no cover - numba
+    r"""Discrete Gaussian ``K`` and mean ``H`` curvature at a fan vertex [Dyn01] (Eq. 3).
+
+    ``A = sum area(t_j)``, ``K = (2 pi - sum alpha_j) / (A / 3)``,
+    ``H = 1/4 sum ||e_j|| beta_j / (A / 3)``, ``beta_j`` the unsigned angle
+    between the normals of the two faces at edge ``e_j`` ([A18]). Returns
+    ``(K, H, A)``; ``A = 0`` flags a degenerate star. ``fbuf`` (>= 7
+    columns) and ``ibuf`` (2 columns) are scratch rows, one per face.
+
+    The angles are computed with one library arctangent per vertex instead
+    of two per face (the same quantities as Eq. 3, to rounding):
+
+    * ``sum alpha_j``: with ``e1, e2`` the edges of ``t_j`` at ``v``, the
+      complex number ``e1 . e2 + i |e1 x e2|`` has argument ``alpha_j`` in
+      ``[0, pi]``; their running product turns counterclockwise by
+      ``alpha_j`` per face, less than half a turn, so it crosses the
+      positive real axis (from below) once per full turn. Counting those
+      crossings unwraps the one ``atan2`` of the product:
+      ``sum alpha_j = 2 pi turns + arg``, and ``2 pi - sum alpha_j`` is
+      formed as ``2 pi (1 - turns) - arg`` without cancelling two ~2 pi
+      terms. Zero-area faces (``alpha`` exactly 0 or pi) are counted
+      apart; the product is rescaled by powers of two (exact) to stay in
+      range.
+    * ``beta_j`` at edge ``v-b`` between ``t_k = (v, b, c)`` and
+      ``t_m = (v, a, b)`` with normals ``n_k = e_b x e_c``, ``n_m = e_a x
+      e_b``: ``beta = atan2(|n_m x n_k|, n_m . n_k)`` and ``n_m x n_k =
+      det[e_a, e_b, e_c] e_b``, so ``|n_m x n_k| = |e_a . n_k| ||e_b||``: no
+      unit normals, and accurate near ``beta = 0`` where ``acos`` of a
+      normalised dot product loses half the digits (~1e-8 rad of noise on
+      flat patches). The arctangent is Cephes' rational approximation
+      (:func:`_atan_nonneg`, within 2 ulp of libm), inlined.
+    """
+    area = 0.0
+    zr = 1.0  # running product of (e1 . e2 + i |e1 x e2|)
+    zi = 0.0
+    turns = 0
+    n_pi = 0  # zero-area faces with alpha = pi
+    for k in range(n):
+        f = star[k]
+        r = _slot(F, f, v)
+        area, zr, zi, turns, n_pi = _face_terms(
+            v, F[f, (r + 1) % 3], F[f, (r + 2) % 3], V, k, fbuf, ibuf, area, zr, zi, turns, n_pi
+        )
+    return _curvature_sums(n, fbuf, ibuf, area, zr, zi, turns, n_pi)
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _curvature_walk(v, V, F, face_alive, head, nxt, fbuf, ibuf):  # pragma: no cover - numba
+    """:func:`_gather_star` and :func:`_curvature_at` in one walk of ``v``'s corner list.
+
+    The same faces in the same order, so the same ``(K, H, A)``; the loads
+    of the list and of the face positions overlap. ``A = 0`` also when the
+    star has more faces than ``fbuf`` has rows.
+    """
+    cap = fbuf.shape[0]
+    area = 0.0
+    zr = 1.0
+    zi = 0.0
+    turns = 0
+    n_pi = 0
+    c = head[v]
+    prev = -1
+    n = 0
+    while c != -1:
+        nc = nxt[c]
+        f = c // 3
+        r = c - 3 * f
+        if face_alive[f] and F[f, r] == v:
+            if prev == -1:
+                head[v] = c
+            else:
+                nxt[prev] = c
+            prev = c
+            if n < cap:
+                area, zr, zi, turns, n_pi = _face_terms(
+                    v, F[f, (r + 1) % 3], F[f, (r + 2) % 3], V, n, fbuf, ibuf,
+                    area, zr, zi, turns, n_pi,
+                )  # fmt: skip
+            n += 1
+        c = nc
+    if prev == -1:
+        head[v] = -1
+    else:
+        nxt[prev] = -1
+    if n > cap:
+        return 0.0, 0.0, 0.0
+    return _curvature_sums(n, fbuf, ibuf, area, zr, zi, turns, n_pi)
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH, inline="always")
@@ -748,7 +921,7 @@ def curvatures(V, F, head, nxt, status, max_star):  # pragma: no cover - numba
     out = np.full((nv, 3), np.nan)
     alive = np.ones(F.shape[0], dtype=np.bool_)
     star = np.empty(max_star, dtype=np.int64)
-    fbuf = np.empty((max_star, 4))
+    fbuf = np.empty((max_star, 7))
     ibuf = np.empty((max_star, 2), dtype=np.int64)
     for v in range(nv):
         if status[v] != STATUS_OK:
@@ -771,14 +944,26 @@ def curvatures(V, F, head, nxt, status, max_star):  # pragma: no cover - numba
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
 def run_vertex_priority(
-    V, F, head, nxt, status, target_faces, no_root, max_star, min_quality
+    V, F, head, nxt, status, target_faces, no_root, max_star, min_quality, lazy
 ):  # pragma: no cover - numba
     """Algorithm 2 of the paper on the engine (spec section 6).
 
     ``V``, ``F``, ``head``, ``nxt`` are modified in place (the caller passes
     copies). Returns ``(face_alive, vertex_alive, n_faces, n_collapses,
     tau, n_candidates0, n_pops)``; ``n_pops`` counts the candidates taken
-    from the heap (each is tried: collapsed or dropped, [A23]).
+    from the heap and tried (collapsed or dropped, [A23]).
+
+    The candidate set ``C`` is the heap's content. With ``lazy`` step 6 is
+    applied lazily to the ring vertices that are in ``C``: such a vertex
+    keeps its key (its ``R`` before the collapse) and is marked stale; when
+    a stale vertex reaches the top, its ``R`` is recomputed on the current
+    mesh and it leaves ``C`` (``R >= tau``) or takes its new key, and it is
+    collapsed only when it is at the top with a current key. A ring vertex
+    outside ``C`` is recomputed at once and enters ``C`` when ``R < tau``,
+    as in the paper. The difference from the paper's (eager) step 6 is the
+    order of pops: a candidate whose ``R`` fell is tried at its older,
+    larger key, one whose ``R`` rose is put back. Without ``lazy``, every
+    ring vertex is recomputed after each collapse (the paper's order).
     """
     nv = V.shape[0]
     nf = F.shape[0]
@@ -790,7 +975,7 @@ def run_vertex_priority(
     sj = np.empty(cap, dtype=np.int64)
     sbuf = np.empty(cap, dtype=np.int64)
     ring = np.empty(cap, dtype=np.int64)
-    fbuf = np.empty((cap, 4))
+    fbuf = np.empty((cap, 7))
     ibuf = np.empty((cap, 2), dtype=np.int64)
     cand_j = np.empty(cap, dtype=np.int64)
     cand_f = np.empty((cap, 3))
@@ -820,14 +1005,13 @@ def run_vertex_priority(
         count += 1
     tau = total / count if count > 0 else 0.0
     # steps 3-4: candidates and their heap (indexed: one entry per candidate, keyed by (R, v))
-    in_c = np.zeros(nv, dtype=np.bool_)
+    stale = np.zeros(nv, dtype=np.bool_)  # candidate whose star changed since R was computed
     hk = np.empty(nv)
     hv = np.empty(nv, dtype=F.dtype)
     pos = np.full(nv, -1, dtype=F.dtype)
     size = 0
     for v in range(nv):
         if interior[v] and R[v] < tau:
-            in_c[v] = True
             hk[size] = R[v]
             hv[size] = v
             pos[v] = size
@@ -841,9 +1025,21 @@ def run_vertex_priority(
     # step 5
     while n_faces > target_faces and size > 0:
         vi = hv[0]
-        size = _vheap_remove(hk, hv, pos, size, vi)
-        n_pops += 1
         ni, s1 = _prepare_i(vi, F, face_alive, head, nxt, mark, stamp, si)
+        if stale[vi]:
+            # step 6, deferred: R(v_i) is computed now that v_i reached the top
+            stale[vi] = False
+            K, H, A = _curvature_at(vi, V, F, si, ni, fbuf, ibuf)
+            R[vi] = _curvedness(K, H, no_root) if A > 0.0 else np.inf
+            if not R[vi] < tau:
+                size = _vheap_pop(hk, hv, pos, size)  # v_i leaves C
+                continue
+            # the top with its current key: sift it down (same pops as remove + push)
+            _vheap_down(hk, hv, pos, size, 0, R[vi], vi)
+            if hv[0] != vi:
+                continue
+        size = _vheap_pop(hk, hv, pos, size)
+        n_pops += 1
         _neighbours(vi, F, si, ni, ring)
         # Eq. 6 cost of every edge whose geometry is valid (star of v_i only), then
         # the topological checks in order of increasing (cost, sum(1 - S), length, j)
@@ -898,36 +1094,28 @@ def run_vertex_priority(
             cand_f[b, 1] = cand_f[nc, 1]
             cand_f[b, 2] = cand_f[nc, 2]
         if best_j == -1:
-            in_c[vi] = False  # [A23]
-            continue
+            continue  # v_i left C ([A23])
         # the star of v_i is still si[:ni]: the checks only walked v_j's list
         n_faces -= _collapse_star(
             vi, best_j, V[best_j, 0], V[best_j, 1], V[best_j, 2],
             V, F, face_alive, vertex_alive, head, nxt, si, ni,
         )  # fmt: skip
         n_collapses += 1
-        in_c[vi] = False
-        # step 6: recompute R on the old ring N(v_i) (it contains v_j)
+        # step 6 on the old ring N(v_i) (it contains v_j): with lazy, a candidate's R
+        # is recomputed when it reaches the top (stale), any other vertex's now
         for k in range(ni):
             w = ring[k]
             if not vertex_alive[w] or locked[w]:
                 continue
-            n = _gather_star(w, F, face_alive, head, nxt, sbuf)
-            K, H, A = _curvature_at(w, V, F, sbuf, n, fbuf, ibuf)
-            if not A > 0.0:
-                R[w] = np.inf
-                in_c[w] = False
-                if pos[w] >= 0:
-                    size = _vheap_remove(hk, hv, pos, size, w)
+            if lazy and pos[w] >= 0:
+                stale[w] = True
                 continue
-            R[w] = _curvedness(K, H, no_root)
+            K, H, A = _curvature_walk(w, V, F, face_alive, head, nxt, fbuf, ibuf)
+            R[w] = _curvedness(K, H, no_root) if A > 0.0 else np.inf
             if R[w] < tau:
-                in_c[w] = True
-                size = _vheap_set(hk, hv, pos, size, w, R[w])
-            else:
-                in_c[w] = False
-                if pos[w] >= 0:
-                    size = _vheap_remove(hk, hv, pos, size, w)
+                size = _vheap_set(hk, hv, pos, size, w, R[w])  # w enters C (or is re-keyed)
+            elif pos[w] >= 0:
+                size = _vheap_remove(hk, hv, pos, size, w)  # w leaves C
     return face_alive, vertex_alive, n_faces, n_collapses, tau, n_cand0, n_pops
 
 
