@@ -634,6 +634,13 @@ def fig10_lines() -> list[str]:
     return lines
 
 
+#: Below this line ``reports/PAPER.md`` holds sections measured by other commands
+#: (each names its own); a regeneration keeps them.
+KEPT_MARKER = (
+    "<!-- sections below are measured by the commands they name; make paper keeps them -->"
+)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=8, help="T2 phantoms with a tumour (seeds 0..n-1)")
@@ -845,6 +852,9 @@ def main() -> None:
         "",
     ]
     args.report.parent.mkdir(parents=True, exist_ok=True)
+    # sections measured by other commands (each names its own), kept across regenerations
+    kept = args.report.read_text().partition(KEPT_MARKER)[2] if args.report.exists() else ""
+    lines += [KEPT_MARKER + kept.rstrip("\n"), ""] if kept.strip() else []
     args.report.write_text("\n".join(lines))
     print(f"wrote {args.report} in {elapsed:.0f} s")
 

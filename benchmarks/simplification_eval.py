@@ -87,12 +87,14 @@ def figure9(case, mesh, out_dir: Path):
 
     from tumor3d.visual.render import render_views
 
-    cfg = RenderConfig(width=360, height=300, azimuths_deg=(30.0,)).model_dump()
+    cfg = RenderConfig(
+        width=360, height=300, views=("anterior",), cutaways=(), turntable_frames=0
+    ).model_dump()
     fig, axes = plt.subplots(1, len(FIG9_PERCENTS), figsize=(3.2 * len(FIG9_PERCENTS), 3.2))
     counts = []
     for ax, p in zip(axes, FIG9_PERCENTS, strict=True):
         out, info = simplify_mesh(mesh, method="curvature", reduction_percent=p, return_info=True)
-        image = render_views(out, **cfg)[0]
+        image = render_views(out, **cfg).images["anterior"]
         ax.imshow(image)
         ax.set_axis_off()
         ax.set_title(f"P = {p:.0f} %: {out.n_faces:,} faces", fontsize=9)

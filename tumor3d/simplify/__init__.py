@@ -57,7 +57,7 @@ __all__ = [
 
 #: method name -> (function(mesh, *, target_faces, return_info, **options), allowed option names)
 _METHODS: dict[str, tuple[Callable[..., Any], frozenset[str]]] = {
-    "curvature": (simplify_curvature, frozenset({"curvedness", "tau", "ring_update"})),
+    "curvature": (simplify_curvature, frozenset({"curvedness", "tau"})),
     "memoryless": (simplify_memoryless, frozenset()),
     "qem": (simplify_qem, frozenset({"aggressiveness"})),
 }
@@ -113,6 +113,7 @@ def simplify_mesh(
     method: Literal["curvature", "memoryless", "qem"] = "memoryless",
     reduction_percent: float,
     curvedness: Literal["sqrt", "no_root"] = "sqrt",
+    ring_update: Literal["lazy", "eager"] = "lazy",
     return_info: bool = False,
     **options: Any,
 ) -> Mesh | tuple[Mesh, dict[str, Any]]:
@@ -135,13 +136,16 @@ def simplify_mesh(
     curvedness : {"sqrt", "no_root"}, optional
         The ``curvature`` method's reading of Eq. 2 ([A17]); ignored by the
         other methods.
+    ring_update : {"lazy", "eager"}, optional
+        The ``curvature`` method's step 6 for a neighbour already in the
+        candidate set: recomputed when it reaches the heap's top (``"lazy"``)
+        or at once (``"eager"``, the paper's order); ignored by the others.
     return_info : bool, optional
         Also return diagnostics.
     **options
         Method-specific tuning (``qem``: ``aggressiveness``; ``curvature``:
         ``tau``, ``"once"`` as in the paper or ``"refresh"`` to reach the
-        target, and ``ring_update``, ``"lazy"`` or ``"eager"`` (the paper's
-        order), :func:`~tumor3d.simplify.curvature.simplify_curvature`).
+        target, :func:`~tumor3d.simplify.curvature.simplify_curvature`).
 
     Returns
     -------
@@ -179,9 +183,11 @@ def simplify_mesh(
             f"allowed: {sorted(allowed)}"
         )
     if method == "curvature":
-        options = {**options, "curvedness": curvedness}
+        options = {**options, "curvedness": curvedness, "ring_update": ring_update}
     elif curvedness not in ("sqrt", "no_root"):
         raise InputError(f"curvedness must be 'sqrt' or 'no_root', got {curvedness!r}")
+    elif ring_update not in ("lazy", "eager"):
+        raise InputError(f"ring_update must be 'lazy' or 'eager', got {ring_update!r}")
     p = _check_percent(reduction_percent)
     n_in = mesh.n_faces
     target = target_face_count(n_in, p)
