@@ -1,0 +1,151 @@
+"""The numpy U-Net forward pass (``tumor3d.learned.cnn``) against a naive per-pixel reference.
+
+The reference below is written independently: a convolution as an explicit
+sum over output pixel, output channel, input channel and kernel tap, max
+pooling and upsampling pixel by pixel. A tiny random net (2 and 3 levels)
+must give the same logits.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tumor3d.errors import InputError
+from tumor3d.learned.cnn import (
+    UNetWeights,
+    conv2d,
+    unet_from_bytes,
+    unet_logits,
+    unet_probability,
+)
+
+
+def naive_conv(x: np.ndarray, w: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """x (c, h, w) -> (o, h, w), zero padding, cross-correlation, one pixel at a time."""
+    o, c, kh, kw = w.shape
+    _, h, wd = x.shape
+    out = np.zeros((o, h, wd))
+    for oc in range(o):
+        for y in range(h):
+            for xx in range(wd):
+                s = float(b[oc])
+                for ic in range(c):
+                    for dy in range(kh):
+                        for dx in range(kw):
+                            yy, xs = y + dy - kh // 2, xx + dx - kw // 2
+                            if 0 <= yy < h and 0 <= xs < wd:
+                                s += float(w[oc, ic, dy, dx]) * float(x[ic, yy, xs])
+                out[oc, y, xx] = s
+    return out
+
+
+def naive_unet(a: dict, levels: int, x: np.ndarray) -> np.ndarray:
+    """One image (c, h, w) -> logits (h, w), the architecture spelled out."""
+
+    def block(h, name):
+        for j in (0, 1):
+            h = np.maximum(naive_conv(h, a[f"{name}_{j}_w"], a[f"{name}_{j}_b"]), 0.0)
+        return h
+
+    def pool(h):
+        c, hh, ww = h.shape
+        out = np.zeros((c, hh // 2, ww // 2))
+        for k in range(c):
+            for y in range(hh // 2):
+                for xx in range(ww // 2):
+                    out[k, y, xx] = max(
+                        h[k, 2 * y, 2 * xx],
+                        h[k, 2 * y + 1, 2 * xx],
+                        h[k, 2 * y, 2 * xx + 1],
+                        h[k, 2 * y + 1, 2 * xx + 1],
+                    )
+        return out
+
+    def up(h):
+        c, hh, ww = h.shape
+        out = np.zeros((c, 2 * hh, 2 * ww))
+        for y in range(2 * hh):
+            for xx in range(2 * ww):
+                out[:, y, xx] = h[:, y // 2, xx // 2]
+        return out
+
+    h = x.astype(np.float64)
+    skips = []
+    for i in range(levels):
+        h = block(h, f"enc{i}")
+        if i < levels - 1:
+            skips.append(h)
+            h = pool(h)
+    for i in range(levels - 1):
+        h = block(np.concatenate([up(h), skips.pop()], axis=0), f"dec{i}")
+    return naive_conv(h, a["head_w"], a["head_b"])[0]
+
+
+def he(rng, o: int, ci: int) -> np.ndarray:
+    """3 x 3 weights with He's spread (logits of a few units, no overflow)."""
+    return rng.normal(0, np.sqrt(2.0 / (9 * ci)), (o, ci, 3, 3)).astype(np.float32)
+
+
+def random_unet(rng, cin: int, base: int, levels: int) -> dict:
+    a = {}
+    ch = [base * 2**i for i in range(levels)]
+    c = cin
+    for i, o in enumerate(ch):
+        for j, ci in enumerate((c, o)):
+            a[f"enc{i}_{j}_w"] = he(rng, o, ci)
+            a[f"enc{i}_{j}_b"] = rng.normal(0, 0.1, o).astype(np.float32)
+        c = o
+    for i, o in enumerate(reversed(ch[:-1])):
+        for j, ci in enumerate((c + o, o)):
+            a[f"dec{i}_{j}_w"] = he(rng, o, ci)
+            a[f"dec{i}_{j}_b"] = rng.normal(0, 0.1, o).astype(np.float32)
+        c = o
+    a["head_w"] = rng.normal(0, 0.5, (1, c, 1, 1)).astype(np.float32)
+    a["head_b"] = rng.normal(0, 0.1, 1).astype(np.float32)
+    return a
+
+
+def test_conv2d_matches_naive_convolution():
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(3, 7, 9)).astype(np.float32)
+    w = rng.normal(size=(4, 3, 3, 3)).astype(np.float32)
+    b = rng.normal(size=4).astype(np.float32)
+    got = conv2d(np.ascontiguousarray(x.transpose(1, 2, 0)), w, b).transpose(2, 0, 1)
+    np.testing.assert_allclose(got, naive_conv(x, w, b), rtol=1e-4, atol=1e-4)
+    # an asymmetric kernel catches a flipped (convolution instead of correlation) tap order
+    w5 = rng.normal(size=(2, 3, 5, 5)).astype(np.float32)
+    got5 = conv2d(np.ascontiguousarray(x.transpose(1, 2, 0)), w5, b[:2]).transpose(2, 0, 1)
+    np.testing.assert_allclose(got5, naive_conv(x, w5, b[:2]), rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("levels", [2, 3])
+def test_unet_matches_naive_reference(tmp_path, levels):
+    rng = np.random.default_rng(levels)
+    a = random_unet(rng, cin=3, base=2, levels=levels)
+    path = tmp_path / "net.npz"
+    np.savez(path, **a)
+    net = unet_from_bytes(path.read_bytes())
+    assert net.levels == levels and net.in_channels == 3
+    x = rng.normal(size=(2, 3, 8, 12)).astype(np.float32)
+    got = unet_logits(net, x)
+    want = np.stack([naive_unet(a, levels, xi) for xi in x])
+    assert got.shape == (2, 8, 12)
+    np.testing.assert_allclose(got, want, rtol=1e-3, atol=1e-3 * np.abs(want).max())
+    p = unet_probability(net, x)
+    np.testing.assert_allclose(p, np.exp(-np.logaddexp(0.0, -want)), atol=1e-4)
+
+
+def test_unet_rejects_bad_input(tmp_path):
+    a = random_unet(np.random.default_rng(0), cin=1, base=2, levels=3)
+    net = UNetWeights(a, 3)
+    with pytest.raises(InputError):
+        unet_logits(net, np.zeros((1, 2, 8, 8)))  # wrong channel count
+    with pytest.raises(InputError):
+        unet_logits(net, np.zeros((1, 1, 6, 8)))  # 6 not divisible by 4
+    np.savez(tmp_path / "x.npz", foo=np.zeros(3))
+    with pytest.raises(InputError):
+        unet_from_bytes((tmp_path / "x.npz").read_bytes())
+    np.savez(tmp_path / "o.npz", w=np.array([{"a": 1}], dtype=object))  # a pickled array
+    with pytest.raises(InputError):
+        unet_from_bytes((tmp_path / "o.npz").read_bytes())
