@@ -223,6 +223,7 @@ def compute_features(
     modality: str,
     lr_axis: int | None = 2,
     prior: np.ndarray | None = None,
+    candidates: np.ndarray | None = None,
 ) -> PatientFeatures:
     """The rows of :data:`FEATURE_NAMES` for every tissue pixel of one patient.
 
@@ -248,6 +249,11 @@ def compute_features(
         :data:`PRIOR_DISTANCE_CLIP_MM`) and its slice's share of its largest
         slice area are features, so the model learns when to trust it.
         None = an empty prior.
+    candidates : (z, y, x) ndarray of bool, optional
+        The tissue to give rows to, instead of this image's own
+        :func:`tissue_foreground`: another co-registered sequence's, so that
+        several sequences of one patient have rows for the same pixels
+        (:mod:`tumor3d.learned.multiseq`). None = this image's tissue.
 
     Returns
     -------
@@ -270,7 +276,12 @@ def compute_features(
     if lr_axis not in (None, 1, 2):
         raise InputError(f"lr_axis must be 1, 2 or None, got {lr_axis}")
     pixel_mm = (sp[1], sp[2])
-    cand = tissue_foreground(img)
+    if candidates is None:
+        cand = tissue_foreground(img)
+    else:
+        cand = np.asarray(candidates, dtype=bool)
+        if cand.shape != img.shape:
+            raise InputError(f"candidates shape {cand.shape} differs from the image's {img.shape}")
     if not cand.any():
         raise InputError("no tissue: the image holds no structure brighter than its background")
     depth = _depth_mm(cand, pixel_mm)
