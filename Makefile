@@ -19,10 +19,14 @@ demo: setup
 # in TEST_WORKERS processes (pytest-xdist). A whole file goes to one worker
 # (--dist loadfile): its module fixtures (a flow run that several tests inspect) run
 # once; each worker has its own Prefect home and test server (tests/conftest.py).
-# TEST_WORKERS=0 runs everything in this process.
+# Files are handed out in tests/conftest.py's order, the longest first
+# (--no-loadscope-reorder: xdist would otherwise order them by their number of tests
+# and start a two-test file of three minutes last). TEST_WORKERS=0 runs everything
+# in this process.
 TEST_WORKERS ?= 2
 test: setup
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile tests --doctest-modules tumor3d
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder \
+	    tests --doctest-modules tumor3d
 
 setup: system-deps $(STAMP)
 

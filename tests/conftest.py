@@ -39,11 +39,14 @@ def prefect_harness():
         yield
 
 
-# The files that take longest (a few minutes each on 2 busy cores: a numba warm-up
-# into an empty cache, Dask worker processes killed and restarted, a cohort command
-# interrupted and re-run, S3 cohorts), longest first.
-LONGEST_FILES = ("test_warmup.py", "test_dask.py", "test_cohort_interrupt.py",
-                 "test_objectstore.py")  # fmt: skip
+# The files that take longest (one to five minutes each on 2 busy cores: S3 cohorts and
+# Dask worker processes, one patient flow run that many tests read, Dask worker processes
+# killed and restarted, cohorts, evaluation flows, a numba warm-up into a new cache, a
+# cohort command interrupted and re-run), longest first (measured: issue 31, --durations).
+LONGEST_FILES = ("test_objectstore.py", "test_patient_flow.py", "test_dask.py",
+                 "test_cohort_flow.py", "test_caching.py", "test_evaluate_flow.py",
+                 "test_warmup.py", "test_cohort_interrupt.py", "test_records.py",
+                 "test_adapters.py")  # fmt: skip
 
 
 def pytest_collection_modifyitems(config, items):
@@ -52,7 +55,9 @@ def pytest_collection_modifyitems(config, items):
     With ``--dist loadfile`` a worker takes whole files as it frees up: the long
     files first and the many short ones after them keep both workers busy to the
     end (a long file started last would leave the other worker idle). Every
-    worker collects the same items and sorts them the same way.
+    worker collects the same items and sorts them the same way; xdist keeps this
+    order only with ``--no-loadscope-reorder`` (``make test``), else it orders the
+    files by their number of tests.
     """
     slow_files = {item.path for item in items if item.get_closest_marker("slow")}
 

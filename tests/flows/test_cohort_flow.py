@@ -22,11 +22,15 @@ from tumor3d.storage.manifest import ManifestRow, write_manifest
 from tumor3d.storage.phantom_io import write_phantom_patient
 from tumor3d.tasks.stages import STAGES
 
+# Small phantoms (128 x 128 pixels of 1.875 mm, the default field of view, 16 slices):
+# what these tests check does not depend on the image size, and a run costs a third.
+SMALL = {"n_slices": 16, "matrix_size": (128, 128)}
+
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
 
 
 def _phantom_row(seed: int, folder) -> ManifestRow:
-    patient = make_phantom_patient(seed, patient_id=f"coh{seed}", n_slices=16)
+    patient = make_phantom_patient(seed, patient_id=f"coh{seed}", **SMALL)
     return write_phantom_patient(patient, folder / f"coh{seed}")
 
 
@@ -224,7 +228,7 @@ def test_cli_cohort_brain_mask_column_and_a_bad_mask_fails_that_row_only(
     out, _ = first
     _, rows, _ = inputs
     affine = nib.load(rows[2].image).affine
-    labels = make_phantom_patient(2, patient_id="coh2", n_slices=16).tissue_labels
+    labels = make_phantom_patient(2, patient_id="coh2", **SMALL).tissue_labels
     brain = np.isin(labels, (3, 4, 5, 6)).transpose(2, 1, 0).astype(np.uint8)  # NIfTI order
     nib.save(nib.Nifti1Image(brain, affine), tmp_path / "coh2_brain.nii.gz")
     nib.save(nib.Nifti1Image(brain[:, :, :-1], affine), tmp_path / "short.nii.gz")
@@ -343,7 +347,7 @@ def test_cli_cohort_segmentation_column_replaces_that_rows_segmentation(first, i
     assert res.exit_code == 0, res.output
     assert "2 ok, 0 to check, 0 failed" in res.output
     # the truth, computed here: true tumour pixels x pixel area x slab height
-    patient = make_phantom_patient(0, patient_id="coh0", n_slices=16)
+    patient = make_phantom_patient(0, patient_id="coh0", **SMALL)
     truth = np.asarray(patient.slice_masks, bool)
     dy, dx = patient.scan.pixel_spacing_mm
     slab = patient.scan.slice_thickness_mm + patient.scan.slice_gap_mm

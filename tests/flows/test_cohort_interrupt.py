@@ -24,6 +24,10 @@ from tumor3d.phantom import make_phantom_patient
 from tumor3d.storage.manifest import write_manifest
 from tumor3d.storage.phantom_io import write_phantom_patient
 
+# Small phantoms (128 x 128 pixels of 1.875 mm, the default field of view, 16 slices):
+# what these tests check does not depend on the image size, and a run costs a third.
+SMALL = {"n_slices": 16, "matrix_size": (128, 128)}
+
 pytestmark = pytest.mark.slow
 
 
@@ -54,7 +58,7 @@ def _cohort(manifest, out, home):
 def test_ctrl_c_during_a_cohort_is_one_line_exit_130_and_leaves_nothing(tmp_path):
     rows = [
         write_phantom_patient(
-            make_phantom_patient(s, patient_id=f"int{s}", n_slices=16), tmp_path / "in" / f"{s}"
+            make_phantom_patient(s, patient_id=f"int{s}", **SMALL), tmp_path / "in" / f"{s}"
         )
         for s in range(4)
     ]

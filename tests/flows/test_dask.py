@@ -28,6 +28,10 @@ from tumor3d.storage.manifest import write_manifest
 from tumor3d.storage.phantom_io import write_phantom_patient
 from tumor3d.tasks.stages import STAGES
 
+# Small phantoms (128 x 128 pixels of 1.875 mm, the default field of view, 16 slices):
+# what these tests check does not depend on the image size, and a run costs a third.
+SMALL = {"n_slices": 16, "matrix_size": (128, 128)}
+
 distributed = pytest.importorskip("distributed", reason="Dask extra not installed")
 pytest.importorskip("prefect_dask", reason="prefect-dask not installed")
 
@@ -53,7 +57,7 @@ def generous_comm_timeouts():
 def _rows(folder, seeds):
     out = []
     for s in seeds:
-        patient = make_phantom_patient(s, patient_id=f"dsk{s}", n_slices=16)
+        patient = make_phantom_patient(s, patient_id=f"dsk{s}", **SMALL)
         out.append(write_phantom_patient(patient, folder / f"dsk{s}"))
     return out
 

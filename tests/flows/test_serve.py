@@ -24,9 +24,13 @@ from tumor3d.storage.manifest import write_manifest
 from tumor3d.storage.phantom_io import write_phantom_patient
 from tumor3d.tasks.stages import STAGES
 
+# Small phantoms (128 x 128 pixels of 1.875 mm, the default field of view, 16 slices):
+# what these tests check does not depend on the image size, and a run costs a third.
+SMALL = {"n_slices": 16, "matrix_size": (128, 128)}
+
 
 def _row(seed: int, folder):
-    patient = make_phantom_patient(seed, patient_id=f"srv{seed}", n_slices=16)
+    patient = make_phantom_patient(seed, patient_id=f"srv{seed}", **SMALL)
     return write_phantom_patient(patient, folder / f"srv{seed}")
 
 

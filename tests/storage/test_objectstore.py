@@ -38,6 +38,10 @@ from tumor3d.storage.remote_publish import (  # noqa: E402
 from tumor3d.storage.store import ArtifactStore, CorruptArtifactError, StoreError  # noqa: E402
 from tumor3d.tasks.caching import stage_cache_policy  # noqa: E402
 
+# Small phantoms (128 x 128 pixels of 1.875 mm, the default field of view, 16 slices):
+# what these tests check does not depend on the image size, and a run costs a third.
+SMALL = {"n_slices": 16, "matrix_size": (128, 128)}
+
 BUCKET = "tumor3d-test"
 
 
@@ -159,7 +163,7 @@ def test_a_corrupted_object_is_quarantined_and_rewritten(s3_endpoint):
 def _rows(folder, seeds):
     rows = []
     for s in seeds:
-        patient = make_phantom_patient(s, patient_id=f"s3p{s}", n_slices=16)
+        patient = make_phantom_patient(s, patient_id=f"s3p{s}", **SMALL)
         rows.append(write_phantom_patient(patient, folder / f"s3p{s}"))
     return rows
 
