@@ -106,10 +106,15 @@ def test_simplification_columns_match_a_brute_force_eq11():
     mesh = extract_surface(ball, np.diag([0.9, 0.9, 1.1, 1.0]))
     p = evaluate_simplification(_case(None, None, extras={"mesh_tumor": mesh})).patient
     assert p["simp_faces_in"] == mesh.n_faces
+    # volume change: memoryless keeps the enclosed volume (Lindstrom-Turk's constraint) and
+    # QEM moves vertices to optimal positions; Algorithm 2 only removes vertices, so at
+    # P = 80 % this 4k-face ball loses ~10 % (paper's step-6 order -9.5 %, lazy -10.8 %)
+    bound_percent = {"memoryless": 0.01, "qem": 1.0, "curvature": 15.0}
     for m in SIMPLIFICATION_METHODS:
         for pc in SIMPLIFICATION_PERCENTS:
             k = f"simp_{m}_p{pc:g}"
-            assert np.isfinite(p[f"{k}_eq11_mm"]) and abs(p[f"{k}_volume_change_percent"]) < 10
+            assert np.isfinite(p[f"{k}_eq11_mm"])
+            assert abs(p[f"{k}_volume_change_percent"]) < bound_percent[m], (k, p)
     out = simplify_mesh(mesh, method="curvature", reduction_percent=60.0)
     expected = _brute_eq11(mesh.vertices, out.vertices)
     assert p["simp_curvature_p60_eq11_mm"] == pytest.approx(expected, rel=1e-9)

@@ -242,3 +242,27 @@ def test_a_stage_that_kills_its_worker_every_time_fails_that_patient_only(tmp_pa
     assert again.exit_code == 0
     assert all(s.cached for s in again.patients[0].stages)
     assert again.patients[1].stages[0].cached and not again.patients[1].stages[1].cached
+
+
+def test_a_local_cluster_starts_while_another_holds_the_dashboard_port():
+    # a user's own Dask cluster (or a second cohort) holds 8787: the cohort's LocalCluster
+    # must still start, without the "Port 8787 is already in use" warning (an error here)
+    from tumor3d.flows.dask_runner import cohort_task_runner
+
+    holder = socket.socket()
+    holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        holder.bind(("", 8787))
+        holder.listen(1)
+    except OSError:
+        pass  # already held by another process: the same situation
+    try:
+        kwargs = dict(cohort_task_runner(2, DaskSpec(n_workers=1)).cluster_kwargs)
+        kwargs["processes"] = False  # threads: the dashboard port is the scheduler's
+        cluster = distributed.LocalCluster(**kwargs)
+        try:
+            assert len(cluster.scheduler_info["workers"]) == 1
+        finally:
+            cluster.close()
+    finally:
+        holder.close()

@@ -179,6 +179,8 @@ def cohort_task_runner(workers: int, spec: DaskSpec | None = None) -> Any:
             "n_workers": spec.n_workers,
             "threads_per_worker": 1,
             "processes": spec.processes,
-            "dashboard_address": None,
+            # a free port, never 8787: with None the scheduler still tries 8787 and warns
+            # when another cluster (a user's, a second cohort) holds it
+            "dashboard_address": ":0",
         },
     )
