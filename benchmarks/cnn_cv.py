@@ -57,49 +57,10 @@ GROUP_CODE = {"lgg": 0, "brats_flair": 1}
 # ---------------------------------------------------------------- preparation (project venv)
 
 
-def case_input(image: np.ndarray, size: int, context: int) -> np.ndarray:
-    """Network input ``(z, 2 context + 1, size, size)`` float16 of one volume ``(z, y, x)``."""
-    from scipy import ndimage as ndi
-
-    from tumor3d.learned.features import normalise_intensity, tissue_foreground
-
-    img = np.asarray(image, np.float32)
-    norm = np.clip(normalise_intensity(img, tissue_foreground(img)), -5.0, 10.0) / 3.0
-    z, h, w = norm.shape
-    small = ndi.zoom(norm, (1.0, size / h, size / w), order=1, grid_mode=True, mode="nearest")
-    idx = np.clip(np.arange(z)[:, None] + np.arange(-context, context + 1)[None, :], 0, z - 1)
-    return small[idx].astype(np.float16)
-
-
-def case_target(ref: np.ndarray, size: int) -> np.ndarray:
-    """The reference resampled to ``size`` x ``size`` (area fraction, float16)."""
-    from scipy import ndimage as ndi
-
-    r = np.asarray(ref, np.float32)
-    z, h, w = r.shape
-    return np.clip(
-        ndi.zoom(r, (1.0, size / h, size / w), order=1, grid_mode=True, mode="nearest"), 0, 1
-    ).astype(np.float16)
-
-
-def upsample(prob: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
-    """``(z, s, s)`` probabilities back to the native ``shape``, bilinear."""
-    from scipy import ndimage as ndi
-
-    z, h, w = shape
-    s = prob.shape[1]
-    out = ndi.zoom(
-        prob.astype(np.float32),
-        (1.0, h / s, w / prob.shape[2]),
-        order=1,
-        grid_mode=True,
-        mode="nearest",
-    )
-    return np.clip(out[:, :h, :w], 0.0, 1.0)
-
-
 def build_dataset(preps, folds, args) -> dict[str, np.ndarray]:
     from real_segmentation import emulate_thick
+
+    from tumor3d.learned.cnn_data import case_input, case_target
 
     xs, ys, fold, case, train_only, group = [], [], [], [], [], []
     for ci, p in enumerate(preps):
@@ -347,6 +308,7 @@ def paired_table(cnn_rows: list[dict], other_rows: list[dict], name: str, new: s
 def time_numpy_forward(weights: Path, args, repeats: int = 3) -> dict:
     """Seconds of the numpy forward pass (``tumor3d.learned.cnn``) on a 31 x 240 x 240 patient."""
     from tumor3d.learned.cnn import unet_from_bytes, unet_probability
+    from tumor3d.learned.cnn_data import case_input, upsample
 
     net = unet_from_bytes(Path(weights).read_bytes(), source=str(weights))
     rng = np.random.default_rng(0)
@@ -438,6 +400,8 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(ROOT))
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import learned_cv as L
+
+    from tumor3d.learned.cnn_data import upsample
 
     from tumor3d.config import parse_config
     from tumor3d.storage.manifest import data_dir
