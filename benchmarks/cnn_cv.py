@@ -401,9 +401,8 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import learned_cv as L
 
-    from tumor3d.learned.cnn_data import upsample
-
     from tumor3d.config import parse_config
+    from tumor3d.learned.cnn_data import upsample
     from tumor3d.storage.manifest import data_dir
 
     data = data_dir()
