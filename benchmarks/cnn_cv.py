@@ -145,9 +145,15 @@ def _torch_unet(cin: int, base: int, levels: int):
     return UNet()
 
 
-def export_weights(model, path: Path) -> None:
-    """The trained net as ``tumor3d.learned.cnn`` reads it (batch norm folded)."""
+def export_weights(model, path: Path, meta: dict | None = None) -> None:
+    """The trained net as ``tumor3d.learned.cnn`` reads it (batch norm folded).
+
+    ``meta`` (what it was trained on) goes in as ``meta_json``: the UTF-8 bytes
+    of its JSON as a uint8 array (plain arrays only: the file never needs pickle).
+    """
     out = {}
+    if meta is not None:
+        out["meta_json"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
 
     def fold(block, name):
         convs = [m for m in block if m.__class__.__name__ == "Conv2d"]
@@ -168,10 +174,98 @@ def export_weights(model, path: Path) -> None:
     np.savez(path, **out)
 
 
-def worker(args) -> int:
+def train_net(x_all, y_all, tr, args, seed: int, label: str):
+    """One U-Net trained on rows ``tr`` of ``x_all`` / ``y_all``: (model, slices per epoch, s)."""
     import torch
     import torch.nn.functional as F
 
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    pos = tr[y_all[tr].reshape(len(tr), -1).max(axis=1) > 0]
+    neg = np.setdiff1d(tr, pos)
+    model = _torch_unet(x_all.shape[1], args.base, args.levels)
+    opt = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=1e-5)
+    n_neg = min(len(neg), int(round(args.neg_ratio * len(pos))))
+    steps_per_epoch = int(np.ceil((len(pos) + n_neg) / args.batch))
+    sched = torch.optim.lr_scheduler.OneCycleLR(
+        opt, max_lr=args.lr, total_steps=args.epochs * steps_per_epoch, pct_start=0.15
+    )
+    t0 = time.perf_counter()
+    for ep in range(args.epochs):
+        model.train()
+        order = rng.permutation(np.concatenate([pos, rng.choice(neg, n_neg, replace=False)]))
+        tot = 0.0
+        for s in range(0, len(order), args.batch):
+            b = np.sort(order[s : s + args.batch])
+            xb = torch.from_numpy(x_all[b].astype(np.float32))
+            yb = torch.from_numpy(y_all[b].astype(np.float32))
+            if rng.random() < 0.5:  # left-right flip (the image's column axis)
+                xb, yb = xb.flip(-1), yb.flip(-1)
+            dy, dx = rng.integers(-args.shift, args.shift + 1, 2)
+            xb = torch.roll(xb, (int(dy), int(dx)), (-2, -1))
+            yb = torch.roll(yb, (int(dy), int(dx)), (-2, -1))
+            g = torch.from_numpy(rng.uniform(0.9, 1.1, (len(b), 1, 1, 1)).astype(np.float32))
+            o = torch.from_numpy(rng.uniform(-0.1, 0.1, (len(b), 1, 1, 1)).astype(np.float32))
+            xb = xb * g + o
+            logit = model(xb)
+            p = torch.sigmoid(logit)
+            inter = (p * yb).sum()
+            soft_dice = 1 - (2 * inter + 1) / (p.sum() + yb.sum() + 1)
+            loss = F.binary_cross_entropy_with_logits(logit, yb) + soft_dice
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            sched.step()
+            tot += float(loss.detach()) * len(b)
+        print(
+            f"{label} epoch {ep + 1}/{args.epochs}: loss {tot / len(order):.4f} "
+            f"({time.perf_counter() - t0:.0f} s)",
+            flush=True,
+        )
+    return model, int(len(pos) + n_neg), time.perf_counter() - t0
+
+
+def worker_final(args) -> int:
+    """``--final``: one net on every row of ``data.npz`` (all folds), weights + metadata."""
+    import datetime
+
+    import torch
+
+    torch.set_num_threads(args.threads)
+    work = Path(args.work)
+    with np.load(work / "data.npz", allow_pickle=False) as z:
+        x_all, y_all, case_of = z["x"], z["y"], z["case"]
+    meta = json.loads((work / "final_meta.json").read_text())
+    t_start = datetime.datetime.now(datetime.UTC)
+    load0 = os.getloadavg()
+    model, per_epoch, train_s = train_net(
+        x_all, y_all, np.arange(len(x_all)), args, args.seed, "final"
+    )
+    model.eval()
+    first = np.flatnonzero(case_of == case_of[0])  # a check of the export: torch's own output
+    with torch.no_grad():
+        check = torch.sigmoid(model(torch.from_numpy(x_all[first].astype(np.float32)))).numpy()
+    np.savez(work / "final_check.npz", index=first, prob=check)
+    meta.update(
+        torch_version=torch.__version__,
+        trained_utc=t_start.isoformat(timespec="seconds"),
+        train_wall_s=round(train_s, 1),
+        load_1min_start_end=[round(load0[0], 2), round(os.getloadavg()[0], 2)],
+        torch_threads=args.threads,
+        seed=args.seed,
+        train_slices=int(len(x_all)),
+        slices_per_epoch=per_epoch,
+    )
+    export_weights(model, Path(args.final), meta)
+    print(f"final: trained in {train_s:.0f} s, written {args.final}", flush=True)
+    return 0
+
+
+def worker(args) -> int:
+    import torch
+
+    if args.final:
+        return worker_final(args)
     torch.set_num_threads(args.threads)
     work = Path(args.work)
     with np.load(work / "data.npz", allow_pickle=False) as z:
@@ -179,52 +273,9 @@ def worker(args) -> int:
     x_all, y_all = d["x"], d["y"]
     timing = {}
     for k in args.run_folds:
-        torch.manual_seed(k)
-        rng = np.random.default_rng(k)
         tr = np.flatnonzero(d["fold"] != k)
         held = np.flatnonzero((d["fold"] == k) & ~d["train_only"])
-        pos = tr[y_all[tr].reshape(len(tr), -1).max(axis=1) > 0]
-        neg = np.setdiff1d(tr, pos)
-        model = _torch_unet(x_all.shape[1], args.base, args.levels)
-        opt = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=1e-5)
-        n_neg = min(len(neg), int(round(args.neg_ratio * len(pos))))
-        steps_per_epoch = int(np.ceil((len(pos) + n_neg) / args.batch))
-        sched = torch.optim.lr_scheduler.OneCycleLR(
-            opt, max_lr=args.lr, total_steps=args.epochs * steps_per_epoch, pct_start=0.15
-        )
-        t0 = time.perf_counter()
-        for ep in range(args.epochs):
-            model.train()
-            order = rng.permutation(np.concatenate([pos, rng.choice(neg, n_neg, replace=False)]))
-            tot = 0.0
-            for s in range(0, len(order), args.batch):
-                b = np.sort(order[s : s + args.batch])
-                xb = torch.from_numpy(x_all[b].astype(np.float32))
-                yb = torch.from_numpy(y_all[b].astype(np.float32))
-                if rng.random() < 0.5:  # left-right flip (the image's column axis)
-                    xb, yb = xb.flip(-1), yb.flip(-1)
-                dy, dx = rng.integers(-args.shift, args.shift + 1, 2)
-                xb = torch.roll(xb, (int(dy), int(dx)), (-2, -1))
-                yb = torch.roll(yb, (int(dy), int(dx)), (-2, -1))
-                g = torch.from_numpy(rng.uniform(0.9, 1.1, (len(b), 1, 1, 1)).astype(np.float32))
-                o = torch.from_numpy(rng.uniform(-0.1, 0.1, (len(b), 1, 1, 1)).astype(np.float32))
-                xb = xb * g + o
-                logit = model(xb)
-                p = torch.sigmoid(logit)
-                inter = (p * yb).sum()
-                soft_dice = 1 - (2 * inter + 1) / (p.sum() + yb.sum() + 1)
-                loss = F.binary_cross_entropy_with_logits(logit, yb) + soft_dice
-                opt.zero_grad()
-                loss.backward()
-                opt.step()
-                sched.step()
-                tot += float(loss.detach()) * len(b)
-            print(
-                f"fold {k} epoch {ep + 1}/{args.epochs}: loss {tot / len(order):.4f} "
-                f"({time.perf_counter() - t0:.0f} s)",
-                flush=True,
-            )
-        train_s = time.perf_counter() - t0
+        model, per_epoch, train_s = train_net(x_all, y_all, tr, args, k, f"fold {k}")
         model.eval()
         t1 = time.perf_counter()
         probs = np.empty((len(held), *y_all.shape[1:]), np.float16)
@@ -241,7 +292,7 @@ def worker(args) -> int:
             "train_s": train_s,
             "infer_s": infer_s,
             "held_slices": int(len(held)),
-            "train_slices_per_epoch": int(len(pos) + n_neg),
+            "train_slices_per_epoch": per_epoch,
         }
         (work / f"timing_fold{k}.json").write_text(json.dumps(timing[k]))
         print(
@@ -336,6 +387,79 @@ def time_numpy_forward(weights: Path, args, repeats: int = 3) -> dict:
     return best
 
 
+def train_final(preps, folds, args, work: Path) -> int:
+    """``--final``: the dataset of every case (all folds), one torch worker, a check."""
+    t0 = time.perf_counter()
+    d = build_dataset(preps, folds, args)
+    np.savez(work / "data.npz", **d)
+    print(f"dataset {d['x'].shape} in {time.perf_counter() - t0:.0f} s", flush=True)
+    groups = {g: sorted({p.spec.patient for p in preps if p.spec.group == g}) for g in args.groups}
+    meta = {
+        "model": "tumor3d 2-D U-Net, FLAIR (benchmarks/cnn_cv.py --final)",
+        "trained_on": {
+            g: {
+                "cases": sum(p.spec.group == g for p in preps),
+                "patients": len(groups[g]),
+                "names": [p.spec.name for p in preps if p.spec.group == g],
+            }
+            for g in args.groups
+        },
+        "data": "lgg: clinical FLAIR heads at their native slices; brats_flair: BraTS 2018 "
+        "FLAIR cut to 2 mm slabs every 5 mm (offsets "
+        + ",".join(map(str, args.train_offsets))
+        + ")",
+        "settings": {
+            k: getattr(args, k)
+            for k in (
+                "size",
+                "context",
+                "base",
+                "levels",
+                "epochs",
+                "batch",
+                "lr",
+                "neg_ratio",
+                "shift",
+                "train_offsets",
+            )
+        },
+        "input": "tumor3d.learned.cnn_data.case_input(image, size, context)",
+        "loss": "BCE + soft Dice; Adam (weight decay 1e-5), one-cycle lr (15 % warm-up)",
+    }
+    (work / "final_meta.json").write_text(json.dumps(meta, indent=1))
+    out = Path(args.final).resolve()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cmd = [
+        args.torch_python,
+        str(Path(__file__).resolve()),
+        "--worker",
+        "--work",
+        str(work),
+        "--final",
+        str(out),
+        "--seed",
+        str(args.seed),
+        "--threads",
+        str(args.threads),
+    ]
+    for opt in ("base", "levels", "epochs", "batch", "lr", "neg_ratio", "shift"):
+        cmd += [f"--{opt.replace('_', '-')}", str(getattr(args, opt))]
+    env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
+    if subprocess.call(cmd, env=env):
+        raise SystemExit("the training worker failed")
+    from tumor3d.learned.cnn import unet_from_bytes, unet_probability
+
+    with np.load(work / "final_check.npz", allow_pickle=False) as z:
+        first, prob = z["index"], z["prob"]
+    p_np = unet_probability(unet_from_bytes(out.read_bytes(), source=str(out)), d["x"][first])
+    print(
+        f"numpy forward of {out.name} against torch on {len(first)} slices: "
+        f"max abs difference {np.abs(p_np - prob).max():.2g}",
+        flush=True,
+    )
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
@@ -371,6 +495,13 @@ def main(argv=None) -> int:
         default=[2],
         help="BraTS slab offsets used for training (scored: offset 2)",
     )
+    ap.add_argument(
+        "--final",
+        default=None,
+        metavar="OUT.npz",
+        help="train ONE net on every case of every fold (the shipped weights) and write it here",
+    )
+    ap.add_argument("--seed", type=int, default=0, help="--final's seed (torch and numpy)")
     ap.add_argument("--threshold", type=float, default=0.5)
     ap.add_argument("--keep-fraction", type=float, default=1.0)
     ap.add_argument(
@@ -419,6 +550,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     preps = [L.cached_prepare(s, cfg, False, args.cache) for s in specs]
     print(f"prepared {len(preps)} cases in {time.perf_counter() - t0:.0f} s", flush=True)
+    if args.final:
+        return train_final(preps, folds, args, work)
     if not args.skip_train:
         t0 = time.perf_counter()
         d = build_dataset(preps, folds, args)
