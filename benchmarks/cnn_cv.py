@@ -24,9 +24,15 @@ Post-processing as the shipped model: threshold 0.5, the main 3-D region
 PyTorch stays out of the project's environment: this script prepares the
 slices with the project's code, runs the training in ``--torch-python`` (a
 separate venv with torch + numpy; the same file in ``--worker`` mode, which
-imports neither tumor3d nor scipy), then scores with the project's code. The
+imports only ``tumor3d.learned.cnn_train``: the network, its training loop and
+the weight export, numpy + torch), then scores with the project's code. The
 trained weights (batch norm folded) are written for the numpy forward pass
 ``tumor3d.learned.cnn``, which is timed here on a 31 x 240 x 240 patient.
+
+``--final OUT.npz`` trains the shipped network instead: one net on every case
+of every fold (the same cases and settings, ``--seed``), its metadata
+(``meta_json``: cases per group, settings, torch version, date, wall time and
+load) in the file, and checks the numpy forward pass against torch on one case.
 
 Usage (the figures of ``reports/learned_cv.md``; ``learned.json`` and the
 ``--save-prob`` folder come from the shipped model's cross-validation,
@@ -99,204 +105,78 @@ def build_dataset(preps, folds, args) -> dict[str, np.ndarray]:
 # ---------------------------------------------------------------- training (torch venv)
 
 
-def _torch_unet(cin: int, base: int, levels: int):
-    import torch
-    import torch.nn as nn
-    import torch.nn.functional as F
+def _settings(args):
+    from tumor3d.learned.cnn_train import UNetSettings
 
-    class Block(nn.Sequential):
-        def __init__(self, i, o):
-            super().__init__(
-                nn.Conv2d(i, o, 3, padding=1, bias=False),
-                nn.BatchNorm2d(o),
-                nn.ReLU(inplace=True),
-                nn.Conv2d(o, o, 3, padding=1, bias=False),
-                nn.BatchNorm2d(o),
-                nn.ReLU(inplace=True),
-            )
-
-    class UNet(nn.Module):
-        def __init__(self):
-            super().__init__()
-            ch = [base * 2**i for i in range(levels)]
-            self.enc = nn.ModuleList()
-            c = cin
-            for o in ch:
-                self.enc.append(Block(c, o))
-                c = o
-            self.dec = nn.ModuleList()
-            for o in reversed(ch[:-1]):
-                self.dec.append(Block(c + o, o))
-                c = o
-            self.head = nn.Conv2d(c, 1, 1)
-
-        def forward(self, x):
-            skips = []
-            for i, e in enumerate(self.enc):
-                x = e(x)
-                if i < len(self.enc) - 1:
-                    skips.append(x)
-                    x = F.max_pool2d(x, 2)
-            for d in self.dec:
-                x = F.interpolate(x, scale_factor=2, mode="nearest")
-                x = d(torch.cat([x, skips.pop()], 1))
-            return self.head(x)[:, 0]
-
-    return UNet()
-
-
-def export_weights(model, path: Path, meta: dict | None = None) -> None:
-    """The trained net as ``tumor3d.learned.cnn`` reads it (batch norm folded).
-
-    ``meta`` (what it was trained on) goes in as ``meta_json``: the UTF-8 bytes
-    of its JSON as a uint8 array (plain arrays only: the file never needs pickle).
-    """
-    out = {}
-    if meta is not None:
-        out["meta_json"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
-
-    def fold(block, name):
-        convs = [m for m in block if m.__class__.__name__ == "Conv2d"]
-        bns = [m for m in block if m.__class__.__name__ == "BatchNorm2d"]
-        for j, (c, bn) in enumerate(zip(convs, bns, strict=True)):
-            s = (bn.weight / (bn.running_var + bn.eps).sqrt()).detach().numpy()
-            w = c.weight.detach().numpy() * s[:, None, None, None]
-            b = bn.bias.detach().numpy() - bn.running_mean.detach().numpy() * s
-            out[f"{name}_{j}_w"] = w.astype(np.float32)
-            out[f"{name}_{j}_b"] = b.astype(np.float32)
-
-    for i, e in enumerate(model.enc):
-        fold(e, f"enc{i}")
-    for i, d in enumerate(model.dec):
-        fold(d, f"dec{i}")
-    out["head_w"] = model.head.weight.detach().numpy().astype(np.float32)
-    out["head_b"] = model.head.bias.detach().numpy().astype(np.float32)
-    np.savez(path, **out)
-
-
-def train_net(x_all, y_all, tr, args, seed: int, label: str):
-    """One U-Net trained on rows ``tr`` of ``x_all`` / ``y_all``: (model, slices per epoch, s)."""
-    import torch
-    import torch.nn.functional as F
-
-    torch.manual_seed(seed)
-    rng = np.random.default_rng(seed)
-    pos = tr[y_all[tr].reshape(len(tr), -1).max(axis=1) > 0]
-    neg = np.setdiff1d(tr, pos)
-    model = _torch_unet(x_all.shape[1], args.base, args.levels)
-    opt = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=1e-5)
-    n_neg = min(len(neg), int(round(args.neg_ratio * len(pos))))
-    steps_per_epoch = int(np.ceil((len(pos) + n_neg) / args.batch))
-    sched = torch.optim.lr_scheduler.OneCycleLR(
-        opt, max_lr=args.lr, total_steps=args.epochs * steps_per_epoch, pct_start=0.15
-    )
-    t0 = time.perf_counter()
-    for ep in range(args.epochs):
-        model.train()
-        order = rng.permutation(np.concatenate([pos, rng.choice(neg, n_neg, replace=False)]))
-        tot = 0.0
-        for s in range(0, len(order), args.batch):
-            b = np.sort(order[s : s + args.batch])
-            xb = torch.from_numpy(x_all[b].astype(np.float32))
-            yb = torch.from_numpy(y_all[b].astype(np.float32))
-            if rng.random() < 0.5:  # left-right flip (the image's column axis)
-                xb, yb = xb.flip(-1), yb.flip(-1)
-            dy, dx = rng.integers(-args.shift, args.shift + 1, 2)
-            xb = torch.roll(xb, (int(dy), int(dx)), (-2, -1))
-            yb = torch.roll(yb, (int(dy), int(dx)), (-2, -1))
-            g = torch.from_numpy(rng.uniform(0.9, 1.1, (len(b), 1, 1, 1)).astype(np.float32))
-            o = torch.from_numpy(rng.uniform(-0.1, 0.1, (len(b), 1, 1, 1)).astype(np.float32))
-            xb = xb * g + o
-            logit = model(xb)
-            p = torch.sigmoid(logit)
-            inter = (p * yb).sum()
-            soft_dice = 1 - (2 * inter + 1) / (p.sum() + yb.sum() + 1)
-            loss = F.binary_cross_entropy_with_logits(logit, yb) + soft_dice
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            sched.step()
-            tot += float(loss.detach()) * len(b)
-        print(
-            f"{label} epoch {ep + 1}/{args.epochs}: loss {tot / len(order):.4f} "
-            f"({time.perf_counter() - t0:.0f} s)",
-            flush=True,
-        )
-    return model, int(len(pos) + n_neg), time.perf_counter() - t0
+    return UNetSettings(
+        size=args.size, context=args.context, base=args.base, levels=args.levels,
+        epochs=args.epochs, batch=args.batch, lr=args.lr, neg_ratio=args.neg_ratio,
+        shift=args.shift,
+    )  # fmt: skip
 
 
 def worker_final(args) -> int:
     """``--final``: one net on every row of ``data.npz`` (all folds), weights + metadata."""
     import datetime
 
-    import torch
+    from tumor3d.learned.cnn_train import torch_probability, train_unet
 
-    torch.set_num_threads(args.threads)
     work = Path(args.work)
     with np.load(work / "data.npz", allow_pickle=False) as z:
         x_all, y_all, case_of = z["x"], z["y"], z["case"]
     meta = json.loads((work / "final_meta.json").read_text())
-    t_start = datetime.datetime.now(datetime.UTC)
-    load0 = os.getloadavg()
-    model, per_epoch, train_s = train_net(
-        x_all, y_all, np.arange(len(x_all)), args, args.seed, "final"
-    )
-    model.eval()
+    meta["trained_utc"] = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+    load0 = os.getloadavg()[0]
+    data, fit = train_unet(
+        x_all, y_all, _settings(args), seed=args.seed, threads=args.threads, meta=meta,
+        log=lambda line: print(f"final {line}", flush=True),
+    )  # fmt: skip
     first = np.flatnonzero(case_of == case_of[0])  # a check of the export: torch's own output
-    with torch.no_grad():
-        check = torch.sigmoid(model(torch.from_numpy(x_all[first].astype(np.float32)))).numpy()
-    np.savez(work / "final_check.npz", index=first, prob=check)
-    meta.update(
-        torch_version=torch.__version__,
-        trained_utc=t_start.isoformat(timespec="seconds"),
-        train_wall_s=round(train_s, 1),
-        load_1min_start_end=[round(load0[0], 2), round(os.getloadavg()[0], 2)],
-        torch_threads=args.threads,
-        seed=args.seed,
-        train_slices=int(len(x_all)),
-        slices_per_epoch=per_epoch,
-    )
-    export_weights(model, Path(args.final), meta)
-    print(f"final: trained in {train_s:.0f} s, written {args.final}", flush=True)
+    np.savez(work / "final_check.npz", index=first, prob=torch_probability(fit.model, x_all[first]))
+    load1 = os.getloadavg()[0]
+    # the load during the training, added after the fact (the weights are final)
+    from tumor3d.learned.cnn_train import unet_meta, unet_to_bytes
+
+    meta = {**unet_meta(data), "load_1min_start_end": [round(load0, 2), round(load1, 2)],
+            "torch_threads": args.threads}  # fmt: skip
+    Path(args.final).write_bytes(unet_to_bytes(fit.model, meta))
+    print(f"final: trained in {fit.seconds:.0f} s, written {args.final}", flush=True)
     return 0
 
 
 def worker(args) -> int:
-    import torch
-
+    sys.path.insert(0, str(ROOT))  # tumor3d.learned.cnn_train: numpy + torch only
     if args.final:
         return worker_final(args)
-    torch.set_num_threads(args.threads)
+    from tumor3d.learned.cnn_train import fit_unet, torch_probability, unet_to_bytes
+
     work = Path(args.work)
     with np.load(work / "data.npz", allow_pickle=False) as z:
         d = {k: z[k] for k in z.files}
     x_all, y_all = d["x"], d["y"]
+    settings = _settings(args)
     timing = {}
     for k in args.run_folds:
         tr = np.flatnonzero(d["fold"] != k)
         held = np.flatnonzero((d["fold"] == k) & ~d["train_only"])
-        model, per_epoch, train_s = train_net(x_all, y_all, tr, args, k, f"fold {k}")
-        model.eval()
+        fit = fit_unet(
+            x_all, y_all, settings, seed=k, rows=tr, threads=args.threads,
+            log=lambda line, k=k: print(f"fold {k} {line}", flush=True),
+        )  # fmt: skip
         t1 = time.perf_counter()
-        probs = np.empty((len(held), *y_all.shape[1:]), np.float16)
-        with torch.no_grad():
-            for s in range(0, len(held), 32):
-                b = held[s : s + 32]
-                probs[s : s + len(b)] = torch.sigmoid(
-                    model(torch.from_numpy(x_all[b].astype(np.float32)))
-                ).numpy()
+        probs = torch_probability(fit.model, x_all[held]).astype(np.float16)
         infer_s = time.perf_counter() - t1
         np.savez(work / f"prob_fold{k}.npz", index=held, prob=probs)
-        export_weights(model, work / f"unet_fold{k}.npz")
+        (work / f"unet_fold{k}.npz").write_bytes(unet_to_bytes(fit.model))
         timing[k] = {
-            "train_s": train_s,
+            "train_s": fit.seconds,
             "infer_s": infer_s,
             "held_slices": int(len(held)),
-            "train_slices_per_epoch": per_epoch,
+            "train_slices_per_epoch": fit.slices_per_epoch,
         }
         (work / f"timing_fold{k}.json").write_text(json.dumps(timing[k]))
         print(
-            f"fold {k}: trained in {train_s:.0f} s, {len(held)} slices in {infer_s:.1f} s",
+            f"fold {k}: trained in {fit.seconds:.0f} s, {len(held)} slices in {infer_s:.1f} s",
             flush=True,
         )
     return 0
@@ -354,6 +234,55 @@ def paired_table(cnn_rows: list[dict], other_rows: list[dict], name: str, new: s
             f"{int(np.sum(eb <= 10))} / {int(np.sum(eb > 25))} | | | |"
         )
     return "\n".join(lines)
+
+
+def score_folds(preps, folds, run_folds, case_of, train_only, args, cfg):
+    """Out-of-fold rows of the U-Net, and (``args.forest_prob``) of the forest and the mean.
+
+    The U-Net's probabilities are ``args.work``'s ``prob_fold{k}.npz``; every map gets
+    the shipped model's post-processing (``args.threshold``, the main 3-D region at
+    ``args.keep_fraction``, small slice masks cleared) and :func:`learned_cv.score`.
+    """
+    import learned_cv as L
+
+    from tumor3d.learned.cnn_data import upsample
+
+    work = Path(args.work)
+    rows: list[dict] = []
+    forest_rows: list[dict] = []  # the shipped model's saved probabilities, scored here
+    mean_rows: list[dict] = []  # the mean of the two probabilities (fixed equal weights)
+
+    def scored(p, pr, k, out, label):
+        mask = L.keep_main_lesion(
+            pr, args.threshold, keep_fraction=args.keep_fraction, min_voxels=L._min_voxels(p)
+        )
+        mask[mask.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
+        row = L.score(p, mask, cfg)
+        row["fold"] = k
+        out.append(row)
+        print(
+            f"  {label:6s} {row['case']}: slice {row['slice_dice']:.3f} 3d {row['dice3d']:.3f} "
+            f"vol {row['vol_err']:+.1f}% rec {row['recall']:.2f} spec {row['spec']:.2f}",
+            flush=True,
+        )
+
+    for k in run_folds:
+        with np.load(work / f"prob_fold{k}.npz", allow_pickle=False) as z:
+            index, prob = z["index"], z["prob"]
+        for ci, p in enumerate(preps):
+            if folds[p.spec.patient] != k:
+                continue
+            sel = index[case_of[index] == ci]
+            assert not train_only[sel].any() and len(sel) == p.image.shape[0]
+            pr = upsample(prob[np.searchsorted(index, sel)], p.image.shape)
+            scored(p, pr, k, rows, "U-Net")
+            if args.forest_prob:
+                f = Path(args.forest_prob) / (p.spec.name.replace("/", "__") + ".npz")
+                with np.load(f, allow_pickle=False) as z:
+                    pf = z[args.forest_key].astype(np.float32)
+                scored(p, pf, k, forest_rows, "forest")
+                scored(p, 0.5 * (pr + pf), k, mean_rows, "mean")
+    return rows, forest_rows, mean_rows
 
 
 def time_numpy_forward(weights: Path, args, repeats: int = 3) -> dict:
@@ -442,7 +371,7 @@ def train_final(preps, folds, args, work: Path) -> int:
         "--threads",
         str(args.threads),
     ]
-    for opt in ("base", "levels", "epochs", "batch", "lr", "neg_ratio", "shift"):
+    for opt in ("size", "context", "base", "levels", "epochs", "batch", "lr", "neg_ratio", "shift"):
         cmd += [f"--{opt.replace('_', '-')}", str(getattr(args, opt))]
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
     if subprocess.call(cmd, env=env):
@@ -533,7 +462,6 @@ def main(argv=None) -> int:
     import learned_cv as L
 
     from tumor3d.config import parse_config
-    from tumor3d.learned.cnn_data import upsample
     from tumor3d.storage.manifest import data_dir
 
     data = data_dir()
@@ -574,7 +502,17 @@ def main(argv=None) -> int:
                 "--threads",
                 str(threads),
             ]
-            for opt in ("base", "levels", "epochs", "batch", "lr", "neg_ratio", "shift"):
+            for opt in (
+                "size",
+                "context",
+                "base",
+                "levels",
+                "epochs",
+                "batch",
+                "lr",
+                "neg_ratio",
+                "shift",
+            ):
                 cmd += [f"--{opt.replace('_', '-')}", str(getattr(args, opt))]
             env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
             procs.append(subprocess.Popen(cmd, env=env))
@@ -587,42 +525,10 @@ def main(argv=None) -> int:
             raise SystemExit(
                 f"{work}/data.npz holds other cases: --skip-train needs the same --groups"
             )
-    rows: list[dict] = []
-    forest_rows: list[dict] = []  # the shipped model's saved probabilities, scored here
-    mean_rows: list[dict] = []  # the mean of the two probabilities (fixed equal weights)
-    timing = {}
-
-    def scored(p, pr, k, out, label):
-        mask = L.keep_main_lesion(
-            pr, args.threshold, keep_fraction=args.keep_fraction, min_voxels=L._min_voxels(p)
-        )
-        mask[mask.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
-        row = L.score(p, mask, cfg)
-        row["fold"] = k
-        out.append(row)
-        print(
-            f"  {label:6s} {row['case']}: slice {row['slice_dice']:.3f} 3d {row['dice3d']:.3f} "
-            f"vol {row['vol_err']:+.1f}% rec {row['recall']:.2f} spec {row['spec']:.2f}",
-            flush=True,
-        )
-
-    for k in run_folds:
-        with np.load(work / f"prob_fold{k}.npz", allow_pickle=False) as z:
-            index, prob = z["index"], z["prob"]
-        timing[k] = json.loads((work / f"timing_fold{k}.json").read_text())
-        for ci, p in enumerate(preps):
-            if folds[p.spec.patient] != k:
-                continue
-            sel = index[case_of[index] == ci]
-            assert not train_only[sel].any() and len(sel) == p.image.shape[0]
-            pr = upsample(prob[np.searchsorted(index, sel)], p.image.shape)
-            scored(p, pr, k, rows, "U-Net")
-            if args.forest_prob:
-                f = Path(args.forest_prob) / (p.spec.name.replace("/", "__") + ".npz")
-                with np.load(f, allow_pickle=False) as z:
-                    pf = z[args.forest_key].astype(np.float32)
-                scored(p, pf, k, forest_rows, "forest")
-                scored(p, 0.5 * (pr + pf), k, mean_rows, "mean")
+    rows, forest_rows, mean_rows = score_folds(
+        preps, folds, run_folds, case_of, train_only, args, cfg
+    )
+    timing = {k: json.loads((work / f"timing_fold{k}.json").read_text()) for k in run_folds}
     print("U-Net:")
     print(L.summarise(rows))
     for k, t in timing.items():

@@ -1,0 +1,125 @@
+"""Training the U-Net (``tumor3d.learned.cnn_train``, issue 28).
+
+Without torch (CI): the missing extra is named in one line, the per-patient
+slices round-trip as plain arrays and planted pickles are refused, bad
+settings are refused. With torch (``pytest.importorskip``; run with the
+``train`` extra installed): a tiny U-Net (base 2, 2 levels, 2 epochs)
+trained on phantoms, exported with batch norm folded, gives through the
+numpy forward pass (:mod:`tumor3d.learned.cnn`, the independent
+implementation inference uses) the torch network's own probabilities; the
+same seed gives the same bytes; the metadata reads back.
+"""
+
+from __future__ import annotations
+
+import io
+import sys
+
+import numpy as np
+import pytest
+
+from tumor3d.errors import InputError
+from tumor3d.learned.cnn_train import (
+    UNetSettings,
+    fit_unet,
+    slices_from_bytes,
+    slices_to_bytes,
+    unet_meta,
+    unet_slices,
+)
+from tumor3d.phantom import make_phantom_patient
+
+TINY = UNetSettings(size=32, context=1, base=2, levels=2, epochs=2, batch=8)
+
+
+@pytest.fixture(scope="module")
+def phantom_slices():
+    xs, ys = [], []
+    for seed in (11, 12):
+        p = make_phantom_patient(seed, modality="flair", n_slices=12)
+        x, y = unet_slices(p.scan.image, np.asarray(p.slice_masks) > 0.5, TINY)
+        xs.append(x)
+        ys.append(y)
+    return np.concatenate(xs), np.concatenate(ys)
+
+
+def test_without_torch_the_error_names_the_extra(monkeypatch, phantom_slices):
+    monkeypatch.setitem(sys.modules, "torch", None)  # "import torch" raises ImportError
+    x, y = phantom_slices
+    with pytest.raises(InputError, match=r"PyTorch: pip install 'tumor3d\[train\]'") as info:
+        fit_unet(x, y, TINY)
+    assert "\n" not in str(info.value)
+
+
+def test_patient_slices_are_the_inference_grid_and_round_trip(phantom_slices):
+    x, y = phantom_slices
+    assert x.shape == (24, 3, 32, 32) and y.shape == (24, 32, 32)
+    assert x.dtype == y.dtype == np.float16
+    # the target is the reference's area fraction: in [0, 1], tumour on some slices only
+    per_slice = y.reshape(24, -1).max(axis=1)
+    assert 0 < np.sum(per_slice > 0) < 24 and float(y.min()) >= 0 and float(y.max()) <= 1
+    # 2.5-D: the middle channel of slice i is the first channel of slice i + 1
+    assert np.array_equal(x[1:11, 1], x[2:12, 0])
+    x2, y2 = slices_from_bytes(slices_to_bytes(x, y))
+    assert np.array_equal(x2, x) and np.array_equal(y2, y)
+
+
+def test_planted_pickles_and_bad_shapes_are_refused():
+    buf = io.BytesIO()
+    np.savez(buf, x=np.array([object()], dtype=object), y=np.zeros(1))
+    with pytest.raises(InputError, match="not U-Net training slices"):
+        slices_from_bytes(buf.getvalue(), source="planted")
+    with pytest.raises(InputError, match="not U-Net training slices"):
+        slices_from_bytes(slices_to_bytes(np.zeros((2, 3, 8, 8)), np.zeros((2, 4, 4))))
+    with pytest.raises(InputError, match="differ in shape"):
+        unet_slices(np.zeros((3, 16, 16)), np.zeros((3, 16, 8), bool), TINY)
+
+
+def test_settings_the_network_cannot_take_are_refused():
+    with pytest.raises(InputError, match="not divisible"):
+        UNetSettings(size=36, levels=4)
+    with pytest.raises(InputError, match="at least 1"):
+        UNetSettings(epochs=0)
+
+
+def test_a_file_without_metadata_has_none():
+    buf = io.BytesIO()
+    np.savez(buf, head_w=np.zeros((1, 2, 1, 1), np.float32))
+    assert unet_meta(buf.getvalue()) == {}
+
+
+def test_numpy_forward_pass_reproduces_the_trained_torch_net(phantom_slices):
+    pytest.importorskip("torch")
+    from tumor3d.learned.cnn import unet_from_bytes, unet_probability
+    from tumor3d.learned.cnn_train import torch_probability, train_unet
+
+    x, y = phantom_slices
+    data, fit = train_unet(x, y, TINY, seed=3, threads=1, meta={"trained_on": "phantoms 11, 12"})
+    assert len(fit.losses) == 2 and all(np.isfinite(fit.losses))
+    # the batch norms learned something: folding them is not the identity
+    bn = fit.model.enc[0][1]
+    assert float((bn.running_mean.abs().sum())) > 0
+    p_torch = torch_probability(fit.model, x)
+    net = unet_from_bytes(data, source="tiny")
+    assert net.levels == 2 and net.in_channels == 3
+    p_numpy = unet_probability(net, x)
+    assert p_numpy.shape == p_torch.shape == (24, 32, 32)
+    assert float(np.abs(p_numpy - p_torch).max()) < 1e-5
+    assert 0.0 < float(p_torch.std())  # not a constant map
+    meta = unet_meta(data)
+    assert meta["trained_on"] == "phantoms 11, 12" and meta["seed"] == 3
+    assert meta["settings"]["base"] == 2 and meta["trainer"].startswith("torch ")
+    assert meta["slices_per_epoch"] == fit.slices_per_epoch
+    again, _ = train_unet(x, y, TINY, seed=3, threads=1, meta={"trained_on": "phantoms 11, 12"})
+    strip = {"train_wall_s"}  # the one field that is not a function of the inputs
+
+    def arrays(b):
+        with np.load(io.BytesIO(b), allow_pickle=False) as z:
+            return {k: z[k] for k in z.files if k != "meta_json"}
+
+    a1, a2 = arrays(data), arrays(again)
+    assert a1.keys() == a2.keys() and all(np.array_equal(a1[k], a2[k]) for k in a1)
+    m2 = unet_meta(again)
+    assert {k: v for k, v in meta.items() if k not in strip} == {
+        k: v for k, v in m2.items() if k not in strip
+    }
