@@ -33,21 +33,34 @@ References
 .. [Zuk16] D. Zukic, J. Vicory, M. McCormick, L. Wisse, G. Gerig, P.
    Yushkevich and S. Aylward, "ND morphological contour interpolation",
    Insight Journal, 2016. doi:10.54294/achtrg
+
+The package: the two protocols and the ITK peer's call here (they look
+:func:`itk_available` up in this namespace), :mod:`~tumor3d.evaluation.interpolation.methods`
+(the methods compared, the peer's presence), :mod:`~tumor3d.evaluation.interpolation.thick`
+(thick-slice emulation), :mod:`~tumor3d.evaluation.interpolation.scores` (3-D scores) and
+:mod:`~tumor3d.evaluation.interpolation.phantom` (a drifting-tumour phantom). The public
+names are importable from here.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
-import numbers
-import warnings
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
-from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError
+from tumor3d.evaluation.interpolation.methods import (
+    _ITK_HINT,
+    ITK_METHOD,
+    METHODS,
+    _quiet_swig,
+    itk_available,
+)
+from tumor3d.evaluation.interpolation.phantom import drifting_tumour_phantom
+from tumor3d.evaluation.interpolation.scores import _dice, _hd95_mm
+from tumor3d.evaluation.interpolation.thick import _check_int, emulate_thick_labels
 from tumor3d.geometry.distance import as_mask
 from tumor3d.geometry.interpolate import (
     interpolate_pair,
@@ -65,60 +78,6 @@ __all__ = [
     "kth_slice_rows",
     "table4_rows",
 ]
-
-#: label -> keyword arguments of :func:`tumor3d.geometry.interpolate.interpolate_stack`.
-METHODS: dict[str, dict[str, str]] = {
-    "LG": {"method": "linear", "parts": "whole"},
-    "SO": {"method": "shape", "parts": "whole"},
-    "SE": {"method": "enhanced", "parts": "whole"},
-    "SE-EDT": {"method": "enhanced-edt", "parts": "whole"},
-    "SE parts": {"method": "enhanced", "parts": "matched"},
-    "SE-EDT parts": {"method": "enhanced-edt", "parts": "matched"},
-    "SO-EDT": {"method": "shape-edt", "parts": "whole"},
-    "SO-EDT parts": {"method": "shape-edt", "parts": "matched"},
-}
-#: the label of ITK's MorphologicalContourInterpolator in the tables
-ITK_METHOD = "ITK"
-_ITK_HINT = (
-    "ITK's MorphologicalContourInterpolator is an optional peer: "
-    "pip install 'tumor3d[peers]' (itk-morphologicalcontourinterpolation)"
-)
-
-
-# --------------------------------------------------------------------------
-# the ITK peer
-
-
-@contextlib.contextmanager
-def _quiet_swig() -> Iterator[None]:
-    """Silence SWIG's DeprecationWarnings while ITK loads and runs.
-
-    ITK's SWIG wrappers warn ("builtin type SwigPyPacked has no __module__
-    attribute") while its modules load lazily; with warnings turned into
-    errors (``-W error``, pytest's ``filterwarnings = error``) the exception
-    inside the module initialisation crashes the interpreter (segfault).
-    """
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        yield
-
-
-def itk_available() -> bool:
-    """True when ITK and its MorphologicalContourInterpolator module are installed.
-
-    Checks the installed distributions without importing ITK (importing it
-    is slow, and its teardown has crashed the interpreter at exit).
-    """
-    import importlib.metadata
-    import importlib.util
-
-    if importlib.util.find_spec("itk") is None:
-        return False
-    try:
-        importlib.metadata.version("itk-morphologicalcontourinterpolation")
-    except importlib.metadata.PackageNotFoundError:
-        return False
-    return True
 
 
 def itk_contour_interpolate(sparse_zyx: np.ndarray) -> np.ndarray:
@@ -157,177 +116,6 @@ def itk_contour_interpolate(sparse_zyx: np.ndarray) -> np.ndarray:
         filt.SetAxis(2)
         filt.Update()
         return itk.array_from_image(filt.GetOutput()) > 0
-
-
-# --------------------------------------------------------------------------
-# thick-slice emulation of a 1 mm label
-
-
-def _check_int(value: object, name: str, low: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < low:
-        raise InputError(f"{name} must be an integer >= {low}, got {value!r}")
-    return int(value)
-
-
-def emulate_thick_labels(
-    label_zyx: np.ndarray,
-    *,
-    step_slices: int,
-    thickness_slices: float = 2.0,
-    phase: int = 0,
-    slab: str = "centred",
-) -> tuple[np.ndarray, np.ndarray]:
-    """Emulate thick acquired slices from a thin-slice label volume.
-
-    Thin slice ``i`` is the slab ``[i - 1/2, i + 1/2]`` (in thin-slice
-    units). Thick slice ``j`` is centred on thin slice ``c_j = phase + j
-    step`` and covers ``[c_j - T/2, c_j + T/2]``; its label is tumour where
-    the thin labels averaged over that slab, weighted by overlap length, are
-    ``>= 1/2``. For ``T = 2`` the weights of thin slices ``c - 1, c, c + 1``
-    are ``1/4, 1/2, 1/4`` (times 2 mm). Thin slices beyond the volume do not
-    count (the mean is over the part of the slab inside it). Centring the
-    thick slices on thin ones puts every fraction ``t = j / step`` of the
-    reconstruction on a thin slice of the reference.
-
-    ``slab="flush"`` is the rule of the evaluation flow
-    (``tumor3d.evaluation.emulate``): thick slice ``j`` is the plain mean of
-    the ``m = T`` whole thin slices ``phase + j step, ..., phase + j step + m -
-    1`` (``T`` an integer ``<= step``; thin slices after the last complete
-    thick slice are dropped), centred at ``c_j = phase + j step + (m - 1)/2``.
-    With ``m = 2`` the label is the union of the two thin labels and the
-    centres fall halfway between thin slices.
-
-    Parameters
-    ----------
-    label_zyx : (z, y, x) array_like of bool
-        The reference label on thin slices (1 mm for BraTS).
-    step_slices : int
-        Slice step ``k >= 1`` in thin slices (5 = the paper's 5 mm step).
-    thickness_slices : float
-        Slab thickness ``T`` in thin slices, ``0 < T <= 2 step`` (2 = 2 mm).
-    phase : int
-        Index of the first thick slice's centre (``"flush"``: of its first
-        thin slice), ``0 <= phase < step``.
-    slab : {"centred", "flush"}
-        Where the slab lies, see above.
-
-    Returns
-    -------
-    thick : (n, y, x) bool ndarray
-        The emulated thick-slice labels.
-    centres : (n,) float64 ndarray
-        ``c_j``, the (thin index) position of each thick slice's centre.
-
-    Raises
-    ------
-    InputError
-        If the label is not a non-empty 3-D binary array or a parameter is
-        out of range.
-
-    Examples
-    --------
-    >>> lab = np.zeros((7, 1, 1), bool); lab[2:4] = True
-    >>> thick, c = emulate_thick_labels(lab, step_slices=3)
-    >>> c.tolist(), thick[:, 0, 0].tolist()
-    ([0.0, 3.0, 6.0], [False, True, False])
-    >>> thick, c = emulate_thick_labels(lab, step_slices=3, slab="flush")
-    >>> c.tolist(), thick[:, 0, 0].tolist()
-    ([0.5, 3.5], [False, True])
-    """
-    lab = as_mask(label_zyx, "label_zyx", 3)
-    k = _check_int(step_slices, "step_slices", 1)
-    ph = _check_int(phase, "phase", 0)
-    if ph >= k:
-        raise InputError(f"phase must be < step_slices = {k}, got {ph}")
-    try:
-        thick_t = float(thickness_slices)
-    except (TypeError, ValueError):
-        raise InputError(f"thickness_slices must be a number, got {thickness_slices!r}") from None
-    if not (0.0 < thick_t <= 2 * k):
-        raise InputError(f"thickness_slices must be in (0, 2 step] = (0, {2 * k}], got {thick_t}")
-    n_thin = lab.shape[0]
-    f = lab.astype(np.float64)
-    if slab == "flush":
-        m = round(thick_t)
-        if abs(m - thick_t) > 1e-9 or not (1 <= m <= k):
-            raise InputError(
-                f"slab='flush' needs a whole thickness_slices in [1, step = {k}], got {thick_t}"
-            )
-        starts = np.arange(ph, n_thin - m + 1, k)
-        flush = np.array([f[a : a + m].mean(axis=0) >= 0.5 for a in starts], dtype=bool)
-        return flush.reshape((len(starts),) + lab.shape[1:]), starts + (m - 1) / 2.0
-    if slab != "centred":
-        raise InputError(f"slab must be 'centred' or 'flush', got {slab!r}")
-    centres = np.arange(ph, n_thin, k, dtype=np.int64)
-    out = np.zeros((len(centres),) + lab.shape[1:], dtype=bool)
-    half = thick_t / 2.0
-    for j, c in enumerate(centres):
-        lo, hi = c - half, c + half
-        total = np.zeros(lab.shape[1:])
-        weight = 0.0
-        for i in range(max(0, math.floor(lo + 0.5)), min(n_thin - 1, math.ceil(hi - 0.5)) + 1):
-            w = min(hi, i + 0.5) - max(lo, i - 0.5)
-            if w > 0:
-                total += w * f[i]
-                weight += w
-        out[j] = total >= 0.5 * weight - 1e-12
-    return out, centres.astype(np.float64)
-
-
-# --------------------------------------------------------------------------
-# 3-D scores (private: the evaluation package's metrics may replace them)
-
-
-def _dice(a: np.ndarray, b: np.ndarray) -> float:
-    s = int(a.sum()) + int(b.sum())
-    return 1.0 if s == 0 else float(2.0 * np.count_nonzero(a & b) / s)
-
-
-def _surface(mask: np.ndarray) -> np.ndarray:
-    """Object voxels with a 6-neighbour outside the object (the volume border counts as outside)."""
-    return mask & ~ndi.binary_erosion(mask, structure=ndi.generate_binary_structure(3, 1))
-
-
-def _hd95_mm(a: np.ndarray, b: np.ndarray, spacing_mm: Sequence[float]) -> float:
-    """95 % Hausdorff distance in mm between the surfaces of two 3-D masks.
-
-    ``max(P95 d(s_a, S_b), P95 d(s_b, S_a))`` over surface voxels ``s`` (the
-    robust Hausdorff of the ``surface-distance`` package); ``inf`` if exactly
-    one mask is empty, 0 if both are.
-    """
-    if not a.any() and not b.any():
-        return 0.0
-    if not a.any() or not b.any():
-        return math.inf
-    both = a | b
-    lo = (
-        np.array(
-            [
-                np.flatnonzero(both.any(axis=tuple(j for j in range(3) if j != i))).min()
-                for i in range(3)
-            ]
-        )
-        - 1
-    )
-    hi = (
-        np.array(
-            [
-                np.flatnonzero(both.any(axis=tuple(j for j in range(3) if j != i))).max()
-                for i in range(3)
-            ]
-        )
-        + 2
-    )
-    lo = np.maximum(lo, 0)
-    box = tuple(slice(int(s), int(e)) for s, e in zip(lo, hi, strict=True))
-    sa, sb = _surface(a[box]), _surface(b[box])
-    d_ab = ndi.distance_transform_edt(~sb, sampling=spacing_mm)[sa]
-    d_ba = ndi.distance_transform_edt(~sa, sampling=spacing_mm)[sb]
-    return float(max(np.percentile(d_ab, 95), np.percentile(d_ba, 95)))
-
-
-# --------------------------------------------------------------------------
-# protocols
 
 
 def _resolve_methods(methods: Sequence[str] | None, include_itk: bool) -> list[str]:
@@ -575,56 +363,3 @@ def kth_slice_rows(
                     }
                 )
     return rows
-
-
-# --------------------------------------------------------------------------
-# a phantom with a drifting tumour
-
-
-def drifting_tumour_phantom(
-    seed: int,
-    *,
-    shape: tuple[int, int, int] = (80, 112, 112),
-    drift_mm_per_mm: tuple[float, float] = (0.35, 0.5),
-    n_lobes: int = 3,
-    axes_mm: tuple[float, float] = (8.0, 22.0),
-) -> np.ndarray:
-    """A 1 mm label of a lobed tumour whose cross-section drifts in-plane along z.
-
-    The union of ``n_lobes`` random ellipsoids (semi-axes in ``axes_mm``) around a
-    common centre, sheared so the centre of slice ``z`` moves by
-    ``drift * (z - z0)`` mm in ``(y, x)`` (the tumour grows obliquely through
-    the slices, the case the paper's centroid alignment is made for).
-
-    Parameters
-    ----------
-    seed : int
-        Seed of the random lobes.
-    shape : (3,) tuple of int
-        ``(z, y, x)`` size in 1 mm voxels.
-    drift_mm_per_mm : (2,) tuple of float
-        In-plane drift ``(dy/dz, dx/dz)``.
-    n_lobes : int
-        Number of ellipsoids.
-    axes_mm : (2,) tuple of float
-        Range of the semi-axes in mm (uniform).
-
-    Returns
-    -------
-    (z, y, x) bool ndarray
-        The label; it does not touch the volume border.
-    """
-    rng = np.random.default_rng(seed)
-    zz, yy, xx = np.meshgrid(*(np.arange(s, dtype=np.float64) for s in shape), indexing="ij")
-    c = np.array(shape, dtype=np.float64) / 2.0
-    # shear: the tumour's axis runs obliquely through the slices
-    yy = yy - drift_mm_per_mm[0] * (zz - c[0])
-    xx = xx - drift_mm_per_mm[1] * (zz - c[0])
-    out = np.zeros(shape, dtype=bool)
-    for _ in range(n_lobes):
-        centre = c + rng.uniform(-8, 8, 3)
-        axes = rng.uniform(axes_mm[0], axes_mm[1], 3)
-        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-        d = np.stack([zz - centre[0], yy - centre[1], xx - centre[2]], axis=-1) @ q
-        out |= ((d / axes) ** 2).sum(axis=-1) <= 1.0
-    return out
