@@ -140,3 +140,93 @@ def test_provenance_names_the_model_a_learned_run_used(tmp_path):
     assert prov["segmentation"]["method"] == "learned"
     assert prov["segmentation"]["model_sha256"] == shipped_model("flair").digest()
     assert result.metrics["segment_method"] == "learned"
+
+
+# ---------------------------------------------------------------- --cnn: the U-Net (issue 28)
+
+UNET_TINY = {"base": 2, "levels": 2, "epochs": 2}
+
+
+def test_cnn_slices_are_the_inference_grid_of_each_flair_patient(trained, monkeypatch):
+    """The unet-slices stage's slices, as the U-Net's training receives them, equal
+    ``unet_slices`` of the phantom's own image and truth (no torch needed: the
+    training itself is replaced by a recorder)."""
+    import tumor3d.flows.train as train_mod
+    from tumor3d.learned.cnn_train import UNetSettings, unet_slices
+
+    manifest, out, _ = trained
+    seen = {}
+
+    def recorder(x, y, settings, **kw):
+        seen.update(x=x, y=y, settings=settings, meta=kw["meta"])
+        return b"not a network", type("Fit", (), {"seconds": 0.0})()
+
+    monkeypatch.setattr(train_mod, "require_torch", lambda: None)
+    monkeypatch.setattr(train_mod, "train_unet", recorder)
+    result = run_training(
+        manifest, out / "cnn-rec", store_dir=str(out / "model" / ".tumor3d-store"),
+        num_rounds=ROUNDS, command="test", cnn=True, cnn_settings=UNET_TINY,
+    )  # fmt: skip
+    assert seen["settings"] == UNetSettings(**UNET_TINY)
+    assert seen["meta"]["training_cases"] == ["tr11", "tr12", "tr13n"]
+    xs, ys = [], []
+    for seed, tumour in ((11, True), (12, True), (13, False)):
+        p = make_phantom_patient(seed, modality="flair", n_slices=14, tumor=tumour)
+        x, y = unet_slices(p.scan.image, np.asarray(p.slice_masks) > 0.5)
+        xs.append(x)
+        ys.append(y)
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    assert seen["x"].shape == x.shape == (42, 3, 128, 128)
+    assert float(np.abs(seen["x"].astype(np.float32) - x.astype(np.float32)).max()) < 1e-2
+    assert np.array_equal(seen["y"], y) and not seen["y"][28:].any()  # tr13n: tumour-free
+    assert (out / "cnn-rec" / "unet_flair.npz").read_bytes() == b"not a network"
+    card = json.loads((out / "cnn-rec" / "training.json").read_text())
+    assert card["models"]["unet_flair"]["file"] == "unet_flair.npz"
+    assert card["cnn_settings"]["epochs"] == 2
+    assert [c["unet_slices"] for c in result.cases] == [14, 14, 14]
+    assert result.cases[2]["unet_tumour_slices"] == 0 < result.cases[0]["unet_tumour_slices"]
+    again = run_training(
+        manifest, out / "cnn-rec2", store_dir=str(out / "model" / ".tumor3d-store"),
+        num_rounds=ROUNDS, command="test", cnn=True, cnn_settings=UNET_TINY,
+    )  # fmt: skip
+    assert again.cached_patients == 3
+    assert [c["unet_slices_digest"] for c in again.cases] == [
+        c["unet_slices_digest"] for c in result.cases
+    ]
+
+
+def test_cnn_trains_a_unet_the_numpy_forward_pass_reads(trained):
+    pytest.importorskip("torch")  # CI has no torch: run with the train extra
+    from tumor3d.learned.cnn import unet_from_bytes, unet_probability
+    from tumor3d.learned.cnn_train import unet_meta, unet_slices
+
+    manifest, out, _ = trained
+    result = run_training(
+        manifest, out / "cnn", store_dir=str(out / "model" / ".tumor3d-store"),
+        num_rounds=ROUNDS, command="test", cnn=True, cnn_settings=UNET_TINY, cnn_threads=1,
+    )  # fmt: skip
+    assert set(result.models) == {"hyper", "unet_flair"}
+    data = (out / "cnn" / "unet_flair.npz").read_bytes()
+    net = unet_from_bytes(data, source="trained")
+    assert net.levels == 2 and net.in_channels == 3
+    meta = unet_meta(data)
+    assert meta["training_cases"] == ["tr11", "tr12", "tr13n"]
+    assert meta["settings"]["epochs"] == 2 and meta["trainer"].startswith("torch ")
+    p = make_phantom_patient(5, modality="flair", n_slices=14)
+    prob = unet_probability(net, unet_slices(p.scan.image, np.asarray(p.slice_masks) > 0.5)[0])
+    assert prob.shape == (14, 128, 128) and np.all((prob >= 0) & (prob <= 1))
+
+
+def test_cnn_without_torch_is_refused_in_one_line(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "torch", None)  # "import torch" raises ImportError
+    patient = make_phantom_patient(3, modality="flair", patient_id="nt", n_slices=10)
+    manifest = write_manifest([write_phantom_patient(patient, tmp_path / "nt")], tmp_path / "m.csv")
+    res = CliRunner().invoke(
+        app, ["train", str(manifest), "--out", str(tmp_path / "model"), "--cnn"]
+    )
+    assert res.exit_code == 2, res.output
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "tumor3d[train]" in lines[0], res.output
+    assert not (tmp_path / "model").exists()

@@ -1111,14 +1111,18 @@ def train(
         float, typer.Option(min=0.0, max=1.0, help="Keep lesion parts this fraction of the main.")
     ] = 1.0,
     rounds: Annotated[int, typer.Option(min=1, help="Boosting rounds.")] = 150,
+    cnn: Annotated[
+        bool, typer.Option("--cnn", help="Also train the FLAIR U-Net: OUT/unet_flair.npz (torch).")
+    ] = False,
     verbose: Verbose = False,
 ) -> None:
     """Train the learned segmentation on labelled patients: OUT/<family>.npz, OUT/training.json.
 
     Every row needs a reference (or reference_kind tumor_free); emulate_step_mm rows
     are emulated as the evaluation does. Each patient's stages are cached like a
-    cohort's. Needs the train extra (pip install 'tumor3d[train]'). Exit code 0, 2
-    for a bad manifest, row or configuration, 3 for an environment error.
+    cohort's. Needs the train extra (pip install 'tumor3d[train]'; --cnn needs its
+    torch). Exit code 0, 2 for a bad manifest, row or configuration, 3 for an
+    environment error.
     """
     import shlex
 
@@ -1133,7 +1137,7 @@ def train(
                 result = run_training(
                     manifest, out, config=cfg, store_dir=None if store is None else str(store),
                     threshold=threshold, t1c_threshold=t1c_threshold,
-                    keep_fraction=keep_fraction, num_rounds=rounds, command=command,
+                    keep_fraction=keep_fraction, num_rounds=rounds, command=command, cnn=cnn,
                 )  # fmt: skip
     except _HANDLED as exc:
         raise _fail(exc) from None
@@ -1141,10 +1145,15 @@ def train(
     for col in ("model", "patients", "rows", "lesion rows", "file"):
         table.add_column(col)
     for family, path in result.models.items():
-        cases = [c for c in result.cases if c.get("family") == family]
+        if family == "unet_flair":  # its rows are slices
+            cases = [c for c in result.cases if "unet_slices" in c]
+            rows, lesion = "unet_slices", "unet_tumour_slices"
+        else:
+            cases = [c for c in result.cases if c.get("family") == family]
+            rows, lesion = "rows", "lesion_rows"
         table.add_row(
-            family, str(len(cases)), str(sum(c["rows"] for c in cases)),
-            str(sum(c["lesion_rows"] for c in cases)), escape(path),
+            family, str(len(cases)), str(sum(c[rows] for c in cases)),
+            str(sum(c[lesion] for c in cases)), escape(path),
         )  # fmt: skip
     console.print(table)
     console.print(

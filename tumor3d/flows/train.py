@@ -19,21 +19,34 @@ extra) and written as ``DIR/<family>.npz`` (plain arrays, no pickle) with
 the model digests). A model is used by shipping it: copied over
 ``tumor3d/learned/models/<family>.npz``, whose bytes are in the
 segment-tumor stage's cache key.
+
+With ``--cnn`` (``cnn=True``) the FLAIR patients also train the U-Net of
+:mod:`tumor3d.learned.cnn` (PyTorch, the ``train`` extra): the unet-slices
+stage (:data:`tumor3d.tasks.train.UNET_SLICES`, cached like the rows) gives
+each FLAIR patient's input and target slices, one network is trained on all
+of them (:func:`tumor3d.learned.cnn_train.train_unet`, the shipped settings
+unless ``cnn_settings`` says otherwise, seed ``cnn_seed``) and written as
+``DIR/unet_flair.npz`` (plain arrays; ``meta_json`` names the cases and the
+settings), listed in ``training.json`` beside the forests. It is shipped by
+copying it over ``tumor3d/learned/models/unet_flair.npz``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from prefect import flow, get_run_logger
 
 from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.errors import InputError
 from tumor3d.flows.patient import prepare_brain_mask, prepare_source
+from tumor3d.learned.cnn_train import UNetSettings, require_torch, slices_from_bytes, train_unet
 from tumor3d.learned.rows import rows_from_bytes
 from tumor3d.learned.shipped import MODEL_FAMILIES
 from tumor3d.learned.training import NUM_ROUNDS, TrainingRows, train_forest
@@ -44,11 +57,16 @@ from tumor3d.storage.store import ArtifactStore, atomic_write_bytes
 from tumor3d.tasks import stages
 from tumor3d.tasks.runner import PrefectRunner
 from tumor3d.tasks.train import SPEC as TRAINING_ROWS
+from tumor3d.tasks.train import UNET_SLICES
 
 __all__ = ["TrainResult", "run_training", "train_flow"]
 
 #: The stages before the training rows (the pipeline's, shared with run/cohort).
 _PIPELINE_STAGES = ("ingest-scan", "preprocess", "detect-abnormal")
+#: Modalities the U-Net is trained on (its cross-validation: FLAIR; the file's name says so).
+UNET_MODALITIES = ("flair",)
+#: Settings of ``cnn_settings`` the unet-slices stage fixes (its slices are the shipped grid).
+_UNET_GRID = ("size", "context")
 
 
 @dataclass
@@ -78,9 +96,13 @@ def _check_rows(rows: list[ManifestRow], where: str) -> None:
 
 
 def _patient_rows(
-    row: ManifestRow, cfg: PipelineConfig, store: ArtifactStore, work_dir: Path
-) -> tuple[TrainingRows, dict[str, Any]]:
-    """One patient through the cached stages; its rows and a description."""
+    row: ManifestRow, cfg: PipelineConfig, store: ArtifactStore, work_dir: Path, cnn: bool = False
+) -> tuple[TrainingRows, dict[str, Any], tuple[np.ndarray, np.ndarray] | None]:
+    """One patient through the cached stages; its rows, a description, its U-Net slices.
+
+    The slices (``(x, y)``, :data:`UNET_SLICES`) only with ``cnn`` and a FLAIR patient.
+    """
+    unet = cnn and row.modality in UNET_MODALITIES
     prepared = prepare_case(row, work_dir)
     run_row = prepared.run_row
     source = prepare_source(
@@ -92,20 +114,16 @@ def _patient_rows(
         mask = prepare_brain_mask(run_row.brain_mask, source)
     given = stages.store_given(store, brain_mask=mask)
     root = str(store.root)
-    runner = PrefectRunner(store, row.patient_id, len(_PIPELINE_STAGES) + 1)
+    runner = PrefectRunner(store, row.patient_id, len(_PIPELINE_STAGES) + 1 + int(unet))
     for name in _PIPELINE_STAGES:  # wired from their declarations, as run_stages does
         spec = stages.STAGES[name]
-        inputs = stages.stage_inputs(
-            spec, runner.outputs, source=source, cfg=cfg, given=given
-        )
+        inputs = stages.stage_inputs(spec, runner.outputs, source=source, cfg=cfg, given=given)
         runner.run(spec, **inputs, store_root=root)
     scan = runner.outputs["ingest-scan"].artifacts["scan"]
     if row.reference is not None:
         ref, ref_affine = acquired_reference(prepared)
         meta = {"tumor_free": False}
     else:  # tumor_free: an empty label on the scan's grid
-        import numpy as np
-
         shape = tuple(scan.metadata["shape_zyx"])[::-1]
         ref, ref_affine = np.zeros(shape, bool), np.asarray(scan.metadata["affine"])
         meta = {"tumor_free": True}
@@ -127,9 +145,22 @@ def _patient_rows(
         "rows": int(out.values["n_rows"]),
         "lesion_rows": int(out.values["n_lesion_rows"]),
         "rows_digest": ref_rows.digest,
-        "cached": all(r.cached for r in runner.runs),
     }
-    return rows, case
+    slices = None
+    if unet:
+        inputs = stages.stage_inputs(
+            UNET_SLICES, runner.outputs, cfg=cfg, given={"reference": ref_art}
+        )
+        out = runner.run(UNET_SLICES, **inputs, store_root=root)
+        ref_slices = out.artifacts["slices"]
+        slices = slices_from_bytes(
+            store.get_bytes(ref_slices), source=f"{row.patient_id} U-Net slices"
+        )
+        case["unet_slices"] = int(out.values["n_slices"])
+        case["unet_tumour_slices"] = int(out.values["n_tumour_slices"])
+        case["unet_slices_digest"] = ref_slices.digest
+    case["cached"] = all(r.cached for r in runner.runs)
+    return rows, case, slices
 
 
 def _train_run_name() -> str:
@@ -149,6 +180,10 @@ def train_flow(
     keep_fraction: float = 1.0,
     num_rounds: int = NUM_ROUNDS,
     command: str = "",
+    cnn: bool = False,
+    cnn_settings: dict[str, Any] | None = None,
+    cnn_seed: int = 0,
+    cnn_threads: int | None = None,
 ) -> TrainResult:
     """Train the learned segmentation's models on a manifest's labelled patients.
 
@@ -172,26 +207,52 @@ def train_flow(
         Boosting rounds.
     command : str
         The command line, recorded in the models and ``training.json``.
+    cnn : bool
+        Also train the U-Net on the FLAIR patients (PyTorch: the ``train`` extra).
+    cnn_settings : dict, optional
+        :class:`~tumor3d.learned.cnn_train.UNetSettings` fields other than the
+        slice grid (``size``, ``context``), e.g. ``{"epochs": 2}``; default the
+        shipped network's.
+    cnn_seed : int
+        The U-Net training's seed.
+    cnn_threads : int, optional
+        torch's threads (default torch's own choice).
     """
     logger = get_run_logger()
     cfg = parse_config(config or {}, source="config")
     rows = read_manifest(manifest)
     _check_rows(rows, str(manifest))
+    unet_settings = None
+    if cnn:  # before any patient's stages: a missing extra or a bad setting fails at once
+        require_torch()
+        extra = dict(cnn_settings or {})
+        fixed = sorted(k for k in extra if k in _UNET_GRID)
+        if fixed:
+            raise InputError(f"cnn_settings: {', '.join(fixed)} is fixed by the unet-slices stage")
+        try:
+            unet_settings = UNetSettings(**extra)
+        except TypeError as exc:
+            raise InputError(f"cnn_settings: {exc}") from None
+        if not any(r.modality in UNET_MODALITIES for r in rows):
+            raise InputError("--cnn: the U-Net trains on FLAIR patients and the manifest has none")
     out = Path(out_dir)
     where = store_dir or default_store_location(out)
     store = open_store(where)
     work = Path(where) / "emulated"
     by_family: dict[str, list[tuple[TrainingRows, dict[str, Any]]]] = {}
+    unet_cases: list[tuple[tuple[np.ndarray, np.ndarray], dict[str, Any]]] = []
     cached = 0
     for row in rows:
         try:
-            patient = _patient_rows(row, cfg, store, work)
+            rows_, case, slices = _patient_rows(row, cfg, store, work, cnn=cnn)
         except InputError as exc:
             raise InputError(f"patient {row.patient_id}: {exc.problem}", exc.path) from None
-        cached += int(patient[1]["cached"])
-        logger.info("%s: %d rows%s", row.patient_id, patient[1]["rows"],
-                    " (cached)" if patient[1]["cached"] else "")  # fmt: skip
-        by_family.setdefault(MODEL_FAMILIES[row.modality], []).append(patient)
+        cached += int(case["cached"])
+        logger.info("%s: %d rows%s", row.patient_id, case["rows"],
+                    " (cached)" if case["cached"] else "")  # fmt: skip
+        by_family.setdefault(MODEL_FAMILIES[row.modality], []).append((rows_, case))
+        if slices is not None:
+            unet_cases.append((slices, case))
     result = TrainResult(out_dir=str(out), cached_patients=cached)
     files: dict[str, bytes] = {}
     for family, patients in sorted(by_family.items()):
@@ -216,6 +277,24 @@ def train_flow(
         result.cases += [c for _, c in patients]
         logger.info("%s model: %d patients, %d trees, digest %s", family, len(patients),
                     model.roots.size, model.digest()[:12])  # fmt: skip
+    if unet_settings is not None:
+        meta = {
+            "name": f"tumor3d-unet-flair-{datetime.date.today().isoformat()}",
+            "modalities": list(UNET_MODALITIES),
+            "input": "tumor3d.learned.cnn_data.case_input(image, size, context)",
+            "training_cases": [c["patient_id"] for _, c in unet_cases],
+            "command": command,
+        }
+        data, fit = train_unet(
+            np.concatenate([s[0] for s, _ in unet_cases]),
+            np.concatenate([s[1] for s, _ in unet_cases]),
+            unet_settings, seed=cnn_seed, threads=cnn_threads, meta=meta,
+            log=lambda line: logger.info("U-Net %s", line),
+        )  # fmt: skip
+        files["unet_flair.npz"] = data
+        result.models["unet_flair"] = str(out / "unet_flair.npz")
+        logger.info("U-Net: %d patients, %d slices, %.0f s", len(unet_cases),
+                    sum(len(s[0]) for s, _ in unet_cases), fit.seconds)  # fmt: skip
     card = {
         "command": command,
         "manifest": str(manifest),
@@ -223,6 +302,7 @@ def train_flow(
         "t1c_threshold": t1c_threshold,
         "keep_fraction": keep_fraction,
         "num_rounds": num_rounds,
+        "cnn_settings": None if unet_settings is None else dataclasses.asdict(unet_settings),
         "models": {
             f.removesuffix(".npz"): {"file": f, "sha256": _sha256(b)} for f, b in files.items()
         },

@@ -40,6 +40,7 @@ __all__ = [
     "UNetFit",
     "UNetSettings",
     "fit_unet",
+    "require_torch",
     "slices_from_bytes",
     "slices_to_bytes",
     "torch_probability",
@@ -97,7 +98,8 @@ class UNetFit:
     losses: list[float]  # mean loss of each epoch
 
 
-def _torch() -> Any:
+def require_torch() -> Any:
+    """The ``torch`` module, or an :class:`InputError` naming the ``train`` extra."""
     try:
         import torch
     except ImportError:
@@ -154,7 +156,7 @@ def slices_from_bytes(data: bytes, *, source: str = "slices") -> tuple[np.ndarra
 
 def torch_unet(in_channels: int, base: int, levels: int) -> Any:
     """The torch U-Net :mod:`tumor3d.learned.cnn` runs (its docstring describes it)."""
-    torch = _torch()
+    torch = require_torch()
     nn = torch.nn
     F = torch.nn.functional
 
@@ -214,7 +216,7 @@ def fit_unet(
     ``rows``: the slices to train on (default all); ``threads``: torch's thread
     count (process-wide; default unchanged); ``log`` receives one line per epoch.
     """
-    torch = _torch()
+    torch = require_torch()
     F = torch.nn.functional
     if x.ndim != 4 or y.shape != (x.shape[0], *x.shape[2:]):
         raise InputError(f"U-Net slices x {x.shape} and targets y {y.shape} do not match")
@@ -275,7 +277,7 @@ def fit_unet(
 
 def torch_probability(model: Any, x: np.ndarray, batch: int = 32) -> np.ndarray:
     """The torch network's probabilities ``(n, s, s)`` float32 of slices ``x`` (eval mode)."""
-    torch = _torch()
+    torch = require_torch()
     model.eval()
     out = np.empty((len(x), *x.shape[2:]), np.float32)
     with torch.no_grad():
@@ -343,7 +345,7 @@ def train_unet(
 
     The settings, seed, torch version, slices and wall time are added to ``meta``.
     """
-    torch = _torch()
+    torch = require_torch()
     fit = fit_unet(x, y, settings, seed=seed, threads=threads, log=log)
     info = {
         "trainer": f"torch {torch.__version__}",

@@ -1,4 +1,6 @@
-"""Adapter of the training-rows stage: one labelled patient as the learned model's rows.
+"""Adapters of the training stages: one labelled patient as the learned models' rows.
+
+``training-rows`` (:data:`SPEC`), the forest's rows:
 
 It runs after the pipeline's ingest-scan, preprocess and detect-abnormal
 stages of the same patient (whose cached results it shares with ``run`` and
@@ -9,6 +11,14 @@ mask artifact on its own grid (the flow reads it, emulated like the image
 where the row asks for it) and is sampled here on the scan's grid. The rows
 are stored as a plain ``.npz`` (:func:`tumor3d.learned.rows.rows_to_bytes`),
 never pickled.
+
+``unet-slices`` (:data:`UNET_SLICES`), the U-Net's: the scan as acquired
+and the reference on its grid, resampled to the network's input and target
+slices (:func:`tumor3d.learned.cnn_train.unet_slices`, the grids inference
+uses) at the shipped network's size and context
+(:data:`tumor3d.learned.cnn_train.UNetSettings` defaults), stored as a plain
+``.npz`` (:func:`tumor3d.learned.cnn_train.slices_to_bytes`). It needs the
+ingest stage only, and no torch.
 """
 
 from __future__ import annotations
@@ -19,6 +29,7 @@ import pandas as pd
 from tumor3d.config import SegmentConfig
 from tumor3d.errors import InputError
 from tumor3d.evaluation.grids import resample_nearest
+from tumor3d.learned.cnn_train import UNetSettings, slices_to_bytes, unet_slices
 from tumor3d.learned.rows import patient_rows, rows_to_bytes
 from tumor3d.segmentation.lesion import left_right_axis
 from tumor3d.segmentation.segment import learned_prior
@@ -26,7 +37,7 @@ from tumor3d.tasks.kinds import Artifact, Tagged, Volume
 from tumor3d.tasks.segment import load_detection
 from tumor3d.tasks.spec import Input, StageResult, scan_spacing_mm, stage
 
-__all__ = ["SPEC"]
+__all__ = ["SPEC", "UNET_SLICES"]
 
 _XYZ_TO_ZYX = [2, 1, 0, 3]
 
@@ -63,18 +74,9 @@ def training_rows(
     config: SegmentConfig,
 ) -> StageResult:
     """The patient's training rows: features with the robust prior, sampled around the label."""
-    image, scan_affine = scan.load()
+    image, label = _reference_on_scan(scan, reference)
     enhanced_img, affine = enhanced
     exterior = head_exterior.array.astype(bool)
-    ref, ref_affine = reference.load()
-    label = resample_nearest(
-        ref, _zyx_affine(ref_affine), image.shape, _zyx_affine(scan_affine)
-    ).astype(bool)
-    if reference.metadata.get("tumor_free") is not True and not label.any():
-        raise InputError(  # the flow names the patient (a scan artifact holds no id)
-            "the reference has no tumour on the slices of the image "
-            "(does it cover the same part of the head?)"
-        )
     det, meta = load_detection(detection, lesion)
     modality = scan.metadata["modality"]
     spacing_mm = scan_spacing_mm(scan)
@@ -108,3 +110,42 @@ def training_rows(
 
 
 SPEC = training_rows
+
+
+def _reference_on_scan(scan: Artifact, reference: Artifact) -> tuple[np.ndarray, np.ndarray]:
+    """The scan's image ``(z, y, x)`` and the reference resampled onto its grid (bool)."""
+    image, scan_affine = scan.load()
+    ref, ref_affine = reference.load()
+    label = resample_nearest(
+        ref, _zyx_affine(ref_affine), image.shape, _zyx_affine(scan_affine)
+    ).astype(bool)
+    if reference.metadata.get("tumor_free") is not True and not label.any():
+        raise InputError(  # the flow names the patient (a scan artifact holds no id)
+            "the reference has no tumour on the slices of the image "
+            "(does it cover the same part of the head?)"
+        )
+    return image, label
+
+
+@stage(
+    "unet-slices",
+    entry=unet_slices,
+    inputs={
+        "scan": Input("scan", "ingest-scan.scan", load=False),
+        "reference": Input("mask", "given:reference", load=False),
+    },
+    outputs={"slices": "training-rows"},
+)
+def unet_training_slices(scan: Artifact, reference: Artifact) -> StageResult:
+    """The patient's U-Net input and target slices (the shipped network's grid)."""
+    image, label = _reference_on_scan(scan, reference)
+    x, y = unet_slices(image, label, UNetSettings())
+    tumour = int(np.sum(y.reshape(len(y), -1).max(axis=1) > 0))
+    counts = {"n_slices": int(len(x)), "n_tumour_slices": tumour}
+    return StageResult(
+        artifacts={"slices": Tagged(slices_to_bytes(x, y), counts)},
+        values={"modality": scan.metadata["modality"], **counts},
+    )
+
+
+UNET_SLICES = unet_training_slices
