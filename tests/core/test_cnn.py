@@ -18,6 +18,7 @@ from tumor3d.learned.cnn import (
     unet_from_bytes,
     unet_logits,
     unet_probability,
+    unet_volume_probability,
 )
 
 
@@ -117,6 +118,12 @@ def test_conv2d_matches_naive_convolution():
     w5 = rng.normal(size=(2, 3, 5, 5)).astype(np.float32)
     got5 = conv2d(np.ascontiguousarray(x.transpose(1, 2, 0)), w5, b[:2]).transpose(2, 0, 1)
     np.testing.assert_allclose(got5, naive_conv(x, w5, b[:2]), rtol=1e-4, atol=1e-4)
+    # a wide input (more than 16 channels: one product per tap, no copy), batched (n, h, w, c)
+    xw = rng.normal(size=(2, 20, 6, 5)).astype(np.float32)
+    got_w = conv2d(np.ascontiguousarray(xw.transpose(0, 2, 3, 1)), w5[:, :1].repeat(20, 1), b[:2])
+    for n in range(2):
+        want = naive_conv(xw[n], w5[:, :1].repeat(20, 1), b[:2])
+        np.testing.assert_allclose(got_w[n].transpose(2, 0, 1), want, rtol=1e-4, atol=1e-4)
 
 
 @pytest.mark.parametrize("levels", [2, 3])
@@ -127,10 +134,11 @@ def test_unet_matches_naive_reference(tmp_path, levels):
     np.savez(path, **a)
     net = unet_from_bytes(path.read_bytes())
     assert net.levels == levels and net.in_channels == 3
-    x = rng.normal(size=(2, 3, 8, 12)).astype(np.float32)
+    # 3 images: the forward pass batches 2 slices at a time, the last batch holds one
+    x = rng.normal(size=(3, 3, 8, 12)).astype(np.float32)
     got = unet_logits(net, x)
     want = np.stack([naive_unet(a, levels, xi) for xi in x])
-    assert got.shape == (2, 8, 12)
+    assert got.shape == (3, 8, 12)
     np.testing.assert_allclose(got, want, rtol=1e-3, atol=1e-3 * np.abs(want).max())
     p = unet_probability(net, x)
     np.testing.assert_allclose(p, np.exp(-np.logaddexp(0.0, -want)), atol=1e-4)
@@ -149,3 +157,54 @@ def test_unet_rejects_bad_input(tmp_path):
     np.savez(tmp_path / "o.npz", w=np.array([{"a": 1}], dtype=object))  # a pickled array
     with pytest.raises(InputError):
         unet_from_bytes((tmp_path / "o.npz").read_bytes())
+
+
+def _npz_bytes(arrays: dict, meta: dict | None = None) -> bytes:
+    import io
+    import json
+
+    buf = io.BytesIO()
+    extra = {}
+    if meta is not None:
+        extra["meta_json"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(buf, **arrays, **extra)
+    return buf.getvalue()
+
+
+def test_weight_file_metadata_sets_the_input_grid_and_the_digest():
+    import hashlib
+
+    a = random_unet(np.random.default_rng(5), cin=5, base=2, levels=2)
+    data = _npz_bytes(a, {"settings": {"size": 16, "context": 2}, "trained_on": "x"})
+    net = unet_from_bytes(data, source="w.npz")
+    assert (net.size, net.context, net.in_channels) == (16, 2, 5)
+    assert net.meta["trained_on"] == "x" and "meta_json" not in net.arrays
+    assert net.sha256 == hashlib.sha256(data).hexdigest()
+    # without metadata: the grid of the cross-validation (128 x 128, one neighbour each side)
+    plain = unet_from_bytes(_npz_bytes(random_unet(np.random.default_rng(5), 3, 2, 2)))
+    assert (plain.size, plain.context, plain.meta) == (128, 1, {})
+    with pytest.raises(InputError, match="w.npz: 5 input channels but context 1"):
+        unet_from_bytes(_npz_bytes(a, {"settings": {"size": 16, "context": 1}}), source="w.npz")
+    del a["dec0_1_b"]
+    with pytest.raises(InputError, match="missing dec0_1_b"):
+        unet_from_bytes(_npz_bytes(a), source="w.npz")
+
+
+def test_volume_probability_is_the_network_on_its_grid_back_on_the_native_one():
+    """Slices (z, y, x) -> case_input at the file's size and context -> the net ->
+    upsample to (y, x): the grids of the cross-validation (tumor3d.learned.cnn_data)."""
+    from tumor3d.learned.cnn_data import case_input, upsample
+
+    rng = np.random.default_rng(6)
+    a = random_unet(rng, cin=3, base=2, levels=2)
+    net = unet_from_bytes(_npz_bytes(a, {"settings": {"size": 12, "context": 1}}))
+    vol = rng.normal(100.0, 20.0, (5, 30, 26)).astype(np.float32)
+    vol[:, :4] = 0.0  # some background
+    got = unet_volume_probability(net, vol)
+    x = case_input(vol, 12, 1).astype(np.float32)
+    small = np.stack([1.0 / (1.0 + np.exp(-naive_unet(a, 2, xi))) for xi in x])
+    want = upsample(small.astype(np.float32), vol.shape)
+    assert got.shape == vol.shape and got.dtype == np.float32
+    np.testing.assert_allclose(got, want, atol=1e-4)
+    with pytest.raises(InputError, match="3-D"):
+        unet_volume_probability(net, vol[0])

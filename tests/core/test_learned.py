@@ -394,3 +394,114 @@ def test_two_stage_model_round_trips_and_finds_an_unseen_phantom_tumour(tiny_two
     )
     with pytest.raises(InputError, match="retrain"):
         segment_learned(scan.image, model=other, **kw)
+
+
+# --------------------------------------------------------------------------- the U-Net beside
+
+
+def _tiny_unet_bytes(seed: int = 0, size: int = 32) -> bytes:
+    """A random 2-level U-Net (base 2, 3 input channels) as weight-file bytes, no torch."""
+    rng = np.random.default_rng(seed)
+    a, c = {}, 3
+    for i, o in enumerate((2, 4)):
+        for j, ci in enumerate((c, o)):
+            a[f"enc{i}_{j}_w"] = rng.normal(0, np.sqrt(2 / (9 * ci)), (o, ci, 3, 3))
+            a[f"enc{i}_{j}_b"] = rng.normal(0, 0.1, o)
+        c = o
+    for j, ci in enumerate((c + 2, 2)):
+        a[f"dec0_{j}_w"] = rng.normal(0, np.sqrt(2 / (9 * ci)), (2, ci, 3, 3))
+        a[f"dec0_{j}_b"] = rng.normal(0, 0.1, 2)
+    a["head_w"] = rng.normal(0, 1.0, (1, 2, 1, 1))
+    a["head_b"] = np.array([0.5])
+    meta = {"settings": {"size": size, "context": 1}}
+    buf = io.BytesIO()
+    arrays = {k: v.astype(np.float32) for k, v in a.items()}
+    np.savez(buf, **arrays, meta_json=np.frombuffer(json.dumps(meta).encode(), np.uint8))
+    return buf.getvalue()
+
+
+def test_with_a_unet_the_probability_is_the_mean_of_the_forest_and_the_network(tiny_model):
+    from tumor3d.learned.cnn import unet_from_bytes, unet_volume_probability
+
+    net = unet_from_bytes(_tiny_unet_bytes())
+    scan, _ = _phantom(7)
+    kw = dict(
+        spacing_mm=scan.spacing_zyx_mm, modality="flair", lr_axis=left_right_axis(scan.affine)
+    )
+    alone = segment_learned(scan.image, model=tiny_model, **kw)
+    both = segment_learned(scan.image, model=tiny_model, cnn=net, **kw)
+    p_net = unet_volume_probability(net, scan.image)
+    assert 0.05 < float(p_net.std())  # the random net is no constant
+    np.testing.assert_allclose(both.probability, 0.5 * (alone.probability + p_net), atol=1e-6)
+    np.testing.assert_array_equal(both.forest_probability, alone.probability)
+    assert alone.forest_probability is None and alone.cnn_probability is None
+    # the same cut and main region as the forest's alone, on the mean
+    voxel_mm3 = float(np.prod(scan.spacing_zyx_mm))
+    want = keep_main_lesion(
+        both.probability, 0.5, keep_fraction=0.3, min_voxels=max(1, round(20.0 / voxel_mm3))
+    )
+    np.testing.assert_array_equal(both.mask, want)
+    with pytest.raises(InputError, match="UNetWeights"):
+        segment_learned(scan.image, model=tiny_model, cnn="net", **kw)
+
+
+def _shipped_from(monkeypatch, tmp_path, data: bytes | None):
+    """shipped.py reading its models from ``tmp_path/models`` (``data``: unet_flair.npz)."""
+    from tumor3d.learned import shipped
+
+    (tmp_path / "models").mkdir()
+    if data is not None:
+        (tmp_path / "models" / "unet_flair.npz").write_bytes(data)
+    monkeypatch.setattr(shipped.resources, "files", lambda package: tmp_path)
+    shipped._load_cnn.cache_clear()
+    return shipped
+
+
+@pytest.mark.parametrize("data", [None, b"not a zip", b"PK\x03\x04 truncated"])
+def test_a_missing_or_corrupt_unet_file_is_one_line_naming_it(monkeypatch, tmp_path, data):
+    shipped = _shipped_from(monkeypatch, tmp_path, data)
+    try:
+        with pytest.raises(InputError) as err:
+            shipped.shipped_cnn("flair")
+        text = str(err.value.problem)
+        assert "\n" not in text and "tumor3d/learned/models/unet_flair.npz" in text
+    finally:
+        shipped._load_cnn.cache_clear()
+
+
+def test_the_unet_serves_flair_only_and_is_read_once(monkeypatch, tmp_path):
+    shipped = _shipped_from(monkeypatch, tmp_path, _tiny_unet_bytes())
+    try:
+        net = shipped.shipped_cnn("FLAIR")
+        assert net is shipped.shipped_cnn("flair") and net.size == 32
+        assert shipped.shipped_cnn("t2") is None and shipped.shipped_cnn("t1c") is None
+    finally:
+        shipped._load_cnn.cache_clear()
+
+
+def test_the_shipped_unet_loads_and_its_bytes_move_the_segment_key(tmp_path):
+    """The U-Net file is data of tumor3d.learned.shipped: its bytes enter the segment
+    stage's code digest (``DATA_FILES``), so other weights recompute."""
+    import hashlib
+    import shutil
+
+    from tumor3d.learned.shipped import shipped_cnn
+    from tumor3d.tasks.caching import PROJECT_ROOT, code_digest, module_closure
+
+    net = shipped_cnn("flair")
+    shipped_file = PROJECT_ROOT / "tumor3d" / "learned" / "models" / "unet_flair.npz"
+    assert net.sha256 == hashlib.sha256(shipped_file.read_bytes()).hexdigest()
+    assert net.in_channels == 2 * net.context + 1 and net.size % 2 ** (net.levels - 1) == 0
+    shutil.copytree(
+        PROJECT_ROOT / "tumor3d", tmp_path / "tumor3d", ignore=shutil.ignore_patterns("__pycache__")
+    )
+    copy = tmp_path / "tumor3d" / "learned" / "models" / "unet_flair.npz"
+    try:
+        before = code_digest(("tumor3d.tasks.segment",), str(tmp_path))
+        copy.write_bytes(copy.read_bytes() + b"\0")
+        code_digest.cache_clear()
+        after = code_digest(("tumor3d.tasks.segment",), str(tmp_path))
+        assert before != after
+    finally:
+        module_closure.cache_clear()
+        code_digest.cache_clear()

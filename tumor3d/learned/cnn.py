@@ -13,32 +13,103 @@ Weights come from the bytes of an ``.npz`` read with ``allow_pickle=False``
 ``enc{i}_{j}_w`` / ``enc{i}_{j}_b`` (encoder level ``i``, convolution
 ``j`` in 0, 1), ``dec{i}_{j}_w`` / ``dec{i}_{j}_b`` (decoder step ``i`` from
 the deepest), ``head_w`` / ``head_b``; weights are ``(out, in, kh, kw)`` as
-PyTorch stores them. Nothing here reads a file.
+PyTorch stores them; optionally ``meta_json``, the UTF-8 bytes (uint8) of a
+JSON object saying what it was trained on (``settings.size`` and
+``settings.context`` set the input grid; 128 and 1 without it). Nothing here
+reads a file.
+
+Speed (``benchmarks/bench_learned.py``): all slices go through each layer
+together, channel-last, in float32; a 3 x 3 convolution is one matrix product
+per kernel tap on the unpadded input (weights laid out once, when loaded) whose
+shifted results are summed, so no padded or column copy of the input is made;
+the matrix products run on one BLAS thread (:func:`single_blas_thread`): BLAS's
+own threads spin and collapse on a shared, loaded machine, and the learned
+method runs the network beside the forest instead
+(:func:`tumor3d.learned.segment.segment_learned`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import glob
+import hashlib
 import io
-from dataclasses import dataclass
+import json
+import os
+import zipfile
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from functools import cache
+from typing import Any
 
 import numpy as np
 
 from tumor3d.errors import InputError
 
-__all__ = ["UNetWeights", "conv2d", "unet_from_bytes", "unet_logits", "unet_probability"]
+__all__ = [
+    "UNetWeights",
+    "conv2d",
+    "single_blas_thread",
+    "unet_from_bytes",
+    "unet_logits",
+    "unet_probability",
+    "unet_volume_probability",
+]
+
+#: Input grid of a weight file without ``meta_json`` (the settings of the CV, run2).
+DEFAULT_SIZE = 128
+DEFAULT_CONTEXT = 1
+
+#: Widest input (channels) a convolution copies into its row's taps side by side: one
+#: product per kernel row beats one per tap there (measured, 31 slices, one thread:
+#: 128 x 128 x 3 -> 8 channels 18 against 40 ms, 8 -> 8 25 against 35 ms; 24 -> 8 68
+#: against 60 ms).
+_ROW_COPY_CHANNELS = 16
+
+#: Slices per batch through the network: 2 ran fastest (the layers stay in cache;
+#: 0.36 CPU-s for 31 slices against 0.45 at 8 and 0.48 at 31), and bound the memory.
+_BATCH_SLICES = 2
+
+
+def _taps(w: np.ndarray) -> np.ndarray:
+    """``(o, i, kh, kw)`` -> ``(kh * kw, i, o)`` float32, one ``(i, o)`` matrix per tap."""
+    o, i, kh, kw = w.shape
+    return np.ascontiguousarray(w.transpose(2, 3, 1, 0).reshape(kh * kw, i, o), np.float32)
 
 
 @dataclass(frozen=True)
 class UNetWeights:
-    """The arrays of one U-Net, by name (see the module docstring), and its depth."""
+    """The arrays of one U-Net, by name (see the module docstring), and its depth.
+
+    ``meta`` is the file's ``meta_json`` (empty without one), ``sha256`` the
+    digest of the bytes it was read from (empty when built from arrays).
+    """
 
     arrays: dict[str, np.ndarray]
     levels: int
+    meta: dict[str, Any] = field(default_factory=dict)
+    sha256: str = ""
+    _taps: dict[str, np.ndarray] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        taps = {k[:-2]: _taps(v) for k, v in self.arrays.items() if k.endswith("_w")}
+        object.__setattr__(self, "_taps", taps)
 
     @property
     def in_channels(self) -> int:
         """Channels of the input (the slice and its neighbours)."""
         return int(self.arrays["enc0_0_w"].shape[1])
+
+    @property
+    def size(self) -> int:
+        """Side of the square grid the slices are resampled to."""
+        return int(self.meta.get("settings", {}).get("size", DEFAULT_SIZE))
+
+    @property
+    def context(self) -> int:
+        """Neighbour slices each side in the input (``in_channels = 2 context + 1``)."""
+        return int(self.meta.get("settings", {}).get("context", DEFAULT_CONTEXT))
 
 
 def unet_from_bytes(data: bytes, *, source: str = "weights") -> UNetWeights:
@@ -49,75 +120,154 @@ def unet_from_bytes(data: bytes, *, source: str = "weights") -> UNetWeights:
     """
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            arrays = {k: np.asarray(z[k], dtype=np.float32) for k in z.files}
-    except (OSError, ValueError) as exc:
+            raw = {k: z[k] for k in z.files}
+        meta = raw.pop("meta_json", None)
+        meta = {} if meta is None else json.loads(np.asarray(meta, np.uint8).tobytes().decode())
+        arrays = {k: np.asarray(v, dtype=np.float32) for k, v in raw.items()}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
         raise InputError(f"{source}: not a readable .npz of plain arrays ({exc})") from exc
     levels = sum(1 for k in arrays if k.startswith("enc") and k.endswith("_0_w"))
-    if levels < 1 or "head_w" not in arrays:
+    if levels < 1 or "head_w" not in arrays or not isinstance(meta, dict):
         raise InputError(f"{source}: not a U-Net weight file (no enc0_0_w / head_w)")
-    return UNetWeights(arrays, levels)
+    needed = [f"{p}{i}_{j}_{t}" for p, n in (("enc", levels), ("dec", levels - 1))
+              for i in range(n) for j in (0, 1) for t in "wb"]  # fmt: skip
+    missing = [k for k in needed + ["head_b"] if k not in arrays]
+    if missing:
+        raise InputError(f"{source}: not a U-Net weight file (missing {', '.join(missing[:3])})")
+    net = UNetWeights(arrays, levels, meta, hashlib.sha256(data).hexdigest())
+    if net.in_channels != 2 * net.context + 1:
+        raise InputError(
+            f"{source}: {net.in_channels} input channels but context {net.context} "
+            f"(2 context + 1 expected)"
+        )
+    return net
 
 
-def conv2d(x: np.ndarray, w: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """'Same' 2-D cross-correlation (zero padding) of channel-last ``x`` (h, w, c).
+@cache
+def _blas_local_threads() -> Any:
+    """OpenBLAS's per-thread thread count setter, if numpy's BLAS is an OpenBLAS >= 0.3.27."""
+    here = os.path.dirname(np.__file__)
+    for lib in sorted(glob.glob(os.path.join(here, os.pardir, "numpy.libs", "*openblas*"))):
+        try:
+            fn = ctypes.CDLL(lib).openblas_set_num_threads_local
+        except (OSError, AttributeError):
+            continue
+        fn.argtypes, fn.restype = [ctypes.c_int], ctypes.c_int
+        return fn
+    return None
 
-    ``w`` is ``(out, in, k, k)`` with odd ``k``; returns ``(h, w, out)``
-    float32. One matrix product over the ``k * k`` shifted copies of ``x``.
+
+@contextlib.contextmanager
+def single_blas_thread() -> Iterator[bool]:
+    """Matrix products of the calling thread on one BLAS thread, within the block.
+
+    Only this thread's setting changes (OpenBLAS's thread-local count, numpy's
+    own OpenBLAS); with another BLAS it does nothing. Yields whether it applied.
+    """
+    fn = _blas_local_threads()
+    if fn is None:
+        yield False
+        return
+    old = fn(1)
+    try:
+        yield True
+    finally:
+        fn(old)
+
+
+def conv2d(x: np.ndarray, w: np.ndarray, b: np.ndarray, *, taps: np.ndarray | None = None):
+    """'Same' 2-D cross-correlation (zero padding) of channel-last ``x`` (..., h, w, c).
+
+    ``w`` is ``(out, in, k, k)`` with odd ``k``; returns ``(..., h, w, out)``
+    float32 (``taps``: ``w`` laid out by tap, as :class:`UNetWeights` keeps it).
+    Each kernel row is one matrix product whose result is added to the output
+    shifted by its row: on the ``k`` column-shifted copies of the input side by
+    side when the input has at most :data:`_ROW_COPY_CHANNELS` channels (one
+    product of ``k * c`` columns), else on the unpadded input itself, one
+    product per tap (no copy of a wide input).
     """
     o, i, kh, kw = w.shape
     if x.shape[-1] != i:
         raise InputError(f"conv2d: input has {x.shape[-1]} channels, weights want {i}")
-    h, wd = x.shape[0], x.shape[1]
-    if kh == 1 and kw == 1:
-        out = x.reshape(-1, i) @ w[:, :, 0, 0].T
-        return (out + b).reshape(h, wd, o).astype(np.float32, copy=False)
+    t = _taps(w) if taps is None else taps
+    x = np.asarray(x, np.float32)
+    h, wd = x.shape[-3], x.shape[-2]
+    out = np.empty((*x.shape[:-1], o), np.float32)
+    out[...] = b
     ph, pw = kh // 2, kw // 2
-    xp = np.pad(x, ((ph, ph), (pw, pw), (0, 0)))
-    cols = np.empty((h, wd, kh, kw, i), np.float32)
-    for dy in range(kh):
+    cols = None
+    if i <= _ROW_COPY_CHANNELS and kw > 1:
+        cols = np.zeros((*x.shape[:-1], kw, i), np.float32)  # the row's taps side by side
         for dx in range(kw):
-            cols[:, :, dy, dx, :] = xp[dy : dy + h, dx : dx + wd, :]
-    wm = np.ascontiguousarray(w.transpose(2, 3, 1, 0).reshape(kh * kw * i, o))
-    out = cols.reshape(h * wd, kh * kw * i) @ wm
-    return (out + b).reshape(h, wd, o).astype(np.float32, copy=False)
+            x0, x1 = max(0, pw - dx), min(wd, wd + pw - dx)
+            cols[..., x0:x1, dx, :] = x[..., x0 + dx - pw : x1 + dx - pw, :]
+        cols = cols.reshape(-1, kw * i)
+    flat = x.reshape(-1, i)
+    for dy in range(kh):
+        y0, y1 = max(0, ph - dy), min(h, h + ph - dy)  # output rows this kernel row reaches
+        if y1 <= y0:
+            continue
+        sy = dy - ph
+        if cols is not None:
+            r = (cols @ t[dy * kw : (dy + 1) * kw].reshape(kw * i, o)).reshape(out.shape)
+            out[..., y0:y1, :, :] += r[..., y0 + sy : y1 + sy, :, :]
+            continue
+        for dx in range(kw):
+            x0, x1 = max(0, pw - dx), min(wd, wd + pw - dx)
+            if x1 <= x0:
+                continue
+            r = (flat @ t[dy * kw + dx]).reshape(out.shape)
+            sx = dx - pw
+            out[..., y0:y1, x0:x1, :] += r[..., y0 + sy : y1 + sy, x0 + sx : x1 + sx, :]
+    return out
 
 
 def _block(x: np.ndarray, net: UNetWeights, name: str) -> np.ndarray:
     a = net.arrays
     for j in (0, 1):
-        x = np.maximum(conv2d(x, a[f"{name}_{j}_w"], a[f"{name}_{j}_b"]), 0.0)
+        k = f"{name}_{j}"
+        x = conv2d(x, a[f"{k}_w"], a[f"{k}_b"], taps=net._taps[k])
+        np.maximum(x, 0.0, out=x)
     return x
 
 
 def _pool(x: np.ndarray) -> np.ndarray:
-    h, w, c = x.shape
-    return x.reshape(h // 2, 2, w // 2, 2, c).max(axis=(1, 3))
+    n, h, w, c = x.shape
+    return x.reshape(n, h // 2, 2, w // 2, 2, c).max(axis=(2, 4))
 
 
 def _up(x: np.ndarray) -> np.ndarray:
-    return np.repeat(np.repeat(x, 2, axis=0), 2, axis=1)
+    return np.repeat(np.repeat(x, 2, axis=1), 2, axis=2)
+
+
+def _forward(net: UNetWeights, x: np.ndarray) -> np.ndarray:
+    """Logits ``(n, h, w)`` of channel-last ``x`` ``(n, h, w, c)``."""
+    h = x
+    skips = []
+    for i in range(net.levels):
+        h = _block(h, net, f"enc{i}")
+        if i < net.levels - 1:
+            skips.append(h)
+            h = _pool(h)
+    for i in range(net.levels - 1):
+        h = _block(np.concatenate([_up(h), skips.pop()], axis=-1), net, f"dec{i}")
+    head = net.arrays["head_w"][:, :, 0, 0]
+    return (h @ head[0] + net.arrays["head_b"][0]).astype(np.float32)
 
 
 def unet_logits(net: UNetWeights, images: np.ndarray) -> np.ndarray:
-    """Logits ``(n, h, w)`` of ``images`` ``(n, c, h, w)``, one image at a time."""
-    x = np.asarray(images, dtype=np.float32)
+    """Logits ``(n, h, w)`` of images ``(n, c, h, w)``, a few slices at a time."""
+    x = np.asarray(images)
     if x.ndim != 4 or x.shape[1] != net.in_channels:
         raise InputError(f"images must be (n, {net.in_channels}, h, w), got shape {tuple(x.shape)}")
     m = 2 ** (net.levels - 1)
     if x.shape[2] % m or x.shape[3] % m:
         raise InputError(f"image size {x.shape[2:]} must be divisible by {m}")
     out = np.empty((x.shape[0], x.shape[2], x.shape[3]), np.float32)
-    for n in range(x.shape[0]):
-        h = np.ascontiguousarray(x[n].transpose(1, 2, 0))
-        skips = []
-        for i in range(net.levels):
-            h = _block(h, net, f"enc{i}")
-            if i < net.levels - 1:
-                skips.append(h)
-                h = _pool(h)
-        for i in range(net.levels - 1):
-            h = _block(np.concatenate([_up(h), skips.pop()], axis=-1), net, f"dec{i}")
-        out[n] = conv2d(h, net.arrays["head_w"], net.arrays["head_b"])[..., 0]
+    with single_blas_thread():
+        for s in range(0, x.shape[0], _BATCH_SLICES):
+            part = np.ascontiguousarray(x[s : s + _BATCH_SLICES].transpose(0, 2, 3, 1), np.float32)
+            out[s : s + _BATCH_SLICES] = _forward(net, part)
     return out
 
 
@@ -125,3 +275,20 @@ def unet_probability(net: UNetWeights, images: np.ndarray) -> np.ndarray:
     """Sigmoid of :func:`unet_logits`, float32 in [0, 1]."""
     z = unet_logits(net, images)
     return (0.5 * (1.0 + np.tanh(0.5 * z))).astype(np.float32)
+
+
+def unet_volume_probability(net: UNetWeights, image: np.ndarray) -> np.ndarray:
+    """The network's lesion probability of every voxel of ``image`` ``(z, y, x)``, in [0, 1].
+
+    The slices as acquired go in on the grid the network was trained on
+    (:func:`tumor3d.learned.cnn_data.case_input` at the file's size and
+    context) and come back bilinearly to the native grid
+    (:func:`tumor3d.learned.cnn_data.upsample`), as in the cross-validation.
+    """
+    from tumor3d.learned.cnn_data import case_input, upsample
+
+    img = np.asarray(image)
+    if img.ndim != 3 or min(img.shape) < 1:
+        raise InputError(f"image must be 3-D (z, y, x), got shape {img.shape}")
+    prob = unet_probability(net, case_input(img, net.size, net.context))
+    return upsample(prob, img.shape)

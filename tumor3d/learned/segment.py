@@ -5,19 +5,24 @@
 (:mod:`tumor3d.learned.forest`), and keeps the connected 3-D region of
 pixels above the model's threshold that carries the most probability, with
 any other region carrying at least ``keep_fraction`` of it (a multifocal
-lesion); holes are filled per slice. It also returns the probability
-volume (per-voxel confidence, written as a NIfTI by the stage) and the
-figures :func:`tumor3d.learned.review.review_segmentation` judges.
+lesion); holes are filled per slice. Given a U-Net
+(:mod:`tumor3d.learned.cnn`), the probability is the mean of the forest's and
+the network's, computed in a thread beside the forest, before the same cut and
+region (as cross-validated, ``reports/learned_cv.md``). It also returns the
+probability volume (per-voxel confidence, written as a NIfTI by the stage) and
+the figures :func:`tumor3d.learned.review.review_segmentation` judges.
 """
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError
+from tumor3d.learned.cnn import UNetWeights, unet_volume_probability
 from tumor3d.learned.context import CONTEXT_NAMES, context_features
 from tumor3d.learned.features import FEATURE_NAMES, compute_features
 from tumor3d.learned.forest import ForestModel, predict_proba
@@ -36,14 +41,19 @@ class LearnedSegmentation:
     mask : (z, y, x) ndarray of bool
         The lesion.
     probability : (z, y, x) ndarray of float32
-        The model's lesion probability (0 outside the tissue).
+        The model's lesion probability (the forest's is 0 outside the tissue);
+        with a U-Net, the mean of the forest's and the network's.
     threshold : float
         The probability cut that made ``mask``.
+    forest_probability, cnn_probability : (z, y, x) ndarray of float32 or None
+        With a U-Net: the two probabilities that were averaged (None without).
     """
 
     mask: np.ndarray
     probability: np.ndarray
     threshold: float
+    forest_probability: np.ndarray | None = None
+    cnn_probability: np.ndarray | None = None
 
 
 def keep_main_lesion(
@@ -95,6 +105,7 @@ def segment_learned(
     threshold: float | None = None,
     keep_fraction: float | None = None,
     prior: np.ndarray | None = None,
+    cnn: UNetWeights | None = None,
 ) -> LearnedSegmentation:
     """Segment one patient's lesion with a trained forest.
 
@@ -115,6 +126,12 @@ def segment_learned(
     prior : (z, y, x) ndarray of bool, optional
         The rule-based lesion of the same slices (the robust method's mask),
         a feature of the model (:func:`~tumor3d.learned.features.compute_features`).
+    cnn : UNetWeights, optional
+        A U-Net (:func:`tumor3d.learned.shipped.shipped_cnn`): the probability
+        becomes the mean of the forest's and the network's
+        (:func:`~tumor3d.learned.cnn.unet_volume_probability`, computed in a
+        thread beside the features and the forest), cut and kept as the
+        forest's alone would be. None: the forest alone.
 
     Returns
     -------
@@ -132,6 +149,50 @@ def segment_learned(
                 "the model was trained on other features than this version of tumor3d "
                 "computes; retrain it (tumor3d train)"
             )
+    if cnn is not None and not isinstance(cnn, UNetWeights):
+        raise InputError(f"cnn must be a UNetWeights or None, got {type(cnn).__name__}")
+    args = (image, model, spacing_mm, modality, lr_axis, threshold, keep_fraction, prior)
+    p_cnn = None
+    if cnn is None:
+        forest = _forest(*args)
+        prob = forest.probability
+    else:
+        # the network holds the GIL little (matrix products, numpy): it runs beside the forest
+        with ThreadPoolExecutor(1, thread_name_prefix="tumor3d-unet") as pool:
+            net = pool.submit(unet_volume_probability, cnn, image)
+            forest = _forest(*args)
+            p_cnn = net.result()
+        prob = (0.5 * (forest.probability + p_cnn)).astype(np.float32)
+    mask = keep_main_lesion(
+        prob, forest.threshold, keep_fraction=forest.keep_fraction, min_voxels=forest.min_voxels
+    )
+    both = p_cnn is not None
+    return LearnedSegmentation(
+        mask, prob, forest.threshold, forest.probability if both else None, p_cnn
+    )
+
+
+@dataclass(frozen=True)
+class _Forest:
+    """The forest's probability, its cut, keep fraction and least region (voxels)."""
+
+    probability: np.ndarray
+    threshold: float
+    keep_fraction: float
+    min_voxels: int
+
+
+def _forest(
+    image: np.ndarray,
+    model: ForestModel,
+    spacing_mm: tuple[float, float, float],
+    modality: str,
+    lr_axis: int | None,
+    threshold: float | None,
+    keep_fraction: float | None,
+    prior: np.ndarray | None,
+) -> _Forest:
+    """The forest's probability (both stages, auto-context), cut, keep fraction, least region."""
     t_model = float(model.meta.get("threshold", 0.5))
     kf_model = float(model.meta.get("keep_fraction", 0.3))
     t = t_model if threshold is None else float(threshold)
@@ -152,5 +213,4 @@ def segment_learned(
         )
         prob = np.zeros(feats.shape, dtype=np.float32)
         prob.ravel()[feats.index] = predict_proba(model.context, np.hstack([feats.values, ctx]))
-    mask = keep_main_lesion(prob, t, keep_fraction=kf, min_voxels=min_voxels)
-    return LearnedSegmentation(mask, prob, t)
+    return _Forest(prob, t, kf, min_voxels)

@@ -7,22 +7,38 @@ user's path or an artifact store.
 Each model is an ``.npz`` of plain arrays plus JSON metadata
 (:meth:`tumor3d.learned.forest.ForestModel.from_bytes`, ``allow_pickle=False``)
 in ``tumor3d/learned/models/``: ``hyper.npz`` (FLAIR and T2, whole tumour)
-and ``t1c.npz`` (T1c, tumour core). Their bytes enter the segment stage's
-cache key (``tumor3d.tasks.caching.DATA_FILES``), so a retrained model recomputes.
+and ``t1c.npz`` (T1c, tumour core). Beside them, ``unet_flair.npz``: a 2-D
+U-Net (:mod:`tumor3d.learned.cnn`, weights only, read without pickle) trained
+on FLAIR alone, whose probability the learned method averages with the
+forest's on FLAIR (``segment.learned_cnn``). Their bytes enter the segment
+stage's cache key (``tumor3d.tasks.caching.DATA_FILES``), so a retrained model
+recomputes.
 """
 
 from __future__ import annotations
 
 from functools import cache
 from importlib import resources
+from typing import Any
 
 from tumor3d.errors import InputError
+from tumor3d.learned.cnn import UNetWeights, unet_from_bytes
 from tumor3d.learned.forest import ForestModel
 
-__all__ = ["MODEL_FAMILIES", "model_family", "shipped_model"]
+__all__ = [
+    "CNN_MODELS",
+    "MODEL_FAMILIES",
+    "learned_models",
+    "model_family",
+    "shipped_cnn",
+    "shipped_model",
+]
 
 #: Which shipped model serves which sequence.
 MODEL_FAMILIES: dict[str, str] = {"flair": "hyper", "t2": "hyper", "t1c": "t1c"}
+
+#: Which sequences have a shipped U-Net (trained on FLAIR only), and its file's stem.
+CNN_MODELS: dict[str, str] = {"flair": "unet_flair"}
 
 
 def model_family(modality: str) -> str:
@@ -55,3 +71,37 @@ def _load(family: str) -> ForestModel:
 def shipped_model(modality: str) -> ForestModel:
     """The shipped model for ``modality`` (read once per process)."""
     return _load(model_family(modality))
+
+
+@cache
+def _load_cnn(name: str) -> UNetWeights:
+    where = f"tumor3d/learned/models/{name}.npz"
+    ref = resources.files("tumor3d.learned").joinpath("models", f"{name}.npz")
+    try:
+        data = ref.read_bytes()
+    except (FileNotFoundError, OSError) as exc:
+        raise InputError(
+            f"the U-Net {where} is not installed: reinstall tumor3d or set segment.learned_cnn: off"
+        ) from exc
+    return unet_from_bytes(data, source=where)
+
+
+def shipped_cnn(modality: str) -> UNetWeights | None:
+    """The shipped U-Net for ``modality`` (read once per process); None where there is none.
+
+    >>> shipped_cnn("t2") is None
+    True
+    """
+    name = CNN_MODELS.get(str(modality).strip().lower())
+    return None if name is None else _load_cnn(name)
+
+
+def learned_models(modality: str, learned_cnn: str = "auto") -> dict[str, Any]:
+    """The learned method's ``model`` and ``cnn`` keywords for ``modality``.
+
+    ``cnn`` is the shipped U-Net where ``learned_cnn`` is ``"auto"`` and one is
+    shipped for the sequence (:data:`CNN_MODELS`), else None (the forest alone).
+    One rule for the segment stage and :func:`tumor3d.api.reconstruct_scan`.
+    """
+    cnn = shipped_cnn(modality) if learned_cnn == "auto" else None
+    return {"model": shipped_model(modality), "cnn": cnn}

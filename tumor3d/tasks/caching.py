@@ -99,6 +99,7 @@ DATA_FILES: dict[str, tuple[str, ...]] = {
     "tumor3d.learned.shipped": (
         "tumor3d/learned/models/hyper.npz",
         "tumor3d/learned/models/t1c.npz",
+        "tumor3d/learned/models/unet_flair.npz",
     ),
 }
 
