@@ -130,14 +130,36 @@ def test_cohort_table_artifact_is_on_the_cohort_flow_run(first):
     assert [r["status"] for r in rows] == ["ok", "failed", "ok", "ok"]
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="KNOWN BUG, open: in the full suite a cohort re-run with 2 lanes sometimes misses "
-    "the cache for 1-3 random stages of one patient (no repair reason: Prefect found no "
-    "record); passes when this file runs alone. Not the in-memory LRU (disabled). Since "
-    "the runner names a miss whose record file existed (Prefect's ResultStore.exists() "
-    "swallows read errors), a repaired=None miss means no record at that key at all.",
-)
+def test_the_flow_run_is_tagged_and_its_stage_task_runs_are_not(first):
+    """The ``config:``/``cohort`` tags stay on the flow run: a tagged task run costs a
+    round trip to the server for tag concurrency slots, every stage of every patient."""
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import (
+        ArtifactFilter,
+        ArtifactFilterKey,
+        FlowRunFilter,
+        FlowRunFilterId,
+    )
+
+    from tumor3d.config import parse_config
+    from tumor3d.flows.artifacts import artifact_key
+    from tumor3d.flows.patient import config_digest
+
+    out, _ = first
+    key = artifact_key("tumor3d", "cohort", out.name)
+    with get_client(sync_client=True) as client:
+        (art,) = client.read_artifacts(
+            artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=[key]))
+        )
+        run = client.read_flow_run(art.flow_run_id)
+        task_runs = client.read_task_runs(
+            flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[run.id])), limit=200
+        )
+    assert set(run.tags) == {"cohort", f"config:{config_digest(parse_config({}))[:12]}"}
+    assert len(task_runs) == 3 * len(STAGES)  # three patients published, ghost ran none
+    assert [t.tags for t in task_runs if t.tags] == []
+
+
 def test_rerun_is_all_cache_hits_and_a_new_patient_computes_alone(first, inputs):
     out, result = first
     folder, rows, _ = inputs

@@ -291,6 +291,8 @@ def cohort_flow(
     if removed:
         logger.warning("%d published patient(s) no longer in the manifest, kept: %s",
                        len(removed), ", ".join(removed))  # fmt: skip
+    for spec in stages.STAGES.values():  # per-process constants, once, before the lanes start
+        _ = spec.code_digest
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="tumor3d-lane") as pool:
         lane = functools.partial(
             _run_one, out_dir=out_dir, cfg=cfg, store=store, max_voxels=max_voxels, layout=layout

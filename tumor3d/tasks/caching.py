@@ -46,8 +46,9 @@ from __future__ import annotations
 import ast
 import hashlib
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import cache
+from functools import cache, wraps
 from pathlib import Path
 from typing import Any
 
@@ -132,6 +133,33 @@ def _syntax_digest_of(name: str, path: Path, root: Path) -> str:
 #: depth is shared state: ``SystemError: AST constructor recursion depth mismatch``,
 #: python/cpython#106905), and a cohort's lanes compute code digests concurrently.
 _AST_LOCK = threading.Lock()
+
+#: One lock for the per-process digests (:func:`module_closure`, :func:`code_digest`,
+#: :func:`closure_packages`): a cohort's lanes and task threads ask for them at once.
+_DIGEST_LOCK = threading.RLock()
+
+
+def _once_per_process(fn: Callable[..., Any]) -> Any:
+    """``functools.cache`` whose first computation of a key is the only one.
+
+    With plain ``cache`` two threads that miss at once both compute and the last to
+    finish is kept: if a source file changes between their reads (an edit during a
+    run), two lanes key the same stage differently within one process and the cache
+    record one wrote is never found again (issue 32's intermittent re-run misses).
+    Here the computation runs under :data:`_DIGEST_LOCK`, so every caller of a key in
+    a process sees the value the first one computed. ``cache_clear`` as ``cache``'s.
+    """
+    cached = cache(fn)
+
+    @wraps(fn)
+    def once(*args: Any, **kwargs: Any) -> Any:
+        with _DIGEST_LOCK:
+            return cached(*args, **kwargs)
+
+    once.cache_clear = cached.cache_clear  # type: ignore[attr-defined]
+    once.cache_info = cached.cache_info  # type: ignore[attr-defined]
+    return once
+
 
 _DOCSTRING_OWNERS = (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)
 
@@ -293,7 +321,7 @@ def _parse_module(name: str, path_str: str, root_str: str, source: bytes) -> _Mo
     )
 
 
-@cache
+@_once_per_process
 def module_closure(roots: tuple[str, ...], root: str | None = None) -> tuple[str, ...]:
     """All project modules that importing ``roots`` executes, sorted.
 
@@ -350,7 +378,7 @@ def module_closure(roots: tuple[str, ...], root: str | None = None) -> tuple[str
     return tuple(sorted(seen))
 
 
-@cache
+@_once_per_process
 def code_digest(
     roots: tuple[str, ...], root: str | None = None, *, include_codecs: bool = False
 ) -> str:
@@ -382,7 +410,7 @@ def code_digest(
     return h.hexdigest()
 
 
-@cache
+@_once_per_process
 def closure_packages(roots: tuple[str, ...], root: str | None = None) -> tuple[str, ...]:
     """The numerical distributions the closure of ``roots`` imports, sorted.
 
