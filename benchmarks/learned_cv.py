@@ -51,11 +51,13 @@ from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.evaluation.metrics import dice  # noqa: E402
 from tumor3d.geometry.interpolate import interpolate_stack  # noqa: E402
 from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
+from tumor3d.learned.cnn import unet_from_bytes  # noqa: E402
 from tumor3d.learned.context import context_features  # noqa: E402
 from tumor3d.learned.features import compute_features  # noqa: E402
 from tumor3d.learned.forest import predict_proba  # noqa: E402
 from tumor3d.learned.review import review_features  # noqa: E402
-from tumor3d.learned.segment import keep_main_lesion  # noqa: E402
+from tumor3d.learned.segment import keep_main_lesion, segment_learned  # noqa: E402
+from tumor3d.learned.shipped import CNN_MODELS  # noqa: E402
 from tumor3d.learned.training import (  # noqa: E402
     TrainingRows,
     sample_indices,
@@ -308,13 +310,32 @@ def prepare(spec: CaseSpec, cfg, with_prior: bool = False) -> Prepared:
     )
 
 
+def _prepare_config_json(cfg) -> str:
+    """The configuration :func:`prepare` reads (preprocess, detect, segment), as JSON.
+
+    The cache key: sections the preparation never reads (interpolation, mesh,
+    rendering) and ``segment.learned_cnn`` (the learned method's option, not
+    the robust prior's) do not move it.
+    """
+    seg = cfg.segment.model_dump()
+    seg.pop("learned_cnn", None)
+    return json.dumps(
+        {
+            "preprocess": cfg.preprocess.model_dump(),
+            "detect": cfg.detect.model_dump(),
+            "segment": seg,
+        },
+        sort_keys=True,
+    )
+
+
 def cached_prepare(spec: CaseSpec, cfg, with_prior: bool, cache: str | None) -> Prepared:
     """:func:`prepare`, kept as arrays in ``cache`` (``np.load`` without pickle)."""
     if cache is None:
         return prepare(spec, cfg, with_prior)
     import hashlib
 
-    tag = hashlib.sha256(cfg.model_dump_json().encode()).hexdigest()[:10]
+    tag = hashlib.sha256(_prepare_config_json(cfg).encode()).hexdigest()[:10]
     path = Path(cache) / f"{spec.name.replace('/', '__')}-{tag}-{int(with_prior)}.npz"
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
@@ -502,6 +523,15 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--save-prob", default=None, help="folder for out-of-fold probabilities")
     ap.add_argument(
+        "--cnn-folds",
+        default=None,
+        metavar="DIR",
+        help="learned: score fold k through the pipeline's segment_learned with the U-Net "
+        "DIR/unet_fold{k}.npz (benchmarks/cnn_cv.py, same folds; trained without fold k) "
+        "on the sequences that ship one (tumor3d.learned.shipped.CNN_MODELS: FLAIR), "
+        "its probability averaged with the forest's; the other sequences: the forest alone",
+    )
+    ap.add_argument(
         "--auto-context",
         action="store_true",
         help="learned: a second forest on the features plus context features of the "
@@ -534,6 +564,8 @@ def main(argv=None) -> int:
             if args.cv_rows or args.train_offsets != [OFFSET]:
                 ap.error("--auto-context runs its own cross-validation at offset 2 only")
             rows = run_auto_context_cv(preps, folds, args, cfg)
+        elif args.cnn_folds and (args.cv_rows or args.final):
+            ap.error("--cnn-folds scores the fold nets: without --cv-rows and --final")
         elif args.cv_rows:  # the cross-validation of an earlier run of the same command
             rows = json.loads(Path(args.cv_rows).read_text())
         else:
@@ -573,24 +605,44 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
                     f"{time.perf_counter() - t1:.0f} s",
                     flush=True,
                 )
+        cnn = _fold_cnn(args.cnn_folds, k) if args.cnn_folds else None
         for p in held:
             fam = "t1c" if p.spec.modality == "t1c" else "hyper"
-            f = _features(p)
-            prob = np.zeros(f.shape, np.float32)
-            prob.ravel()[f.index] = predict_proba(models[fam], f.values)
+            parts = {}
+            if args.cnn_folds:  # the pipeline's own call (tumor3d/segmentation/segment/learned.py)
+                seg = segment_learned(
+                    p.image,
+                    model=models[fam],
+                    spacing_mm=p.spacing_mm,
+                    modality=p.spec.modality,
+                    lr_axis=p.lr_axis,
+                    threshold=_threshold(args, fam),
+                    keep_fraction=args.keep_fraction,
+                    prior=p.prior,
+                    cnn=cnn if p.spec.modality in CNN_MODELS else None,
+                )
+                prob, mask = seg.probability, seg.mask.copy()
+                if seg.cnn_probability is not None:
+                    parts = {"forest": seg.forest_probability, "cnn": seg.cnn_probability}
+            else:
+                f = _features(p)
+                prob = np.zeros(f.shape, np.float32)
+                prob.ravel()[f.index] = predict_proba(models[fam], f.values)
+                vox = float(np.prod(p.spacing_mm))
+                mask = keep_main_lesion(
+                    prob,
+                    _threshold(args, fam),
+                    keep_fraction=args.keep_fraction,
+                    min_voxels=max(1, int(round(20.0 / vox))),
+                )
             if args.save_prob:
                 d = Path(args.save_prob)
                 d.mkdir(parents=True, exist_ok=True)
                 np.savez_compressed(
-                    d / (p.spec.name.replace("/", "__") + ".npz"), prob=prob.astype(np.float16)
+                    d / (p.spec.name.replace("/", "__") + ".npz"),
+                    prob=prob.astype(np.float16),
+                    **{k: v.astype(np.float16) for k, v in parts.items()},
                 )
-            vox = float(np.prod(p.spacing_mm))
-            mask = keep_main_lesion(
-                prob,
-                _threshold(args, fam),
-                keep_fraction=args.keep_fraction,
-                min_voxels=max(1, int(round(20.0 / vox))),
-            )
             # as the pipeline (segment.min_tumor_pixels): small slice masks are cleared
             mask[mask.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
             row = score(p, mask, cfg)
@@ -606,6 +658,14 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
 
 
 FAMILIES = (("hyper", ("flair", "t2")), ("t1c", ("t1c",)))
+
+
+def _fold_cnn(folder: str, k: int):
+    """The U-Net of fold ``k`` (``folder/unet_fold{k}.npz``), read as the pipeline reads its own."""
+    path = Path(folder) / f"unet_fold{k}.npz"
+    cnn = unet_from_bytes(path.read_bytes(), source=str(path))
+    print(f"fold {k}: U-Net {path} (SHA-256 {cnn.sha256[:12]}...)", flush=True)
+    return cnn
 
 
 def _family(p: Prepared) -> str:

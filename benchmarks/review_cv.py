@@ -86,35 +86,55 @@ def choose(rows: list[dict]) -> dict:
     }
 
 
-def main(argv=None) -> int:
-    args = sys.argv[1:] if argv is None else argv
-    rows = [r for r in json.loads(Path(args[0]).read_text()) if np.isfinite(r["vol_err"])]
+def cross_validate(rows: list[dict]) -> dict:
+    """Limits chosen fold by fold on the other folds, judged on the held-out fold.
+
+    Returns ``lines`` (the printed report), ``all`` and ``real`` (every case;
+    the cases but the phantoms): ``(share of the > 25 % cases flagged, share of
+    the within-10 % cases flagged, number of each)``, ``fold_limits`` and
+    ``final`` (the limits chosen on every case).
+    """
+    rows = [r for r in rows if np.isfinite(r["vol_err"])]
     folds = sorted({r["fold"] for r in rows})
     held_flags = np.zeros(len(rows), bool)
+    lines, fold_limits = [], {}
     for k in folds:
         train = [r for r in rows if r["fold"] != k]
-        lim = choose(train)
+        lim = fold_limits[k] = choose(train)
         idx = [i for i, r in enumerate(rows) if r["fold"] == k]
         held_flags[idx] = flags([rows[i] for i in idx], lim)
-        print(f"fold {k}: limits {lim}")
-    caught, false, n_bad, n_good = rates(rows, held_flags)
-    print(
+        lines.append(f"fold {k}: limits {lim}")
+    caught, false, n_bad, n_good = every = rates(rows, held_flags)
+    lines.append(
         f"\ncross-validated: {caught:.0%} of {n_bad} cases off by > 25 % flagged; "
         f"{false:.0%} of {n_good} within 10 % flagged"
     )
     for g in sorted({r["group"] for r in rows}):
         sel = [i for i, r in enumerate(rows) if r["group"] == g]
         c, fl, nb, ng = rates([rows[i] for i in sel], held_flags[sel])
-        print(f"  {g}: {c:.0%} of {nb} > 25 % flagged, {fl:.0%} of {ng} within 10 % flagged")
+        lines.append(f"  {g}: {c:.0%} of {nb} > 25 % flagged, {fl:.0%} of {ng} within 10 % flagged")
     real = [i for i, r in enumerate(rows) if r["group"] != "phantom"]
+    real_rates = caught, false, n_bad, n_good = rates([rows[i] for i in real], held_flags[real])
     if len(real) < len(rows):
-        c, fl, nb, ng = rates([rows[i] for i in real], held_flags[real])
-        print(
-            f"  real cases only: {c:.0%} of {nb} > 25 % flagged, {fl:.0%} of {ng} within 10 % "
-            "flagged"
+        lines.append(
+            f"  real cases only: {caught:.0%} of {n_bad} > 25 % flagged, {false:.0%} of "
+            f"{n_good} within 10 % flagged"
         )
     final = choose(rows)
-    print(f"\nfinal limits (every case): {final}")
+    lines.append(f"\nfinal limits (every case): {final}")
+    return {
+        "lines": lines,
+        "all": every,
+        "real": real_rates,
+        "fold_limits": fold_limits,
+        "final": final,
+    }
+
+
+def main(argv=None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    out = cross_validate(json.loads(Path(args[0]).read_text()))
+    print("\n".join(out["lines"]))
     return 0
 
 
