@@ -19,8 +19,12 @@ Reported:
   inside its task);
 * the same against the direct peer, ``1 - (direct / W) / wall`` (the ideal
   wall time if the W lanes ran on W free cores);
-* where the overhead goes: per stage, submission-to-result wall time minus
-  compute time (Prefect orchestration, result persistence), and publishing;
+* where the overhead goes, summed over the patients: per stage,
+  submission-to-result wall time minus compute time (Prefect's task run,
+  result persistence); publishing (``PatientOutcome.publish_seconds``: the
+  products read back, the files encoded and written); the rest of each lane
+  (the input's digest, the runner's bookkeeping); lanes idle at the end;
+* the same share without publishing, ``1 - (compute + publish) / (W x wall)``;
 * the cached re-run as a fraction of the cold time.
 
 The temporary Prefect server is started once beforehand; its start-up is
@@ -114,6 +118,12 @@ def main() -> None:
     direct_share = 1.0 - (direct_s / args.workers) / cold_s
     orch_total = sum(orchestration.values())
     rest = lane_total - lane_stage_wall  # publishing, input digests, flow set-up, idle lanes
+    publish_total = sum(p.publish_seconds for p in cold.patients)
+    lane_busy = sum(p.lane_seconds for p in cold.patients)
+    prepare_total = lane_busy - lane_stage_wall - publish_total
+    idle_total = lane_total - lane_busy
+    no_publish_share = 1.0 - (compute_total + publish_total) / lane_total
+    n = args.n
     commit = subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
     ).stdout.strip()
@@ -140,6 +150,14 @@ def main() -> None:
         f"{100 * direct_share:.1f} % |",
         f"| Prefect per-task overhead (stage wall - compute), summed (s) | {orch_total:.1f} |",
         f"| lane time outside stage tasks (prepare, publish, idle lanes) (s) | {rest:.1f} |",
+        f"| of which publishing, summed (s; per patient) | {publish_total:.1f}; "
+        f"{publish_total / n:.2f} |",
+        f"| of which input digest and runner bookkeeping, summed (s; per patient) | "
+        f"{prepare_total:.1f}; {prepare_total / n:.2f} |",
+        f"| of which lanes idle (the last patients), summed (s) | {idle_total:.1f} |",
+        f"| Prefect per-task overhead per patient (s) | {orch_total / n:.2f} |",
+        f"| share without publishing, 1 - (compute + publish) / (workers x wall) | "
+        f"{100 * no_publish_share:.1f} % |",
         f"| Prefect temporary server start-up, excluded (s) | {server_s:.1f} |",
         "",
         "| stage | compute, all patients (s) | orchestration, all patients (s) |",

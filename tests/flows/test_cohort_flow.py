@@ -71,6 +71,19 @@ def test_failed_row_is_isolated_and_the_others_publish(first):
     assert not [q for q in out.iterdir() if ".partial-" in q.name or ".old-" in q.name]
 
 
+def test_each_lane_times_its_patient_stages_and_publishing(first):
+    """What the cohort benchmark splits a lane's time into: stages, publishing, the rest."""
+    _, result = first
+    for p in result.patients:
+        stage_wall = sum(s.wall_seconds for s in p.stages)
+        assert p.lane_seconds <= result.wall_seconds
+        if p.status == "failed":  # ghost: no stage, nothing published
+            assert p.publish_seconds == 0.0 and p.stages == [] and 0 < p.lane_seconds
+        else:
+            assert 0 < p.publish_seconds and stage_wall > 0
+            assert stage_wall + p.publish_seconds < p.lane_seconds
+
+
 def test_cohort_table_and_report(first):
     out, result = first
     table = pd.read_parquet(out / "cohort.parquet")

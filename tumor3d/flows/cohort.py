@@ -106,6 +106,10 @@ class PatientOutcome(BaseModel):
         The stages that completed.
     row : dict
         The manifest row as given (extra columns passed through).
+    lane_seconds : float
+        Time the patient's lane spent on it: preparing, every stage, publishing.
+    publish_seconds : float
+        Of which publishing (:attr:`tumor3d.flows.patient.PatientResult.publish_seconds`).
     """
 
     model_config = ConfigDict(frozen=True)
@@ -118,6 +122,8 @@ class PatientOutcome(BaseModel):
     metrics: dict[str, Any] = Field(default_factory=dict)
     stages: list[StageRun] = Field(default_factory=list)
     row: dict[str, Any] = Field(default_factory=dict)
+    lane_seconds: float = 0.0
+    publish_seconds: float = 0.0
 
 
 class CohortResult(BaseModel):
@@ -197,6 +203,7 @@ def _run_one(
     layout: str = "default",
 ) -> PatientOutcome:
     """One lane: prepare, run every stage, publish; any failure becomes an outcome."""
+    t0 = time.perf_counter()
     pid = str(row.get("patient_id"))
     names = list(stages.STAGES)
     runs: list[StageRun] = []
@@ -225,13 +232,14 @@ def _run_one(
         report(ProgressEvent(pid, stage, "failed", done, len(names)))
         return PatientOutcome(
             patient_id=pid, status=STATUS_FAILED, failed_stage=stage, error=one_line_error(exc),
-            stages=list(runs), row=_json_row(row),
+            stages=list(runs), row=_json_row(row), lane_seconds=time.perf_counter() - t0,
         )  # fmt: skip
     report(ProgressEvent(pid, "published", "published", len(names), len(names)))
     return PatientOutcome(
         patient_id=pid, status=str(result.metrics.get("status", STATUS_OK)),
         output_dir=result.output_dir, metrics=result.metrics,
-        stages=result.stages, row=_json_row(row),
+        stages=result.stages, row=_json_row(row), lane_seconds=time.perf_counter() - t0,
+        publish_seconds=result.publish_seconds,
     )  # fmt: skip
 
 

@@ -75,6 +75,7 @@ __all__ = [
     "run_stages_direct",
 ]
 
+
 class PatientResult(BaseModel):
     """What :func:`patient_flow` returns: where the outputs are and the headline numbers."""
 
@@ -85,6 +86,8 @@ class PatientResult(BaseModel):
     metrics: dict[str, Any]
     stages: list[StageRun]
     flow_seconds: float
+    #: Time spent publishing (reading the products back, encoding and writing the files).
+    publish_seconds: float = 0.0
     notes: list[str] = []
     #: The content of ``report.html`` (:func:`tumor3d.storage.patient_outputs.patient_report_data`).
     report: dict[str, Any] = {}
@@ -249,13 +252,15 @@ def patient_pipeline(
     notes, doubts = run_notes(outputs, brain_mask, segmentation)
     review = review_status(doubts, segmentation=outputs["segment-tumor"].values)
     metrics = metrics_row(outputs, runner.runs, pid, flow_seconds, notes, review)
+    t_publish = time.perf_counter()
     out_path, report, up_to_date = publish_results(
         store, out_dir, source, outputs, runner.runs, metrics, cfg, brain_mask, segmentation,
         layout=layout,
     )  # fmt: skip
     return PatientResult(
         patient_id=pid, output_dir=str(out_path), metrics=metrics, stages=runner.runs,
-        flow_seconds=flow_seconds, notes=notes, report=report, up_to_date=up_to_date,
+        flow_seconds=flow_seconds, publish_seconds=time.perf_counter() - t_publish, notes=notes,
+        report=report, up_to_date=up_to_date,
     )  # fmt: skip
 
 
