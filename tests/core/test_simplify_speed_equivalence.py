@@ -11,7 +11,11 @@
   from a gathered star, a stale candidate removed from the heap, recomputed
   and pushed back), kept as the reference of what the faster loop (one walk
   for gather and curvature, the stale top re-keyed in place and collapsed at
-  once when it stays on top) must reproduce;
+  once when it stays on top, the cache prefetches of the next pops) must
+  reproduce;
+* the prefetch hint reads nothing into the program: a kernel with and
+  without it returns the same values and leaves the arrays as they were,
+  also for an index outside the array;
 * Eq. 3 as the engine computes it (one ``atan2`` of a running complex
   product for the angle sum, ``beta`` from ``det`` and Cephes' arctangent)
   agrees with the textbook sums (one ``atan2`` per face angle, ``acos`` of the
@@ -329,3 +333,28 @@ def _closed_fan(F: np.ndarray, n: int) -> np.ndarray:
     """The fan closed by a second fan around a point far below, so every edge has two faces."""
     cap = np.array([[n + 1, 1 + (k + 1) % n, 1 + k] for k in range(n)], dtype=np.int64)
     return np.vstack([F, cap])
+
+
+@numba.njit
+def _sum_with_prefetch(a, b, idx, hint):  # pragma: no cover - numba
+    """Sum of a gather of ``a`` (1-d) and rows of ``b`` (2-d), with or without the hints."""
+    s = 0.0
+    for k in idx:
+        if hint:
+            _engine._prefetch(a, k)
+            _engine._prefetch(b, 3 * k)
+            _engine._prefetch(a, k + 10**9)  # far outside: a hint never faults
+        s += a[k % a.shape[0]] + b[k % b.shape[0], 1]
+    return s
+
+
+def test_prefetch_is_only_a_hint():
+    rng = np.random.default_rng(5)
+    a = rng.integers(-50, 50, 1000).astype(np.int32)
+    b = rng.normal(size=(1000, 3))
+    idx = rng.integers(0, 1000, 200)
+    a0, b0 = a.copy(), b.copy()
+    expected = float(np.sum(a[idx]) + np.sum(b[idx, 1]))
+    assert _sum_with_prefetch(a, b, idx, True) == pytest.approx(expected, rel=1e-12)
+    assert _sum_with_prefetch(a, b, idx, True) == _sum_with_prefetch(a, b, idx, False)
+    assert np.array_equal(a, a0) and np.array_equal(b, b0)
