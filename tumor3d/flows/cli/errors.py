@@ -1,0 +1,85 @@
+"""Exit codes and errors: every error that ends a command is one line and an exit code."""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import typer
+from rich.markup import escape
+
+from tumor3d.errors import Tumor3DError
+from tumor3d.flows.cli.app import console, err_console
+
+#: Exit code of bad input (a file, option, configuration or manifest the user gave).
+EXIT_INPUT = 2
+#: Exit code of environment errors: store or output not writable, server unavailable.
+EXIT_ENVIRONMENT = 3
+#: Exit code of results published with status ``check`` (a human should look).
+EXIT_CHECK = 4
+#: Exit code of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
+EXIT_INTERRUPTED = 130
+
+
+def _error_line(exc: BaseException) -> tuple[str, int]:
+    """The one-line message and the exit code of an error that ends a command."""
+    if isinstance(exc, OSError):
+        from tumor3d.errors import os_error_text
+
+        where = f"{exc.filename}: " if exc.filename else ""
+        return f"{where}{os_error_text(exc)}", EXIT_ENVIRONMENT
+    from tumor3d.flows.dask_runner import ClusterError
+    from tumor3d.flows.server import ServerError
+    from tumor3d.storage.store import StoreError
+
+    environment = StoreError | ServerError | ClusterError
+    code = EXIT_ENVIRONMENT if isinstance(exc, environment) else EXIT_INPUT
+    return str(exc) or type(exc).__name__, code
+
+
+def _fail(exc: BaseException) -> typer.Exit:
+    text, code = _error_line(exc)
+    err_console.print(f"[bold red]error:[/] {escape(text)}", highlight=False, soft_wrap=True)
+    return typer.Exit(code=code)
+
+
+#: What the commands catch and turn into one line (anything else is a bug: traceback).
+_HANDLED = (Tumor3DError, OSError)
+
+
+@contextmanager
+def _ctrl_c_ends(message: str) -> Iterator[None]:
+    """Ctrl-C (SIGINT) ends the command at once: one line on stderr, exit code 130.
+
+    Python's KeyboardInterrupt did not stop a cohort: the main thread's
+    interrupt waited for every patient lane to finish, and those lanes (with
+    Prefect's event and log services) retried for minutes against the
+    temporary Prefect server, which the same Ctrl-C had stopped (it shares
+    the terminal's process group), printing their tracebacks. Here the
+    process exits instead: nothing is published half (a patient is staged in
+    a hidden folder and renamed at the end; a staging folder of this ended
+    process is removed by the next publish of that patient), the temporary
+    server dies with its parent (:mod:`tumor3d.flows.server`), and Prefect's unsent
+    events are dropped. Install from the main thread only.
+    """
+    import signal
+
+    def on_sigint(signum: int, frame: Any) -> None:
+        try:
+            if console.is_terminal:
+                console.show_cursor(True)  # a live progress bar hides it
+            for stream in (sys.stdout, sys.stderr):
+                stream.flush()
+            sys.stderr.write(("\n" if console.is_terminal else "") + f"interrupted: {message}\n")
+            sys.stderr.flush()
+        finally:
+            os._exit(EXIT_INTERRUPTED)
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)

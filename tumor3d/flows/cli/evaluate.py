@@ -1,0 +1,102 @@
+"""The ``evaluate`` command: the cohort against its references."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.table import Table
+
+from tumor3d.flows.cli.app import Verbose, app, console, err_console
+from tumor3d.flows.cli.errors import _HANDLED, _fail
+from tumor3d.flows.cli.session import _prefect
+
+
+@app.command()
+def evaluate(
+    manifest: Annotated[
+        list[Path] | None, typer.Argument(help="Cohort manifest CSV(s) with reference columns.")
+    ] = None,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("eval-out"),
+    config: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="NAME=FILE (or FILE); repeat to evaluate several configurations side by side."
+        ),
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(min=1, help="Patients at a time (default: the cores).")
+    ] = None,
+    store: Annotated[
+        Path | None, typer.Option(help="Artifact store (default OUT/.tumor3d-store).")
+    ] = None,
+    phantoms: Annotated[
+        int, typer.Option(min=0, help="Also generate N phantom patients (truth as reference).")
+    ] = 0,
+    evaluation: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Registered evaluation to run (repeat): segmentation (the default), "
+            "interpolation (Table 4 on the references), simplification (Figure 10)."
+        ),
+    ] = None,
+    verbose: Verbose = False,
+) -> None:
+    """Run the cohort and compare each patient with its reference: OUT/REPORT.md and tables.
+
+    Exit code 0 when every row was evaluated (rows whose files are absent are
+    skipped with a message), 1 when some row was invalid or some patient
+    failed, 2 for an unreadable manifest or configuration.
+    """
+    import shlex
+
+    # A cohort on a busy machine: give the temporary Prefect server time to start.
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
+    from tumor3d.flows.evaluate import _load_configs, parse_config_specs, run_evaluation
+    from tumor3d.storage.manifest import read_manifest_rows
+
+    manifest = manifest or []
+    if not manifest and not phantoms:
+        raise _fail(ValueError("give at least one MANIFEST or --phantoms N"))
+    try:
+        specs = parse_config_specs(config)
+        _load_configs(specs)  # fail fast on a bad configuration
+        from tumor3d.evaluation import selected_evaluations
+
+        selected_evaluations(evaluation)  # fail fast on an unknown evaluation
+        for m in manifest:
+            read_manifest_rows(m)  # fail fast on a bad manifest (header, missing file)
+        command = "tumor3d " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        with _prefect():
+            result = run_evaluation(
+                manifest, out, config_files=specs, workers=workers,
+                store_dir=None if store is None else str(store), phantoms=phantoms,
+                command=command, evaluations=evaluation,
+            )  # fmt: skip
+    except _HANDLED as exc:
+        raise _fail(exc) from None
+    for s in result.skipped:
+        tag = "skipped (file absent)" if s["missing_file"] else "invalid row"
+        err_console.print(f"[yellow]{tag}:[/] {s['reason']}", highlight=False, soft_wrap=True)
+    df = result.patients
+    table = Table(title="Evaluation", title_justify="left")
+    for col in ("config", "patient", "status", "slice Dice", "3-D Dice", "HD95 mm", "Eq. 7 err"):
+        table.add_column(col)
+    for _, r in df.iterrows():
+
+        def cell(key: str, fmt: str, _r: Any = r) -> str:
+            v = _r.get(key)
+            return "-" if v is None or v != v else fmt.format(v)
+
+        table.add_row(
+            str(r["config"]), str(r["patient_id"]), str(r["status"]),
+            cell("dice_slices_mean", "{:.3f}"), cell("dice_3d", "{:.3f}"),
+            cell("hd95_mm", "{:.1f}"), cell("volume_eq7_error_percent", "{:+.1f} %"),
+        )  # fmt: skip
+    console.print(table)
+    console.print(f"report: [bold]{result.report}[/]")
+    if result.n_failed or result.n_invalid:
+        raise typer.Exit(code=1)

@@ -1,0 +1,146 @@
+"""Checks before a run starts: the input, the output folder, the given masks, the modality."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from rich.markup import escape
+
+from tumor3d.flows.cli.app import console
+
+
+def _location(where: str | Path) -> str | Path:
+    """An ``s3://`` URL as given (a Path would fold its ``//``), else a local path."""
+    from tumor3d.storage.objectstore import is_url
+
+    return str(where) if is_url(where) else Path(where)
+
+
+def _preflight(
+    input_path: Path,
+    out: str | Path,
+    options: Any,
+    store: str | Path | None = None,
+    brain_mask: Path | None = None,
+    segmentation: Path | None = None,
+    layout: str = "default",
+) -> None:
+    """Check the destination, read the input and open the store before starting Prefect.
+
+    ``options``: the run's :class:`~tumor3d.storage.readers.options.ReadOptions`.
+    The scan read here is handed to the ingest stage, which does not read the
+    input again (:mod:`tumor3d.storage.readers.handoff`).
+
+    Bad input then fails in a second, an output folder that is or holds the
+    input (or the brain mask), holds files other than a tumor3d result, or
+    (for a patient id derived from the file name) holds another input's
+    results is refused before any work, a given brain mask
+    is checked against the image (grid, values, overlap), a given
+    segmentation against its grid and values, and a store that
+    is a file or cannot be created is named before a temporary server is
+    started for nothing. An ``s3://`` output or store is reached (one line
+    naming the URL if it cannot be) instead, never made a local folder.
+    """
+    from tumor3d.errors import InputError
+    from tumor3d.storage import bids
+    from tumor3d.storage.inputs import input_digest, input_location
+    from tumor3d.storage.objectstore import default_store_location, is_url, open_store
+    from tumor3d.storage.publish import check_destination
+    from tumor3d.storage.readers import derive_patient_id, suggest_patient_id
+    from tumor3d.storage.readers.handoff import read_and_keep
+
+    out = _location(out)
+    if bids.check_layout(layout) == "bids" and isinstance(out, str):
+        raise InputError("--layout bids writes a local folder: give a local --out", path=out)
+    if isinstance(out, str):
+        _preflight_remote(input_path, out, options, store, brain_mask, segmentation)
+        return
+    _check_out_dir(out)
+    patient_id = options.patient_id  # checked by ReadOptions
+    if input_path.exists():
+        pid = patient_id if patient_id else derive_patient_id(input_path)
+        given = [input_path] + [m for m in (brain_mask, segmentation) if m is not None]
+        if layout == "bids":  # a BIDS participant label; OUT's description absent or ours
+            bids.check_dataset_root(out, given)
+        # the content is hashed only if a record of another location is there to compare
+        check_destination(
+            out / bids.folder_name(pid, layout), given,
+            derived_from=None if patient_id else (lambda: input_digest(input_path)),
+            location=input_location(input_path), suggestion=suggest_patient_id(input_path),
+        )  # fmt: skip
+    scan = read_and_keep(input_path, options)  # the ingest stage takes it: one read
+    _check_given_masks(scan, brain_mask, segmentation, options.max_voxels)
+    from tumor3d.flows.server import check_configured_api
+    from tumor3d.storage.store import ArtifactStore
+
+    check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
+    if store is not None and is_url(store):
+        open_store(str(store)).check()  # type: ignore[attr-defined]
+    else:
+        ArtifactStore(store if store is not None else default_store_location(out))
+
+
+def _preflight_remote(
+    input_path: Path,
+    out: str,
+    options: Any,
+    store: str | Path | None = None,
+    brain_mask: Path | None = None,
+    segmentation: Path | None = None,
+) -> None:
+    """:func:`_preflight` for an ``s3://`` output: inputs are local, so none can lie in it."""
+    from tumor3d.storage.objectstore import default_store_location, is_url, open_store
+    from tumor3d.storage.readers.handoff import read_and_keep
+    from tumor3d.storage.remote_publish import RemoteFolder
+    from tumor3d.storage.store import ArtifactStore
+
+    scan = read_and_keep(input_path, options)  # the ingest stage takes it: one read
+    _check_given_masks(scan, brain_mask, segmentation, options.max_voxels)
+    from tumor3d.flows.server import check_configured_api
+
+    check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
+    RemoteFolder(out).check()  # one line naming the URL
+    at = store if store is not None else default_store_location(out)
+    if is_url(at):
+        open_store(str(at)).check()  # type: ignore[attr-defined]
+    else:
+        ArtifactStore(at)
+
+
+def _check_given_masks(
+    scan: Any, brain_mask: Path | None, segmentation: Path | None, limit: int
+) -> None:
+    """A given brain mask and segmentation checked against the image (one line naming the file)."""
+    if brain_mask is not None:
+        from tumor3d.storage.brain_mask import read_given_brain_mask
+
+        read_given_brain_mask(brain_mask, scan, max_voxels=limit)
+    if segmentation is not None:
+        from tumor3d.storage.given_segmentation import read_given_segmentation
+
+        read_given_segmentation(segmentation, scan, max_voxels=limit)
+
+
+#: The modality ``run`` assumes when --modality is not given (said on the console).
+DEFAULT_MODALITY = "t2"
+
+
+def _say_modality(modality: str, assumed: bool) -> None:
+    """Say the modality the run used, and that it was the default when it was."""
+    if not assumed:
+        console.print(f"modality: {escape(modality)}", highlight=False)
+        return
+    console.print(
+        f"modality: [bold]{escape(modality)}[/] (the default: --modality was not given; it "
+        "decides the segmentation, so give --modality flair or t1c for those images)",
+        highlight=False, soft_wrap=True,
+    )  # fmt: skip
+
+
+def _check_out_dir(out: Path) -> None:
+    """An output folder that exists as a file is bad input (exit 2), found before any work."""
+    from tumor3d.errors import InputError
+
+    if out.exists() and not out.is_dir():
+        raise InputError("the output folder (--out) is a file, not a folder", str(out))
