@@ -2,13 +2,17 @@
 
 Usage::
 
-    python benchmarks/learned_report.py --learned learned.json --default default.json \\
-        [--review "<text printed by benchmarks/review_cv.py>"] --out reports/learned_cv.md
+    python benchmarks/learned_report.py --learned learned.json --forest-only forest.json \\
+        --default default.json [--other NAME=rows.json ...] --out reports/learned_cv.md
     python benchmarks/learned_report.py --compare before.json after.json
 
-Both runs must cover the same cases; the learned rows are out-of-fold (each
+All runs must cover the same cases; the learned rows are out-of-fold (each
 case scored by models that never saw its patient), the default's need no
-training (every case is held out).
+training (every case is held out). ``--learned`` is the shipped method's run
+(``--cnn-folds``: the forest + U-Net mean on FLAIR), ``--forest-only`` the
+same command without ``--cnn-folds`` (paired with it). The review section is
+``benchmarks/review_cv.py`` run on both. The report's sections below
+:data:`KEPT_MARKER` (measured by the commands they name) are kept.
 """
 
 from __future__ import annotations
@@ -24,6 +28,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from learned_cv import GROUPS, summarise  # noqa: E402
+from review_cv import cross_validate  # noqa: E402
+
+#: Below this line ``reports/learned_cv.md`` holds sections measured by other commands
+#: (each names its own); a regeneration keeps them.
+KEPT_MARKER = (
+    "<!-- sections below are measured by the commands they name; learned_report.py keeps them -->"
+)
 
 
 def fold_table(rows: list[dict]) -> str:
@@ -68,6 +79,37 @@ def targets(rows: list[dict]) -> str:
     for name, want, got, lo in checks:
         lines.append(f"| {name} | {want} | {got:.3f} | {'met' if got >= lo else 'missed'} |")
     return "\n".join(lines)
+
+
+def review_table(forest: list[dict], rev0: dict, learned: list[dict], rev: dict) -> str:
+    """The review's cross-validated figures on the forest's rows and the shipped method's."""
+
+    def cell(t) -> str:
+        return f"{t[0]:.0%} of {t[2]} / {t[1]:.0%} of {t[3]}"
+
+    lines = [
+        "The review's limits chosen fold by fold on the other folds, judged on the held-out "
+        "fold (targets: >= 80 % of the cases off by > 25 % flagged, <= 25 % of those within "
+        "10 %); flagged: > 25 % cases / within-10 % cases:",
+        "",
+        "| rows | every case | real cases (no phantoms) | limits chosen on every case |",
+        "|---|---|---|---|",
+    ]
+    for name, r in (("forest alone", rev0), ("shipped (FLAIR: forest + U-Net mean)", rev)):
+        lim = ", ".join(f"{k} {v:g}" for k, v in r["final"].items())
+        lines.append(f"| {name} | {cell(r['all'])} | {cell(r['real'])} | {lim} |")
+    return "\n".join(lines)
+
+
+def _target_line(rows: list[dict]) -> str:
+    """The targets' figures of ``rows`` on one line."""
+    e = np.abs(np.array([r["vol_err"] for r in rows if r["group"] == "brats_flair"], float))
+    return (
+        f"BraTS FLAIR 3-D Dice {_g(rows, 'brats_flair', 'dice3d'):.3f}, within 10 % "
+        f"{float(np.mean(e <= 10)):.3f}; BraTS T2 3-D Dice {_g(rows, 'brats_t2', 'dice3d'):.3f}; "
+        f"LGG per-slice Dice {_g(rows, 'lgg', 'slice_dice'):.3f}, recall "
+        f"{_g(rows, 'lgg', 'recall'):.3f}, specificity {_g(rows, 'lgg', 'spec'):.3f}"
+    )
 
 
 def paired(base: list[dict], new: list[dict]) -> str:
@@ -115,16 +157,21 @@ def main(argv=None) -> int:
         default=[],
         help="NAME=rows.json of other methods (paper, multiotsu) for the same cases",
     )
-    ap.add_argument("--review", default="")
+    ap.add_argument(
+        "--forest-only",
+        default=None,
+        help="learned_cv.py rows of the forest alone (the same command without --cnn-folds)",
+    )
     ap.add_argument("--out")
     args = ap.parse_args(argv)
     if args.compare:
         before, after = (json.loads(Path(p).read_text()) for p in args.compare)
         print(paired(before, after))
         return 0
-    if not (args.learned and args.default and args.out):
-        ap.error("--learned, --default and --out are needed (or --compare)")
+    if not (args.learned and args.forest_only and args.default and args.out):
+        ap.error("--learned, --forest-only, --default and --out are needed (or --compare)")
     learned = json.loads(Path(args.learned).read_text())
+    forest = json.loads(Path(args.forest_only).read_text())
     default = json.loads(Path(args.default).read_text())
     others = ""
     for item in args.other:
@@ -133,23 +180,29 @@ def main(argv=None) -> int:
             f"\n## `segment.method: {name}`, same cases\n\n"
             f"{summarise(json.loads(Path(path).read_text()))}\n"
         )
+    rev, rev0 = cross_validate(learned), cross_validate(forest)
+    review_text = "\n".join(rev["lines"]).strip()
     text = f"""# Segmentation accuracy by cross-validation by patient
 
-Command (the figures below; about 25 min on 2 cores, the last step writes the
-shipped models `tumor3d/learned/models/*.npz`):
+Command (the figures below; about 25 min per `learned_cv.py --method learned`
+run on 2 idle cores, 60-70 min at load 12; the fold U-Nets 12-28 min per fold):
 
 ```
 export TUMOR3D_DATA_DIR=../shared/data
+# the 5 fold U-Nets /tmp/cnn/unet_fold{{k}}.npz (FLAIR, the same folds; torch in a venv
+# of its own: the section "A small 2-D U-Net" below)
+nice -n 10 python benchmarks/cnn_cv.py --cache /tmp/cv-cache --work /tmp/cnn --json cnn.json
+# the shipped method: forest + U-Net mean on FLAIR, the forest alone on T2 and T1c
 python benchmarks/learned_cv.py --method learned --phantoms 10 --keep-fraction 1.0 \\
-    --t1c-threshold 0.65 --cache /tmp/cv-cache --json learned.json \\
-    --final tumor3d/learned/models
+    --t1c-threshold 0.65 --cache /tmp/cv-cache --cnn-folds /tmp/cnn --json learned.json
+# the forest alone (paired with it); --final writes the shipped forests tumor3d/learned/models
+python benchmarks/learned_cv.py --method learned --phantoms 10 --keep-fraction 1.0 \\
+    --t1c-threshold 0.65 --cache /tmp/cv-cache --json forest.json --final tumor3d/learned/models
 for m in robust paper multiotsu; do
     python benchmarks/learned_cv.py --method $m --phantoms 10 --cache /tmp/cv-cache --json $m.json
 done
-python benchmarks/review_cv.py learned.json
-python benchmarks/learned_report.py --learned learned.json --default robust.json \\
-    --other paper=paper.json multiotsu=multiotsu.json \\
-    --review "$(python benchmarks/review_cv.py learned.json)" \\
+python benchmarks/learned_report.py --learned learned.json --forest-only forest.json \\
+    --default robust.json --other paper=paper.json multiotsu=multiotsu.json \\
     --out reports/learned_cv.md
 ```
 
@@ -164,21 +217,29 @@ size is unknown). The volume error is Eq. 7's against the reference's voxel
 volume; "within 10 % / beyond 25 %" counts cases.
 
 Folds: 5, patients dealt round-robin per source; a patient's FLAIR, T2 and
-T1c are always in the same fold. The learned method's models (one for FLAIR +
-T2, one for T1c) are trained on four folds and score the fifth. Its
-post-processing was chosen by nested cross-validation on the out-of-fold
-probabilities of a first run (threshold 0.35 / 0.5 / 0.65 x keep-fraction
-0.1 / 0.3 / 1.0, chosen on four folds, scored on the fifth): every fold chose
-threshold 0.5 and the main region only for FLAIR + T2, 0.65 and the main
-region for T1c (four folds of five), the values fixed here; the spread of 3-D
-Dice over the nine choices was below 0.03 per group. The review limits are
-chosen fold by fold on the other folds (`benchmarks/review_cv.py`).
+T1c are always in the same fold. The learned method's forests (one for FLAIR +
+T2, one for T1c) are trained on four folds and score the fifth. On FLAIR the
+method averages the forest's probability with a U-Net's before the cut
+(`segment.learned_cnn: auto`, the nested choice below: the mean in 5 of 5
+folds): fold k's FLAIR cases get the net `cnn_cv.py` trained on the other four
+folds' FLAIR patients (`--cnn-folds`), through the pipeline's own call
+(`tumor3d.learned.segment.segment_learned(..., cnn=...)`, the weights read by
+`unet_from_bytes` as the shipped net is); T2 and T1c get the forest alone.
+The forests' post-processing was chosen by nested cross-validation on the
+out-of-fold probabilities of a first run (threshold 0.35 / 0.5 / 0.65 x
+keep-fraction 0.1 / 0.3 / 1.0, chosen on four folds, scored on the fifth):
+every fold chose threshold 0.5 and the main region only for FLAIR + T2, 0.65
+and the main region for T1c (four folds of five), the values fixed here; the
+spread of 3-D Dice over the nine choices was below 0.03 per group. The review
+limits are chosen fold by fold on the other folds (`benchmarks/review_cv.py`).
 
 ## Against the targets of issue 28 (cross-validated, learned method)
 
 {targets(learned)}
 
-## Learned method (`segment.method: learned`, the default on FLAIR and T1c), out of fold
+(The forest alone: {_target_line(forest)}.)
+
+## Learned method (`segment.method: learned`; FLAIR: forest + U-Net mean), out of fold
 
 {summarise(learned)}
 
@@ -186,18 +247,34 @@ Per fold, 3-D Dice mean / median absolute volume error:
 
 {fold_table(learned)}
 
+Paired against the forest alone (the same forests, folds and cases; T2 and
+T1c are the forest's own rows, so they do not move):
+
+{paired(forest, learned)}
+
 ## Default before this change (`segment.method: auto`, robust lesion model), same cases
 
 {summarise(default)}
 {others}
 ## When to check: the review, cross-validated
 
+{review_table(forest, rev0, learned, rev)}
+
 ```
-{args.review.strip()}
+{review_text}
 ```
+
+{KEPT_MARKER}
 """
-    Path(args.out).write_text(text)
-    print(f"wrote {args.out}")
+    out = Path(args.out)
+    if out.exists():  # keep the sections below the marker
+        before, marker, kept = out.read_text().partition(KEPT_MARKER)
+        if not marker and before.strip():
+            ap.error(f"{out} has no line {KEPT_MARKER!r}: put it above the sections to keep")
+        if kept.strip():
+            text += "\n" + kept.lstrip("\n")
+    out.write_text(text)
+    print(f"wrote {out}")
     return 0
 
 
