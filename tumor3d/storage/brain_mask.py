@@ -19,9 +19,10 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -34,14 +35,21 @@ from tumor3d.storage.readers import ITK_SUFFIXES, read_scan
 from tumor3d.storage.readers.common import NIFTI_SUFFIXES
 from tumor3d.storage.readers.nifti import load_nifti_volume
 
-__all__ = ["GivenBrainMask", "brain_mask_sha256", "read_brain_mask_volume", "read_given_brain_mask"]
+__all__ = [
+    "GivenBrainMask",
+    "GivenMask",
+    "brain_mask_sha256",
+    "read_brain_mask_volume",
+    "read_given_brain_mask",
+    "read_mask_on_image_grid",
+]
 
 _WHAT = "brain mask"
 
 
 @dataclass(frozen=True, eq=False)
-class GivenBrainMask:
-    """A checked brain mask on its image's Scan grid.
+class GivenMask:
+    """A checked mask file on its image's Scan grid: a given brain mask or tumour segmentation.
 
     Parameters
     ----------
@@ -52,7 +60,7 @@ class GivenBrainMask:
     sha256 : str
         SHA-256 of the file's bytes (of a folder: :func:`tumor3d.storage.inputs.input_digest`).
     mask : ndarray of bool, shape (z, y, x)
-        The brain (values > 0.5), on the image's Scan grid.
+        The mask (values > 0.5), on the image's Scan grid.
     affine : (4, 4) ndarray
         The Scan grid's affine (``(x, y, z, 1)`` -> RAS mm).
     """
@@ -62,6 +70,19 @@ class GivenBrainMask:
     sha256: str
     mask: np.ndarray
     affine: np.ndarray
+
+    @classmethod
+    def on_image(cls, path: Path, mask: np.ndarray, image: Scan, *, what: str = _WHAT) -> Self:
+        """The checked ``mask`` read from ``path``, on ``image``'s grid (the file hashed here)."""
+        return cls(
+            path=str(path.resolve()), name=path.name, sha256=brain_mask_sha256(path, what=what),
+            mask=np.ascontiguousarray(mask), affine=np.asarray(image.affine, dtype=np.float64),
+        )  # fmt: skip
+
+
+@dataclass(frozen=True, eq=False)
+class GivenBrainMask(GivenMask):
+    """A checked brain mask on its image's Scan grid (:class:`GivenMask`; ``mask``: the brain)."""
 
     def provenance(self) -> dict[str, Any]:
         """What ``provenance.json`` records: given, file name, SHA-256, brain voxels."""
@@ -175,16 +196,49 @@ def read_given_brain_mask(
         than the image's (both named), non-finite values, empty, or no
         overlap with the image's non-background.
     """
+    p, brain = read_mask_on_image_grid(
+        path, image, lambda zyx: binarize_brain_mask(np.ascontiguousarray(zyx), image.image),
+        max_voxels=max_voxels,
+    )  # fmt: skip
+    return GivenBrainMask.on_image(p, brain, image)
+
+
+def read_mask_on_image_grid(
+    path: str | os.PathLike[str],
+    image: Scan,
+    binarize: Callable[[np.ndarray], np.ndarray],
+    *,
+    max_voxels: int = MAX_VOXELS_DEFAULT,
+    what: str = _WHAT,
+) -> tuple[Path, np.ndarray]:
+    """Read a given mask file, check that it is on its image's grid, binarize it there.
+
+    The one reading of a given brain mask and of a given tumour segmentation
+    (:mod:`tumor3d.storage.given_segmentation`): the file's values
+    (:func:`read_brain_mask_volume`), the grid rule
+    (:func:`tumor3d.imaging.brain_mask.check_same_grid`: same shape, voxel centres
+    within 0.01 voxel) and ``binarize`` applied to the values in the image
+    Scan's ``(z, y, x)`` order.
+
+    Returns
+    -------
+    path : Path
+        ``path`` with ``~`` expanded.
+    mask : ndarray
+        What ``binarize`` returned.
+
+    Raises
+    ------
+    InputError
+        ``"<file>: <what>: <problem>"``: unreadable, another shape or affine
+        than the image's (both named), or what ``binarize`` refused.
+    """
     p = Path(path).expanduser()
-    values, affine = read_brain_mask_volume(p, max_voxels=max_voxels)
+    values, affine = read_brain_mask_volume(p, max_voxels=max_voxels, what=what)
     grid = image.source_grid
     try:
         check_same_grid(values.shape, affine, grid.shape, grid.affine)
-        values_zyx = np.ascontiguousarray(values.transpose(tuple(grid.axes)[::-1]))
-        brain = binarize_brain_mask(values_zyx, image.image)
+        mask = binarize(values.transpose(tuple(grid.axes)[::-1]))
     except InputError as exc:
-        raise _fail(exc.problem, p) from None
-    return GivenBrainMask(
-        path=str(p.resolve()), name=p.name, sha256=brain_mask_sha256(p), mask=brain,
-        affine=np.asarray(image.affine, dtype=np.float64),
-    )  # fmt: skip
+        raise _fail(exc.problem, p, what) from None
+    return p, mask

@@ -2,7 +2,7 @@
 
 :func:`read_given_segmentation` reads the mask file (the formats of a given
 brain mask: NIfTI, NRRD, MetaImage, or a DICOM / image-stack folder, read
-by :func:`tumor3d.storage.brain_mask.read_brain_mask_volume`), checks it against its
+by :func:`tumor3d.storage.brain_mask.read_mask_on_image_grid`), checks it against its
 image with the brain mask's grid rule (same shape, voxel centres within 0.01
 voxel: :func:`tumor3d.imaging.brain_mask.check_same_grid`) and returns a
 :class:`GivenSegmentation`: the tumour (values > 0.5,
@@ -16,17 +16,14 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from tumor3d.constants import MAX_VOXELS_DEFAULT
-from tumor3d.errors import InputError
-from tumor3d.imaging.brain_mask import check_same_grid
 from tumor3d.imaging.scan import Scan
 from tumor3d.segmentation.given_segmentation import binarize_segmentation, given_definition
-from tumor3d.storage.brain_mask import brain_mask_sha256, read_brain_mask_volume
+from tumor3d.storage.brain_mask import GivenMask, read_mask_on_image_grid
 
 __all__ = ["GivenSegmentation", "read_given_segmentation"]
 
@@ -34,28 +31,12 @@ _WHAT = "segmentation"
 
 
 @dataclass(frozen=True, eq=False)
-class GivenSegmentation:
+class GivenSegmentation(GivenMask):
     """A checked tumour segmentation on its image's Scan grid.
 
-    Parameters
-    ----------
-    path : str
-        Absolute path of the file (or folder).
-    name : str
-        Its name (what provenance and ``measured`` record).
-    sha256 : str
-        SHA-256 of the file's bytes (of a folder: :func:`tumor3d.storage.inputs.input_digest`).
-    mask : ndarray of bool, shape (z, y, x)
-        The tumour (values > 0.5), on the image's Scan grid.
-    affine : (4, 4) ndarray
-        The Scan grid's affine (``(x, y, z, 1)`` -> RAS mm).
+    :class:`~tumor3d.storage.brain_mask.GivenMask`; ``mask``: the tumour (values > 0.5),
+    ``name``: what provenance and ``measured`` record.
     """
-
-    path: str
-    name: str
-    sha256: str
-    mask: np.ndarray
-    affine: np.ndarray
 
     def provenance(self) -> dict[str, Any]:
         """What ``provenance.json`` records: given, file name, SHA-256, tumour voxels."""
@@ -93,15 +74,7 @@ def read_given_segmentation(
         ``"<file>: segmentation: <problem>"``: unreadable, another shape or
         affine than the image's (both named), non-numeric or non-finite values.
     """
-    p = Path(path).expanduser()
-    values, affine = read_brain_mask_volume(p, max_voxels=max_voxels, what=_WHAT)
-    grid = image.source_grid
-    try:
-        check_same_grid(values.shape, affine, grid.shape, grid.affine)
-        tumour = binarize_segmentation(values.transpose(tuple(grid.axes)[::-1]))
-    except InputError as exc:
-        raise InputError(f"{_WHAT}: {exc.problem}", str(p)) from None
-    return GivenSegmentation(
-        path=str(p.resolve()), name=p.name, sha256=brain_mask_sha256(p, what=_WHAT),
-        mask=np.ascontiguousarray(tumour), affine=np.asarray(image.affine, dtype=np.float64),
-    )  # fmt: skip
+    p, tumour = read_mask_on_image_grid(
+        path, image, binarize_segmentation, max_voxels=max_voxels, what=_WHAT
+    )
+    return GivenSegmentation.on_image(p, tumour, image, what=_WHAT)
