@@ -28,8 +28,8 @@ from typing import Any, ClassVar
 from prefect import task
 from pydantic import BaseModel, ConfigDict, Field
 
-from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.storage.objectstore import open_store
+from tumor3d.storage.readers.options import ReadOptions
 from tumor3d.storage.store import ArtifactRef, canonical_dumps
 from tumor3d.tasks.caching import code_digest, module_closure, stage_cache_policy
 from tumor3d.tasks.kinds import Artifact, declared_kind, load, store_product
@@ -103,15 +103,18 @@ class StageOutput(BaseModel):
         return bool(self.digest) and self.digest == self.content_digest()
 
 
-class InputSource(BaseModel):
+class InputSource(ReadOptions):
     """The user's input, identified by content for caching.
 
     ``path`` is where to read it; ``digest`` (of the file, or of every file of
     a folder, plus sidecars), ``name`` and the reading options are what the
-    cache key sees. The patient id is not (issue 29): the same file under
-    another id is the same scan, so every stage's key depends on the content
-    alone; no stage output carries the id (the scan artifact does not store
-    it), and the flow names the patient when it publishes.
+    cache key sees. The reading options are those of
+    :class:`~tumor3d.storage.readers.options.ReadOptions`, declared and checked
+    there; here the modality and the patient id are resolved (required). The
+    patient id is not in the key (issue 29): the same file under another id is
+    the same scan, so every stage's key depends on the content alone; no stage
+    output carries the id (the scan artifact does not store it), and the flow
+    names the patient when it publishes.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -119,15 +122,9 @@ class InputSource(BaseModel):
     path: str
     name: str
     digest: str
+    #: Resolved: the sequence read (``"t2"`` when none was given) and the id published as.
     modality: str
     patient_id: str
-    series_uid: str | None = None
-    slice_thickness_mm: float | None = None
-    slice_gap_mm: float | None = None
-    #: Skip DICOM files that cannot be read (listed in the scan) instead of stopping.
-    skip_unreadable: bool = False
-    #: Refuse an input whose header declares more voxels (checked before reading).
-    max_voxels: int = MAX_VOXELS_DEFAULT
     #: The patient id was derived from the file name (no ``--patient-id``): publishing
     #: then never replaces another input's results (``tumor3d.storage.publish.check_same_input``).
     id_derived: bool = False

@@ -110,11 +110,13 @@ class ReadOptions(BaseModel):
     def of(cls, source: Any) -> ReadOptions:
         """The options held by ``source``, any object with these attributes (an ``InputSource``).
 
+        Only these options, also of a subclass (an ``InputSource`` is one).
+
         >>> from types import SimpleNamespace
         >>> ReadOptions.of(SimpleNamespace(modality="t1c", max_voxels=10, path="x")).max_voxels
         10
         """
-        if isinstance(source, cls):
+        if type(source) is cls:
             return source
         return cls(**{k: getattr(source, k) for k in cls.model_fields if hasattr(source, k)})
 
