@@ -1,0 +1,135 @@
+"""The learned method: the robust mask refined by the shipped boosted forest."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from tumor3d.errors import InputError
+from tumor3d.segmentation.caveats import segmentation_caveats
+from tumor3d.segmentation.detect import SliceDetection
+from tumor3d.segmentation.lesion import lesion_params
+from tumor3d.segmentation.methods import register_method
+from tumor3d.segmentation.segment import segment_tumor
+from tumor3d.segmentation.segment.definition import _WHOLE_TUMOUR
+from tumor3d.segmentation.segment.result import SegmentationResult
+
+
+def learned_prior(
+    enhanced: np.ndarray,
+    brain_mask: np.ndarray,
+    detection: SliceDetection,
+    *,
+    modality: str,
+    min_tumor_pixels: int,
+    lesion: Mapping[str, Any] | None,
+    spacing_mm: tuple[float, float, float] | None,
+    lr_axis: int | None,
+    head_exterior: np.ndarray | None,
+) -> SegmentationResult:
+    """The learned method's prior: the robust method on the same slices.
+
+    One definition for inference (:func:`_segment_learned`) and training
+    (``tumor3d/tasks/train.py``), so the model is trained on the prior it is given.
+    """
+    return segment_tumor(
+        enhanced,
+        brain_mask,
+        detection,
+        modality=modality,
+        method="robust",
+        min_tumor_pixels=min_tumor_pixels,
+        lesion=lesion,
+        spacing_mm=spacing_mm,
+        lr_axis=lr_axis,
+        head_exterior=head_exterior,
+    )
+
+
+@register_method(
+    "learned",
+    description="the robust mask refined by the shipped boosted forest (tumor3d.learned, "
+    "reports/model_card.md), with a probability map and a review",
+    measures={
+        "flair": _WHOLE_TUMOUR.format(seq="FLAIR"),
+        "t2": _WHOLE_TUMOUR.format(seq="T2"),
+        "t1c": (
+            "tumour core: the contrast-enhancing lesion with its enclosed necrotic core and "
+            "non-enhancing tumour (no oedema), as the BraTS labels 1 + 4 it was trained on"
+        ),
+    },
+    uses_lesion=True,
+    needs_model=True,
+)
+def _segment_learned(
+    enhanced: np.ndarray,
+    brain_mask: np.ndarray,
+    detection: SliceDetection,
+    *,
+    image: np.ndarray | None,
+    model: Any,
+    modality: str,
+    min_tumor_pixels: int,
+    lesion: Mapping[str, Any] | None,
+    spacing_mm: tuple[float, float, float] | None,
+    lr_axis: int | None,
+    head_exterior: np.ndarray | None,
+) -> SegmentationResult:
+    """The learned method: the robust mask as a prior, the forest, one 3-D lesion, a review."""
+    from tumor3d.learned.forest import ForestModel
+    from tumor3d.learned.review import review_features, review_segmentation
+    from tumor3d.learned.segment import segment_learned
+
+    if image is None or not isinstance(model, ForestModel):
+        raise InputError(
+            "the learned method needs the acquired image and a trained model "
+            "(image=..., model=tumor3d.learned.shipped.shipped_model(modality))"
+        )
+    img = np.asarray(image)
+    if img.shape != np.shape(enhanced):
+        raise InputError(f"image has shape {img.shape} but enhanced has {np.shape(enhanced)}")
+    prior = learned_prior(
+        enhanced,
+        brain_mask,
+        detection,
+        modality=modality,
+        min_tumor_pixels=min_tumor_pixels,
+        lesion=lesion,
+        spacing_mm=spacing_mm,
+        lr_axis=lr_axis,
+        head_exterior=head_exterior,
+    )
+    sp = tuple(float(v) for v in spacing_mm) if spacing_mm is not None else (1.0, 1.0, 1.0)
+    seg = segment_learned(
+        img, model=model, spacing_mm=sp, modality=modality, lr_axis=lr_axis,
+        prior=prior.tumor_mask,
+    )  # fmt: skip
+    tumor = seg.mask.copy()
+    tumor[tumor.sum(axis=(1, 2)) < int(min_tumor_pixels)] = False
+    review = review_segmentation(
+        review_features(seg.probability, tumor, sp, prior=prior.tumor_mask)
+    )
+    has = tumor.any(axis=(1, 2))
+    res = detection.lesion
+    params = lesion_params(lesion)
+    return SegmentationResult(
+        tumor_mask=tumor,
+        tumor_pixels=tumor.sum(axis=(1, 2)).astype(np.int64),
+        reference_centers=np.full(3, np.nan),
+        tumor_center_gray=np.full(tumor.shape[0], np.nan),
+        selection=np.where(has, "learned", "").astype(str),
+        caveats=segmentation_caveats(
+            tumor,
+            plane=res.plane if res is not None else None,
+            spacing_mm=spacing_mm,
+            min_region_mm2=params["min_region_mm2"],
+            min_slices=params["min_slices"],
+            midline_lesion=False,
+            head_exterior=head_exterior,
+        ),
+        method="learned",
+        probability=seg.probability,
+        review=review,
+    )
