@@ -43,7 +43,7 @@ collapse ``v_i -> v_j`` of least cost; the kept vertex ``v_j`` does not move
 * Eq. 3's angles are computed with one library ``atan2`` per vertex (the
   angle sum as the argument of a product of complex numbers, unwrapped by
   counting full turns) and ``beta`` as ``atan2(|n_m x n_k|, n_m . n_k)``
-  with Cephes' arctangent (:func:`tumor3d.simplify._engine._curvature_at`):
+  with Cephes' arctangent (:func:`tumor3d.simplify._curvature_kernels._curvature_at`):
   the same quantities as the per-face ``atan2``/``acos`` sums to rounding,
   and without ``acos``'s ~1e-8 rad noise on flat patches.
 * Stop when ``F <= F_target`` or ``C`` is empty; the face count reached is
