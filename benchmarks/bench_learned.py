@@ -4,9 +4,12 @@ A 31-slice 240 x 240 FLAIR phantom (the issue's reference size) is
 preprocessed and its slices detected once; then, best of ``--repeat``
 after a warm-up call (numba compiled), the segment stage's core call is
 timed with the detect stage's (the lesion model runs there) for
-``method="robust"`` and ``method="learned"`` (which adds the features,
-the shipped forest and the post-processing to the robust prior), and the
-learned method's parts alone.
+``method="robust"``, ``method="learned"`` with the forest alone
+(``learned_cnn="off"``: the features, the shipped forest and the
+post-processing on the robust prior) and with the mean of the forest's and
+the shipped U-Net's probability (``learned_cnn="auto"``, the U-Net in a thread
+beside the forest), and the learned method's parts alone: wall seconds and the
+process's CPU seconds, with the load average before and after.
 
 Usage::
 
@@ -26,9 +29,11 @@ sys.path.insert(0, str(ROOT))
 
 from tumor3d.config import PipelineConfig  # noqa: E402
 from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
+from tumor3d.learned.cnn import unet_probability, unet_volume_probability  # noqa: E402
+from tumor3d.learned.cnn_data import case_input, upsample  # noqa: E402
 from tumor3d.learned.features import compute_features  # noqa: E402
 from tumor3d.learned.forest import predict_proba  # noqa: E402
-from tumor3d.learned.shipped import shipped_model  # noqa: E402
+from tumor3d.learned.shipped import shipped_cnn, shipped_model  # noqa: E402
 from tumor3d.phantom import make_phantom_patient  # noqa: E402
 from tumor3d.segmentation.detect import detect_abnormal_slices  # noqa: E402
 from tumor3d.segmentation.lesion import left_right_axis  # noqa: E402
@@ -36,13 +41,20 @@ from tumor3d.segmentation.segment import segment_tumor  # noqa: E402
 
 
 def best_of(fn, repeat: int) -> float:
-    fn()  # warm-up (numba compile or cache load)
-    times = []
+    """Best wall seconds of ``repeat`` calls after a warm-up (numba compile or cache load)."""
+    return best_of_cpu(fn, repeat)[0]
+
+
+def best_of_cpu(fn, repeat: int) -> tuple[float, float]:
+    """Best wall seconds and best process CPU seconds of ``repeat`` calls after a warm-up."""
+    fn()
+    wall, cpu = [], []
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return min(wall), min(cpu)
 
 
 def main(argv=None) -> int:
@@ -56,8 +68,10 @@ def main(argv=None) -> int:
     lr = left_right_axis(scan.affine)
     pre = preprocess_volume(scan.image, **cfg.preprocess.model_dump(), spacing_mm=sp)
     model = shipped_model("flair")
+    cnn = shipped_cnn("flair")
+    load_before = os.getloadavg()[0]
 
-    def seg(method: str):
+    def seg(method: str, learned_cnn: str = "off"):
         """The detect and segment stages' core calls (the lesion model runs in detect)."""
         d = detect_abnormal_slices(
             pre.enhanced,
@@ -67,7 +81,7 @@ def main(argv=None) -> int:
             lr_axis=lr,
             **cfg.detect.model_dump(),
         )
-        kw = {**cfg.segment.model_dump(), "method": method}
+        kw = {**cfg.segment.model_dump(), "method": method, "learned_cnn": learned_cnn}
         return segment_tumor(
             pre.enhanced,
             pre.brain_mask,
@@ -78,12 +92,20 @@ def main(argv=None) -> int:
             lesion=cfg.detect.lesion.model_dump(),
             image=scan.image,
             model=model,
+            cnn=cnn,
             **kw,
         )
 
     feats = compute_features(scan.image, spacing_mm=sp, modality="flair", lr_axis=lr)
-    t_robust = best_of(lambda: seg("robust"), args.repeat)
-    t_learned = best_of(lambda: seg("learned"), args.repeat)
+    t_robust, c_robust = best_of_cpu(lambda: seg("robust"), args.repeat)
+    t_learned, c_learned = best_of_cpu(lambda: seg("learned", "off"), args.repeat)
+    t_mean, c_mean = best_of_cpu(lambda: seg("learned", "auto"), args.repeat)
+    x = case_input(scan.image, cnn.size, cnn.context)
+    small = unet_probability(cnn, x)
+    t_in, c_in = best_of_cpu(lambda: case_input(scan.image, cnn.size, cnn.context), args.repeat)
+    t_net, c_net = best_of_cpu(lambda: unet_probability(cnn, x), args.repeat)
+    t_up, c_up = best_of_cpu(lambda: upsample(small, scan.image.shape), args.repeat)
+    t_cnn, c_cnn = best_of_cpu(lambda: unet_volume_probability(cnn, scan.image), args.repeat)
     t_feat = best_of(
         lambda: compute_features(scan.image, spacing_mm=sp, modality="flair", lr_axis=lr),
         args.repeat,
@@ -107,28 +129,47 @@ def main(argv=None) -> int:
 
         t_ctx = best_of(second, args.repeat) - t_pred
     print(
-        f"31 x 240 x 240 FLAIR phantom, {os.cpu_count()} cores, load "
-        f"{os.getloadavg()[0]:.1f}; {feats.values.shape[0]} tissue pixels, "
-        f"{model.roots.size} trees"
+        f"31 x 240 x 240 FLAIR phantom, {os.cpu_count()} cores, load (1 min) "
+        f"{load_before:.1f} before, {os.getloadavg()[0]:.1f} after; "
+        f"{feats.values.shape[0]} tissue pixels, {model.roots.size} trees; U-Net "
+        f"{cnn.size} x {cnn.size}, {cnn.levels} levels, {sum(a.size for a in cnn.arrays.values())} "
+        f"weights"
     )
-    print(f"| step | seconds (best of {args.repeat}) | vs robust |")
-    print("|---|---|---|")
-    print(f"| detect + segment, robust | {t_robust:.2f} | 1.00 |")
+    inf_forest, inf_mean = t_learned - t_robust, t_mean - t_robust
+    cpu_forest, cpu_mean = c_learned - c_robust, c_mean - c_robust
+    print(f"| step | wall s (best of {args.repeat}) | CPU s | wall vs forest alone |")
+    print("|---|---|---|---|")
+    print(f"| detect + segment, robust | {t_robust:.2f} | {c_robust:.2f} | |")
     print(
-        f"| detect + segment, learned (robust prior + features + forest + lesion) | "
-        f"{t_learned:.2f} | {t_learned / t_robust:.2f} |"
+        f"| detect + segment, learned, forest alone (robust prior + features + forest + "
+        f"lesion) | {t_learned:.2f} | {c_learned:.2f} | |"
+    )
+    print(f"| detect + segment, learned, forest + U-Net mean | {t_mean:.2f} | {c_mean:.2f} | |")
+    print(
+        f"| **learned inference, forest alone** (the difference against robust) | "
+        f"{inf_forest:.2f} | {cpu_forest:.2f} | 1.00 |"
     )
     print(
-        f"| learned inference alone (the difference) | {t_learned - t_robust:.2f} | "
-        f"{(t_learned - t_robust) / t_robust:.2f} |"
+        f"| **learned inference, forest + U-Net mean** (the difference against robust) | "
+        f"{inf_mean:.2f} | {cpu_mean:.2f} | {inf_mean / inf_forest:.2f} |"
     )
-    print(f"| features alone | {t_feat:.2f} | {t_feat / t_robust:.2f} |")
-    print(f"| forest alone | {t_pred:.2f} | {t_pred / t_robust:.2f} |")
+    print(f"| features alone | {t_feat:.2f} | | {t_feat / inf_forest:.2f} |")
+    print(f"| forest alone | {t_pred:.2f} | | {t_pred / inf_forest:.2f} |")
     if t_ctx is not None:
         print(
-            f"| auto-context: context features + second forest | {t_ctx:.2f} | "
-            f"{t_ctx / t_robust:.2f} |"
+            f"| auto-context: context features + second forest | {t_ctx:.2f} | | "
+            f"{t_ctx / inf_forest:.2f} |"
         )
+    print(
+        f"| U-Net alone, in the calling thread (input + network + upsample) | {t_cnn:.2f} | "
+        f"{c_cnn:.2f} | {t_cnn / inf_forest:.2f} |"
+    )
+    for name, t, c in (
+        ("U-Net input (case_input)", t_in, c_in),
+        ("U-Net network (numpy, one BLAS thread)", t_net, c_net),
+        ("U-Net upsample to 240 x 240", t_up, c_up),
+    ):
+        print(f"| {name} | {t:.2f} | {c:.2f} | {t / inf_forest:.2f} |")
     return 0
 
 

@@ -266,9 +266,10 @@ def reconstruct_scan(
     learned: dict[str, Any] = {}
     resolved = resolve_method(cfg.segment.method, scan.modality, det)
     if tumour_given is None and method_spec(resolved).needs_model:
-        from tumor3d.learned.shipped import shipped_model
+        from tumor3d.learned.shipped import learned_models
 
-        learned = {"image": scan.image, "model": shipped_model(scan.modality)}
+        # the shipped forest, and the U-Net of the sequence with segment.learned_cnn auto
+        learned = {"image": scan.image, **learned_models(scan.modality, cfg.segment.learned_cnn)}
     # segment-tumor (a given segmentation replaces it, as tumor3d.tasks.segment does)
     if tumour_given is not None:
         from tumor3d.segmentation.given_segmentation import given_definition, given_segmentation

@@ -505,3 +505,85 @@ def test_the_shipped_unet_loads_and_its_bytes_move_the_segment_key(tmp_path):
     finally:
         module_closure.cache_clear()
         code_digest.cache_clear()
+
+
+def test_the_stage_writes_the_mean_on_flair_and_off_writes_the_forest_alone(monkeypatch, tmp_path):
+    """The segment stage with a tiny random U-Net standing in for the shipped one: the
+    probability it writes is the mean of the forest's (learned_cnn: off) and the
+    network's; the U-Net's SHA-256 and the words "forest + U-Net mean" go with it."""
+    from tumor3d.flows.patient import run_stages_direct
+    from tumor3d.learned import shipped
+    from tumor3d.learned.cnn import unet_from_bytes, unet_volume_probability
+    from tumor3d.storage.phantom_io import write_phantom_patient
+    from tumor3d.storage.store import ArtifactStore
+
+    net = unet_from_bytes(_tiny_unet_bytes(1))
+    monkeypatch.setattr(shipped, "shipped_cnn", lambda m: net if m.lower() == "flair" else None)
+    patient = make_phantom_patient(4, modality="flair", n_slices=10, matrix_size=(96, 96))
+    image = write_phantom_patient(patient, tmp_path / "in").image
+    written, values = {}, {}
+    for mode in ("auto", "off"):
+        store = tmp_path / f"store-{mode}"
+        cfg = {"segment": {"learned_cnn": mode}}
+        run = run_stages_direct(image, store, config=cfg, patient_id="u", modality="flair")
+        out = run.outputs["segment-tumor"]
+        written[mode], _ = ArtifactStore(store).get_volume(out.artifacts["tumor_probability"])
+        values[mode] = out.values
+        scan = ArtifactStore(store).get_scan(run.outputs["ingest-scan"].artifacts["scan"],
+                                             patient_id="u")  # fmt: skip
+    p_net = unet_volume_probability(net, scan.image)
+    np.testing.assert_allclose(written["auto"], 0.5 * (written["off"] + p_net), atol=1e-6)
+    # the forest alone is 0 outside the head's tissue; the random network is not
+    outside = written["off"] == 0
+    assert outside.any() and float(np.abs(written["auto"] - written["off"])[outside].max()) > 0.01
+    assert values["auto"]["segment_model"] == "forest + U-Net mean"
+    assert (
+        values["auto"]["cnn_sha256"] == net.sha256 and values["auto"]["cnn_model"] == "unet_flair"
+    )
+    assert values["off"]["segment_model"] == "forest" and "cnn_sha256" not in values["off"]
+    assert values["auto"]["model_sha256"] == values["off"]["model_sha256"]
+
+
+def test_the_api_averages_on_flair_unless_off_and_the_core_obeys_the_switch(monkeypatch):
+    """reconstruct_scan reads segment.learned_cnn as the stage does; segment_tumor given a
+    U-Net with learned_cnn off keeps the forest alone; another value is refused."""
+    import tumor3d
+    from tumor3d.learned import shipped
+    from tumor3d.learned.cnn import unet_from_bytes, unet_volume_probability
+    from tumor3d.segmentation.segment import segment_tumor
+
+    net = unet_from_bytes(_tiny_unet_bytes(2))
+    monkeypatch.setattr(shipped, "shipped_cnn", lambda m: net if m.lower() == "flair" else None)
+    scan = make_phantom_patient(4, modality="flair", n_slices=10, matrix_size=(96, 96)).scan
+    auto = tumor3d.reconstruct_scan(scan)
+    off = tumor3d.reconstruct_scan(scan, config={"segment": {"learned_cnn": "off"}})
+    p_net = unet_volume_probability(net, scan.image)
+    assert auto.method == off.method == "learned"
+    np.testing.assert_allclose(
+        auto.tumor_probability, 0.5 * (off.tumor_probability + p_net), atol=1e-6
+    )
+    # the core: a U-Net handed over with learned_cnn off is not used
+    calls = []
+    real = unet_volume_probability
+    monkeypatch.setattr(
+        "tumor3d.learned.segment.unet_volume_probability",
+        lambda *a: calls.append(1) or real(*a),
+    )
+    from tumor3d.segmentation.detect import SliceDetection
+
+    shape = scan.shape
+    det = SliceDetection.from_records(
+        [
+            {"slice_index": z, "n_modes": 3, "abnormal": False, "peaks_gray": [], "brain_pixels": 0}
+            for z in range(shape[0])
+        ]
+    )
+    kw = dict(modality="flair", method="learned", image=scan.image, cnn=net)
+    kw["model"] = shipped.shipped_model("flair")
+    args = (np.zeros(shape, np.uint8), np.ones(shape, bool), det)
+    with pytest.raises(InputError, match="learned_cnn must be"):
+        segment_tumor(*args, learned_cnn="on", **kw)
+    segment_tumor(*args, learned_cnn="off", **kw)
+    assert calls == []
+    segment_tumor(*args, learned_cnn="auto", **kw)
+    assert calls == [1]

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from tumor3d.config import SegmentConfig
-from tumor3d.learned.shipped import shipped_model
+from tumor3d.learned.shipped import CNN_MODELS, learned_models
 from tumor3d.segmentation.detect import SliceDetection
 from tumor3d.segmentation.given_segmentation import given_definition, given_segmentation
 from tumor3d.segmentation.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
@@ -96,6 +96,9 @@ def load_detection(
         "modality": Metric("modality", "the input's modality (t2, flair, t1c)"),
         "segment_method": Metric("segment_method", "the segmentation method that ran"),
         "measured": Metric("measured", "what the mask, and so every volume, holds, in words"),
+        "segment_model": Metric(
+            "segment_model", "learned method: forest, or forest + U-Net mean (else empty)"
+        ),
     },
 )
 def segment(
@@ -130,6 +133,7 @@ def segment(
                 "modality": scan.metadata["modality"],
                 "segment_method": res.method,
                 "measured": given_definition(name),
+                "segment_model": "",
             },
         )
     image, affine = enhanced
@@ -138,7 +142,8 @@ def segment(
     modality = scan.metadata["modality"]
     learned: dict[str, Any] = {}
     if method_spec(resolve_method(config.method, modality, det)).needs_model:  # image + model
-        learned = {"image": scan.load().array, "model": shipped_model(modality)}
+        # segment.learned_cnn auto: with the shipped U-Net of the sequence, if any (FLAIR)
+        learned = {"image": scan.load().array, **learned_models(modality, config.learned_cnn)}
     result = segment_tumor(
         image,
         brain_mask.array,
@@ -159,6 +164,10 @@ def segment(
     review: dict[str, Any] = {}
     if result.probability is not None:
         artifacts["tumor_probability"] = Volume(result.probability.astype(np.float32), affine)
+    cnn = learned.get("cnn") if result.method == "learned" else None
+    segment_model = (
+        "" if result.method != "learned" else ("forest" if cnn is None else "forest + U-Net mean")
+    )
     if result.review is not None:  # read by tumor3d.segmentation.review.review_status
         review = {
             "needs_review": bool(result.review.needs_review),
@@ -168,6 +177,8 @@ def segment(
             "model": learned["model"].meta.get("name", "shipped"),
             "model_sha256": learned["model"].digest(),  # of its arrays and metadata
         }
+        if cnn is not None:  # the U-Net averaged with the forest: its file and the file's SHA-256
+            review.update(cnn_model=CNN_MODELS[modality.lower()], cnn_sha256=cnn.sha256)
     return StageResult(
         artifacts=artifacts,
         values={
@@ -180,6 +191,7 @@ def segment(
             "modality": modality,
             "segment_method": result.method,
             "measured": lesion_definition(result.method, modality),
+            "segment_model": segment_model,
         },
     )
 

@@ -91,6 +91,8 @@ def segment_tumor(
     head_exterior: np.ndarray | None = None,
     image: np.ndarray | None = None,
     model: Any = None,
+    learned_cnn: str = "auto",
+    cnn: Any = None,
 ) -> SegmentationResult:
     """Segment the tumour of a patient's slices (specification section 3).
 
@@ -175,6 +177,12 @@ def segment_tumor(
         before equalisation). Not modified.
     model : tumor3d.learned.forest.ForestModel, optional
         Learned method: the trained model (:func:`tumor3d.learned.shipped.shipped_model`).
+    learned_cnn : {"auto", "off"}
+        Learned method: ``"auto"`` averages the forest's probability with the
+        U-Net ``cnn``'s when one is given; ``"off"``: the forest alone.
+    cnn : tumor3d.learned.cnn.UNetWeights, optional
+        Learned method: the U-Net of the sequence
+        (:func:`tumor3d.learned.shipped.shipped_cnn`; FLAIR only), or None.
 
     Returns
     -------
@@ -210,6 +218,7 @@ def segment_tumor(
         "min_tumor_slices": min_tumor_slices, "multiotsu_classes": multiotsu_classes,
         "lesion": lesion, "spacing_mm": spacing_mm, "lr_axis": lr_axis,
         "head_exterior": head_exterior, "image": image, "model": model,
+        "learned_cnn": learned_cnn, "cnn": cnn,
     }  # fmt: skip
     result = spec.fn(enhanced, brain_mask, detection, **spec.arguments(keywords))
     return result if result.method == method else replace(result, method=method)

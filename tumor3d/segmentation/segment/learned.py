@@ -51,7 +51,8 @@ def learned_prior(
 @register_method(
     "learned",
     description="the robust mask refined by the shipped boosted forest (tumor3d.learned, "
-    "reports/model_card.md), with a probability map and a review",
+    "reports/model_card.md; on FLAIR its probability averaged with the shipped U-Net's, "
+    "segment.learned_cnn), with a probability map and a review",
     measures={
         "flair": _WHOLE_TUMOUR.format(seq="FLAIR"),
         "t2": _WHOLE_TUMOUR.format(seq="T2"),
@@ -70,6 +71,8 @@ def _segment_learned(
     *,
     image: np.ndarray | None,
     model: Any,
+    learned_cnn: str,
+    cnn: Any,
     modality: str,
     min_tumor_pixels: int,
     lesion: Mapping[str, Any] | None,
@@ -77,7 +80,8 @@ def _segment_learned(
     lr_axis: int | None,
     head_exterior: np.ndarray | None,
 ) -> SegmentationResult:
-    """The learned method: the robust mask as a prior, the forest, one 3-D lesion, a review."""
+    """The learned method: the robust mask as a prior, the forest (with ``learned_cnn`` auto
+    and a ``cnn``, the mean of its probability and the U-Net's), one 3-D lesion, a review."""
     from tumor3d.learned.forest import ForestModel
     from tumor3d.learned.review import review_features, review_segmentation
     from tumor3d.learned.segment import segment_learned
@@ -87,6 +91,8 @@ def _segment_learned(
             "the learned method needs the acquired image and a trained model "
             "(image=..., model=tumor3d.learned.shipped.shipped_model(modality))"
         )
+    if learned_cnn not in ("auto", "off"):
+        raise InputError(f"learned_cnn must be 'auto' or 'off', got {learned_cnn!r}")
     img = np.asarray(image)
     if img.shape != np.shape(enhanced):
         raise InputError(f"image has shape {img.shape} but enhanced has {np.shape(enhanced)}")
@@ -104,7 +110,7 @@ def _segment_learned(
     sp = tuple(float(v) for v in spacing_mm) if spacing_mm is not None else (1.0, 1.0, 1.0)
     seg = segment_learned(
         img, model=model, spacing_mm=sp, modality=modality, lr_axis=lr_axis,
-        prior=prior.tumor_mask,
+        prior=prior.tumor_mask, cnn=cnn if learned_cnn == "auto" else None,
     )  # fmt: skip
     tumor = seg.mask.copy()
     tumor[tumor.sum(axis=(1, 2)) < int(min_tumor_pixels)] = False
