@@ -39,14 +39,21 @@ def prefect_harness():
         yield
 
 
-# The files that take longest (one to five minutes each on 2 busy cores: S3 cohorts and
-# Dask worker processes, one patient flow run that many tests read, Dask worker processes
-# killed and restarted, cohorts, evaluation flows, a numba warm-up into a new cache, a
-# cohort command interrupted and re-run), longest first (measured: issue 31, --durations).
-LONGEST_FILES = ("test_objectstore.py", "test_patient_flow.py", "test_dask.py",
-                 "test_cohort_flow.py", "test_caching.py", "test_evaluate_flow.py",
-                 "test_warmup.py", "test_cohort_interrupt.py", "test_records.py",
-                 "test_adapters.py")  # fmt: skip
+# The files that take longest, longest first (measured: issue 31 item 7, per-file sums of
+# --durations in one `make test` run, and after the runs they share were merged): numba
+# kernels compiled for a test's own reference loop and index types, S3 cohorts and Dask
+# worker processes, Dask workers killed and restarted, evaluation flows, a numba warm-up
+# into a new cache, one patient flow run that many tests read, real Prefect servers
+# started and killed, training flows, a phantom read in four layouts, cohorts, a cohort
+# command interrupted and re-run, trained models, published folders, viewers in a browser.
+LONGEST_FILES = ("test_simplify_speed_equivalence.py", "test_objectstore.py", "test_dask.py",
+                 "test_evaluate_flow.py", "test_warmup.py", "test_patient_flow.py",
+                 "test_server.py", "test_train_flow.py", "test_layout_invariance.py",
+                 "test_cohort_flow.py", "test_learned.py", "test_cohort_interrupt.py",
+                 "test_caching.py", "test_viewer.py", "test_publish_current.py",
+                 "test_adapters.py", "test_brain_mask_flow.py", "test_records.py",
+                 "test_daemon.py", "test_serve.py", "test_cli_environment.py",
+                 "test_lesion.py")  # fmt: skip
 
 
 def pytest_collection_modifyitems(config, items):
@@ -67,6 +74,33 @@ def pytest_collection_modifyitems(config, items):
         return len(LONGEST_FILES) + (item.path not in slow_files)
 
     items.sort(key=rank)
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile`` that gives a worker its next file when one test of its current
+    file is left to run, not two (xdist's own rule).
+
+    A worker takes its next file before it frees up (it runs a test only once it knows
+    the next one); with two tests left it could take the next long file while its last
+    two (in test_objectstore.py, test_dask.py or test_warmup.py: minutes) still ran and
+    the other worker was about to be idle. Any other ``--dist``: xdist's own scheduler.
+    """
+    if config.getoption("dist", None) != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class NextFileAtTheLastTest(LoadFileScheduling):
+        def _reschedule(self, node):
+            if node.shutting_down:
+                return
+            if not self.workqueue:
+                node.shutdown()
+                return
+            if self._pending_of(self.assigned_work[node]) > 1:
+                return
+            self._assign_work_unit(node)
+
+    return NextFileAtTheLastTest(config, log)
 
 
 def pytest_sessionfinish(session, exitstatus):

@@ -102,17 +102,21 @@ def test_evaluate_has_help():
     assert r.exit_code == 0 and "NAME=FILE" in r.output
 
 
-def test_evaluate_scores_the_phantom_commands_own_manifest(tmp_path, prefect_harness):
+def test_evaluate_scores_the_phantom_commands_own_manifest(tmp_path, evaluated):
     """Issue 33: `tumor3d phantom` then `tumor3d evaluate` on its manifest (was: exit 1,
-    the tumour-free row refused, Tables 2 and 3 without a row)."""
+    the tumour-free row refused, Tables 2 and 3 without a row). The store is the first
+    evaluation's: phantom000 is its ph0 (seed 0), so only the ingest stage reads it again
+    (its file name is in the key); the tumour-free phantom001n is computed."""
     from tumor3d.flows.cli import app
 
+    _, first_out = evaluated
     runner = CliRunner()
     made = runner.invoke(app, ["phantom", "--out", str(tmp_path / "ph"), "--n", "2",
                                "--normal", "1"])  # fmt: skip
     assert made.exit_code == 0, made.output
     res = runner.invoke(app, ["evaluate", str(tmp_path / "ph" / "manifest.csv"),
-                              "--out", str(tmp_path / "ev"), "--workers", "2"])  # fmt: skip
+                              "--out", str(tmp_path / "ev"), "--workers", "2",
+                              "--store", str(first_out / ".tumor3d-store")])  # fmt: skip
     assert res.exit_code == 0, res.output
     assert "WARNING" not in res.output  # Prefect's own records stay off the console
     df = pd.read_parquet(tmp_path / "ev" / "evaluation.parquet").set_index("patient_id")

@@ -47,6 +47,10 @@ STAGE_NAMES = list(STAGES)
 # (a published file may contain "Private" in its embedded data, for example).
 SECRET = {"PatientName": "Zzyzx^Quintessa^Vexqorit", "PatientID": "PHI-99331177",
           "PatientBirthDate": "19531207"}  # fmt: skip
+# Small phantoms (128 x 128 pixels of 1.875 mm, the default field of view, 16 slices) for
+# the runs whose question is not the image size (no tumour, a cut scan, DICOM identity and
+# unreadable files): a run costs a third. The first run keeps the default phantom.
+SMALL = {"n_slices": 16, "matrix_size": (128, 128)}
 
 
 @pytest.fixture(scope="module")
@@ -197,7 +201,7 @@ def test_output_folder_holding_the_input_is_refused(tmp_path, phantom):
 
 
 def test_tumour_free_patient_writes_no_empty_mesh_and_says_so(tmp_path):
-    patient = make_phantom_patient(1, tumor=False, patient_id="clear1", n_slices=16)
+    patient = make_phantom_patient(1, tumor=False, patient_id="clear1", **SMALL)
     image = write_phantom_patient(patient, tmp_path / "in").image
     result = run_patient(image, tmp_path / "out", patient_id="clear1")
     folder = tmp_path / "out" / "clear1"
@@ -220,15 +224,16 @@ def test_tumour_free_patient_writes_no_empty_mesh_and_says_so(tmp_path):
     assert metrics["status"] == "ok" and not metrics["needs_review"]
 
 
-def test_tumour_cut_by_the_end_of_the_scan_is_named_in_the_notes(tmp_path, phantom, first_run):
+def test_tumour_cut_by_the_end_of_the_scan_is_named_in_the_notes(tmp_path, first_run):
     # the whole phantom's tumour lies inside its scan: nothing to say, status ok
     assert not any("slice of the scan" in n for n in first_run[1].notes)
     assert first_run[1].metrics["status"] == "ok"
-    # the same phantom scanned only up to its tumour's middle slice
-    image = write_phantom_patient(phantom, tmp_path / "in").image
+    # the same phantom (small) scanned only up to its tumour's middle slice
+    small = make_phantom_patient(7, patient_id="flowpat", **SMALL)
+    image = write_phantom_patient(small, tmp_path / "in").image
     src = nib.load(image)
-    z_axis = list(np.argsort(phantom.scan.source_grid.axes)).index(2)
-    tumour_z = np.flatnonzero(phantom.slice_masks.any(axis=(1, 2)))
+    z_axis = list(np.argsort(small.scan.source_grid.axes)).index(2)
+    tumour_z = np.flatnonzero(small.slice_masks.any(axis=(1, 2)))
     keep = int(tumour_z[0] + tumour_z[-1]) // 2 + 1
     cut = np.take(np.asarray(src.dataobj), np.arange(keep), axis=z_axis)
     nib.save(nib.Nifti1Image(cut, src.affine, src.header), image)
@@ -324,11 +329,18 @@ def _readable_text(path):
     return data
 
 
-def test_dicom_identity_never_reaches_outputs_or_logs(tmp_path, caplog, capfd):
-    patient = make_phantom_patient(3, patient_id="dcmsrc")
-    series = tmp_path / "series"
-    _write_dicom_series(patient, series)
-    out = tmp_path / "out"
+@pytest.fixture(scope="module")
+def dicom_series(tmp_path_factory):
+    """A DICOM series of a small phantom carrying :data:`SECRET`; the folder for the
+    identity test's output, whose store the unreadable-file test reuses."""
+    patient = make_phantom_patient(3, patient_id="dcmsrc", **SMALL)
+    base = tmp_path_factory.mktemp("dicom")
+    _write_dicom_series(patient, base / "series")
+    return patient, base / "series", base / "out"
+
+
+def test_dicom_identity_never_reaches_outputs_or_logs(dicom_series, caplog, capfd):
+    _, series, out = dicom_series
     with caplog.at_level(logging.DEBUG):
         result = run_patient(series, out)
     assert result.patient_id == "series"  # from the folder name, never from the DICOM
@@ -354,16 +366,22 @@ def test_failure_inside_the_flow_publishes_nothing(tmp_path):
     assert not [p for p in out.iterdir() if p.name.startswith(".p1")]
 
 
-def test_unreadable_dicom_file_stops_the_run_unless_skipped_and_then_is_named(tmp_path):
-    patient = make_phantom_patient(3, patient_id="dcmskip")
+def test_unreadable_dicom_file_stops_the_run_unless_skipped_and_then_is_named(
+    dicom_series, tmp_path
+):
+    patient, source, identity_out = dicom_series
     series = tmp_path / "series"
-    _write_dicom_series(patient, series)
+    shutil.copytree(source, series)
     # a file of random bytes among the slices (sorted last by name: an end slice)
     (series / "zz_corrupt.dcm").write_bytes(np.random.default_rng(0).bytes(4096))
     with pytest.raises(InputError, match="zz_corrupt.dcm"):
         run_patient(series, tmp_path / "out")
     assert not (tmp_path / "out" / "series").exists()
-    result = run_patient(series, tmp_path / "out", skip_unreadable=True)
+    # the ingest stage reads the series again (the skip and the folder are in its key);
+    # the stages after it may come from the identity test's store (the same slices)
+    store = str(identity_out / ".tumor3d-store")
+    result = run_patient(series, tmp_path / "out", skip_unreadable=True, store_dir=store)
+    assert not result.stages[0].cached
     assert result.metrics["n_slices"] == patient.scan.n_slices  # every real slice read
     assert any("zz_corrupt.dcm" in n for n in result.notes), result.notes
     metrics = pd.read_parquet(Path(result.output_dir) / "metrics.parquet").iloc[0]

@@ -30,7 +30,8 @@ def _snapshot(folder):
 
 @pytest.fixture(scope="module")
 def published(tmp_path_factory):
-    patient = make_phantom_patient(3, patient_id="curpat", n_slices=16)
+    # a small phantom (128 x 128 pixels of 1.875 mm): what is tested is the publishing
+    patient = make_phantom_patient(3, patient_id="curpat", n_slices=16, matrix_size=(128, 128))
     image = write_phantom_patient(patient, tmp_path_factory.mktemp("in")).image
     out = tmp_path_factory.mktemp("out")
     first = run_patient(image, out, patient_id="curpat")

@@ -15,6 +15,8 @@ about the left-right axis the affine gives.
 
 from __future__ import annotations
 
+from functools import cache
+
 import nibabel as nib
 import numpy as np
 import pytest
@@ -34,8 +36,12 @@ def _save(path, data_xyz, affine):
     return path
 
 
-def _tumour_world_cmm(path, modality: str) -> set[tuple[int, int, int]]:
-    """The default pipeline's tumour voxels as RAS centres in 0.01 mm (a set)."""
+@cache
+def _tumour_world_cmm(path, modality: str) -> frozenset[tuple[int, int, int]]:
+    """The default pipeline's tumour voxels as RAS centres in 0.01 mm (a set).
+
+    Kept per file: the module's files are written once, and the mirror test reads the
+    "given" layout's tumour that the layout test found (not a second pipeline run)."""
     cfg = PipelineConfig()
     scan = read_scan(path, modality=modality)
     spacing = (scan.slice_step_mm, *scan.pixel_spacing_mm)
@@ -50,7 +56,7 @@ def _tumour_world_cmm(path, modality: str) -> set[tuple[int, int, int]]:
         **cfg.segment.model_dump(),
     )  # fmt: skip
     ras = zyx_index_to_ras(np.argwhere(seg.tumor_mask), scan.affine)
-    return set(map(tuple, np.rint(ras * 100.0).astype(np.int64)))
+    return frozenset(map(tuple, np.rint(ras * 100.0).astype(np.int64)))
 
 
 @pytest.fixture(scope="module", params=["flair", "t2"])

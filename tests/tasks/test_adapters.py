@@ -21,6 +21,10 @@ from tumor3d.tasks import stages
 from tumor3d.tasks.preprocess import preprocess_notes
 from tumor3d.tasks.spec import StageOutput
 
+# Small phantoms (128 x 128 pixels of 1.875 mm, the default field of view, 16 slices) where
+# the image size is not the question: a run costs a third.
+SMALL = {"n_slices": 16, "matrix_size": (128, 128)}
+
 
 @pytest.fixture(scope="module")
 def tumour_run(tmp_path_factory):
@@ -51,7 +55,7 @@ def test_specs_match_the_adapters_signatures_and_products(tumour_run):
 
 
 def test_tumour_free_patient_completes_with_zero_volume_and_no_render(tmp_path):
-    patient = make_phantom_patient(1, tumor=False, patient_id="normal1")
+    patient = make_phantom_patient(1, tumor=False, patient_id="normal1", **SMALL)
     image = write_phantom_patient(patient, tmp_path / "in").image
     run = run_stages_direct(image, tmp_path / "store", patient_id="normal1")
     volumes = run.outputs["measure-volume"].values
@@ -265,7 +269,7 @@ def test_histogram_detection_then_robust_segment_uses_the_detect_lesion_params(
     tmp_path, monkeypatch
 ):
     calls = _count_lesion_runs(monkeypatch)
-    patient = make_phantom_patient(2, patient_id="hist2")
+    patient = make_phantom_patient(2, patient_id="hist2", **SMALL)
     image = write_phantom_patient(patient, tmp_path / "in").image
     cfg = {
         "detect": {"method": "histogram", "lesion": {"seed_sigmas": 2.5}},

@@ -135,15 +135,21 @@ def two_patients(tmp_path_factory):
     base = tmp_path_factory.mktemp("records")
     images = {}
     for seed, pid in ((5, "p1"), (9, "p2")):
+        # small phantoms (128 x 128 pixels of 1.875 mm): what is tested is the records
         row = write_phantom_patient(
-            make_phantom_patient(seed, patient_id=pid, n_slices=12), base / pid
+            make_phantom_patient(seed, patient_id=pid, n_slices=12, matrix_size=(128, 128)),
+            base / pid,
         )
         images[pid] = row.image
     out = base / "out"
-    eq7 = {pid: run_patient(images[pid], out, patient_id=pid).metrics["volume_eq7_mm3"]
-           for pid in images}  # fmt: skip
+    first = {pid: run_patient(images[pid], out, patient_id=pid) for pid in images}
+    eq7 = {pid: r.metrics["volume_eq7_mm3"] for pid, r in first.items()}
     assert eq7["p1"] != eq7["p2"]
-    return images, out, eq7
+    # per patient, each stage's artifact digests (every test leaves the store healed:
+    # its last re-run is all cache hits, so these stay the stages' current results)
+    digests = {pid: {s.stage: set(s.artifacts.values()) for s in r.stages}
+               for pid, r in first.items()}  # fmt: skip
+    return images, out, eq7, digests
 
 
 def _rerun(images, out, pid="p1"):
@@ -156,11 +162,10 @@ def _record_of(out: Path, key: str) -> Path:
     return out / ".tumor3d-store" / "prefect-results" / key
 
 
-def _key_of(out: Path, stage: str, pid: str, images) -> str:
-    """The key of ``stage`` for patient ``pid``: the one record of that stage naming its scan."""
-    first = _rerun(images, out, pid)
-    assert all(first.cache_hits)
-    digests = {s.stage: set(s.artifacts.values()) for s in first.stages}
+def _key_of(out: Path, stage: str, pid: str, digests) -> str:
+    """The key of ``stage`` for patient ``pid``: the one record of that stage whose artifacts
+    are those of the patient's run (``digests``: stage -> artifact digests, per patient)."""
+    digests = digests[pid]
     for f in (out / ".tumor3d-store" / "prefect-results").iterdir():
         if f.is_file() and not f.is_symlink():
             res = json.loads(json.loads(f.read_text())["result"])
@@ -173,8 +178,8 @@ def _key_of(out: Path, stage: str, pid: str, images) -> str:
 @pytest.mark.slow
 @pytest.mark.usefixtures("prefect_harness")
 def test_a_pickle_record_in_the_store_never_runs_and_the_store_heals(two_patients, tmp_path):
-    images, out, eq7 = two_patients
-    key = _key_of(out, "segment-tumor", "p1", images)
+    images, out, eq7, digests = two_patients
+    key = _key_of(out, "segment-tumor", "p1", digests)
     victim = _record_of(out, key)
     marker = tmp_path / "pwned"
     rec = json.loads(victim.read_text())
@@ -192,8 +197,8 @@ def test_a_pickle_record_in_the_store_never_runs_and_the_store_heals(two_patient
 @pytest.mark.slow
 @pytest.mark.usefixtures("prefect_harness")
 def test_a_json_record_naming_a_module_imports_nothing(two_patients):
-    images, out, eq7 = two_patients
-    key = _key_of(out, "measure-volume", "p1", images)
+    images, out, eq7, digests = two_patients
+    key = _key_of(out, "measure-volume", "p1", digests)
     victim = _record_of(out, key)
     rec = json.loads(victim.read_text())
     rec["metadata"]["serializer"] = {"type": "json"}
@@ -209,9 +214,9 @@ def test_a_json_record_naming_a_module_imports_nothing(two_patients):
 @pytest.mark.slow
 @pytest.mark.usefixtures("prefect_harness")
 def test_another_patients_record_copied_over_is_recomputed_not_published(two_patients):
-    images, out, eq7 = two_patients
-    k1 = _key_of(out, "segment-tumor", "p1", images)
-    k2 = _key_of(out, "segment-tumor", "p2", images)
+    images, out, eq7, digests = two_patients
+    k1 = _key_of(out, "segment-tumor", "p1", digests)
+    k2 = _key_of(out, "segment-tumor", "p2", digests)
     assert k1 != k2
     rec = json.loads(_record_of(out, k2).read_text())
     rec["metadata"]["storage_key"] = k1  # the storage key adjusted
@@ -226,9 +231,9 @@ def test_another_patients_record_copied_over_is_recomputed_not_published(two_pat
 @pytest.mark.slow
 @pytest.mark.usefixtures("prefect_harness")
 def test_another_stages_record_copied_over_is_recomputed_and_the_store_heals(two_patients):
-    images, out, eq7 = two_patients
-    seg = _key_of(out, "segment-tumor", "p1", images)
-    pre = _key_of(out, "preprocess", "p1", images)
+    images, out, eq7, digests = two_patients
+    seg = _key_of(out, "segment-tumor", "p1", digests)
+    pre = _key_of(out, "preprocess", "p1", digests)
     _record_of(out, seg).write_bytes(_record_of(out, pre).read_bytes())
     again = _rerun(images, out)
     assert again.metrics["volume_eq7_mm3"] == eq7["p1"]
@@ -239,8 +244,8 @@ def test_another_stages_record_copied_over_is_recomputed_and_the_store_heals(two
 @pytest.mark.slow
 @pytest.mark.usefixtures("prefect_harness")
 def test_a_record_symlinked_outside_the_store_is_replaced_not_followed(two_patients, tmp_path):
-    images, out, eq7 = two_patients
-    key = _key_of(out, "measure-volume", "p1", images)
+    images, out, eq7, digests = two_patients
+    key = _key_of(out, "measure-volume", "p1", digests)
     victim = _record_of(out, key)
     outside = tmp_path / "elsewhere.json"
     outside.write_bytes(victim.read_bytes())
