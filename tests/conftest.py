@@ -39,20 +39,20 @@ def prefect_harness():
         yield
 
 
-# The files that take longest, longest first (measured: issue 31 item 7, per-file sums of
-# --durations in one `make test` run, and after the runs they share were merged): numba
-# kernels compiled for a test's own reference loop and index types, S3 cohorts and Dask
-# worker processes, Dask workers killed and restarted, evaluation flows, a numba warm-up
-# into a new cache, one patient flow run that many tests read, real Prefect servers
-# started and killed, training flows, a phantom read in four layouts, cohorts, a cohort
-# command interrupted and re-run, trained models, published folders, viewers in a browser.
+# The files that take longest, longest first (issue 31 item 7: per-file sums of the test
+# times of two full runs, before and after the runs they share were merged; the load
+# moved them by up to 2x): numba kernels compiled for a test's own reference loop and
+# index types, S3 cohorts and Dask worker processes, Dask workers killed and restarted,
+# evaluation flows, a numba warm-up into a new cache, one patient flow run that many
+# tests read, a cohort command interrupted and re-run, real Prefect servers, training
+# flows, code closures of package copies, cohorts, trained models, published folders.
 LONGEST_FILES = ("test_simplify_speed_equivalence.py", "test_objectstore.py", "test_dask.py",
                  "test_evaluate_flow.py", "test_warmup.py", "test_patient_flow.py",
-                 "test_server.py", "test_train_flow.py", "test_layout_invariance.py",
-                 "test_cohort_flow.py", "test_learned.py", "test_cohort_interrupt.py",
-                 "test_caching.py", "test_viewer.py", "test_publish_current.py",
-                 "test_adapters.py", "test_brain_mask_flow.py", "test_records.py",
-                 "test_daemon.py", "test_serve.py", "test_cli_environment.py",
+                 "test_cohort_interrupt.py", "test_server.py", "test_train_flow.py",
+                 "test_caching.py", "test_cohort_flow.py", "test_learned.py",
+                 "test_adapters.py", "test_publish_current.py", "test_serve.py",
+                 "test_layout_invariance.py", "test_viewer.py", "test_brain_mask_flow.py",
+                 "test_records.py", "test_daemon.py", "test_cli_environment.py",
                  "test_lesion.py")  # fmt: skip
 
 
