@@ -88,8 +88,8 @@ def review_table(forest: list[dict], rev0: dict, learned: list[dict], rev: dict)
         return f"{t[0]:.0%} of {t[2]} / {t[1]:.0%} of {t[3]}"
 
     lines = [
-        "The review's limits chosen fold by fold on the other folds, judged on the held-out "
-        "fold (targets: >= 80 % of the cases off by > 25 % flagged, <= 25 % of those within "
+        "The review's limits chosen fold by fold on the other folds, judged on the held-out\n"
+        "fold (targets: >= 80 % of the cases off by > 25 % flagged, <= 25 % of those within\n"
         "10 %); flagged: > 25 % cases / within-10 % cases:",
         "",
         "| rows | every case | real cases (no phantoms) | limits chosen on every case |",
@@ -184,8 +184,9 @@ def main(argv=None) -> int:
     review_text = "\n".join(rev["lines"]).strip()
     text = f"""# Segmentation accuracy by cross-validation by patient
 
-Command (the figures below; about 25 min per `learned_cv.py --method learned`
-run on 2 idle cores, 60-70 min at load 12; the fold U-Nets 12-28 min per fold):
+Command (the figures below; a `learned_cv.py --method learned` run takes about
+25 min on 2 idle cores, the `--cnn-folds` one took 55 min at load 5-22; the
+fold U-Nets 12-28 min per fold at load 9-14):
 
 ```
 export TUMOR3D_DATA_DIR=../shared/data
