@@ -24,8 +24,9 @@ demo: setup
 # and start a two-test file of three minutes last), a worker's next file when one test
 # of its current file is left (tests/conftest.py's scheduler). TEST_WORKERS=0 runs
 # everything in this process. Measured (issue 31 item 7, a clone with a warm numba
-# cache): 1,666 tests in 2,217 s of pytest at load 9-24 on the 2 shared cores, 899 CPU-s
-# (user + sys of the process tree); on 2 idle cores that is at least 7.5 min.
+# cache, tests/core's own kernels included): 1,666 tests in 743 s of pytest at load 3-7
+# on the 2 shared cores, 786 CPU-s (user + sys of the process tree; at load 9-24: 2,217 s,
+# 899 CPU-s). 786 CPU-s on 2 cores is at least 6.5 min: the 5 min target is not met.
 TEST_WORKERS ?= 2
 test: setup
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder \
