@@ -16,6 +16,7 @@ __all__ = [
     "MeshError",
     "NoSurfaceError",
     "Tumor3DError",
+    "exception_line",
     "os_error_path",
     "os_error_text",
 ]
@@ -52,6 +53,27 @@ class MeshError(Tumor3DError, ValueError):
 
 class NoSurfaceError(Tumor3DError, RuntimeError):
     """The mask holds no object, so there is no surface to extract."""
+
+
+def exception_line(exc: BaseException, limit: int | None = None) -> str:
+    r"""``Type: first line of the message`` (the type alone for an empty message).
+
+    Cut to ``limit`` characters (ending in ``...``) when one is given.
+
+    Examples
+    --------
+    >>> exception_line(ValueError("bad value\nmore detail"))
+    'ValueError: bad value'
+    >>> exception_line(KeyError())
+    'KeyError'
+    >>> exception_line(OSError("x" * 20), limit=12)
+    'OSError: ...'
+    """
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    line = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+    if limit is None or len(line) <= limit:
+        return line
+    return line[: limit - 3] + "..."
 
 
 def os_error_text(exc: OSError) -> str:

@@ -39,7 +39,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
-from tumor3d.errors import InputError
+from tumor3d.errors import InputError, exception_line
 from tumor3d.flows.artifacts import publish_cohort_artifacts
 from tumor3d.flows.dask_runner import DaskSpec, check_scheduler, cohort_task_runner
 from tumor3d.flows.patient import (
@@ -180,9 +180,7 @@ def default_workers() -> int:
 
 def one_line_error(exc: BaseException) -> str:
     """``Type: first line of the message``, at most 300 characters."""
-    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-    line = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
-    return line if len(line) <= _MAX_ERROR else line[: _MAX_ERROR - 3] + "..."
+    return exception_line(exc, limit=_MAX_ERROR)
 
 
 def _row_dict(row: ManifestRow | dict[str, Any]) -> dict[str, Any]:

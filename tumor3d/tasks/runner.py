@@ -29,6 +29,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from tumor3d.errors import exception_line
 from tumor3d.storage.store import ArtifactStore
 from tumor3d.tasks.progress import ProgressEvent, report
 from tumor3d.tasks.records import UntrustedRecord
@@ -248,7 +249,7 @@ class PrefectRunner(_Recorder):
                 present = where is not None and where(key).exists()
             except Exception:
                 present = False
-            return f"unreadable ({_one_line(exc)})" if present else None
+            return f"unreadable ({exception_line(exc)})" if present else None
         return None if record is None else (why_refused(record, key) or "")
 
     def run(self, spec: StageSpec, **inputs: Any) -> StageOutput:
@@ -309,12 +310,6 @@ class PrefectRunner(_Recorder):
                 f"{', '.join(sorted(bad))}"
             )
         return None
-
-
-def _one_line(exc: BaseException) -> str:
-    """``Type: first line of the message``."""
-    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 def stage_key(spec: StageSpec, inputs: dict[str, Any]) -> str | None:
