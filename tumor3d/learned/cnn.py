@@ -48,14 +48,29 @@ import numpy as np
 from tumor3d.errors import InputError
 
 __all__ = [
+    "META_KEY",
     "UNetWeights",
     "conv2d",
+    "decode_meta",
     "single_blas_thread",
     "unet_from_bytes",
     "unet_logits",
     "unet_probability",
     "unet_volume_probability",
 ]
+
+#: The array of a weight file holding its metadata: the UTF-8 bytes (uint8) of a JSON document.
+META_KEY = "meta_json"
+
+
+def decode_meta(raw: np.ndarray) -> Any:
+    """The JSON document of a weight file's :data:`META_KEY` array (uint8 UTF-8 bytes).
+
+    >>> decode_meta(np.frombuffer(b'{"size": 128}', np.uint8))
+    {'size': 128}
+    """
+    return json.loads(np.asarray(raw, np.uint8).tobytes().decode())
+
 
 #: Input grid of a weight file without ``meta_json`` (the settings of the CV, run2).
 DEFAULT_SIZE = 128
@@ -121,8 +136,8 @@ def unet_from_bytes(data: bytes, *, source: str = "weights") -> UNetWeights:
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
             raw = {k: z[k] for k in z.files}
-        meta = raw.pop("meta_json", None)
-        meta = {} if meta is None else json.loads(np.asarray(meta, np.uint8).tobytes().decode())
+        meta = raw.pop(META_KEY, None)
+        meta = {} if meta is None else decode_meta(meta)
         arrays = {k: np.asarray(v, dtype=np.float32) for k, v in raw.items()}
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
         raise InputError(f"{source}: not a readable .npz of plain arrays ({exc})") from exc

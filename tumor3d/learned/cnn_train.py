@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from tumor3d.errors import InputError
+from tumor3d.learned.cnn import META_KEY, decode_meta
 
 __all__ = [
     "UNetFit",
@@ -49,9 +50,6 @@ __all__ = [
     "unet_slices",
     "unet_to_bytes",
 ]
-
-#: What :func:`unet_to_bytes` writes besides the weights.
-META_KEY = "meta_json"
 
 
 @dataclass(frozen=True)
@@ -328,7 +326,7 @@ def unet_meta(data: bytes) -> dict[str, Any]:
             raw = z[META_KEY]
     except (OSError, ValueError) as exc:
         raise InputError(f"not a readable .npz of plain arrays ({exc})") from None
-    return dict(json.loads(np.asarray(raw, np.uint8).tobytes().decode()))
+    return dict(decode_meta(raw))
 
 
 def train_unet(
