@@ -114,8 +114,10 @@ class DaskSpec:
         return "local threads"
 
 
-def check_scheduler(address: str, *, timeout_s: float = CONNECT_TIMEOUT_S) -> int:
+def check_scheduler(address: str, *, timeout_s: float | None = None) -> int:
     """Connect to a Dask scheduler once and return its number of workers.
+
+    ``timeout_s`` defaults to :data:`CONNECT_TIMEOUT_S`, read at the call.
 
     Raises
     ------
@@ -129,6 +131,8 @@ def check_scheduler(address: str, *, timeout_s: float = CONNECT_TIMEOUT_S) -> in
         raise InputError(
             "Dask needs the optional dependencies: pip install 'tumor3d[dask]'"
         ) from None
+    if timeout_s is None:
+        timeout_s = CONNECT_TIMEOUT_S
     try:
         with distributed.Client(address, timeout=timeout_s, set_as_default=False) as client:
             info = client.scheduler_info()

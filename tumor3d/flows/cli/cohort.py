@@ -23,7 +23,7 @@ from tumor3d.flows.cli.app import (
 )
 from tumor3d.flows.cli.errors import _HANDLED, _ctrl_c_ends, _fail
 from tumor3d.flows.cli.output import _CohortReporter, print_cohort_summary
-from tumor3d.flows.cli.preflight import _check_out_dir
+from tumor3d.flows.cli.preflight import _check_out_dir, _preflight_cohort
 from tumor3d.flows.cli.session import _prefect, _reporting
 
 
@@ -60,6 +60,7 @@ def cohort(
             _check_out_dir(Path(out))
         rows = read_manifest(manifest, require_files=False)
         dask = DaskSpec(dask_address, dask_workers)
+        _preflight_cohort(out, store, dask.address)  # before a Prefect server is started
         stopped = (
             "Ctrl-C stopped the cohort; the patients published before it are complete, "
             "a re-run continues from the cache"

@@ -108,6 +108,28 @@ def _preflight_remote(
         ArtifactStore(at)
 
 
+def _preflight_cohort(out: str | Path, store: str | Path | None, dask_address: str | None) -> None:
+    """Reach a cohort's ``s3://`` output and store and its Dask scheduler before starting Prefect.
+
+    :func:`tumor3d.flows.cohort.run_cohort` checks them again (a second round trip
+    when they answer); here an unreachable one is named in one line before a
+    temporary Prefect server is started for nothing.
+    """
+    from tumor3d.storage.objectstore import default_store_location, is_url, open_store
+
+    if is_url(out):
+        from tumor3d.storage.remote_publish import RemoteFolder
+
+        RemoteFolder(str(out).rstrip("/")).check()
+    at = store if store is not None else default_store_location(out)
+    if is_url(at):
+        open_store(str(at)).check()  # type: ignore[attr-defined]
+    if dask_address:
+        from tumor3d.flows.dask_runner import check_scheduler
+
+        check_scheduler(dask_address)
+
+
 def _check_given_masks(
     scan: Any, brain_mask: Path | None, segmentation: Path | None, limit: int
 ) -> None:
