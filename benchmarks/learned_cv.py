@@ -532,6 +532,22 @@ def main(argv=None) -> int:
         "its probability averaged with the forest's; the other sequences: the forest alone",
     )
     ap.add_argument(
+        "--cnn-sequences",
+        default=",".join(CNN_MODELS),
+        metavar="SEQ[,SEQ]",
+        help="--cnn-folds: the sequences whose forest probability is averaged with the "
+        "fold U-Net's (default: those that ship a net, tumor3d.learned.shipped.CNN_MODELS); "
+        "e.g. flair,t2 to measure the FLAIR net on T2",
+    )
+    ap.add_argument(
+        "--score-groups",
+        nargs="*",
+        default=None,
+        metavar="GROUP",
+        help="learned: score only these groups' cases; the forests still train on every "
+        "case of the families they need (unlike --groups, which also drops training cases)",
+    )
+    ap.add_argument(
         "--auto-context",
         action="store_true",
         help="learned: a second forest on the features plus context features of the "
@@ -539,6 +555,13 @@ def main(argv=None) -> int:
         "other outer folds; --json gets the second stage's rows, <json>.stage1.json the first's",
     )
     args = ap.parse_args(argv)
+    args.cnn_sequences = tuple(
+        s.strip().lower() for s in args.cnn_sequences.split(",") if s.strip()
+    )
+    if args.score_groups and (args.final or args.cv_rows or args.auto_context):
+        ap.error(
+            "--score-groups scores part of the cases: not with --final, --cv-rows, --auto-context"
+        )
     data = data_dir()
     if not data.is_dir():
         print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
@@ -588,16 +611,20 @@ def _features(p: Prepared):
 
 def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> list[dict]:
     t0 = time.perf_counter()
+    # every case's rows (one random stream: a subset would sample other rows)
     rows_of = _training_rows(preps, args, cfg)
     print(f"sampled rows in {time.perf_counter() - t0:.0f} s", flush=True)
+    groups = getattr(args, "score_groups", None)
+    scored = [p for p in preps if not groups or p.spec.group in groups]
+    needed = {_family(p) for p in scored}  # the families whose forests score a case
     out = []
     for k in range(args.folds):
-        held = [p for p in preps if folds[p.spec.patient] == k]
+        held = [p for p in scored if folds[p.spec.patient] == k]
         train = [p for p in preps if folds[p.spec.patient] != k]
         models = {}
         for fam, mods in FAMILIES:
             parts = [rows_of[p.spec.name] for p in train if p.spec.modality in mods]
-            if parts:
+            if parts and fam in needed:
                 t1 = time.perf_counter()
                 models[fam] = train_forest(TrainingRows.concatenate(parts))
                 print(
@@ -619,7 +646,7 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
                     threshold=_threshold(args, fam),
                     keep_fraction=args.keep_fraction,
                     prior=p.prior,
-                    cnn=cnn if p.spec.modality in CNN_MODELS else None,
+                    cnn=cnn if p.spec.modality in args.cnn_sequences else None,
                 )
                 prob, mask = seg.probability, seg.mask.copy()
                 if seg.cnn_probability is not None:
@@ -647,7 +674,13 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
             mask[mask.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
             row = score(p, mask, cfg)
             row["fold"] = k
-            row.update(review_features(prob, mask, p.spacing_mm, prior=p.prior))
+            # as the pipeline: with a U-Net, the two probabilities (the models' disagreement)
+            two = (
+                {"forest_probability": parts["forest"], "cnn_probability": parts["cnn"]}
+                if parts
+                else {}
+            )
+            row.update(review_features(prob, mask, p.spacing_mm, prior=p.prior, **two))
             out.append(row)
             print(
                 f"  {row['case']}: slice {row['slice_dice']:.3f} 3d {row['dice3d']:.3f} "

@@ -1,9 +1,11 @@
 """Choose the learned method's review limits by cross-validation by patient.
 
 Reads the per-case rows of ``benchmarks/learned_cv.py --json`` (out-of-fold:
-every case was segmented by a model that never saw its patient) and, fold by
-fold, chooses the limits of :data:`tumor3d.learned.review.REVIEW_LIMITS` on
-the other folds' cases, then judges them on the held-out fold:
+every case was segmented by a model that never saw its patient; a figure
+added after the run: ``benchmarks/review_figures.py``) and, fold by fold,
+chooses the limits of the judged figures (default: those of
+:data:`tumor3d.learned.review.REVIEW_LIMITS`) on the other folds' cases, then
+judges them on the held-out fold:
 
 - a case whose volume is off by more than 25 % should be flagged (target:
   >= 80 % of them),
@@ -11,15 +13,21 @@ the other folds' cases, then judges them on the held-out fold:
 
 The choice maximises the share of > 25 % cases flagged among the limits
 that flag at most 25 % of the within-10 % cases of the choosing folds
-(ties: fewer flags). The final limits are chosen the same way on every case.
+(ties: fewer flags, then the first in :data:`GRID` order). The final limits
+are chosen the same way on every case. The held-out flags are
+:func:`tumor3d.learned.review.review_segmentation`'s own; the search over the
+grid is vectorised and checked against it.
 
 Usage::
 
     python benchmarks/review_cv.py /tmp/cv/learned.json
+    python benchmarks/review_cv.py rows.json --measures uncertain_ratio mean_probability \\
+        outside_ratio prior_agreement          # the limits judged before model_disagreement
 """
 
 from __future__ import annotations
 
+import argparse
 import itertools
 import json
 import sys
@@ -30,35 +38,86 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tumor3d.learned.review import review_segmentation  # noqa: E402
+from tumor3d.learned.review import REVIEW_CHECKS, REVIEW_LIMITS, review_segmentation  # noqa: E402
 
+#: The candidate limits of each figure.
 GRID = {
     "uncertain_ratio": (0.4, 0.5, 0.6, 0.7, 0.8, 1.0, 1.2, 1.5, 2.0, 3.0),
     "mean_probability": (0.5, 0.6, 0.7, 0.75, 0.8, 0.85),
     "outside_ratio": (0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 2.0),
     "prior_agreement": (0.0, 0.3, 0.5, 0.6, 0.7, 0.8),
+    "model_disagreement": (0.1, 0.15, 0.2, 0.25, 0.3, 0.5, 1.0),
+}
+#: A row's figure that is missing or null (JSON of inf) reads as this.
+_MISSING = {
+    "uncertain_ratio": float("inf"),
+    "outside_ratio": float("inf"),
+    "mean_probability": float("nan"),
+    "prior_agreement": 1.0,
+    "model_disagreement": float("nan"),  # no U-Net: not judged
 }
 MAX_GOOD_FLAGGED = 0.25
 
 
+def _values(rows: list[dict], name: str) -> np.ndarray:
+    miss = _MISSING[name]
+    return np.array([miss if r.get(name) is None else float(r[name]) for r in rows], float)
+
+
+def _figures(r: dict, measures) -> dict:
+    fig = {k: float(_values([r], k)[0]) for k in measures}
+    fig["volume_ml"] = 0.0
+    return fig
+
+
 def flags(rows: list[dict], limits: dict) -> np.ndarray:
-    out = []
-    for r in rows:
-        fig = {
-            k: (float("inf") if r[k] is None else float(r[k]))
-            for k in ("uncertain_ratio", "outside_ratio")
-        }
-        mp = r["mean_probability"]
-        fig["mean_probability"] = float("nan") if mp is None else float(mp)
-        fig["volume_ml"] = 0.0
-        fig["prior_agreement"] = float(r.get("prior_agreement", 1.0))
-        out.append(review_segmentation(fig, limits).needs_review)
-    return np.array(out, bool)
+    """``needs_review`` of each row judged by ``limits`` alone (review_segmentation's own:
+    the row's other figures are not given to it, so its other limits do not apply)."""
+    return np.array(
+        [review_segmentation(_figures(r, limits), limits).needs_review for r in rows], bool
+    )
+
+
+def _beyond(v: np.ndarray, limit: float, side: str) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        return v > limit if side == "above" else (np.isfinite(v) & (v < limit))
+
+
+def _flag_matrix(rows: list[dict], measures: tuple[str, ...], combos: np.ndarray) -> np.ndarray:
+    """Flags (combination x row) of every combination of grid indices, vectorised."""
+    out = np.zeros((len(combos), len(rows)), bool)
+    for j, name in enumerate(measures):
+        v = _values(rows, name)
+        side = REVIEW_CHECKS[name][0]
+        per = np.stack([_beyond(v, x, side) for x in GRID[name]])
+        out |= per[combos[:, j]]
+    return out
+
+
+def _counts(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    err = np.abs(np.array([r["vol_err"] for r in rows], float))
+    return err > 25, err <= 10
+
+
+def choose(rows: list[dict], measures: tuple[str, ...] | None = None) -> dict:
+    """The limits of ``measures`` chosen on ``rows`` (see the module docstring)."""
+    measures = tuple(measures or REVIEW_LIMITS)
+    combos = np.array(list(itertools.product(*(range(len(GRID[k])) for k in measures))))
+    f = _flag_matrix(rows, measures, combos)
+    bad, good = _counts(rows)
+    caught, false, n = f[:, bad].sum(1), f[:, good].sum(1), f.sum(1)
+    ok = false <= MAX_GOOD_FLAGGED * good.sum() if good.any() else np.ones(len(f), bool)
+    if not ok.any():  # nothing keeps the within-10 % cases: the loosest limits
+        best = np.array([0 if REVIEW_CHECKS[k][0] == "below" else -1 for k in measures])
+        best = np.where(best < 0, [len(GRID[k]) - 1 for k in measures], best)
+    else:
+        top = np.flatnonzero(ok & (caught == caught[ok].max()))
+        best = combos[top[np.argmin(n[top])]]  # argmin: the first of the fewest flags
+    return {k: GRID[k][i] for k, i in zip(measures, best, strict=True)}
 
 
 def rates(rows: list[dict], f: np.ndarray) -> tuple[float, float, int, int]:
-    err = np.abs(np.array([r["vol_err"] for r in rows], float))
-    bad, good = err > 25, err <= 10
+    bad, good = _counts(rows)
     return (
         float(f[bad].mean()) if bad.any() else float("nan"),
         float(f[good].mean()) if good.any() else float("nan"),
@@ -67,26 +126,7 @@ def rates(rows: list[dict], f: np.ndarray) -> tuple[float, float, int, int]:
     )
 
 
-def choose(rows: list[dict]) -> dict:
-    best, best_key = None, None
-    for values in itertools.product(*GRID.values()):
-        lim = dict(zip(GRID, values, strict=True))
-        f = flags(rows, lim)
-        caught, false, _, _ = rates(rows, f)
-        if not false <= MAX_GOOD_FLAGGED:
-            continue
-        key = (caught, -f.mean())
-        if best_key is None or key > best_key:
-            best, best_key = lim, key
-    return best or {
-        "uncertain_ratio": 3.0,
-        "mean_probability": 0.5,
-        "outside_ratio": 2.0,
-        "prior_agreement": 0.0,
-    }
-
-
-def cross_validate(rows: list[dict]) -> dict:
+def cross_validate(rows: list[dict], measures: tuple[str, ...] | None = None) -> dict:
     """Limits chosen fold by fold on the other folds, judged on the held-out fold.
 
     Returns ``lines`` (the printed report), ``all`` and ``real`` (every case;
@@ -94,13 +134,14 @@ def cross_validate(rows: list[dict]) -> dict:
     the within-10 % cases flagged, number of each)``, ``fold_limits`` and
     ``final`` (the limits chosen on every case).
     """
+    measures = tuple(measures or REVIEW_LIMITS)
     rows = [r for r in rows if np.isfinite(r["vol_err"])]
     folds = sorted({r["fold"] for r in rows})
     held_flags = np.zeros(len(rows), bool)
-    lines, fold_limits = [], {}
+    lines, fold_limits = [f"judged: {', '.join(measures)}"], {}
     for k in folds:
         train = [r for r in rows if r["fold"] != k]
-        lim = fold_limits[k] = choose(train)
+        lim = fold_limits[k] = choose(train, measures)
         idx = [i for i, r in enumerate(rows) if r["fold"] == k]
         held_flags[idx] = flags([rows[i] for i in idx], lim)
         lines.append(f"fold {k}: limits {lim}")
@@ -120,7 +161,11 @@ def cross_validate(rows: list[dict]) -> dict:
             f"  real cases only: {caught:.0%} of {n_bad} > 25 % flagged, {false:.0%} of "
             f"{n_good} within 10 % flagged"
         )
-    final = choose(rows)
+    final = choose(rows, measures)
+    # the vectorised search and the review itself agree on the chosen limits
+    combo = np.array([[GRID[k].index(final[k]) for k in measures]])
+    if not np.array_equal(_flag_matrix(rows, measures, combo)[0], flags(rows, final)):
+        raise AssertionError("review_cv's vectorised flags differ from review_segmentation's")
     lines.append(f"\nfinal limits (every case): {final}")
     return {
         "lines": lines,
@@ -131,9 +176,67 @@ def cross_validate(rows: list[dict]) -> dict:
     }
 
 
+def nested(rows: list[dict], sets: list[tuple[str, ...]]) -> list[str]:
+    """The choice among sets of judged figures, itself cross-validated.
+
+    Outer fold ``k``: each set is cross-validated on the other folds
+    (:func:`cross_validate`); the set that catches most of their > 25 % cases
+    while flagging at most 25 % of their within-10 % cases (ties: fewer
+    within-10 % flagged, then fewer figures) gets its limits chosen on those
+    folds and is judged on fold ``k``.
+    """
+    rows = [r for r in rows if np.isfinite(r["vol_err"])]
+    held = np.zeros(len(rows), bool)
+    lines = []
+    for k in sorted({r["fold"] for r in rows}):
+        train = [r for r in rows if r["fold"] != k]
+        keys = []
+        for s in sets:
+            caught, false, _, _ = cross_validate(train, s)["all"]
+            keys.append((false <= MAX_GOOD_FLAGGED, caught, -false, -len(s)))
+        best = sets[max(range(len(sets)), key=keys.__getitem__)]  # ties: the first
+        lim = choose(train, best)
+        idx = [i for i, r in enumerate(rows) if r["fold"] == k]
+        held[idx] = flags([rows[i] for i in idx], lim)
+        lines.append(f"fold {k}: {', '.join(best)} -> {lim}")
+    real = np.array([r["group"] != "phantom" for r in rows])
+    c, f, nb, ng = rates(rows, held)
+    rc, rf, rnb, rng = rates([r for r, x in zip(rows, real, strict=True) if x], held[real])
+    lines.append(
+        f"nested: {c:.0%} of {nb} > 25 % flagged, {f:.0%} of {ng} within 10 %; real cases: "
+        f"{rc:.0%} of {rnb}, {rf:.0%} of {rng}"
+    )
+    return lines
+
+
 def main(argv=None) -> int:
-    args = sys.argv[1:] if argv is None else argv
-    out = cross_validate(json.loads(Path(args[0]).read_text()))
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("rows", help="learned_cv.py --json rows")
+    ap.add_argument(
+        "--measures",
+        nargs="+",
+        choices=sorted(GRID),
+        default=None,
+        help="the figures judged (default: those of REVIEW_LIMITS)",
+    )
+    ap.add_argument(
+        "--nested",
+        nargs="+",
+        metavar="A,B,...",
+        default=None,
+        help="choose among these sets of judged figures by cross-validation inside each "
+        "fold's choosing folds, and judge the choice on the held-out fold",
+    )
+    args = ap.parse_args(argv)
+    rows = json.loads(Path(args.rows).read_text())
+    if args.nested:
+        sets = [tuple(s.split(",")) for s in args.nested]
+        bad = sorted({m for s in sets for m in s} - set(GRID))
+        if bad:
+            ap.error(f"no grid for {bad}: expected among {sorted(GRID)}")
+        print("\n".join(nested(rows, sets)))
+        return 0
+    out = cross_validate(rows, args.measures)
     print("\n".join(out["lines"]))
     return 0
 

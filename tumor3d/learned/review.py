@@ -1,14 +1,17 @@
 """When to check a learned segmentation: figures of its own probability map.
 
 A segmentation whose volume is likely to be wrong shows it in the model's
-probability: many voxels near the threshold around the lesion (the
-boundary is uncertain, the volume with it), a lesion of low mean
-probability, or much probability left outside what was kept (a second
-lesion or a leak the post-processing cut). :func:`review_features`
-computes those figures, :func:`review_segmentation` turns them into
-``needs_review`` with its reasons and a ``quality_score`` in [0, 1]. The
-limits are chosen by cross-validation by patient
-(``benchmarks/learned_cv.py``, ``reports/model_card.md``).
+probability: a lesion of low mean probability, much probability left outside
+what was kept (a second lesion or a leak the post-processing cut), or, where
+the forest's probability is averaged with a U-Net's (FLAIR), the two models
+disagreeing on much of the kept lesion (one says tumour, the other not: the
+mean's smoother probability hides it from the other figures).
+:func:`review_features` computes those figures (and two more that are
+reported but not judged by default: voxels near the threshold per lesion
+voxel, and the agreement with the rule-based prior), :func:`review_segmentation`
+turns them into ``needs_review`` with its reasons and a ``quality_score`` in
+[0, 1]. The limits are chosen by cross-validation by patient
+(``benchmarks/review_cv.py``, ``reports/learned_cv.md``).
 """
 
 from __future__ import annotations
@@ -19,15 +22,43 @@ import numpy as np
 
 from tumor3d.errors import InputError
 
-__all__ = ["REVIEW_LIMITS", "Review", "review_features", "review_segmentation"]
+__all__ = ["REVIEW_CHECKS", "REVIEW_LIMITS", "Review", "review_features", "review_segmentation"]
 
 #: Limits beyond which a segmentation asks for a human (see the module docstring).
 REVIEW_LIMITS: dict[str, float] = {
     # chosen by cross-validation by patient (benchmarks/review_cv.py, reports/learned_cv.md)
-    "uncertain_ratio": 3.0,  # voxels with 0.2 < p < 0.8 per lesion voxel (1.2 on the forest alone)
     "mean_probability": 0.85,  # mean probability inside the lesion (below: check)
     "outside_ratio": 0.2,  # probability mass above 0.5 outside the kept lesion, per inside
-    "prior_agreement": 0.0,  # Dice of the lesion with the rule-based prior (below: check)
+    "model_disagreement": 0.15,  # share of the lesion where |p_forest - p_net| > 0.5
+}
+
+#: How each figure is judged: ``"above"`` (a value over the limit asks for a check) or
+#: ``"below"``, and the reason's text (``{v}`` the figure, ``{lim}`` the limit). A limit
+#: given to :func:`review_segmentation` for any of them is applied.
+REVIEW_CHECKS: dict[str, tuple[str, str]] = {
+    "uncertain_ratio": (
+        "above",
+        "uncertain boundary: {v:.2f} voxels of probability 0.2-0.8 per lesion voxel "
+        "(limit {lim:.2f})",
+    ),
+    "mean_probability": (
+        "below",
+        "low confidence: mean lesion probability {v:.2f} (limit {lim:.2f})",
+    ),
+    "outside_ratio": (
+        "above",
+        "lesion-like tissue left outside the kept lesion: {v:.2f} of its probability "
+        "(limit {lim:.2f})",
+    ),
+    "prior_agreement": (
+        "below",
+        "the model and the rule-based lesion disagree: Dice {v:.2f} between them (limit {lim:.2f})",
+    ),
+    "model_disagreement": (
+        "above",
+        "the forest and the U-Net disagree on {v:.0%} of the lesion (their probabilities "
+        "differ by more than 0.5; limit {lim:.0%})",
+    ),
 }
 
 
@@ -46,8 +77,24 @@ def review_features(
     mask: np.ndarray,
     spacing_mm: tuple[float, float, float],
     prior: np.ndarray | None = None,
+    *,
+    forest_probability: np.ndarray | None = None,
+    cnn_probability: np.ndarray | None = None,
 ) -> dict[str, float]:
     """Figures of a probability map and the lesion kept from it.
+
+    Parameters
+    ----------
+    probability : (z, y, x) ndarray of float
+        The probability the lesion was cut from.
+    mask : (z, y, x) ndarray of bool
+        The lesion.
+    spacing_mm : (3,) tuple of float
+    prior : (z, y, x) ndarray of bool, optional
+        The rule-based mask the model refined.
+    forest_probability, cnn_probability : (z, y, x) ndarray of float, optional
+        The two probabilities ``probability`` is the mean of
+        (:class:`tumor3d.learned.segment.LearnedSegmentation`), both or neither.
 
     Returns
     -------
@@ -57,19 +104,27 @@ def review_features(
         ``mean_probability`` (inside the lesion; nan when empty),
         ``outside_ratio`` (summed ``p > 0.5`` outside the lesion per summed
         ``p`` inside), ``volume_ml``, ``prior_agreement`` (Dice of the
-        lesion with ``prior``, the rule-based mask the model refined; 1 when
-        both are empty or no prior is given).
+        lesion with ``prior``; 1 when both are empty or no prior is given),
+        ``model_disagreement`` (the share of the lesion's voxels where the
+        forest's and the network's probabilities differ by more than 0.5;
+        nan without the two, 0 for an empty lesion).
 
     Examples
     --------
     >>> p = np.zeros((1, 4, 4), np.float32); p[0, :2, :2] = 0.9
     >>> review_features(p, p > 0.5, (1.0, 1.0, 1.0))["uncertain_ratio"]
     0.0
+    >>> f = p.copy(); f[0, 0, :2] = 1.0; n = p.copy(); n[0, 0, :2] = 0.3
+    >>> review_features((f + n) / 2, p > 0.5, (1.0, 1.0, 1.0), forest_probability=f,
+    ...                 cnn_probability=n)["model_disagreement"]
+    0.5
     """
     p = np.asarray(probability, dtype=np.float32)
     m = np.asarray(mask, dtype=bool)
     if p.shape != m.shape:
         raise InputError(f"probability shape {p.shape} does not match mask shape {m.shape}")
+    if (forest_probability is None) != (cnn_probability is None):
+        raise InputError("forest_probability and cnn_probability come together (or neither)")
     n_in = int(m.sum())
     uncertain = int(np.count_nonzero((p > 0.2) & (p < 0.8)))
     inside = float(p[m].sum())
@@ -85,12 +140,23 @@ def review_features(
         q = np.asarray(prior, dtype=bool)
         total = int(q.sum()) + n_in
         agreement = 2.0 * int(np.count_nonzero(q & m)) / total if total else 1.0
+    disagreement = float("nan")
+    if forest_probability is not None:
+        pf = np.asarray(forest_probability, dtype=np.float32)
+        pn = np.asarray(cnn_probability, dtype=np.float32)
+        if pf.shape != p.shape or pn.shape != p.shape:
+            raise InputError(
+                f"forest/cnn probability shapes {pf.shape}, {pn.shape} do not match {p.shape}"
+            )
+        apart = np.count_nonzero(np.abs(pf[m] - pn[m]) > 0.5)
+        disagreement = apart / n_in if n_in else 0.0
     return {
         "uncertain_ratio": float(ratio),
         "mean_probability": float(p[m].mean()) if n_in else float("nan"),
         "outside_ratio": float(out_ratio),
         "volume_ml": n_in * float(np.prod(spacing_mm)) / 1000.0,
         "prior_agreement": float(agreement),
+        "model_disagreement": float(disagreement),
     }
 
 
@@ -99,45 +165,39 @@ def review_segmentation(
 ) -> Review:
     """Whether a human should check the segmentation, and why.
 
+    Every figure with a limit (:data:`REVIEW_LIMITS`, updated by ``limits``) is
+    judged as :data:`REVIEW_CHECKS` says; a figure that is absent or nan (the
+    disagreement without a U-Net, the mean probability of an empty lesion) is
+    not. The score is 1 minus half the largest excess over the limits, in [0, 1].
+
     Examples
     --------
     >>> review_segmentation({"uncertain_ratio": 0.1, "mean_probability": 0.95,
     ...                      "outside_ratio": 0.0, "volume_ml": 20.0}).needs_review
     False
+    >>> review_segmentation({"mean_probability": 0.95, "outside_ratio": 0.0,
+    ...                      "model_disagreement": 0.4}).reasons[0][:36]
+    'the forest and the U-Net disagree on'
     """
     lim = dict(REVIEW_LIMITS)
     lim.update(limits or {})
-    reasons = []
-    u = figures["uncertain_ratio"]
-    if u > lim["uncertain_ratio"]:
-        reasons.append(
-            f"uncertain boundary: {u:.2f} voxels of probability 0.2-0.8 per lesion voxel "
-            f"(limit {lim['uncertain_ratio']:.2f})"
-        )
-    mp = figures["mean_probability"]
-    if np.isfinite(mp) and mp < lim["mean_probability"]:
-        reasons.append(
-            f"low confidence: mean lesion probability {mp:.2f} "
-            f"(limit {lim['mean_probability']:.2f})"
-        )
-    o = figures["outside_ratio"]
-    if o > lim["outside_ratio"]:
-        reasons.append(
-            f"lesion-like tissue left outside the kept lesion: {o:.2f} of its probability "
-            f"(limit {lim['outside_ratio']:.2f})"
-        )
-    a = figures.get("prior_agreement", 1.0)
-    if a < lim["prior_agreement"]:
-        reasons.append(
-            f"the model and the rule-based lesion disagree: Dice {a:.2f} between them "
-            f"(limit {lim['prior_agreement']:.2f})"
-        )
-    # score: 1 - the largest excess over the limits, squashed into [0, 1]
-    excess = max(
-        (1.0 - a) / max(1.0 - lim["prior_agreement"], 1e-6),
-        u / lim["uncertain_ratio"] if np.isfinite(u) else 10.0,
-        (1.0 - mp) / (1.0 - lim["mean_probability"]) if np.isfinite(mp) else 0.0,
-        o / lim["outside_ratio"] if np.isfinite(o) else 10.0,
-    )
-    score = float(np.clip(1.0 - 0.5 * excess, 0.0, 1.0))
+    unknown = sorted(set(lim) - set(REVIEW_CHECKS))
+    if unknown:
+        raise InputError(f"no review check for {unknown}: expected among {sorted(REVIEW_CHECKS)}")
+    reasons, excess = [], [0.0]
+    for name, (side, text) in REVIEW_CHECKS.items():
+        if name not in lim or name not in figures:
+            continue
+        v, limit = float(figures[name]), float(lim[name])
+        if np.isnan(v):
+            continue
+        if side == "above":
+            beyond = v > limit
+            excess.append(v / max(limit, 1e-6) if np.isfinite(v) else 10.0)
+        else:
+            beyond = v < limit
+            excess.append((1.0 - v) / max(1.0 - limit, 1e-6) if np.isfinite(v) else 10.0)
+        if beyond:
+            reasons.append(text.format(v=v, lim=limit))
+    score = float(np.clip(1.0 - 0.5 * max(excess), 0.0, 1.0))
     return Review(bool(reasons), tuple(reasons), score, dict(figures))

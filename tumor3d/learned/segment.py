@@ -46,7 +46,9 @@ class LearnedSegmentation:
     threshold : float
         The probability cut that made ``mask``.
     forest_probability, cnn_probability : (z, y, x) ndarray of float32 or None
-        With a U-Net: the two probabilities that were averaged (None without).
+        With a U-Net: the two probabilities that were averaged (None without);
+        the review judges their disagreement inside the lesion
+        (:func:`tumor3d.learned.review.review_features`, ``model_disagreement``).
     """
 
     mask: np.ndarray

@@ -80,8 +80,11 @@ def _segment_learned(
     lr_axis: int | None,
     head_exterior: np.ndarray | None,
 ) -> SegmentationResult:
-    """The learned method: the robust mask as a prior, the forest (with ``learned_cnn`` auto
-    and a ``cnn``, the mean of its probability and the U-Net's), one 3-D lesion, a review."""
+    """The learned method: the robust mask as a prior, the forest, one 3-D lesion, a review.
+
+    With ``learned_cnn`` auto and a ``cnn``: the mean of the forest's probability and the
+    U-Net's, and the review judges the two models' disagreement inside the lesion.
+    """
     from tumor3d.learned.forest import ForestModel
     from tumor3d.learned.review import review_features, review_segmentation
     from tumor3d.learned.segment import segment_learned
@@ -114,8 +117,11 @@ def _segment_learned(
     )  # fmt: skip
     tumor = seg.mask.copy()
     tumor[tumor.sum(axis=(1, 2)) < int(min_tumor_pixels)] = False
+    two = {}  # with the U-Net: the two probabilities averaged (their disagreement is judged)
+    if seg.cnn_probability is not None:
+        two = {"forest_probability": seg.forest_probability, "cnn_probability": seg.cnn_probability}
     review = review_segmentation(
-        review_features(seg.probability, tumor, sp, prior=prior.tumor_mask)
+        review_features(seg.probability, tumor, sp, prior=prior.tumor_mask, **two)
     )
     has = tumor.any(axis=(1, 2))
     res = detection.lesion

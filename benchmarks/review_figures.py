@@ -1,0 +1,95 @@
+"""The review figures of out-of-fold rows, from their saved probability maps.
+
+``benchmarks/learned_cv.py --save-prob DIR`` keeps each case's out-of-fold
+probability (``prob``; with ``--cnn-folds``, also ``forest`` and ``cnn``, the
+two it is the mean of). This recomputes the case's lesion from ``prob`` as the
+run cut it (the model's threshold, keep fraction, least region, then
+``segment.min_tumor_pixels``) and writes the rows with the figures of
+:func:`tumor3d.learned.review.review_features` that they lack (a figure added
+after the run, e.g. ``model_disagreement``), so that ``benchmarks/review_cv.py``
+can choose its limit without training again. The maps are stored as float16:
+the recomputed lesion's volume is checked against the row's (``--tolerance``).
+
+Usage::
+
+    TUMOR3D_DATA_DIR=../shared/data python benchmarks/review_figures.py learned.json \\
+        --prob prob/ --cache /tmp/cv-cache --keep-fraction 1.0 --t1c-threshold 0.65 \\
+        --out learned_review.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from learned_cv import (  # noqa: E402
+    _family,
+    _min_voxels,
+    cached_prepare,
+    case_specs,
+    phantom_specs,
+)
+
+from tumor3d.config import parse_config  # noqa: E402
+from tumor3d.learned.review import review_features  # noqa: E402
+from tumor3d.learned.segment import keep_main_lesion  # noqa: E402
+from tumor3d.storage.manifest import data_dir  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("rows", help="learned_cv.py --json rows")
+    ap.add_argument("--prob", required=True, help="the run's --save-prob folder")
+    ap.add_argument("--cache", required=True, help="learned_cv.py's prepared-case cache")
+    ap.add_argument("--config", default=str(ROOT / "configs" / "default.yaml"))
+    ap.add_argument("--threshold", type=float, default=0.5)
+    ap.add_argument("--t1c-threshold", type=float, default=None)
+    ap.add_argument("--keep-fraction", type=float, default=0.3)
+    ap.add_argument(
+        "--tolerance",
+        type=float,
+        default=0.01,
+        help="largest relative volume difference between the recomputed lesion and the row's",
+    )
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args(argv)
+    cfg = parse_config(Path(args.config).read_text(), source=args.config)
+    rows = json.loads(Path(args.rows).read_text())
+    n_phantoms = sum(r["case"].startswith("phantom/") for r in rows) // 2
+    specs = {s.name: s for s in case_specs(data_dir()) + phantom_specs(n_phantoms)}
+    worst = 0.0
+    for r in rows:
+        p = cached_prepare(specs[r["case"]], cfg, True, args.cache)
+        with np.load(Path(args.prob) / (r["case"].replace("/", "__") + ".npz")) as z:
+            maps = {k: z[k].astype(np.float32) for k in z.files}
+        t = args.t1c_threshold if _family(p) == "t1c" and args.t1c_threshold else args.threshold
+        mask = keep_main_lesion(
+            maps["prob"], t, keep_fraction=args.keep_fraction, min_voxels=_min_voxels(p)
+        )
+        mask[mask.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
+        est_ml = float(mask.sum()) * float(np.prod(p.spacing_mm)) / 1000.0  # Eq. 7, as the row
+        diff = abs(est_ml - r["est_ml"]) / max(r["est_ml"], 1e-9) if r["est_ml"] else est_ml
+        worst = max(worst, diff)
+        if diff > args.tolerance:
+            print(f"{r['case']}: lesion {est_ml:.2f} mL, the row's {r['est_ml']:.2f} mL")
+            return 1
+        two = {}
+        if "forest" in maps:
+            two = {"forest_probability": maps["forest"], "cnn_probability": maps["cnn"]}
+        fig = review_features(maps["prob"], mask, p.spacing_mm, prior=p.prior, **two)
+        r.update({k: v for k, v in fig.items() if k not in r})
+    Path(args.out).write_text(json.dumps(rows, indent=1))
+    print(f"{len(rows)} rows, lesions within {worst:.2%} of the rows' volumes: wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,134 @@
+"""The learned method's review of the forest + U-Net mean: the two models' disagreement.
+
+The mean of two probabilities is smooth where the models disagree (1 and 0.4
+average to a confident-looking 0.7), so the review judges the share of the
+lesion where they differ by more than 0.5 (``model_disagreement``). No real
+data: constructed maps, the shipped forest on a phantom, a constant network.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+from tumor3d.errors import InputError
+from tumor3d.learned.review import REVIEW_LIMITS, review_features, review_segmentation
+
+
+def _two_models(share: float):
+    """A 2 x 20 x 20 lesion both models call tumour, the net doubting ``share`` of it."""
+    forest = np.zeros((2, 30, 30), np.float32)
+    forest[:, 5:25, 5:25] = 1.0
+    net = forest.copy()
+    n_rows = round(share * 20)  # the net's probability 0.45 on the first rows of the lesion
+    net[:, 5 : 5 + n_rows, 5:25] = 0.45
+    return forest, net, 0.5 * (forest + net)
+
+
+def test_disagreeing_models_are_flagged_where_their_confident_mean_is_not():
+    forest, net, mean = _two_models(0.3)
+    lesion = mean > 0.5
+    assert lesion.sum() == 800  # the whole lesion is kept: the mean is 0.725 where they differ
+    both = review_features(
+        mean, lesion, (5.0, 1.0, 1.0), forest_probability=forest, cnn_probability=net
+    )
+    assert both["model_disagreement"] == pytest.approx(0.3)  # 6 of 20 rows, |1 - 0.45| > 0.5
+    # the other figures see a confident lesion: mean 0.9175, nothing outside
+    assert both["mean_probability"] == pytest.approx(0.7 + 0.3 * 0.725)
+    assert both["mean_probability"] > REVIEW_LIMITS["mean_probability"]
+    assert both["outside_ratio"] == 0.0
+    flagged = review_segmentation(both)
+    assert flagged.needs_review and len(flagged.reasons) == 1
+    assert flagged.reasons[0].startswith("the forest and the U-Net disagree on 30% of the lesion")
+    # the same mean without the two it came from (a forest alone): nothing to judge
+    alone = review_features(mean, lesion, (5.0, 1.0, 1.0))
+    assert np.isnan(alone["model_disagreement"])
+    passed = review_segmentation(alone)
+    assert not passed.needs_review and passed.quality_score > flagged.quality_score
+    # models that agree (a disagreement under the limit) pass
+    f2, n2, m2 = _two_models(0.1)
+    agree = review_features(
+        m2, m2 > 0.5, (5.0, 1.0, 1.0), forest_probability=f2, cnn_probability=n2
+    )
+    assert agree["model_disagreement"] == pytest.approx(0.1)
+    assert not review_segmentation(agree).needs_review
+
+
+def test_the_disagreement_needs_both_probabilities_of_the_lesion_shape():
+    forest, net, mean = _two_models(0.3)
+    with pytest.raises(InputError, match="together"):
+        review_features(mean, mean > 0.5, (1.0, 1.0, 1.0), forest_probability=forest)
+    with pytest.raises(InputError, match="shapes"):
+        review_features(
+            mean, mean > 0.5, (1.0, 1.0, 1.0), forest_probability=forest[:1], cnn_probability=net
+        )
+    empty = review_features(
+        mean, np.zeros(mean.shape, bool), (1.0, 1.0, 1.0), forest_probability=forest,
+        cnn_probability=net,
+    )  # fmt: skip
+    assert empty["model_disagreement"] == 0.0
+    with pytest.raises(InputError, match="no review check"):
+        review_segmentation(empty, {"volume_ml": 1.0})
+
+
+def _constant_net(p_logit: float):
+    """A 2-level U-Net whose probability is ``sigmoid(p_logit)`` everywhere."""
+    from tumor3d.learned.cnn import unet_from_bytes
+
+    rng = np.random.default_rng(0)
+    a, c = {}, 3
+    for i, o in enumerate((2, 4)):
+        for j, ci in enumerate((c, o)):
+            a[f"enc{i}_{j}_w"] = rng.normal(0, 0.3, (o, ci, 3, 3))
+            a[f"enc{i}_{j}_b"] = np.zeros(o)
+        c = o
+    for j, ci in enumerate((c + 2, 2)):
+        a[f"dec0_{j}_w"] = rng.normal(0, 0.3, (2, ci, 3, 3))
+        a[f"dec0_{j}_b"] = np.zeros(2)
+    a["head_w"] = np.zeros((1, 2, 1, 1))
+    a["head_b"] = np.array([p_logit])
+    buf = io.BytesIO()
+    meta = json.dumps({"settings": {"size": 32, "context": 1}}).encode()
+    arrays = {k: v.astype(np.float32) for k, v in a.items()}
+    np.savez(buf, **arrays, meta_json=np.frombuffer(meta, np.uint8))
+    return unet_from_bytes(buf.getvalue())
+
+
+def test_the_learned_method_judges_its_forest_and_net_disagreeing():
+    """segment_tumor (the pipeline's call) with a net sure of tumour everywhere: the
+    mean keeps tissue the forest calls healthy; the review's figure is the share of
+    the lesion where the forest's own probability (learned_cnn off) is under 0.5."""
+    from tumor3d.learned.cnn import unet_volume_probability
+    from tumor3d.learned.shipped import shipped_model
+    from tumor3d.phantom.patient import make_phantom_patient
+    from tumor3d.segmentation.detect import SliceDetection
+    from tumor3d.segmentation.segment import segment_tumor
+
+    net = _constant_net(10.0)
+    scan = make_phantom_patient(4, modality="flair", n_slices=10, matrix_size=(96, 96)).scan
+    p_net = unet_volume_probability(net, scan.image)
+    assert float(p_net.min()) > 0.999
+    shape = scan.shape
+    det = SliceDetection.from_records(
+        [
+            {"slice_index": z, "n_modes": 3, "abnormal": False, "peaks_gray": [], "brain_pixels": 0}
+            for z in range(shape[0])
+        ]
+    )
+    args = (np.zeros(shape, np.uint8), np.ones(shape, bool), det)
+    kw = dict(modality="flair", method="learned", image=scan.image, cnn=net, spacing_mm=(5, 1, 1))
+    kw["model"] = shipped_model("flair")
+    off = segment_tumor(*args, learned_cnn="off", **kw)
+    auto = segment_tumor(*args, learned_cnn="auto", **kw)
+    assert np.isnan(off.review.figures["model_disagreement"])
+    assert not any("U-Net" in r for r in off.review.reasons)
+    lesion = auto.tumor_mask
+    forest = off.probability
+    want = float(np.mean(np.abs(forest[lesion] - p_net[lesion]) > 0.5))
+    assert want > 0.5  # the tissue the forest doubts, kept by the net's certainty
+    assert auto.review.figures["model_disagreement"] == pytest.approx(want)
+    assert auto.review.needs_review
+    assert any(r.startswith("the forest and the U-Net disagree") for r in auto.review.reasons)
