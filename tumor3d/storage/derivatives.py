@@ -111,8 +111,8 @@ class PatientProducts:
         return self._loaded[source]
 
     def volume(self, source: str) -> tuple[np.ndarray, np.ndarray]:
-        """A volume product: ``(array (z, y, x), affine)``."""
-        return self._get(source, self.store.get_volume)  # type: ignore[no-any-return]
+        """A volume product: ``(array (z, y, x), affine)``, read-only (from memory if kept)."""
+        return self._get(source, self.store.load_volume)  # type: ignore[no-any-return]
 
     def mesh(self, source: str) -> Mesh:
         """A mesh product."""

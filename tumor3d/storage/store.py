@@ -45,6 +45,7 @@ from tumor3d.errors import InputError, Tumor3DError, os_error_path, os_error_tex
 from tumor3d.geometry.mesh import Mesh
 from tumor3d.imaging.scan import Scan, SourceGrid
 from tumor3d.storage import formats, nifti
+from tumor3d.storage.product_memo import products
 
 __all__ = [
     "ArtifactRef",
@@ -157,6 +158,11 @@ def _utc_now() -> str:
 
 def _affine_list(affine: np.ndarray) -> list[list[float]]:
     return [[float(v) for v in row] for row in np.asarray(affine, dtype=np.float64)]
+
+
+def _stored_affine(affine: np.ndarray) -> np.ndarray:
+    """The affine a stored volume reads back with: NIfTI keeps the sform as float32."""
+    return np.asarray(affine, dtype=np.float64).astype(np.float32).astype(np.float64)
 
 
 class ArtifactStore:
@@ -370,7 +376,12 @@ class ArtifactStore:
             "affine": _affine_list(affine),
             **(extra or {}),
         }
-        return self.put_bytes(data, kind=kind, suffix=".nii.gz", metadata=meta)
+        ref = self.put_bytes(data, kind=kind, suffix=".nii.gz", metadata=meta)
+        memo = products()
+        if memo.max_bytes:  # kept as get_volume returns it: the stored type, masks as bool
+            stored = np.array(arr, dtype=dt, order="C")  # a copy: the caller's array may change
+            memo.put(ref.digest, (stored > 0 if kind == "mask" else stored, _stored_affine(affine)))
+        return ref
 
     def get_volume(self, ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
         """Load a volume: ``(array (z, y, x), affine)``; masks come back as bool."""
@@ -379,6 +390,25 @@ class ArtifactStore:
         if ref.kind == "mask":
             arr = arr > 0
         return np.ascontiguousarray(arr), affine
+
+    def load_volume(self, ref: ArtifactRef) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`get_volume` through the process's memo of decoded volumes; arrays read-only.
+
+        A volume this process stored or read before comes from memory under
+        its content digest (:mod:`tumor3d.storage.product_memo`), equal to
+        what :meth:`get_volume` returns; otherwise the store is read (and its
+        digest checked) and the result kept. For stage inputs and publishing,
+        which never modify an input; :meth:`get_volume` always reads.
+        """
+        memo = products()
+        hit = memo.get(ref.digest)
+        if hit is not None:
+            array, affine = hit
+            return array, affine
+        array, affine = self.get_volume(ref)
+        array.flags.writeable = affine.flags.writeable = False  # memo or not, as a hit
+        memo.put(ref.digest, (array, affine))
+        return array, affine
 
     def put_scan(self, scan: Scan) -> ArtifactRef:
         """Store a `Scan`: its image as float32 NIfTI plus its geometry as metadata.

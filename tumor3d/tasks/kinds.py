@@ -7,8 +7,11 @@ product the adapter returns under its declared kind, so that an adapter only
 calls its core function.
 
 * ``scan``, ``image``, ``mask`` load as :class:`Volume` ``(array (z, y, x),
-  affine)`` (a mask as bool); a ``scan`` is stored from a
-  :class:`~tumor3d.imaging.scan.Scan`, the others from a :class:`Volume`;
+  affine)`` (a mask as bool), read-only arrays taken from the process's memo
+  of decoded volumes when this process stored or read them before
+  (:meth:`~tumor3d.storage.store.ArtifactStore.load_volume`); a ``scan`` is
+  stored from a :class:`~tumor3d.imaging.scan.Scan`, the others from a
+  :class:`Volume`;
 * ``mesh`` as :class:`~tumor3d.geometry.mesh.Mesh`; ``table`` as a DataFrame
   (stored from a DataFrame or a list of records);
 * ``png`` (an RGB array), ``gif`` and ``training-rows`` (bytes) are stored
@@ -67,7 +70,8 @@ class Kind:
 
 
 def _get_volume(store: ArtifactStore, ref: ArtifactRef) -> Volume:
-    array, affine = store.get_volume(ref)
+    # read-only arrays, from memory when this process stored or read the volume before
+    array, affine = store.load_volume(ref)
     return Volume(array, affine)
 
 
