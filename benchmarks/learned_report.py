@@ -11,7 +11,8 @@ case scored by models that never saw its patient), the default's need no
 training (every case is held out). ``--learned`` is the shipped method's run
 (``--cnn-folds``: the forest + U-Net mean on FLAIR), ``--forest-only`` the
 same command without ``--cnn-folds`` (paired with it). The review section is
-``benchmarks/review_cv.py`` run on both. The report's sections below
+``benchmarks/review_cv.py`` run on both (``--forest-alone``: each kind of
+segmentation judged by its own limits). The report's sections below
 :data:`KEPT_MARKER` (measured by the commands they name) are kept.
 """
 
@@ -28,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from learned_cv import GROUPS, summarise  # noqa: E402
-from review_cv import cross_validate  # noqa: E402
+from review_cv import cross_validate, cross_validate_split  # noqa: E402
 
 #: Below this line ``reports/learned_cv.md`` holds sections measured by other commands
 #: (each names its own); a regeneration keeps them.
@@ -87,37 +88,75 @@ WITHOUT_DISAGREEMENT = ("uncertain_ratio", "mean_probability", "outside_ratio", 
 
 
 def review_table(forest: list[dict], learned: list[dict]) -> tuple[str, dict]:
-    """The review's cross-validated figures: the shipped method's rows judged by the
-    shipped figures (REVIEW_LIMITS) and by the four without the models' disagreement,
-    the forest's rows by the shipped figures but the disagreement. Returns the table and
-    the shipped run."""
+    """The review's cross-validated figures: the shipped method's rows judged as shipped
+    (a row with the U-Net by the ``with_net`` limits, one without by the
+    ``forest_alone`` ones, chosen on the forest's rows), then as before (every row by
+    ``with_net``; by the four figures without the models' disagreement), the forest's
+    rows by the ``forest_alone`` limits and by the shared two alone. Returns the table
+    and the shipped run."""
 
     def cell(t) -> str:
         return f"{t[0]:.0%} of {t[2]} / {t[1]:.0%} of {t[3]}"
 
-    rev = cross_validate(learned)
+    def limits(lim: dict) -> str:
+        return ", ".join(f"{k} {v:g}" for k, v in lim.items())
+
+    rev = cross_validate_split(learned, forest)
+    net, alone = rev["final"]["with_net"], rev["final"]["forest_alone"]
+    shared = tuple(k for k in net if k in alone)
+    one = cross_validate(learned)
     runs = (
-        ("shipped (FLAIR: forest + U-Net mean), judged by " + ", ".join(rev["final"]), rev),
         (
-            "the same rows judged by " + ", ".join(WITHOUT_DISAGREEMENT),
-            cross_validate(learned, WITHOUT_DISAGREEMENT),
+            "**shipped** (FLAIR: forest + U-Net mean), with the U-Net judged by "
+            + ", ".join(net)
+            + "; without it (T2, T1c) by "
+            + ", ".join(alone),
+            rev["all"],
+            rev["real"],
+            f"with the U-Net: {limits(net)}; without: {limits(alone)}",
         ),
         (
-            "forest alone (segment.learned_cnn: off): no U-Net, no disagreement",
-            cross_validate(forest, tuple(k for k in rev["final"] if k != "model_disagreement")),
+            "the same rows, every one judged by " + ", ".join(net) + " (before)",
+            one["all"],
+            one["real"],
+            limits(one["final"]),
+        ),
+    )
+    before = cross_validate(learned, WITHOUT_DISAGREEMENT)
+    off = cross_validate(forest, shared)
+    runs += (
+        (
+            "the same rows judged by " + ", ".join(WITHOUT_DISAGREEMENT),
+            before["all"],
+            before["real"],
+            limits(before["final"]),
+        ),
+        (
+            "**forest alone** (segment.learned_cnn: off) judged by " + ", ".join(alone),
+            rev["alone_all"],
+            rev["alone_real"],
+            limits(alone),
+        ),
+        (
+            "forest alone judged by " + ", ".join(shared) + " (before)",
+            off["all"],
+            off["real"],
+            limits(off["final"]),
         ),
     )
     lines = [
         "The review's limits chosen fold by fold on the other folds, judged on the held-out\n"
         "fold (targets: >= 80 % of the cases off by > 25 % flagged, <= 25 % of those within\n"
-        "10 %); flagged: > 25 % cases / within-10 % cases:",
+        "10 %); flagged: > 25 % cases / within-10 % cases. A segmentation with the U-Net\n"
+        "(FLAIR) and one without (T2, T1c, `segment.learned_cnn: off`) have limits of their\n"
+        "own (`REVIEW_LIMITS`): those with the U-Net chosen on the shipped method's rows,\n"
+        "the forest alone's own figure on the forest's rows (`review_cv.py --forest-alone`):",
         "",
         "| rows | every case | real cases (no phantoms) | limits chosen on every case |",
         "|---|---|---|---|",
     ]
-    for name, r in runs:
-        lim = ", ".join(f"{k} {v:g}" for k, v in r["final"].items())
-        lines.append(f"| {name} | {cell(r['all'])} | {cell(r['real'])} | {lim} |")
+    for name, every, real, lim in runs:
+        lines.append(f"| {name} | {cell(every)} | {cell(real)} | {lim} |")
     return "\n".join(lines), rev
 
 
@@ -259,7 +298,9 @@ spread of 3-D Dice over the nine choices was below 0.03 per group. The review
 limits are chosen fold by fold on the other folds (`benchmarks/review_cv.py`);
 on FLAIR the review judges the forest's and the U-Net's disagreement
 (`model_disagreement`: the share of the lesion where their probabilities differ
-by more than 0.5), which the mean's smoother probability hides from the other figures.
+by more than 0.5), which the mean's smoother probability hides from the other figures;
+without the U-Net (T2, T1c, `segment.learned_cnn: off`) it judges the uncertain
+boundary instead (`uncertain_ratio`, its limit chosen on the forest's rows).
 
 ## Against the targets of issue 28 (cross-validated, learned method)
 

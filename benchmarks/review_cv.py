@@ -4,8 +4,8 @@ Reads the per-case rows of ``benchmarks/learned_cv.py --json`` (out-of-fold:
 every case was segmented by a model that never saw its patient; a figure
 added after the run: ``benchmarks/review_figures.py``) and, fold by fold,
 chooses the limits of the judged figures (default: those of
-:data:`tumor3d.learned.review.REVIEW_LIMITS`) on the other folds' cases, then
-judges them on the held-out fold:
+``REVIEW_LIMITS["with_net"]``, :data:`tumor3d.learned.review.REVIEW_LIMITS`) on the
+other folds' cases, then judges them on the held-out fold:
 
 - a case whose volume is off by more than 25 % should be flagged (target:
   >= 80 % of them),
@@ -14,7 +14,17 @@ judges them on the held-out fold:
 The choice maximises the share of > 25 % cases flagged among the limits
 that flag at most 25 % of the within-10 % cases of the choosing folds
 (ties: fewer flags, then the first in :data:`GRID` order). The final limits
-are chosen the same way on every case. The held-out flags are
+are chosen the same way on every case.
+
+With ``--forest-alone ROWS`` (the same command's rows without the U-Net,
+``segment.learned_cnn: off``), the two kinds of segmentation get their own
+limits, as the pipeline judges them (:func:`tumor3d.learned.review.review_kind`):
+fold by fold, the ``with_net`` limits are chosen on the other folds' rows of the
+shipped method, then the forest alone's own figures (default: those of
+``REVIEW_LIMITS["forest_alone"]`` that ``with_net`` lacks) on the other folds'
+forest-alone rows, the shared limits fixed at the ``with_net`` choice; a held-out
+row with a disagreement figure is judged by the first, one without by the second,
+and the forest-alone rows by the second. The held-out flags are
 :func:`tumor3d.learned.review.review_segmentation`'s own; the search over the
 grid is vectorised and checked against it.
 
@@ -23,6 +33,9 @@ Usage::
     python benchmarks/review_cv.py /tmp/cv/learned.json
     python benchmarks/review_cv.py rows.json --measures uncertain_ratio mean_probability \\
         outside_ratio prior_agreement          # the limits judged before model_disagreement
+    python benchmarks/review_cv.py learned.json --forest-alone forest.json   # as shipped
+    python benchmarks/review_cv.py learned.json --forest-alone forest.json \\
+        --nested-alone uncertain_ratio prior_agreement uncertain_ratio,prior_agreement
 """
 
 from __future__ import annotations
@@ -99,11 +112,16 @@ def _counts(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     return err > 25, err <= 10
 
 
-def choose(rows: list[dict], measures: tuple[str, ...] | None = None) -> dict:
-    """The limits of ``measures`` chosen on ``rows`` (see the module docstring)."""
-    measures = tuple(measures or REVIEW_LIMITS)
+def choose(
+    rows: list[dict], measures: tuple[str, ...] | None = None, fixed: dict | None = None
+) -> dict:
+    """The limits of ``measures`` chosen on ``rows`` (see the module docstring), the
+    limits ``fixed`` judged beside them (and returned with them)."""
+    measures = tuple(measures or REVIEW_LIMITS["with_net"])
     combos = np.array(list(itertools.product(*(range(len(GRID[k])) for k in measures))))
     f = _flag_matrix(rows, measures, combos)
+    if fixed:
+        f |= flags(rows, fixed)[None, :]
     bad, good = _counts(rows)
     caught, false, n = f[:, bad].sum(1), f[:, good].sum(1), f.sum(1)
     ok = false <= MAX_GOOD_FLAGGED * good.sum() if good.any() else np.ones(len(f), bool)
@@ -113,7 +131,7 @@ def choose(rows: list[dict], measures: tuple[str, ...] | None = None) -> dict:
     else:
         top = np.flatnonzero(ok & (caught == caught[ok].max()))
         best = combos[top[np.argmin(n[top])]]  # argmin: the first of the fewest flags
-    return {k: GRID[k][i] for k, i in zip(measures, best, strict=True)}
+    return {**(fixed or {}), **{k: GRID[k][i] for k, i in zip(measures, best, strict=True)}}
 
 
 def rates(rows: list[dict], f: np.ndarray) -> tuple[float, float, int, int]:
@@ -134,7 +152,7 @@ def cross_validate(rows: list[dict], measures: tuple[str, ...] | None = None) ->
     the within-10 % cases flagged, number of each)``, ``fold_limits`` and
     ``final`` (the limits chosen on every case).
     """
-    measures = tuple(measures or REVIEW_LIMITS)
+    measures = tuple(measures or REVIEW_LIMITS["with_net"])
     rows = [r for r in rows if np.isfinite(r["vol_err"])]
     folds = sorted({r["fold"] for r in rows})
     held_flags = np.zeros(len(rows), bool)
@@ -176,6 +194,139 @@ def cross_validate(rows: list[dict], measures: tuple[str, ...] | None = None) ->
     }
 
 
+#: The forest alone's own figures by default: those of its limits the ``with_net`` set lacks.
+ALONE_EXTRA = tuple(k for k in REVIEW_LIMITS["forest_alone"] if k not in REVIEW_LIMITS["with_net"])
+
+
+def _has_net(r: dict) -> bool:
+    return bool(np.isfinite(_values([r], "model_disagreement")[0]))
+
+
+def _rate_lines(rows: list[dict], f: np.ndarray, what: str) -> list[str]:
+    c, fl, nb, ng = rates(rows, f)
+    out = [f"{what}: {c:.0%} of {nb} cases off by > 25 % flagged; {fl:.0%} of {ng} within 10 %"]
+    for g in sorted({r["group"] for r in rows}):
+        sel = [i for i, r in enumerate(rows) if r["group"] == g]
+        c, fl, nb, ng = rates([rows[i] for i in sel], f[sel])
+        out.append(f"  {g}: {c:.0%} of {nb} > 25 % flagged, {fl:.0%} of {ng} within 10 % flagged")
+    real = [i for i, r in enumerate(rows) if r["group"] != "phantom"]
+    c, fl, nb, ng = rates([rows[i] for i in real], f[real])
+    out.append(f"  real cases only: {c:.0%} of {nb} > 25 % flagged, {fl:.0%} of {ng} within 10 %")
+    return out
+
+
+def _split_limits(
+    rows: list[dict], forest_rows: list[dict], net_measures: tuple, extra: tuple
+) -> tuple[dict, dict]:
+    """The ``with_net`` limits chosen on ``rows``, the forest alone's on ``forest_rows``
+    (its ``extra`` figures; the others but the disagreement fixed at the first choice)."""
+    net = choose(rows, net_measures)
+    shared = {k: v for k, v in net.items() if k != "model_disagreement" and k not in extra}
+    return net, choose(forest_rows, extra, fixed=shared) if extra else shared
+
+
+def _split_flags(rows: list[dict], net: dict, alone: dict) -> np.ndarray:
+    return np.array([flags([r], net if _has_net(r) else alone)[0] for r in rows], bool)
+
+
+def cross_validate_split(
+    rows: list[dict],
+    forest_rows: list[dict],
+    net_measures: tuple[str, ...] | None = None,
+    extra: tuple[str, ...] | None = None,
+) -> dict:
+    """The two kinds' limits chosen fold by fold (the module docstring), judged on the
+    held-out fold. Returns ``lines``, ``all``/``real`` (the shipped rows, as
+    :func:`cross_validate`), ``alone_all``/``alone_real`` (the forest-alone rows),
+    ``fold_limits`` and ``final`` (``{"with_net": ..., "forest_alone": ...}`` on every case)."""
+    net_measures = tuple(net_measures or REVIEW_LIMITS["with_net"])
+    extra = ALONE_EXTRA if extra is None else tuple(extra)
+    rows = [r for r in rows if np.isfinite(r["vol_err"])]
+    forest_rows = [r for r in forest_rows if np.isfinite(r["vol_err"])]
+    held, held_alone = np.zeros(len(rows), bool), np.zeros(len(forest_rows), bool)
+    lines = [f"with_net: {', '.join(net_measures)}; forest_alone adds: {', '.join(extra) or '-'}"]
+    fold_limits = {}
+    for k in sorted({r["fold"] for r in rows}):
+        net, alone = fold_limits[k] = _split_limits(
+            [r for r in rows if r["fold"] != k],
+            [r for r in forest_rows if r["fold"] != k],
+            net_measures,
+            extra,
+        )
+        idx = [i for i, r in enumerate(rows) if r["fold"] == k]
+        held[idx] = _split_flags([rows[i] for i in idx], net, alone)
+        idx = [i for i, r in enumerate(forest_rows) if r["fold"] == k]
+        held_alone[idx] = flags([forest_rows[i] for i in idx], alone)
+        lines.append(f"fold {k}: with_net {net}; forest_alone {alone}")
+    lines += [""] + _rate_lines(rows, held, "cross-validated, shipped rows")
+    lines += _rate_lines(forest_rows, held_alone, "cross-validated, forest-alone rows")
+    net, alone = _split_limits(rows, forest_rows, net_measures, extra)
+    lines.append(f"\nfinal limits (every case): with_net {net}; forest_alone {alone}")
+    real = [r["group"] != "phantom" for r in rows]
+    real_alone = [r["group"] != "phantom" for r in forest_rows]
+    return {
+        "lines": lines,
+        "all": rates(rows, held),
+        "real": rates([r for r, x in zip(rows, real, strict=True) if x], held[real]),
+        "alone_all": rates(forest_rows, held_alone),
+        "alone_real": rates(
+            [r for r, x in zip(forest_rows, real_alone, strict=True) if x], held_alone[real_alone]
+        ),
+        "fold_limits": fold_limits,
+        "final": {"with_net": net, "forest_alone": alone},
+    }
+
+
+def _best_set(train: list[dict], sets: list[tuple[str, ...]]) -> tuple[str, ...]:
+    """:func:`nested`'s choice among ``sets`` on ``train`` (each cross-validated on it)."""
+    keys = []
+    for s in sets:
+        caught, false, _, _ = cross_validate(train, s)["all"]
+        keys.append((false <= MAX_GOOD_FLAGGED, caught, -false, -len(s)))
+    return sets[max(range(len(sets)), key=keys.__getitem__)]  # ties: the first
+
+
+def nested_alone(
+    rows: list[dict],
+    forest_rows: list[dict],
+    sets: list[tuple[str, ...]],
+    net_sets: list[tuple[str, ...]] | None = None,
+) -> list[str]:
+    """The choice of the forest alone's own figures among ``sets`` (``()``: none),
+    itself cross-validated: outer fold ``k``, each set is cross-validated
+    (:func:`cross_validate_split`) on the other folds, the one that catches most of
+    their forest-alone > 25 % cases while flagging at most 25 % of their within-10 %
+    ones (ties: fewer flagged, then fewer figures, then the first) gets its limits
+    chosen on those folds and is judged on fold ``k``. With ``net_sets``, the
+    ``with_net`` figures are first chosen among them on the other folds as
+    :func:`nested` chooses (doubly nested), else they are ``REVIEW_LIMITS["with_net"]``'s."""
+    rows = [r for r in rows if np.isfinite(r["vol_err"])]
+    forest_rows = [r for r in forest_rows if np.isfinite(r["vol_err"])]
+    held, held_alone = np.zeros(len(rows), bool), np.zeros(len(forest_rows), bool)
+    lines = []
+    for k in sorted({r["fold"] for r in rows}):
+        train = [r for r in rows if r["fold"] != k]
+        ftrain = [r for r in forest_rows if r["fold"] != k]
+        net_set = _best_set(train, net_sets) if net_sets else tuple(REVIEW_LIMITS["with_net"])
+        keys = []
+        for s in sets:
+            run = cross_validate_split(train, ftrain, net_set, extra=s)
+            caught, false, _, _ = run["alone_all"]
+            keys.append((false <= MAX_GOOD_FLAGGED, caught, -false, -len(s)))
+        best = sets[max(range(len(sets)), key=keys.__getitem__)]
+        net, alone = _split_limits(train, ftrain, net_set, best)
+        idx = [i for i, r in enumerate(rows) if r["fold"] == k]
+        held[idx] = _split_flags([rows[i] for i in idx], net, alone)
+        idx = [i for i, r in enumerate(forest_rows) if r["fold"] == k]
+        held_alone[idx] = flags([forest_rows[i] for i in idx], alone)
+        lines.append(
+            f"fold {k}: with_net {net}; forest_alone adds {', '.join(best) or '-'} -> {alone}"
+        )
+    lines += _rate_lines(rows, held, "nested, shipped rows")
+    lines += _rate_lines(forest_rows, held_alone, "nested, forest-alone rows")
+    return lines
+
+
 def nested(rows: list[dict], sets: list[tuple[str, ...]]) -> list[str]:
     """The choice among sets of judged figures, itself cross-validated.
 
@@ -190,11 +341,7 @@ def nested(rows: list[dict], sets: list[tuple[str, ...]]) -> list[str]:
     lines = []
     for k in sorted({r["fold"] for r in rows}):
         train = [r for r in rows if r["fold"] != k]
-        keys = []
-        for s in sets:
-            caught, false, _, _ = cross_validate(train, s)["all"]
-            keys.append((false <= MAX_GOOD_FLAGGED, caught, -false, -len(s)))
-        best = sets[max(range(len(sets)), key=keys.__getitem__)]  # ties: the first
+        best = _best_set(train, sets)
         lim = choose(train, best)
         idx = [i for i, r in enumerate(rows) if r["fold"] == k]
         held[idx] = flags([rows[i] for i in idx], lim)
@@ -217,7 +364,30 @@ def main(argv=None) -> int:
         nargs="+",
         choices=sorted(GRID),
         default=None,
-        help="the figures judged (default: those of REVIEW_LIMITS)",
+        help='the figures judged (default: those of REVIEW_LIMITS["with_net"])',
+    )
+    ap.add_argument(
+        "--forest-alone",
+        default=None,
+        metavar="ROWS",
+        help="the same run's rows without the U-Net: each kind judged by its own limits",
+    )
+    ap.add_argument(
+        "--alone-extra",
+        nargs="*",
+        choices=sorted(GRID),
+        default=None,
+        help="with --forest-alone: the forest alone's own figures (default: "
+        'those of REVIEW_LIMITS["forest_alone"] that "with_net" lacks)',
+    )
+    ap.add_argument(
+        "--nested-alone",
+        nargs="+",
+        metavar="A,B,...",
+        default=None,
+        help="with --forest-alone: choose the forest alone's own figures among these sets "
+        "('-': none) inside each fold's choosing folds, judged on the held-out fold (with "
+        "--nested: the with_net figures chosen among its sets first, doubly nested)",
     )
     ap.add_argument(
         "--nested",
@@ -229,12 +399,21 @@ def main(argv=None) -> int:
     )
     args = ap.parse_args(argv)
     rows = json.loads(Path(args.rows).read_text())
-    if args.nested:
-        sets = [tuple(s.split(",")) for s in args.nested]
-        bad = sorted({m for s in sets for m in s} - set(GRID))
-        if bad:
-            ap.error(f"no grid for {bad}: expected among {sorted(GRID)}")
-        print("\n".join(nested(rows, sets)))
+    net_sets = [tuple(s.split(",")) for s in args.nested] if args.nested else None
+    alone_sets = [() if s == "-" else tuple(s.split(",")) for s in args.nested_alone or ()]
+    bad = sorted({m for s in (net_sets or []) + alone_sets for m in s} - set(GRID))
+    if bad:
+        ap.error(f"no grid for {bad}: expected among {sorted(GRID)}")
+    if args.forest_alone:
+        forest = json.loads(Path(args.forest_alone).read_text())
+        if alone_sets:
+            print("\n".join(nested_alone(rows, forest, alone_sets, net_sets)))
+            return 0
+        out = cross_validate_split(rows, forest, args.measures, args.alone_extra)
+        print("\n".join(out["lines"]))
+        return 0
+    if net_sets:
+        print("\n".join(nested(rows, net_sets)))
         return 0
     out = cross_validate(rows, args.measures)
     print("\n".join(out["lines"]))

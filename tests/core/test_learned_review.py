@@ -2,8 +2,10 @@
 
 The mean of two probabilities is smooth where the models disagree (1 and 0.4
 average to a confident-looking 0.7), so the review judges the share of the
-lesion where they differ by more than 0.5 (``model_disagreement``). No real
-data: constructed maps, the shipped forest on a phantom, a constant network.
+lesion where they differ by more than 0.5 (``model_disagreement``). A forest
+alone (no disagreement to judge) has limits of its own: voxels near the
+threshold per lesion voxel. No real data: constructed maps, the shipped forest
+on a phantom, a constant network.
 """
 
 from __future__ import annotations
@@ -15,7 +17,12 @@ import numpy as np
 import pytest
 
 from tumor3d.errors import InputError
-from tumor3d.learned.review import REVIEW_LIMITS, review_features, review_segmentation
+from tumor3d.learned.review import (
+    REVIEW_LIMITS,
+    review_features,
+    review_kind,
+    review_segmentation,
+)
 
 
 def _two_models(share: float):
@@ -38,7 +45,7 @@ def test_disagreeing_models_are_flagged_where_their_confident_mean_is_not():
     assert both["model_disagreement"] == pytest.approx(0.3)  # 6 of 20 rows, |1 - 0.45| > 0.5
     # the other figures see a confident lesion: mean 0.9175, nothing outside
     assert both["mean_probability"] == pytest.approx(0.7 + 0.3 * 0.725)
-    assert both["mean_probability"] > REVIEW_LIMITS["mean_probability"]
+    assert both["mean_probability"] > REVIEW_LIMITS["with_net"]["mean_probability"]
     assert both["outside_ratio"] == 0.0
     flagged = review_segmentation(both)
     assert flagged.needs_review and len(flagged.reasons) == 1
@@ -55,6 +62,44 @@ def test_disagreeing_models_are_flagged_where_their_confident_mean_is_not():
     )
     assert agree["model_disagreement"] == pytest.approx(0.1)
     assert not review_segmentation(agree).needs_review
+
+
+def _uncertain_rim(rim: int):
+    """A 10 x 10 lesion of probability 0.95 in a rim ``rim`` voxels wide of 0.4 (one slice)."""
+    p = np.zeros((1, 40, 40), np.float32)
+    p[0, 15 - rim : 25 + rim, 15 - rim : 25 + rim] = 0.4
+    p[0, 15:25, 15:25] = 0.95
+    return p
+
+
+def test_a_forest_alone_is_judged_by_its_own_limits_and_a_net_case_is_not():
+    """Without a net the review judges the uncertain boundary (voxels of probability
+    0.2-0.8 per lesion voxel); with one, the same map's boundary is not judged."""
+    wide, narrow = _uncertain_rim(3), _uncertain_rim(1)
+    limit = REVIEW_LIMITS["forest_alone"]["uncertain_ratio"]
+    assert "uncertain_ratio" not in REVIEW_LIMITS["with_net"]
+    # 16 x 16 - 10 x 10 = 156 rim voxels per 100 lesion voxels; 12 x 12: 44
+    alone = review_features(wide, wide > 0.5, (5.0, 1.0, 1.0))
+    assert alone["uncertain_ratio"] == pytest.approx(1.56) and alone["uncertain_ratio"] > limit
+    # confident inside, nothing above 0.5 left outside: the other figures pass
+    assert alone["mean_probability"] == pytest.approx(0.95) and alone["outside_ratio"] == 0.0
+    assert review_kind(alone) == "forest_alone"
+    flagged = review_segmentation(alone)
+    assert flagged.needs_review and len(flagged.reasons) == 1
+    assert flagged.reasons[0].startswith("uncertain boundary: 1.56 voxels")
+    # a narrow rim under the limit passes
+    ok = review_features(narrow, narrow > 0.5, (5.0, 1.0, 1.0))
+    assert ok["uncertain_ratio"] == pytest.approx(0.44)
+    assert not review_segmentation(ok).needs_review
+    # the same wide map as the mean of a forest and a net that agree: judged by the
+    # net's limits (their disagreement, 0), not by the forest alone's boundary
+    both = review_features(
+        wide, wide > 0.5, (5.0, 1.0, 1.0), forest_probability=wide, cnn_probability=wide
+    )
+    assert both["uncertain_ratio"] == alone["uncertain_ratio"] and both["model_disagreement"] == 0
+    assert review_kind(both) == "with_net"
+    passed = review_segmentation(both)
+    assert not passed.needs_review and passed.quality_score > flagged.quality_score
 
 
 def test_the_disagreement_needs_both_probabilities_of_the_lesion_shape():

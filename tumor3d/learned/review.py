@@ -5,13 +5,15 @@ probability: a lesion of low mean probability, much probability left outside
 what was kept (a second lesion or a leak the post-processing cut), or, where
 the forest's probability is averaged with a U-Net's (FLAIR), the two models
 disagreeing on much of the kept lesion (one says tumour, the other not: the
-mean's smoother probability hides it from the other figures).
-:func:`review_features` computes those figures (and two more that are
-reported but not judged by default: voxels near the threshold per lesion
-voxel, and the agreement with the rule-based prior), :func:`review_segmentation`
+mean's smoother probability hides it from the other figures), or, where the
+forest's probability stands alone (T2, T1c, ``segment.learned_cnn: off``), many
+voxels near the threshold per lesion voxel (an uncertain boundary).
+:func:`review_features` computes those figures (and one more that is reported
+but not judged: the agreement with the rule-based prior), :func:`review_segmentation`
 turns them into ``needs_review`` with its reasons and a ``quality_score`` in
-[0, 1]. The limits are chosen by cross-validation by patient
-(``benchmarks/review_cv.py``, ``reports/learned_cv.md``).
+[0, 1], by the limits of the kind of segmentation (:data:`REVIEW_LIMITS`). The
+limits are chosen by cross-validation by patient (``benchmarks/review_cv.py``,
+``reports/learned_cv.md``).
 """
 
 from __future__ import annotations
@@ -22,14 +24,33 @@ import numpy as np
 
 from tumor3d.errors import InputError
 
-__all__ = ["REVIEW_CHECKS", "REVIEW_LIMITS", "Review", "review_features", "review_segmentation"]
+__all__ = [
+    "REVIEW_CHECKS",
+    "REVIEW_LIMITS",
+    "Review",
+    "review_features",
+    "review_kind",
+    "review_segmentation",
+]
 
-#: Limits beyond which a segmentation asks for a human (see the module docstring).
-REVIEW_LIMITS: dict[str, float] = {
-    # chosen by cross-validation by patient (benchmarks/review_cv.py, reports/learned_cv.md)
-    "mean_probability": 0.85,  # mean probability inside the lesion (below: check)
-    "outside_ratio": 0.2,  # probability mass above 0.5 outside the kept lesion, per inside
-    "model_disagreement": 0.15,  # share of the lesion where |p_forest - p_net| > 0.5
+#: Limits beyond which a segmentation asks for a human, per kind of segmentation
+#: (:func:`review_kind`): ``with_net``, the forest's probability averaged with the
+#: U-Net's (FLAIR), and ``forest_alone`` (T2, T1c, ``segment.learned_cnn: off``: no
+#: disagreement to judge). Chosen by cross-validation by patient
+#: (benchmarks/review_cv.py, reports/learned_cv.md): ``with_net`` on the shipped method's
+#: out-of-fold rows, ``forest_alone``'s own limit (uncertain_ratio) on the forest's, the
+#: first two shared.
+REVIEW_LIMITS: dict[str, dict[str, float]] = {
+    "with_net": {
+        "mean_probability": 0.85,  # mean probability inside the lesion (below: check)
+        "outside_ratio": 0.2,  # probability mass above 0.5 outside the kept lesion, per inside
+        "model_disagreement": 0.15,  # share of the lesion where |p_forest - p_net| > 0.5
+    },
+    "forest_alone": {
+        "mean_probability": 0.85,
+        "outside_ratio": 0.2,
+        "uncertain_ratio": 1.2,  # voxels of probability 0.2-0.8 per lesion voxel
+    },
 }
 
 #: How each figure is judged: ``"above"`` (a value over the limit asks for a check) or
@@ -160,26 +181,43 @@ def review_features(
     }
 
 
+def review_kind(figures: dict[str, float]) -> str:
+    """The key of :data:`REVIEW_LIMITS` that judges ``figures``.
+
+    ``"with_net"`` when they hold the two models' disagreement (a number), else
+    ``"forest_alone"``.
+
+    >>> review_kind({"model_disagreement": 0.1}), review_kind({"model_disagreement": float("nan")})
+    ('with_net', 'forest_alone')
+    """
+    v = figures.get("model_disagreement")
+    return "with_net" if v is not None and np.isfinite(float(v)) else "forest_alone"
+
+
 def review_segmentation(
     figures: dict[str, float], limits: dict[str, float] | None = None
 ) -> Review:
     """Whether a human should check the segmentation, and why.
 
-    Every figure with a limit (:data:`REVIEW_LIMITS`, updated by ``limits``) is
-    judged as :data:`REVIEW_CHECKS` says; a figure that is absent or nan (the
-    disagreement without a U-Net, the mean probability of an empty lesion) is
-    not. The score is 1 minus half the largest excess over the limits, in [0, 1].
+    Every figure with a limit (:data:`REVIEW_LIMITS` of the figures' kind,
+    :func:`review_kind`, updated by ``limits``) is judged as :data:`REVIEW_CHECKS`
+    says; a figure that is absent or nan (the mean probability of an empty
+    lesion) is not. The score is 1 minus half the largest excess over the limits,
+    in [0, 1].
 
     Examples
     --------
     >>> review_segmentation({"uncertain_ratio": 0.1, "mean_probability": 0.95,
     ...                      "outside_ratio": 0.0, "volume_ml": 20.0}).needs_review
     False
+    >>> review_segmentation({"uncertain_ratio": 2.0, "mean_probability": 0.95,
+    ...                      "outside_ratio": 0.0}).reasons[0][:20]
+    'uncertain boundary: '
     >>> review_segmentation({"mean_probability": 0.95, "outside_ratio": 0.0,
     ...                      "model_disagreement": 0.4}).reasons[0][:36]
     'the forest and the U-Net disagree on'
     """
-    lim = dict(REVIEW_LIMITS)
+    lim = dict(REVIEW_LIMITS[review_kind(figures)])
     lim.update(limits or {})
     unknown = sorted(set(lim) - set(REVIEW_CHECKS))
     if unknown:
