@@ -21,9 +21,11 @@ Reported:
   wall time if the W lanes ran on W free cores);
 * where the overhead goes, summed over the patients: per stage,
   submission-to-result wall time minus compute time (Prefect's task run,
-  result persistence); publishing (``PatientOutcome.publish_seconds``: the
-  products read back, the files encoded and written); the rest of each lane
-  (the input's digest, the runner's bookkeeping); lanes idle at the end;
+  result persistence, and waiting for a worker: the cohort keeps one patient
+  more in flight than it has workers, ``tumor3d.flows.cohort.EXTRA_LANES``);
+  publishing (``PatientOutcome.publish_seconds``: the products read back, the
+  files encoded and written); the rest of each lane (the input's digest, the
+  runner's bookkeeping);
 * the same share without publishing, ``1 - (compute + publish) / (W x wall)``;
 * the cached re-run as a fraction of the cold time.
 
@@ -117,11 +119,10 @@ def main() -> None:
     outside_share = 1.0 - compute_total / lane_total
     direct_share = 1.0 - (direct_s / args.workers) / cold_s
     orch_total = sum(orchestration.values())
-    rest = lane_total - lane_stage_wall  # publishing, input digests, flow set-up, idle lanes
     publish_total = sum(p.publish_seconds for p in cold.patients)
     lane_busy = sum(p.lane_seconds for p in cold.patients)
-    prepare_total = lane_busy - lane_stage_wall - publish_total
-    idle_total = lane_total - lane_busy
+    rest = lane_busy - lane_stage_wall  # publishing, input digests
+    prepare_total = rest - publish_total
     no_publish_share = 1.0 - (compute_total + publish_total) / lane_total
     n = args.n
     commit = subprocess.run(
@@ -148,14 +149,14 @@ def main() -> None:
         f"{100 * outside_share:.1f} % |",
         f"| same against the direct peer, 1 - (direct / workers) / wall | "
         f"{100 * direct_share:.1f} % |",
-        f"| Prefect per-task overhead (stage wall - compute), summed (s) | {orch_total:.1f} |",
-        f"| lane time outside stage tasks (prepare, publish, idle lanes) (s) | {rest:.1f} |",
+        "| Prefect per-task overhead and waiting for a worker (stage wall - compute), "
+        f"summed (s) | {orch_total:.1f} |",
+        f"| lane time outside stage tasks (prepare, publish), summed (s) | {rest:.1f} |",
         f"| of which publishing, summed (s; per patient) | {publish_total:.1f}; "
         f"{publish_total / n:.2f} |",
         f"| of which input digest and runner bookkeeping, summed (s; per patient) | "
         f"{prepare_total:.1f}; {prepare_total / n:.2f} |",
-        f"| of which lanes idle (the last patients), summed (s) | {idle_total:.1f} |",
-        f"| Prefect per-task overhead per patient (s) | {orch_total / n:.2f} |",
+        f"| Prefect per-task overhead and waiting, per patient (s) | {orch_total / n:.2f} |",
         f"| share without publishing, 1 - (compute + publish) / (workers x wall) | "
         f"{100 * no_publish_share:.1f} % |",
         f"| Prefect temporary server start-up, excluded (s) | {server_s:.1f} |",

@@ -3,7 +3,10 @@
 Peers, in one process, one temporary Prefect server, every run cold (a fresh
 output folder and store, so every stage computes):
 
-* ``local, 1 lane`` / ``local, 2 lanes``: the default ``ThreadPoolTaskRunner``;
+* ``local, 1 worker`` / ``local, 2 workers``: the default ``ThreadPoolTaskRunner``
+  of that many threads (the cohort keeps one patient more in flight,
+  ``tumor3d.flows.cohort.EXTRA_LANES``, so a worker does not wait while a
+  patient is published);
 * ``dask, 1 worker`` / ``dask, 2 workers``: ``--dask-workers N``, a temporary
   ``distributed.LocalCluster`` of N worker *processes* (one thread each)
   started inside the run; its start-up and each worker's first-call numba
@@ -29,7 +32,8 @@ report's section; the other subsections and the hand-written reading
 
 Usage::
 
-    python benchmarks/bench_dask.py [--n 20] [--widths 1 2 4] [--report reports/benchmarks.md]
+    python benchmarks/bench_dask.py [--n 20] [--widths 1 2 4] [--runners local dask]
+                                    [--report reports/benchmarks.md]
 """
 
 from __future__ import annotations
@@ -62,6 +66,7 @@ from tumor3d.flows.cohort import run_cohort  # noqa: E402
 from tumor3d.flows.dask_runner import DaskSpec  # noqa: E402
 
 SECTION = "## Dask runner scaling"
+RUNNERS = ("local", "dask")
 MIB = 1024.0
 
 
@@ -130,10 +135,9 @@ class WorkerPeaks:
 
 
 def _outside_stages_s(result) -> float:
-    """Mean per patient of lane time outside its stage tasks (prepare + publish)."""
-    # lane wall is not recorded per patient; the flow's wall x lanes minus stage walls
-    stage_wall = sum(s.wall_seconds for p in result.patients for s in p.stages)
-    return max(0.0, result.wall_seconds * result.workers - stage_wall) / len(result.patients)
+    """Mean per patient of lane time outside its stage tasks (input digest, publishing)."""
+    outside = [p.lane_seconds - sum(s.wall_seconds for s in p.stages) for p in result.patients]
+    return sum(outside) / len(outside)
 
 
 def main() -> None:
@@ -142,6 +146,9 @@ def main() -> None:
     parser.add_argument("--report", type=Path, default=ROOT / "reports" / "benchmarks.md")
     parser.add_argument(
         "--widths", type=int, nargs="+", default=[1, 2], help="lanes / Dask workers to compare"
+    )
+    parser.add_argument(
+        "--runners", nargs="+", choices=RUNNERS, default=list(RUNNERS), help="which runners to run"
     )
     args = parser.parse_args()
 
@@ -152,9 +159,14 @@ def main() -> None:
     rows = write_phantom_cohort(args.n, "bd", work)
     load_start = os.getloadavg()[0]
 
-    peers = [(f"local, {w} lane{'s' if w > 1 else ''}", w, None) for w in args.widths] + [
+    peers = [
+        (f"local, {w} worker{'s' if w > 1 else ''}", w, None)
+        for w in args.widths
+        if "local" in args.runners
+    ] + [
         (f"dask, {w} worker{'s' if w > 1 else ''}", None, DaskSpec(n_workers=w))
         for w in args.widths
+        if "dask" in args.runners
     ]
     width = {name: (lanes or dask.n_workers) for name, lanes, dask in peers}
     wall: dict[str, float] = {}
@@ -191,11 +203,12 @@ def main() -> None:
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
     ).stdout.strip()
     load = os.getloadavg()[0]
+    only = "" if set(args.runners) == set(RUNNERS) else f" --runners {' '.join(args.runners)}"
     lines = [
         f"### {args.n} phantom patients",
         "",
         f"Produced by `nice -n 10 python benchmarks/bench_dask.py --n {args.n} --widths "
-        f"{' '.join(map(str, args.widths))}` on "
+        f"{' '.join(map(str, args.widths))}{only}` on "
         f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores (shared "
         f"with other jobs: read the ratios; load average {load_start:.1f} at the start, "
         f"{load:.1f} at the end), Python {platform.python_version()}; {commit or 'no git'}.",
@@ -211,24 +224,26 @@ def main() -> None:
         workers_cell = (
             f"{max(wp):.0f} / {sum(wp) / len(wp):.0f} ({len(wp)} processes)"
             if dask is not None and wp
-            else ("not found" if dask is not None else "(lanes are threads of the flow process)")
+            else ("not found" if dask is not None else "(threads of the flow process)")
         )
         lines.append(
             f"| {name} | {wall[name]:.1f} | {wall[name] / args.n:.2f} | {outside[name]:.2f} "
             f"| {100 * share:.0f} % | {flow_peak_mib[name]:.0f} ({flow_start_mib[name]:.0f}) "
             f"| {workers_cell} | {load_range[name][0]:.1f} - {load_range[name][1]:.1f} |"
         )
+    local = {lanes: wall[n] for n, lanes, _ in peers if lanes is not None}
+    dask_wall = {d.n_workers: wall[n] for n, _, d in peers if d is not None}
     w0 = args.widths[0]
-    l0 = wall[next(n for n, lanes, _ in peers if lanes == w0)]
-    d0 = wall[next(n for n, _, d in peers if d is not None and d.n_workers == w0)]
     lines += ["", "| ratio | value |", "|---|---:|"]
     for w in args.widths:
-        lw = wall[next(n for n, lanes, _ in peers if lanes == w)]
-        dw = wall[next(n for n, _, d in peers if d is not None and d.n_workers == w)]
-        if w != w0:
-            lines.append(f"| local speed-up, {w0} -> {w} lanes | {l0 / lw:.2f} x |")
-            lines.append(f"| Dask speed-up, {w0} -> {w} workers | {d0 / dw:.2f} x |")
-        lines.append(f"| Dask {w} / local {w} (wall) | {dw / lw:.2f} |")
+        if w != w0 and local:
+            lines.append(f"| local speed-up, {w0} -> {w} workers | {local[w0] / local[w]:.2f} x |")
+        if w != w0 and dask_wall:
+            lines.append(
+                f"| Dask speed-up, {w0} -> {w} workers | {dask_wall[w0] / dask_wall[w]:.2f} x |"
+            )
+        if local and dask_wall:
+            lines.append(f"| Dask {w} / local {w} (wall) | {dask_wall[w] / local[w]:.2f} |")
     lines.append("")
     subsection = "\n".join(lines) + "\n"
     report = args.report
