@@ -27,7 +27,8 @@ from ``/proc/<pid>/status`` every 0.2 s while the run lasts; ``VmHWM`` only
 grows, so the last sample before the worker exits is its peak).
 
 Each ``--n`` writes its own ``### <n> phantom patients`` subsection of the
-report's section; the other subsections and the hand-written reading
+report's section (``..., local runner only`` / ``..., Dask only`` with one
+``--runners``); the other subsections and the hand-written reading
 (``### Where Dask pays off``) are kept.
 
 Usage::
@@ -204,8 +205,9 @@ def main() -> None:
     ).stdout.strip()
     load = os.getloadavg()[0]
     only = "" if set(args.runners) == set(RUNNERS) else f" --runners {' '.join(args.runners)}"
+    scope = "" if not only else ("local runner only" if "local" in args.runners else "Dask only")
     lines = [
-        f"### {args.n} phantom patients",
+        f"### {args.n} phantom patients" + (f", {scope}" if scope else ""),
         "",
         f"Produced by `nice -n 10 python benchmarks/bench_dask.py --n {args.n} --widths "
         f"{' '.join(map(str, args.widths))}{only}` on "
@@ -250,30 +252,32 @@ def main() -> None:
     report.parent.mkdir(parents=True, exist_ok=True)
     old = report.read_text() if report.exists() else "# Benchmarks\n"
     report.write_text(
-        replace_report_section(old, SECTION, _merged_section(old, subsection, args.n))
+        replace_report_section(old, SECTION, _merged_section(old, subsection, args.n, scope))
     )
     print(subsection)
 
 
-def _merged_section(report_text: str, subsection: str, n: int) -> str:
-    """The report's Dask section with the ``### <n> phantom patients`` subsection replaced.
+def _merged_section(report_text: str, subsection: str, n: int, only: str = "") -> str:
+    """The report's Dask section with the ``### <n> phantom patients[, <only>]`` one replaced.
 
-    Other subsections (other cohort sizes, the hand-written reading) are kept;
-    a new size goes before the reading, in increasing order of size.
+    ``only``: ``"local runner only"`` / ``"Dask only"`` for a one-runner run, which
+    keeps its own subsection beside the size's two-runner one. Other subsections
+    (other cohort sizes, the hand-written reading) are kept; a new one goes
+    before the reading, in increasing order of size.
     """
     match = re.search(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", report_text, re.S | re.M)
     body = match.group(0) if match else f"{SECTION}\n\n"
     parts = re.split(r"(?=^### )", body, flags=re.M)
     head, subs = parts[0], parts[1:]
-    sized = {}
+    sized: dict[tuple[int, str], str] = {}
     rest = []
     for part in subs:
-        m = re.match(r"### (\d+) phantom patients\n", part)
+        m = re.match(r"### (\d+) phantom patients(?:, (.+))?\n", part)
         if m:
-            sized[int(m.group(1))] = part
+            sized[(int(m.group(1)), m.group(2) or "")] = part
         else:
             rest.append(part)
-    sized[n] = subsection + "\n"
+    sized[(n, only)] = subsection + "\n"
     return head + "".join(sized[k] for k in sorted(sized)) + "".join(rest)
 
 
