@@ -55,6 +55,7 @@ __all__ = [
     "ObjectStore",
     "check_reachable",
     "default_store_location",
+    "first_line",
     "is_url",
     "open_fs",
     "open_store",
@@ -99,7 +100,12 @@ def open_store(location: str | os.PathLike[str]) -> ArtifactStore:
     return ArtifactStore(location)
 
 
-def _first_line(exc: BaseException) -> str:
+def first_line(exc: BaseException) -> str:
+    r"""The first line of an exception's message, or its type's name when it has none.
+
+    >>> first_line(OSError("timed out\nretries: 3"))
+    'timed out'
+    """
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
 
@@ -141,7 +147,7 @@ def open_fs(url: str) -> tuple[Any, str]:
         fs, base = fsspec.core.url_to_fs(url, **_storage_options(protocol))
     except (ImportError, ValueError) as exc:
         raise InputError(
-            f"cannot open this location ({_first_line(exc)}); for s3:// install "
+            f"cannot open this location ({first_line(exc)}); for s3:// install "
             "'tumor3d[s3]' (s3fs)",
             url,
         ) from None
@@ -165,7 +171,7 @@ def check_reachable(fs: Any, base: str, url: str, *, what: str = "artifact store
     except Exception as exc:  # botocore/aiohttp raise many types; all mean "unreachable"
         raise StoreError(
             f"{url}: cannot reach the {what} ({type(exc).__name__}: "
-            f"{_first_line(exc)[:200]}); check AWS_ENDPOINT_URL and the credentials"
+            f"{first_line(exc)[:200]}); check AWS_ENDPOINT_URL and the credentials"
         ) from None
 
 
@@ -308,7 +314,7 @@ class ObjectStore(ArtifactStore):
                 self._write_atomically(relpath, data)
             except Exception as exc:  # a denied PUT, an endpoint gone mid-run, ...
                 raise StoreError(
-                    f"{self.url}/{relpath}: cannot write the artifact ({_first_line(exc)[:200]})"
+                    f"{self.url}/{relpath}: cannot write the artifact ({first_line(exc)[:200]})"
                 ) from None
             if existing is not None:
                 self._record(
@@ -338,9 +344,7 @@ class ObjectStore(ArtifactStore):
         except FileNotFoundError:
             raise StoreError(f"artifact {ref.kind} {ref.digest[:12]} is missing: {url}") from None
         except Exception as exc:
-            raise StoreError(
-                f"{url}: cannot read the artifact ({_first_line(exc)[:200]})"
-            ) from None
+            raise StoreError(f"{url}: cannot read the artifact ({first_line(exc)[:200]})") from None
         if verify and self.digest_of(data, kind=ref.kind, metadata=ref.metadata) != ref.digest:
             repair = self._quarantine_key(
                 ref.relpath, f"{ref.relpath}: content does not match its digest; quarantined"

@@ -44,7 +44,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from tumor3d.storage.objectstore import check_reachable, open_fs
+from tumor3d.storage.objectstore import check_reachable, first_line, open_fs
 from tumor3d.storage.store import StoreError
 
 __all__ = [
@@ -69,11 +69,6 @@ STALE_TMP_S = 3600.0
 
 def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return (text.splitlines()[0] if text else type(exc).__name__)[:200]
 
 
 class RemoteFolder:
@@ -309,7 +304,7 @@ def publish_files(
         raise
     except Exception as exc:  # botocore/aiohttp raise many types
         raise StoreError(
-            f"{out.url}/{prefix}{rel}: cannot publish ({step}: {_first_line(exc)}); "
+            f"{out.url}/{prefix}{rel}: cannot publish ({step}: {first_line(exc)[:200]}); "
             f"{where} left unpublished (no {MARKER}); a re-run completes it"
         ) from None
     finally:
