@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -27,30 +26,28 @@ with s._watch_server(f"http://127.0.0.1:{port}/api"):
     time.sleep(1.5)            # the server answers: nothing happens
     if sys.argv[1] == "kill":
         srv.close()            # the server goes away
-    time.sleep(8)
+    time.sleep(3)              # 15 watch periods: 5x what ends a command
 print("body finished", flush=True)
 """
 
 
 def _run(mode: str):
-    t0 = time.monotonic()
-    res = subprocess.run(
+    return subprocess.run(
         [sys.executable, "-c", SCRIPT, mode], capture_output=True, text=True, timeout=60,
         cwd=str(ROOT),
     )  # fmt: skip
-    return res, time.monotonic() - t0
 
 
 def test_a_vanished_server_ends_the_command_in_one_line():
-    res, wall = _run("kill")
+    res = _run("kill")
     assert res.returncode == 3, res.stderr
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "stopped answering" in lines[0], res.stderr
+    # ended by the watch (os._exit in the hook) before the body's own end
     assert "hook 3" in res.stdout and "body finished" not in res.stdout
-    assert wall < 8  # well before the body's own end
 
 
 def test_a_server_that_stays_is_left_alone():
-    res, _ = _run("keep")
+    res = _run("keep")
     assert res.returncode == 0, res.stderr
     assert "body finished" in res.stdout and res.stderr.strip() == ""

@@ -24,6 +24,7 @@ from tumor3d.flows.cli import app  # noqa: E402
 from tumor3d.flows.cohort import run_cohort  # noqa: E402
 from tumor3d.geometry.mesh import Mesh  # noqa: E402
 from tumor3d.phantom import make_phantom_patient  # noqa: E402
+from tumor3d.storage import objectstore  # noqa: E402
 from tumor3d.storage.manifest import write_manifest  # noqa: E402
 from tumor3d.storage.objectstore import ObjectStore, open_store  # noqa: E402
 from tumor3d.storage.phantom_io import write_phantom_patient  # noqa: E402
@@ -183,6 +184,8 @@ def test_an_unreachable_endpoint_fails_in_one_line_before_any_patient(
     s3_endpoint, tmp_path, monkeypatch
 ):
     monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://127.0.0.1:{_free_port()}")
+    # a refused connection is the same at any count: one botocore attempt, not 3
+    monkeypatch.setattr(objectstore, "S3_MAX_ATTEMPTS", 1)
     rows = _rows(tmp_path / "in", [0])
     out = tmp_path / "out"
     t0 = time.perf_counter()

@@ -66,6 +66,8 @@ STORE_DIRNAME = ".tumor3d-store"
 
 #: Seconds to wait for an S3 endpoint to accept a connection.
 S3_CONNECT_TIMEOUT_S = 5
+#: botocore's attempts at an S3 request (inside each of s3fs's own retries).
+S3_MAX_ATTEMPTS = 3
 
 
 def is_url(location: str | os.PathLike[str]) -> bool:
@@ -121,7 +123,7 @@ def _storage_options(protocol: str) -> dict[str, Any]:
             "config_kwargs": {
                 "connect_timeout": S3_CONNECT_TIMEOUT_S,
                 "read_timeout": 120,
-                "retries": {"max_attempts": 3, "mode": "standard"},
+                "retries": {"max_attempts": S3_MAX_ATTEMPTS, "mode": "standard"},
             },
         }
     return {}
