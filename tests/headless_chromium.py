@@ -96,15 +96,18 @@ def open_page(
     url = page.resolve().as_uri()
     shot = tmp_path / "screenshot.png"
     common = [f"--window-size={size[0]},{size[1]}", f"--virtual-time-budget={budget_ms}"]
-    r1 = _run([*common, f"--screenshot={shot}", url], tmp_path / "profile1", timeout)
-    r2 = _run([*common, "--dump-dom", url], tmp_path / "profile2", timeout)
+    # one browser for both: the screenshot and the DOM of the same page, after the same budget
+    r1 = _run([*common, f"--screenshot={shot}", "--dump-dom", url], tmp_path / "profile1", timeout)
     assert shot.is_file(), f"chromium wrote no screenshot: {r1.stderr[-2000:]}"
     with Image.open(shot) as im:
         pixels = np.asarray(im.convert("RGB"))
-    dom = r2.stdout
+    dom, stderr = r1.stdout, r1.stderr
+    if "</html>" not in dom.lower():  # a Chromium that does not combine them: a second run
+        r2 = _run([*common, "--dump-dom", url], tmp_path / "profile2", timeout)
+        dom, stderr = r2.stdout, r1.stderr + r2.stderr
     match = re.search(r'<pre id="t3d-js-errors">(.*?)</pre>', dom, flags=re.DOTALL)
     errors = [e for e in (match.group(1).splitlines() if match else []) if e.strip()]
-    console = [ln for ln in (r1.stderr + r2.stderr).splitlines() if "CONSOLE" in ln]
+    console = [ln for ln in stderr.splitlines() if "CONSOLE" in ln]
     match = re.search(r'<pre id="t3d-images">(.*?)</pre>', dom, flags=re.DOTALL)
     images = []
     for line in match.group(1).splitlines() if match else []:
