@@ -50,6 +50,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from cnn_select import group_line  # noqa: E402  (the same table row)
+
 THRESHOLDS = (0.5, 0.4, 0.45, 0.55)  # the shipped value first (the last tie-break)
 NET_WEIGHTS = (0.5, 0.65)
 KEEP_FRACTIONS = (1.0, 0.3)
@@ -132,20 +134,6 @@ def score_settings(rows_in: list[dict], prob_dir: Path, cache: str, cfg) -> dict
         print(f"  {r['case']}: {len(SETTINGS)} settings", flush=True)
     print(f"shipped setting's lesions within {worst:.2%} of the run's volumes", flush=True)
     return out
-
-
-def group_line(g: str, label: str, rs: list[dict]) -> str:
-    a = {k: np.array([r[k] for r in rs], float) for k in ("slice_dice", "recall", "spec", "dice3d")}
-    ve = np.array([r["vol_err"] for r in rs], float)
-    err = np.abs(ve)
-    return (
-        f"| {g} | {label} | {len(rs)} | {np.nanmean(a['dice3d']):.3f} ± "
-        f"{np.nanstd(a['dice3d']):.3f} ({np.nanmedian(a['dice3d']):.3f}) | "
-        f"{np.nanmean(a['slice_dice']):.3f} ± {np.nanstd(a['slice_dice']):.3f} | "
-        f"{np.nanmean(a['recall']):.3f} / {np.nanmean(a['spec']):.3f} | "
-        f"{np.nanmean(err):.1f} % ({np.nanmedian(ve):+.1f} %) | "
-        f"{int(np.sum(err <= 10))} / {int(np.sum(err > 25))} |"
-    )
 
 
 def paired(after: list[dict], before: list[dict]) -> list[str]:
