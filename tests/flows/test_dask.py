@@ -269,6 +269,7 @@ def test_a_local_cluster_starts_while_another_holds_the_dashboard_port():
     try:
         kwargs = dict(cohort_task_runner(2, DaskSpec(n_workers=1)).cluster_kwargs)
         kwargs["processes"] = False  # threads: the dashboard port is the scheduler's
+        kwargs.pop("env", None)  # a worker process's environment: none for threads
         cluster = distributed.LocalCluster(**kwargs)
         try:
             assert len(cluster.scheduler_info["workers"]) == 1

@@ -205,3 +205,33 @@ def test_a_patient_run_from_memory_stores_the_same_artifacts_as_one_from_the_sto
             assert product_memo.products().hits >= 10  # the stages' volume inputs
             assert product_memo.products().misses == 0
     assert digests[64] == digests[0]
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_published_patient_leaves_nothing_in_the_memo(tmp_path, memo):
+    """A warm runner serves many commands: each patient's volumes go once it is published."""
+    from tumor3d.flows.patient import run_patient
+
+    patient = make_phantom_patient(4, patient_id="memo4", n_slices=16, matrix_size=(128, 128))
+    image = write_phantom_patient(patient, tmp_path / "in").image
+    result = run_patient(image, tmp_path / "out", patient_id="memo4")
+    assert memo.misses + memo.hits > 0  # the stages did go through the memo
+    kept = {d for run in result.stages for d in run.artifacts.values()} & set(memo._entries)
+    assert not kept and memo.nbytes == 0
+
+
+def test_a_local_clusters_worker_processes_keep_a_small_memo(monkeypatch):
+    """Worker processes never publish, so nothing forgets their volumes: a smaller bound,
+    unless the user set one (which the workers inherit)."""
+    pytest.importorskip("prefect_dask", reason="prefect-dask not installed")
+    from tumor3d.flows.dask_runner import WORKER_PRODUCT_MEMO_MIB, DaskSpec, cohort_task_runner
+
+    monkeypatch.delenv(product_memo.MEMO_ENV, raising=False)
+    kwargs = cohort_task_runner(2, DaskSpec(n_workers=2)).cluster_kwargs
+    assert kwargs["env"] == {product_memo.MEMO_ENV: str(WORKER_PRODUCT_MEMO_MIB)}
+    assert WORKER_PRODUCT_MEMO_MIB < product_memo.DEFAULT_MAX_MIB
+    threads = DaskSpec(n_workers=2, processes=False)  # they share the flow's process and memo
+    assert "env" not in cohort_task_runner(2, threads).cluster_kwargs
+    monkeypatch.setenv(product_memo.MEMO_ENV, "8")
+    assert "env" not in cohort_task_runner(2, DaskSpec(n_workers=2)).cluster_kwargs

@@ -64,7 +64,6 @@ from tumor3d.storage.cohort_report import (
 )
 from tumor3d.storage.manifest import ManifestRow, read_manifest
 from tumor3d.storage.objectstore import ObjectStore, default_store_location, is_url, open_store
-from tumor3d.storage.product_memo import products
 from tumor3d.storage.publish import check_destination, check_outputs_not_inputs
 from tumor3d.storage.remote_publish import RemoteFolder, publish_files, published_names
 from tumor3d.storage.store import ArtifactStore
@@ -232,7 +231,6 @@ def _run_one(
             layout=layout,
         )  # fmt: skip
     except Exception as exc:  # failure isolation: record and let the others finish
-        _forget_products(runs)
         done = len(runs)
         if not prepared:
             stage = "prepare-input"
@@ -243,7 +241,6 @@ def _run_one(
             patient_id=pid, status=STATUS_FAILED, failed_stage=stage, error=one_line_error(exc),
             stages=list(runs), row=_json_row(row), lane_seconds=time.perf_counter() - t0,
         )  # fmt: skip
-    _forget_products(runs)
     report(ProgressEvent(pid, "published", "published", len(names), len(names)))
     return PatientOutcome(
         patient_id=pid, status=str(result.metrics.get("status", STATUS_OK)),
@@ -251,11 +248,6 @@ def _run_one(
         stages=result.stages, row=_json_row(row), lane_seconds=time.perf_counter() - t0,
         publish_seconds=result.publish_seconds,
     )  # fmt: skip
-
-
-def _forget_products(runs: list[StageRun]) -> None:
-    """Drop a finished patient's volumes from the process's memo: it holds the lanes in flight."""
-    products().discard(d for run in runs for d in run.artifacts.values())
 
 
 def _cohort_run_name() -> str:

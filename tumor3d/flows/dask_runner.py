@@ -24,11 +24,13 @@ import os
 from typing import Any
 
 from tumor3d.errors import InputError, Tumor3DError
+from tumor3d.storage.product_memo import MEMO_ENV
 
 __all__ = [
     "ClusterError",
     "DaskSpec",
     "EagerDaskTaskRunner",
+    "WORKER_PRODUCT_MEMO_MIB",
     "check_scheduler",
     "cohort_task_runner",
 ]
@@ -40,6 +42,12 @@ except ImportError:  # pragma: no cover - without the extra
 
 #: Seconds to wait for a Dask scheduler to answer before giving up.
 CONNECT_TIMEOUT_S = 10.0
+
+#: MiB of decoded volumes a local cluster's worker process keeps
+#: (:mod:`tumor3d.storage.product_memo`; about one patient's stage volumes), unless
+#: ``TUMOR3D_PRODUCT_MEMO_MIB`` is set. The flow's own process keeps 256 and forgets
+#: each patient once published.
+WORKER_PRODUCT_MEMO_MIB = 64
 
 
 class ClusterError(Tumor3DError):
@@ -177,14 +185,15 @@ def cohort_task_runner(workers: int, spec: DaskSpec | None = None) -> Any:
         logging.getLogger("distributed").setLevel(logging.WARNING)
     if spec.address:
         return runner_cls(address=spec.address)
-    return runner_cls(
-        cluster_class="distributed.LocalCluster",
-        cluster_kwargs={
-            "n_workers": spec.n_workers,
-            "threads_per_worker": 1,
-            "processes": spec.processes,
-            # a free port, never 8787: with None the scheduler still tries 8787 and warns
-            # when another cluster (a user's, a second cohort) holds it
-            "dashboard_address": ":0",
-        },
-    )
+    cluster_kwargs: dict[str, Any] = {
+        "n_workers": spec.n_workers,
+        "threads_per_worker": 1,
+        "processes": spec.processes,
+        # a free port, never 8787: with None the scheduler still tries 8787 and warns
+        # when another cluster (a user's, a second cohort) holds it
+        "dashboard_address": ":0",
+    }
+    if spec.processes and MEMO_ENV not in os.environ:
+        # a worker process never publishes, so nothing forgets its volumes: a small bound
+        cluster_kwargs["env"] = {MEMO_ENV: str(WORKER_PRODUCT_MEMO_MIB)}
+    return runner_cls(cluster_class="distributed.LocalCluster", cluster_kwargs=cluster_kwargs)

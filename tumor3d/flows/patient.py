@@ -35,6 +35,7 @@ from tumor3d.storage.derivatives import VOLUME_LABELS, VOLUME_METHODS
 from tumor3d.storage.given_segmentation import GivenSegmentation, read_given_segmentation
 from tumor3d.storage.inputs import input_digest, input_location
 from tumor3d.storage.objectstore import default_store_location, is_url, open_store
+from tumor3d.storage.product_memo import products
 from tumor3d.storage.publish import check_destination, check_output_not_input
 from tumor3d.storage.readers import ReadOptions, derive_patient_id, suggest_patient_id
 from tumor3d.storage.readers.handoff import kept_or_read
@@ -246,22 +247,30 @@ def patient_pipeline(
     pid = source.patient_id
     check_layout_destination(source, out_dir, layout, brain_mask, segmentation)  # before work
     runner = PrefectRunner(store, pid, total=len(stages.STAGES), runs=runs)
-    given = stages.store_given(store, brain_mask=brain_mask, segmentation=segmentation)
-    outputs = run_stages(runner, source, cfg, str(store.root), given=given)
-    flow_seconds = time.perf_counter() - t0
-    notes, doubts = run_notes(outputs, brain_mask, segmentation)
-    review = review_status(doubts, segmentation=outputs["segment-tumor"].values)
-    metrics = metrics_row(outputs, runner.runs, pid, flow_seconds, notes, review)
-    t_publish = time.perf_counter()
-    out_path, report, up_to_date = publish_results(
-        store, out_dir, source, outputs, runner.runs, metrics, cfg, brain_mask, segmentation,
-        layout=layout,
-    )  # fmt: skip
+    try:
+        given = stages.store_given(store, brain_mask=brain_mask, segmentation=segmentation)
+        outputs = run_stages(runner, source, cfg, str(store.root), given=given)
+        flow_seconds = time.perf_counter() - t0
+        notes, doubts = run_notes(outputs, brain_mask, segmentation)
+        review = review_status(doubts, segmentation=outputs["segment-tumor"].values)
+        metrics = metrics_row(outputs, runner.runs, pid, flow_seconds, notes, review)
+        t_publish = time.perf_counter()
+        out_path, report, up_to_date = publish_results(
+            store, out_dir, source, outputs, runner.runs, metrics, cfg, brain_mask, segmentation,
+            layout=layout,
+        )  # fmt: skip
+    finally:  # published or failed: its volumes leave this process's memo (a warm runner stays)
+        forget_products(runner.runs)
     return PatientResult(
         patient_id=pid, output_dir=str(out_path), metrics=metrics, stages=runner.runs,
         flow_seconds=flow_seconds, publish_seconds=time.perf_counter() - t_publish, notes=notes,
         report=report, up_to_date=up_to_date,
     )  # fmt: skip
+
+
+def forget_products(runs: list[StageRun]) -> None:
+    """Drop a patient's stage volumes from the memo of decoded volumes (product_memo)."""
+    products().discard(d for run in runs for d in run.artifacts.values())
 
 
 def _flow_run_name() -> str:

@@ -38,7 +38,7 @@ from __future__ import annotations
 import os
 import threading
 from collections import OrderedDict
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 
 import numpy as np
 
@@ -140,19 +140,23 @@ class ProductMemo:
             self.hits = self.misses = 0
 
 
-def max_bytes_from_env(default_mib: int = DEFAULT_MAX_MIB) -> int:
+def max_bytes_from_env(
+    default_mib: int = DEFAULT_MAX_MIB, environ: Mapping[str, str] | None = None
+) -> int:
     """The bound in bytes from ``TUMOR3D_PRODUCT_MEMO_MIB`` (whole MiB >= 0), else the default.
 
-    >>> os.environ[MEMO_ENV] = "3"; max_bytes_from_env()
+    ``environ`` defaults to :data:`os.environ`.
+
+    >>> max_bytes_from_env(environ={MEMO_ENV: "3"})
     3145728
-    >>> os.environ[MEMO_ENV] = "lots"; max_bytes_from_env(1)
+    >>> max_bytes_from_env(1, environ={MEMO_ENV: "lots"})
     Traceback (most recent call last):
     ...
     ValueError: TUMOR3D_PRODUCT_MEMO_MIB must be a whole number of MiB >= 0, got 'lots'
-    >>> del os.environ[MEMO_ENV]; max_bytes_from_env(1)
+    >>> max_bytes_from_env(1, environ={})
     1048576
     """
-    text = os.environ.get(MEMO_ENV, "").strip()
+    text = (os.environ if environ is None else environ).get(MEMO_ENV, "").strip()
     if not text:
         return default_mib * 1024 * 1024
     if not text.isdigit():
