@@ -45,7 +45,6 @@ def _preflight(
     from tumor3d.errors import InputError
     from tumor3d.storage import bids
     from tumor3d.storage.inputs import input_digest, input_location
-    from tumor3d.storage.objectstore import default_store_location, is_url, open_store
     from tumor3d.storage.publish import check_destination
     from tumor3d.storage.readers import derive_patient_id, suggest_patient_id
     from tumor3d.storage.readers.handoff import read_and_keep
@@ -72,13 +71,9 @@ def _preflight(
     scan = read_and_keep(input_path, options)  # the ingest stage takes it: one read
     _check_given_masks(scan, brain_mask, segmentation, options.max_voxels)
     from tumor3d.flows.server import check_configured_api
-    from tumor3d.storage.store import ArtifactStore
 
     check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
-    if store is not None and is_url(store):
-        open_store(str(store)).check()  # type: ignore[attr-defined]
-    else:
-        ArtifactStore(store if store is not None else default_store_location(out))
+    _reach_destinations(out, store, make_local_store=True)
 
 
 def _preflight_remote(
@@ -90,21 +85,36 @@ def _preflight_remote(
     segmentation: Path | None = None,
 ) -> None:
     """:func:`_preflight` for an ``s3://`` output: inputs are local, so none can lie in it."""
-    from tumor3d.storage.objectstore import default_store_location, is_url, open_store
     from tumor3d.storage.readers.handoff import read_and_keep
-    from tumor3d.storage.remote_publish import RemoteFolder
-    from tumor3d.storage.store import ArtifactStore
 
     scan = read_and_keep(input_path, options)  # the ingest stage takes it: one read
     _check_given_masks(scan, brain_mask, segmentation, options.max_voxels)
     from tumor3d.flows.server import check_configured_api
 
     check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
-    RemoteFolder(out).check()  # one line naming the URL
+    _reach_destinations(out, store, make_local_store=True)
+
+
+def _reach_destinations(
+    out: str | Path, store: str | Path | None, *, make_local_store: bool
+) -> None:
+    """Reach an ``s3://`` output and store (one line naming the URL if one cannot be).
+
+    The store is ``store``, else the output's default; a local one is created when
+    ``make_local_store`` (a file in its place or an unwritable parent is named).
+    """
+    from tumor3d.storage.objectstore import default_store_location, is_url, open_store
+
+    if is_url(out):
+        from tumor3d.storage.remote_publish import RemoteFolder
+
+        RemoteFolder(str(out)).check()
     at = store if store is not None else default_store_location(out)
     if is_url(at):
         open_store(str(at)).check()  # type: ignore[attr-defined]
-    else:
+    elif make_local_store:
+        from tumor3d.storage.store import ArtifactStore
+
         ArtifactStore(at)
 
 
@@ -112,18 +122,10 @@ def _preflight_cohort(out: str | Path, store: str | Path | None, dask_address: s
     """Reach a cohort's ``s3://`` output and store and its Dask scheduler before starting Prefect.
 
     :func:`tumor3d.flows.cohort.run_cohort` checks them again (a second round trip
-    when they answer); here an unreachable one is named in one line before a
-    temporary Prefect server is started for nothing.
+    when they answer) and creates a local store; here an unreachable one is named in
+    one line before a temporary Prefect server is started for nothing.
     """
-    from tumor3d.storage.objectstore import default_store_location, is_url, open_store
-
-    if is_url(out):
-        from tumor3d.storage.remote_publish import RemoteFolder
-
-        RemoteFolder(str(out).rstrip("/")).check()
-    at = store if store is not None else default_store_location(out)
-    if is_url(at):
-        open_store(str(at)).check()  # type: ignore[attr-defined]
+    _reach_destinations(out, store, make_local_store=False)
     if dask_address:
         from tumor3d.flows.dask_runner import check_scheduler
 
