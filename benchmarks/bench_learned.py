@@ -7,9 +7,10 @@ timed with the detect stage's (the lesion model runs there) for
 ``method="robust"``, ``method="learned"`` with the forest alone
 (``learned_cnn="off"``: the features, the shipped forest and the
 post-processing on the robust prior) and with the mean of the forest's and
-the shipped U-Net's probability (``learned_cnn="auto"``, the U-Net in a thread
-beside the forest), and the learned method's parts alone: wall seconds and the
-process's CPU seconds, with the load average before and after.
+the shipped U-Net's probability (``learned_cnn="auto"``, the U-Net with its
+mirrored pass in a thread beside the forest), and the learned method's parts
+alone: wall seconds and the process's CPU seconds, with the load average
+before and after.
 
 Usage::
 
@@ -104,6 +105,7 @@ def main(argv=None) -> int:
     small = unet_probability(cnn, x)
     t_in, c_in = best_of_cpu(lambda: case_input(scan.image, cnn.size, cnn.context), args.repeat)
     t_net, c_net = best_of_cpu(lambda: unet_probability(cnn, x), args.repeat)
+    t_mir, c_mir = best_of_cpu(lambda: unet_probability(cnn, x, mirror=True), args.repeat)
     t_up, c_up = best_of_cpu(lambda: upsample(small, scan.image.shape), args.repeat)
     t_cnn, c_cnn = best_of_cpu(lambda: unet_volume_probability(cnn, scan.image), args.repeat)
     t_feat = best_of(
@@ -161,12 +163,14 @@ def main(argv=None) -> int:
             f"{t_ctx / inf_forest:.2f} |"
         )
     print(
-        f"| U-Net alone, in the calling thread (input + network + upsample) | {t_cnn:.2f} | "
+        f"| U-Net alone, in the calling thread (input + network with the mirrored pass + "
+        f"upsample) | {t_cnn:.2f} | "
         f"{c_cnn:.2f} | {t_cnn / inf_forest:.2f} |"
     )
     for name, t, c in (
         ("U-Net input (case_input)", t_in, c_in),
-        ("U-Net network (numpy, one BLAS thread)", t_net, c_net),
+        ("U-Net network (numpy, one BLAS thread), one pass", t_net, c_net),
+        ("U-Net network with the mirrored pass (the pipeline's)", t_mir, c_mir),
         ("U-Net upsample to 240 x 240", t_up, c_up),
     ):
         print(f"| {name} | {t:.2f} | {c:.2f} | {t / inf_forest:.2f} |")

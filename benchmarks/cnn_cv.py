@@ -239,7 +239,9 @@ def paired_table(cnn_rows: list[dict], other_rows: list[dict], name: str, new: s
 def score_folds(preps, folds, run_folds, case_of, train_only, args, cfg):
     """Out-of-fold rows of the U-Net, and (``args.forest_prob``) of the forest and the mean.
 
-    The U-Net's probabilities are ``args.work``'s ``prob_fold{k}.npz``; every map gets
+    The U-Net's probabilities are ``args.work``'s ``prob_fold{k}.npz`` (torch's), or with
+    ``args.mirror`` the pipeline's numpy pass of ``unet_fold{k}.npz`` with its mirrored
+    pass averaged in (``unet_probability(..., mirror=True)``); every map gets
     the shipped model's post-processing (``args.threshold``, the main 3-D region at
     ``args.keep_fraction``, small slice masks cleared) and :func:`learned_cv.score`.
     """
@@ -266,9 +268,18 @@ def score_folds(preps, folds, run_folds, case_of, train_only, args, cfg):
             flush=True,
         )
 
+    x_all = None
+    if args.mirror:  # the pipeline's inference: numpy, with the mirrored pass
+        from tumor3d.learned.cnn import unet_from_bytes, unet_probability
+
+        with np.load(work / "data.npz", allow_pickle=False) as z:
+            x_all = z["x"]
     for k in run_folds:
         with np.load(work / f"prob_fold{k}.npz", allow_pickle=False) as z:
             index, prob = z["index"], z["prob"]
+        if x_all is not None:
+            net = unet_from_bytes((work / f"unet_fold{k}.npz").read_bytes())
+            prob = unet_probability(net, x_all[index], mirror=True)
         for ci, p in enumerate(preps):
             if folds[p.spec.patient] != k:
                 continue
@@ -435,6 +446,12 @@ def main(argv=None) -> int:
     ap.add_argument("--keep-fraction", type=float, default=1.0)
     ap.add_argument(
         "--skip-train", action="store_true", help="score the probabilities already in --work"
+    )
+    ap.add_argument(
+        "--mirror",
+        action="store_true",
+        help="score the fold nets as the pipeline runs them: numpy, the mean with the "
+        "mirrored pass (tumor3d.learned.cnn.unet_probability(..., mirror=True))",
     )
     ap.add_argument(
         "--paired",

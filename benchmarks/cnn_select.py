@@ -140,6 +140,11 @@ def main(argv=None) -> int:
     ap.add_argument("--threshold", type=float, default=0.5)
     ap.add_argument("--keep-fraction", type=float, default=1.0)
     ap.add_argument(
+        "--mirror",
+        action="store_true",
+        help="the U-Net as the pipeline runs it (cnn_cv.py --mirror: with its mirrored pass)",
+    )
+    ap.add_argument(
         "--rows", default=None, help="the scored rows (JSON): read if there, else written"
     )
     args = ap.parse_args(argv)

@@ -243,9 +243,10 @@ def main(argv=None) -> int:
     review_text = "\n".join(rev["lines"]).strip()
     text = f"""# Segmentation accuracy by cross-validation by patient
 
-Command (the figures below; a `learned_cv.py --method learned` run takes about
-25 min on 2 idle cores, the `--cnn-folds` one took 55 min at load 5-22; the
-fold U-Nets 12-28 min per fold at load 9-14):
+Command (the figures below; with the prepared cases cached, the forest-alone
+`learned_cv.py --method learned` run took 18 min and the `--cnn-folds` one 28 min
+at load 3-5 on 2 shared cores; the fold U-Nets 4-8 min per fold, two at a time;
+2026-12-05):
 
 ```
 export TUMOR3D_DATA_DIR=../shared/data
@@ -256,9 +257,6 @@ nice -n 10 python benchmarks/cnn_cv.py --cache /tmp/cv-cache --work /tmp/cnn --j
 python benchmarks/learned_cv.py --method learned --phantoms 10 --keep-fraction 1.0 \\
     --t1c-threshold 0.65 --cache /tmp/cv-cache --cnn-folds /tmp/cnn --json learned.json \\
     --save-prob prob
-# (the rows of a run made before the review's model_disagreement figure: added from its maps)
-python benchmarks/review_figures.py learned.json --prob prob --cache /tmp/cv-cache \\
-    --keep-fraction 1.0 --t1c-threshold 0.65 --out learned.json
 # the forest alone (paired with it); --final writes the shipped forests tumor3d/learned/models
 python benchmarks/learned_cv.py --method learned --phantoms 10 --keep-fraction 1.0 \\
     --t1c-threshold 0.65 --cache /tmp/cv-cache --json forest.json --final tumor3d/learned/models
@@ -288,7 +286,9 @@ method averages the forest's probability with a U-Net's before the cut
 folds): fold k's FLAIR cases get the net `cnn_cv.py` trained on the other four
 folds' FLAIR patients (`--cnn-folds`), through the pipeline's own call
 (`tumor3d.learned.segment.segment_learned(..., cnn=...)`, the weights read by
-`unet_from_bytes` as the shipped net is); T2 and T1c get the forest alone.
+`unet_from_bytes` as the shipped net is, the network's probability the mean of
+its pass and its mirrored pass: "Mirrored inference" below); T2 and T1c get
+the forest alone.
 The forests' post-processing was chosen by nested cross-validation on the
 out-of-fold probabilities of a first run (threshold 0.35 / 0.5 / 0.65 x
 keep-fraction 0.1 / 0.3 / 1.0, chosen on four folds, scored on the fifth):

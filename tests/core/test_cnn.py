@@ -200,11 +200,33 @@ def test_volume_probability_is_the_network_on_its_grid_back_on_the_native_one():
     net = unet_from_bytes(_npz_bytes(a, {"settings": {"size": 12, "context": 1}}))
     vol = rng.normal(100.0, 20.0, (5, 30, 26)).astype(np.float32)
     vol[:, :4] = 0.0  # some background
-    got = unet_volume_probability(net, vol)
+    got = unet_volume_probability(net, vol, mirror=False)
     x = case_input(vol, 12, 1).astype(np.float32)
     small = np.stack([1.0 / (1.0 + np.exp(-naive_unet(a, 2, xi))) for xi in x])
     want = upsample(small.astype(np.float32), vol.shape)
     assert got.shape == vol.shape and got.dtype == np.float32
     np.testing.assert_allclose(got, want, atol=1e-4)
+    # the pipeline's default: the mean with the mirrored pass, mirrored back, on the net's grid
+    small_m = np.stack(
+        [1.0 / (1.0 + np.exp(-naive_unet(a, 2, xi[..., ::-1])))[..., ::-1] for xi in x]
+    )
+    want_m = upsample((0.5 * (small + small_m)).astype(np.float32), vol.shape)
+    np.testing.assert_allclose(unet_volume_probability(net, vol), want_m, atol=1e-4)
     with pytest.raises(InputError, match="3-D"):
         unet_volume_probability(net, vol[0])
+
+
+def test_mirrored_probability_is_mirror_equivariant_and_the_plain_one_is_not():
+    """A left-right flipped slice gets the flipped answer with ``mirror=True`` (exactly,
+    up to float rounding); a random network alone is not symmetric, so without it the
+    two differ: the property is the augmentation's, not the network's."""
+    rng = np.random.default_rng(11)
+    net = unet_from_bytes(_npz_bytes(random_unet(rng, cin=3, base=3, levels=3)))
+    x = rng.normal(0.0, 1.0, (4, 3, 16, 24)).astype(np.float32)
+    xf = np.ascontiguousarray(x[..., ::-1])
+    m, mf = unet_probability(net, x, mirror=True), unet_probability(net, xf, mirror=True)
+    assert m.shape == (4, 16, 24) and m.dtype == np.float32
+    np.testing.assert_allclose(mf, m[..., ::-1], atol=1e-6)
+    p, pf = unet_probability(net, x), unet_probability(net, xf)
+    assert np.abs(pf - p[..., ::-1]).max() > 1e-3
+    np.testing.assert_allclose(m, 0.5 * (p + pf[..., ::-1]), atol=1e-6)

@@ -56,11 +56,12 @@ def test_disagreeing_models_are_flagged_where_their_confident_mean_is_not():
     passed = review_segmentation(alone)
     assert not passed.needs_review and passed.quality_score > flagged.quality_score
     # models that agree (a disagreement under the limit) pass
-    f2, n2, m2 = _two_models(0.1)
+    f2, n2, m2 = _two_models(0.05)
     agree = review_features(
         m2, m2 > 0.5, (5.0, 1.0, 1.0), forest_probability=f2, cnn_probability=n2
     )
-    assert agree["model_disagreement"] == pytest.approx(0.1)
+    assert agree["model_disagreement"] == pytest.approx(0.05)
+    assert agree["model_disagreement"] < REVIEW_LIMITS["with_net"]["model_disagreement"]
     assert not review_segmentation(agree).needs_review
 
 

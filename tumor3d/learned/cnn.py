@@ -286,24 +286,42 @@ def unet_logits(net: UNetWeights, images: np.ndarray) -> np.ndarray:
     return out
 
 
-def unet_probability(net: UNetWeights, images: np.ndarray) -> np.ndarray:
-    """Sigmoid of :func:`unet_logits`, float32 in [0, 1]."""
-    z = unet_logits(net, images)
+def _sigmoid(z: np.ndarray) -> np.ndarray:
     return (0.5 * (1.0 + np.tanh(0.5 * z))).astype(np.float32)
 
 
-def unet_volume_probability(net: UNetWeights, image: np.ndarray) -> np.ndarray:
+def unet_probability(net: UNetWeights, images: np.ndarray, *, mirror: bool = False) -> np.ndarray:
+    """Sigmoid of :func:`unet_logits`, float32 ``(n, h, w)`` in [0, 1].
+
+    ``mirror``: the mean of the network's probability of the images and of
+    their mirror image (the column axis, the left-right flip of the training),
+    mirrored back: a test-time augmentation that costs a second pass. The
+    answer is then mirror-equivariant, as a left-right flipped head's should
+    be (``reports/learned_cv.md``, "Mirrored inference": cross-validated).
+    """
+    p = _sigmoid(unet_logits(net, images))
+    if mirror:
+        flipped = np.ascontiguousarray(np.asarray(images)[..., ::-1])
+        p = 0.5 * (p + _sigmoid(unet_logits(net, flipped))[..., ::-1])
+    return p.astype(np.float32, copy=False)
+
+
+def unet_volume_probability(
+    net: UNetWeights, image: np.ndarray, *, mirror: bool = True
+) -> np.ndarray:
     """The network's lesion probability of every voxel of ``image`` ``(z, y, x)``, in [0, 1].
 
     The slices as acquired go in on the grid the network was trained on
     (:func:`tumor3d.learned.cnn_data.case_input` at the file's size and
     context) and come back bilinearly to the native grid
     (:func:`tumor3d.learned.cnn_data.upsample`), as in the cross-validation.
+    ``mirror`` (the pipeline's choice): the mean with the mirrored pass
+    (:func:`unet_probability`).
     """
     from tumor3d.learned.cnn_data import case_input, upsample
 
     img = np.asarray(image)
     if img.ndim != 3 or min(img.shape) < 1:
         raise InputError(f"image must be 3-D (z, y, x), got shape {img.shape}")
-    prob = unet_probability(net, case_input(img, net.size, net.context))
+    prob = unet_probability(net, case_input(img, net.size, net.context), mirror=mirror)
     return upsample(prob, img.shape)

@@ -44,7 +44,7 @@ REVIEW_LIMITS: dict[str, dict[str, float]] = {
     "with_net": {
         "mean_probability": 0.85,  # mean probability inside the lesion (below: check)
         "outside_ratio": 0.2,  # probability mass above 0.5 outside the kept lesion, per inside
-        "model_disagreement": 0.15,  # share of the lesion where |p_forest - p_net| > 0.5
+        "model_disagreement": 0.1,  # share of the lesion where |p_forest - p_net| > 0.5
     },
     "forest_alone": {
         "mean_probability": 0.85,
