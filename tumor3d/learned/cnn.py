@@ -302,8 +302,8 @@ def unet_probability(net: UNetWeights, images: np.ndarray, *, mirror: bool = Fal
     p = _sigmoid(unet_logits(net, images))
     if mirror:
         flipped = np.ascontiguousarray(np.asarray(images)[..., ::-1])
-        p = 0.5 * (p + _sigmoid(unet_logits(net, flipped))[..., ::-1])
-    return p.astype(np.float32, copy=False)
+        p = 0.5 * (p + _sigmoid(unet_logits(net, flipped))[..., ::-1])  # float32 stays
+    return p
 
 
 def unet_volume_probability(
