@@ -67,6 +67,28 @@ def test_native_row_and_label_selection(thin, tmp_path):
     assert mask.sum() == (lab == 1).sum()
 
 
+@pytest.mark.parametrize("dtype", ["uint8", "int16", "float32"])
+def test_the_mask_does_not_depend_on_the_labels_storage_type(thin, tmp_path, dtype):
+    image, _, _, lab, aff = thin
+    seg = _write(tmp_path / f"seg_{dtype}.nii.gz", lab, aff, dtype)
+    for labels, expected in (((1,), lab == 1), ((2,), lab == 2), (None, lab > 0)):
+        mask, _ = reference_mask(ManifestRow("p1", image, "t2", reference=seg,
+                                             reference_labels=labels))  # fmt: skip
+        assert mask.dtype == bool and np.array_equal(mask, expected), (dtype, labels)
+
+
+@pytest.mark.parametrize(
+    ("value", "message"), [(1.5, "are not integers"), (np.nan, "non-finite values")]
+)
+def test_float_labels_that_are_not_integers_are_refused(thin, tmp_path, value, message):
+    image, _, _, lab, aff = thin
+    bad = lab.astype(np.float32)
+    bad[0, 0, 0] = value
+    seg = _write(tmp_path / "bad.nii.gz", bad, aff, "float32")
+    with pytest.raises(InputError, match=rf"patient p5: the reference (labels )?(has )?{message}"):
+        reference_mask(ManifestRow("p5", image, "t2", reference=seg))
+
+
 def test_reference_without_requested_labels(thin, tmp_path):
     image, seg, *_ = thin
     row = ManifestRow("p7", image, "t2", reference=seg, reference_labels=(3, 4))

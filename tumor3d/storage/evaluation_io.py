@@ -94,12 +94,19 @@ def reference_mask(row: ManifestRow) -> tuple[np.ndarray, np.ndarray]:
     where = str(row.reference)
     labels, affine = nifti.read_nifti(row.reference)
     labels = _squeeze3(np.asarray(labels), where)
-    if not np.all(np.isfinite(labels)):
-        raise InputError(f"patient {row.patient_id}: the reference has non-finite values", where)
-    rounded = np.rint(labels)
-    if np.any(np.abs(labels - rounded) > 1e-3):
-        raise InputError(f"patient {row.patient_id}: the reference labels are not integers", where)
-    rounded = rounded.astype(np.int64)
+    if labels.dtype.kind in "biu":  # stored as integers: labels as they are (no copy)
+        rounded = labels
+    else:  # stored as floats (or scaled): integers within 1e-3, finite
+        if not np.all(np.isfinite(labels)):
+            raise InputError(
+                f"patient {row.patient_id}: the reference has non-finite values", where
+            )
+        rounded = np.rint(labels)
+        if np.any(np.abs(labels - rounded) > 1e-3):
+            raise InputError(
+                f"patient {row.patient_id}: the reference labels are not integers", where
+            )
+        rounded = rounded.astype(np.int64)
     if row.reference_labels is None:
         mask = rounded > 0
         if not mask.any() and row.reference_kind != "tumor_free":

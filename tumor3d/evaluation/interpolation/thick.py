@@ -94,7 +94,6 @@ def emulate_thick_labels(
     if not (0.0 < thick_t <= 2 * k):
         raise InputError(f"thickness_slices must be in (0, 2 step] = (0, {2 * k}], got {thick_t}")
     n_thin = lab.shape[0]
-    f = lab.astype(np.float64)
     if slab == "flush":
         m = round(thick_t)
         if abs(m - thick_t) > 1e-9 or not (1 <= m <= k):
@@ -102,7 +101,8 @@ def emulate_thick_labels(
                 f"slab='flush' needs a whole thickness_slices in [1, step = {k}], got {thick_t}"
             )
         starts = np.arange(ph, n_thin - m + 1, k)
-        flush = np.array([f[a : a + m].mean(axis=0) >= 0.5 for a in starts], dtype=bool)
+        # the mean of each slab's bool slices (float64), never a float copy of the volume
+        flush = np.array([lab[a : a + m].mean(axis=0) >= 0.5 for a in starts], dtype=bool)
         return flush.reshape((len(starts),) + lab.shape[1:]), starts + (m - 1) / 2.0
     if slab != "centred":
         raise InputError(f"slab must be 'centred' or 'flush', got {slab!r}")
@@ -116,7 +116,7 @@ def emulate_thick_labels(
         for i in range(max(0, math.floor(lo + 0.5)), min(n_thin - 1, math.ceil(hi - 0.5)) + 1):
             w = min(hi, i + 0.5) - max(lo, i - 0.5)
             if w > 0:
-                total += w * f[i]
+                total += w * lab[i]
                 weight += w
         out[j] = total >= 0.5 * weight - 1e-12
     return out, centres.astype(np.float64)
