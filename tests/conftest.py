@@ -2,7 +2,9 @@
 
 Prefect runs against a throw-away home folder (never the user's
 ~/.prefect), with analytics off; flow tests share one temporary Prefect
-server started by ``prefect_test_harness`` with a generous start-up timeout.
+server started by ``prefect_test_harness`` with a generous start-up timeout,
+on a copy of a database migrated once per session, recording task runs in
+batches and keeping no event history; their flow runs send no heartbeats.
 These variables must be set before Prefect is first imported.
 
 Under pytest-xdist (``make test``: ``-n 2 --dist loadfile``) every worker is its
@@ -17,26 +19,168 @@ from __future__ import annotations
 
 import os
 import shutil
+import sqlite3
+import subprocess
+import sys
 import tempfile
+from pathlib import Path
 
 _PREFECT_HOME = tempfile.mkdtemp(prefix="tumor3d-test-prefect-")
 os.environ["PREFECT_HOME"] = _PREFECT_HOME
 os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
 os.environ["PREFECT_LOGGING_LEVEL"] = "WARNING"
 os.environ.pop("PREFECT_API_URL", None)
+# Every Prefect server the tests start (the harness's, and the temporary ones of the CLI
+# commands they run) inherits this: its task-run recorder writes the stage task runs in
+# batches every second instead of one SQLite transaction per event. One transaction per
+# event made the next flow run's creation collide with it ("database is locked", SQLite's
+# deferred-transaction upgrade, answered 503) about every other back-to-back run, and the
+# client's retry waits 2 s; without flow-run heartbeats (below) nothing spaces the runs.
+# The task runs are still recorded, up to a second after their flow run ends. (Prefect
+# reads the interval as a whole number of seconds: 0.5 would be 0, a busy loop.)
+os.environ["PREFECT_SERVER_SERVICES_TASK_RUN_RECORDER_BATCH_SIZE"] = "200"
+os.environ["PREFECT_SERVER_SERVICES_TASK_RUN_RECORDER_READ_BATCH_SIZE"] = "200"
+os.environ["PREFECT_SERVER_SERVICES_TASK_RUN_RECORDER_FLUSH_INTERVAL"] = "1"
+# ... and keeps no event history, evaluates no automation and streams no event out: no test
+# reads them, and they were ~45 % of a test server's CPU time per flow run.
+os.environ["PREFECT_SERVER_SERVICES_EVENT_PERSISTER_ENABLED"] = "false"
+os.environ["PREFECT_SERVER_SERVICES_TRIGGERS_ENABLED"] = "false"
+os.environ["PREFECT_SERVER_EVENTS_STREAM_OUT_ENABLED"] = "false"
 
 import pytest  # noqa: E402
 
 PREFECT_STARTUP_TIMEOUT_S = 120
 
+# A Prefect database with every migration applied, made once per session (by the first
+# process, xdist worker or not, to start a test server; the others wait for it) and copied
+# in before each test server starts: a server on a new database spends ~5 of its ~8 CPU-s
+# of start-up migrating it (once per xdist worker, and once per temporary server of a CLI
+# command on the worker's PREFECT_HOME). The folder is the session's (made by the process
+# that starts it, the xdist controller, before the workers start; they find it in the
+# environment). A build that fails leaves ``failed`` there and the servers migrate their
+# own databases as before.
+_DB_TEMPLATE_ENV = "TUMOR3D_TEST_PREFECT_DB_FOLDER"
+_DB_TEMPLATE_BUILD = """
+import os, signal, sqlite3, subprocess, sys, time, urllib.request
+db, port, out = sys.argv[1], sys.argv[2], sys.argv[3]
+signal.signal(signal.SIGTERM, lambda *_: sys.exit(1))  # stop the server on the way out
+env = {**os.environ, "PREFECT_SERVER_DATABASE_CONNECTION_URL": "sqlite+aiosqlite:///" + db,
+       "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1"}
+server = None
+try:
+    server = subprocess.Popen([sys.executable, "-m", "uvicorn", "--factory",
+                              "prefect.server.api.server:create_app", "--host", "127.0.0.1",
+                              "--port", port, "--log-level", "error", "--lifespan", "on"],
+                              env=env)
+    deadline = time.monotonic() + 300
+    while True:
+        if server.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError("the server did not start")
+        try:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/api/health", timeout=2)
+            break
+        except OSError:
+            time.sleep(0.2)
+    server.terminate()
+    server.wait(timeout=30)
+    with sqlite3.connect(db) as src, sqlite3.connect(db + ".copy") as dst:
+        src.backup(dst)  # one file, the write-ahead log folded in
+    os.replace(db + ".copy", out)  # appears whole, or not at all
+finally:
+    if server is not None and server.poll() is None:
+        server.kill()
+"""
+_DB_TEMPLATE_OWNER = False
+
+
+def pytest_configure(config):
+    global _DB_TEMPLATE_OWNER
+    if _DB_TEMPLATE_ENV not in os.environ:  # the session's first process
+        os.environ[_DB_TEMPLATE_ENV] = tempfile.mkdtemp(prefix="tumor3d-test-prefect-db-")
+        _DB_TEMPLATE_OWNER = True
+
+
+def migrated_prefect_db() -> Path | None:
+    """The session's migrated Prefect database, built here if no process has yet."""
+    import fcntl
+    import socket
+
+    folder = Path(os.environ[_DB_TEMPLATE_ENV])
+    template = folder / "template.db"
+    with open(folder / "lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one builds, the others wait for it
+        if template.is_file():
+            return template
+        if (folder / "failed").exists():
+            return None
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            port = sock.getsockname()[1]
+        try:
+            subprocess.run(
+                [sys.executable, "-c", _DB_TEMPLATE_BUILD, str(folder / "build.db"), str(port),
+                 str(template)],
+                env={**os.environ, "PREFECT_HOME": str(folder / "home")}, timeout=600,
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=True,
+            )  # fmt: skip
+        except (OSError, subprocess.SubprocessError):
+            (folder / "failed").touch()
+            return None
+        return template if template.is_file() else None
+
+
+def seed_prefect_db(dest: Path) -> bool:
+    """Copy the migrated database to ``dest`` (a server's database file) if there is one."""
+    template = migrated_prefect_db()
+    if template is None or dest.exists():
+        return False
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    with sqlite3.connect(template) as src, sqlite3.connect(dest) as dst:
+        src.backup(dst)
+    return True
+
+
+@pytest.fixture
+def seed_prefect_home():
+    """``seed(home)``: give a test's own ``PREFECT_HOME`` the session's migrated database
+    (above), for the temporary server a CLI command run with that home starts."""
+
+    def seed(home: Path) -> Path:
+        seed_prefect_db(Path(home) / "prefect.db")
+        return Path(home)
+
+    return seed
+
 
 @pytest.fixture(scope="session")
 def prefect_harness():
-    """One temporary Prefect server for the whole session."""
-    from prefect.testing.utilities import prefect_test_harness
+    """One temporary Prefect server for the whole session, flow runs without heartbeats.
 
-    with prefect_test_harness(server_startup_timeout=PREFECT_STARTUP_TIMEOUT_S):
-        yield
+    As the CLI runs its commands (``tumor3d.flows.cli.session``): Prefect's heartbeat
+    thread sleeps in 1 s steps and the engine joins it at the end of every flow run,
+    about 0.8 s of idle wall time per run, for a signal no test uses.
+    """
+    import prefect.testing.utilities as harness
+    from prefect.settings import temporary_settings
+
+    # the temporary servers of CLI commands use this process's PREFECT_HOME database
+    seed_prefect_db(Path(_PREFECT_HOME) / "prefect.db")
+
+    def seeded_mkdtemp(*args, **kwargs):  # the folder of the harness's prefect-test.db
+        folder = tempfile.mkdtemp(*args, **kwargs)
+        seed_prefect_db(Path(folder) / "prefect-test.db")
+        return folder
+
+    original, harness.mkdtemp = harness.mkdtemp, seeded_mkdtemp
+    try:
+        with (
+            harness.prefect_test_harness(server_startup_timeout=PREFECT_STARTUP_TIMEOUT_S),
+            temporary_settings(updates={"flows.heartbeat_frequency": None}),
+        ):
+            harness.mkdtemp = original
+            yield
+    finally:
+        harness.mkdtemp = original
 
 
 # The files that take longest, longest first (issue 31 item 7: per-file sums of the test
@@ -105,3 +249,5 @@ def pytest_xdist_make_scheduler(config, log):
 
 def pytest_sessionfinish(session, exitstatus):
     shutil.rmtree(_PREFECT_HOME, ignore_errors=True)
+    if _DB_TEMPLATE_OWNER:  # the process that made the session's folder removes it
+        shutil.rmtree(os.environ[_DB_TEMPLATE_ENV], ignore_errors=True)

@@ -98,7 +98,7 @@ def test_numpy_forward_pass_reproduces_the_trained_torch_net(phantom_slices):
     assert len(fit.losses) == 2 and all(np.isfinite(fit.losses))
     # the batch norms learned something: folding them is not the identity
     bn = fit.model.enc[0][1]
-    assert float((bn.running_mean.abs().sum())) > 0
+    assert float(bn.running_mean.abs().sum()) > 0
     p_torch = torch_probability(fit.model, x)
     net = unet_from_bytes(data, source="tiny")
     assert net.levels == 2 and net.in_channels == 3

@@ -104,11 +104,16 @@ def test_int32_and_int64_indices_give_the_same_mesh(seed, keep):
     assert np.array_equal(v, ref_v)
 
 
-@numba.njit(cache=True)
 def _reference_vertex_priority(
     V, F, head, nxt, status, target_faces, no_root, max_star, min_q, lazy
 ):
-    """Algorithm 2 (step 6 lazy or eager) written naively: the reference of the engine's loop."""
+    """Algorithm 2 (step 6 lazy or eager) written naively: the reference of the engine's loop.
+
+    Plain Python around the engine's jitted steps (gather, curvature, checks, collapse,
+    heap), called with the index type the product uses (int32): a jitted copy of this
+    loop took ~15 CPU-s to compile on every new numba cache (each CI run), the loop
+    itself runs in hundredths of a second on these meshes.
+    """
     E = _engine
     nv = V.shape[0]
     face_alive = np.ones(F.shape[0], dtype=np.bool_)
@@ -244,7 +249,7 @@ def test_loop_gives_the_naive_reference_mesh_bit_for_bit(seed, keep, no_root, la
     mesh = _blob(seed)
     target = int(mesh.n_faces * keep)
     tol = DEFAULT_TOLERANCES
-    ref = prepare(mesh, "curvature")
+    ref = prepare(mesh, "curvature", compact_index=True)
     alive, n_ref, coll_ref, tau_ref = _reference_vertex_priority(
         ref.vertices, ref.faces, ref.head, ref.nxt, ref.status, target, no_root,
         tol.max_star, tol.min_quality, lazy,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import time
 
 import pandas as pd
 import pytest
@@ -165,9 +166,15 @@ def test_the_flow_run_is_tagged_and_its_stage_task_runs_are_not(first):
             artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=[key]))
         )
         run = client.read_flow_run(art.flow_run_id)
-        task_runs = client.read_task_runs(
-            flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[run.id])), limit=200
-        )
+        # the server records task runs from their events, in batches (tests/conftest.py)
+        deadline = time.monotonic() + 60
+        while True:
+            task_runs = client.read_task_runs(
+                flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[run.id])), limit=200
+            )
+            if len(task_runs) >= 3 * len(STAGES) or time.monotonic() > deadline:
+                break
+            time.sleep(0.2)
     assert set(run.tags) == {"cohort", f"config:{config_digest(parse_config({}))[:12]}"}
     assert len(task_runs) == 3 * len(STAGES)  # three patients published, ghost ran none
     assert [t.tags for t in task_runs if t.tags] == []

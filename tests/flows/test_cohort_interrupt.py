@@ -56,7 +56,9 @@ def _cohort(manifest, out, home):
 
 
 @pytest.mark.usefixtures("prefect_harness")  # the re-run: in this process, the tests' server
-def test_ctrl_c_during_a_cohort_is_one_line_exit_130_and_leaves_nothing(tmp_path):
+def test_ctrl_c_during_a_cohort_is_one_line_exit_130_and_leaves_nothing(
+    tmp_path, seed_prefect_home
+):
     # two patients, one per lane: both are mid-flow when the Ctrl-C comes (the re-run
     # computes what they had not finished)
     rows = [
@@ -67,6 +69,7 @@ def test_ctrl_c_during_a_cohort_is_one_line_exit_130_and_leaves_nothing(tmp_path
     ]
     manifest = write_manifest(rows, tmp_path / "in" / "manifest.csv")
     out = tmp_path / "out"
+    seed_prefect_home(tmp_path / "prefect")
     proc = _cohort(manifest, out, tmp_path)
     assert proc.stdout is not None and proc.stderr is not None
     deadline = time.monotonic() + 120

@@ -6,9 +6,9 @@ interpreters importing numba); the flow connects to it by address, exactly as
 ``--dask-address`` does. Its task stream shows where each stage ran. The
 results must equal those of the default local runner on the same inputs.
 ``--dask-workers N`` (worker processes) is exercised by benchmarks/bench_dask.py.
-The two fault tests use worker *processes* (a killed thread is not a killed
-worker): one SIGKILLs a worker once (Dask reruns the stage), one has a stage
-that kills its worker every time (Dask gives up with ``KilledWorker``).
+The two fault tests share one cluster of two worker *processes* (a killed thread
+is not a killed worker): one SIGKILLs a worker once (Dask reruns the stage), one
+has a stage that kills its worker every time (Dask gives up with ``KilledWorker``).
 """
 
 from __future__ import annotations
@@ -37,22 +37,37 @@ distributed = pytest.importorskip("distributed", reason="Dask extra not installe
 pytest.importorskip("prefect_dask", reason="prefect-dask not installed")
 
 
+#: Generous Dask comm timeouts (30 s by default) for a loaded shared machine: restarting a
+#: killed worker *process* imports numpy, numba and Prefect afresh; under a full test run
+#: beside other jobs that has taken longer than the default 30 s connect timeout and
+#: failed a fault test with a comm timeout (it passed when run alone). Nannies hand this
+#: configuration to the worker processes they start.
+GENEROUS_COMM_TIMEOUTS = {
+    "distributed.comm.timeouts.connect": "180s",
+    "distributed.comm.timeouts.tcp": "180s",
+}
+
+
 @pytest.fixture
 def generous_comm_timeouts():
-    """Generous Dask comm timeouts (30 s by default) for a loaded shared machine.
-
-    Restarting a killed worker *process* imports numpy, numba and Prefect
-    afresh; under a full test run beside other jobs that has taken longer than
-    the default 30 s connect timeout and failed a fault test with a comm
-    timeout (it passed when run alone). Nannies hand this configuration to the
-    worker processes they start.
-    """
     import dask
 
-    with dask.config.set(
-        {"distributed.comm.timeouts.connect": "180s", "distributed.comm.timeouts.tcp": "180s"}
-    ):
+    with dask.config.set(GENEROUS_COMM_TIMEOUTS):
         yield
+
+
+@pytest.fixture(scope="module")
+def process_cluster():
+    """Two worker *processes* (a killed thread is not a killed worker), shared by the
+    two fault tests: each new worker process imports numpy, numba and Prefect afresh, so
+    one cluster for both saves two of them. The nannies restart a killed worker; each
+    test waits until both are back before it starts."""
+    import dask
+
+    with dask.config.set(GENEROUS_COMM_TIMEOUTS), distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
+    ) as cluster, distributed.Client(cluster) as client:  # fmt: skip
+        yield cluster, client
 
 
 def _rows(folder, seeds):
@@ -128,7 +143,9 @@ def test_cohort_on_a_two_worker_cluster_matches_the_local_runner(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.usefixtures("prefect_harness", "generous_comm_timeouts")
-def test_a_worker_killed_mid_stage_the_cohort_finishes_and_a_rerun_completes(tmp_path):
+def test_a_worker_killed_mid_stage_the_cohort_finishes_and_a_rerun_completes(
+    tmp_path, process_cluster
+):
     """SIGKILL the worker process running a render: Dask reruns the stage elsewhere.
 
     Worker *processes* here (a killed thread is not a killed worker); the
@@ -147,28 +164,27 @@ def test_a_worker_killed_mid_stage_the_cohort_finishes_and_a_rerun_completes(tmp
     out = tmp_path / "out"
     killed: dict[str, object] = {}
     lock = threading.Lock()
-    with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
-    ) as cluster, distributed.Client(cluster) as client:  # fmt: skip
-        pids = client.run(os.getpid)
+    cluster, client = process_cluster
+    client.wait_for_workers(2, timeout=180)
+    pids = client.run(os.getpid)
 
-        def reporter(event):
-            if event.stage != "render-views" or event.status != "started":
+    def reporter(event):
+        if event.stage != "render-views" or event.status != "started":
+            return
+        with lock:
+            if killed:
                 return
-            with lock:
-                if killed:
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline:
+                busy = [a for a, keys in client.processing().items() if keys]
+                if busy:
+                    os.kill(pids[busy[0]], signal.SIGKILL)
+                    killed.update(worker=busy[0], patient=event.patient_id)
                     return
-                deadline = time.monotonic() + 20
-                while time.monotonic() < deadline:
-                    busy = [a for a, keys in client.processing().items() if keys]
-                    if busy:
-                        os.kill(pids[busy[0]], signal.SIGKILL)
-                        killed.update(worker=busy[0], patient=event.patient_id)
-                        return
-                    time.sleep(0.05)
+                time.sleep(0.05)
 
-        with use_reporter(reporter):
-            result = run_cohort(rows, out, dask=DaskSpec(address=cluster.scheduler_address))
+    with use_reporter(reporter):
+        result = run_cohort(rows, out, dask=DaskSpec(address=cluster.scheduler_address))
     assert killed, "no worker was killed: the test did not exercise anything"
     assert len(result.patients) == 2
     for p in result.patients:
@@ -193,12 +209,15 @@ def test_a_worker_killed_mid_stage_the_cohort_finishes_and_a_rerun_completes(tmp
 
 @pytest.mark.slow
 @pytest.mark.usefixtures("prefect_harness", "generous_comm_timeouts")
-def test_a_stage_that_kills_its_worker_every_time_fails_that_patient_only(tmp_path):
+def test_a_stage_that_kills_its_worker_every_time_fails_that_patient_only(
+    tmp_path, process_cluster
+):
     """Dask gives up after ``allowed-failures`` worker deaths with ``KilledWorker``.
 
-    The limit is lowered from Dask's 3 to 1 for this cluster: Dask gives up at the
-    second death instead of the fourth, two worker processes fewer to restart (each
-    imports numpy, numba and Prefect afresh); the giving up is the same. A worker plugin
+    The limit is lowered from Dask's 3 to 1 for this test (on the shared cluster, and
+    restored after it): Dask gives up at the second death instead of the fourth, two
+    worker processes fewer to restart (each imports numpy, numba and Prefect afresh);
+    the giving up is the same. A worker plugin
     (installed again on every restarted worker by the scheduler) wraps Prefect's
     ``run_task_sync`` (what prefect-dask runs on a worker) in each worker *process*: the
     ``preprocess`` task of patient dsk1 SIGKILLs its own worker, every time it runs.
@@ -216,7 +235,7 @@ def test_a_stage_that_kills_its_worker_every_time_fails_that_patient_only(tmp_pa
 
             import prefect.task_engine as engine
 
-            original = engine.run_task_sync
+            original = self.original = engine.run_task_sync
 
             def run_task_sync(*args, **kwargs):
                 task = kwargs.get("task")
@@ -226,18 +245,25 @@ def test_a_stage_that_kills_its_worker_every_time_fails_that_patient_only(tmp_pa
 
             engine.run_task_sync = run_task_sync
 
-    import dask
+        def teardown(self, worker):  # unregistered: the shared cluster's workers as before
+            import prefect.task_engine as engine
+
+            engine.run_task_sync = self.original
 
     rows = _rows(tmp_path / "in", [0, 1])
     out = tmp_path / "out"
-    with dask.config.set({"distributed.scheduler.allowed-failures": 1}), distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
-    ) as cluster, distributed.Client(cluster) as client:  # fmt: skip
-        assert cluster.scheduler.allowed_failures == 1
-        client.register_plugin(KillOnDoomedStage())
+    cluster, client = process_cluster
+    client.wait_for_workers(2, timeout=180)
+    before = cluster.scheduler.allowed_failures
+    cluster.scheduler.allowed_failures = 1  # read by the scheduler at each worker death
+    client.register_plugin(KillOnDoomedStage())
+    try:
         t0 = time.perf_counter()
         result = run_cohort(rows, out, dask=DaskSpec(address=cluster.scheduler_address))
         wall = time.perf_counter() - t0
+    finally:  # the shared cluster as it was: no killer, Dask's own limit
+        client.unregister_worker_plugin(KillOnDoomedStage.name)
+        cluster.scheduler.allowed_failures = before
     by_id = {p.patient_id: p for p in result.patients}
     assert by_id["dsk0"].status == "ok", by_id["dsk0"].error
     assert (out / "dsk0" / "metrics.parquet").is_file()

@@ -123,7 +123,7 @@ def _server_children(pid: int) -> list[int]:
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc")
-def test_kill_9_of_a_run_leaves_no_temporary_server(home, tmp_path):
+def test_kill_9_of_a_run_leaves_no_temporary_server(home, tmp_path, seed_prefect_home):
     import nibabel as nib
     import numpy as np
 
@@ -133,7 +133,7 @@ def test_kill_9_of_a_run_leaves_no_temporary_server(home, tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     env.update(
         TUMOR3D_HOME=str(home),
-        PREFECT_HOME=str(tmp_path / "prefect-home"),
+        PREFECT_HOME=str(seed_prefect_home(tmp_path / "prefect-home")),
         PYTHONPATH=str(ROOT),
         PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS=str(STARTUP_S),
     )
