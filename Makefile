@@ -23,11 +23,11 @@ demo: setup
 # (--no-loadscope-reorder: xdist would otherwise order them by their number of tests
 # and start a two-test file of three minutes last), a worker's next file when one test
 # of its current file is left (tests/conftest.py's scheduler). TEST_WORKERS=0 runs
-# everything in this process. Measured (issue 31 item 7, a clone with a warm numba
-# cache, tests/core's own kernels included): 1,666 tests in 743 s of pytest at load 3-7
-# on the 2 shared cores, 786 CPU-s (user + sys of the process tree; at load 9-24: 2,217 s,
-# 899 CPU-s). 786 CPU-s on 2 cores is at least 6.5 min: the 5 min target is not met.
-# .ci/run on a clean clone of 4eae156, load 0-3.6: 1,696 passed, 3 skipped in 466 s.
+# everything in this process. The test Prefect servers and flow runs are set up to idle
+# and burn little (tests/conftest.py). Measured (issue 31 item 7): .ci/run on a clean
+# clone of a6426e4, load ~0.1-2: 1,725 passed, 3 skipped in 320 s of pytest (7 min 25 s
+# in all); the same run with a warm numba cache 316 s, ~590 CPU-s of the 2 cores' 632
+# (TEST_WORKERS=3: 322 s). The 5 min target is missed by about 20 s.
 TEST_WORKERS ?= 2
 test: setup
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder \
