@@ -53,43 +53,13 @@ PREFECT_STARTUP_TIMEOUT_S = 120
 
 # A Prefect database with every migration applied, made once per session (by the first
 # process, xdist worker or not, to start a test server; the others wait for it) and copied
-# in before each test server starts: a server on a new database spends ~5 of its ~8 CPU-s
+# in before each test server starts: a server on a new database spends ~4 of its ~8 CPU-s
 # of start-up migrating it (once per xdist worker, and once per temporary server of a CLI
 # command on the worker's PREFECT_HOME). The folder is the session's (made by the process
 # that starts it, the xdist controller, before the workers start; they find it in the
 # environment). A build that fails leaves ``failed`` there and the servers migrate their
 # own databases as before.
 _DB_TEMPLATE_ENV = "TUMOR3D_TEST_PREFECT_DB_FOLDER"
-_DB_TEMPLATE_BUILD = """
-import os, signal, sqlite3, subprocess, sys, time, urllib.request
-db, port, out = sys.argv[1], sys.argv[2], sys.argv[3]
-signal.signal(signal.SIGTERM, lambda *_: sys.exit(1))  # stop the server on the way out
-env = {**os.environ, "PREFECT_SERVER_DATABASE_CONNECTION_URL": "sqlite+aiosqlite:///" + db,
-       "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1"}
-server = None
-try:
-    server = subprocess.Popen([sys.executable, "-m", "uvicorn", "--factory",
-                              "prefect.server.api.server:create_app", "--host", "127.0.0.1",
-                              "--port", port, "--log-level", "error", "--lifespan", "on"],
-                              env=env)
-    deadline = time.monotonic() + 300
-    while True:
-        if server.poll() is not None or time.monotonic() > deadline:
-            raise RuntimeError("the server did not start")
-        try:
-            urllib.request.urlopen(f"http://127.0.0.1:{port}/api/health", timeout=2)
-            break
-        except OSError:
-            time.sleep(0.2)
-    server.terminate()
-    server.wait(timeout=30)
-    with sqlite3.connect(db) as src, sqlite3.connect(db + ".copy") as dst:
-        src.backup(dst)  # one file, the write-ahead log folded in
-    os.replace(db + ".copy", out)  # appears whole, or not at all
-finally:
-    if server is not None and server.poll() is None:
-        server.kill()
-"""
 _DB_TEMPLATE_OWNER = False
 
 
@@ -103,30 +73,27 @@ def pytest_configure(config):
 def migrated_prefect_db() -> Path | None:
     """The session's migrated Prefect database, built here if no process has yet."""
     import fcntl
-    import socket
 
     folder = Path(os.environ[_DB_TEMPLATE_ENV])
-    template = folder / "template.db"
+    template, build = folder / "template.db", folder / "build.db"
     with open(folder / "lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # one builds, the others wait for it
         if template.is_file():
             return template
         if (folder / "failed").exists():
             return None
-        with socket.socket() as sock:
-            sock.bind(("127.0.0.1", 0))
-            port = sock.getsockname()[1]
-        try:
+        try:  # Prefect's own command, on a database of this folder
             subprocess.run(
-                [sys.executable, "-c", _DB_TEMPLATE_BUILD, str(folder / "build.db"), str(port),
-                 str(template)],
-                env={**os.environ, "PREFECT_HOME": str(folder / "home")}, timeout=600,
-                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=True,
+                [sys.executable, "-m", "prefect", "server", "database", "upgrade", "-y"],
+                env={**os.environ, "PREFECT_HOME": str(folder / "home"),
+                     "PREFECT_SERVER_DATABASE_CONNECTION_URL": f"sqlite+aiosqlite:///{build}"},
+                timeout=600, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=True,
             )  # fmt: skip
         except (OSError, subprocess.SubprocessError):
             (folder / "failed").touch()
             return None
-        return template if template.is_file() else None
+        build.replace(template)  # whole, or not at all
+        return template
 
 
 def seed_prefect_db(dest: Path) -> bool:
@@ -177,7 +144,6 @@ def prefect_harness():
             harness.prefect_test_harness(server_startup_timeout=PREFECT_STARTUP_TIMEOUT_S),
             temporary_settings(updates={"flows.heartbeat_frequency": None}),
         ):
-            harness.mkdtemp = original
             yield
     finally:
         harness.mkdtemp = original
