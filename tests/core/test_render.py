@@ -378,6 +378,27 @@ def test_numpy_renders_are_deterministic(tumor_mesh, brain_mesh, scene):
         assert img.tobytes() == again.images[name].tobytes(), name
 
 
+def test_frame_start_and_8_bit_conversion_are_numpys():
+    # the numpy renderer starts each frame and converts it with numba kernels; they
+    # must be numpy's ``img[:] = background`` / ``zbuf[:] = inf`` and
+    # ``rint(255 img).astype(uint8)``, exact ties (k + 0.5) rounded to even included
+    from tumor3d.visual.render.raster import _clear, _to_uint8
+
+    rng = np.random.default_rng(3)
+    img = rng.random((40, 30, 3))
+    ties = [x for k in range(255) if (x := (k + 0.5) / 255.0) * 255.0 == k + 0.5]
+    assert len(ties) > 100
+    img.reshape(-1)[: len(ties)] = ties
+    img.reshape(-1)[-2:] = (0.0, 1.0)
+    out = np.zeros(img.shape, dtype=np.uint8)
+    _to_uint8(img, out)
+    assert np.array_equal(out, np.rint(img * 255.0).astype(np.uint8))
+    background = np.array([0.1, 0.5, 0.9])
+    zbuf = rng.random((40, 30))
+    _clear(img, background, zbuf)
+    assert np.array_equal(img, np.broadcast_to(background, img.shape)) and np.all(zbuf == np.inf)
+
+
 # ---------------------------------------------------------------------------
 # orientation labels and scale bar
 # ---------------------------------------------------------------------------

@@ -104,16 +104,46 @@ def _shade(img, fid, b1, b2, faces, normals, color, light, k_a, k_d, k_s, s, alp
                 img[r, c, k] = (1.0 - alpha) * img[r, c, k] + alpha * v
 
 
+@numba.njit(cache=True, nogil=True)
+def _clear(img, background, zbuf):
+    """Start a frame: every pixel of ``img`` the background colour, ``zbuf`` infinitely far."""
+    h, w = zbuf.shape
+    for r in range(h):
+        for c in range(w):
+            zbuf[r, c] = np.inf
+            for k in range(3):
+                img[r, c, k] = background[k]
+
+
+@numba.njit(cache=True, nogil=True)
+def _to_uint8(img, out):
+    """``out[...] = rint(255 img)`` as uint8 (``img`` in [0, 1]), in one pass."""
+    h, w = out.shape[0], out.shape[1]
+    for r in range(h):
+        for c in range(w):
+            for k in range(3):
+                out[r, c, k] = np.uint8(np.rint(img[r, c, k] * 255.0))
+
+
 def _layer(
-    geom: dict[str, Any], cam: Camera, zbuf: np.ndarray, img: np.ndarray, lighting: np.ndarray
+    geom: dict[str, Any],
+    cam: Camera,
+    zbuf: np.ndarray,
+    img: np.ndarray,
+    lighting: np.ndarray,
+    fid: np.ndarray,
+    b1: np.ndarray,
+    b2: np.ndarray,
 ) -> None:
-    """Rasterise one geometry against ``zbuf`` and shade it into ``img`` (both updated)."""
+    """Rasterise one geometry against ``zbuf`` and shade it into ``img`` (both updated).
+
+    ``fid``, ``b1`` and ``b2`` (h, w) are the caller's scratch buffers: ``fid`` is
+    reset here; the weights are read only where ``fid`` was written.
+    """
     h, w = zbuf.shape
     p = cam.project(geom["vertices"])
-    fid = np.full((h, w), -1, dtype=np.int64)
-    b1 = np.zeros((h, w))
-    b2 = np.zeros((h, w))
-    faces = np.ascontiguousarray(geom["faces"], dtype=np.int64)
+    fid.fill(-1)
+    faces = geom["faces_i8"]
     _raster(
         np.ascontiguousarray(p[:, 0]),
         np.ascontiguousarray(p[:, 1]),
@@ -134,8 +164,8 @@ def _layer(
         b1,
         b2,
         faces,
-        np.ascontiguousarray(geom["normals"], dtype=np.float64),
-        np.ascontiguousarray(geom["color"], dtype=np.float64),
+        geom["normals_f8"],
+        geom["color_f8"],
         np.ascontiguousarray(-cam.forward, dtype=np.float64),
         k_a,
         k_d,
@@ -150,18 +180,33 @@ def _render_numpy(scene: dict[str, Any], lighting: np.ndarray) -> np.ndarray:
 
     Opaque geometries first (one shared z-buffer), then each translucent
     one against a copy of the opaque z-buffer: only its nearest layer is
-    blended (see :mod:`tumor3d.visual.render`).
+    blended (see :mod:`tumor3d.visual.render`). The frame buffers are
+    allocated once for all views.
     """
     w, h = scene["size"]
-    geoms = scene["geoms"]
+    geoms = [
+        dict(
+            g,
+            faces_i8=np.ascontiguousarray(g["faces"], dtype=np.int64),
+            normals_f8=np.ascontiguousarray(g["normals"], dtype=np.float64),
+            color_f8=np.ascontiguousarray(g["color"], dtype=np.float64),
+        )
+        for g in scene["geoms"]
+    ]
+    background = np.ascontiguousarray(scene["background"], dtype=np.float64)
     out = np.empty((len(scene["cameras"]), h, w, 3), dtype=np.uint8)
+    img = np.empty((h, w, 3))
+    zbuf = np.empty((h, w))
+    zlayer = np.empty((h, w))
+    fid = np.empty((h, w), dtype=np.int64)
+    b1 = np.empty((h, w))
+    b2 = np.empty((h, w))
     for k, (cam, vis) in enumerate(zip(scene["cameras"], scene["visible"], strict=True)):
-        img = np.empty((h, w, 3))
-        img[:] = scene["background"]
-        zbuf = np.full((h, w), np.inf)
+        _clear(img, background, zbuf)
         for g in (geoms[i] for i in vis if geoms[i]["opacity"] >= 1.0):
-            _layer(g, cam, zbuf, img, lighting)
+            _layer(g, cam, zbuf, img, lighting, fid, b1, b2)
         for g in (geoms[i] for i in vis if geoms[i]["opacity"] < 1.0):
-            _layer(g, cam, zbuf.copy(), img, lighting)
-        out[k] = np.rint(img * 255.0).astype(np.uint8)
+            np.copyto(zlayer, zbuf)
+            _layer(g, cam, zlayer, img, lighting, fid, b1, b2)
+        _to_uint8(img, out[k])
     return out
