@@ -368,12 +368,14 @@ def test_code_digests_parse_under_one_lock_and_agree_across_threads(package_copy
         return real_parse(*args, **kwargs)
 
     monkeypatch.setattr(caching.ast, "parse", checked)
+    caching._source_facts.cache_clear()
     caching._parse_module.cache_clear()
     module_closure.cache_clear()
     code_digest.cache_clear()
     roots = [(spec.adapter_module,) for spec in STAGES.values()]
     with ThreadPoolExecutor(max_workers=4) as pool:
         digests = list(pool.map(lambda r: code_digest(r, str(package_copy)), roots * 2))
+    caching._source_facts.cache_clear()
     caching._parse_module.cache_clear()
     assert unlocked == []
     assert digests[: len(roots)] == digests[len(roots) :]  # the same closure, the same key

@@ -256,13 +256,31 @@ def _project_modules(found: set[str], root: Path) -> set[str]:
     return out
 
 
+@dataclass(frozen=True)
+class _SourceFacts:
+    """What one module's source says by itself, before any lookup under a root.
+
+    ``found`` / ``found_lazy``: the modules its import statements name (the
+    latter inside a module-level ``__getattr__``); ``from_names``: ``(base,
+    name, lazy)`` for every ``from base import name`` (a submodule or a name,
+    told apart under a root); ``attributes``: ``(module, name)`` for every
+    ``m.name`` after ``import m`` of a project module.
+    """
+
+    found: frozenset[str]
+    found_lazy: frozenset[str]
+    from_names: tuple[tuple[str, str, bool], ...]
+    attributes: frozenset[tuple[str, str]]
+    defined: frozenset[str]
+    packages: frozenset[str]
+    syntax_sha256: str
+
+
 @cache
-def _parse_module(name: str, path_str: str, root_str: str, source: bytes) -> _ModuleSyntax:
-    """Parse one module once per process and content: its imports and syntax digest."""
-    path, root = Path(path_str), Path(root_str)
+def _source_facts(name: str, is_package: bool, source: bytes) -> _SourceFacts:
+    """Parse one module's source once per process and content (wherever the file lies)."""
     with _AST_LOCK:
-        tree = ast.parse(source, filename=path_str)
-    is_package = path.name == "__init__.py"
+        tree = ast.parse(source, filename=name)
     package = name if is_package else name.rpartition(".")[0]
     getattr_fn = [
         n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "__getattr__"
@@ -270,13 +288,14 @@ def _parse_module(name: str, path_str: str, root_str: str, source: bytes) -> _Mo
     in_getattr = {id(n) for fn in getattr_fn for n in ast.walk(fn)}
     found: set[str] = set()
     found_lazy: set[str] = set()
+    from_names: list[tuple[str, str, bool]] = []
     absolute: set[str] = set()  # top-level names of absolute imports
     bound: dict[str, str] = {}  # local name -> project module, by ``import m``
-    requests: set[tuple[str, str]] = set()
     attributes: list[ast.Attribute] = []
     for node in ast.walk(tree):  # one walk: the imports, and docstrings dropped
         _drop_docstring(node)
-        into = found_lazy if id(node) in in_getattr else found
+        lazy = id(node) in in_getattr
+        into = found_lazy if lazy else found
         if isinstance(node, ast.Import):
             into.update(alias.name for alias in node.names)
             absolute.update(alias.name.split(".")[0] for alias in node.names)
@@ -294,30 +313,59 @@ def _parse_module(name: str, path_str: str, root_str: str, source: bytes) -> _Mo
             else:
                 base = node.module or ""
             into.add(base)
-            # ``from pkg import mod`` imports the submodule ``pkg.mod``
-            for alias in node.names:
-                if _module_file(f"{base}.{alias.name}", root) is not None:
-                    into.add(f"{base}.{alias.name}")
-                else:
-                    requests.add((base, alias.name))
+            from_names.extend((base, alias.name, lazy) for alias in node.names)
         elif isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
             attributes.append(node)
-    for node in attributes:  # ``m.name`` after ``import m`` (project modules only)
-        module = bound.get(node.value.id)  # type: ignore[attr-defined]
-        if module is not None and (module, node.attr) not in requests:
-            if _module_file(f"{module}.{node.attr}", root) is None:
-                requests.add((module, node.attr))
-    out = _project_modules(found, root)
-    lazy = _project_modules(found_lazy, root) - out
+    bound_attributes = {
+        (bound[node.value.id], node.attr)  # type: ignore[attr-defined]
+        for node in attributes
+        if node.value.id in bound  # type: ignore[attr-defined]
+    }
     dump = ast.dump(tree, annotate_fields=True, include_attributes=False)  # as syntax_dump
-    syntax = hashlib.sha256(dump.encode()).hexdigest()
-    return _ModuleSyntax(
-        imports=frozenset(out),
-        lazy=frozenset(lazy),
-        requests=frozenset(r for r in requests if r[0].split(".")[0] in PROJECT_PACKAGES),
+    return _SourceFacts(
+        found=frozenset(found),
+        found_lazy=frozenset(found_lazy),
+        from_names=tuple(from_names),
+        attributes=frozenset(bound_attributes),
         defined=frozenset(_top_level_names(tree.body) | _MODULE_ATTRIBUTES),
         packages=frozenset(absolute - set(PROJECT_PACKAGES)),
-        syntax_sha256=syntax,
+        syntax_sha256=hashlib.sha256(dump.encode()).hexdigest(),
+    )
+
+
+@cache
+def _parse_module(name: str, path_str: str, root_str: str, source: bytes) -> _ModuleSyntax:
+    """One module's imports (resolved under ``root``) and syntax digest.
+
+    The parse (:func:`_source_facts`) is shared by every root holding the same
+    source; only the lookups of submodules (``from pkg import mod``) are per root.
+    """
+    path, root = Path(path_str), Path(root_str)
+    try:
+        facts = _source_facts(name, path.name == "__init__.py", source)
+    except SyntaxError as exc:
+        exc.filename = path_str
+        raise
+    found, found_lazy = set(facts.found), set(facts.found_lazy)
+    requests: set[tuple[str, str]] = set()
+    for base, alias, lazy in facts.from_names:
+        # ``from pkg import mod`` imports the submodule ``pkg.mod``
+        if _module_file(f"{base}.{alias}", root) is not None:
+            (found_lazy if lazy else found).add(f"{base}.{alias}")
+        else:
+            requests.add((base, alias))
+    for module, attr in sorted(facts.attributes):  # ``m.name`` after ``import m``
+        if (module, attr) not in requests and _module_file(f"{module}.{attr}", root) is None:
+            requests.add((module, attr))
+    out = _project_modules(found, root)
+    lazy_out = _project_modules(found_lazy, root) - out
+    return _ModuleSyntax(
+        imports=frozenset(out),
+        lazy=frozenset(lazy_out),
+        requests=frozenset(r for r in requests if r[0].split(".")[0] in PROJECT_PACKAGES),
+        defined=facts.defined,
+        packages=facts.packages,
+        syntax_sha256=facts.syntax_sha256,
     )
 
 
