@@ -10,6 +10,7 @@ manifest is reported, its folder kept.
 
 from __future__ import annotations
 
+import functools
 import os
 import subprocess
 import sys
@@ -29,9 +30,14 @@ from tumor3d.tasks.stages import STAGES
 SMALL = {"n_slices": 16, "matrix_size": (128, 128)}
 
 
+@functools.cache
+def _patient(seed: int):
+    """One phantom per seed for the whole file (its arrays are read-only)."""
+    return make_phantom_patient(seed, patient_id=f"srv{seed}", **SMALL)
+
+
 def _row(seed: int, folder):
-    patient = make_phantom_patient(seed, patient_id=f"srv{seed}", **SMALL)
-    return write_phantom_patient(patient, folder / f"srv{seed}")
+    return write_phantom_patient(_patient(seed), folder / f"srv{seed}")
 
 
 def test_deployment_carries_the_cron_schedule_and_parameters(tmp_path):
