@@ -6,6 +6,7 @@ Real data never enters these tests: a tiny model is trained on phantoms
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 
@@ -24,9 +25,12 @@ from tumor3d.segmentation.lesion import left_right_axis
 lgb = pytest.importorskip("lightgbm")
 
 
+@functools.cache
 def _phantom(seed: int, modality: str = "flair"):
+    """A 128 x 128 phantom's scan and truth, made once per file (read-only arrays)."""
     p = make_phantom_patient(seed, modality=modality, matrix_size=(128, 128))
     truth = np.asarray(p.slice_masks) > 0.5
+    truth.setflags(write=False)
     return p.scan, truth
 
 

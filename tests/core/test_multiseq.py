@@ -7,6 +7,8 @@ co-registered sequences of one patient.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -22,11 +24,14 @@ from tumor3d.learned.multiseq import (
 from tumor3d.phantom.patient import make_phantom_patient
 
 
+@functools.cache
 def _pair(seed: int, *, flair_tumour: bool = True):
-    """FLAIR and T2 slices of one phantom patient and its truth."""
+    """FLAIR and T2 slices of one phantom patient and its truth (made once; read-only)."""
     t2 = make_phantom_patient(seed, modality="t2", matrix_size=(96, 96))
     fl = make_phantom_patient(seed, modality="flair", matrix_size=(96, 96), tumor=flair_tumour)
-    return fl.scan.image, t2.scan.image, np.asarray(t2.slice_masks) > 0.5, t2.scan.spacing_zyx_mm
+    truth = np.asarray(t2.slice_masks) > 0.5
+    truth.setflags(write=False)
+    return fl.scan.image, t2.scan.image, truth, t2.scan.spacing_zyx_mm
 
 
 def test_one_sequence_gives_the_single_sequence_features():

@@ -13,6 +13,7 @@ has a stage that kills its worker every time (Dask gives up with ``KilledWorker`
 
 from __future__ import annotations
 
+import functools
 import socket
 import time
 
@@ -70,12 +71,13 @@ def process_cluster():
         yield cluster, client
 
 
+@functools.cache
+def _patient(seed: int):
+    return make_phantom_patient(seed, patient_id=f"dsk{seed}", **SMALL)  # read-only arrays
+
+
 def _rows(folder, seeds):
-    out = []
-    for s in seeds:
-        patient = make_phantom_patient(s, patient_id=f"dsk{s}", **SMALL)
-        out.append(write_phantom_patient(patient, folder / f"dsk{s}"))
-    return out
+    return [write_phantom_patient(_patient(s), folder / f"dsk{s}") for s in seeds]
 
 
 def _free_port() -> int:

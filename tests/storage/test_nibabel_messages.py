@@ -9,6 +9,7 @@ stage now records the repairs as one note of the run instead.
 
 from __future__ import annotations
 
+import functools
 import logging
 import struct
 
@@ -23,9 +24,14 @@ from tumor3d.storage.readers import read_scan
 NOTE = "hdr.nii: nibabel repaired the NIfTI header on reading: qform_code 7 not valid; setting to 0"
 
 
+@functools.cache
+def _patient():
+    return make_phantom_patient(3, patient_id="hdr", n_slices=12)  # read-only arrays
+
+
 def _bad_qform_code(tmp_path):
     """A phantom NIfTI (uncompressed) whose qform_code is 7: nibabel sets it to 0, logging it."""
-    patient = make_phantom_patient(3, patient_id="hdr", n_slices=12)
+    patient = _patient()
     row = write_phantom_patient(patient, tmp_path / "in")
     img = nib.load(row.image)
     plain = tmp_path / "hdr.nii"

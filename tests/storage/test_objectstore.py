@@ -8,6 +8,7 @@ volumes). Skipped, with the reason, when moto or s3fs is not installed.
 
 from __future__ import annotations
 
+import functools
 import socket
 import time
 
@@ -161,12 +162,13 @@ def test_a_corrupted_object_is_quarantined_and_rewritten(s3_endpoint):
     assert actions == ["quarantined", "quarantined"]
 
 
+@functools.cache
+def _patient(seed: int):
+    return make_phantom_patient(seed, patient_id=f"s3p{seed}", **SMALL)  # read-only arrays
+
+
 def _rows(folder, seeds):
-    rows = []
-    for s in seeds:
-        patient = make_phantom_patient(s, patient_id=f"s3p{s}", **SMALL)
-        rows.append(write_phantom_patient(patient, folder / f"s3p{s}"))
-    return rows
+    return [write_phantom_patient(_patient(s), folder / f"s3p{s}") for s in seeds]
 
 
 @pytest.fixture(scope="module")
