@@ -4,7 +4,10 @@ Prefect's clients retried a killed background server for about 170 s, then
 failed with two tracebacks. :func:`tumor3d.flows.server._watch_server` looks at the
 server's port while the command runs; nothing listening there three times in
 a row ends the command. Run in a child process (it ends with ``os._exit``),
-against a plain TCP listener standing in for the server.
+against a plain TCP listener standing in for the server. When the command's own
+temporary server stops because a Ctrl-C reached it (SIGINT: it shares the
+terminal's process group), the watch leaves the ending to the command's Ctrl-C
+handler (one line, exit 130), however late a busy main thread runs it.
 """
 
 from __future__ import annotations
@@ -45,6 +48,39 @@ def test_a_vanished_server_ends_the_command_in_one_line():
     assert len(lines) == 1 and "stopped answering" in lines[0], res.stderr
     # ended by the watch (os._exit in the hook) before the body's own end
     assert "hook 3" in res.stdout and "body finished" not in res.stdout
+
+
+SERVER_PROCESS = """
+import signal, socket, subprocess, sys, time
+import tumor3d.flows.server as s
+s._WATCH_PERIOD_S = 0.2
+child = subprocess.Popen([sys.executable, "-c",
+    "import socket, time\\n"
+    "srv = socket.socket(); srv.bind(('127.0.0.1', 0)); srv.listen(8)\\n"
+    "print(srv.getsockname()[1], flush=True)\\n"
+    "time.sleep(60)"], stdout=subprocess.PIPE, text=True)
+port = int(child.stdout.readline())
+with s._watch_server(f"http://127.0.0.1:{port}/api", server=child):
+    time.sleep(1.0)
+    child.send_signal(signal.SIGINT if sys.argv[1] == "ctrl-c" else signal.SIGKILL)
+    time.sleep(3)              # 15 watch periods
+print("body finished", flush=True)
+"""
+
+
+def test_a_temporary_server_stopped_by_ctrl_c_leaves_the_ending_to_the_command():
+    res = subprocess.run(
+        [sys.executable, "-c", SERVER_PROCESS, "ctrl-c"], capture_output=True, text=True,
+        timeout=60, cwd=str(ROOT),
+    )  # fmt: skip
+    assert res.returncode == 0 and "body finished" in res.stdout, res.stderr
+    assert "stopped answering" not in res.stderr
+    killed = subprocess.run(
+        [sys.executable, "-c", SERVER_PROCESS, "kill"], capture_output=True, text=True,
+        timeout=60, cwd=str(ROOT),
+    )  # fmt: skip
+    assert killed.returncode == 3 and "stopped answering" in killed.stderr, killed.stderr
+    assert "body finished" not in killed.stdout
 
 
 def test_a_server_that_stays_is_left_alone():

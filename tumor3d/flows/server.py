@@ -438,10 +438,11 @@ def prefect_api(on_temporary_start: Callable[[], None] | None = None) -> Iterato
     proc = _spawn(port, parent=os.getpid(), ephemeral=True, log=None)
     try:
         _wait_healthy(proc, api_url, _startup_timeout_s())
-        with _use_api(api_url, drain=True), _watch_server(api_url):
+        with _use_api(api_url, drain=True), _watch_server(api_url, server=proc):
             yield api_url
     finally:
-        _terminate(proc.pid, grace_s=5.0)
+        if proc.poll() is None:  # (the watch may have reaped it: its pid is then free)
+            _terminate(proc.pid, grace_s=5.0)
 
 
 #: Called with the exit code just before a command ends because its server went away
@@ -467,13 +468,19 @@ def _refused(api_url: str) -> bool:
 
 
 @contextlib.contextmanager
-def _watch_server(api_url: str) -> Iterator[None]:
+def _watch_server(api_url: str, server: subprocess.Popen | None = None) -> Iterator[None]:
     """End the command (one line, exit 3) if the server stops listening while the body runs.
 
     Prefect's clients retry a vanished server for minutes, printing each
     retry, then fail with tracebacks. Nothing is left half-published: a
     patient folder is swapped in whole or not at all, and a re-run continues
     from the cache.
+
+    ``server`` is the command's own temporary server process, if it has one. It
+    shares the terminal's process group, so a Ctrl-C stops it too: a server that
+    died of SIGINT leaves the ending to the command's own Ctrl-C handling (one line,
+    exit 130), which a busy main thread may run seconds later; one that is still
+    shutting down is given a few more periods.
     """
     stop = threading.Event()
 
@@ -481,6 +488,12 @@ def _watch_server(api_url: str) -> Iterator[None]:
         refusals = 0
         while not stop.wait(_WATCH_PERIOD_S):
             refusals = refusals + 1 if _refused(api_url) else 0
+            if refusals >= _WATCH_REFUSALS and server is not None:
+                code = server.poll()
+                if code == -signal.SIGINT:
+                    return  # a Ctrl-C: the command's handler ends it
+                if code is None and refusals < 4 * _WATCH_REFUSALS:
+                    continue  # not listening any more, still exiting: look again
             if refusals >= _WATCH_REFUSALS and not stop.is_set():
                 with contextlib.suppress(Exception):
                     sys.stderr.write(
