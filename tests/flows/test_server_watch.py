@@ -7,7 +7,8 @@ a row ends the command. Run in a child process (it ends with ``os._exit``),
 against a plain TCP listener standing in for the server. When the command's own
 temporary server stops because a Ctrl-C reached it (SIGINT: it shares the
 terminal's process group), the watch leaves the ending to the command's Ctrl-C
-handler (one line, exit 130), however late a busy main thread runs it.
+handler (one line, exit 130), however late a busy main thread runs it; a stand-in
+server exits as the real one does (``EXIT_CTRL_C``, tests/flows/test_server.py).
 """
 
 from __future__ import annotations
@@ -55,7 +56,9 @@ import signal, socket, subprocess, sys, time
 import tumor3d.flows.server as s
 s._WATCH_PERIOD_S = 0.2
 child = subprocess.Popen([sys.executable, "-c",
-    "import socket, time\\n"
+    "import tumor3d.flows.server as s\\n"
+    "import signal, socket, sys, time\\n"
+    "signal.signal(signal.SIGINT, lambda *a: sys.exit(s.EXIT_CTRL_C))\\n"
     "srv = socket.socket(); srv.bind(('127.0.0.1', 0)); srv.listen(8)\\n"
     "print(srv.getsockname()[1], flush=True)\\n"
     "time.sleep(60)"], stdout=subprocess.PIPE, text=True)

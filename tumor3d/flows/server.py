@@ -445,6 +445,9 @@ def prefect_api(on_temporary_start: Callable[[], None] | None = None) -> Iterato
             _terminate(proc.pid, grace_s=5.0)
 
 
+#: Exit code of a server process stopped by SIGINT (a Ctrl-C in its command's terminal).
+EXIT_CTRL_C = 130
+
 #: Called with the exit code just before a command ends because its server went away
 #: (the warm runner's copy reports the code to its client).
 EXIT_HOOKS: list[Callable[[int], None]] = []
@@ -478,9 +481,9 @@ def _watch_server(api_url: str, server: subprocess.Popen | None = None) -> Itera
 
     ``server`` is the command's own temporary server process, if it has one. It
     shares the terminal's process group, so a Ctrl-C stops it too: a server that
-    died of SIGINT leaves the ending to the command's own Ctrl-C handling (one line,
-    exit 130), which a busy main thread may run seconds later; one that is still
-    shutting down is given a few more periods.
+    exited for SIGINT (:data:`EXIT_CTRL_C`) leaves the ending to the command's own
+    Ctrl-C handling (one line, exit 130), which a busy main thread may run seconds
+    later; one that is still shutting down is given a few more periods.
     """
     stop = threading.Event()
 
@@ -490,7 +493,7 @@ def _watch_server(api_url: str, server: subprocess.Popen | None = None) -> Itera
             refusals = refusals + 1 if _refused(api_url) else 0
             if refusals >= _WATCH_REFUSALS and server is not None:
                 code = server.poll()
-                if code == -signal.SIGINT:
+                if code in (EXIT_CTRL_C, -signal.SIGINT):
                     return  # a Ctrl-C: the command's handler ends it
                 if code is None and refusals < 4 * _WATCH_REFUSALS:
                     continue  # not listening any more, still exiting: look again
@@ -552,6 +555,9 @@ def _serve(argv: list[str] | None = None) -> None:
         os.environ["PREFECT__SERVER_EPHEMERAL"] = "1"
         os.environ["PREFECT_UI_ENABLED"] = "0"
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    # uvicorn shuts down gracefully on SIGINT, then raises it again with this handler
+    # back: exit EXIT_CTRL_C, so that the command's watch tells a Ctrl-C from a crash
+    signal.signal(signal.SIGINT, lambda signum, frame: sys.exit(EXIT_CTRL_C))
     import uvicorn
 
     uvicorn.run(
