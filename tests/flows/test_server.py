@@ -178,10 +178,13 @@ def test_kill_9_of_a_run_leaves_no_temporary_server(home, tmp_path, seed_prefect
                 os.kill(pid, signal.SIGKILL)
 
 
-def test_a_temporary_server_stopped_by_ctrl_c_exits_with_its_own_code(home):
+def test_a_temporary_server_stopped_by_ctrl_c_exits_with_its_own_code(
+    home, tmp_path, monkeypatch, seed_prefect_home
+):
     """The terminal's Ctrl-C reaches a command's temporary server too (same process
     group): it shuts down and exits EXIT_CTRL_C, which tells the command's server watch
     that a Ctrl-C, not a crash, stopped it (tests/flows/test_server_watch.py)."""
+    monkeypatch.setenv("PREFECT_HOME", str(seed_prefect_home(tmp_path / "prefect-home")))
     port = server._free_port()
     proc = server._spawn(port, parent=os.getpid(), ephemeral=True, log=None)
     try:
