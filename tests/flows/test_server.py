@@ -178,25 +178,6 @@ def test_kill_9_of_a_run_leaves_no_temporary_server(home, tmp_path, seed_prefect
                 os.kill(pid, signal.SIGKILL)
 
 
-def test_a_temporary_server_stopped_by_ctrl_c_exits_with_its_own_code(
-    home, tmp_path, monkeypatch, seed_prefect_home
-):
-    """The terminal's Ctrl-C reaches a command's temporary server too (same process
-    group): it shuts down and exits EXIT_CTRL_C, which tells the command's server watch
-    that a Ctrl-C, not a crash, stopped it (tests/flows/test_server_watch.py)."""
-    monkeypatch.setenv("PREFECT_HOME", str(seed_prefect_home(tmp_path / "prefect-home")))
-    port = server._free_port()
-    proc = server._spawn(port, parent=os.getpid(), ephemeral=True, log=None)
-    try:
-        server._wait_healthy(proc, f"http://127.0.0.1:{port}/api", STARTUP_S)
-        proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=60) == server.EXIT_CTRL_C == 130
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-
-
 def test_a_temporary_server_is_stopped_when_its_command_ends(home):
     notes = []
     with server.prefect_api(on_temporary_start=lambda: notes.append("temporary")) as url:

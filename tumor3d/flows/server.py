@@ -43,6 +43,7 @@ import urllib.request
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 from tumor3d.errors import Tumor3DError
 
@@ -555,19 +556,21 @@ def _serve(argv: list[str] | None = None) -> None:
         os.environ["PREFECT__SERVER_EPHEMERAL"] = "1"
         os.environ["PREFECT_UI_ENABLED"] = "0"
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    # uvicorn shuts down gracefully on SIGINT, then raises it again with this handler
-    # back: exit EXIT_CTRL_C, so that the command's watch tells a Ctrl-C from a crash
+    _run_uvicorn("prefect.server.api.server:create_app", args.port, factory=True, lifespan="on")
+
+
+def _run_uvicorn(app: Any, port: int, **options: Any) -> None:
+    """Serve ``app`` on ``127.0.0.1:port`` with uvicorn until a signal stops it.
+
+    uvicorn shuts down gracefully on SIGINT or SIGTERM, then raises the signal again
+    with the previous handlers back: for SIGINT (a Ctrl-C in the command's terminal)
+    the process exits :data:`EXIT_CTRL_C`, so that the command's watch
+    (:func:`_watch_server`) tells a Ctrl-C from a crash.
+    """
     signal.signal(signal.SIGINT, lambda signum, frame: sys.exit(EXIT_CTRL_C))
     import uvicorn
 
-    uvicorn.run(
-        "prefect.server.api.server:create_app",
-        factory=True,
-        host="127.0.0.1",
-        port=args.port,
-        log_level="error",
-        lifespan="on",
-    )
+    uvicorn.run(app, host="127.0.0.1", port=port, log_level="error", **options)
 
 
 if __name__ == "__main__":  # pragma: no cover - the server process
