@@ -35,15 +35,15 @@ print("body finished", flush=True)
 """
 
 
-def _run(mode: str):
+def _run(script: str, *args: str):
     return subprocess.run(
-        [sys.executable, "-c", SCRIPT, mode], capture_output=True, text=True, timeout=60,
+        [sys.executable, "-c", script, *args], capture_output=True, text=True, timeout=60,
         cwd=str(ROOT),
     )  # fmt: skip
 
 
 def test_a_vanished_server_ends_the_command_in_one_line():
-    res = _run("kill")
+    res = _run(SCRIPT, "kill")
     assert res.returncode == 3, res.stderr
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "stopped answering" in lines[0], res.stderr
@@ -58,7 +58,7 @@ s._WATCH_PERIOD_S = 0.2
 sock = socket.socket(); sock.bind(("127.0.0.1", 0)); port = sock.getsockname()[1]; sock.close()
 # the server: the temporary server's own uvicorn runner (tumor3d.flows.server._run_uvicorn)
 # around a small ASGI app instead of Prefect's
-child = subprocess.Popen([sys.executable, "-c", APP, str(port)])
+child = subprocess.Popen([sys.executable, "-c", sys.argv[2], str(port)])
 while s._refused(f"http://127.0.0.1:{port}/api"):
     time.sleep(0.05)
 with s._watch_server(f"http://127.0.0.1:{port}/api", server=child):
@@ -80,26 +80,18 @@ s._run_uvicorn(app, int(sys.argv[1]), lifespan="off")
 """
 
 
-def _watched(mode: str):
-    script = SERVER_PROCESS.replace("APP", repr(APP), 1)
-    return subprocess.run(
-        [sys.executable, "-c", script, mode], capture_output=True, text=True, timeout=60,
-        cwd=str(ROOT),
-    )  # fmt: skip
-
-
 def test_a_temporary_server_stopped_by_ctrl_c_leaves_the_ending_to_the_command():
-    res = _watched("ctrl-c")
+    res = _run(SERVER_PROCESS, "ctrl-c", APP)
     # the server's runner exits EXIT_CTRL_C for a SIGINT (uvicorn alone: 0), the watch
     # stands down and the body runs on
     assert res.returncode == 0 and "body finished" in res.stdout, res.stderr
     assert "server exit 130" in res.stdout and "stopped answering" not in res.stderr
-    killed = _watched("kill")
+    killed = _run(SERVER_PROCESS, "kill", APP)
     assert killed.returncode == 3 and "stopped answering" in killed.stderr, killed.stderr
     assert "body finished" not in killed.stdout
 
 
 def test_a_server_that_stays_is_left_alone():
-    res = _run("keep")
+    res = _run(SCRIPT, "keep")
     assert res.returncode == 0, res.stderr
     assert "body finished" in res.stdout and res.stderr.strip() == ""
