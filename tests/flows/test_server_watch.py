@@ -55,6 +55,8 @@ SERVER_PROCESS = """
 import signal, socket, subprocess, sys, time
 import tumor3d.flows.server as s
 s._WATCH_PERIOD_S = 0.2
+if len(sys.argv) > 3:
+    s._WATCH_CTRL_C_GRACE_S = float(sys.argv[3])
 sock = socket.socket(); sock.bind(("127.0.0.1", 0)); port = sock.getsockname()[1]; sock.close()
 # the server: the temporary server's own uvicorn runner (tumor3d.flows.server._run_uvicorn)
 # around a small ASGI app instead of Prefect's
@@ -63,7 +65,7 @@ while s._refused(f"http://127.0.0.1:{port}/api"):
     time.sleep(0.05)
 with s._watch_server(f"http://127.0.0.1:{port}/api", server=child):
     time.sleep(0.5)
-    child.send_signal(signal.SIGINT if sys.argv[1] == "ctrl-c" else signal.SIGKILL)
+    child.send_signal(signal.SIGINT if sys.argv[1] == "sigint" else signal.SIGKILL)
     time.sleep(2)              # 10 watch periods
 print("server exit", child.wait(), flush=True)
 print("body finished", flush=True)
@@ -81,7 +83,7 @@ s._run_uvicorn(app, int(sys.argv[1]), lifespan="off")
 
 
 def test_a_temporary_server_stopped_by_ctrl_c_leaves_the_ending_to_the_command():
-    res = _run(SERVER_PROCESS, "ctrl-c", APP)
+    res = _run(SERVER_PROCESS, "sigint", APP)
     # the server's runner exits EXIT_CTRL_C for a SIGINT (uvicorn alone: 0), the watch
     # stands down and the body runs on
     assert res.returncode == 0 and "body finished" in res.stdout, res.stderr
@@ -89,6 +91,11 @@ def test_a_temporary_server_stopped_by_ctrl_c_leaves_the_ending_to_the_command()
     killed = _run(SERVER_PROCESS, "kill", APP)
     assert killed.returncode == 3 and "stopped answering" in killed.stderr, killed.stderr
     assert "body finished" not in killed.stdout
+    # a SIGINT that reached the server alone: once the grace has passed without the
+    # command's own Ctrl-C handling, the watch ends the command as for a crash
+    alone = _run(SERVER_PROCESS, "sigint", APP, "1.0")
+    assert alone.returncode == 3 and "stopped answering" in alone.stderr, alone.stderr
+    assert "body finished" not in alone.stdout
 
 
 def test_a_server_that_stays_is_left_alone():

@@ -454,6 +454,10 @@ EXIT_CTRL_C = 130
 EXIT_HOOKS: list[Callable[[int], None]] = []
 #: Seconds between two looks at the server's port, and refusals in a row that end the command.
 _WATCH_PERIOD_S, _WATCH_REFUSALS = 1.0, 3
+#: Seconds the watch leaves a command whose temporary server a Ctrl-C stopped to its own
+#: Ctrl-C handler (a SIGINT sent to that server alone would otherwise leave the command
+#: retrying a dead server).
+_WATCH_CTRL_C_GRACE_S = 20.0
 
 
 def _refused(api_url: str) -> bool:
@@ -484,7 +488,8 @@ def _watch_server(api_url: str, server: subprocess.Popen | None = None) -> Itera
     shares the terminal's process group, so a Ctrl-C stops it too: a server that
     exited for SIGINT (:data:`EXIT_CTRL_C`) leaves the ending to the command's own
     Ctrl-C handling (one line, exit 130), which a busy main thread may run seconds
-    later; one that is still shutting down is given a few more periods.
+    later, for :data:`_WATCH_CTRL_C_GRACE_S`; one that is still shutting down is given
+    a few more periods.
     """
     stop = threading.Event()
 
@@ -494,8 +499,10 @@ def _watch_server(api_url: str, server: subprocess.Popen | None = None) -> Itera
             refusals = refusals + 1 if _refused(api_url) else 0
             if refusals >= _WATCH_REFUSALS and server is not None:
                 code = server.poll()
-                if code in (EXIT_CTRL_C, -signal.SIGINT):
-                    return  # a Ctrl-C: the command's handler ends it
+                if code in (EXIT_CTRL_C, -signal.SIGINT) and refusals * _WATCH_PERIOD_S < (
+                    _WATCH_CTRL_C_GRACE_S
+                ):
+                    continue  # a Ctrl-C: the command's own handler ends it (exit 130)
                 if code is None and refusals < 4 * _WATCH_REFUSALS:
                     continue  # not listening any more, still exiting: look again
             if refusals >= _WATCH_REFUSALS and not stop.is_set():
