@@ -13,11 +13,11 @@ has a stage that kills its worker every time (Dask gives up with ``KilledWorker`
 
 from __future__ import annotations
 
-import functools
 import socket
 import time
 
 import pytest
+from phantom_rows import small_phantom_rows
 from typer.testing import CliRunner
 
 from tumor3d.errors import InputError
@@ -25,14 +25,8 @@ from tumor3d.flows import dask_runner
 from tumor3d.flows.cli import app
 from tumor3d.flows.cohort import run_cohort
 from tumor3d.flows.dask_runner import ClusterError, DaskSpec
-from tumor3d.phantom import make_phantom_patient
 from tumor3d.storage.manifest import write_manifest
-from tumor3d.storage.phantom_io import write_phantom_patient
 from tumor3d.tasks.stages import STAGES
-
-# Small phantoms (128 x 128 pixels of 1.875 mm, the default field of view, 16 slices):
-# what these tests check does not depend on the image size, and a run costs a third.
-SMALL = {"n_slices": 16, "matrix_size": (128, 128)}
 
 distributed = pytest.importorskip("distributed", reason="Dask extra not installed")
 pytest.importorskip("prefect_dask", reason="prefect-dask not installed")
@@ -71,13 +65,8 @@ def process_cluster():
         yield cluster, client
 
 
-@functools.cache
-def _patient(seed: int):
-    return make_phantom_patient(seed, patient_id=f"dsk{seed}", **SMALL)  # read-only arrays
-
-
 def _rows(folder, seeds):
-    return [write_phantom_patient(_patient(s), folder / f"dsk{s}") for s in seeds]
+    return small_phantom_rows(folder, seeds, "dsk")
 
 
 def _free_port() -> int:

@@ -10,34 +10,22 @@ manifest is reported, its folder kept.
 
 from __future__ import annotations
 
-import functools
 import os
 import subprocess
 import sys
 
 import pandas as pd
 import pytest
+from phantom_rows import small_phantom_rows
 
 from tumor3d.errors import InputError
 from tumor3d.flows.serve import cohort_deployment, scheduled_cohort_flow
-from tumor3d.phantom import make_phantom_patient
 from tumor3d.storage.manifest import write_manifest
-from tumor3d.storage.phantom_io import write_phantom_patient
 from tumor3d.tasks.stages import STAGES
-
-# Small phantoms (128 x 128 pixels of 1.875 mm, the default field of view, 16 slices):
-# what these tests check does not depend on the image size, and a run costs a third.
-SMALL = {"n_slices": 16, "matrix_size": (128, 128)}
-
-
-@functools.cache
-def _patient(seed: int):
-    """One phantom per seed for the whole file (its arrays are read-only)."""
-    return make_phantom_patient(seed, patient_id=f"srv{seed}", **SMALL)
 
 
 def _row(seed: int, folder):
-    return write_phantom_patient(_patient(seed), folder / f"srv{seed}")
+    return small_phantom_rows(folder, [seed], "srv")[0]
 
 
 def test_deployment_carries_the_cron_schedule_and_parameters(tmp_path):

@@ -8,7 +8,6 @@ volumes). Skipped, with the reason, when moto or s3fs is not installed.
 
 from __future__ import annotations
 
-import functools
 import socket
 import time
 
@@ -21,14 +20,14 @@ moto_server = pytest.importorskip(
     "moto.server", reason="moto[server] not installed (pip install 'moto[server]')"
 )
 
+from phantom_rows import small_phantom_rows  # noqa: E402
+
 from tumor3d.flows.cli import app  # noqa: E402
 from tumor3d.flows.cohort import run_cohort  # noqa: E402
 from tumor3d.geometry.mesh import Mesh  # noqa: E402
-from tumor3d.phantom import make_phantom_patient  # noqa: E402
 from tumor3d.storage import objectstore  # noqa: E402
 from tumor3d.storage.manifest import write_manifest  # noqa: E402
 from tumor3d.storage.objectstore import ObjectStore, open_store  # noqa: E402
-from tumor3d.storage.phantom_io import write_phantom_patient  # noqa: E402
 from tumor3d.storage.remote_publish import (  # noqa: E402
     MARKER,
     RemoteFolder,
@@ -39,10 +38,6 @@ from tumor3d.storage.remote_publish import (  # noqa: E402
 )
 from tumor3d.storage.store import ArtifactStore, CorruptArtifactError, StoreError  # noqa: E402
 from tumor3d.tasks.caching import stage_cache_policy  # noqa: E402
-
-# Small phantoms (128 x 128 pixels of 1.875 mm, the default field of view, 16 slices):
-# what these tests check does not depend on the image size, and a run costs a third.
-SMALL = {"n_slices": 16, "matrix_size": (128, 128)}
 
 BUCKET = "tumor3d-test"
 
@@ -162,13 +157,8 @@ def test_a_corrupted_object_is_quarantined_and_rewritten(s3_endpoint):
     assert actions == ["quarantined", "quarantined"]
 
 
-@functools.cache
-def _patient(seed: int):
-    return make_phantom_patient(seed, patient_id=f"s3p{seed}", **SMALL)  # read-only arrays
-
-
 def _rows(folder, seeds):
-    return [write_phantom_patient(_patient(s), folder / f"s3p{s}") for s in seeds]
+    return small_phantom_rows(folder, seeds, "s3p")
 
 
 @pytest.fixture(scope="module")
