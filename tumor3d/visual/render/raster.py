@@ -7,7 +7,7 @@ lighting and transparency sections of :mod:`tumor3d.visual.render`.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numba
 import numpy as np
@@ -125,8 +125,28 @@ def _to_uint8(img, out):
                 out[r, c, k] = np.uint8(np.rint(img[r, c, k] * 255.0))
 
 
+class _Geometry(NamedTuple):
+    """One scene geometry in the kernels' types, converted once per render."""
+
+    vertices: np.ndarray  # (n, 3) world mm
+    faces: np.ndarray  # (m, 3) int64
+    normals: np.ndarray  # (n, 3) float64
+    color: np.ndarray  # (3,) float64
+    opacity: float
+
+    @classmethod
+    def of(cls, geom: dict[str, Any]) -> _Geometry:
+        return cls(
+            geom["vertices"],
+            np.ascontiguousarray(geom["faces"], dtype=np.int64),
+            np.ascontiguousarray(geom["normals"], dtype=np.float64),
+            np.ascontiguousarray(geom["color"], dtype=np.float64),
+            float(geom["opacity"]),
+        )
+
+
 def _layer(
-    geom: dict[str, Any],
+    geom: _Geometry,
     cam: Camera,
     zbuf: np.ndarray,
     img: np.ndarray,
@@ -141,14 +161,13 @@ def _layer(
     reset here; the weights are read only where ``fid`` was written.
     """
     h, w = zbuf.shape
-    p = cam.project(geom["vertices"])
+    p = cam.project(geom.vertices)
     fid.fill(-1)
-    faces = geom["faces_i8"]
     _raster(
         np.ascontiguousarray(p[:, 0]),
         np.ascontiguousarray(p[:, 1]),
         np.ascontiguousarray(p[:, 2]),
-        faces,
+        geom.faces,
         w,
         h,
         zbuf,
@@ -163,15 +182,15 @@ def _layer(
         fid,
         b1,
         b2,
-        faces,
-        geom["normals_f8"],
-        geom["color_f8"],
+        geom.faces,
+        geom.normals,
+        geom.color,
         np.ascontiguousarray(-cam.forward, dtype=np.float64),
         k_a,
         k_d,
         k_s,
         s,
-        float(geom["opacity"]),
+        geom.opacity,
     )
 
 
@@ -184,15 +203,7 @@ def _render_numpy(scene: dict[str, Any], lighting: np.ndarray) -> np.ndarray:
     allocated once for all views.
     """
     w, h = scene["size"]
-    geoms = [
-        dict(
-            g,
-            faces_i8=np.ascontiguousarray(g["faces"], dtype=np.int64),
-            normals_f8=np.ascontiguousarray(g["normals"], dtype=np.float64),
-            color_f8=np.ascontiguousarray(g["color"], dtype=np.float64),
-        )
-        for g in scene["geoms"]
-    ]
+    geoms = [_Geometry.of(g) for g in scene["geoms"]]
     background = np.ascontiguousarray(scene["background"], dtype=np.float64)
     out = np.empty((len(scene["cameras"]), h, w, 3), dtype=np.uint8)
     img = np.empty((h, w, 3))
@@ -203,9 +214,9 @@ def _render_numpy(scene: dict[str, Any], lighting: np.ndarray) -> np.ndarray:
     b2 = np.empty((h, w))
     for k, (cam, vis) in enumerate(zip(scene["cameras"], scene["visible"], strict=True)):
         _clear(img, background, zbuf)
-        for g in (geoms[i] for i in vis if geoms[i]["opacity"] >= 1.0):
+        for g in (geoms[i] for i in vis if geoms[i].opacity >= 1.0):
             _layer(g, cam, zbuf, img, lighting, fid, b1, b2)
-        for g in (geoms[i] for i in vis if geoms[i]["opacity"] < 1.0):
+        for g in (geoms[i] for i in vis if geoms[i].opacity < 1.0):
             np.copyto(zlayer, zbuf)
             _layer(g, cam, zlayer, img, lighting, fid, b1, b2)
         _to_uint8(img, out[k])
