@@ -262,8 +262,8 @@ class _SourceFacts:
 
     ``found`` / ``found_lazy``: the modules its import statements name (the
     latter inside a module-level ``__getattr__``); ``from_names``: ``(base,
-    name, lazy)`` for every ``from base import name`` (a submodule or a name,
-    told apart under a root); ``attributes``: ``(module, name)`` for every
+    name, lazy)`` for every ``from base import name`` of a project package (a
+    submodule or a name, told apart under a root); ``attributes``: ``(module, name)`` for every
     ``m.name`` after ``import m`` of a project module.
     """
 
@@ -313,7 +313,8 @@ def _source_facts(name: str, is_package: bool, source: bytes) -> _SourceFacts:
             else:
                 base = node.module or ""
             into.add(base)
-            from_names.extend((base, alias.name, lazy) for alias in node.names)
+            if base.split(".")[0] in PROJECT_PACKAGES:  # a submodule or a name: per root
+                from_names.extend((base, alias.name, lazy) for alias in node.names)
         elif isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
             attributes.append(node)
     bound_attributes = {
@@ -354,7 +355,7 @@ def _parse_module(name: str, path_str: str, root_str: str, source: bytes) -> _Mo
             (found_lazy if lazy else found).add(f"{base}.{alias}")
         else:
             requests.add((base, alias))
-    for module, attr in sorted(facts.attributes):  # ``m.name`` after ``import m``
+    for module, attr in facts.attributes:  # ``m.name`` after ``import m``
         if (module, attr) not in requests and _module_file(f"{module}.{attr}", root) is None:
             requests.add((module, attr))
     out = _project_modules(found, root)
