@@ -58,6 +58,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 GROUP_CODE = {"lgg": 0, "brats_flair": 1}
+#: Fold k's net starts from seed ``k + FOLD_SEED_STEP * --seed`` (``--seed 0``: seed k).
+FOLD_SEED_STEP = 1000
 
 
 # ---------------------------------------------------------------- preparation (project venv)
@@ -160,8 +162,8 @@ def worker(args) -> int:
         tr = np.flatnonzero(d["fold"] != k)
         held = np.flatnonzero((d["fold"] == k) & ~d["train_only"])
         fit = fit_unet(
-            x_all, y_all, settings, seed=k, rows=tr, threads=args.threads,
-            log=lambda line, k=k: print(f"fold {k} {line}", flush=True),
+            x_all, y_all, settings, seed=k + FOLD_SEED_STEP * args.seed, rows=tr,
+            threads=args.threads, log=lambda line, k=k: print(f"fold {k} {line}", flush=True),
         )  # fmt: skip
         t1 = time.perf_counter()
         probs = torch_probability(fit.model, x_all[held]).astype(np.float16)
@@ -280,6 +282,11 @@ def score_folds(preps, folds, run_folds, case_of, train_only, args, cfg):
         if x_all is not None:
             net = unet_from_bytes((work / f"unet_fold{k}.npz").read_bytes())
             prob = unet_probability(net, x_all[index], mirror=True)
+            if args.ensemble_work:  # an ensemble of two trainings: the mean of the two nets
+                other = unet_from_bytes(
+                    (Path(args.ensemble_work) / f"unet_fold{k}.npz").read_bytes()
+                )
+                prob = 0.5 * (prob + unet_probability(other, x_all[index], mirror=True))
         for ci, p in enumerate(preps):
             if folds[p.spec.patient] != k:
                 continue
@@ -441,7 +448,18 @@ def main(argv=None) -> int:
         metavar="OUT.npz",
         help="train ONE net on every case of every fold (the shipped weights) and write it here",
     )
-    ap.add_argument("--seed", type=int, default=0, help="--final's seed (torch and numpy)")
+    ap.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="--final's seed (torch and numpy); fold k's net: k + 1000 x this",
+    )
+    ap.add_argument(
+        "--ensemble-work",
+        default=None,
+        help="with --mirror: the U-Net's probability is the mean of this run's fold net and "
+        "the fold net of another run's --work (same folds and settings; another --seed)",
+    )
     ap.add_argument("--threshold", type=float, default=0.5)
     ap.add_argument("--keep-fraction", type=float, default=1.0)
     ap.add_argument(
@@ -473,6 +491,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.worker:
         return worker(args)
+    if args.ensemble_work and not args.mirror:
+        ap.error("--ensemble-work needs --mirror (the fold nets run as the pipeline runs them)")
 
     sys.path.insert(0, str(ROOT))
     sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -518,6 +538,8 @@ def main(argv=None) -> int:
                 *map(str, run_folds[w::n_proc]),
                 "--threads",
                 str(threads),
+                "--seed",
+                str(args.seed),
             ]
             for opt in (
                 "size",
