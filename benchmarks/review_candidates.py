@@ -41,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from learned_cv import _family, _min_voxels, cached_prepare, case_specs, phantom_specs  # noqa: E402
+from learned_cv import _final_mask, cached_prepare, case_specs, phantom_specs  # noqa: E402
 
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.learned.features import (  # noqa: E402
@@ -50,7 +50,6 @@ from tumor3d.learned.features import (  # noqa: E402
     normalise_intensity,
     tissue_foreground,
 )
-from tumor3d.learned.segment import keep_main_lesion  # noqa: E402
 from tumor3d.storage.manifest import data_dir  # noqa: E402
 
 CANDIDATES = (
@@ -109,6 +108,7 @@ def main(argv=None) -> int:
     ap.add_argument("--prob", required=True, help="the run's --save-prob folder")
     ap.add_argument("--cache", required=True, help="learned_cv.py's prepared-case cache")
     ap.add_argument("--config", default=str(ROOT / "configs" / "default.yaml"))
+    ap.add_argument("--threshold", type=float, default=0.5)
     ap.add_argument("--keep-fraction", type=float, default=1.0)
     ap.add_argument("--t1c-threshold", type=float, default=0.65)
     args = ap.parse_args(argv)
@@ -119,11 +119,7 @@ def main(argv=None) -> int:
         p = cached_prepare(specs[r["case"]], cfg, True, args.cache)
         with np.load(Path(args.prob) / (r["case"].replace("/", "__") + ".npz")) as z:
             prob = z["prob"].astype(np.float32)
-        t = args.t1c_threshold if _family(p) == "t1c" else 0.5
-        lesion = keep_main_lesion(
-            prob, t, keep_fraction=args.keep_fraction, min_voxels=_min_voxels(p)
-        )
-        lesion[lesion.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
+        lesion = _final_mask(p, prob, args, cfg)  # cut as the run cut it
         r.update(candidate_figures(p.image.astype(np.float32), lesion, p.pixel_mm))
     err = np.abs([r["vol_err"] for r in rows])
     bad, good = err > 25, err <= 10
