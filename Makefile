@@ -24,12 +24,11 @@ demo: setup
 # and start a two-test file of three minutes last), a worker's next file when one test
 # of its current file is left (tests/conftest.py's scheduler). TEST_WORKERS=0 runs
 # everything in this process. The test Prefect servers and flow runs are set up to idle
-# and burn little (tests/conftest.py). Measured (issue 31 item 7; this shared machine's
-# speed moved by ~12 % within a day, so compare runs made back to back): c7b64e4's tests
-# 315-317 s against 328-342 s for 7e83123 in alternating runs (-5.5 %; ~590 against ~625
-# CPU-s of the 2 cores); .ci/run on clean clones of this session's commits 297-333 s of
-# pytest (7-8 min in all) by the hour; 7e83123 gave 320 s the day before
-# (TEST_WORKERS=3: 322 s). The 5 min target is met only when the machine is fast.
+# and burn little (tests/conftest.py). Measured (issue 31 item 7): .ci/run on clean clones
+# on 2 quiet cores (load ~1, 2026-12-05) 284-302 s of pytest, 6.6-7.0 min in all; with
+# other jobs on the cores (load 2 or more) 297-333 s. This shared machine's speed moves
+# by ~12 % within a day: compare runs made back to back (-5.5 % for c7b64e4 against
+# 7e83123 in alternating runs). TEST_WORKERS=3 was no faster (322 s against 320 s).
 TEST_WORKERS ?= 2
 test: setup
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder \
