@@ -295,7 +295,7 @@ def score_folds(preps, folds, run_folds, case_of, train_only, args, cfg):
             pr = upsample(prob[np.searchsorted(index, sel)], p.image.shape)
             scored(p, pr, k, rows, "U-Net")
             if args.forest_prob:
-                f = Path(args.forest_prob) / (p.spec.name.replace("/", "__") + ".npz")
+                f = L.case_file(args.forest_prob, p.spec.name)
                 with np.load(f, allow_pickle=False) as z:
                     pf = z[args.forest_key].astype(np.float32)
                 scored(p, pf, k, forest_rows, "forest")

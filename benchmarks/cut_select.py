@@ -114,7 +114,7 @@ def score_settings(rows_in: list[dict], prob_dir: Path, cache: str, cfg) -> dict
     for r in rows_in:
         if r["group"] not in REPORTED:
             continue
-        path = prob_dir / (r["case"].replace("/", "__") + ".npz")
+        path = L.case_file(prob_dir, r["case"])
         with np.load(path) as z:
             if "cnn" not in z.files:
                 continue  # the forest alone (T2 phantoms)

@@ -674,7 +674,7 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
                 d = Path(args.save_prob)
                 d.mkdir(parents=True, exist_ok=True)
                 np.savez_compressed(
-                    d / (p.spec.name.replace("/", "__") + ".npz"),
+                    case_file(d, p.spec.name),
                     prob=prob.astype(np.float16),
                     **{k: v.astype(np.float16) for k, v in parts.items()},
                 )
@@ -711,6 +711,12 @@ def _fold_cnn(folder: str, k: int):
 
 def _family(p: Prepared) -> str:
     return "t1c" if p.spec.modality == "t1c" else "hyper"
+
+
+def case_file(folder: str | Path, case: str) -> Path:
+    """A case's ``.npz`` in ``folder`` (``--save-prob`` maps, feature scratch): the case name
+    (``patient/sequence``) with ``/`` as ``__``."""
+    return Path(folder) / (case.replace("/", "__") + ".npz")
 
 
 def _min_voxels(p: Prepared) -> int:
@@ -761,7 +767,7 @@ def run_auto_context_cv(preps: list[Prepared], folds: dict[str, int], args, cfg)
     fdir = Path(scratch.name)
 
     def fpath(p: Prepared) -> Path:
-        return fdir / (p.spec.name.replace("/", "__") + ".npz")
+        return case_file(fdir, p.spec.name)
 
     def load(p: Prepared):
         from tumor3d.learned.features import PatientFeatures
@@ -865,7 +871,7 @@ def run_auto_context_cv(preps: list[Prepared], folds: dict[str, int], args, cfg)
                 d = Path(args.save_prob)
                 d.mkdir(parents=True, exist_ok=True)
                 np.savez_compressed(
-                    d / (p.spec.name.replace("/", "__") + ".npz"),
+                    case_file(d, p.spec.name),
                     prob=prob.astype(np.float16),
                     prob1=prob1.astype(np.float16),
                 )

@@ -41,7 +41,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from learned_cv import _final_mask, cached_prepare, case_specs, phantom_specs  # noqa: E402
+from learned_cv import (  # noqa: E402
+    _final_mask,
+    cached_prepare,
+    case_file,
+    case_specs,
+    phantom_specs,
+)
 
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.learned.features import (  # noqa: E402
@@ -117,7 +123,7 @@ def main(argv=None) -> int:
     specs = {s.name: s for s in case_specs(data_dir()) + phantom_specs(0)}
     for r in rows:
         p = cached_prepare(specs[r["case"]], cfg, True, args.cache)
-        with np.load(Path(args.prob) / (r["case"].replace("/", "__") + ".npz")) as z:
+        with np.load(case_file(args.prob, r["case"])) as z:
             prob = z["prob"].astype(np.float32)
         lesion = _final_mask(p, prob, args, cfg)  # cut as the run cut it
         r.update(candidate_figures(p.image.astype(np.float32), lesion, p.pixel_mm))

@@ -31,16 +31,15 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from learned_cv import (  # noqa: E402
-    _family,
-    _min_voxels,
+    _final_mask,
     cached_prepare,
+    case_file,
     case_specs,
     phantom_specs,
 )
 
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.learned.review import review_features  # noqa: E402
-from tumor3d.learned.segment import keep_main_lesion  # noqa: E402
 from tumor3d.storage.manifest import data_dir  # noqa: E402
 
 
@@ -68,13 +67,9 @@ def main(argv=None) -> int:
     worst = 0.0
     for r in rows:
         p = cached_prepare(specs[r["case"]], cfg, True, args.cache)
-        with np.load(Path(args.prob) / (r["case"].replace("/", "__") + ".npz")) as z:
+        with np.load(case_file(args.prob, r["case"])) as z:
             maps = {k: z[k].astype(np.float32) for k in z.files}
-        t = args.t1c_threshold if _family(p) == "t1c" and args.t1c_threshold else args.threshold
-        mask = keep_main_lesion(
-            maps["prob"], t, keep_fraction=args.keep_fraction, min_voxels=_min_voxels(p)
-        )
-        mask[mask.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
+        mask = _final_mask(p, maps["prob"], args, cfg)  # cut as the run cut it
         est_ml = float(mask.sum()) * float(np.prod(p.spacing_mm)) / 1000.0  # Eq. 7, as the row
         diff = abs(est_ml - r["est_ml"]) / max(r["est_ml"], 1e-9) if r["est_ml"] else est_ml
         worst = max(worst, diff)
