@@ -181,10 +181,27 @@ def test_the_flow_run_is_tagged_and_its_stage_task_runs_are_not(first):
 
 
 def test_rerun_is_all_cache_hits_and_a_new_patient_computes_alone(first, inputs):
+    """...and the re-run sweeps the temporary object file of a writer killed before it."""
+    import os
+    import subprocess
+    import sys
+
+    from tumor3d.storage.store import HOST_TAG
+
     out, result = first
     folder, rows, _ = inputs
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    objects = out / ".tumor3d-store" / "objects"
+    some = next(p for p in objects.glob("*/*") if not p.name.startswith("."))
+    killed = some.with_name(f".{some.name}.tmp-{HOST_TAG}-{gone.pid}-0123abcd")
+    live = some.with_name(f".{some.name}.tmp-{HOST_TAG}-{os.getpid()}-0123abcd")
+    killed.write_bytes(b"half")
+    live.write_bytes(b"being written")
     again = run_cohort(rows, out, workers=2)
     assert again.exit_code == 0
+    assert not killed.exists() and live.exists()
+    live.unlink()
     for p in again.patients:
         missed = [(s.stage, s.repaired) for s in p.stages if not s.cached]
         assert not missed, (p.patient_id, missed)

@@ -487,3 +487,16 @@ def test_a_fully_cached_cohort_rerun_to_s3_uploads_no_patient_object(s3_endpoint
     assert after == before  # no object of a patient's folder rewritten
     for p in again.patients:
         assert verify_folder(RemoteFolder(url), p.patient_id) == []
+
+
+def test_temporary_keys_of_killed_writers_are_removed_by_age(s3_endpoint, monkeypatch):
+    """A writer killed between its temporary PUT and the copy leaves ``tmp/``: swept by age."""
+    store = ObjectStore(f"s3://{BUCKET}/sweep")
+    ref = store.put_json({"kept": True})
+    s3_endpoint.put_object(Bucket=BUCKET, Key="sweep/tmp/x.json.4242-abcdef01", Body=b"half")
+    assert store.clean_stale_tmp() == []  # written just now: perhaps a live writer's
+    assert "sweep/tmp/x.json.4242-abcdef01" in _keys(s3_endpoint, "sweep/")
+    removed = store.clean_stale_tmp(max_age_s=-1.0)  # as if an hour had passed
+    assert removed == [f"s3://{BUCKET}/sweep/tmp/x.json.4242-abcdef01"]
+    assert _keys(s3_endpoint, "sweep/") == [f"sweep/{ref.relpath}"]
+    assert store.get_json(ref) == {"kept": True}

@@ -97,3 +97,73 @@ def test_repairs_are_readable_by_another_store_instance(store):
     assert log[0].relpath == ref.relpath and log[0].quarantined_to.startswith("quarantine/")
     (store.root / "repairs.jsonl").open("a").write("{torn\n")
     assert len(store.read_repairs()) == 1
+
+
+def _dead_pid() -> int:
+    """The pid of a child process that has exited (reaped, so it no longer exists)."""
+    import subprocess
+    import sys
+
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    return child.pid
+
+
+def test_temporary_files_of_killed_writers_are_removed_and_live_ones_kept(store):
+    """A SIGKILLed writer cannot remove its temporary file: the store sweeps it.
+
+    Only temporary files whose writer is gone: a dead pid on this machine, or
+    an hour untouched when written on another machine. A live writer's file,
+    a final object and a file of another naming are left alone.
+    """
+    import os
+    import time
+
+    from tumor3d.storage.store import HOST_TAG, STALE_TMP_S
+
+    ref = store.put_json({"kept": True})
+    folder = store.path(ref).parent
+    name = store.path(ref).name
+    other = "0" * 8 if HOST_TAG != "0" * 8 else "1" * 8
+
+    def tmp(host: str, pid: int) -> os.PathLike:
+        path = folder / f".{name}.tmp-{host}-{pid}-abcdef01"
+        path.write_bytes(b"half")
+        return path
+
+    killed = tmp(HOST_TAG, _dead_pid())
+    live = tmp(HOST_TAG, os.getpid())
+    parent = tmp(HOST_TAG, os.getppid())
+    remote_recent = tmp(other, _dead_pid())
+    remote_old = tmp(other, 12345)
+    old = time.time() - STALE_TMP_S - 60
+    os.utime(remote_old, (old, old))
+    unrelated = folder / ".notes.txt"
+    unrelated.write_text("not ours")
+
+    removed = store.clean_stale_tmp()
+    assert sorted(removed) == sorted([str(killed), str(remote_old)])
+    for kept in (live, parent, remote_recent, unrelated, store.path(ref)):
+        assert kept.exists(), kept
+    assert store.get_json(ref) == {"kept": True}
+    assert store.clean_stale_tmp() == []  # nothing left to remove
+
+
+def test_atomic_writes_name_their_temporary_file_by_host_and_process(store, monkeypatch):
+    """The name the sweep reads is the one the writer gives (a crash mid-write kept it)."""
+    import os
+
+    from tumor3d.storage import store as store_module
+
+    seen: list[str] = []
+
+    def crash(src, dst):
+        seen.append(os.path.basename(src))
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(store_module.os, "replace", crash)
+    with pytest.raises(StoreError):
+        store.put_json({"x": 1})
+    m = store_module._TMP_NAME.match(seen[0])
+    assert m is not None and m["host"] == store_module.HOST_TAG
+    assert int(m["pid"]) == os.getpid()

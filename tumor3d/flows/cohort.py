@@ -316,6 +316,9 @@ def cohort_flow(
         )
         futures = [pool.submit(contextvars.copy_context().run, lane, row) for row in rows]
         outcomes = [f.result() for f in futures]
+    swept = store.clean_stale_tmp()  # temporary files of writers killed mid-stage
+    if swept:
+        logger.info("removed %d temporary object file(s) of killed writers", len(swept))
     wall = time.perf_counter() - t0
     table = cohort_table([o.model_dump() for o in outcomes])
     markdown = cohort_markdown(

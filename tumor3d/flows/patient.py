@@ -360,6 +360,9 @@ def patient_flow(
     )
     publish_patient_artifacts(result.report)
     logger.info("patient %s: published %s", source.patient_id, result.output_dir)
+    swept = store.clean_stale_tmp()  # temporary files of an earlier run killed mid-write
+    if swept:
+        logger.info("removed %d temporary object file(s) of killed writers", len(swept))
     return result
 
 

@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from tumor3d.storage.store import (
+    STALE_TMP_S,
     ArtifactRef,
     ArtifactStore,
     CorruptArtifactError,
@@ -290,6 +291,37 @@ class ObjectStore(ArtifactStore):
                 self.fs.rm_file(tmp)
             except (OSError, FileNotFoundError):
                 pass
+
+    def clean_stale_tmp(self, *, max_age_s: float = STALE_TMP_S) -> list[str]:
+        """Remove temporary keys (``tmp/``) untouched for ``max_age_s``: killed writers'.
+
+        A remote writer's process cannot be asked whether it is alive, so a
+        temporary key is removed by age only (a write takes seconds).
+
+        Returns
+        -------
+        list of str
+            The URLs removed.
+        """
+        try:
+            entries = self.fs.find(self._key("tmp"), detail=True)
+        except (OSError, FileNotFoundError):
+            return []
+        removed: list[str] = []
+        now = time.time()
+        for key, entry in entries.items():
+            modified = entry.get("LastModified") or entry.get("mtime")
+            if modified is None:  # no age to judge by: kept
+                continue
+            stamp = modified.timestamp() if hasattr(modified, "timestamp") else float(modified)
+            if now - stamp <= max_age_s:
+                continue
+            try:
+                self.fs.rm_file(key)
+            except (OSError, FileNotFoundError):
+                continue
+            removed.append(f"{self.url}/{key[len(self._base) + 1 :]}")
+        return removed
 
     def put_bytes(
         self, data: bytes, *, kind: str, suffix: str, metadata: dict[str, Any] | None = None

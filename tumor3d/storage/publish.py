@@ -50,6 +50,7 @@ from pathlib import Path
 
 from tumor3d.errors import InputError
 from tumor3d.storage.inputs import input_files
+from tumor3d.storage.store import process_alive
 
 __all__ = [
     "PUBLISH_MANIFEST",
@@ -264,18 +265,6 @@ def check_destination(
         check_same_input(final, derived_from, location=location, suggestion=suggestion)
 
 
-def _pid_alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # someone else's live process
-        return True
-    return True
-
-
 def clean_stale_staging(out_dir: str | Path, name: str) -> list[Path]:
     """Remove ``.<name>.partial-*`` / ``.<name>.old-*`` folders whose process is gone.
 
@@ -292,7 +281,7 @@ def clean_stale_staging(out_dir: str | Path, name: str) -> list[Path]:
         m = _LEFTOVER.match(entry.name)
         if m is None or m["name"] != name or not entry.is_dir():
             continue
-        if _pid_alive(int(m["pid"])):
+        if process_alive(int(m["pid"])):
             continue
         shutil.rmtree(entry, ignore_errors=True)
         removed.append(entry)

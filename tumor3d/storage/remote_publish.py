@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Any
 
 from tumor3d.storage.objectstore import check_reachable, first_line, open_fs
-from tumor3d.storage.store import StoreError
+from tumor3d.storage.store import STALE_TMP_S, StoreError
 
 __all__ = [
     "MARKER",
@@ -63,8 +63,6 @@ MARKER = ".tumor3d-published.json"
 MARKER_FORMAT = "tumor3d-published/1"
 #: Temporary uploads live under this prefix of the output URL.
 TMP_PREFIX = ".tumor3d-tmp"
-#: A temporary upload untouched for this long belongs to a killed run (seconds).
-STALE_TMP_S = 3600.0
 
 
 def _sha256(data: bytes) -> str:

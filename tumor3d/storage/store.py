@@ -22,6 +22,11 @@ differ from the new ones (same size or not). Every repair is a
 JSON line to ``<root>/repairs.jsonl``, so the task layer can say what was
 repaired.
 
+A writer killed mid-write (``kill -9``, a lost Dask worker) leaves its
+temporary file, never a final object; :meth:`ArtifactStore.clean_stale_tmp`
+(run at the end of every patient and cohort flow) removes those whose
+process is gone.
+
 Tasks pass :class:`ArtifactRef` values around (a few hundred bytes), never
 arrays.
 """
@@ -31,6 +36,8 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
+import socket
 import time
 import uuid
 from dataclasses import asdict, dataclass
@@ -55,6 +62,7 @@ __all__ = [
     "StoreError",
     "atomic_write_bytes",
     "canonical_dumps",
+    "process_alive",
 ]
 
 _DIGEST_PREFIX = b"tumor3d-artifact-v1\0"
@@ -132,15 +140,44 @@ def canonical_dumps(obj: Any) -> str:
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False)
 
 
+#: This machine, in temporary file names: 8 hex digits of its host name's SHA-256.
+HOST_TAG = hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
+
+#: A temporary file or upload whose writer cannot be asked (another machine's, an
+#: object store's) untouched for this long is a killed writer's (seconds; a write
+#: takes seconds).
+STALE_TMP_S = 3600.0
+
+#: ``.<name>.tmp-<host tag>-<pid>-<random>``, the temporary name of
+#: :func:`atomic_write_bytes` (``.<name>.tmp-<pid>-<random>`` before the host tag).
+_TMP_NAME = re.compile(r"^\.(?P<name>.+)\.tmp-(?:(?P<host>[0-9a-f]{8})-)?(?P<pid>\d+)-[0-9a-f]{8}$")
+
+
+def process_alive(pid: int) -> bool:
+    """True if process ``pid`` of this machine exists (ours, or another user's)."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's live process
+        return True
+    return True
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` through a temporary file and a rename.
 
     The temporary file lives in the destination folder (same file system),
-    is fsynced, then atomically renamed over ``path``.
+    is fsynced, then atomically renamed over ``path``. Its name,
+    ``.<name>.tmp-<host tag>-<pid>-<random>``, says which process wrote it,
+    so that one left by a killed process can be told from one being written
+    (:meth:`ArtifactStore.clean_stale_tmp`).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+    tmp = path.with_name(f".{path.name}.tmp-{HOST_TAG}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
     try:
         with open(tmp, "wb") as fh:
             fh.write(data)
@@ -231,6 +268,42 @@ class ArtifactStore:
                 time_utc=_utc_now(),
             )
         )
+
+    def clean_stale_tmp(self, *, max_age_s: float = STALE_TMP_S) -> list[str]:
+        """Remove temporary object files left by writers that were killed.
+
+        A process killed while writing an object (``kill -9``, a Dask worker
+        lost mid-stage) cannot remove its temporary file. One is removed here
+        when it was written on this machine by a process that no longer
+        exists, or, when written elsewhere (a store shared over a network file
+        system), when untouched for ``max_age_s``. A live writer's file is
+        never touched; an object under its final name never is.
+
+        Returns
+        -------
+        list of str
+            The files removed.
+        """
+        removed: list[str] = []
+        now = time.time()
+        for tmp in (self.root / "objects").glob("*/.*.tmp-*"):
+            m = _TMP_NAME.match(tmp.name)
+            if m is None:
+                continue
+            if m["host"] == HOST_TAG:
+                stale = not process_alive(int(m["pid"]))
+            else:
+                try:
+                    stale = now - tmp.stat().st_mtime > max_age_s
+                except FileNotFoundError:  # renamed into place meanwhile
+                    continue
+            if stale:
+                try:
+                    tmp.unlink()
+                except FileNotFoundError:
+                    continue
+                removed.append(str(tmp))
+        return removed
 
     def read_repairs(self) -> list[Repair]:
         """Every repair recorded in ``<root>/repairs.jsonl``, oldest first.
