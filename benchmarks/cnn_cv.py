@@ -271,8 +271,8 @@ def score_folds(preps, folds, run_folds, case_of, train_only, args, cfg):
         )
 
     x_all = None
-    if args.mirror:  # the pipeline's inference: numpy, with the mirrored pass
-        from tumor3d.learned.cnn import unet_from_bytes, unet_probability
+    if args.mirror or args.ensemble_work:  # the pipeline's inference: numpy (mirrored pass
+        from tumor3d.learned.cnn import unet_from_bytes, unet_probability  # with --mirror)
 
         with np.load(work / "data.npz", allow_pickle=False) as z:
             x_all = z["x"]
@@ -281,12 +281,12 @@ def score_folds(preps, folds, run_folds, case_of, train_only, args, cfg):
             index, prob = z["index"], z["prob"]
         if x_all is not None:
             net = unet_from_bytes((work / f"unet_fold{k}.npz").read_bytes())
-            prob = unet_probability(net, x_all[index], mirror=True)
+            prob = unet_probability(net, x_all[index], mirror=args.mirror)
             if args.ensemble_work:  # an ensemble of two trainings: the mean of the two nets
                 other = unet_from_bytes(
                     (Path(args.ensemble_work) / f"unet_fold{k}.npz").read_bytes()
                 )
-                prob = 0.5 * (prob + unet_probability(other, x_all[index], mirror=True))
+                prob = 0.5 * (prob + unet_probability(other, x_all[index], mirror=args.mirror))
         for ci, p in enumerate(preps):
             if folds[p.spec.patient] != k:
                 continue
@@ -457,8 +457,9 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--ensemble-work",
         default=None,
-        help="with --mirror: the U-Net's probability is the mean of this run's fold net and "
-        "the fold net of another run's --work (same folds and settings; another --seed)",
+        help="the U-Net's probability is the mean of this run's fold net and the fold net of "
+        "another run's --work (same folds and settings; another --seed), both run by the "
+        "pipeline's numpy pass (with --mirror: each with its mirrored pass)",
     )
     ap.add_argument("--threshold", type=float, default=0.5)
     ap.add_argument("--keep-fraction", type=float, default=1.0)
@@ -491,8 +492,6 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.worker:
         return worker(args)
-    if args.ensemble_work and not args.mirror:
-        ap.error("--ensemble-work needs --mirror (the fold nets run as the pipeline runs them)")
 
     sys.path.insert(0, str(ROOT))
     sys.path.insert(0, str(ROOT / "benchmarks"))

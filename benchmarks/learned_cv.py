@@ -531,11 +531,13 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--cnn-folds",
         default=None,
+        nargs="+",
         metavar="DIR",
         help="learned: score fold k through the pipeline's segment_learned with the U-Net "
         "DIR/unet_fold{k}.npz (benchmarks/cnn_cv.py, same folds; trained without fold k) "
         "on the sequences that ship one (tumor3d.learned.shipped.CNN_MODELS: FLAIR), "
-        "its probability averaged with the forest's; the other sequences: the forest alone",
+        "its probability averaged with the forest's; the other sequences: the forest alone. "
+        "Several DIRs (fold nets of other seeds): fold k's ensemble of their nets, as shipped",
     )
     ap.add_argument(
         "--cnn-sequences",
@@ -701,12 +703,15 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
 FAMILIES = (("hyper", ("flair", "t2")), ("t1c", ("t1c",)))
 
 
-def _fold_cnn(folder: str, k: int):
-    """The U-Net of fold ``k`` (``folder/unet_fold{k}.npz``), read as the pipeline reads its own."""
-    path = Path(folder) / f"unet_fold{k}.npz"
-    cnn = unet_from_bytes(path.read_bytes(), source=str(path))
-    print(f"fold {k}: U-Net {path} (SHA-256 {cnn.sha256[:12]}...)", flush=True)
-    return cnn
+def _fold_cnn(folders: list[str], k: int):
+    """Fold ``k``'s U-Net ensemble (``unet_fold{k}.npz`` of each folder), read as the
+    pipeline reads its own."""
+    nets = []
+    for folder in folders:
+        path = Path(folder) / f"unet_fold{k}.npz"
+        nets.append(unet_from_bytes(path.read_bytes(), source=str(path)))
+        print(f"fold {k}: U-Net {path} (SHA-256 {nets[-1].sha256[:12]}...)", flush=True)
+    return tuple(nets)
 
 
 def _family(p: Prepared) -> str:
