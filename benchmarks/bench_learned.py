@@ -7,10 +7,10 @@ timed with the detect stage's (the lesion model runs there) for
 ``method="robust"``, ``method="learned"`` with the forest alone
 (``learned_cnn="off"``: the features, the shipped forest and the
 post-processing on the robust prior) and with the mean of the forest's and
-the shipped U-Net's probability (``learned_cnn="auto"``, the U-Net with its
-mirrored pass in a thread beside the forest), and the learned method's parts
-alone: wall seconds and the process's CPU seconds, with the load average
-before and after.
+the shipped U-Net ensemble's probability (``learned_cnn="auto"``: the two nets,
+one pass each, in a thread beside the forest), and the learned
+method's parts alone (one net's, where the step is per net): wall seconds
+and the process's CPU seconds, with the load average before and after.
 
 Usage::
 
@@ -69,7 +69,8 @@ def main(argv=None) -> int:
     lr = left_right_axis(scan.affine)
     pre = preprocess_volume(scan.image, **cfg.preprocess.model_dump(), spacing_mm=sp)
     model = shipped_model("flair")
-    cnn = shipped_cnn("flair")
+    cnn = shipped_cnn("flair")  # the ensemble (tuple of nets)
+    net = cnn[0]  # one of them, for the per-net steps
     load_before = os.getloadavg()[0]
 
     def seg(method: str, learned_cnn: str = "off"):
@@ -101,11 +102,11 @@ def main(argv=None) -> int:
     t_robust, c_robust = best_of_cpu(lambda: seg("robust"), args.repeat)
     t_learned, c_learned = best_of_cpu(lambda: seg("learned", "off"), args.repeat)
     t_mean, c_mean = best_of_cpu(lambda: seg("learned", "auto"), args.repeat)
-    x = case_input(scan.image, cnn.size, cnn.context)
-    small = unet_probability(cnn, x)
-    t_in, c_in = best_of_cpu(lambda: case_input(scan.image, cnn.size, cnn.context), args.repeat)
-    t_net, c_net = best_of_cpu(lambda: unet_probability(cnn, x), args.repeat)
-    t_mir, c_mir = best_of_cpu(lambda: unet_probability(cnn, x, mirror=True), args.repeat)
+    x = case_input(scan.image, net.size, net.context)
+    small = unet_probability(net, x)
+    t_in, c_in = best_of_cpu(lambda: case_input(scan.image, net.size, net.context), args.repeat)
+    t_net, c_net = best_of_cpu(lambda: unet_probability(net, x), args.repeat)
+    t_mir, c_mir = best_of_cpu(lambda: unet_probability(net, x, mirror=True), args.repeat)
     t_up, c_up = best_of_cpu(lambda: upsample(small, scan.image.shape), args.repeat)
     t_cnn, c_cnn = best_of_cpu(lambda: unet_volume_probability(cnn, scan.image), args.repeat)
     t_feat = best_of(
@@ -133,9 +134,9 @@ def main(argv=None) -> int:
     print(
         f"31 x 240 x 240 FLAIR phantom, {os.cpu_count()} cores, load (1 min) "
         f"{load_before:.1f} before, {os.getloadavg()[0]:.1f} after; "
-        f"{feats.values.shape[0]} tissue pixels, {model.roots.size} trees; U-Net "
-        f"{cnn.size} x {cnn.size}, {cnn.levels} levels, {sum(a.size for a in cnn.arrays.values())} "
-        f"weights"
+        f"{feats.values.shape[0]} tissue pixels, {model.roots.size} trees; {len(cnn)} U-Nets "
+        f"{net.size} x {net.size}, {net.levels} levels, {sum(a.size for a in net.arrays.values())} "
+        f"weights each"
     )
     inf_forest, inf_mean = t_learned - t_robust, t_mean - t_robust
     cpu_forest, cpu_mean = c_learned - c_robust, c_mean - c_robust
@@ -163,14 +164,14 @@ def main(argv=None) -> int:
             f"{t_ctx / inf_forest:.2f} |"
         )
     print(
-        f"| U-Net alone, in the calling thread (input + network with the mirrored pass + "
-        f"upsample) | {t_cnn:.2f} | "
+        f"| U-Net ensemble alone, in the calling thread (input + {len(cnn)} networks, one pass "
+        f"each + upsample) | {t_cnn:.2f} | "
         f"{c_cnn:.2f} | {t_cnn / inf_forest:.2f} |"
     )
     for name, t, c in (
         ("U-Net input (case_input)", t_in, c_in),
-        ("U-Net network (numpy, one BLAS thread), one pass", t_net, c_net),
-        ("U-Net network with the mirrored pass (the pipeline's)", t_mir, c_mir),
+        ("U-Net network (numpy, one BLAS thread), one net, one pass", t_net, c_net),
+        ("U-Net network with its mirrored pass (not run by the pipeline), one net", t_mir, c_mir),
         ("U-Net upsample to 240 x 240", t_up, c_up),
     ):
         print(f"| {name} | {t:.2f} | {c:.2f} | {t / inf_forest:.2f} |")

@@ -244,19 +244,23 @@ def main(argv=None) -> int:
     text = f"""# Segmentation accuracy by cross-validation by patient
 
 Command (the figures below; with the prepared cases cached, the forest-alone
-`learned_cv.py --method learned` run took 18 min and the `--cnn-folds` one 28 min
-at load 3-5 on 2 shared cores; the fold U-Nets 4-8 min per fold, two at a time;
-2026-12-05):
+`learned_cv.py --method learned` run took 18 min and the `--cnn-folds` one
+(two nets per fold) 20 min at load 3-4 on 2 shared cores; the fold U-Nets 25 min
+a seed on 2 quiet cores at 20 epochs, 447-530 s per fold, two at a time; 2026-12-05):
 
 ```
 export TUMOR3D_DATA_DIR=../shared/data
-# the 5 fold U-Nets /tmp/cnn/unet_fold{{k}}.npz (FLAIR, the same folds; torch in a venv
-# of its own: the section "A small 2-D U-Net" below)
-nice -n 10 python benchmarks/cnn_cv.py --cache /tmp/cv-cache --work /tmp/cnn --json cnn.json
-# the shipped method: forest + U-Net mean on FLAIR, the forest alone on T2 and T1c
+# the 5 fold U-Nets of each seed, /tmp/cnn{{0,1}}/unet_fold{{k}}.npz (FLAIR, the same folds,
+# 20 epochs; torch in a venv of its own: the section "A small 2-D U-Net" below)
+for s in 0 1; do
+    nice -n 10 python benchmarks/cnn_cv.py --cache /tmp/cv-cache --work /tmp/cnn$s \\
+        --epochs 20 --seed $s --mirror --json cnn$s.json
+done
+# the shipped method: forest + the mean of the two U-Nets on FLAIR, the forest alone
+# on T2 and T1c
 python benchmarks/learned_cv.py --method learned --phantoms 10 --keep-fraction 1.0 \\
-    --t1c-threshold 0.65 --cache /tmp/cv-cache --cnn-folds /tmp/cnn --json learned.json \\
-    --save-prob prob
+    --t1c-threshold 0.65 --cache /tmp/cv-cache --cnn-folds /tmp/cnn0 /tmp/cnn1 \\
+    --json learned.json --save-prob prob
 # the forest alone (paired with it); --final writes the shipped forests tumor3d/learned/models
 python benchmarks/learned_cv.py --method learned --phantoms 10 --keep-fraction 1.0 \\
     --t1c-threshold 0.65 --cache /tmp/cv-cache --json forest.json --final tumor3d/learned/models
@@ -283,12 +287,14 @@ T1c are always in the same fold. The learned method's forests (one for FLAIR +
 T2, one for T1c) are trained on four folds and score the fifth. On FLAIR the
 method averages the forest's probability with a U-Net's before the cut
 (`segment.learned_cnn: auto`, the nested choice below: the mean in 5 of 5
-folds): fold k's FLAIR cases get the net `cnn_cv.py` trained on the other four
-folds' FLAIR patients (`--cnn-folds`), through the pipeline's own call
+folds); the U-Net is an ensemble of two trainings (seeds 0 and 1, 20 epochs:
+"A longer-trained U-Net" below), whose probabilities are averaged. Fold k's
+FLAIR cases get the two nets `cnn_cv.py` trained on the other four folds'
+FLAIR patients (`--cnn-folds`), through the pipeline's own call
 (`tumor3d.learned.segment.segment_learned(..., cnn=...)`, the weights read by
-`unet_from_bytes` as the shipped net is, the network's probability the mean of
-its pass and its mirrored pass: "Mirrored inference" below); T2 and T1c get
-the forest alone.
+`unet_from_bytes` as the shipped nets are, one pass each: the mirrored pass of
+"Mirrored inference" below adds nothing to the ensemble, "A longer-trained
+U-Net"); T2 and T1c get the forest alone.
 The forests' post-processing was chosen by nested cross-validation on the
 out-of-fold probabilities of a first run (threshold 0.35 / 0.5 / 0.65 x
 keep-fraction 0.1 / 0.3 / 1.0, chosen on four folds, scored on the fifth):

@@ -363,9 +363,9 @@ class SegmentConfig(_StageConfig):
     learned_cnn: Literal["auto", "off"] = Field(
         "auto",
         description="learned method: auto = the probability is the mean of the forest's and "
-        "the shipped 2-D U-Net's where one is shipped for the sequence (FLAIR; trained on "
-        "FLAIR only: T2 and T1c keep the forest alone), before the same cut and main region "
-        "(reports/learned_cv.md); off = the forest alone.",
+        "the shipped 2-D U-Net ensemble's (two seeds, averaged) where one is shipped for the "
+        "sequence (FLAIR; trained on FLAIR only: T2 and T1c keep the forest alone), before the "
+        "same cut and main region (reports/learned_cv.md); off = the forest alone.",
     )
 
     @field_validator("method")

@@ -206,14 +206,41 @@ def test_volume_probability_is_the_network_on_its_grid_back_on_the_native_one():
     want = upsample(small.astype(np.float32), vol.shape)
     assert got.shape == vol.shape and got.dtype == np.float32
     np.testing.assert_allclose(got, want, atol=1e-4)
-    # the pipeline's default: the mean with the mirrored pass, mirrored back, on the net's grid
+    np.testing.assert_array_equal(unet_volume_probability(net, vol), got)  # one pass: default
+    # mirror: the mean with the mirrored pass, mirrored back, on the net's grid
     small_m = np.stack(
         [1.0 / (1.0 + np.exp(-naive_unet(a, 2, xi[..., ::-1])))[..., ::-1] for xi in x]
     )
     want_m = upsample((0.5 * (small + small_m)).astype(np.float32), vol.shape)
-    np.testing.assert_allclose(unet_volume_probability(net, vol), want_m, atol=1e-4)
+    np.testing.assert_allclose(unet_volume_probability(net, vol, mirror=True), want_m, atol=1e-4)
     with pytest.raises(InputError, match="3-D"):
         unet_volume_probability(net, vol[0])
+
+
+def test_an_ensembles_volume_probability_is_the_mean_of_its_nets():
+    """Nets on one grid (averaged there) and on another (averaged after the upsampling):
+    the mean of each net's own volume probability, with the mirrored pass or without
+    (the pipeline's)."""
+    rng = np.random.default_rng(9)
+    vol = rng.normal(100.0, 20.0, (4, 30, 26)).astype(np.float32)
+    grids = ((12, 1), (12, 1), (16, 0))
+    nets = [
+        unet_from_bytes(
+            _npz_bytes(random_unet(rng, 2 * c + 1, 2, 2), {"settings": {"size": n, "context": c}})
+        )
+        for n, c in grids
+    ]
+    for mirror in (False, True):
+        singles = [unet_volume_probability(n, vol, mirror=mirror) for n in nets]
+        assert min(float(np.abs(singles[0] - p).max()) for p in singles[1:]) > 0.01  # unlike
+        got = unet_volume_probability(nets, vol, mirror=mirror)
+        assert got.shape == vol.shape and got.dtype == np.float32
+        np.testing.assert_allclose(got, np.mean(singles, axis=0), atol=1e-5)
+        np.testing.assert_array_equal(unet_volume_probability(nets[:1], vol, mirror=mirror),
+                                      singles[0])  # fmt: skip
+    for bad in ((), (nets[0], "net")):
+        with pytest.raises(InputError, match="non-empty sequence"):
+            unet_volume_probability(bad, vol)
 
 
 def test_mirrored_probability_is_mirror_equivariant_and_the_plain_one_is_not():

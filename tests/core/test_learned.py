@@ -445,17 +445,24 @@ def test_with_a_unet_the_probability_is_the_mean_of_the_forest_and_the_network(t
         both.probability, 0.5, keep_fraction=0.3, min_voxels=max(1, round(20.0 / voxel_mm3))
     )
     np.testing.assert_array_equal(both.mask, want)
-    with pytest.raises(InputError, match="UNetWeights"):
-        segment_learned(scan.image, model=tiny_model, cnn="net", **kw)
+    # an ensemble (the shipped pair of seeds): the mean of its nets' probabilities
+    other = unet_from_bytes(_tiny_unet_bytes(3))
+    pair = segment_learned(scan.image, model=tiny_model, cnn=(net, other), **kw)
+    p_pair = 0.5 * (p_net + unet_volume_probability(other, scan.image))
+    np.testing.assert_allclose(pair.cnn_probability, p_pair, atol=1e-6)
+    np.testing.assert_allclose(pair.probability, 0.5 * (alone.probability + p_pair), atol=1e-6)
+    for bad in ("net", (), (net, "net")):
+        with pytest.raises(InputError, match="UNetWeights"):
+            segment_learned(scan.image, model=tiny_model, cnn=bad, **kw)
 
 
-def _shipped_from(monkeypatch, tmp_path, data: bytes | None):
-    """shipped.py reading its models from ``tmp_path/models`` (``data``: unet_flair.npz)."""
+def _shipped_from(monkeypatch, tmp_path, files: dict[str, bytes]):
+    """shipped.py reading its models from ``tmp_path/models`` (``files``: name -> bytes)."""
     from tumor3d.learned import shipped
 
     (tmp_path / "models").mkdir()
-    if data is not None:
-        (tmp_path / "models" / "unet_flair.npz").write_bytes(data)
+    for name, data in files.items():
+        (tmp_path / "models" / name).write_bytes(data)
     monkeypatch.setattr(shipped.resources, "files", lambda package: tmp_path)
     shipped._load_cnn.cache_clear()
     return shipped
@@ -463,49 +470,61 @@ def _shipped_from(monkeypatch, tmp_path, data: bytes | None):
 
 @pytest.mark.parametrize("data", [None, b"not a zip", b"PK\x03\x04 truncated"])
 def test_a_missing_or_corrupt_unet_file_is_one_line_naming_it(monkeypatch, tmp_path, data):
-    shipped = _shipped_from(monkeypatch, tmp_path, data)
+    """The second net of the ensemble missing or corrupt: one line naming that file."""
+    files = {"unet_flair_seed0.npz": _tiny_unet_bytes()}
+    if data is not None:
+        files["unet_flair_seed1.npz"] = data
+    shipped = _shipped_from(monkeypatch, tmp_path, files)
     try:
         with pytest.raises(InputError) as err:
             shipped.shipped_cnn("flair")
         text = str(err.value.problem)
-        assert "\n" not in text and "tumor3d/learned/models/unet_flair.npz" in text
+        assert "\n" not in text and "tumor3d/learned/models/unet_flair_seed1.npz" in text
     finally:
         shipped._load_cnn.cache_clear()
 
 
-def test_the_unet_serves_flair_only_and_is_read_once(monkeypatch, tmp_path):
-    shipped = _shipped_from(monkeypatch, tmp_path, _tiny_unet_bytes())
+def test_the_unet_ensemble_serves_flair_only_and_is_read_once(monkeypatch, tmp_path):
+    files = {f"unet_flair_seed{s}.npz": _tiny_unet_bytes(s) for s in (0, 1)}
+    shipped = _shipped_from(monkeypatch, tmp_path, files)
     try:
-        net = shipped.shipped_cnn("FLAIR")
-        assert net is shipped.shipped_cnn("flair") and net.size == 32
+        nets = shipped.shipped_cnn("FLAIR")
+        assert len(nets) == 2 and nets[0].sha256 != nets[1].sha256
+        assert all(a is b for a, b in zip(nets, shipped.shipped_cnn("flair"), strict=True))
+        assert nets[0].size == 32
         assert shipped.shipped_cnn("t2") is None and shipped.shipped_cnn("t1c") is None
     finally:
         shipped._load_cnn.cache_clear()
 
 
-def test_the_shipped_unet_loads_and_its_bytes_move_the_segment_key(tmp_path):
-    """The U-Net file is data of tumor3d.learned.shipped: its bytes enter the segment
-    stage's code digest (``DATA_FILES``), so other weights recompute."""
+def test_the_shipped_unets_load_and_each_ones_bytes_move_the_segment_key(tmp_path):
+    """The U-Net files are data of tumor3d.learned.shipped: the bytes of each enter the
+    segment stage's code digest (``DATA_FILES``), so other weights recompute."""
     import hashlib
     import shutil
 
-    from tumor3d.learned.shipped import shipped_cnn
+    from tumor3d.learned.shipped import CNN_MODELS, shipped_cnn
     from tumor3d.tasks.caching import PROJECT_ROOT, code_digest, module_closure
 
-    net = shipped_cnn("flair")
-    shipped_file = PROJECT_ROOT / "tumor3d" / "learned" / "models" / "unet_flair.npz"
-    assert net.sha256 == hashlib.sha256(shipped_file.read_bytes()).hexdigest()
-    assert net.in_channels == 2 * net.context + 1 and net.size % 2 ** (net.levels - 1) == 0
+    nets = shipped_cnn("flair")
+    names = CNN_MODELS["flair"]
+    assert len(nets) == len(names) == 2
+    for net, name in zip(nets, names, strict=True):
+        shipped_file = PROJECT_ROOT / "tumor3d" / "learned" / "models" / f"{name}.npz"
+        assert net.sha256 == hashlib.sha256(shipped_file.read_bytes()).hexdigest()
+        assert net.in_channels == 2 * net.context + 1 and net.size % 2 ** (net.levels - 1) == 0
+    assert nets[0].sha256 != nets[1].sha256 and nets[0].meta["seed"] != nets[1].meta["seed"]
     shutil.copytree(
         PROJECT_ROOT / "tumor3d", tmp_path / "tumor3d", ignore=shutil.ignore_patterns("__pycache__")
     )
-    copy = tmp_path / "tumor3d" / "learned" / "models" / "unet_flair.npz"
     try:
-        before = code_digest(("tumor3d.tasks.segment",), str(tmp_path))
-        copy.write_bytes(copy.read_bytes() + b"\0")
-        code_digest.cache_clear()
-        after = code_digest(("tumor3d.tasks.segment",), str(tmp_path))
-        assert before != after
+        digests = [code_digest(("tumor3d.tasks.segment",), str(tmp_path))]
+        for name in names:
+            copy = tmp_path / "tumor3d" / "learned" / "models" / f"{name}.npz"
+            copy.write_bytes(copy.read_bytes() + b"\0")
+            code_digest.cache_clear()
+            digests.append(code_digest(("tumor3d.tasks.segment",), str(tmp_path)))
+        assert len(set(digests)) == 3
     finally:
         module_closure.cache_clear()
         code_digest.cache_clear()
@@ -514,15 +533,15 @@ def test_the_shipped_unet_loads_and_its_bytes_move_the_segment_key(tmp_path):
 def test_the_stage_writes_the_mean_on_flair_and_off_writes_the_forest_alone(monkeypatch, tmp_path):
     """The segment stage with a tiny random U-Net standing in for the shipped one: the
     probability it writes is the mean of the forest's (learned_cnn: off) and the
-    network's; the U-Net's SHA-256 and the words "forest + U-Net mean" go with it."""
+    network ensemble's; the nets' SHA-256s and the words "forest + U-Net mean" go with it."""
     from tumor3d.flows.patient import run_stages_direct
     from tumor3d.learned import shipped
     from tumor3d.learned.cnn import unet_from_bytes, unet_volume_probability
     from tumor3d.storage.phantom_io import write_phantom_patient
     from tumor3d.storage.store import ArtifactStore
 
-    net = unet_from_bytes(_tiny_unet_bytes(1))
-    monkeypatch.setattr(shipped, "shipped_cnn", lambda m: net if m.lower() == "flair" else None)
+    nets = (unet_from_bytes(_tiny_unet_bytes(1)), unet_from_bytes(_tiny_unet_bytes(4)))
+    monkeypatch.setattr(shipped, "shipped_cnn", lambda m: nets if m.lower() == "flair" else None)
     patient = make_phantom_patient(4, modality="flair", n_slices=10, matrix_size=(96, 96))
     image = write_phantom_patient(patient, tmp_path / "in").image
     written, values = {}, {}
@@ -535,15 +554,14 @@ def test_the_stage_writes_the_mean_on_flair_and_off_writes_the_forest_alone(monk
         values[mode] = out.values
         scan = ArtifactStore(store).get_scan(run.outputs["ingest-scan"].artifacts["scan"],
                                              patient_id="u")  # fmt: skip
-    p_net = unet_volume_probability(net, scan.image)
+    p_net = 0.5 * sum(unet_volume_probability(n, scan.image) for n in nets)
     np.testing.assert_allclose(written["auto"], 0.5 * (written["off"] + p_net), atol=1e-6)
     # the forest alone is 0 outside the head's tissue; the random network is not
     outside = written["off"] == 0
     assert outside.any() and float(np.abs(written["auto"] - written["off"])[outside].max()) > 0.01
     assert values["auto"]["segment_model"] == "forest + U-Net mean"
-    assert (
-        values["auto"]["cnn_sha256"] == net.sha256 and values["auto"]["cnn_model"] == "unet_flair"
-    )
+    assert values["auto"]["cnn_sha256"] == [n.sha256 for n in nets]
+    assert values["auto"]["cnn_model"] == "unet_flair_seed0 + unet_flair_seed1"
     assert values["off"]["segment_model"] == "forest" and "cnn_sha256" not in values["off"]
     assert values["auto"]["model_sha256"] == values["off"]["model_sha256"]
 

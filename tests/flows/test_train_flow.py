@@ -155,11 +155,12 @@ def test_cnn_slices_are_the_inference_grid_of_each_flair_patient(trained, monkey
     from tumor3d.learned.cnn_train import UNetSettings, unet_slices
 
     manifest, out, _ = trained
-    seen = {}
+    seen = {"seeds": []}
 
     def recorder(x, y, settings, **kw):
         seen.update(x=x, y=y, settings=settings, meta=kw["meta"])
-        return b"not a network", type("Fit", (), {"seconds": 0.0})()
+        seen["seeds"].append(kw["seed"])
+        return f"not a network {kw['seed']}".encode(), type("Fit", (), {"seconds": 0.0})()
 
     monkeypatch.setattr(train_mod, "require_torch", lambda: None)
     monkeypatch.setattr(train_mod, "train_unet", recorder)
@@ -168,6 +169,7 @@ def test_cnn_slices_are_the_inference_grid_of_each_flair_patient(trained, monkey
         num_rounds=ROUNDS, command="test", cnn=True, cnn_settings=UNET_TINY,
     )  # fmt: skip
     assert seen["settings"] == UNetSettings(**UNET_TINY)
+    assert seen["seeds"] == [0, 1]  # the shipped ensemble: one net per seed
     assert seen["meta"]["training_cases"] == ["tr11", "tr12", "tr13n"]
     xs, ys = [], []
     for seed, tumour in ((11, True), (12, True), (13, False)):
@@ -179,9 +181,11 @@ def test_cnn_slices_are_the_inference_grid_of_each_flair_patient(trained, monkey
     assert seen["x"].shape == x.shape == (42, 3, 128, 128)
     assert float(np.abs(seen["x"].astype(np.float32) - x.astype(np.float32)).max()) < 1e-2
     assert np.array_equal(seen["y"], y) and not seen["y"][28:].any()  # tr13n: tumour-free
-    assert (out / "cnn-rec" / "unet_flair.npz").read_bytes() == b"not a network"
     card = json.loads((out / "cnn-rec" / "training.json").read_text())
-    assert card["models"]["unet_flair"]["file"] == "unet_flair.npz"
+    for seed in (0, 1):
+        name = f"unet_flair_seed{seed}"
+        assert (out / "cnn-rec" / f"{name}.npz").read_bytes() == f"not a network {seed}".encode()
+        assert card["models"][name]["file"] == f"{name}.npz"
     assert card["cnn_settings"]["epochs"] == 2
     assert [c["unet_slices"] for c in result.cases] == [14, 14, 14]
     assert result.cases[2]["unet_tumour_slices"] == 0 < result.cases[0]["unet_tumour_slices"]
@@ -195,6 +199,19 @@ def test_cnn_slices_are_the_inference_grid_of_each_flair_patient(trained, monkey
     ]
 
 
+@pytest.mark.parametrize("seeds", [(), (0, 0)])
+def test_cnn_seeds_must_be_distinct_and_are_checked_before_any_patient(
+    trained, monkeypatch, tmp_path, seeds
+):
+    import tumor3d.flows.train as train_mod
+
+    manifest, _, _ = trained
+    monkeypatch.setattr(train_mod, "require_torch", lambda: None)
+    monkeypatch.setattr(train_mod, "_patient_rows", lambda *a, **k: pytest.fail("a patient ran"))
+    with pytest.raises(InputError, match="distinct seeds"):
+        run_training(manifest, tmp_path / "m", cnn=True, cnn_seeds=seeds, cnn_settings=UNET_TINY)
+
+
 def test_cnn_trains_a_unet_the_numpy_forward_pass_reads(trained):
     pytest.importorskip("torch")  # CI has no torch: run with the train extra
     from tumor3d.learned.cnn import unet_from_bytes, unet_probability
@@ -204,14 +221,16 @@ def test_cnn_trains_a_unet_the_numpy_forward_pass_reads(trained):
     result = run_training(
         manifest, out / "cnn", store_dir=str(out / "model" / ".tumor3d-store"),
         num_rounds=ROUNDS, command="test", cnn=True, cnn_settings=UNET_TINY, cnn_threads=1,
+        cnn_seeds=(3,),
     )  # fmt: skip
-    assert set(result.models) == {"hyper", "unet_flair"}
-    data = (out / "cnn" / "unet_flair.npz").read_bytes()
+    assert set(result.models) == {"hyper", "unet_flair_seed3"}
+    data = (out / "cnn" / "unet_flair_seed3.npz").read_bytes()
     net = unet_from_bytes(data, source="trained")
     assert net.levels == 2 and net.in_channels == 3
     meta = unet_meta(data)
     assert meta["training_cases"] == ["tr11", "tr12", "tr13n"]
     assert meta["settings"]["epochs"] == 2 and meta["trainer"].startswith("torch ")
+    assert meta["seed"] == 3
     p = make_phantom_patient(5, modality="flair", n_slices=14)
     prob = unet_probability(net, unet_slices(p.scan.image, np.asarray(p.slice_masks) > 0.5)[0])
     assert prob.shape == (14, 128, 128) and np.all((prob >= 0) & (prob <= 1))

@@ -25,10 +25,12 @@ With ``--cnn`` (``cnn=True``) the FLAIR patients also train the U-Net of
 stage (:data:`tumor3d.tasks.train.UNET_SLICES`, cached like the rows) gives
 each FLAIR patient's input and target slices, one network is trained on all
 of them (:func:`tumor3d.learned.cnn_train.train_unet`, the shipped settings
-unless ``cnn_settings`` says otherwise, seed ``cnn_seed``) and written as
-``DIR/unet_flair.npz`` (plain arrays; ``meta_json`` names the cases and the
-settings), listed in ``training.json`` beside the forests. It is shipped by
-copying it over ``tumor3d/learned/models/unet_flair.npz``.
+unless ``cnn_settings`` says otherwise) once per seed of ``cnn_seeds`` (the
+shipped ensemble: seeds 0 and 1), each written as ``DIR/unet_flair_seed<s>.npz``
+(plain arrays; ``meta_json`` names the cases, the settings and the seed),
+listed in ``training.json`` beside the forests. They are shipped by copying
+them over ``tumor3d/learned/models/unet_flair_seed<s>.npz``
+(:data:`tumor3d.learned.shipped.CNN_MODELS`).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -182,7 +185,7 @@ def train_flow(
     command: str = "",
     cnn: bool = False,
     cnn_settings: dict[str, Any] | None = None,
-    cnn_seed: int = 0,
+    cnn_seeds: Sequence[int] = (0, 1),
     cnn_threads: int | None = None,
 ) -> TrainResult:
     """Train the learned segmentation's models on a manifest's labelled patients.
@@ -213,8 +216,8 @@ def train_flow(
         :class:`~tumor3d.learned.cnn_train.UNetSettings` fields other than the
         slice grid (``size``, ``context``), e.g. ``{"epochs": 2}``; default the
         shipped network's.
-    cnn_seed : int
-        The U-Net training's seed.
+    cnn_seeds : sequence of int
+        One U-Net per seed (an ensemble; the shipped one: 0 and 1).
     cnn_threads : int, optional
         torch's threads (default torch's own choice).
     """
@@ -233,6 +236,8 @@ def train_flow(
             unet_settings = UNetSettings(**extra)
         except TypeError as exc:
             raise InputError(f"cnn_settings: {exc}") from None
+        if not cnn_seeds or len(set(cnn_seeds)) != len(cnn_seeds):
+            raise InputError(f"cnn_seeds: give distinct seeds, got {list(cnn_seeds)}")
         if not any(r.modality in UNET_MODALITIES for r in rows):
             raise InputError("--cnn: the U-Net trains on FLAIR patients and the manifest has none")
     out = Path(out_dir)
@@ -278,23 +283,25 @@ def train_flow(
         logger.info("%s model: %d patients, %d trees, digest %s", family, len(patients),
                     model.roots.size, model.digest()[:12])  # fmt: skip
     if unet_settings is not None:
-        meta = {
-            "name": f"tumor3d-unet-flair-{datetime.date.today().isoformat()}",
-            "modalities": list(UNET_MODALITIES),
-            "input": "tumor3d.learned.cnn_data.case_input(image, size, context)",
-            "training_cases": [c["patient_id"] for _, c in unet_cases],
-            "command": command,
-        }
-        data, fit = train_unet(
-            np.concatenate([s[0] for s, _ in unet_cases]),
-            np.concatenate([s[1] for s, _ in unet_cases]),
-            unet_settings, seed=cnn_seed, threads=cnn_threads, meta=meta,
-            log=lambda line: logger.info("U-Net %s", line),
-        )  # fmt: skip
-        files["unet_flair.npz"] = data
-        result.models["unet_flair"] = str(out / "unet_flair.npz")
-        logger.info("U-Net: %d patients, %d slices, %.0f s", len(unet_cases),
-                    sum(len(s[0]) for s, _ in unet_cases), fit.seconds)  # fmt: skip
+        x = np.concatenate([s[0] for s, _ in unet_cases])
+        y = np.concatenate([s[1] for s, _ in unet_cases])
+        for seed in cnn_seeds:
+            name = f"unet_flair_seed{seed}"
+            meta = {
+                "name": f"tumor3d-unet-flair-seed{seed}-{datetime.date.today().isoformat()}",
+                "modalities": list(UNET_MODALITIES),
+                "input": "tumor3d.learned.cnn_data.case_input(image, size, context)",
+                "training_cases": [c["patient_id"] for _, c in unet_cases],
+                "command": command,
+            }
+            data, fit = train_unet(
+                x, y, unet_settings, seed=int(seed), threads=cnn_threads, meta=meta,
+                log=lambda line, s=seed: logger.info("U-Net seed %d %s", s, line),
+            )  # fmt: skip
+            files[f"{name}.npz"] = data
+            result.models[name] = str(out / f"{name}.npz")
+            logger.info("U-Net seed %d: %d patients, %d slices, %.0f s", seed, len(unet_cases),
+                        len(x), fit.seconds)  # fmt: skip
     card = {
         "command": command,
         "manifest": str(manifest),

@@ -38,7 +38,7 @@ import io
 import json
 import os
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import cache
 from typing import Any
@@ -307,7 +307,7 @@ def unet_probability(net: UNetWeights, images: np.ndarray, *, mirror: bool = Fal
 
 
 def unet_volume_probability(
-    net: UNetWeights, image: np.ndarray, *, mirror: bool = True
+    net: UNetWeights | Sequence[UNetWeights], image: np.ndarray, *, mirror: bool = False
 ) -> np.ndarray:
     """The network's lesion probability of every voxel of ``image`` ``(z, y, x)``, in [0, 1].
 
@@ -315,13 +315,28 @@ def unet_volume_probability(
     (:func:`tumor3d.learned.cnn_data.case_input` at the file's size and
     context) and come back bilinearly to the native grid
     (:func:`tumor3d.learned.cnn_data.upsample`), as in the cross-validation.
-    ``mirror`` (the pipeline's choice): the mean with the mirrored pass
-    (:func:`unet_probability`).
+    A sequence of nets (an ensemble: the same network trained with other
+    seeds; the pipeline's) gives the mean of their probabilities, averaged on the
+    training grid (the upsampling is linear) when they share one. ``mirror``:
+    each net's probability is also the mean with its mirrored pass
+    (:func:`unet_probability`); the pipeline runs the shipped ensemble without
+    it (one pass per net: as accurate by cross-validation, half the time;
+    ``reports/learned_cv.md``, "A longer-trained U-Net").
     """
     from tumor3d.learned.cnn_data import case_input, upsample
 
+    nets = (net,) if isinstance(net, UNetWeights) else tuple(net)
+    if not nets or not all(isinstance(n, UNetWeights) for n in nets):
+        raise InputError("net must be a UNetWeights or a non-empty sequence of them")
     img = np.asarray(image)
     if img.ndim != 3 or min(img.shape) < 1:
         raise InputError(f"image must be 3-D (z, y, x), got shape {img.shape}")
-    prob = unet_probability(net, case_input(img, net.size, net.context), mirror=mirror)
-    return upsample(prob, img.shape)
+    by_grid: dict[tuple[int, int], list[UNetWeights]] = {}
+    for n in nets:
+        by_grid.setdefault((n.size, n.context), []).append(n)
+    total = np.zeros(img.shape, np.float32)
+    for (size, context), group in by_grid.items():
+        x = case_input(img, size, context)
+        mean = sum(unet_probability(n, x, mirror=mirror) for n in group) / np.float32(len(group))
+        total += np.float32(len(group)) * upsample(mean, img.shape)
+    return total / np.float32(len(nets))

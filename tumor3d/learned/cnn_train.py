@@ -67,7 +67,7 @@ class UNetSettings:
     context: int = 1
     base: int = 8
     levels: int = 4
-    epochs: int = 8
+    epochs: int = 20
     batch: int = 16
     lr: float = 3e-3
     neg_ratio: float = 0.5

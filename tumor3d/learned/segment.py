@@ -6,15 +6,17 @@
 pixels above the model's threshold that carries the most probability, with
 any other region carrying at least ``keep_fraction`` of it (a multifocal
 lesion); holes are filled per slice. Given a U-Net
-(:mod:`tumor3d.learned.cnn`), the probability is the mean of the forest's and
-the network's, computed in a thread beside the forest, before the same cut and
-region (as cross-validated, ``reports/learned_cv.md``). It also returns the
-probability volume (per-voxel confidence, written as a NIfTI by the stage) and
-the figures :func:`tumor3d.learned.review.review_segmentation` judges.
+(:mod:`tumor3d.learned.cnn`) or an ensemble of them (the mean of the nets'),
+the probability is the mean of the forest's and the network's, computed in a
+thread beside the forest, before the same cut and region (as cross-validated,
+``reports/learned_cv.md``). It also returns the probability volume
+(per-voxel confidence, written as a NIfTI by the stage) and the figures
+:func:`tumor3d.learned.review.review_segmentation` judges.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -107,7 +109,7 @@ def segment_learned(
     threshold: float | None = None,
     keep_fraction: float | None = None,
     prior: np.ndarray | None = None,
-    cnn: UNetWeights | None = None,
+    cnn: UNetWeights | Sequence[UNetWeights] | None = None,
 ) -> LearnedSegmentation:
     """Segment one patient's lesion with a trained forest.
 
@@ -128,10 +130,11 @@ def segment_learned(
     prior : (z, y, x) ndarray of bool, optional
         The rule-based lesion of the same slices (the robust method's mask),
         a feature of the model (:func:`~tumor3d.learned.features.compute_features`).
-    cnn : UNetWeights, optional
-        A U-Net (:func:`tumor3d.learned.shipped.shipped_cnn`): the probability
-        becomes the mean of the forest's and the network's
-        (:func:`~tumor3d.learned.cnn.unet_volume_probability`, computed in a
+    cnn : UNetWeights or sequence of UNetWeights, optional
+        A U-Net, or an ensemble of them (:func:`tumor3d.learned.shipped.shipped_cnn`):
+        the probability becomes the mean of the forest's and the network's
+        (an ensemble's: the mean of its nets',
+        :func:`~tumor3d.learned.cnn.unet_volume_probability`, computed in a
         thread beside the features and the forest), cut and kept as the
         forest's alone would be. None: the forest alone.
 
@@ -151,8 +154,14 @@ def segment_learned(
                 "the model was trained on other features than this version of tumor3d "
                 "computes; retrain it (tumor3d train)"
             )
-    if cnn is not None and not isinstance(cnn, UNetWeights):
-        raise InputError(f"cnn must be a UNetWeights or None, got {type(cnn).__name__}")
+    if cnn is not None and not (
+        isinstance(cnn, UNetWeights)
+        or (isinstance(cnn, Sequence) and cnn and all(isinstance(n, UNetWeights) for n in cnn))
+    ):
+        raise InputError(
+            f"cnn must be a UNetWeights, a non-empty sequence of them or None, "
+            f"got {type(cnn).__name__}"
+        )
     args = (image, model, spacing_mm, modality, lr_axis, threshold, keep_fraction, prior)
     p_cnn = None
     if cnn is None:

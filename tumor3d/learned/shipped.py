@@ -7,10 +7,11 @@ user's path or an artifact store.
 Each model is an ``.npz`` of plain arrays plus JSON metadata
 (:meth:`tumor3d.learned.forest.ForestModel.from_bytes`, ``allow_pickle=False``)
 in ``tumor3d/learned/models/``: ``hyper.npz`` (FLAIR and T2, whole tumour)
-and ``t1c.npz`` (T1c, tumour core). Beside them, ``unet_flair.npz``: a 2-D
-U-Net (:mod:`tumor3d.learned.cnn`, weights only, read without pickle) trained
-on FLAIR alone, whose probability the learned method averages with the
-forest's on FLAIR (``segment.learned_cnn``). Their bytes enter the segment
+and ``t1c.npz`` (T1c, tumour core). Beside them, ``unet_flair_seed0.npz``
+and ``unet_flair_seed1.npz``: two trainings (seeds 0 and 1) of a 2-D U-Net
+(:mod:`tumor3d.learned.cnn`, weights only, read without pickle) on FLAIR
+alone, an ensemble whose mean probability the learned method averages with
+the forest's on FLAIR (``segment.learned_cnn``). Their bytes enter the segment
 stage's cache key (``tumor3d.tasks.caching.DATA_FILES``), so a retrained model
 recomputes.
 """
@@ -37,8 +38,10 @@ __all__ = [
 #: Which shipped model serves which sequence.
 MODEL_FAMILIES: dict[str, str] = {"flair": "hyper", "t2": "hyper", "t1c": "t1c"}
 
-#: Which sequences have a shipped U-Net (trained on FLAIR only), and its file's stem.
-CNN_MODELS: dict[str, str] = {"flair": "unet_flair"}
+#: Which sequences have a shipped U-Net (trained on FLAIR only): the stems of its
+#: ensemble's files (the same network and data, trained with seeds 0 and 1; the
+#: ensemble was chosen by cross-validation, ``reports/learned_cv.md``).
+CNN_MODELS: dict[str, tuple[str, ...]] = {"flair": ("unet_flair_seed0", "unet_flair_seed1")}
 
 
 def model_family(modality: str) -> str:
@@ -86,20 +89,20 @@ def _load_cnn(name: str) -> UNetWeights:
     return unet_from_bytes(data, source=where)
 
 
-def shipped_cnn(modality: str) -> UNetWeights | None:
-    """The shipped U-Net for ``modality`` (read once per process); None where there is none.
+def shipped_cnn(modality: str) -> tuple[UNetWeights, ...] | None:
+    """The shipped U-Net ensemble for ``modality`` (read once per process); None if none.
 
     >>> shipped_cnn("t2") is None
     True
     """
-    name = CNN_MODELS.get(str(modality).strip().lower())
-    return None if name is None else _load_cnn(name)
+    names = CNN_MODELS.get(str(modality).strip().lower())
+    return None if names is None else tuple(_load_cnn(n) for n in names)
 
 
 def learned_models(modality: str, learned_cnn: str = "auto") -> dict[str, Any]:
     """The learned method's ``model`` and ``cnn`` keywords for ``modality``.
 
-    ``cnn`` is the shipped U-Net where ``learned_cnn`` is ``"auto"`` and one is
+    ``cnn`` is the shipped U-Net ensemble where ``learned_cnn`` is ``"auto"`` and one is
     shipped for the sequence (:data:`CNN_MODELS`), else None (the forest alone).
     One rule for the segment stage and :func:`tumor3d.api.reconstruct_scan`.
     """

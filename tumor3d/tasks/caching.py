@@ -100,7 +100,8 @@ DATA_FILES: dict[str, tuple[str, ...]] = {
     "tumor3d.learned.shipped": (
         "tumor3d/learned/models/hyper.npz",
         "tumor3d/learned/models/t1c.npz",
-        "tumor3d/learned/models/unet_flair.npz",
+        "tumor3d/learned/models/unet_flair_seed0.npz",
+        "tumor3d/learned/models/unet_flair_seed1.npz",
     ),
 }
 

@@ -177,8 +177,11 @@ def segment(
             "model": learned["model"].meta.get("name", "shipped"),
             "model_sha256": learned["model"].digest(),  # of its arrays and metadata
         }
-        if cnn is not None:  # the U-Net averaged with the forest: its file and the file's SHA-256
-            review.update(cnn_model=CNN_MODELS[modality.lower()], cnn_sha256=cnn.sha256)
+        if cnn is not None:  # the U-Nets averaged with the forest: their files and SHA-256s
+            review.update(
+                cnn_model=" + ".join(CNN_MODELS[modality.lower()]),
+                cnn_sha256=[n.sha256 for n in cnn],
+            )
     return StageResult(
         artifacts=artifacts,
         values={

@@ -37,7 +37,11 @@ def train(
     ] = 1.0,
     rounds: Annotated[int, typer.Option(min=1, help="Boosting rounds.")] = 150,
     cnn: Annotated[
-        bool, typer.Option("--cnn", help="Also train the FLAIR U-Net: OUT/unet_flair.npz (torch).")
+        bool,
+        typer.Option(
+            "--cnn",
+            help="Also train the FLAIR U-Net ensemble: OUT/unet_flair_seed{0,1}.npz (torch).",
+        ),
     ] = False,
     verbose: Verbose = False,
 ) -> None:
@@ -70,7 +74,7 @@ def train(
     for col in ("model", "patients", "rows", "lesion rows", "file"):
         table.add_column(col)
     for family, path in result.models.items():
-        if family == "unet_flair":  # its rows are slices
+        if family.startswith("unet_flair"):  # its rows are slices
             cases = [c for c in result.cases if "unet_slices" in c]
             rows, lesion = "unet_slices", "unet_tumour_slices"
         else:

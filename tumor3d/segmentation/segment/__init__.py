@@ -180,8 +180,8 @@ def segment_tumor(
     learned_cnn : {"auto", "off"}
         Learned method: ``"auto"`` averages the forest's probability with the
         U-Net ``cnn``'s when one is given; ``"off"``: the forest alone.
-    cnn : tumor3d.learned.cnn.UNetWeights, optional
-        Learned method: the U-Net of the sequence
+    cnn : tumor3d.learned.cnn.UNetWeights or a sequence of them, optional
+        Learned method: the U-Net (ensemble) of the sequence
         (:func:`tumor3d.learned.shipped.shipped_cnn`; FLAIR only), or None.
 
     Returns
