@@ -661,6 +661,8 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
                 prob, mask = seg.probability, seg.mask.copy()
                 if seg.cnn_probability is not None:
                     parts = {"forest": seg.forest_probability, "cnn": seg.cnn_probability}
+                    if seg.cnn_members is not None and len(seg.cnn_members) > 1:
+                        parts["cnn_members"] = seg.cnn_members
             else:
                 f = _features(p)
                 prob = np.zeros(f.shape, np.float32)
@@ -686,7 +688,11 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
             row["fold"] = k
             # as the pipeline: with a U-Net, the two probabilities (the models' disagreement)
             two = (
-                {"forest_probability": parts["forest"], "cnn_probability": parts["cnn"]}
+                {
+                    "forest_probability": parts["forest"],
+                    "cnn_probability": parts["cnn"],
+                    "cnn_members": parts.get("cnn_members"),
+                }
                 if parts
                 else {}
             )

@@ -60,6 +60,7 @@ GRID = {
     "outside_ratio": (0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 2.0),
     "prior_agreement": (0.0, 0.3, 0.5, 0.6, 0.7, 0.8),
     "model_disagreement": (0.1, 0.15, 0.2, 0.25, 0.3, 0.5, 1.0),
+    "net_spread": (0.08, 0.1, 0.12, 0.15, 0.2, 0.25),
 }
 #: A row's figure that is missing or null (JSON of inf) reads as this.
 _MISSING = {
@@ -68,6 +69,7 @@ _MISSING = {
     "mean_probability": float("nan"),
     "prior_agreement": 1.0,
     "model_disagreement": float("nan"),  # no U-Net: not judged
+    "net_spread": float("nan"),  # no U-Net ensemble: not judged
 }
 MAX_GOOD_FLAGGED = 0.25
 
@@ -215,13 +217,17 @@ def _rate_lines(rows: list[dict], f: np.ndarray, what: str) -> list[str]:
     return out
 
 
+#: Figures that exist only with the U-Net (nan for a forest alone): never shared.
+NET_ONLY = ("model_disagreement", "net_spread")
+
+
 def _split_limits(
     rows: list[dict], forest_rows: list[dict], net_measures: tuple, extra: tuple
 ) -> tuple[dict, dict]:
     """The ``with_net`` limits chosen on ``rows``, the forest alone's on ``forest_rows``
     (its ``extra`` figures; the others but the disagreement fixed at the first choice)."""
     net = choose(rows, net_measures)
-    shared = {k: v for k, v in net.items() if k != "model_disagreement" and k not in extra}
+    shared = {k: v for k, v in net.items() if k not in NET_ONLY and k not in extra}
     return net, choose(forest_rows, extra, fixed=shared) if extra else shared
 
 

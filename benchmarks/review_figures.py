@@ -79,6 +79,7 @@ def main(argv=None) -> int:
         two = {}
         if "forest" in maps:
             two = {"forest_probability": maps["forest"], "cnn_probability": maps["cnn"]}
+            two["cnn_members"] = maps.get("cnn_members")  # saved since the ensemble
         fig = review_features(maps["prob"], mask, p.spacing_mm, prior=p.prior, **two)
         r.update({k: v for k, v in fig.items() if k not in r})
     Path(args.out).write_text(json.dumps(rows, indent=1))

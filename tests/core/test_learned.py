@@ -585,10 +585,12 @@ def test_the_api_averages_on_flair_unless_off_and_the_core_obeys_the_switch(monk
         auto.tumor_probability, 0.5 * (off.tumor_probability + p_net), atol=1e-6
     )
     # the core: a U-Net handed over with learned_cnn off is not used
+    from tumor3d.learned.cnn import unet_member_probabilities
+
     calls = []
-    real = unet_volume_probability
+    real = unet_member_probabilities
     monkeypatch.setattr(
-        "tumor3d.learned.segment.unet_volume_probability",
+        "tumor3d.learned.segment.unet_member_probabilities",
         lambda *a: calls.append(1) or real(*a),
     )
     from tumor3d.segmentation.detect import SliceDetection

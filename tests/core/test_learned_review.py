@@ -1,11 +1,13 @@
-"""The learned method's review of the forest + U-Net mean: the two models' disagreement.
+"""The learned method's review of the forest + U-Net mean: the models' disagreement.
 
 The mean of two probabilities is smooth where the models disagree (1 and 0.4
-average to a confident-looking 0.7), so the review judges the share of the
-lesion where they differ by more than 0.5 (``model_disagreement``). A forest
-alone (no disagreement to judge) has limits of its own: voxels near the
-threshold per lesion voxel. No real data: constructed maps, the shipped forest
-on a phantom, a constant network.
+average to a confident-looking 0.7), so the review measures the share of the
+lesion where the forest and the network differ by more than 0.5
+(``model_disagreement``, published) and judges the spread of the U-Net
+ensemble's own nets inside the lesion (``net_spread``, chosen over the first
+by cross-validation). A forest alone (no network to judge) has limits of its
+own: voxels near the threshold per lesion voxel. No real data: constructed
+maps, the shipped forest on a phantom, constant networks.
 """
 
 from __future__ import annotations
@@ -35,7 +37,9 @@ def _two_models(share: float):
     return forest, net, 0.5 * (forest + net)
 
 
-def test_disagreeing_models_are_flagged_where_their_confident_mean_is_not():
+def test_disagreeing_models_are_measured_and_flagged_by_a_limit_on_it():
+    """model_disagreement is computed and published; the shipped review does not judge
+    it (net_spread replaced it), a limit given for it does."""
     forest, net, mean = _two_models(0.3)
     lesion = mean > 0.5
     assert lesion.sum() == 800  # the whole lesion is kept: the mean is 0.725 where they differ
@@ -47,7 +51,9 @@ def test_disagreeing_models_are_flagged_where_their_confident_mean_is_not():
     assert both["mean_probability"] == pytest.approx(0.7 + 0.3 * 0.725)
     assert both["mean_probability"] > REVIEW_LIMITS["with_net"]["mean_probability"]
     assert both["outside_ratio"] == 0.0
-    flagged = review_segmentation(both)
+    assert "model_disagreement" not in REVIEW_LIMITS["with_net"]
+    assert not review_segmentation(both).needs_review  # one net: no spread to judge
+    flagged = review_segmentation(both, {"model_disagreement": 0.1})
     assert flagged.needs_review and len(flagged.reasons) == 1
     assert flagged.reasons[0].startswith("the forest and the U-Net disagree on 30% of the lesion")
     # the same mean without the two it came from (a forest alone): nothing to judge
@@ -61,8 +67,47 @@ def test_disagreeing_models_are_flagged_where_their_confident_mean_is_not():
         m2, m2 > 0.5, (5.0, 1.0, 1.0), forest_probability=f2, cnn_probability=n2
     )
     assert agree["model_disagreement"] == pytest.approx(0.05)
-    assert agree["model_disagreement"] < REVIEW_LIMITS["with_net"]["model_disagreement"]
-    assert not review_segmentation(agree).needs_review
+    assert not review_segmentation(agree, {"model_disagreement": 0.1}).needs_review
+
+
+def test_an_ensemble_whose_nets_disagree_is_flagged_where_their_mean_is_confident():
+    """net_spread: the mean over the lesion of the largest minus the smallest of the
+    nets' probabilities, against a naive loop; judged by the shipped limit."""
+    forest, _, _ = _two_models(0.0)
+    lesion = forest > 0.5
+    limit = REVIEW_LIMITS["with_net"]["net_spread"]
+    for share, doubt in ((0.4, 0.6), (0.1, 0.6)):  # rows of the lesion where one net says 0.4
+        a = forest.copy()
+        b = forest.copy()
+        b[:, 5 : 5 + round(share * 20), 5:25] = 1.0 - doubt
+        c = 0.5 * (a + b) + 0.0  # a third net in between: the range is still a to b
+        members = np.stack([a, b, c])
+        mean = members.mean(axis=0)
+        prob = 0.5 * (forest + mean)
+        fig = review_features(
+            prob, lesion, (5.0, 1.0, 1.0), forest_probability=forest, cnn_probability=mean,
+            cnn_members=members,
+        )  # fmt: skip
+        want = np.mean([max(m[i] for m in members) - min(m[i] for m in members)
+                        for i in zip(*np.nonzero(lesion), strict=True)])  # fmt: skip
+        assert fig["net_spread"] == pytest.approx(want) == pytest.approx(share * doubt)
+        assert fig["mean_probability"] > REVIEW_LIMITS["with_net"]["mean_probability"]
+        review = review_segmentation(fig)
+        assert review.needs_review == (share * doubt > limit)
+        if review.needs_review:
+            assert review.reasons == (
+                "the U-Net ensemble's nets disagree: their probabilities differ by 0.24 on "
+                "average inside the lesion (limit 0.08)",
+            )
+    # one net (or none): no spread; an empty lesion: 0; a mismatched shape: refused
+    one = review_features(prob, lesion, (1.0, 1.0, 1.0), cnn_members=members[:1])
+    assert np.isnan(one["net_spread"]) and np.isnan(
+        review_features(prob, lesion, (1, 1, 1))["net_spread"]
+    )
+    empty = review_features(prob, np.zeros_like(lesion), (1.0, 1.0, 1.0), cnn_members=members)
+    assert empty["net_spread"] == 0.0
+    with pytest.raises(InputError, match="cnn_members"):
+        review_features(prob, lesion, (1.0, 1.0, 1.0), cnn_members=members[:, :1])
 
 
 def _uncertain_rim(rim: int):
@@ -143,10 +188,11 @@ def _constant_net(p_logit: float):
     return unet_from_bytes(buf.getvalue())
 
 
-def test_the_learned_method_judges_its_forest_and_net_disagreeing():
+def test_the_learned_method_measures_its_models_disagreeing_and_judges_its_ensemble():
     """segment_tumor (the pipeline's call) with a net sure of tumour everywhere: the
-    mean keeps tissue the forest calls healthy; the review's figure is the share of
-    the lesion where the forest's own probability (learned_cnn off) is under 0.5."""
+    mean keeps tissue the forest calls healthy; model_disagreement is the share of
+    the lesion where the forest's own probability (learned_cnn off) is under 0.5.
+    Given an ensemble of that net and an unsure one, their spread is judged."""
     from tumor3d.learned.cnn import unet_volume_probability
     from tumor3d.learned.shipped import shipped_model
     from tumor3d.phantom.patient import make_phantom_patient
@@ -176,5 +222,13 @@ def test_the_learned_method_judges_its_forest_and_net_disagreeing():
     want = float(np.mean(np.abs(forest[lesion] - p_net[lesion]) > 0.5))
     assert want > 0.5  # the tissue the forest doubts, kept by the net's certainty
     assert auto.review.figures["model_disagreement"] == pytest.approx(want)
-    assert auto.review.needs_review
-    assert any(r.startswith("the forest and the U-Net disagree") for r in auto.review.reasons)
+    assert np.isnan(auto.review.figures["net_spread"])  # one net: no spread
+    # an ensemble of that net and a slightly less sure one: their spread in the lesion is
+    # the difference of the two constants (judged: over a lowered limit, a reason)
+    pair = segment_tumor(*args, learned_cnn="auto", **{**kw, "cnn": (net, _constant_net(8.0))})
+    assert pair.tumor_mask.any()
+    want_spread = 1.0 / (1.0 + np.exp(-10.0)) - 1.0 / (1.0 + np.exp(-8.0))
+    assert pair.review.figures["net_spread"] == pytest.approx(want_spread, rel=1e-3)
+    assert not any(r.startswith("the U-Net ensemble") for r in pair.review.reasons)
+    lowered = review_segmentation(pair.review.figures, {"net_spread": want_spread / 2})
+    assert any(r.startswith("the U-Net ensemble's nets disagree") for r in lowered.reasons)

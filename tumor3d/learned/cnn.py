@@ -55,6 +55,7 @@ __all__ = [
     "single_blas_thread",
     "unet_from_bytes",
     "unet_logits",
+    "unet_member_probabilities",
     "unet_probability",
     "unet_volume_probability",
 ]
@@ -306,22 +307,19 @@ def unet_probability(net: UNetWeights, images: np.ndarray, *, mirror: bool = Fal
     return p
 
 
-def unet_volume_probability(
+def unet_member_probabilities(
     net: UNetWeights | Sequence[UNetWeights], image: np.ndarray, *, mirror: bool = False
 ) -> np.ndarray:
-    """The network's lesion probability of every voxel of ``image`` ``(z, y, x)``, in [0, 1].
+    """Each net's lesion probability of every voxel of ``image`` ``(z, y, x)``, in [0, 1].
 
-    The slices as acquired go in on the grid the network was trained on
+    The slices as acquired go in on the grid each net was trained on
     (:func:`tumor3d.learned.cnn_data.case_input` at the file's size and
-    context) and come back bilinearly to the native grid
-    (:func:`tumor3d.learned.cnn_data.upsample`), as in the cross-validation.
-    A sequence of nets (an ensemble: the same network trained with other
-    seeds; the pipeline's) gives the mean of their probabilities, averaged on the
-    training grid (the upsampling is linear) when they share one. ``mirror``:
-    each net's probability is also the mean with its mirrored pass
-    (:func:`unet_probability`); the pipeline runs the shipped ensemble without
-    it (one pass per net: as accurate by cross-validation, half the time;
-    ``reports/learned_cv.md``, "A longer-trained U-Net").
+    context, computed once per grid) and come back bilinearly to the native
+    grid (:func:`tumor3d.learned.cnn_data.upsample`), as in the
+    cross-validation. ``mirror``: each probability is also the mean with the
+    net's mirrored pass (:func:`unet_probability`). Returns ``(n_nets, z, y, x)``
+    float32; their spread inside the lesion is a review figure
+    (:func:`tumor3d.learned.review.review_features`, ``net_spread``).
     """
     from tumor3d.learned.cnn_data import case_input, upsample
 
@@ -331,12 +329,28 @@ def unet_volume_probability(
     img = np.asarray(image)
     if img.ndim != 3 or min(img.shape) < 1:
         raise InputError(f"image must be 3-D (z, y, x), got shape {img.shape}")
-    by_grid: dict[tuple[int, int], list[UNetWeights]] = {}
-    for n in nets:
-        by_grid.setdefault((n.size, n.context), []).append(n)
-    total = np.zeros(img.shape, np.float32)
-    for (size, context), group in by_grid.items():
-        x = case_input(img, size, context)
-        mean = sum(unet_probability(n, x, mirror=mirror) for n in group) / np.float32(len(group))
-        total += np.float32(len(group)) * upsample(mean, img.shape)
-    return total / np.float32(len(nets))
+    inputs: dict[tuple[int, int], np.ndarray] = {}
+    out = np.empty((len(nets), *img.shape), np.float32)
+    for i, n in enumerate(nets):
+        grid = (n.size, n.context)
+        if grid not in inputs:
+            inputs[grid] = case_input(img, *grid)
+        out[i] = upsample(unet_probability(n, inputs[grid], mirror=mirror), img.shape)
+    return out
+
+
+def unet_volume_probability(
+    net: UNetWeights | Sequence[UNetWeights], image: np.ndarray, *, mirror: bool = False
+) -> np.ndarray:
+    """The network's lesion probability of every voxel of ``image`` ``(z, y, x)``, in [0, 1].
+
+    A sequence of nets (an ensemble: the same network trained with other
+    seeds; the pipeline's) gives the mean of their probabilities
+    (:func:`unet_member_probabilities`: each net on its training grid, back on
+    the native one). ``mirror``: each net's probability is also the mean with
+    its mirrored pass (:func:`unet_probability`); the pipeline runs the shipped
+    ensemble without it (one pass per net: as accurate by cross-validation,
+    half the time; ``reports/learned_cv.md``, "A longer-trained U-Net").
+    """
+    members = unet_member_probabilities(net, image, mirror=mirror)
+    return members[0] if len(members) == 1 else members.mean(axis=0, dtype=np.float32)

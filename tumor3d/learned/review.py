@@ -35,16 +35,17 @@ __all__ = [
 
 #: Limits beyond which a segmentation asks for a human, per kind of segmentation
 #: (:func:`review_kind`): ``with_net``, the forest's probability averaged with the
-#: U-Net's (FLAIR), and ``forest_alone`` (T2, T1c, ``segment.learned_cnn: off``: no
-#: disagreement to judge). Chosen by cross-validation by patient
+#: U-Net ensemble's (FLAIR), and ``forest_alone`` (T2, T1c, ``segment.learned_cnn: off``:
+#: no network to judge). Chosen by cross-validation by patient
 #: (benchmarks/review_cv.py, reports/learned_cv.md): ``with_net`` on the shipped method's
-#: out-of-fold rows, ``forest_alone``'s own limit (uncertain_ratio) on the forest's, the
-#: first two shared.
+#: out-of-fold rows (``net_spread`` by a nested choice among the figure sets, over
+#: ``model_disagreement``), ``forest_alone``'s own limit (uncertain_ratio) on the
+#: forest's, the first two shared.
 REVIEW_LIMITS: dict[str, dict[str, float]] = {
     "with_net": {
         "mean_probability": 0.85,  # mean probability inside the lesion (below: check)
         "outside_ratio": 0.2,  # probability mass above 0.5 outside the kept lesion, per inside
-        "model_disagreement": 0.1,  # share of the lesion where |p_forest - p_net| > 0.5
+        "net_spread": 0.08,  # mean (max - min) of the ensemble's nets' probabilities inside
     },
     "forest_alone": {
         "mean_probability": 0.85,
@@ -80,6 +81,11 @@ REVIEW_CHECKS: dict[str, tuple[str, str]] = {
         "the forest and the U-Net disagree on {v:.0%} of the lesion (their probabilities "
         "differ by more than 0.5; limit {lim:.0%})",
     ),
+    "net_spread": (
+        "above",
+        "the U-Net ensemble's nets disagree: their probabilities differ by {v:.2f} on "
+        "average inside the lesion (limit {lim:.2f})",
+    ),
 }
 
 
@@ -101,6 +107,7 @@ def review_features(
     *,
     forest_probability: np.ndarray | None = None,
     cnn_probability: np.ndarray | None = None,
+    cnn_members: np.ndarray | None = None,
 ) -> dict[str, float]:
     """Figures of a probability map and the lesion kept from it.
 
@@ -116,6 +123,9 @@ def review_features(
     forest_probability, cnn_probability : (z, y, x) ndarray of float, optional
         The two probabilities ``probability`` is the mean of
         (:class:`tumor3d.learned.segment.LearnedSegmentation`), both or neither.
+    cnn_members : (n_nets, z, y, x) ndarray of float, optional
+        The U-Net ensemble's nets' own probabilities (``cnn_probability`` is
+        their mean).
 
     Returns
     -------
@@ -128,7 +138,10 @@ def review_features(
         lesion with ``prior``; 1 when both are empty or no prior is given),
         ``model_disagreement`` (the share of the lesion's voxels where the
         forest's and the network's probabilities differ by more than 0.5;
-        nan without the two, 0 for an empty lesion).
+        nan without the two, 0 for an empty lesion), ``net_spread`` (the mean
+        over the lesion's voxels of the largest minus the smallest of the
+        ensemble's probabilities, a deep ensemble's spread; nan without at
+        least two nets, 0 for an empty lesion).
 
     Examples
     --------
@@ -139,6 +152,9 @@ def review_features(
     >>> review_features((f + n) / 2, p > 0.5, (1.0, 1.0, 1.0), forest_probability=f,
     ...                 cnn_probability=n)["model_disagreement"]
     0.5
+    >>> two = np.stack([n, n + 0.2 * (p > 0.5)])
+    >>> round(review_features(p, p > 0.5, (1.0, 1.0, 1.0), cnn_members=two)["net_spread"], 3)
+    0.2
     """
     p = np.asarray(probability, dtype=np.float32)
     m = np.asarray(mask, dtype=bool)
@@ -171,6 +187,14 @@ def review_features(
             )
         apart = np.count_nonzero(np.abs(pf[m] - pn[m]) > 0.5)
         disagreement = apart / n_in if n_in else 0.0
+    spread = float("nan")
+    if cnn_members is not None:
+        members = np.asarray(cnn_members, dtype=np.float32)
+        if members.ndim != 4 or members.shape[1:] != p.shape:
+            raise InputError(f"cnn_members must be (n_nets, *{p.shape}), got shape {members.shape}")
+        if len(members) >= 2:
+            inside_m = members[:, m]
+            spread = float((inside_m.max(axis=0) - inside_m.min(axis=0)).mean()) if n_in else 0.0
     return {
         "uncertain_ratio": float(ratio),
         "mean_probability": float(p[m].mean()) if n_in else float("nan"),
@@ -178,6 +202,7 @@ def review_features(
         "volume_ml": n_in * float(np.prod(spacing_mm)) / 1000.0,
         "prior_agreement": float(agreement),
         "model_disagreement": float(disagreement),
+        "net_spread": spread,
     }
 
 
@@ -214,8 +239,8 @@ def review_segmentation(
     ...                      "outside_ratio": 0.0}).reasons[0][:20]
     'uncertain boundary: '
     >>> review_segmentation({"mean_probability": 0.95, "outside_ratio": 0.0,
-    ...                      "model_disagreement": 0.4}).reasons[0][:36]
-    'the forest and the U-Net disagree on'
+    ...                      "model_disagreement": 0.4, "net_spread": 0.2}).reasons[0][:38]
+    "the U-Net ensemble's nets disagree: th"
     """
     lim = dict(REVIEW_LIMITS[review_kind(figures)])
     lim.update(limits or {})

@@ -24,7 +24,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError
-from tumor3d.learned.cnn import UNetWeights, unet_volume_probability
+from tumor3d.learned.cnn import UNetWeights, unet_member_probabilities
 from tumor3d.learned.context import CONTEXT_NAMES, context_features
 from tumor3d.learned.features import FEATURE_NAMES, compute_features
 from tumor3d.learned.forest import ForestModel, predict_proba
@@ -51,6 +51,10 @@ class LearnedSegmentation:
         With a U-Net: the two probabilities that were averaged (None without);
         the review judges their disagreement inside the lesion
         (:func:`tumor3d.learned.review.review_features`, ``model_disagreement``).
+    cnn_members : (n_nets, z, y, x) ndarray of float32 or None
+        With a U-Net: each net's probability (``cnn_probability`` is their
+        mean); the review judges an ensemble's spread inside the lesion
+        (``net_spread``).
     """
 
     mask: np.ndarray
@@ -58,6 +62,7 @@ class LearnedSegmentation:
     threshold: float
     forest_probability: np.ndarray | None = None
     cnn_probability: np.ndarray | None = None
+    cnn_members: np.ndarray | None = None
 
 
 def keep_main_lesion(
@@ -134,7 +139,7 @@ def segment_learned(
         A U-Net, or an ensemble of them (:func:`tumor3d.learned.shipped.shipped_cnn`):
         the probability becomes the mean of the forest's and the network's
         (an ensemble's: the mean of its nets',
-        :func:`~tumor3d.learned.cnn.unet_volume_probability`, computed in a
+        :func:`~tumor3d.learned.cnn.unet_member_probabilities`, computed in a
         thread beside the features and the forest), cut and kept as the
         forest's alone would be. None: the forest alone.
 
@@ -163,23 +168,24 @@ def segment_learned(
             f"got {type(cnn).__name__}"
         )
     args = (image, model, spacing_mm, modality, lr_axis, threshold, keep_fraction, prior)
-    p_cnn = None
+    p_cnn = members = None
     if cnn is None:
         forest = _forest(*args)
         prob = forest.probability
     else:
         # the network holds the GIL little (matrix products, numpy): it runs beside the forest
         with ThreadPoolExecutor(1, thread_name_prefix="tumor3d-unet") as pool:
-            net = pool.submit(unet_volume_probability, cnn, image)
+            net = pool.submit(unet_member_probabilities, cnn, image)
             forest = _forest(*args)
-            p_cnn = net.result()
+            members = net.result()
+        p_cnn = members[0] if len(members) == 1 else members.mean(axis=0, dtype=np.float32)
         prob = (0.5 * (forest.probability + p_cnn)).astype(np.float32)
     mask = keep_main_lesion(
         prob, forest.threshold, keep_fraction=forest.keep_fraction, min_voxels=forest.min_voxels
     )
     both = p_cnn is not None
     return LearnedSegmentation(
-        mask, prob, forest.threshold, forest.probability if both else None, p_cnn
+        mask, prob, forest.threshold, forest.probability if both else None, p_cnn, members
     )
 
 

@@ -117,9 +117,13 @@ def _segment_learned(
     )  # fmt: skip
     tumor = seg.mask.copy()
     tumor[tumor.sum(axis=(1, 2)) < int(min_tumor_pixels)] = False
-    two = {}  # with the U-Net: the two probabilities averaged (their disagreement is judged)
+    two = {}  # with the U-Net: the two probabilities averaged, the ensemble's nets (judged)
     if seg.cnn_probability is not None:
-        two = {"forest_probability": seg.forest_probability, "cnn_probability": seg.cnn_probability}
+        two = {
+            "forest_probability": seg.forest_probability,
+            "cnn_probability": seg.cnn_probability,
+            "cnn_members": seg.cnn_members,
+        }
     review = review_segmentation(
         review_features(seg.probability, tumor, sp, prior=prior.tumor_mask, **two)
     )
