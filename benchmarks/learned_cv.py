@@ -724,6 +724,20 @@ def _family(p: Prepared) -> str:
     return "t1c" if p.spec.modality == "t1c" else "hyper"
 
 
+def add_saved_run_arguments(
+    ap, *, keep_fraction: float = 1.0, t1c_threshold: float | None = 0.65
+) -> None:
+    """The options of a script that reads a run's saved maps (``--save-prob``) and cuts
+    each lesion again as the run cut it (:func:`_final_mask`): ``--prob``, ``--cache``,
+    ``--config``, ``--threshold``, ``--keep-fraction``, ``--t1c-threshold``."""
+    ap.add_argument("--prob", required=True, help="the run's --save-prob folder")
+    ap.add_argument("--cache", required=True, help="learned_cv.py's prepared-case cache")
+    ap.add_argument("--config", default=str(ROOT / "configs" / "default.yaml"))
+    ap.add_argument("--threshold", type=float, default=0.5)
+    ap.add_argument("--keep-fraction", type=float, default=keep_fraction)
+    ap.add_argument("--t1c-threshold", type=float, default=t1c_threshold)
+
+
 def case_file(folder: str | Path, case: str) -> Path:
     """A case's ``.npz`` in ``folder`` (``--save-prob`` maps, feature scratch): the case name
     (``patient/sequence``) with ``/`` as ``__``."""

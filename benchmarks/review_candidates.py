@@ -43,6 +43,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from learned_cv import (  # noqa: E402
     _final_mask,
+    add_saved_run_arguments,
     cached_prepare,
     case_file,
     case_specs,
@@ -111,12 +112,7 @@ def auc(bad: np.ndarray, good: np.ndarray) -> float:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("rows", help="learned_cv.py --json rows")
-    ap.add_argument("--prob", required=True, help="the run's --save-prob folder")
-    ap.add_argument("--cache", required=True, help="learned_cv.py's prepared-case cache")
-    ap.add_argument("--config", default=str(ROOT / "configs" / "default.yaml"))
-    ap.add_argument("--threshold", type=float, default=0.5)
-    ap.add_argument("--keep-fraction", type=float, default=1.0)
-    ap.add_argument("--t1c-threshold", type=float, default=0.65)
+    add_saved_run_arguments(ap)
     args = ap.parse_args(argv)
     cfg = parse_config(Path(args.config).read_text(), source=args.config)
     rows = [r for r in json.loads(Path(args.rows).read_text()) if r["group"] != "phantom"]

@@ -47,6 +47,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from learned_cv import (  # noqa: E402
     _final_mask,
+    add_saved_run_arguments,
     cached_prepare,
     case_file,
     case_specs,
@@ -113,13 +114,8 @@ def ensemble_figures(p1: np.ndarray, p2: np.ndarray, lesion: np.ndarray) -> dict
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("rows", help="learned_cv.py --json rows (a --cnn-folds A B run)")
-    ap.add_argument("--prob", required=True, help="the run's --save-prob folder")
-    ap.add_argument("--cache", required=True, help="learned_cv.py's prepared-case cache")
+    add_saved_run_arguments(ap)
     ap.add_argument("--cnn-folds", nargs=2, required=True, metavar="DIR", help="the run's")
-    ap.add_argument("--config", default=str(ROOT / "configs" / "default.yaml"))
-    ap.add_argument("--threshold", type=float, default=0.5)
-    ap.add_argument("--keep-fraction", type=float, default=1.0)
-    ap.add_argument("--t1c-threshold", type=float, default=0.65)
     ap.add_argument("--phantoms", type=int, default=10, help="the run's --phantoms")
     ap.add_argument("--out", default=None, help="write every row, FLAIR rows with the figures")
     ap.add_argument("--no-choice", action="store_true", help="skip review_cv's choice")

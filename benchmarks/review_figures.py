@@ -32,6 +32,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from learned_cv import (  # noqa: E402
     _final_mask,
+    add_saved_run_arguments,
     cached_prepare,
     case_file,
     case_specs,
@@ -46,12 +47,7 @@ from tumor3d.storage.manifest import data_dir  # noqa: E402
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("rows", help="learned_cv.py --json rows")
-    ap.add_argument("--prob", required=True, help="the run's --save-prob folder")
-    ap.add_argument("--cache", required=True, help="learned_cv.py's prepared-case cache")
-    ap.add_argument("--config", default=str(ROOT / "configs" / "default.yaml"))
-    ap.add_argument("--threshold", type=float, default=0.5)
-    ap.add_argument("--t1c-threshold", type=float, default=None)
-    ap.add_argument("--keep-fraction", type=float, default=0.3)
+    add_saved_run_arguments(ap, keep_fraction=0.3, t1c_threshold=None)
     ap.add_argument(
         "--tolerance",
         type=float,
