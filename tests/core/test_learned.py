@@ -561,7 +561,7 @@ def test_the_stage_writes_the_mean_on_flair_and_off_writes_the_forest_alone(monk
     assert outside.any() and float(np.abs(written["auto"] - written["off"])[outside].max()) > 0.01
     assert values["auto"]["segment_model"] == "forest + U-Net mean"
     assert values["auto"]["cnn_sha256"] == [n.sha256 for n in nets]
-    assert values["auto"]["cnn_model"] == "unet_flair_seed0 + unet_flair_seed1"
+    assert values["auto"]["cnn_model"] == ["unet_flair_seed0", "unet_flair_seed1"]
     assert values["off"]["segment_model"] == "forest" and "cnn_sha256" not in values["off"]
     assert values["auto"]["model_sha256"] == values["off"]["model_sha256"]
 

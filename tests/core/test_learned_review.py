@@ -37,9 +37,10 @@ def _two_models(share: float):
     return forest, net, 0.5 * (forest + net)
 
 
-def test_disagreeing_models_are_measured_and_flagged_by_a_limit_on_it():
-    """model_disagreement is computed and published; the shipped review does not judge
-    it (net_spread replaced it), a limit given for it does."""
+def test_disagreeing_models_are_flagged_where_their_confident_mean_is_not():
+    """With one net (a user's own: no ensemble spread) the review judges the forest's
+    and the net's disagreement by the single net's limits; the shipped ensemble's
+    review (with_net) judges its nets' spread instead."""
     forest, net, mean = _two_models(0.3)
     lesion = mean > 0.5
     assert lesion.sum() == 800  # the whole lesion is kept: the mean is 0.725 where they differ
@@ -52,8 +53,8 @@ def test_disagreeing_models_are_measured_and_flagged_by_a_limit_on_it():
     assert both["mean_probability"] > REVIEW_LIMITS["with_net"]["mean_probability"]
     assert both["outside_ratio"] == 0.0
     assert "model_disagreement" not in REVIEW_LIMITS["with_net"]
-    assert not review_segmentation(both).needs_review  # one net: no spread to judge
-    flagged = review_segmentation(both, {"model_disagreement": 0.1})
+    assert review_kind(both) == "single_net"
+    flagged = review_segmentation(both)
     assert flagged.needs_review and len(flagged.reasons) == 1
     assert flagged.reasons[0].startswith("the forest and the U-Net disagree on 30% of the lesion")
     # the same mean without the two it came from (a forest alone): nothing to judge
@@ -67,7 +68,8 @@ def test_disagreeing_models_are_measured_and_flagged_by_a_limit_on_it():
         m2, m2 > 0.5, (5.0, 1.0, 1.0), forest_probability=f2, cnn_probability=n2
     )
     assert agree["model_disagreement"] == pytest.approx(0.05)
-    assert not review_segmentation(agree, {"model_disagreement": 0.1}).needs_review
+    assert agree["model_disagreement"] < REVIEW_LIMITS["single_net"]["model_disagreement"]
+    assert not review_segmentation(agree).needs_review
 
 
 def test_an_ensemble_whose_nets_disagree_is_flagged_where_their_mean_is_confident():
@@ -143,7 +145,7 @@ def test_a_forest_alone_is_judged_by_its_own_limits_and_a_net_case_is_not():
         wide, wide > 0.5, (5.0, 1.0, 1.0), forest_probability=wide, cnn_probability=wide
     )
     assert both["uncertain_ratio"] == alone["uncertain_ratio"] and both["model_disagreement"] == 0
-    assert review_kind(both) == "with_net"
+    assert review_kind(both) == "single_net"
     passed = review_segmentation(both)
     assert not passed.needs_review and passed.quality_score > flagged.quality_score
 
@@ -222,7 +224,9 @@ def test_the_learned_method_measures_its_models_disagreeing_and_judges_its_ensem
     want = float(np.mean(np.abs(forest[lesion] - p_net[lesion]) > 0.5))
     assert want > 0.5  # the tissue the forest doubts, kept by the net's certainty
     assert auto.review.figures["model_disagreement"] == pytest.approx(want)
-    assert np.isnan(auto.review.figures["net_spread"])  # one net: no spread
+    assert np.isnan(auto.review.figures["net_spread"])  # one net: no spread, its own limits
+    assert review_kind(auto.review.figures) == "single_net" and auto.review.needs_review
+    assert any(r.startswith("the forest and the U-Net disagree") for r in auto.review.reasons)
     # an ensemble of that net and a slightly less sure one: their spread in the lesion is
     # the difference of the two constants (judged: over a lowered limit, a reason)
     pair = segment_tumor(*args, learned_cnn="auto", **{**kw, "cnn": (net, _constant_net(8.0))})

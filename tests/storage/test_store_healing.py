@@ -126,25 +126,37 @@ def test_temporary_files_of_killed_writers_are_removed_and_live_ones_kept(store)
     name = store.path(ref).name
     other = "0" * 8 if HOST_TAG != "0" * 8 else "1" * 8
 
-    def tmp(host: str, pid: int) -> os.PathLike:
-        path = folder / f".{name}.tmp-{host}-{pid}-abcdef01"
+    def tmp(host: str, pid: int, rand: str = "abcdef01", age_s: float = 0.0) -> os.PathLike:
+        path = folder / f".{name}.tmp-{host}-{pid}-{rand}"
         path.write_bytes(b"half")
+        if age_s:
+            then = time.time() - age_s
+            os.utime(path, (then, then))
         return path
 
     killed = tmp(HOST_TAG, _dead_pid())
     live = tmp(HOST_TAG, os.getpid())
     parent = tmp(HOST_TAG, os.getppid())
     remote_recent = tmp(other, _dead_pid())
-    remote_old = tmp(other, 12345)
-    old = time.time() - STALE_TMP_S - 60
-    os.utime(remote_old, (old, old))
+    remote_old = tmp(other, 12345, age_s=STALE_TMP_S + 60)
+    reused = tmp(HOST_TAG, os.getppid(), "abcdef02", age_s=STALE_TMP_S + 60)  # pid reused
+    locked = tmp(HOST_TAG, _dead_pid(), "abcdef03")  # cannot be removed: left, no error
     unrelated = folder / ".notes.txt"
     unrelated.write_text("not ours")
+    real_unlink = type(locked).unlink
 
-    removed = store.clean_stale_tmp()
-    assert sorted(removed) == sorted([str(killed), str(remote_old)])
-    for kept in (live, parent, remote_recent, unrelated, store.path(ref)):
+    def unlink(self, *args, **kwargs):
+        if self == locked:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real_unlink(self, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(type(locked), "unlink", unlink)
+        removed = store.clean_stale_tmp()
+    assert sorted(removed) == sorted([str(killed), str(remote_old), str(reused)])
+    for kept in (live, parent, remote_recent, locked, unrelated, store.path(ref)):
         assert kept.exists(), kept
+    locked.unlink()
     assert store.get_json(ref) == {"kept": True}
     assert store.clean_stale_tmp() == []  # nothing left to remove
 

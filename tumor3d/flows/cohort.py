@@ -316,7 +316,11 @@ def cohort_flow(
         )
         futures = [pool.submit(contextvars.copy_context().run, lane, row) for row in rows]
         outcomes = [f.result() for f in futures]
-    swept = store.clean_stale_tmp()  # temporary files of writers killed mid-stage
+    try:  # temporary files of writers killed mid-stage (housekeeping: never fails the run)
+        swept = store.clean_stale_tmp()
+    except Exception as exc:  # noqa: BLE001
+        swept = []
+        logger.warning("could not sweep the store's temporary files: %s", exc)
     if swept:
         logger.info("removed %d temporary object file(s) of killed writers", len(swept))
     wall = time.perf_counter() - t0

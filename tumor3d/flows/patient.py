@@ -360,7 +360,11 @@ def patient_flow(
     )
     publish_patient_artifacts(result.report)
     logger.info("patient %s: published %s", source.patient_id, result.output_dir)
-    swept = store.clean_stale_tmp()  # temporary files of an earlier run killed mid-write
+    try:  # temporary files of an earlier run killed mid-write (housekeeping: never fails the run)
+        swept = store.clean_stale_tmp()
+    except Exception as exc:  # noqa: BLE001
+        swept = []
+        logger.warning("could not sweep the store's temporary files: %s", exc)
     if swept:
         logger.info("removed %d temporary object file(s) of killed writers", len(swept))
     return result

@@ -28,9 +28,9 @@ of them (:func:`tumor3d.learned.cnn_train.train_unet`, the shipped settings
 unless ``cnn_settings`` says otherwise) once per seed of ``cnn_seeds`` (the
 shipped ensemble: seeds 0 and 1), each written as ``DIR/unet_flair_seed<s>.npz``
 (plain arrays; ``meta_json`` names the cases, the settings and the seed),
-listed in ``training.json`` beside the forests. They are shipped by copying
-them over ``tumor3d/learned/models/unet_flair_seed<s>.npz``
-(:data:`tumor3d.learned.shipped.CNN_MODELS`).
+listed in ``training.json`` beside the forests. The shipped ensemble reads
+seeds 0 and 1 (:data:`tumor3d.learned.shipped.CNN_MODELS`): they are shipped by
+copying them over ``tumor3d/learned/models/unet_flair_seed{0,1}.npz``.
 """
 
 from __future__ import annotations
@@ -236,7 +236,7 @@ def train_flow(
             unet_settings = UNetSettings(**extra)
         except TypeError as exc:
             raise InputError(f"cnn_settings: {exc}") from None
-        if not cnn_seeds or len(set(cnn_seeds)) != len(cnn_seeds):
+        if len(cnn_seeds) == 0 or len(set(cnn_seeds)) != len(cnn_seeds):
             raise InputError(f"cnn_seeds: give distinct seeds, got {list(cnn_seeds)}")
         if not any(r.modality in UNET_MODALITIES for r in rows):
             raise InputError("--cnn: the U-Net trains on FLAIR patients and the manifest has none")

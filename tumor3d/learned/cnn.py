@@ -323,7 +323,9 @@ def unet_member_probabilities(
     """
     from tumor3d.learned.cnn_data import case_input, upsample
 
-    nets = (net,) if isinstance(net, UNetWeights) else tuple(net)
+    nets = (
+        (net,) if isinstance(net, UNetWeights) else tuple(net) if isinstance(net, Sequence) else ()
+    )
     if not nets or not all(isinstance(n, UNetWeights) for n in nets):
         raise InputError("net must be a UNetWeights or a non-empty sequence of them")
     img = np.asarray(image)

@@ -35,17 +35,24 @@ __all__ = [
 
 #: Limits beyond which a segmentation asks for a human, per kind of segmentation
 #: (:func:`review_kind`): ``with_net``, the forest's probability averaged with the
-#: U-Net ensemble's (FLAIR), and ``forest_alone`` (T2, T1c, ``segment.learned_cnn: off``:
-#: no network to judge). Chosen by cross-validation by patient
-#: (benchmarks/review_cv.py, reports/learned_cv.md): ``with_net`` on the shipped method's
-#: out-of-fold rows (``net_spread`` by a nested choice among the figure sets, over
-#: ``model_disagreement``), ``forest_alone``'s own limit (uncertain_ratio) on the
-#: forest's, the first two shared.
+#: U-Net ensemble's (FLAIR, as shipped), ``single_net``, averaged with one net (a
+#: user's own), and ``forest_alone`` (T2, T1c, ``segment.learned_cnn: off``: no network
+#: to judge). Chosen by cross-validation by patient (benchmarks/review_cv.py,
+#: reports/learned_cv.md): ``with_net`` on the shipped method's out-of-fold rows
+#: (``net_spread`` by a nested choice among the figure sets, over
+#: ``model_disagreement``), ``single_net`` on the single 8-epoch net's rows shipped
+#: before ("The review of the mean"), ``forest_alone``'s own limit (uncertain_ratio) on
+#: the forest's, the first two shared.
 REVIEW_LIMITS: dict[str, dict[str, float]] = {
     "with_net": {
         "mean_probability": 0.85,  # mean probability inside the lesion (below: check)
         "outside_ratio": 0.2,  # probability mass above 0.5 outside the kept lesion, per inside
         "net_spread": 0.08,  # mean (max - min) of the ensemble's nets' probabilities inside
+    },
+    "single_net": {
+        "mean_probability": 0.85,
+        "outside_ratio": 0.2,
+        "model_disagreement": 0.1,  # share of the lesion where |p_forest - p_net| > 0.5
     },
     "forest_alone": {
         "mean_probability": 0.85,
@@ -209,14 +216,25 @@ def review_features(
 def review_kind(figures: dict[str, float]) -> str:
     """The key of :data:`REVIEW_LIMITS` that judges ``figures``.
 
-    ``"with_net"`` when they hold the two models' disagreement (a number), else
+    ``"with_net"`` when they hold an ensemble's spread (a number), ``"single_net"``
+    when they hold the forest's and one net's disagreement only, else
     ``"forest_alone"``.
 
-    >>> review_kind({"model_disagreement": 0.1}), review_kind({"model_disagreement": float("nan")})
-    ('with_net', 'forest_alone')
+    >>> review_kind({"model_disagreement": 0.1, "net_spread": 0.02})
+    'with_net'
+    >>> review_kind({"model_disagreement": 0.1, "net_spread": float("nan")})
+    'single_net'
+    >>> review_kind({"model_disagreement": float("nan")})
+    'forest_alone'
     """
-    v = figures.get("model_disagreement")
-    return "with_net" if v is not None and np.isfinite(float(v)) else "forest_alone"
+
+    def number(name: str) -> bool:
+        v = figures.get(name)
+        return v is not None and bool(np.isfinite(float(v)))
+
+    if number("net_spread"):
+        return "with_net"
+    return "single_net" if number("model_disagreement") else "forest_alone"
 
 
 def review_segmentation(

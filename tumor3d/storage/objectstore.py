@@ -305,20 +305,25 @@ class ObjectStore(ArtifactStore):
         """
         try:
             entries = self.fs.find(self._key("tmp"), detail=True)
-        except (OSError, FileNotFoundError):
+        except Exception:  # housekeeping: an unlistable store is left as it is
             return []
         removed: list[str] = []
         now = time.time()
         for key, entry in entries.items():
-            modified = entry.get("LastModified") or entry.get("mtime")
-            if modified is None:  # no age to judge by: kept
+            modified = next(
+                (entry[k] for k in ("LastModified", "mtime", "updated", "last_modified")
+                 if entry.get(k) is not None),
+                None,
+            )  # fmt: skip
+            try:
+                stamp = modified.timestamp() if hasattr(modified, "timestamp") else float(modified)
+            except (TypeError, ValueError):  # no age to judge by (or one not read): kept
                 continue
-            stamp = modified.timestamp() if hasattr(modified, "timestamp") else float(modified)
             if now - stamp <= max_age_s:
                 continue
             try:
                 self.fs.rm_file(key)
-            except (OSError, FileNotFoundError):
+            except Exception:  # housekeeping: a key that cannot be removed is left as it is
                 continue
             removed.append(f"{self.url}/{key[len(self._base) + 1 :]}")
         return removed

@@ -140,8 +140,25 @@ def canonical_dumps(obj: Any) -> str:
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False)
 
 
-#: This machine, in temporary file names: 8 hex digits of its host name's SHA-256.
-HOST_TAG = hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
+def _host_identity() -> str:
+    """Who can ask this process's pids: the host name, this boot and the pid namespace.
+
+    Two machines of one name differ by their boot, two containers of one name by
+    their pid namespace; Linux's ``/proc`` gives those two, elsewhere the host name
+    alone.
+    """
+    parts = [socket.gethostname()]
+    try:
+        parts.append(Path("/proc/sys/kernel/random/boot_id").read_text().strip())
+        parts.append(str(os.stat("/proc/self/ns/pid").st_ino))
+    except OSError:
+        pass
+    return "\0".join(parts)
+
+
+#: This machine and pid namespace, in temporary file names: 8 hex digits of
+#: :func:`_host_identity`'s SHA-256. A writer of the same tag can be asked by pid.
+HOST_TAG = hashlib.sha256(_host_identity().encode()).hexdigest()[:8]
 
 #: A temporary file or upload whose writer cannot be asked (another machine's, an
 #: object store's) untouched for this long is a killed writer's (seconds; a write
@@ -274,10 +291,13 @@ class ArtifactStore:
 
         A process killed while writing an object (``kill -9``, a Dask worker
         lost mid-stage) cannot remove its temporary file. One is removed here
-        when it was written on this machine by a process that no longer
-        exists, or, when written elsewhere (a store shared over a network file
-        system), when untouched for ``max_age_s``. A live writer's file is
-        never touched; an object under its final name never is.
+        when it was written under this machine's and pid namespace's
+        :data:`HOST_TAG` by a process that no longer exists, or when untouched
+        for ``max_age_s`` (written elsewhere: a store shared over a network
+        file system; or its pid since reused). A live writer's file is never
+        touched; an object under its final name never is. Housekeeping: a file
+        that cannot be examined or removed (another user's, a read-only store)
+        is left as it is.
 
         Returns
         -------
@@ -286,22 +306,23 @@ class ArtifactStore:
         """
         removed: list[str] = []
         now = time.time()
-        for tmp in (self.root / "objects").glob("*/.*.tmp-*"):
+        try:
+            found = list((self.root / "objects").glob("*/.*.tmp-*"))
+        except OSError:
+            return removed
+        for tmp in found:
             m = _TMP_NAME.match(tmp.name)
             if m is None:
                 continue
-            if m["host"] == HOST_TAG:
-                stale = not process_alive(int(m["pid"]))
-            else:
-                try:
-                    stale = now - tmp.stat().st_mtime > max_age_s
-                except FileNotFoundError:  # renamed into place meanwhile
-                    continue
-            if stale:
-                try:
+            try:
+                stale = (
+                    m["host"] == HOST_TAG and not process_alive(int(m["pid"]))
+                ) or now - tmp.stat().st_mtime > max_age_s
+                if stale:
                     tmp.unlink()
-                except FileNotFoundError:
-                    continue
+            except OSError:  # renamed into place meanwhile, another user's, read-only
+                continue
+            if stale:
                 removed.append(str(tmp))
         return removed
 

@@ -179,7 +179,7 @@ def segment(
         }
         if cnn is not None:  # the U-Nets averaged with the forest: their files and SHA-256s
             review.update(
-                cnn_model=" + ".join(CNN_MODELS[modality.lower()]),
+                cnn_model=list(CNN_MODELS[modality.lower()]),  # in cnn_sha256's order
                 cnn_sha256=[n.sha256 for n in cnn],
             )
     return StageResult(
