@@ -738,6 +738,15 @@ def add_saved_run_arguments(
     ap.add_argument("--t1c-threshold", type=float, default=t1c_threshold)
 
 
+def saved_lesion(spec: CaseSpec, args, cfg) -> tuple[Prepared, np.ndarray]:
+    """A case prepared (``args.cache``) and its lesion cut again, as the run cut it
+    (:func:`_final_mask`), from the run's saved probability (``args.prob``)."""
+    p = cached_prepare(spec, cfg, True, args.cache)
+    with np.load(case_file(args.prob, spec.name)) as z:
+        prob = z["prob"].astype(np.float32)
+    return p, _final_mask(p, prob, args, cfg)
+
+
 def case_file(folder: str | Path, case: str) -> Path:
     """A case's ``.npz`` in ``folder`` (``--save-prob`` maps, feature scratch): the case name
     (``patient/sequence``) with ``/`` as ``__``."""

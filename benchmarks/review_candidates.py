@@ -42,12 +42,10 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from learned_cv import (  # noqa: E402
-    _final_mask,
     add_saved_run_arguments,
-    cached_prepare,
-    case_file,
     case_specs,
     phantom_specs,
+    saved_lesion,
 )
 
 from tumor3d.config import parse_config  # noqa: E402
@@ -118,10 +116,7 @@ def main(argv=None) -> int:
     rows = [r for r in json.loads(Path(args.rows).read_text()) if r["group"] != "phantom"]
     specs = {s.name: s for s in case_specs(data_dir()) + phantom_specs(0)}
     for r in rows:
-        p = cached_prepare(specs[r["case"]], cfg, True, args.cache)
-        with np.load(case_file(args.prob, r["case"])) as z:
-            prob = z["prob"].astype(np.float32)
-        lesion = _final_mask(p, prob, args, cfg)  # cut as the run cut it
+        p, lesion = saved_lesion(specs[r["case"]], args, cfg)  # cut as the run cut it
         r.update(candidate_figures(p.image.astype(np.float32), lesion, p.pixel_mm))
     err = np.abs([r["vol_err"] for r in rows])
     bad, good = err > 25, err <= 10

@@ -46,17 +46,15 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from learned_cv import (  # noqa: E402
-    _final_mask,
     add_saved_run_arguments,
-    cached_prepare,
-    case_file,
     case_specs,
     phantom_specs,
+    saved_lesion,
 )
 from review_candidates import REVIEW_FIGURES, auc  # noqa: E402
 
 from tumor3d.config import parse_config  # noqa: E402
-from tumor3d.learned.cnn import unet_from_bytes, unet_volume_probability  # noqa: E402
+from tumor3d.learned.cnn import unet_from_bytes, unet_member_probabilities  # noqa: E402
 from tumor3d.learned.review import review_segmentation  # noqa: E402
 from tumor3d.storage.manifest import data_dir  # noqa: E402
 
@@ -129,11 +127,8 @@ def main(argv=None) -> int:
         for k in sorted({r["fold"] for r in flair})
     }
     for r in flair:
-        p = cached_prepare(specs[r["case"]], cfg, True, args.cache)
-        with np.load(case_file(args.prob, r["case"])) as z:
-            prob = z["prob"].astype(np.float32)
-        lesion = _final_mask(p, prob, args, cfg)  # cut as the run cut it
-        p1, p2 = (unet_volume_probability(n, p.image) for n in nets[r["fold"]])
+        p, lesion = saved_lesion(specs[r["case"]], args, cfg)  # cut as the run cut it
+        p1, p2 = unet_member_probabilities(nets[r["fold"]], p.image)  # one pass each
         r.update(ensemble_figures(p1, p2, lesion))
         figs = {k: r[k] for k in ("mean_probability", "outside_ratio", "model_disagreement")}
         # flagged by the review before the ensemble's spread (its limits then)

@@ -51,6 +51,7 @@ from tumor3d.flows.patient import (
     prepare_brain_mask,
     prepare_segmentation,
     prepare_source,
+    sweep_killed_writers,
 )
 from tumor3d.segmentation.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
 from tumor3d.storage import bids
@@ -316,13 +317,7 @@ def cohort_flow(
         )
         futures = [pool.submit(contextvars.copy_context().run, lane, row) for row in rows]
         outcomes = [f.result() for f in futures]
-    try:  # temporary files of writers killed mid-stage (housekeeping: never fails the run)
-        swept = store.clean_stale_tmp()
-    except Exception as exc:  # noqa: BLE001
-        swept = []
-        logger.warning("could not sweep the store's temporary files: %s", exc)
-    if swept:
-        logger.info("removed %d temporary object file(s) of killed writers", len(swept))
+    sweep_killed_writers(store, logger)  # of writers killed mid-stage (a lost Dask worker)
     wall = time.perf_counter() - t0
     table = cohort_table([o.model_dump() for o in outcomes])
     markdown = cohort_markdown(

@@ -74,6 +74,7 @@ __all__ = [
     "run_stages",
     "run_notes",
     "run_stages_direct",
+    "sweep_killed_writers",
 ]
 
 
@@ -360,14 +361,24 @@ def patient_flow(
     )
     publish_patient_artifacts(result.report)
     logger.info("patient %s: published %s", source.patient_id, result.output_dir)
-    try:  # temporary files of an earlier run killed mid-write (housekeeping: never fails the run)
+    sweep_killed_writers(store, logger)  # an earlier run's, killed mid-write
+    return result
+
+
+def sweep_killed_writers(store: ArtifactStore, logger: Any) -> None:
+    """Remove the store's temporary files of writers killed mid-write, and say so.
+
+    Housekeeping at the end of a patient or cohort flow
+    (:meth:`~tumor3d.storage.store.ArtifactStore.clean_stale_tmp`): it never fails
+    the run; a sweep that cannot be made is one warning line.
+    """
+    try:
         swept = store.clean_stale_tmp()
     except Exception as exc:  # noqa: BLE001
-        swept = []
         logger.warning("could not sweep the store's temporary files: %s", exc)
+        return
     if swept:
         logger.info("removed %d temporary object file(s) of killed writers", len(swept))
-    return result
 
 
 def run_stages_direct(

@@ -50,6 +50,7 @@ from tumor3d.errors import InputError
 __all__ = [
     "META_KEY",
     "UNetWeights",
+    "as_nets",
     "conv2d",
     "decode_meta",
     "single_blas_thread",
@@ -307,6 +308,28 @@ def unet_probability(net: UNetWeights, images: np.ndarray, *, mirror: bool = Fal
     return p
 
 
+def as_nets(net: Any, *, name: str = "net") -> tuple[UNetWeights, ...]:
+    """``net`` (one U-Net or a sequence of them, an ensemble) as a tuple of nets.
+
+    Raises :class:`~tumor3d.errors.InputError` (one line, naming the argument
+    ``name``) for anything else, an empty sequence included.
+
+    >>> as_nets([], name="cnn")
+    Traceback (most recent call last):
+    ...
+    tumor3d.errors.InputError: cnn must be a UNetWeights or a non-empty sequence of them, got list
+    """
+    if isinstance(net, UNetWeights):
+        return (net,)
+    nets = tuple(net) if isinstance(net, Sequence) and not isinstance(net, str) else ()
+    if not nets or not all(isinstance(n, UNetWeights) for n in nets):
+        raise InputError(
+            f"{name} must be a UNetWeights or a non-empty sequence of them, "
+            f"got {type(net).__name__}"
+        )
+    return nets
+
+
 def unet_member_probabilities(
     net: UNetWeights | Sequence[UNetWeights], image: np.ndarray, *, mirror: bool = False
 ) -> np.ndarray:
@@ -323,11 +346,7 @@ def unet_member_probabilities(
     """
     from tumor3d.learned.cnn_data import case_input, upsample
 
-    nets = (
-        (net,) if isinstance(net, UNetWeights) else tuple(net) if isinstance(net, Sequence) else ()
-    )
-    if not nets or not all(isinstance(n, UNetWeights) for n in nets):
-        raise InputError("net must be a UNetWeights or a non-empty sequence of them")
+    nets = as_nets(net)
     img = np.asarray(image)
     if img.ndim != 3 or min(img.shape) < 1:
         raise InputError(f"image must be 3-D (z, y, x), got shape {img.shape}")
@@ -354,5 +373,4 @@ def unet_volume_probability(
     ensemble without it (one pass per net: as accurate by cross-validation,
     half the time; ``reports/learned_cv.md``, "A longer-trained U-Net").
     """
-    members = unet_member_probabilities(net, image, mirror=mirror)
-    return members[0] if len(members) == 1 else members.mean(axis=0, dtype=np.float32)
+    return unet_member_probabilities(net, image, mirror=mirror).mean(axis=0, dtype=np.float32)

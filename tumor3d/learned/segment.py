@@ -24,7 +24,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError
-from tumor3d.learned.cnn import UNetWeights, unet_member_probabilities
+from tumor3d.learned.cnn import UNetWeights, as_nets, unet_member_probabilities
 from tumor3d.learned.context import CONTEXT_NAMES, context_features
 from tumor3d.learned.features import FEATURE_NAMES, compute_features
 from tumor3d.learned.forest import ForestModel, predict_proba
@@ -159,26 +159,19 @@ def segment_learned(
                 "the model was trained on other features than this version of tumor3d "
                 "computes; retrain it (tumor3d train)"
             )
-    if cnn is not None and not (
-        isinstance(cnn, UNetWeights)
-        or (isinstance(cnn, Sequence) and cnn and all(isinstance(n, UNetWeights) for n in cnn))
-    ):
-        raise InputError(
-            f"cnn must be a UNetWeights, a non-empty sequence of them or None, "
-            f"got {type(cnn).__name__}"
-        )
+    nets = None if cnn is None else as_nets(cnn, name="cnn")
     args = (image, model, spacing_mm, modality, lr_axis, threshold, keep_fraction, prior)
     p_cnn = members = None
-    if cnn is None:
+    if nets is None:
         forest = _forest(*args)
         prob = forest.probability
     else:
         # the network holds the GIL little (matrix products, numpy): it runs beside the forest
         with ThreadPoolExecutor(1, thread_name_prefix="tumor3d-unet") as pool:
-            net = pool.submit(unet_member_probabilities, cnn, image)
+            net = pool.submit(unet_member_probabilities, nets, image)
             forest = _forest(*args)
             members = net.result()
-        p_cnn = members[0] if len(members) == 1 else members.mean(axis=0, dtype=np.float32)
+        p_cnn = members.mean(axis=0, dtype=np.float32)
         prob = (0.5 * (forest.probability + p_cnn)).astype(np.float32)
     mask = keep_main_lesion(
         prob, forest.threshold, keep_fraction=forest.keep_fraction, min_voxels=forest.min_voxels

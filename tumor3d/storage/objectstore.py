@@ -58,6 +58,7 @@ __all__ = [
     "default_store_location",
     "first_line",
     "is_url",
+    "modified_time",
     "open_fs",
     "open_store",
 ]
@@ -101,6 +102,27 @@ def open_store(location: str | os.PathLike[str]) -> ArtifactStore:
     if is_url(location):
         return ObjectStore(os.fspath(location))
     return ArtifactStore(location)
+
+
+def modified_time(entry: dict[str, Any]) -> float | None:
+    """An fsspec listing entry's modification time (seconds since the epoch), or None.
+
+    Back-ends name it differently: ``LastModified`` (s3fs), ``mtime`` (local),
+    ``updated`` (gcsfs), ``last_modified`` (adlfs); a value that is neither a
+    datetime nor a number reads as None.
+
+    >>> modified_time({"mtime": 12.5}), modified_time({"updated": "yesterday"})
+    (12.5, None)
+    """
+    for k in ("LastModified", "mtime", "updated", "last_modified"):
+        v = entry.get(k)
+        if v is None:
+            continue
+        try:
+            return float(v.timestamp()) if hasattr(v, "timestamp") else float(v)
+        except (TypeError, ValueError):
+            return None
+    return None
 
 
 def first_line(exc: BaseException) -> str:
@@ -310,16 +332,8 @@ class ObjectStore(ArtifactStore):
         removed: list[str] = []
         now = time.time()
         for key, entry in entries.items():
-            modified = next(
-                (entry[k] for k in ("LastModified", "mtime", "updated", "last_modified")
-                 if entry.get(k) is not None),
-                None,
-            )  # fmt: skip
-            try:
-                stamp = modified.timestamp() if hasattr(modified, "timestamp") else float(modified)
-            except (TypeError, ValueError):  # no age to judge by (or one not read): kept
-                continue
-            if now - stamp <= max_age_s:
+            stamp = modified_time(entry)
+            if stamp is None or now - stamp <= max_age_s:  # no age to judge by: kept
                 continue
             try:
                 self.fs.rm_file(key)

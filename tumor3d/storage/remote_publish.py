@@ -44,7 +44,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from tumor3d.storage.objectstore import check_reachable, first_line, open_fs
+from tumor3d.storage.objectstore import check_reachable, first_line, modified_time, open_fs
 from tumor3d.storage.store import STALE_TMP_S, StoreError
 
 __all__ = [
@@ -205,9 +205,8 @@ def _clean_stale_tmp(out: RemoteFolder, name: str, keep: str) -> None:
         top = key[len(out.key(TMP_PREFIX)) + 1 :].split("/", 1)[0]
         if top == keep or top.rsplit(".", 1)[0] != name:
             continue
-        modified = entry.get("LastModified") or entry.get("mtime")
-        stamp = modified.timestamp() if hasattr(modified, "timestamp") else float(modified or 0)
-        stale[top] = max(stale.get(top, 0.0), stamp)
+        stamp = modified_time(entry)
+        stale[top] = max(stale.get(top, 0.0), 0.0 if stamp is None else stamp)  # None: stale
     for top, stamp in stale.items():
         if now - stamp > STALE_TMP_S:
             try:
