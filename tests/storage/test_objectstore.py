@@ -204,6 +204,7 @@ def test_a_missing_bucket_is_refused_for_the_store_and_for_the_outputs(
         run_cohort(rows, "s3://no-such-bucket/out", workers=1, store_dir=tmp_path / "st")
     assert "s3://no-such-bucket/out" in str(exc.value)
     monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://127.0.0.1:{_free_port()}")
+    monkeypatch.setattr(objectstore, "S3_MAX_ATTEMPTS", 1)  # refused at any count (above)
     manifest = write_manifest(rows, tmp_path / "m.csv")
     res = CliRunner().invoke(
         app, ["cohort", str(manifest), "--out", f"s3://{BUCKET}/down-out", "--store",
@@ -356,9 +357,10 @@ def test_cohort_with_an_s3_store_matches_a_local_store_and_reruns_from_cache(
 @pytest.mark.usefixtures("prefect_harness")
 def test_dask_worker_processes_share_the_s3_store_and_its_cache(s3_endpoint, tmp_path):
     """Two Dask worker *processes* (--dask-workers 2): the store, the Prefect result
-    block and the endpoint from the environment reach them; a re-run on a new worker
-    process (one: each new process loads numpy, numba's kernels and Prefect afresh) finds
-    every stage's cache record there and is all hits."""
+    block and the endpoint from the environment reach them; a re-run in another process
+    than the workers that wrote (this one, on the local runner: a new worker process would
+    load numpy, numba's kernels and Prefect afresh for the same check) finds every stage's
+    cache record in the bucket and is all hits."""
     pytest.importorskip("prefect_dask", reason="prefect-dask not installed")
     from tumor3d.flows.dask_runner import DaskSpec
 
@@ -367,8 +369,9 @@ def test_dask_worker_processes_share_the_s3_store_and_its_cache(s3_endpoint, tmp
     first = run_cohort(rows, tmp_path / "o1", store_dir=url, dask=DaskSpec(n_workers=2))
     assert [p.status for p in first.patients] == ["ok", "ok"], [p.error for p in first.patients]
     assert not (tmp_path / "o1" / ".tumor3d-store").exists()
-    again = run_cohort(rows, tmp_path / "o2", store_dir=url, dask=DaskSpec(n_workers=1))
+    again = run_cohort(rows, tmp_path / "o2", store_dir=url, workers=1)
     assert again.workers == 1 and all(s.cached for p in again.patients for s in p.stages)
+    assert not (tmp_path / "o2" / ".tumor3d-store").exists()
 
 
 @pytest.mark.slow
