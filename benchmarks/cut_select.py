@@ -84,18 +84,20 @@ def objective(rows: list[dict], kind: str) -> tuple[float, float]:
     return round(float(0.5 * b + 0.5 * s), 12), err
 
 
-def nested_choice(by_set: dict[str, list[dict]], folds: list[int], kind: str):
-    """Per outer fold: the setting (a key of ``by_set``) chosen on the other folds' rows.
+def nested_choice(by_set: dict[str, list[dict]], folds: list[int], kind: str, score=None):
+    """Per outer fold: the setting (a key of ``by_set``) chosen on the other folds' rows
+    (by ``score(rows, kind)``: :func:`objective` unless given).
 
     >>> r = lambda f, g, d: {"fold": f, "group": g, "dice3d": d, "slice_dice": d, "vol_err": 0}
     >>> by = {"a": [r(0, "lgg", 0.9), r(1, "lgg", 0.1)], "b": [r(0, "lgg", 0.2), r(1, "lgg", 0.8)]}
     >>> nested_choice(by, [0, 1], "pooled3d")[0]
     {0: 'b', 1: 'a'}
     """
+    score = objective if score is None else score
     names = list(by_set)
     choice, inner = {}, {}
     for k in folds:
-        inner[k] = {n: objective([r for r in by_set[n] if r["fold"] != k], kind) for n in names}
+        inner[k] = {n: score([r for r in by_set[n] if r["fold"] != k], kind) for n in names}
         choice[k] = min(names, key=lambda n: (-inner[k][n][0], inner[k][n][1], names.index(n)))  # noqa: B023
     return choice, inner
 
@@ -136,15 +138,28 @@ def score_settings(rows_in: list[dict], prob_dir: Path, cache: str, cfg) -> dict
     return out
 
 
-def paired(after: list[dict], before: list[dict]) -> list[str]:
-    """Per group: paired change of the target figures, nested choice against the shipped cut."""
+def paired(
+    after: list[dict], before: list[dict], groups=REPORTED, *, wilcoxon_p: bool = False
+) -> list[str]:
+    """Per group: paired change of the target figures, nested choice against the shipped cut
+    (``wilcoxon_p``: each Dice change with its Wilcoxon signed-rank p)."""
+    from scipy.stats import wilcoxon
+
+    def pv(d: np.ndarray) -> str:
+        d = d[np.abs(d) > 1e-12]
+        if not wilcoxon_p:
+            return ""
+        return f" ({float(wilcoxon(d).pvalue):.2g})" if d.size >= 2 else " (nan)"
+
     b = {r["case"]: r for r in before}
+    p_head = " (p)" if wilcoxon_p else ""
     out = [
-        "| group | n | 3-D Dice change mean ± sd | better / worse by > 0.01 | per-slice Dice "
-        "change mean ± sd | slice recall change | slice spec. change | abs. volume error change |",
+        f"| group | n | 3-D Dice change mean ± sd{p_head} | better / worse by > 0.01 | per-slice "
+        f"Dice change mean ± sd{p_head} | slice recall change | slice spec. change | abs. volume "
+        "error change |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for g in REPORTED:
+    for g in groups:
         pr = [(r, b[r["case"]]) for r in after if r["group"] == g]
         if not pr:
             continue
@@ -154,9 +169,10 @@ def paired(after: list[dict], before: list[dict]) -> list[str]:
         sp = np.nanmean([x["spec"] - y["spec"] for x, y in pr])
         ve = np.nanmean([abs(x["vol_err"]) - abs(y["vol_err"]) for x, y in pr])
         out.append(
-            f"| {g} | {len(pr)} | {np.nanmean(d3):+.3f} ± {np.nanstd(d3):.3f} | "
+            f"| {g} | {len(pr)} | {np.nanmean(d3):+.3f} ± {np.nanstd(d3):.3f}{pv(d3)} | "
             f"{int(np.sum(d3 > 0.01))} / {int(np.sum(d3 < -0.01))} | "
-            f"{np.nanmean(ds):+.3f} ± {np.nanstd(ds):.3f} | {rc:+.3f} | {sp:+.3f} | {ve:+.1f} pt |"
+            f"{np.nanmean(ds):+.3f} ± {np.nanstd(ds):.3f}{pv(ds)} | {rc:+.3f} | {sp:+.3f} | "
+            f"{ve:+.1f} pt |"
         )
     return out
 
@@ -223,26 +239,37 @@ def grid_table(by_set: dict[str, list[dict]]) -> str:
     return "\n".join(out)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_scoring_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options of a script that scores settings on a saved run's maps (and this one's)."""
     ap.add_argument("--rows-in", help="the shipped run's learned_cv.py --json rows (folds)")
     ap.add_argument("--prob", help="the run's --save-prob folder")
     ap.add_argument("--cache", help="learned_cv.py's prepared-case cache")
     ap.add_argument("--config", default=str(ROOT / "configs" / "default.yaml"))
     ap.add_argument("--folds", type=int, default=5)
-    ap.add_argument("--objective", choices=("targets", "pooled3d"), default="targets")
     ap.add_argument("--scored", required=True, help="every setting's rows (JSON): read if there")
+
+
+def scored_settings(args, score) -> dict[str, list[dict]]:
+    """Every setting's rows: read from ``--scored`` if there, else ``score(rows_in, prob_dir,
+    cache, cfg)`` of the saved run, written there."""
+    if Path(args.scored).is_file():
+        return json.loads(Path(args.scored).read_text())
+    from tumor3d.config import parse_config
+
+    cfg = parse_config(Path(args.config).read_text(), source=args.config)
+    rows_in = json.loads(Path(args.rows_in).read_text())
+    by_set = score(rows_in, Path(args.prob), args.cache, cfg)
+    Path(args.scored).write_text(json.dumps(by_set, indent=1))
+    return by_set
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_scoring_arguments(ap)
+    ap.add_argument("--objective", choices=("targets", "pooled3d"), default="targets")
     args = ap.parse_args(argv)
     folds = list(range(args.folds))
-    if Path(args.scored).is_file():
-        by_set = json.loads(Path(args.scored).read_text())
-    else:
-        from tumor3d.config import parse_config
-
-        cfg = parse_config(Path(args.config).read_text(), source=args.config)
-        rows_in = json.loads(Path(args.rows_in).read_text())
-        by_set = score_settings(rows_in, Path(args.prob), args.cache, cfg)
-        Path(args.scored).write_text(json.dumps(by_set, indent=1))
+    by_set = scored_settings(args, score_settings)
     print(report(by_set, folds, args.objective))
     print()
     print(grid_table(by_set))
