@@ -107,14 +107,16 @@ def build_dataset(preps, folds, args) -> dict[str, np.ndarray]:
 # ---------------------------------------------------------------- training (torch venv)
 
 
+#: The options that are :class:`tumor3d.learned.cnn_train.UNetSettings` fields (the
+#: training workers get them all).
+TRAIN_OPTIONS = ("size", "context", "base", "levels", "epochs", "batch", "lr", "neg_ratio",
+                 "shift", "scale", "rotate_deg")  # fmt: skip
+
+
 def _settings(args):
     from tumor3d.learned.cnn_train import UNetSettings
 
-    return UNetSettings(
-        size=args.size, context=args.context, base=args.base, levels=args.levels,
-        epochs=args.epochs, batch=args.batch, lr=args.lr, neg_ratio=args.neg_ratio,
-        shift=args.shift,
-    )  # fmt: skip
+    return UNetSettings(**{k: getattr(args, k) for k in TRAIN_OPTIONS})
 
 
 def worker_final(args) -> int:
@@ -355,21 +357,7 @@ def train_final(preps, folds, args, work: Path) -> int:
         "FLAIR cut to 2 mm slabs every 5 mm (offsets "
         + ",".join(map(str, args.train_offsets))
         + ")",
-        "settings": {
-            k: getattr(args, k)
-            for k in (
-                "size",
-                "context",
-                "base",
-                "levels",
-                "epochs",
-                "batch",
-                "lr",
-                "neg_ratio",
-                "shift",
-                "train_offsets",
-            )
-        },
+        "settings": {k: getattr(args, k) for k in (*TRAIN_OPTIONS, "train_offsets")},
         "input": "tumor3d.learned.cnn_data.case_input(image, size, context)",
         "loss": "BCE + soft Dice; Adam (weight decay 1e-5), one-cycle lr (15 % warm-up)",
     }
@@ -389,7 +377,7 @@ def train_final(preps, folds, args, work: Path) -> int:
         "--threads",
         str(args.threads),
     ]
-    for opt in ("size", "context", "base", "levels", "epochs", "batch", "lr", "neg_ratio", "shift"):
+    for opt in TRAIN_OPTIONS:
         cmd += [f"--{opt.replace('_', '-')}", str(getattr(args, opt))]
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
     if subprocess.call(cmd, env=env):
@@ -435,6 +423,8 @@ def main(argv=None) -> int:
     ap.add_argument("--lr", type=float, default=3e-3)
     ap.add_argument("--neg-ratio", type=float, default=0.5)
     ap.add_argument("--shift", type=int, default=8, help="random shift (pixels at --size)")
+    ap.add_argument("--scale", type=float, default=0.0, help="random scaling within 1 +- this")
+    ap.add_argument("--rotate-deg", type=float, default=0.0, help="random rotation (degrees)")
     ap.add_argument(
         "--train-offsets",
         type=int,
@@ -540,17 +530,7 @@ def main(argv=None) -> int:
                 "--seed",
                 str(args.seed),
             ]
-            for opt in (
-                "size",
-                "context",
-                "base",
-                "levels",
-                "epochs",
-                "batch",
-                "lr",
-                "neg_ratio",
-                "shift",
-            ):
+            for opt in TRAIN_OPTIONS:
                 cmd += [f"--{opt.replace('_', '-')}", str(getattr(args, opt))]
             env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
             procs.append(subprocess.Popen(cmd, env=env))

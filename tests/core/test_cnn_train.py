@@ -80,6 +80,38 @@ def test_settings_the_network_cannot_take_are_refused():
         UNetSettings(size=36, levels=4)
     with pytest.raises(InputError, match="at least 1"):
         UNetSettings(epochs=0)
+    with pytest.raises(InputError, match="scale must lie in"):
+        UNetSettings(scale=0.5)
+    with pytest.raises(InputError, match="rotate_deg in"):
+        UNetSettings(rotate_deg=-1.0)
+
+
+def test_scaling_and_rotation_move_image_and_target_together():
+    """The training's scale / rotation augmentation against exact expectations: no change
+    at 0, ``torch.rot90`` at 90 degrees, a square's area times the zoom squared, and the
+    target moved with the image (a target that is the image's own mask stays its mask)."""
+    torch = pytest.importorskip("torch")
+    from tumor3d.learned.cnn_train import _scale_rotate
+
+    class Fixed:  # the draws: the largest value of each range, in order
+        def __init__(self, *values):
+            self.values = list(values)
+
+        def uniform(self, lo, hi, n):
+            return np.full(n, self.values.pop(0))
+
+    gen = torch.Generator().manual_seed(0)
+    x = torch.rand(3, 3, 16, 16, generator=gen)
+    y = (x[:, 1] > 0.5).float()
+    same_x, same_y = _scale_rotate(torch, x, y, Fixed(1.0, 0.0), 0.0, 0.0)
+    assert float((same_x - x).abs().max()) < 1e-5 and float((same_y - y).abs().max()) < 1e-5
+    rx, ry = _scale_rotate(torch, x, y, Fixed(1.0, 90.0), 0.0, 90.0)
+    assert float((rx - torch.rot90(x, 1, (-2, -1))).abs().max()) < 1e-5
+    assert torch.equal((rx[:, 1] > 0.5).float(), (ry > 0.5).float())
+    square = torch.zeros(1, 32, 32)
+    square[0, 8:24, 8:24] = 1.0
+    _, zoomed = _scale_rotate(torch, torch.zeros(1, 1, 32, 32), square, Fixed(1.2, 0.0), 0.2, 0)
+    assert abs(float(zoomed.sum() / square.sum()) - 1.2**2) < 0.02
 
 
 def test_a_file_without_metadata_has_none():

@@ -59,8 +59,10 @@ class UNetSettings:
     ``size``: slices resampled to ``size`` x ``size``; ``context``: neighbour
     slices each side as channels; ``base``: channels at the top level, doubled
     per level; ``levels``: resolution levels; then the training's epochs,
-    batch, peak learning rate, slices without tumour per slice with, and the
-    largest random shift in pixels.
+    batch, peak learning rate, slices without tumour per slice with, the
+    largest random shift in pixels, and the random in-plane scaling (a factor
+    within ``1 +- scale``) and rotation (within ``+- rotate_deg`` degrees) of
+    each slice, both 0 (none) in the shipped training.
     """
 
     size: int = 128
@@ -72,6 +74,8 @@ class UNetSettings:
     lr: float = 3e-3
     neg_ratio: float = 0.5
     shift: int = 8
+    scale: float = 0.0
+    rotate_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.size % 2 ** (self.levels - 1):
@@ -84,6 +88,8 @@ class UNetSettings:
                 raise InputError(f"U-Net {name} must be at least 1")
         if self.context < 0 or self.shift < 0 or self.lr <= 0 or self.neg_ratio < 0:
             raise InputError("U-Net context, shift and neg_ratio must be >= 0, lr > 0")
+        if not (0.0 <= self.scale < 0.5 and 0.0 <= self.rotate_deg <= 45.0):
+            raise InputError("U-Net scale must lie in [0, 0.5) and rotate_deg in [0, 45]")
 
 
 @dataclass
@@ -199,6 +205,28 @@ def torch_unet(in_channels: int, base: int, levels: int) -> Any:
     return UNet()
 
 
+def _scale_rotate(torch: Any, xb: Any, yb: Any, rng: Any, scale: float, rotate_deg: float):
+    """Each slice of a batch scaled and rotated about its centre (bilinear).
+
+    ``xb`` ``(n, c, s, s)``, targets ``yb`` ``(n, s, s)``: a factor within ``1 +- scale``
+    and an angle within ``+- rotate_deg``; the image's border value outside it, no tumour
+    outside the target.
+    """
+    F = torch.nn.functional
+    n = xb.shape[0]
+    zoom = rng.uniform(1.0 - scale, 1.0 + scale, n)
+    angle = np.deg2rad(rng.uniform(-rotate_deg, rotate_deg, n))
+    c, si = np.cos(angle) / zoom, np.sin(angle) / zoom  # output -> input coordinates
+    theta = np.zeros((n, 2, 3), np.float32)
+    theta[:, 0, 0], theta[:, 0, 1], theta[:, 1, 0], theta[:, 1, 1] = c, -si, si, c
+    grid = F.affine_grid(torch.from_numpy(theta), list(xb.shape), align_corners=False)
+    xb = F.grid_sample(xb, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    yb = F.grid_sample(
+        yb[:, None], grid, mode="bilinear", padding_mode="zeros", align_corners=False
+    )
+    return xb, yb[:, 0]
+
+
 def fit_unet(
     x: np.ndarray,
     y: np.ndarray,
@@ -253,6 +281,8 @@ def fit_unet(
             g = torch.from_numpy(rng.uniform(0.9, 1.1, (len(b), 1, 1, 1)).astype(np.float32))
             o = torch.from_numpy(rng.uniform(-0.1, 0.1, (len(b), 1, 1, 1)).astype(np.float32))
             xb = xb * g + o
+            if s.scale or s.rotate_deg:  # drawn only then: the default stream is unchanged
+                xb, yb = _scale_rotate(torch, xb, yb, rng, s.scale, s.rotate_deg)
             logit = model(xb)
             p = torch.sigmoid(logit)
             inter = (p * yb).sum()
