@@ -57,7 +57,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-GROUP_CODE = {"lgg": 0, "brats_flair": 1}
+#: ``--groups`` (default: the FLAIR ones, the shipped net's); ``brats_t2``: the BraTS T2 slabs
+#: in the training and the scoring too (a FLAIR + T2 net).
+GROUP_CODE = {"lgg": 0, "brats_flair": 1, "brats_t2": 2}
 #: Fold k's net starts from seed ``k + FOLD_SEED_STEP * --seed`` (``--seed 0``: seed k).
 FOLD_SEED_STEP = 1000
 
@@ -299,7 +301,12 @@ def score_folds(preps, folds, run_folds, case_of, train_only, args, cfg):
             if args.forest_prob:
                 f = L.case_file(args.forest_prob, p.spec.name)
                 with np.load(f, allow_pickle=False) as z:
-                    pf = z[args.forest_key].astype(np.float32)
+                    # a case the shipped run segmented with the forest alone (T2) saved its
+                    # map as ``prob`` only: that map is the forest's
+                    key = args.forest_key if args.forest_key in z.files else "prob"
+                    if key == "prob" and "cnn" in z.files:
+                        raise SystemExit(f"{f} has no {args.forest_key!r} map")
+                    pf = z[key].astype(np.float32)
                 scored(p, pf, k, forest_rows, "forest")
                 scored(p, 0.5 * (pr + pf), k, mean_rows, "mean")
     return rows, forest_rows, mean_rows
