@@ -239,6 +239,15 @@ def paired_table(cnn_rows: list[dict], other_rows: list[dict], name: str, new: s
             f"{int(np.sum(ea <= 10))} / {int(np.sum(ea > 25))} | "
             f"{int(np.sum(eb <= 10))} / {int(np.sum(eb > 25))} | | | |"
         )
+    pooled = [(other[r["case"]]["dice3d"], r["dice3d"]) for r in cnn_rows if r["case"] in other]
+    if len({r["group"] for r in cnn_rows if r["case"] in other}) > 1:
+        a, b = np.array(pooled, float).T
+        diff = b - a
+        lines.append(
+            f"| pooled | {len(a)} | 3-D Dice | {a.mean():.4f} | {b.mean():.4f} | "
+            f"{diff.mean():+.4f} ± {diff.std():.3f} | {int(np.sum(diff > 0.01))} / "
+            f"{int(np.sum(diff < -0.01))} | {wilcoxon(a, b).pvalue:.3g} |"
+        )
     return "\n".join(lines)
 
 
@@ -304,7 +313,7 @@ def score_folds(preps, folds, run_folds, case_of, train_only, args, cfg):
                     # a case the shipped run segmented with the forest alone (T2) saved its
                     # map as ``prob`` only: that map is the forest's
                     key = args.forest_key if args.forest_key in z.files else "prob"
-                    if key == "prob" and "cnn" in z.files:
+                    if key != args.forest_key and "cnn" in z.files:
                         raise SystemExit(f"{f} has no {args.forest_key!r} map")
                     pf = z[key].astype(np.float32)
                 scored(p, pf, k, forest_rows, "forest")
@@ -343,6 +352,15 @@ def time_numpy_forward(weights: Path, args, repeats: int = 3) -> dict:
     return best
 
 
+def _sequences(groups) -> list[str]:
+    """The sequences the ``--groups`` hold, for the final net's metadata.
+
+    >>> _sequences(["lgg", "brats_flair", "brats_t2"])
+    ['FLAIR', 'T2']
+    """
+    return ["FLAIR"] + (["T2"] if "brats_t2" in groups else [])
+
+
 def train_final(preps, folds, args, work: Path) -> int:
     """``--final``: the dataset of every case (all folds), one torch worker, a check."""
     t0 = time.perf_counter()
@@ -350,8 +368,9 @@ def train_final(preps, folds, args, work: Path) -> int:
     np.savez(work / "data.npz", **d)
     print(f"dataset {d['x'].shape} in {time.perf_counter() - t0:.0f} s", flush=True)
     groups = {g: sorted({p.spec.patient for p in preps if p.spec.group == g}) for g in args.groups}
+    seqs = _sequences(args.groups)
     meta = {
-        "model": "tumor3d 2-D U-Net, FLAIR (benchmarks/cnn_cv.py --final)",
+        "model": f"tumor3d 2-D U-Net, {' + '.join(seqs)} (benchmarks/cnn_cv.py --final)",
         "trained_on": {
             g: {
                 "cases": sum(p.spec.group == g for p in preps),
@@ -360,8 +379,9 @@ def train_final(preps, folds, args, work: Path) -> int:
             }
             for g in args.groups
         },
-        "data": "lgg: clinical FLAIR heads at their native slices; brats_flair: BraTS 2018 "
-        "FLAIR cut to 2 mm slabs every 5 mm (offsets "
+        "data": "lgg: clinical FLAIR heads at their native slices; brats_flair"
+        + (" and brats_t2: BraTS 2018 FLAIR and T2" if "T2" in seqs else ": BraTS 2018 FLAIR")
+        + " cut to 2 mm slabs every 5 mm (offsets "
         + ",".join(map(str, args.train_offsets))
         + ")",
         "settings": {k: getattr(args, k) for k in (*TRAIN_OPTIONS, "train_offsets")},

@@ -15,8 +15,9 @@ pipeline cut):
 
 * ``low`` in {none (shipped), 0.4, 0.3, 0.2};
 * the growth 26-connected in 3-D (it may reach slices the cut missed), or in-plane
-  only (8-connected, inside the slices the lesion already has: the slices found and
-  the slice specificity cannot change).
+  only (8-connected, inside the slices the lesion already has; a slice mask under
+  ``segment.min_tumor_pixels``, cleared after the growth as before it, may grow past
+  that limit and be kept, so the slices found can still change a little).
 
 Two families, chosen apart (their maps differ): FLAIR (forest + U-Net mean; the
 objective of ``cut_select.py``: 0.5 BraTS FLAIR 3-D Dice + 0.5 LGG per-slice Dice)
