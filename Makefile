@@ -27,7 +27,8 @@ demo: setup
 # and burn little (tests/conftest.py). Measured (issue 31 item 7): .ci/run on clean clones
 # on 2 quiet cores (load ~1, 2026-12-05) 284-322 s of pytest (median 302 s of 9 runs),
 # 6.6-7.4 min in all; with other jobs on the cores (load 2 or more) 297-333 s; after 273033f
-# (two waits trimmed) 295.7 and 295.5 s, 6.9 min in all (1,736 tests). This shared machine's speed moves
+# (two waits trimmed) 295.5-321.3 s in four runs (295.5, 295.7, 296.5, 321.3), 6.9-7.4 min in all
+# (1,736 tests). This shared machine's speed moves
 # by ~12 % within a day: compare runs made back to back (-5.5 % for c7b64e4 against
 # 7e83123 in alternating runs). TEST_WORKERS=3 was no faster (322 s against 320 s).
 TEST_WORKERS ?= 2
