@@ -191,9 +191,36 @@ def worker(args) -> int:
 # ---------------------------------------------------------------- scoring (project venv)
 
 
-def paired_table(cnn_rows: list[dict], other_rows: list[dict], name: str, new: str) -> str:
+def _metric_line(g: str, pairs: list, key: str, label: str, digits: int = 3) -> str:
+    """One row of :func:`paired_table`: ``key`` of the (other, new) row ``pairs`` of ``g``."""
     from scipy.stats import wilcoxon
 
+    def val(r):
+        return abs(r["vol_err"]) if key == "abs_vol_err" else r[key]
+
+    a = np.array([val(o) for o, _ in pairs], float)
+    b = np.array([val(c) for _, c in pairs], float)
+    ok = np.isfinite(a) & np.isfinite(b)
+    a, b = a[ok], b[ok]
+    diff = b - a
+    tol = 1.0 if key == "abs_vol_err" else 0.01  # a change smaller counts as none
+    better = int(np.sum(diff < -tol)) if key == "abs_vol_err" else int(np.sum(diff > tol))
+    worse = int(np.sum(diff > tol)) if key == "abs_vol_err" else int(np.sum(diff < -tol))
+    try:
+        pval = f"{wilcoxon(a, b).pvalue:.3g}" if np.any(diff != 0) else "1"
+    except ValueError:
+        pval = "n/a"
+    d = digits
+    return (
+        f"| {g} | {len(a)} | {label} | {a.mean():.{d}f} ± {a.std():.3f} ({np.median(a):.{d}f})"
+        f" | {b.mean():.{d}f} ± {b.std():.3f} ({np.median(b):.{d}f})"
+        f" | {diff.mean():+.{d}f} ± {diff.std():.3f} | {better} / {worse} | {pval} |"
+    )
+
+
+def paired_table(cnn_rows: list[dict], other_rows: list[dict], name: str, new: str) -> str:
+    """Per group, each target figure paired (``other_rows`` -> ``cnn_rows``); with more
+    than one group, a last row of the pooled 3-D Dice."""
     other = {r["case"]: r for r in other_rows}
     lines = [
         f"| group | n | metric | {name} mean ± sd (median) | {new} mean ± sd (median) | "
@@ -211,27 +238,7 @@ def paired_table(cnn_rows: list[dict], other_rows: list[dict], name: str, new: s
             ("spec", "slice specificity"),
             ("abs_vol_err", "abs. volume error %"),
         ):
-
-            def val(r, key=key):
-                return abs(r["vol_err"]) if key == "abs_vol_err" else r[key]
-
-            a = np.array([val(o) for o, _ in pairs], float)
-            b = np.array([val(c) for _, c in pairs], float)
-            ok = np.isfinite(a) & np.isfinite(b)
-            a, b = a[ok], b[ok]
-            diff = b - a
-            tol = 1.0 if key == "abs_vol_err" else 0.01  # a change smaller counts as none
-            better = int(np.sum(diff < -tol)) if key == "abs_vol_err" else int(np.sum(diff > tol))
-            worse = int(np.sum(diff > tol)) if key == "abs_vol_err" else int(np.sum(diff < -tol))
-            try:
-                pval = f"{wilcoxon(a, b).pvalue:.3g}" if np.any(diff != 0) else "1"
-            except ValueError:
-                pval = "n/a"
-            lines.append(
-                f"| {g} | {len(a)} | {label} | {a.mean():.3f} ± {a.std():.3f} ({np.median(a):.3f})"
-                f" | {b.mean():.3f} ± {b.std():.3f} ({np.median(b):.3f})"
-                f" | {diff.mean():+.3f} ± {diff.std():.3f} | {better} / {worse} | {pval} |"
-            )
+            lines.append(_metric_line(g, pairs, key, label))
         ea = np.array([abs(o["vol_err"]) for o, _ in pairs])
         eb = np.array([abs(c["vol_err"]) for _, c in pairs])
         lines.append(
@@ -239,15 +246,9 @@ def paired_table(cnn_rows: list[dict], other_rows: list[dict], name: str, new: s
             f"{int(np.sum(ea <= 10))} / {int(np.sum(ea > 25))} | "
             f"{int(np.sum(eb <= 10))} / {int(np.sum(eb > 25))} | | | |"
         )
-    pooled = [(other[r["case"]]["dice3d"], r["dice3d"]) for r in cnn_rows if r["case"] in other]
-    if len({r["group"] for r in cnn_rows if r["case"] in other}) > 1:
-        a, b = np.array(pooled, float).T
-        diff = b - a
-        lines.append(
-            f"| pooled | {len(a)} | 3-D Dice | {a.mean():.4f} | {b.mean():.4f} | "
-            f"{diff.mean():+.4f} ± {diff.std():.3f} | {int(np.sum(diff > 0.01))} / "
-            f"{int(np.sum(diff < -0.01))} | {wilcoxon(a, b).pvalue:.3g} |"
-        )
+    pooled = [(other[r["case"]], r) for r in cnn_rows if r["case"] in other]
+    if len({r["group"] for _, r in pooled}) > 1:
+        lines.append(_metric_line("pooled", pooled, "dice3d", "3-D Dice", digits=4))
     return "\n".join(lines)
 
 

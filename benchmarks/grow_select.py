@@ -47,6 +47,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from cnn_select import group_line  # noqa: E402  (the same table row)
 from cut_select import add_scoring_arguments, nested_choice, paired, scored_settings  # noqa: E402
 
+from tumor3d.imaging.preprocess import fill_holes_per_slice  # noqa: E402
+
 LOWS = (None, 0.4, 0.3, 0.2)  # None: the shipped lesion
 MODES = ("3d", "2d")
 SETTINGS = ((None, "-"),) + tuple((lo, m) for lo in LOWS[1:] for m in MODES)
@@ -81,9 +83,7 @@ def grow(mask: np.ndarray, prob: np.ndarray, low: float, mode: str) -> np.ndarra
             labels, _ = ndi.label(above[z], structure=np.ones((3, 3), bool))
             keep = np.unique(labels[mask[z]])
             out[z] = np.isin(labels, keep[keep > 0])
-    for z in np.flatnonzero(out.any(axis=(1, 2))):
-        out[z] = ndi.binary_fill_holes(out[z])
-    return out
+    return fill_holes_per_slice(out)
 
 
 def family_of(group: str) -> str | None:
