@@ -85,12 +85,19 @@ def _figures(r: dict, measures) -> dict:
     return fig
 
 
+def empty_results(rows: list[dict]) -> np.ndarray:
+    """Rows whose segmentation is empty: flagged whatever the limits, as the run's status
+    flags them (:func:`tumor3d.segmentation.review.run_notes`: no tumour found asks a
+    human to confirm there is none)."""
+    return np.array([float(r["est_ml"]) == 0.0 for r in rows], bool)
+
+
 def flags(rows: list[dict], limits: dict) -> np.ndarray:
     """``needs_review`` of each row judged by ``limits`` alone (review_segmentation's own:
-    the row's other figures are not given to it, so its other limits do not apply)."""
-    return np.array(
-        [review_segmentation(_figures(r, limits), limits).needs_review for r in rows], bool
-    )
+    the row's other figures are not given to it, so its other limits do not apply), or
+    an empty result (:func:`empty_results`)."""
+    judged = [review_segmentation(_figures(r, limits), limits).needs_review for r in rows]
+    return np.array(judged, bool) | empty_results(rows)
 
 
 def _beyond(v: np.ndarray, limit: float, side: str) -> np.ndarray:
@@ -101,6 +108,7 @@ def _beyond(v: np.ndarray, limit: float, side: str) -> np.ndarray:
 def _flag_matrix(rows: list[dict], measures: tuple[str, ...], combos: np.ndarray) -> np.ndarray:
     """Flags (combination x row) of every combination of grid indices, vectorised."""
     out = np.zeros((len(combos), len(rows)), bool)
+    out |= empty_results(rows)[None, :]
     for j, name in enumerate(measures):
         v = _values(rows, name)
         side = REVIEW_CHECKS[name][0]

@@ -122,6 +122,9 @@ def test_evaluate_scores_the_phantom_commands_own_manifest(tmp_path, evaluated):
     df = pd.read_parquet(tmp_path / "ev" / "evaluation.parquet").set_index("patient_id")
     assert list(df.index) == ["phantom000", "phantom001n"]
     assert set(df["status"]) == {"ok"} and set(df["reference_kind"]) == {"truth", "tumor_free"}
+    # evaluated, and the tumour-free run asks to confirm its empty result (run_status)
+    assert df.loc["phantom001n", "run_status"] == "check"
+    assert df.loc["phantom001n", "notes"].startswith("no tumour found: confirm")
     report = (tmp_path / "ev" / "REPORT.md").read_text()
     table2 = report.split("## Table 2")[1].split("## Table 3")[0]
     table3 = report.split("## Table 3")[1].split("\n## ")[0]

@@ -220,8 +220,9 @@ def test_tumour_free_patient_writes_no_empty_mesh_and_says_so(tmp_path):
     assert "no tumour found" in metrics["notes"]
     assert "no tumour found" in json.loads((folder / "provenance.json").read_text())["notes"][0]
     assert result.notes and "no tumour found" in result.notes[0]
-    # no tumour is a finding, not a doubt: the status stays ok
-    assert metrics["status"] == "ok" and not metrics["needs_review"]
+    # an empty result asks a human to confirm there is none (a missed tumour looks the same)
+    assert metrics["status"] == "check" and metrics["needs_review"]
+    assert metrics["review_reasons"].startswith("no tumour found: confirm")
 
 
 def test_tumour_cut_by_the_end_of_the_scan_is_named_in_the_notes(tmp_path, first_run):

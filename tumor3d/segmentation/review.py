@@ -10,9 +10,11 @@ command's exit code):
   size or coverage makes the volume unreliable, input files skipped as
   unreadable, or a segmentation method that asks for review itself
   (``needs_review`` with ``review_reasons`` and ``quality_score`` in the
-  segment-tumor stage's values);
+  segment-tumor stage's values), or no tumour found (no method can tell a
+  tumour it missed from none: a scan sent to be measured asks a human to
+  confirm that there is none);
 * ``ok`` -- it completed and nothing asks for a human. Informational notes
-  (no tumour found, a brain mask given by the user) do not change it.
+  (a brain mask or a segmentation given by the user) do not change it.
 
 A result is never ``ok`` when the tool itself doubts it.
 
@@ -43,8 +45,11 @@ STATUS_FAILED = "failed"
 #: Every status, from best to worst.
 STATUSES = (STATUS_OK, STATUS_CHECK, STATUS_FAILED)
 
-#: The note of a run that found no tumour (a finding, not a doubt).
-NO_TUMOUR_NOTE = "no tumour found: no mesh and no render written"
+#: The note of a run that found no tumour: a doubt (the status is ``check``), since
+#: an empty result on a scan sent to be measured cannot tell a missed tumour from none.
+NO_TUMOUR_NOTE = (
+    "no tumour found: confirm on the slices that there is none (no mesh and no render written)"
+)
 
 
 @dataclass(frozen=True)
@@ -170,9 +175,9 @@ def run_notes(
     """A run's notes, in their fixed order, and those of them that doubt the result.
 
     Every note is shown (summary, metrics, provenance, report); the doubts
-    (segmentation caveats, files skipped as unreadable, notes on the brain
-    mask's size or coverage) are :func:`review_status`'s ``caveats``. "No
-    tumour found" and "brain mask given" inform; they do not doubt.
+    (no tumour found, segmentation caveats, files skipped as unreadable, notes
+    on the brain mask's size or coverage) are :func:`review_status`'s
+    ``caveats``. "Brain mask given" informs; it does not doubt.
 
     Returns
     -------
@@ -180,8 +185,11 @@ def run_notes(
 
     Examples
     --------
-    >>> run_notes(tumour_found=False, brain_mask_note="brain mask given (m.nii)")
-    (['no tumour found: no mesh and no render written', 'brain mask given (m.nii)'], [])
+    >>> notes, doubts = run_notes(tumour_found=False, brain_mask_note="brain mask given (m.nii)")
+    >>> [n[:15] for n in notes], [d[:15] for d in doubts]
+    (['no tumour found', 'brain mask give'], ['no tumour found'])
+    >>> run_notes(tumour_found=True, brain_mask_note="brain mask given (m.nii)")
+    (['brain mask given (m.nii)'], [])
     """
     caveat_list = _words(caveats, "caveats")
     skipped = [str(f) for f in skipped_files]
@@ -189,9 +197,9 @@ def run_notes(
         [f"skipped {len(skipped)} unreadable file(s): {', '.join(skipped)}"] if skipped else []
     )
     brain = _words(brain_notes, "brain_notes")
-    notes = [] if tumour_found else [NO_TUMOUR_NOTE]
-    notes += caveat_list + skipped_note
+    none = [] if tumour_found else [NO_TUMOUR_NOTE]
+    notes = none + caveat_list + skipped_note
     if brain_mask_note:
         notes.append(brain_mask_note)
     notes += brain
-    return notes, caveat_list + skipped_note + brain
+    return notes, none + caveat_list + skipped_note + brain
