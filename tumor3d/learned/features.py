@@ -22,6 +22,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError
+from tumor3d.imaging.preprocess import fill_holes_per_slice
 
 __all__ = [
     "FEATURE_NAMES",
@@ -132,11 +133,7 @@ def tissue_foreground(image: np.ndarray) -> np.ndarray:
         return tissue
     sizes = np.bincount(labels.ravel())
     sizes[0] = 0
-    tissue = labels == int(np.argmax(sizes))
-    out = np.empty_like(tissue)
-    for z in range(tissue.shape[0]):
-        out[z] = ndi.binary_fill_holes(tissue[z])
-    return out
+    return fill_holes_per_slice(labels == int(np.argmax(sizes)))
 
 
 #: Depth (mm) below the tissue's surface beyond which a head holds brain only (the

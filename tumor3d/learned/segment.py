@@ -24,6 +24,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError
+from tumor3d.imaging.preprocess import fill_holes_per_slice
 from tumor3d.learned.cnn import UNetWeights, as_nets, unet_member_probabilities
 from tumor3d.learned.context import CONTEXT_NAMES, context_features
 from tumor3d.learned.features import FEATURE_NAMES, compute_features
@@ -98,10 +99,7 @@ def keep_main_lesion(
     if mass.max() <= 0:
         return np.zeros_like(above)
     keep = ids[mass >= float(keep_fraction) * mass.max()]
-    mask = np.isin(labels, keep)
-    for z in np.flatnonzero(mask.any(axis=(1, 2))):
-        mask[z] = ndi.binary_fill_holes(mask[z])
-    return mask
+    return fill_holes_per_slice(np.isin(labels, keep))
 
 
 def segment_learned(
