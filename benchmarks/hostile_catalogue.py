@@ -787,9 +787,11 @@ def no_empty_meshes_without_tumour(tmp: Path):
         make_phantom_patient(4, patient_id="free4", n_slices=12, tumor=False), tmp / "in"
     )
     res = _cli("run", row.image, "--out", tmp / "o", "--patient-id", "free4")
-    ok = res.exit_code == 0 and not (tmp / "o" / "free4" / "tumor.ply").exists()
-    ok = ok and "no tumour found" in res.output
-    return ok, f"exit {res.exit_code}; tumor.ply absent: {ok}"
+    absent = not (tmp / "o" / "free4" / "tumor.ply").exists()
+    # an empty result is status check (exit 4): a human confirms there is none
+    asks = "no tumour found: confirm" in " ".join(res.output.split())
+    ok = res.exit_code == 4 and absent and asks
+    return ok, f"exit {res.exit_code}; tumor.ply absent: {absent}; asks to confirm: {asks}"
 
 
 @item("everyday use")
