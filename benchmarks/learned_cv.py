@@ -1043,7 +1043,10 @@ def _group_figures(rs: list[dict]) -> dict:
 
 
 def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
+    from tumor3d.api import _brain_notes, segmentation_values
+    from tumor3d.imaging.preprocess import tissue_slice_count
     from tumor3d.segmentation.detect import detect_abnormal_slices
+    from tumor3d.segmentation.review import run_notes, segmentation_review
     from tumor3d.segmentation.segment import segment_tumor
 
     out = []
@@ -1070,6 +1073,20 @@ def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
         )
         row = score(p, seg.tumor_mask, cfg)
         row["fold"] = -1
+        # what would make the run's status "check" (tumor3d.api.reconstruct_scan's rule: the
+        # segmentation's caveats, the brain mask's notes, no tumour found): a rule-based
+        # method's review, judged by review_cv.py --default-rows
+        _, row["doubts"] = run_notes(
+            tumour_found=bool(seg.tumor_mask.any()),
+            caveats=seg.caveats,
+            brain_notes=_brain_notes(
+                pre.brain_mask,
+                tuple(p.spacing_mm),
+                str(pre.brain_extraction),
+                tissue_slice_count(pre.original_u8),
+            ),
+        )
+        row["doubts"] += list(segmentation_review(segmentation_values(seg))[1])
         out.append(row)
         print(
             f"  {row['case']}: slice {row['slice_dice']:.3f} 3d {row['dice3d']:.3f} "

@@ -34,6 +34,8 @@ Usage::
     python benchmarks/review_cv.py rows.json --measures uncertain_ratio mean_probability \\
         outside_ratio prior_agreement          # the limits judged before model_disagreement
     python benchmarks/review_cv.py learned.json --forest-alone forest.json   # as shipped
+    python benchmarks/review_cv.py learned.json --forest-alone forest.json \
+        --default-rows auto_t2.json          # the default's T2 (robust) by its own doubts
     python benchmarks/review_cv.py learned.json --forest-alone forest.json \\
         --nested-alone uncertain_ratio prior_agreement uncertain_ratio,prior_agreement
 """
@@ -243,16 +245,28 @@ def _split_flags(rows: list[dict], net: dict, alone: dict) -> np.ndarray:
     return np.array([flags([r], net if _has_net(r) else alone)[0] for r in rows], bool)
 
 
+def doubt_flags(rows: list[dict]) -> np.ndarray:
+    """A rule-based method's rows (``learned_cv.py --method``): flagged when the run's
+    status would be ``check`` (their ``doubts``: caveats, brain-mask notes, no tumour)."""
+    return np.array([bool(r.get("doubts")) for r in rows], bool) | empty_results(rows)
+
+
 def cross_validate_split(
     rows: list[dict],
     forest_rows: list[dict],
     net_measures: tuple[str, ...] | None = None,
     extra: tuple[str, ...] | None = None,
+    default_rows: list[dict] | None = None,
 ) -> dict:
     """The two kinds' limits chosen fold by fold (the module docstring), judged on the
     held-out fold. Returns ``lines``, ``all``/``real`` (the shipped rows, as
     :func:`cross_validate`), ``alone_all``/``alone_real`` (the forest-alone rows),
-    ``fold_limits`` and ``final`` (``{"with_net": ..., "forest_alone": ...}`` on every case)."""
+    ``fold_limits`` and ``final`` (``{"with_net": ..., "forest_alone": ...}`` on every case).
+
+    ``default_rows``: the rows of the cases where the default (``segment.method: auto``)
+    runs another method than the learned one (the robust method on real T2); they take
+    the place of those cases' learned rows, flagged by :func:`doubt_flags`, in
+    ``default_all``/``default_real`` (the review as the default ships it)."""
     net_measures = tuple(net_measures or REVIEW_LIMITS["with_net"])
     extra = ALONE_EXTRA if extra is None else tuple(extra)
     rows = [r for r in rows if np.isfinite(r["vol_err"])]
@@ -278,7 +292,25 @@ def cross_validate_split(
     lines.append(f"\nfinal limits (every case): with_net {net}; forest_alone {alone}")
     real = [r["group"] != "phantom" for r in rows]
     real_alone = [r["group"] != "phantom" for r in forest_rows]
+    out = {}
+    if default_rows is not None:
+        default_rows = [r for r in default_rows if np.isfinite(r["vol_err"])]
+        other = {r["case"] for r in default_rows}
+        keep = [i for i, r in enumerate(rows) if r["case"] not in other]
+        both = [rows[i] for i in keep] + default_rows
+        f = np.concatenate([held[keep], doubt_flags(default_rows)])
+        both_real = np.array([r["group"] != "phantom" for r in both])
+        out = {
+            "default_all": rates(both, f),
+            "default_real": rates(
+                [r for r, x in zip(both, both_real, strict=True) if x], f[both_real]
+            ),
+        }
+        lines += _rate_lines(
+            both, f, f"cross-validated, as the default ships ({len(other)} cases by their doubts)"
+        )
     return {
+        **out,
         "lines": lines,
         "all": rates(rows, held),
         "real": rates([r for r, x in zip(rows, real, strict=True) if x], held[real]),
@@ -411,7 +443,17 @@ def main(argv=None) -> int:
         help="choose among these sets of judged figures by cross-validation inside each "
         "fold's choosing folds, and judge the choice on the held-out fold",
     )
+    ap.add_argument(
+        "--default-rows",
+        default=None,
+        metavar="ROWS",
+        help="with --forest-alone: learned_cv.py --method auto rows of the cases where the "
+        "default runs another method (real T2: robust), judged by their status's doubts in "
+        "place of those cases' learned rows (the review as the default ships it)",
+    )
     args = ap.parse_args(argv)
+    if args.default_rows and not args.forest_alone:
+        ap.error("--default-rows needs --forest-alone")
     rows = json.loads(Path(args.rows).read_text())
     net_sets = [tuple(s.split(",")) for s in args.nested] if args.nested else None
     alone_sets = [() if s == "-" else tuple(s.split(",")) for s in args.nested_alone or ()]
@@ -423,7 +465,8 @@ def main(argv=None) -> int:
         if alone_sets:
             print("\n".join(nested_alone(rows, forest, alone_sets, net_sets)))
             return 0
-        out = cross_validate_split(rows, forest, args.measures, args.alone_extra)
+        default = json.loads(Path(args.default_rows).read_text()) if args.default_rows else None
+        out = cross_validate_split(rows, forest, args.measures, args.alone_extra, default)
         print("\n".join(out["lines"]))
         return 0
     if net_sets:
