@@ -87,19 +87,21 @@ def _figures(r: dict, measures) -> dict:
     return fig
 
 
-def empty_results(rows: list[dict]) -> np.ndarray:
-    """Rows whose segmentation is empty: flagged whatever the limits, as the run's status
-    flags them (:func:`tumor3d.segmentation.review.run_notes`: no tumour found asks a
-    human to confirm there is none)."""
-    return np.array([float(r["est_ml"]) == 0.0 for r in rows], bool)
+def fixed_flags(rows: list[dict]) -> np.ndarray:
+    """Rows flagged whatever the limits, as the run's status flags them
+    (:func:`tumor3d.segmentation.review.review_status`): an empty segmentation (no tumour
+    found asks a human to confirm there is none), or any of the row's ``doubts`` (the
+    segmentation's caveats and the brain mask's notes: ``benchmarks/review_doubts.py``,
+    ``learned_cv.py --method`` rows; rows without them count none)."""
+    return np.array([float(r["est_ml"]) == 0.0 or bool(r.get("doubts")) for r in rows], bool)
 
 
 def flags(rows: list[dict], limits: dict) -> np.ndarray:
     """``needs_review`` of each row judged by ``limits`` alone (review_segmentation's own:
     the row's other figures are not given to it, so its other limits do not apply), or
-    an empty result (:func:`empty_results`)."""
+    a row :func:`fixed_flags` flags."""
     judged = [review_segmentation(_figures(r, limits), limits).needs_review for r in rows]
-    return np.array(judged, bool) | empty_results(rows)
+    return np.array(judged, bool) | fixed_flags(rows)
 
 
 def _beyond(v: np.ndarray, limit: float, side: str) -> np.ndarray:
@@ -110,7 +112,7 @@ def _beyond(v: np.ndarray, limit: float, side: str) -> np.ndarray:
 def _flag_matrix(rows: list[dict], measures: tuple[str, ...], combos: np.ndarray) -> np.ndarray:
     """Flags (combination x row) of every combination of grid indices, vectorised."""
     out = np.zeros((len(combos), len(rows)), bool)
-    out |= empty_results(rows)[None, :]
+    out |= fixed_flags(rows)[None, :]
     for j, name in enumerate(measures):
         v = _values(rows, name)
         side = REVIEW_CHECKS[name][0]
@@ -245,12 +247,6 @@ def _split_flags(rows: list[dict], net: dict, alone: dict) -> np.ndarray:
     return np.array([flags([r], net if _has_net(r) else alone)[0] for r in rows], bool)
 
 
-def doubt_flags(rows: list[dict]) -> np.ndarray:
-    """A rule-based method's rows (``learned_cv.py --method``): flagged when the run's
-    status would be ``check`` (their ``doubts``: caveats, brain-mask notes, no tumour)."""
-    return np.array([bool(r.get("doubts")) for r in rows], bool) | empty_results(rows)
-
-
 def cross_validate_split(
     rows: list[dict],
     forest_rows: list[dict],
@@ -265,7 +261,7 @@ def cross_validate_split(
 
     ``default_rows``: the rows of the cases where the default (``segment.method: auto``)
     runs another method than the learned one (the robust method on real T2); they take
-    the place of those cases' learned rows, flagged by :func:`doubt_flags`, in
+    the place of those cases' learned rows, flagged by :func:`fixed_flags` alone, in
     ``default_all``/``default_real`` (the review as the default ships it)."""
     net_measures = tuple(net_measures or REVIEW_LIMITS["with_net"])
     extra = ALONE_EXTRA if extra is None else tuple(extra)
@@ -298,7 +294,7 @@ def cross_validate_split(
         other = {r["case"] for r in default_rows}
         keep = [i for i, r in enumerate(rows) if r["case"] not in other]
         both = [rows[i] for i in keep] + default_rows
-        f = np.concatenate([held[keep], doubt_flags(default_rows)])
+        f = np.concatenate([held[keep], fixed_flags(default_rows)])
         both_real = np.array([r["group"] != "phantom" for r in both])
         out = {
             "default_all": rates(both, f),

@@ -227,7 +227,11 @@ def reconstruct_scan(
     from tumor3d.imaging.preprocess import preprocess_volume, tissue_slice_count
     from tumor3d.pipeline import tumour_surface
     from tumor3d.segmentation.detect import detect_abnormal_slices
-    from tumor3d.segmentation.methods import method_spec, method_uses_lesion
+    from tumor3d.segmentation.methods import (
+        brain_mask_doubts_volume,
+        method_spec,
+        method_uses_lesion,
+    )
     from tumor3d.segmentation.segment import lesion_definition, resolve_method, segment_tumor
     from tumor3d.simplify import simplify_mesh, target_face_count
 
@@ -304,7 +308,9 @@ def reconstruct_scan(
     ).to_row()  # fmt: skip
     row.update(
         clinical_measures(
-            seg.tumor_mask, pixel_spacing_mm=(dy, dx), slab_height_mm=slab,
+            seg.tumor_mask,
+            pixel_spacing_mm=(dy, dx),
+            slab_height_mm=slab,
             mesh_vertices=None if surface.is_empty else surface.vertices,
         )  # fmt: skip
     )
@@ -316,6 +322,7 @@ def reconstruct_scan(
         skipped_files=scan.skipped_files,
         brain_mask_note="brain mask given: no skull removal" if given is not None else None,
         brain_notes=_brain_notes(brain, spacing, extraction, tissue_slice_count(pre.original_u8)),
+        brain_doubts=brain_mask_doubts_volume(seg.method),
     )
     if tumour_given is not None:  # informational, as tumor3d.flows.patient.run_notes
         said = f" ({segmentation_name})" if segmentation_name else ""

@@ -53,6 +53,7 @@ __all__ = [
     "method_spec",
     "method_uses_lesion",
     "register_method",
+    "brain_mask_doubts_volume",
     "registered_methods",
 ]
 
@@ -87,6 +88,12 @@ class SegmentMethod:
     needs_model : bool
         It needs the acquired image and the shipped model of the modality
         (keywords ``image`` and ``model``): the adapter then loads them.
+    within_brain_mask : bool
+        Its mask lies inside the brain mask (it segments the skull-stripped
+        brain), so a doubtful brain mask doubts its volume: the brain mask's
+        notes then make the status ``check``
+        (:func:`tumor3d.segmentation.review.run_notes`). False for a method
+        that reads the whole head (the learned one): the notes only inform.
     keywords : frozenset of str
         The keywords ``fn`` takes (read from its signature).
     """
@@ -98,6 +105,7 @@ class SegmentMethod:
     modalities: tuple[str, ...] = MODALITIES
     uses_lesion: bool = False
     needs_model: bool = False
+    within_brain_mask: bool = True
     keywords: frozenset[str] = frozenset()
     takes_any: bool = False
 
@@ -126,6 +134,7 @@ def register_method(
     modalities: tuple[str, ...] = MODALITIES,
     uses_lesion: bool = False,
     needs_model: bool = False,
+    within_brain_mask: bool = True,
 ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
     """Decorator registering a segmentation method under ``name``.
 
@@ -141,7 +150,7 @@ def register_method(
         mapping modality -> words (key ``None``: the other modalities).
     modalities : tuple of str
         Sequences it segments (default all of :data:`tumor3d.imaging.scan.MODALITIES`).
-    uses_lesion, needs_model : bool
+    uses_lesion, needs_model, within_brain_mask : bool
         See :class:`SegmentMethod`.
 
     Raises
@@ -176,6 +185,7 @@ def register_method(
             modalities=tuple(modalities),
             uses_lesion=bool(uses_lesion),
             needs_model=bool(needs_model),
+            within_brain_mask=bool(within_brain_mask),
             keywords=keywords,
             takes_any=takes_any,
         )
@@ -239,3 +249,19 @@ def method_uses_lesion(method: str) -> bool:
     if method == AUTO:
         return any(m.uses_lesion for m in registered_methods().values())
     return method_spec(method).uses_lesion
+
+
+def brain_mask_doubts_volume(method: str) -> bool:
+    """Whether the brain mask's notes doubt the volume of ``method``'s mask.
+
+    True for a registered method whose mask lies inside the brain mask
+    (:attr:`SegmentMethod.within_brain_mask`) and for any other name (a given
+    segmentation, an unknown method: the cautious answer).
+
+    >>> brain_mask_doubts_volume("robust"), brain_mask_doubts_volume("learned")
+    (True, False)
+    >>> brain_mask_doubts_volume("given")
+    True
+    """
+    spec = registered_methods().get(method) if isinstance(method, str) else None
+    return True if spec is None else spec.within_brain_mask

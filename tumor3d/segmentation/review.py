@@ -171,13 +171,17 @@ def run_notes(
     skipped_files: Iterable[str] = (),
     brain_mask_note: str | None = None,
     brain_notes: Iterable[str] = (),
+    brain_doubts: bool = True,
 ) -> tuple[list[str], list[str]]:
     """A run's notes, in their fixed order, and those of them that doubt the result.
 
     Every note is shown (summary, metrics, provenance, report); the doubts
     (no tumour found, segmentation caveats, files skipped as unreadable, notes
     on the brain mask's size or coverage) are :func:`review_status`'s
-    ``caveats``. "Brain mask given" informs; it does not doubt.
+    ``caveats``. "Brain mask given" informs; it does not doubt. The brain
+    mask's notes doubt only a mask that lies inside the brain mask
+    (``brain_doubts``: :func:`tumor3d.segmentation.methods.brain_mask_doubts_volume`
+    of the method that ran); for one read from the whole head they inform.
 
     Returns
     -------
@@ -190,6 +194,11 @@ def run_notes(
     (['no tumour found', 'brain mask give'], ['no tumour found'])
     >>> run_notes(tumour_found=True, brain_mask_note="brain mask given (m.nii)")
     (['brain mask given (m.nii)'], [])
+    >>> run_notes(tumour_found=True, brain_notes=["brain mask on 3 of 30 slices"])
+    (['brain mask on 3 of 30 slices'], ['brain mask on 3 of 30 slices'])
+    >>> run_notes(tumour_found=True, brain_notes=["brain mask on 3 of 30 slices"],
+    ...           brain_doubts=False)
+    (['brain mask on 3 of 30 slices'], [])
     """
     caveat_list = _words(caveats, "caveats")
     skipped = [str(f) for f in skipped_files]
@@ -202,4 +211,4 @@ def run_notes(
     if brain_mask_note:
         notes.append(brain_mask_note)
     notes += brain
-    return notes, none + caveat_list + skipped_note + brain
+    return notes, none + caveat_list + skipped_note + (brain if brain_doubts else [])

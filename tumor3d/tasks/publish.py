@@ -20,6 +20,7 @@ from typing import Any
 from tumor3d.config import PipelineConfig
 from tumor3d.errors import InputError
 from tumor3d.metrics import EQ7_SLICE_RULES
+from tumor3d.segmentation.methods import brain_mask_doubts_volume
 from tumor3d.segmentation.review import Review
 from tumor3d.segmentation.review import run_notes as review_notes
 from tumor3d.storage import bids
@@ -122,12 +123,14 @@ def run_notes(
     as do nibabel's repairs of the input's NIfTI header (the ingest-scan stage's
     ``header_notes``).
     """
+    seg = outputs["segment-tumor"].values
     notes, doubts = review_notes(
         tumour_found=outputs["extract-surface"].values["faces"] > 0,
-        caveats=outputs["segment-tumor"].values.get("caveats") or [],
+        caveats=seg.get("caveats") or [],
         skipped_files=outputs["ingest-scan"].values.get("skipped_files") or [],
         brain_mask_note=None if brain_mask is None else brain_mask_note(brain_mask),
         brain_notes=preprocess_notes(outputs["preprocess"].values),
+        brain_doubts=brain_mask_doubts_volume(seg.get("segment_method")),
     )
     # nibabel's repairs of a NIfTI header (tumor3d.tasks.ingest): informational, never printed
     notes.extend(outputs["ingest-scan"].values.get("header_notes") or [])
@@ -362,9 +365,7 @@ def publish_patient(
         def same_input(final: Path) -> None:
             check_same_input(final, source.digest, location=location)
 
-    products.provenance = _provenance(
-        source, outputs, runs, metrics, cfg, brain_mask, segmentation
-    )
+    products.provenance = _provenance(source, outputs, runs, metrics, cfg, brain_mask, segmentation)
     with staged_folder(out_dir, folder, check=same_input) as staging:
         files = write_derivatives(staging, products)
         names = None

@@ -1,0 +1,131 @@
+"""The status's doubts of out-of-fold rows, from their saved probability maps.
+
+A run's ``needs_review`` (and status ``check``) is the learned method's own
+review *or* any doubt the pipeline raises beside it
+(:func:`tumor3d.segmentation.review.review_status`): the learned mask's caveats
+(:func:`tumor3d.segmentation.segment.learned.learned_caveats`: a tumour on the
+scan's first or last slice, or near the air outside a raw head), an empty
+result, and the brain mask's notes where they doubt its volume.
+``benchmarks/learned_cv.py`` rows carry the review's figures only; this
+recomputes each case's lesion from its saved map as the run cut it (checked
+against the row's volume), preprocesses as the pipeline does (the brain mask,
+the air outside the head), and writes the rows with ``doubts``: the words that
+would make the status ``check`` whatever the review's limits.
+``benchmarks/review_cv.py`` flags a row with doubts as the run's status does.
+
+Usage::
+
+    TUMOR3D_DATA_DIR=../shared/data python benchmarks/review_doubts.py learned.json \\
+        --prob prob/ --cache /tmp/cv-cache --out learned_doubts.json
+    # the forest alone's rows: its maps are the --cnn-folds run's "forest" (FLAIR)
+    python benchmarks/review_doubts.py forest.json --prob prob/ --key forest \\
+        --cache /tmp/cv-cache --out forest_doubts.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from learned_cv import (  # noqa: E402
+    _final_mask,
+    add_saved_run_arguments,
+    cached_prepare,
+    case_file,
+    case_specs,
+    phantom_specs,
+)
+
+from tumor3d.api import _brain_notes  # noqa: E402
+from tumor3d.config import parse_config  # noqa: E402
+from tumor3d.imaging.preprocess import preprocess_volume, tissue_slice_count  # noqa: E402
+from tumor3d.segmentation.methods import brain_mask_doubts_volume  # noqa: E402
+from tumor3d.segmentation.review import run_notes  # noqa: E402
+from tumor3d.segmentation.segment.learned import learned_caveats  # noqa: E402
+from tumor3d.storage.manifest import data_dir  # noqa: E402
+
+
+def doubts(p, mask: np.ndarray, cfg) -> list[str]:
+    """The doubts of learned mask ``mask`` on prepared case ``p``, as the learned method's
+    run says them: its caveats (:func:`tumor3d.segmentation.segment.learned.learned_caveats`,
+    with the air outside the head), no tumour found, and the brain mask's notes where they
+    doubt its volume (:func:`tumor3d.segmentation.methods.brain_mask_doubts_volume`)."""
+    pre = preprocess_volume(p.image, **cfg.preprocess.model_dump(), spacing_mm=p.spacing_mm)
+    exterior = pre.head_exterior
+    caveats = learned_caveats(
+        mask,
+        spacing_mm=p.spacing_mm,
+        head_exterior=exterior if exterior is not None and exterior.any() else None,
+    )
+    brain = _brain_notes(
+        pre.brain_mask,
+        tuple(p.spacing_mm),
+        str(pre.brain_extraction),
+        tissue_slice_count(pre.original_u8),
+    )
+    return run_notes(
+        tumour_found=bool(mask.any()),
+        caveats=caveats,
+        brain_notes=brain,
+        brain_doubts=brain_mask_doubts_volume("learned"),
+    )[1]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("rows", help="learned_cv.py --json rows")
+    add_saved_run_arguments(ap)
+    ap.add_argument(
+        "--key",
+        default="prob",
+        help="the map the rows' lesions were cut from (prob; forest: the forest alone's, "
+        "where a --cnn-folds run saved it beside the mean, else prob)",
+    )
+    ap.add_argument(
+        "--tolerance",
+        type=float,
+        default=0.01,
+        help="largest relative volume difference between the recomputed lesion and the row's",
+    )
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args(argv)
+    cfg = parse_config(Path(args.config).read_text(), source=args.config)
+    rows = json.loads(Path(args.rows).read_text())
+    n_phantoms = sum(r["case"].startswith("phantom/") for r in rows) // 2
+    specs = {s.name: s for s in case_specs(data_dir()) + phantom_specs(n_phantoms)}
+    worst, n_doubted = 0.0, 0
+    for r in rows:
+        p = cached_prepare(specs[r["case"]], cfg, True, args.cache)
+        with np.load(case_file(args.prob, r["case"])) as z:
+            key = args.key if args.key in z.files else "prob"
+            prob = z[key].astype(np.float32)
+        mask = _final_mask(p, prob, args, cfg)  # cut as the run cut it
+        est_ml = float(mask.sum()) * float(np.prod(p.spacing_mm)) / 1000.0  # Eq. 7, as the row
+        diff = abs(est_ml - r["est_ml"]) / max(r["est_ml"], 1e-9) if r["est_ml"] else est_ml
+        worst = max(worst, diff)
+        if diff > args.tolerance:
+            print(f"{r['case']}: lesion {est_ml:.2f} mL, the row's {r['est_ml']:.2f} mL")
+            return 1
+        r["doubts"] = doubts(p, mask, cfg)
+        n_doubted += bool(r["doubts"])
+        if r["doubts"]:
+            said = "; ".join(d[:70] for d in r["doubts"])
+            print(f"  {r['case']} ({r['vol_err']:+.0f} %): {said}")
+    Path(args.out).write_text(json.dumps(rows, indent=1))
+    print(
+        f"{len(rows)} rows, {n_doubted} with doubts; lesions within {worst:.2%} of the rows' "
+        f"volumes: wrote {args.out}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

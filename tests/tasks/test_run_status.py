@@ -1,0 +1,45 @@
+"""A run's status from its stages' values: which notes doubt the result (issue 28 item 5).
+
+The brain mask's notes doubt the volume of a mask that lies inside the brain mask (the
+robust, paper and multi-Otsu methods, a given segmentation); the learned method reads
+the whole head's tissue, so for it they only inform. No tumour found always doubts.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from tumor3d.segmentation.review import review_status
+from tumor3d.tasks.publish import run_notes
+from tumor3d.tasks.spec import StageOutput
+
+# a brain mask on 3 of the 30 slices that hold tissue (tumor3d.imaging.preprocess.notes)
+LOST_BRAIN = {"brain_volume_ml": 1200.0, "brain_slices": 3, "tissue_slices": 30}
+
+
+def _outputs(method: str, faces: int = 120) -> dict[str, StageOutput]:
+    values = {
+        "ingest-scan": {},
+        "preprocess": {**LOST_BRAIN, "brain_extraction": "skull_strip"},
+        "segment-tumor": {"caveats": [], "segment_method": method},
+        "extract-surface": {"faces": faces},
+    }
+    return {k: StageOutput(stage=k, values=v) for k, v in values.items()}
+
+
+@pytest.mark.parametrize(
+    ("method", "doubted"), [("robust", True), ("paper", True), ("given", True), ("learned", False)]
+)
+def test_the_brain_mask_notes_doubt_only_a_mask_inside_the_brain_mask(method, doubted):
+    notes, doubts = run_notes(_outputs(method))
+    lost = [n for n in notes if n.startswith("brain mask on 3 of the 30 slices")]
+    assert len(lost) == 1  # said to everyone
+    assert (lost[0] in doubts) is doubted
+    status = review_status(doubts, segmentation={"needs_review": False}).status
+    assert status == ("check" if doubted else "ok")
+
+
+def test_no_tumour_found_doubts_whatever_the_method():
+    for method in ("robust", "learned"):
+        notes, doubts = run_notes(_outputs(method, faces=0))
+        assert doubts and doubts[0].startswith("no tumour found: confirm") and notes[0] == doubts[0]
