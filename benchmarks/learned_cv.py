@@ -1046,6 +1046,7 @@ def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
     from tumor3d.api import _brain_notes, segmentation_values
     from tumor3d.imaging.preprocess import tissue_slice_count
     from tumor3d.segmentation.detect import detect_abnormal_slices
+    from tumor3d.segmentation.methods import brain_mask_doubts_volume
     from tumor3d.segmentation.review import run_notes, segmentation_review
     from tumor3d.segmentation.segment import segment_tumor
 
@@ -1076,15 +1077,18 @@ def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
         # what would make the run's status "check" (tumor3d.api.reconstruct_scan's rule: the
         # segmentation's caveats, the brain mask's notes, no tumour found): a rule-based
         # method's review, judged by review_cv.py --default-rows
+        skull, size = _brain_notes(
+            pre.brain_mask,
+            tuple(p.spacing_mm),
+            str(pre.brain_extraction),
+            tissue_slice_count(pre.original_u8),
+        )
         _, row["doubts"] = run_notes(
             tumour_found=bool(seg.tumor_mask.any()),
             caveats=seg.caveats,
-            brain_notes=_brain_notes(
-                pre.brain_mask,
-                tuple(p.spacing_mm),
-                str(pre.brain_extraction),
-                tissue_slice_count(pre.original_u8),
-            ),
+            brain_notes=skull,
+            brain_doubts=brain_mask_doubts_volume(seg.method),
+            scale_notes=size,
         )
         row["doubts"] += list(segmentation_review(segmentation_values(seg))[1])
         out.append(row)

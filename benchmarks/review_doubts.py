@@ -65,7 +65,7 @@ def doubts(p, mask: np.ndarray, cfg) -> list[str]:
         spacing_mm=p.spacing_mm,
         head_exterior=exterior if exterior is not None and exterior.any() else None,
     )
-    brain = _brain_notes(
+    skull, size = _brain_notes(
         pre.brain_mask,
         tuple(p.spacing_mm),
         str(pre.brain_extraction),
@@ -74,8 +74,9 @@ def doubts(p, mask: np.ndarray, cfg) -> list[str]:
     return run_notes(
         tumour_found=bool(mask.any()),
         caveats=caveats,
-        brain_notes=brain,
+        brain_notes=skull,
         brain_doubts=brain_mask_doubts_volume("learned"),
+        scale_notes=size,
     )[1]
 
 

@@ -155,20 +155,21 @@ def _config(config: PipelineConfig | Mapping[str, Any] | str | None) -> Pipeline
 
 def _brain_notes(
     brain: np.ndarray, spacing: tuple[float, float, float], extraction: str, tissue_slices: int
-) -> list[str]:
-    """The brain-mask notes of the pipeline (``tumor3d.tasks.preprocess.preprocess_notes``)."""
+) -> tuple[list[str], list[str]]:
+    """The brain-mask notes of the pipeline, on the skull removal and on the voxel size.
+
+    As ``tumor3d.tasks.preprocess.skull_removal_notes`` and ``voxel_size_notes``.
+    """
     from tumor3d.imaging.preprocess import brain_coverage_note, brain_size_note, brain_volume_note
 
     per_slice = np.count_nonzero(brain, axis=(1, 2))
-    notes = [
-        brain_volume_note(np.count_nonzero(brain) * float(np.prod(spacing)) / 1000.0),
-        brain_size_note(float(per_slice.max()) * spacing[1] * spacing[2]),
-    ]
+    skull = [brain_volume_note(np.count_nonzero(brain) * float(np.prod(spacing)) / 1000.0)]
     if extraction != "given":
-        notes.append(
+        skull.append(
             brain_coverage_note(int(np.count_nonzero(per_slice)), tissue_slices, extraction)
         )
-    return [n for n in notes if n]
+    size = [brain_size_note(float(per_slice.max()) * spacing[1] * spacing[2])]
+    return [n for n in skull if n], [n for n in size if n]
 
 
 def segmentation_values(seg: Any) -> dict[str, Any]:
@@ -316,13 +317,17 @@ def reconstruct_scan(
     )
     # notes and status (tumor3d.segmentation.review), as the pipeline's
     extraction = "given" if given is not None else str(pre.brain_extraction)
+    skull_notes, size_notes = _brain_notes(
+        brain, spacing, extraction, tissue_slice_count(pre.original_u8)
+    )
     notes, doubts = run_notes(
         tumour_found=not surface.is_empty,
         caveats=seg.caveats,
         skipped_files=scan.skipped_files,
         brain_mask_note="brain mask given: no skull removal" if given is not None else None,
-        brain_notes=_brain_notes(brain, spacing, extraction, tissue_slice_count(pre.original_u8)),
+        brain_notes=skull_notes,
         brain_doubts=brain_mask_doubts_volume(seg.method),
+        scale_notes=size_notes,
     )
     if tumour_given is not None:  # informational, as tumor3d.flows.patient.run_notes
         said = f" ({segmentation_name})" if segmentation_name else ""

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pytest
 
-from tumor3d.segmentation.review import review_status
+from tumor3d.segmentation.review import BRAIN_NOTE_INFORMS, review_status
 from tumor3d.tasks.publish import run_notes
 from tumor3d.tasks.spec import StageOutput
 
@@ -35,6 +35,7 @@ def test_the_brain_mask_notes_doubt_only_a_mask_inside_the_brain_mask(method, do
     lost = [n for n in notes if n.startswith("brain mask on 3 of the 30 slices")]
     assert len(lost) == 1  # said to everyone
     assert (lost[0] in doubts) is doubted
+    assert lost[0].endswith(f"({BRAIN_NOTE_INFORMS})") is not doubted  # why it only informs
     status = review_status(doubts, segmentation={"needs_review": False}).status
     assert status == ("check" if doubted else "ok")
 
@@ -43,3 +44,14 @@ def test_no_tumour_found_doubts_whatever_the_method():
     for method in ("robust", "learned"):
         notes, doubts = run_notes(_outputs(method, faces=0))
         assert doubts and doubts[0].startswith("no tumour found: confirm") and notes[0] == doubts[0]
+
+
+def test_a_voxel_size_no_brain_can_have_doubts_every_method():
+    """A brain under 20 cm2 on every slice: the header's voxel size is off, so every
+    volume is, whichever method read the head."""
+    for method in ("robust", "learned"):
+        outputs = _outputs(method)
+        outputs["preprocess"].values.update(brain_max_slice_mm2=150.0, brain_slices=30)
+        notes, doubts = run_notes(outputs)
+        (size,) = [n for n in notes if n.startswith("brain mask of at most 1.5 cm2")]
+        assert size in doubts

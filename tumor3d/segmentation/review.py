@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from typing import Any
 
 __all__ = [
+    "BRAIN_NOTE_INFORMS",
     "NO_TUMOUR_NOTE",
     "STATUSES",
     "STATUS_CHECK",
@@ -49,6 +50,13 @@ STATUSES = (STATUS_OK, STATUS_CHECK, STATUS_FAILED)
 #: an empty result on a scan sent to be measured cannot tell a missed tumour from none.
 NO_TUMOUR_NOTE = (
     "no tumour found: confirm on the slices that there is none (no mesh and no render written)"
+)
+
+
+#: Said after a brain-mask note that does not doubt the result (a method that reads the
+#: whole head: :func:`tumor3d.segmentation.methods.brain_mask_doubts_volume`).
+BRAIN_NOTE_INFORMS = (
+    "the segmentation method that ran reads the whole head: its tumour is not confined to this mask"
 )
 
 
@@ -172,16 +180,19 @@ def run_notes(
     brain_mask_note: str | None = None,
     brain_notes: Iterable[str] = (),
     brain_doubts: bool = True,
+    scale_notes: Iterable[str] = (),
 ) -> tuple[list[str], list[str]]:
     """A run's notes, in their fixed order, and those of them that doubt the result.
 
     Every note is shown (summary, metrics, provenance, report); the doubts
     (no tumour found, segmentation caveats, files skipped as unreadable, notes
     on the brain mask's size or coverage) are :func:`review_status`'s
-    ``caveats``. "Brain mask given" informs; it does not doubt. The brain
-    mask's notes doubt only a mask that lies inside the brain mask
-    (``brain_doubts``: :func:`tumor3d.segmentation.methods.brain_mask_doubts_volume`
-    of the method that ran); for one read from the whole head they inform.
+    ``caveats``. "Brain mask given" informs; it does not doubt. The notes on
+    the skull removal (``brain_notes``) doubt only a mask that lies inside the
+    brain mask (``brain_doubts``:
+    :func:`tumor3d.segmentation.methods.brain_mask_doubts_volume` of the method
+    that ran); for one read from the whole head they inform. ``scale_notes``
+    (a voxel size in the header that cannot be right) doubt every volume.
 
     Returns
     -------
@@ -196,9 +207,10 @@ def run_notes(
     (['brain mask given (m.nii)'], [])
     >>> run_notes(tumour_found=True, brain_notes=["brain mask on 3 of 30 slices"])
     (['brain mask on 3 of 30 slices'], ['brain mask on 3 of 30 slices'])
-    >>> run_notes(tumour_found=True, brain_notes=["brain mask on 3 of 30 slices"],
-    ...           brain_doubts=False)
-    (['brain mask on 3 of 30 slices'], [])
+    >>> notes, doubts = run_notes(tumour_found=True, brain_notes=["brain mask on 3 of 30 slices"],
+    ...                           brain_doubts=False)
+    >>> doubts, notes[0][:60]
+    ([], 'brain mask on 3 of 30 slices (the segmentation method that r')
     """
     caveat_list = _words(caveats, "caveats")
     skipped = [str(f) for f in skipped_files]
@@ -206,9 +218,12 @@ def run_notes(
         [f"skipped {len(skipped)} unreadable file(s): {', '.join(skipped)}"] if skipped else []
     )
     brain = _words(brain_notes, "brain_notes")
+    if not brain_doubts:
+        brain = [f"{n} ({BRAIN_NOTE_INFORMS})" for n in brain]
     none = [] if tumour_found else [NO_TUMOUR_NOTE]
     notes = none + caveat_list + skipped_note
     if brain_mask_note:
         notes.append(brain_mask_note)
-    notes += brain
-    return notes, none + caveat_list + skipped_note + (brain if brain_doubts else [])
+    scale = _words(scale_notes, "scale_notes")
+    notes += brain + scale
+    return notes, none + caveat_list + skipped_note + (brain if brain_doubts else []) + scale

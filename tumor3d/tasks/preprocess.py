@@ -18,7 +18,7 @@ from tumor3d.imaging.preprocess import (
 from tumor3d.tasks.kinds import Artifact, Volume
 from tumor3d.tasks.spec import Input, StageResult, scan_spacing_mm, stage
 
-__all__ = ["SPEC", "preprocess_notes"]
+__all__ = ["SPEC", "preprocess_notes", "skull_removal_notes", "voxel_size_notes"]
 
 
 @stage(
@@ -80,13 +80,36 @@ def preprocess_notes(values: Mapping[str, Any]) -> list[str]:
     always stores them, and its code enters its cache key, so none reach here from
     an older cache.
     """
-    notes = [brain_volume_note(values.get("brain_volume_ml", 0.0))]
+    return [n for n in _notes(values) if n]
+
+
+def skull_removal_notes(values: Mapping[str, Any]) -> list[str]:
+    """Those of :func:`preprocess_notes` that doubt the skull removal (volume, coverage).
+
+    They doubt a tumour mask only where it lies inside the brain mask.
+    """
+    volume, _, coverage = _notes(values)
+    return [n for n in (volume, coverage) if n]
+
+
+def voxel_size_notes(values: Mapping[str, Any]) -> list[str]:
+    """The one of :func:`preprocess_notes` that doubts the header's voxel size.
+
+    A brain too small to be human: it doubts every volume, whatever the method.
+    """
+    return [n for n in _notes(values)[1:2] if n]
+
+
+def _notes(values: Mapping[str, Any]) -> tuple[str | None, str | None, str | None]:
+    volume = brain_volume_note(values.get("brain_volume_ml", 0.0))
+    size = None
     if "brain_max_slice_mm2" in values:  # a mask of the user's too: theirs may be off
-        notes.append(brain_size_note(values["brain_max_slice_mm2"]))
+        size = brain_size_note(values["brain_max_slice_mm2"])
+    coverage = None
     if values.get("brain_extraction") != "given":
         slices = (values.get("brain_slices", 0), values.get("tissue_slices", 0))
-        notes.append(brain_coverage_note(*slices, values.get("brain_extraction", "")))
-    return [n for n in notes if n]
+        coverage = brain_coverage_note(*slices, values.get("brain_extraction", ""))
+    return volume, size, coverage
 
 
 SPEC = preprocess

@@ -50,7 +50,7 @@ from tumor3d.storage.remote_publish import publish_folder
 from tumor3d.storage.store import ArtifactStore, canonical_dumps
 from tumor3d.storage.viewer import ASSETS_DIR, write_viewer_assets
 from tumor3d.tasks import stages
-from tumor3d.tasks.preprocess import preprocess_notes
+from tumor3d.tasks.preprocess import skull_removal_notes, voxel_size_notes
 from tumor3d.tasks.runner import StageRun
 from tumor3d.tasks.spec import InputSource, StageOutput
 
@@ -129,8 +129,9 @@ def run_notes(
         caveats=seg.get("caveats") or [],
         skipped_files=outputs["ingest-scan"].values.get("skipped_files") or [],
         brain_mask_note=None if brain_mask is None else brain_mask_note(brain_mask),
-        brain_notes=preprocess_notes(outputs["preprocess"].values),
+        brain_notes=skull_removal_notes(outputs["preprocess"].values),
         brain_doubts=brain_mask_doubts_volume(seg.get("segment_method")),
+        scale_notes=voxel_size_notes(outputs["preprocess"].values),
     )
     # nibabel's repairs of a NIfTI header (tumor3d.tasks.ingest): informational, never printed
     notes.extend(outputs["ingest-scan"].values.get("header_notes") or [])
