@@ -1063,6 +1063,7 @@ def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
             lr_axis=p.lr_axis,
             **cfg.detect.model_dump(),
         )
+        exterior = pre.head_exterior  # as the segment stage passes it (scalp caveat)
         seg = segment_tumor(
             pre.enhanced,
             pre.brain_mask,
@@ -1070,27 +1071,32 @@ def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
             modality=p.spec.modality,
             spacing_mm=p.spacing_mm,
             lr_axis=p.lr_axis,
+            head_exterior=exterior if exterior is not None and exterior.any() else None,
             **seg_cfg,
         )
         row = score(p, seg.tumor_mask, cfg)
         row["fold"] = -1
+        row["method"] = seg.method  # "auto" resolved (without a model: never "learned")
         # what would make the run's status "check" (tumor3d.api.reconstruct_scan's rule: the
         # segmentation's caveats, the brain mask's notes, no tumour found): a rule-based
         # method's review, judged by review_cv.py --default-rows
+        inside = brain_mask_doubts_volume(seg.method)
         skull, size = _brain_notes(
             pre.brain_mask,
             tuple(p.spacing_mm),
             str(pre.brain_extraction),
             tissue_slice_count(pre.original_u8),
+            inside,
         )
         _, row["doubts"] = run_notes(
             tumour_found=bool(seg.tumor_mask.any()),
             caveats=seg.caveats,
             brain_notes=skull,
-            brain_doubts=brain_mask_doubts_volume(seg.method),
+            brain_doubts=inside,
             scale_notes=size,
         )
-        row["doubts"] += list(segmentation_review(segmentation_values(seg))[1])
+        flagged, reasons, _ = segmentation_review(segmentation_values(seg))
+        row["doubts"] += list(reasons) if flagged else []
         out.append(row)
         print(
             f"  {row['case']}: slice {row['slice_dice']:.3f} 3d {row['dice3d']:.3f} "

@@ -91,13 +91,16 @@ def targets(rows: list[dict], review: dict | None = None) -> str:
     lines = ["| target | wanted | cross-validated | |", "|---|---|---|---|"]
     for name, want, got, lo in checks:
         lines.append(f"| {name} | {want} | {got:.3f} | {'met' if got >= lo else 'missed'} |")
-    if review is not None:
-        caught, false, n_bad, n_good = review.get("default_all", review["all"])
-        for name, want, got, n, met in (
-            ("volumes off by > 25 % flagged for review", ">= 80 %", caught, n_bad, caught >= 0.8),
-            ("volumes within 10 % flagged for review", "<= 25 %", false, n_good, false <= 0.25),
-        ):
-            lines.append(f"| {name} | {want} | {got:.0%} of {n} | {'met' if met else 'missed'} |")
+    if review is not None:  # judged on the real cases (the phantoms in brackets)
+        caught, false, n_bad, n_good = review.get("default_real", review["real"])
+        _, false_all, _, n_all = review.get("default_all", review["all"])
+        lines += [
+            f"| volumes off by > 25 % flagged for review | >= 80 % | {caught:.0%} of {n_bad} | "
+            f"{'met' if caught >= 0.8 else 'missed'} |",
+            f"| real volumes within 10 % flagged for review | <= 25 % | {false:.0%} of {n_good} "
+            f"({false_all:.0%} of {n_all} with the phantoms) | "
+            f"{'met' if false <= 0.25 else 'missed'} |",
+        ]
     return "\n".join(lines)
 
 

@@ -34,7 +34,7 @@ Usage::
     python benchmarks/review_cv.py rows.json --measures uncertain_ratio mean_probability \\
         outside_ratio prior_agreement          # the limits judged before model_disagreement
     python benchmarks/review_cv.py learned.json --forest-alone forest.json   # as shipped
-    python benchmarks/review_cv.py learned.json --forest-alone forest.json \
+    python benchmarks/review_cv.py learned.json --forest-alone forest.json \\
         --default-rows auto_t2.json          # the default's T2 (robust) by its own doubts
     python benchmarks/review_cv.py learned.json --forest-alone forest.json \\
         --nested-alone uncertain_ratio prior_agreement uncertain_ratio,prior_agreement
@@ -443,9 +443,10 @@ def main(argv=None) -> int:
         "--default-rows",
         default=None,
         metavar="ROWS",
-        help="with --forest-alone: learned_cv.py --method auto rows of the cases where the "
-        "default runs another method (real T2: robust), judged by their status's doubts in "
-        "place of those cases' learned rows (the review as the default ships it)",
+        help="with --forest-alone: learned_cv.py --method auto rows; their T2 cases, where "
+        "the default runs another method (robust; paper on the T2 phantoms), are judged by "
+        "their status's doubts in place of those cases' learned rows (the review as the "
+        "default ships it)",
     )
     args = ap.parse_args(argv)
     if args.default_rows and not args.forest_alone:
@@ -461,7 +462,13 @@ def main(argv=None) -> int:
         if alone_sets:
             print("\n".join(nested_alone(rows, forest, alone_sets, net_sets)))
             return 0
-        default = json.loads(Path(args.default_rows).read_text()) if args.default_rows else None
+        default = None
+        if args.default_rows:  # the T2 cases, where the default runs a rule-based method
+            default = [
+                r
+                for r in json.loads(Path(args.default_rows).read_text())
+                if r["case"].endswith("/t2")
+            ]
         out = cross_validate_split(rows, forest, args.measures, args.alone_extra, default)
         print("\n".join(out["lines"]))
         return 0

@@ -154,7 +154,11 @@ def _config(config: PipelineConfig | Mapping[str, Any] | str | None) -> Pipeline
 
 
 def _brain_notes(
-    brain: np.ndarray, spacing: tuple[float, float, float], extraction: str, tissue_slices: int
+    brain: np.ndarray,
+    spacing: tuple[float, float, float],
+    extraction: str,
+    tissue_slices: int,
+    doubts_result: bool = True,
 ) -> tuple[list[str], list[str]]:
     """The brain-mask notes of the pipeline, on the skull removal and on the voxel size.
 
@@ -163,11 +167,11 @@ def _brain_notes(
     from tumor3d.imaging.preprocess import brain_coverage_note, brain_size_note, brain_volume_note
 
     per_slice = np.count_nonzero(brain, axis=(1, 2))
-    skull = [brain_volume_note(np.count_nonzero(brain) * float(np.prod(spacing)) / 1000.0)]
+    volume_ml = np.count_nonzero(brain) * float(np.prod(spacing)) / 1000.0
+    skull = [brain_volume_note(volume_ml, doubts_result=doubts_result)]
     if extraction != "given":
-        skull.append(
-            brain_coverage_note(int(np.count_nonzero(per_slice)), tissue_slices, extraction)
-        )
+        n = int(np.count_nonzero(per_slice))
+        skull.append(brain_coverage_note(n, tissue_slices, extraction, doubts_result=doubts_result))
     size = [brain_size_note(float(per_slice.max()) * spacing[1] * spacing[2])]
     return [n for n in skull if n], [n for n in size if n]
 
@@ -317,8 +321,9 @@ def reconstruct_scan(
     )
     # notes and status (tumor3d.segmentation.review), as the pipeline's
     extraction = "given" if given is not None else str(pre.brain_extraction)
+    inside = brain_mask_doubts_volume(seg.method)
     skull_notes, size_notes = _brain_notes(
-        brain, spacing, extraction, tissue_slice_count(pre.original_u8)
+        brain, spacing, extraction, tissue_slice_count(pre.original_u8), inside
     )
     notes, doubts = run_notes(
         tumour_found=not surface.is_empty,
@@ -326,7 +331,7 @@ def reconstruct_scan(
         skipped_files=scan.skipped_files,
         brain_mask_note="brain mask given: no skull removal" if given is not None else None,
         brain_notes=skull_notes,
-        brain_doubts=brain_mask_doubts_volume(seg.method),
+        brain_doubts=inside,
         scale_notes=size_notes,
     )
     if tumour_given is not None:  # informational, as tumor3d.flows.patient.run_notes

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pytest
 
-from tumor3d.segmentation.review import BRAIN_NOTE_INFORMS, review_status
+from tumor3d.segmentation.review import review_status
 from tumor3d.tasks.publish import run_notes
 from tumor3d.tasks.spec import StageOutput
 
@@ -35,7 +35,11 @@ def test_the_brain_mask_notes_doubt_only_a_mask_inside_the_brain_mask(method, do
     lost = [n for n in notes if n.startswith("brain mask on 3 of the 30 slices")]
     assert len(lost) == 1  # said to everyone
     assert (lost[0] in doubts) is doubted
-    assert lost[0].endswith(f"({BRAIN_NOTE_INFORMS})") is not doubted  # why it only informs
+    # worded for what it doubts: the result, or (read from the whole head) the brain surface
+    assert (
+        "the result (a tumour volume, or no tumour found) is not reliable" in lost[0]
+    ) is doubted
+    assert ("is not confined to this mask" in lost[0]) is not doubted
     status = review_status(doubts, segmentation={"needs_review": False}).status
     assert status == ("check" if doubted else "ok")
 

@@ -6,9 +6,11 @@ command's exit code):
 
 * ``failed`` -- the run did not complete (an error);
 * ``check`` -- it completed, but the tool's own checks doubt the result: a
-  caveat of the segmentation (:mod:`tumor3d.segmentation.caveats`), a brain mask whose
-  size or coverage makes the volume unreliable, input files skipped as
-  unreadable, or a segmentation method that asks for review itself
+  caveat of the segmentation (:mod:`tumor3d.segmentation.caveats`), a brain mask
+  too small to be a human brain (the header's voxel size), a brain mask whose
+  volume or coverage says the skull removal failed (for a method whose mask lies
+  inside it: :func:`tumor3d.segmentation.methods.brain_mask_doubts_volume`), input
+  files skipped as unreadable, or a segmentation method that asks for review itself
   (``needs_review`` with ``review_reasons`` and ``quality_score`` in the
   segment-tumor stage's values), or no tumour found (no method can tell a
   tumour it missed from none: a scan sent to be measured asks a human to
@@ -28,7 +30,6 @@ from dataclasses import dataclass
 from typing import Any
 
 __all__ = [
-    "BRAIN_NOTE_INFORMS",
     "NO_TUMOUR_NOTE",
     "STATUSES",
     "STATUS_CHECK",
@@ -50,13 +51,6 @@ STATUSES = (STATUS_OK, STATUS_CHECK, STATUS_FAILED)
 #: an empty result on a scan sent to be measured cannot tell a missed tumour from none.
 NO_TUMOUR_NOTE = (
     "no tumour found: confirm on the slices that there is none (no mesh and no render written)"
-)
-
-
-#: Said after a brain-mask note that does not doubt the result (a method that reads the
-#: whole head: :func:`tumor3d.segmentation.methods.brain_mask_doubts_volume`).
-BRAIN_NOTE_INFORMS = (
-    "the segmentation method that ran reads the whole head: its tumour is not confined to this mask"
 )
 
 
@@ -139,8 +133,9 @@ def review_status(
     Parameters
     ----------
     caveats : iterable of str
-        The run's doubts in words: segmentation caveats, brain-mask notes,
-        skipped files. Informational notes are not passed here.
+        The run's doubts in words (:func:`run_notes`' second list): no tumour
+        found, segmentation caveats, the brain-mask notes that doubt, skipped
+        files. Informational notes are not passed here.
     segmentation : mapping, optional
         The segment-tumor stage's values; its ``needs_review``,
         ``review_reasons`` and ``quality_score`` are read when present
@@ -191,7 +186,8 @@ def run_notes(
     the skull removal (``brain_notes``) doubt only a mask that lies inside the
     brain mask (``brain_doubts``:
     :func:`tumor3d.segmentation.methods.brain_mask_doubts_volume` of the method
-    that ran); for one read from the whole head they inform. ``scale_notes``
+    that ran); for one read from the whole head they inform (worded so by
+    :func:`tumor3d.tasks.preprocess.skull_removal_notes`). ``scale_notes``
     (a voxel size in the header that cannot be right) doubt every volume.
 
     Returns
@@ -207,10 +203,9 @@ def run_notes(
     (['brain mask given (m.nii)'], [])
     >>> run_notes(tumour_found=True, brain_notes=["brain mask on 3 of 30 slices"])
     (['brain mask on 3 of 30 slices'], ['brain mask on 3 of 30 slices'])
-    >>> notes, doubts = run_notes(tumour_found=True, brain_notes=["brain mask on 3 of 30 slices"],
-    ...                           brain_doubts=False)
-    >>> doubts, notes[0][:60]
-    ([], 'brain mask on 3 of 30 slices (the segmentation method that r')
+    >>> run_notes(tumour_found=True, brain_notes=["brain mask on 3 of 30 slices"],
+    ...           brain_doubts=False)
+    (['brain mask on 3 of 30 slices'], [])
     """
     caveat_list = _words(caveats, "caveats")
     skipped = [str(f) for f in skipped_files]
@@ -218,8 +213,6 @@ def run_notes(
         [f"skipped {len(skipped)} unreadable file(s): {', '.join(skipped)}"] if skipped else []
     )
     brain = _words(brain_notes, "brain_notes")
-    if not brain_doubts:
-        brain = [f"{n} ({BRAIN_NOTE_INFORMS})" for n in brain]
     none = [] if tumour_found else [NO_TUMOUR_NOTE]
     notes = none + caveat_list + skipped_note
     if brain_mask_note:

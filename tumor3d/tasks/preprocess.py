@@ -78,17 +78,20 @@ def preprocess_notes(values: Mapping[str, Any]) -> list[str]:
     (:func:`tumor3d.imaging.preprocess.brain_coverage_note`; not for a given mask, which is
     the user's). Values without the slice counts give no coverage note; the stage
     always stores them, and its code enters its cache key, so none reach here from
-    an older cache.
+    an older cache. (A run says them as :func:`skull_removal_notes` then
+    :func:`voxel_size_notes`.)
     """
     return [n for n in _notes(values) if n]
 
 
-def skull_removal_notes(values: Mapping[str, Any]) -> list[str]:
-    """Those of :func:`preprocess_notes` that doubt the skull removal (volume, coverage).
+def skull_removal_notes(values: Mapping[str, Any], *, doubts_result: bool = True) -> list[str]:
+    """Those of :func:`preprocess_notes` on the skull removal (volume, coverage).
 
-    They doubt a tumour mask only where it lies inside the brain mask.
+    They doubt a tumour segmented inside the brain mask; ``doubts_result`` False
+    (a method that reads the whole head) words them for that
+    (:func:`tumor3d.imaging.preprocess.brain_volume_note`).
     """
-    volume, _, coverage = _notes(values)
+    volume, _, coverage = _notes(values, doubts_result)
     return [n for n in (volume, coverage) if n]
 
 
@@ -100,15 +103,19 @@ def voxel_size_notes(values: Mapping[str, Any]) -> list[str]:
     return [n for n in _notes(values)[1:2] if n]
 
 
-def _notes(values: Mapping[str, Any]) -> tuple[str | None, str | None, str | None]:
-    volume = brain_volume_note(values.get("brain_volume_ml", 0.0))
+def _notes(
+    values: Mapping[str, Any], doubts_result: bool = True
+) -> tuple[str | None, str | None, str | None]:
+    volume = brain_volume_note(values.get("brain_volume_ml", 0.0), doubts_result=doubts_result)
     size = None
     if "brain_max_slice_mm2" in values:  # a mask of the user's too: theirs may be off
         size = brain_size_note(values["brain_max_slice_mm2"])
     coverage = None
     if values.get("brain_extraction") != "given":
         slices = (values.get("brain_slices", 0), values.get("tissue_slices", 0))
-        coverage = brain_coverage_note(*slices, values.get("brain_extraction", ""))
+        coverage = brain_coverage_note(
+            *slices, values.get("brain_extraction", ""), doubts_result=doubts_result
+        )
     return volume, size, coverage
 
 

@@ -124,14 +124,16 @@ def run_notes(
     ``header_notes``).
     """
     seg = outputs["segment-tumor"].values
+    inside = brain_mask_doubts_volume(seg.get("segment_method"))
+    pre = outputs["preprocess"].values
     notes, doubts = review_notes(
         tumour_found=outputs["extract-surface"].values["faces"] > 0,
         caveats=seg.get("caveats") or [],
         skipped_files=outputs["ingest-scan"].values.get("skipped_files") or [],
         brain_mask_note=None if brain_mask is None else brain_mask_note(brain_mask),
-        brain_notes=skull_removal_notes(outputs["preprocess"].values),
-        brain_doubts=brain_mask_doubts_volume(seg.get("segment_method")),
-        scale_notes=voxel_size_notes(outputs["preprocess"].values),
+        brain_notes=skull_removal_notes(pre, doubts_result=inside),
+        brain_doubts=inside,
+        scale_notes=voxel_size_notes(pre),
     )
     # nibabel's repairs of a NIfTI header (tumor3d.tasks.ingest): informational, never printed
     notes.extend(outputs["ingest-scan"].values.get("header_notes") or [])

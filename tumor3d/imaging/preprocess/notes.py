@@ -15,26 +15,41 @@ import numpy as np
 MAX_INTRACRANIAL_ML = 2000.0
 
 
-def brain_volume_note(brain_volume_ml: float) -> str | None:
+#: What a doubtful brain mask means for a tumour segmented inside it, and for one read
+#: from the whole head (the learned method: ``SegmentMethod.within_brain_mask`` False).
+_CONSEQUENCE = {
+    True: "the result (a tumour volume, or no tumour found) is not reliable",
+    False: (
+        "the brain surface and the brain's contour in overlay_brain.png are off; the tumour, "
+        "read from the whole head, is not confined to this mask (check overlay_tumor.png)"
+    ),
+}
+
+
+def brain_volume_note(brain_volume_ml: float, *, doubts_result: bool = True) -> str | None:
     """A warning for a brain mask that holds more than any skull can, else None.
 
     Such a mask holds scalp, face or neck, where the lesion model may find a
     "lesion" (fat, muscle, sinus), and its statistics of normal tissue are off; the
-    result, a tumour volume or "no tumour found", is then not to be trusted.
+    result, a tumour volume or "no tumour found", is then not to be trusted when
+    the tumour was segmented inside the mask (``doubts_result``); a method that
+    reads the whole head is told what the mask still spoils.
 
     >>> brain_volume_note(1400.0) is None
     True
     >>> brain_volume_note(3257.0)[:40]
     'brain mask of 3257 mL: more than any sku'
+    >>> "not reliable" in brain_volume_note(3257.0, doubts_result=False)
+    False
     """
     v = float(brain_volume_ml)
     if not v > MAX_INTRACRANIAL_ML:
         return None
     return (
         f"brain mask of {v:.0f} mL: more than any skull holds ({MAX_INTRACRANIAL_ML:.0f} mL), "
-        "so it holds scalp or face and the result (a tumour volume, or no tumour found) is not "
-        "reliable: give the brain mask (--brain-mask) or set preprocess.brain_extraction: "
-        "head, and check overlay_brain.png"
+        f"so it holds scalp or face and {_CONSEQUENCE[bool(doubts_result)]}: give the brain "
+        "mask (--brain-mask) or set preprocess.brain_extraction: head, and check "
+        "overlay_brain.png"
     )
 
 
@@ -94,7 +109,7 @@ def tissue_slice_count(original_u8: np.ndarray) -> int:
 
 
 def brain_coverage_note(
-    brain_slices: int, tissue_slices: int, brain_extraction: str = ""
+    brain_slices: int, tissue_slices: int, brain_extraction: str = "", *, doubts_result: bool = True
 ) -> str | None:
     """A warning for a brain mask on too few of the slices that hold tissue, else None.
 
@@ -102,7 +117,7 @@ def brain_coverage_note(
     the brain (a face or neck slice taken for the brain's widest, or the scalp
     joined to the brain on a slice), and what it kept may be face or neck.
     ``brain_extraction`` (the mode used) keeps the advice from naming the mode
-    that failed.
+    that failed; ``doubts_result`` as :func:`brain_volume_note`.
 
     >>> brain_coverage_note(20, 30) is None
     True
@@ -117,6 +132,6 @@ def brain_coverage_note(
         advice += " or set preprocess.brain_extraction: head"
     return (
         f"brain mask on {b} of the {t} slices that hold tissue: the skull removal has likely "
-        "lost most of the brain (or kept face or neck), so the result (a tumour volume, or no "
-        f"tumour found) is not reliable: {advice}, and check overlay_brain.png"
+        f"lost most of the brain (or kept face or neck), so {_CONSEQUENCE[bool(doubts_result)]}: "
+        f"{advice}, and check overlay_brain.png"
     )
