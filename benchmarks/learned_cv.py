@@ -747,6 +747,51 @@ def saved_lesion(spec: CaseSpec, args, cfg) -> tuple[Prepared, np.ndarray]:
     return p, _final_mask(p, prob, args, cfg)
 
 
+def add_recut_arguments(ap, **saved) -> None:
+    """:func:`add_saved_run_arguments` (``saved`` its keywords) and ``--tolerance``: the
+    options of a script that recuts a run's rows from their saved maps
+    (:func:`recut_rows`)."""
+    add_saved_run_arguments(ap, **saved)
+    ap.add_argument(
+        "--tolerance",
+        type=float,
+        default=0.01,
+        help="largest relative volume difference between the recomputed lesion and the row's",
+    )
+
+
+class recut_rows:  # noqa: N801 (used as a function that keeps a figure)
+    """Each row's prepared case, saved maps and lesion cut again from map ``key`` (``prob``
+    where the case has no such map) as the run cut it (:func:`_final_mask`), checked
+    against the row's Eq. 7 volume within ``args.tolerance``: iterating yields ``(row,
+    prepared, maps, mask)``; ``worst`` is the largest relative difference so far.
+
+    Raises ``ValueError`` naming the first case whose lesion is not the row's.
+    """
+
+    def __init__(self, rows: list[dict], args, cfg, key: str = "prob") -> None:
+        self.rows, self.args, self.cfg, self.key = rows, args, cfg, key
+        self.worst = 0.0
+
+    def __iter__(self):
+        rows, args, cfg = self.rows, self.args, self.cfg
+        n_phantoms = sum(r["case"].startswith("phantom/") for r in rows) // 2
+        specs = {s.name: s for s in case_specs(data_dir()) + phantom_specs(n_phantoms)}
+        for r in rows:
+            p = cached_prepare(specs[r["case"]], cfg, True, args.cache)
+            with np.load(case_file(args.prob, r["case"])) as z:
+                maps = {k: z[k].astype(np.float32) for k in z.files}
+            mask = _final_mask(p, maps[self.key if self.key in maps else "prob"], args, cfg)
+            est_ml = float(mask.sum()) * float(np.prod(p.spacing_mm)) / 1000.0  # Eq. 7
+            diff = abs(est_ml - r["est_ml"]) / max(r["est_ml"], 1e-9) if r["est_ml"] else est_ml
+            self.worst = max(self.worst, diff)
+            if diff > args.tolerance:
+                raise ValueError(
+                    f"{r['case']}: lesion {est_ml:.2f} mL, the row's {r['est_ml']:.2f} mL"
+                )
+            yield r, p, maps, mask
+
+
 def case_file(folder: str | Path, case: str) -> Path:
     """A case's ``.npz`` in ``folder`` (``--save-prob`` maps, feature scratch): the case name
     (``patient/sequence``) with ``/`` as ``__``."""

@@ -35,14 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from learned_cv import (  # noqa: E402
-    _final_mask,
-    add_saved_run_arguments,
-    cached_prepare,
-    case_file,
-    case_specs,
-    phantom_specs,
-)
+from learned_cv import add_recut_arguments, recut_rows  # noqa: E402
 
 from tumor3d.api import _brain_notes  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
@@ -50,7 +43,6 @@ from tumor3d.imaging.preprocess import preprocess_volume, tissue_slice_count  # 
 from tumor3d.segmentation.methods import brain_mask_doubts_volume  # noqa: E402
 from tumor3d.segmentation.review import run_notes  # noqa: E402
 from tumor3d.segmentation.segment.learned import learned_caveats  # noqa: E402
-from tumor3d.storage.manifest import data_dir  # noqa: E402
 
 
 def doubts(p, mask: np.ndarray, cfg) -> list[str]:
@@ -83,46 +75,31 @@ def doubts(p, mask: np.ndarray, cfg) -> list[str]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("rows", help="learned_cv.py --json rows")
-    add_saved_run_arguments(ap)
+    add_recut_arguments(ap)
     ap.add_argument(
         "--key",
         default="prob",
         help="the map the rows' lesions were cut from (prob; forest: the forest alone's, "
         "where a --cnn-folds run saved it beside the mean, else prob)",
     )
-    ap.add_argument(
-        "--tolerance",
-        type=float,
-        default=0.01,
-        help="largest relative volume difference between the recomputed lesion and the row's",
-    )
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     cfg = parse_config(Path(args.config).read_text(), source=args.config)
     rows = json.loads(Path(args.rows).read_text())
-    n_phantoms = sum(r["case"].startswith("phantom/") for r in rows) // 2
-    specs = {s.name: s for s in case_specs(data_dir()) + phantom_specs(n_phantoms)}
-    worst, n_doubted = 0.0, 0
-    for r in rows:
-        p = cached_prepare(specs[r["case"]], cfg, True, args.cache)
-        with np.load(case_file(args.prob, r["case"])) as z:
-            key = args.key if args.key in z.files else "prob"
-            prob = z[key].astype(np.float32)
-        mask = _final_mask(p, prob, args, cfg)  # cut as the run cut it
-        est_ml = float(mask.sum()) * float(np.prod(p.spacing_mm)) / 1000.0  # Eq. 7, as the row
-        diff = abs(est_ml - r["est_ml"]) / max(r["est_ml"], 1e-9) if r["est_ml"] else est_ml
-        worst = max(worst, diff)
-        if diff > args.tolerance:
-            print(f"{r['case']}: lesion {est_ml:.2f} mL, the row's {r['est_ml']:.2f} mL")
-            return 1
-        r["doubts"] = doubts(p, mask, cfg)
-        n_doubted += bool(r["doubts"])
-        if r["doubts"]:
-            said = "; ".join(d[:70] for d in r["doubts"])
-            print(f"  {r['case']} ({r['vol_err']:+.0f} %): {said}")
+    recut, n_doubted = recut_rows(rows, args, cfg, key=args.key), 0
+    try:
+        for r, p, _, mask in recut:
+            r["doubts"] = doubts(p, mask, cfg)
+            n_doubted += bool(r["doubts"])
+            if r["doubts"]:
+                said = "; ".join(d[:70] for d in r["doubts"])
+                print(f"  {r['case']} ({r['vol_err']:+.0f} %): {said}")
+    except ValueError as exc:
+        print(exc)
+        return 1
     Path(args.out).write_text(json.dumps(rows, indent=1))
     print(
-        f"{len(rows)} rows, {n_doubted} with doubts; lesions within {worst:.2%} of the rows' "
+        f"{len(rows)} rows, {n_doubted} with doubts; lesions within {recut.worst:.2%} of the rows' "
         f"volumes: wrote {args.out}"
     )
     return 0

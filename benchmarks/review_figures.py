@@ -24,62 +24,40 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from learned_cv import (  # noqa: E402
-    _final_mask,
-    add_saved_run_arguments,
-    cached_prepare,
-    case_file,
-    case_specs,
-    phantom_specs,
-)
+from learned_cv import add_recut_arguments, recut_rows  # noqa: E402
 
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.learned.review import review_features  # noqa: E402
-from tumor3d.storage.manifest import data_dir  # noqa: E402
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("rows", help="learned_cv.py --json rows")
-    add_saved_run_arguments(ap, keep_fraction=0.3, t1c_threshold=None)
-    ap.add_argument(
-        "--tolerance",
-        type=float,
-        default=0.01,
-        help="largest relative volume difference between the recomputed lesion and the row's",
-    )
+    add_recut_arguments(ap, keep_fraction=0.3, t1c_threshold=None)
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     cfg = parse_config(Path(args.config).read_text(), source=args.config)
     rows = json.loads(Path(args.rows).read_text())
-    n_phantoms = sum(r["case"].startswith("phantom/") for r in rows) // 2
-    specs = {s.name: s for s in case_specs(data_dir()) + phantom_specs(n_phantoms)}
-    worst = 0.0
-    for r in rows:
-        p = cached_prepare(specs[r["case"]], cfg, True, args.cache)
-        with np.load(case_file(args.prob, r["case"])) as z:
-            maps = {k: z[k].astype(np.float32) for k in z.files}
-        mask = _final_mask(p, maps["prob"], args, cfg)  # cut as the run cut it
-        est_ml = float(mask.sum()) * float(np.prod(p.spacing_mm)) / 1000.0  # Eq. 7, as the row
-        diff = abs(est_ml - r["est_ml"]) / max(r["est_ml"], 1e-9) if r["est_ml"] else est_ml
-        worst = max(worst, diff)
-        if diff > args.tolerance:
-            print(f"{r['case']}: lesion {est_ml:.2f} mL, the row's {r['est_ml']:.2f} mL")
-            return 1
-        two = {}
-        if "forest" in maps:
-            two = {"forest_probability": maps["forest"], "cnn_probability": maps["cnn"]}
-            two["cnn_members"] = maps.get("cnn_members")  # saved since the ensemble
-        fig = review_features(maps["prob"], mask, p.spacing_mm, prior=p.prior, **two)
-        r.update({k: v for k, v in fig.items() if k not in r})
+    recut = recut_rows(rows, args, cfg)
+    try:
+        for r, p, maps, mask in recut:
+            two = {}
+            if "forest" in maps:
+                two = {"forest_probability": maps["forest"], "cnn_probability": maps["cnn"]}
+                two["cnn_members"] = maps.get("cnn_members")  # saved since the ensemble
+            fig = review_features(maps["prob"], mask, p.spacing_mm, prior=p.prior, **two)
+            r.update({k: v for k, v in fig.items() if k not in r})
+    except ValueError as exc:
+        print(exc)
+        return 1
     Path(args.out).write_text(json.dumps(rows, indent=1))
-    print(f"{len(rows)} rows, lesions within {worst:.2%} of the rows' volumes: wrote {args.out}")
+    print(
+        f"{len(rows)} rows, lesions within {recut.worst:.2%} of the rows' volumes: wrote {args.out}"
+    )
     return 0
 
 
