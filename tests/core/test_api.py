@@ -101,6 +101,25 @@ def test_a_brain_mask_the_tool_doubts_gives_status_check_with_the_reason(phantom
     assert "brain mask given: no skull removal" in r.notes
 
 
+def test_a_skull_removal_note_informs_a_method_that_reads_the_whole_head():
+    """The same whole-field "brain" mask on FLAIR, where the default is the learned method
+    (it reads the head's tissue, not the brain mask): the note is said, worded for what
+    the mask still spoils, and is not a reason to check; with the robust method (its
+    tumour lies inside the brain mask) it is one, as on T2 above."""
+    flair = make_phantom_patient(5, modality="flair", n_slices=12, matrix_size=(128, 128))
+    everything = np.ones(flair.scan.shape, dtype=np.uint8)
+    learned = tumor3d.reconstruct(flair.scan, brain_mask=everything)
+    robust = tumor3d.reconstruct(
+        flair.scan, brain_mask=everything, config={"segment": {"method": "robust"}}
+    )
+    assert learned.method == "learned" and robust.method == "robust"
+    (said,) = [n for n in learned.notes if "more than any skull holds" in n]
+    assert "is not confined to this mask" in said and "not reliable" not in said
+    assert not any("more than any skull holds" in r for r in learned.review_reasons)
+    assert any("more than any skull holds" in r for r in robust.review_reasons)
+    assert robust.status == "check"
+
+
 def test_bad_input_is_one_line():
     arr = np.zeros((8, 8, 4), np.float32)
     with pytest.raises(InputError, match="needs its affine"):
