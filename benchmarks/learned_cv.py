@@ -1087,12 +1087,37 @@ def _group_figures(rs: list[dict]) -> dict:
     }
 
 
-def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
-    from tumor3d.api import _brain_notes, segmentation_values
-    from tumor3d.imaging.preprocess import tissue_slice_count
-    from tumor3d.segmentation.detect import detect_abnormal_slices
+def status_doubts(
+    pre, spacing_mm, mask: np.ndarray, caveats, method: str, seg_values=None
+) -> list[str]:
+    """What would make a run's status ``check`` beside a learned review's limits, as
+    ``tumor3d.api.reconstruct_scan`` says it: no tumour found, ``caveats``, the brain
+    mask's notes of preprocessing ``pre`` (doubting where ``method``'s mask lies inside the
+    brain mask), and a segmentation that flags itself (``seg_values``: its
+    ``needs_review`` and reasons, ``tumor3d.api.segmentation_values``)."""
+    from tumor3d.imaging.preprocess import brain_mask_figures, brain_mask_notes, tissue_slice_count
     from tumor3d.segmentation.methods import brain_mask_doubts_volume
     from tumor3d.segmentation.review import run_notes, segmentation_review
+
+    inside = brain_mask_doubts_volume(method)
+    figures = brain_mask_figures(
+        pre.brain_mask, spacing_mm, str(pre.brain_extraction), tissue_slice_count(pre.original_u8)
+    )
+    skull, size = brain_mask_notes(figures, doubts_result=inside)
+    _, doubts = run_notes(
+        tumour_found=bool(mask.any()),
+        caveats=caveats,
+        brain_notes=skull,
+        brain_doubts=inside,
+        scale_notes=size,
+    )
+    flagged, reasons, _ = segmentation_review(seg_values)
+    return doubts + (list(reasons) if flagged else [])
+
+
+def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
+    from tumor3d.api import segmentation_values
+    from tumor3d.segmentation.detect import detect_abnormal_slices
     from tumor3d.segmentation.segment import segment_tumor
 
     out = []
@@ -1122,26 +1147,10 @@ def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
         row = score(p, seg.tumor_mask, cfg)
         row["fold"] = -1
         row["method"] = seg.method  # "auto" resolved (without a model: never "learned")
-        # what would make the run's status "check" (tumor3d.api.reconstruct_scan's rule: the
-        # segmentation's caveats, the brain mask's notes, no tumour found): a rule-based
-        # method's review, judged by review_cv.py --default-rows
-        inside = brain_mask_doubts_volume(seg.method)
-        skull, size = _brain_notes(
-            pre.brain_mask,
-            tuple(p.spacing_mm),
-            str(pre.brain_extraction),
-            tissue_slice_count(pre.original_u8),
-            inside,
+        # a rule-based method's review, judged by review_cv.py --default-rows
+        row["doubts"] = status_doubts(
+            pre, p.spacing_mm, seg.tumor_mask, seg.caveats, seg.method, segmentation_values(seg)
         )
-        _, row["doubts"] = run_notes(
-            tumour_found=bool(seg.tumor_mask.any()),
-            caveats=seg.caveats,
-            brain_notes=skull,
-            brain_doubts=inside,
-            scale_notes=size,
-        )
-        flagged, reasons, _ = segmentation_review(segmentation_values(seg))
-        row["doubts"] += list(reasons) if flagged else []
         out.append(row)
         print(
             f"  {row['case']}: slice {row['slice_dice']:.3f} 3d {row['dice3d']:.3f} "

@@ -35,21 +35,17 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from learned_cv import add_recut_arguments, recut_rows  # noqa: E402
+from learned_cv import add_recut_arguments, recut_rows, status_doubts  # noqa: E402
 
-from tumor3d.api import _brain_notes  # noqa: E402
 from tumor3d.config import parse_config  # noqa: E402
-from tumor3d.imaging.preprocess import preprocess_volume, tissue_slice_count  # noqa: E402
-from tumor3d.segmentation.methods import brain_mask_doubts_volume  # noqa: E402
-from tumor3d.segmentation.review import run_notes  # noqa: E402
+from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
 from tumor3d.segmentation.segment.learned import learned_caveats  # noqa: E402
 
 
 def doubts(p, mask: np.ndarray, cfg) -> list[str]:
     """The doubts of learned mask ``mask`` on prepared case ``p``, as the learned method's
     run says them: its caveats (:func:`tumor3d.segmentation.segment.learned.learned_caveats`,
-    with the air outside the head), no tumour found, and the brain mask's notes where they
-    doubt its volume (:func:`tumor3d.segmentation.methods.brain_mask_doubts_volume`)."""
+    with the air outside the head), then :func:`learned_cv.status_doubts`."""
     pre = preprocess_volume(p.image, **cfg.preprocess.model_dump(), spacing_mm=p.spacing_mm)
     exterior = pre.head_exterior
     caveats = learned_caveats(
@@ -57,19 +53,7 @@ def doubts(p, mask: np.ndarray, cfg) -> list[str]:
         spacing_mm=p.spacing_mm,
         head_exterior=exterior if exterior is not None and exterior.any() else None,
     )
-    skull, size = _brain_notes(
-        pre.brain_mask,
-        tuple(p.spacing_mm),
-        str(pre.brain_extraction),
-        tissue_slice_count(pre.original_u8),
-    )
-    return run_notes(
-        tumour_found=bool(mask.any()),
-        caveats=caveats,
-        brain_notes=skull,
-        brain_doubts=brain_mask_doubts_volume("learned"),
-        scale_notes=size,
-    )[1]
+    return status_doubts(pre, p.spacing_mm, mask, caveats, "learned")
 
 
 def main(argv=None) -> int:

@@ -153,29 +153,6 @@ def _config(config: PipelineConfig | Mapping[str, Any] | str | None) -> Pipeline
     )
 
 
-def _brain_notes(
-    brain: np.ndarray,
-    spacing: tuple[float, float, float],
-    extraction: str,
-    tissue_slices: int,
-    doubts_result: bool = True,
-) -> tuple[list[str], list[str]]:
-    """The brain-mask notes of the pipeline, on the skull removal and on the voxel size.
-
-    As ``tumor3d.tasks.preprocess.skull_removal_notes`` and ``voxel_size_notes``.
-    """
-    from tumor3d.imaging.preprocess import brain_coverage_note, brain_size_note, brain_volume_note
-
-    per_slice = np.count_nonzero(brain, axis=(1, 2))
-    volume_ml = np.count_nonzero(brain) * float(np.prod(spacing)) / 1000.0
-    skull = [brain_volume_note(volume_ml, doubts_result=doubts_result)]
-    if extraction != "given":
-        n = int(np.count_nonzero(per_slice))
-        skull.append(brain_coverage_note(n, tissue_slices, extraction, doubts_result=doubts_result))
-    size = [brain_size_note(float(per_slice.max()) * spacing[1] * spacing[2])]
-    return [n for n in skull if n], [n for n in size if n]
-
-
 def segmentation_values(seg: Any) -> dict[str, Any]:
     """A segmentation's own review, as the segment-tumor stage's values hold it.
 
@@ -229,7 +206,12 @@ def reconstruct_scan(
         Its file name, said in ``measured`` and the notes.
     """
     from tumor3d.geometry.interpolate import interpolate_stack
-    from tumor3d.imaging.preprocess import preprocess_volume, tissue_slice_count
+    from tumor3d.imaging.preprocess import (
+        brain_mask_figures,
+        brain_mask_notes,
+        preprocess_volume,
+        tissue_slice_count,
+    )
     from tumor3d.pipeline import tumour_surface
     from tumor3d.segmentation.detect import detect_abnormal_slices
     from tumor3d.segmentation.methods import (
@@ -313,18 +295,15 @@ def reconstruct_scan(
     ).to_row()  # fmt: skip
     row.update(
         clinical_measures(
-            seg.tumor_mask,
-            pixel_spacing_mm=(dy, dx),
-            slab_height_mm=slab,
+            seg.tumor_mask, pixel_spacing_mm=(dy, dx), slab_height_mm=slab,
             mesh_vertices=None if surface.is_empty else surface.vertices,
         )  # fmt: skip
     )
     # notes and status (tumor3d.segmentation.review), as the pipeline's
     extraction = "given" if given is not None else str(pre.brain_extraction)
     inside = brain_mask_doubts_volume(seg.method)
-    skull_notes, size_notes = _brain_notes(
-        brain, spacing, extraction, tissue_slice_count(pre.original_u8), inside
-    )
+    figures = brain_mask_figures(brain, spacing, extraction, tissue_slice_count(pre.original_u8))
+    skull_notes, size_notes = brain_mask_notes(figures, doubts_result=inside)
     notes, doubts = run_notes(
         tumour_found=not surface.is_empty,
         caveats=seg.caveats,

@@ -187,7 +187,7 @@ def run_notes(
     brain mask (``brain_doubts``:
     :func:`tumor3d.segmentation.methods.brain_mask_doubts_volume` of the method
     that ran); for one read from the whole head they inform (worded so by
-    :func:`tumor3d.tasks.preprocess.skull_removal_notes`). ``scale_notes``
+    :func:`tumor3d.imaging.preprocess.brain_mask_notes`). ``scale_notes``
     (a voxel size in the header that cannot be right) doubt every volume.
 
     Returns

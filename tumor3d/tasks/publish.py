@@ -19,6 +19,7 @@ from typing import Any
 
 from tumor3d.config import PipelineConfig
 from tumor3d.errors import InputError
+from tumor3d.imaging.preprocess import brain_mask_notes
 from tumor3d.metrics import EQ7_SLICE_RULES
 from tumor3d.segmentation.methods import brain_mask_doubts_volume
 from tumor3d.segmentation.review import Review
@@ -50,7 +51,6 @@ from tumor3d.storage.remote_publish import publish_folder
 from tumor3d.storage.store import ArtifactStore, canonical_dumps
 from tumor3d.storage.viewer import ASSETS_DIR, write_viewer_assets
 from tumor3d.tasks import stages
-from tumor3d.tasks.preprocess import skull_removal_notes, voxel_size_notes
 from tumor3d.tasks.runner import StageRun
 from tumor3d.tasks.spec import InputSource, StageOutput
 
@@ -125,15 +125,15 @@ def run_notes(
     """
     seg = outputs["segment-tumor"].values
     inside = brain_mask_doubts_volume(seg.get("segment_method"))
-    pre = outputs["preprocess"].values
+    skull, size = brain_mask_notes(outputs["preprocess"].values, doubts_result=inside)
     notes, doubts = review_notes(
         tumour_found=outputs["extract-surface"].values["faces"] > 0,
         caveats=seg.get("caveats") or [],
         skipped_files=outputs["ingest-scan"].values.get("skipped_files") or [],
         brain_mask_note=None if brain_mask is None else brain_mask_note(brain_mask),
-        brain_notes=skull_removal_notes(pre, doubts_result=inside),
+        brain_notes=skull,
         brain_doubts=inside,
-        scale_notes=voxel_size_notes(pre),
+        scale_notes=size,
     )
     # nibabel's repairs of a NIfTI header (tumor3d.tasks.ingest): informational, never printed
     notes.extend(outputs["ingest-scan"].values.get("header_notes") or [])
@@ -368,7 +368,9 @@ def publish_patient(
         def same_input(final: Path) -> None:
             check_same_input(final, source.digest, location=location)
 
-    products.provenance = _provenance(source, outputs, runs, metrics, cfg, brain_mask, segmentation)
+    products.provenance = _provenance(
+        source, outputs, runs, metrics, cfg, brain_mask, segmentation
+    )
     with staged_folder(out_dir, folder, check=same_input) as staging:
         files = write_derivatives(staging, products)
         names = None

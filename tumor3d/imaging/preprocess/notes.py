@@ -6,6 +6,9 @@ report saying what is wrong and why it matters.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import numpy as np
 
 #: No brain mask can hold more than this (mL): the intracranial volume of adults
@@ -135,3 +138,64 @@ def brain_coverage_note(
         f"lost most of the brain (or kept face or neck), so {_CONSEQUENCE[bool(doubts_result)]}: "
         f"{advice}, and check overlay_brain.png"
     )
+
+
+def brain_mask_figures(
+    brain: np.ndarray,
+    spacing_mm: tuple[float, float, float],
+    brain_extraction: str,
+    tissue_slices: int,
+) -> dict[str, Any]:
+    """The figures of a ``(z, y, x)`` brain mask that :func:`brain_mask_notes` judges.
+
+    ``brain_voxels``, ``brain_volume_ml``, ``brain_slices`` (slices it covers),
+    ``brain_max_slice_mm2`` (its largest slice), with ``brain_extraction`` (the
+    mode used, or ``"given"``) and ``tissue_slices`` (:func:`tissue_slice_count`):
+    the preprocess stage's values.
+
+    >>> f = brain_mask_figures(np.ones((2, 10, 10), bool), (5.0, 1.0, 1.0), "foreground", 2)
+    >>> f["brain_volume_ml"], f["brain_slices"], f["brain_max_slice_mm2"]
+    (1.0, 2, 100.0)
+    """
+    voxels = int(np.count_nonzero(brain))
+    per_slice = np.count_nonzero(brain, axis=(1, 2))
+    return {
+        "brain_voxels": voxels,
+        "brain_volume_ml": voxels * float(np.prod(spacing_mm)) / 1000.0,
+        "brain_extraction": str(brain_extraction),
+        "brain_slices": int(np.count_nonzero(per_slice)),
+        "brain_max_slice_mm2": float(per_slice.max()) * float(spacing_mm[1]) * float(spacing_mm[2]),
+        "tissue_slices": int(tissue_slices),
+    }
+
+
+def brain_mask_notes(
+    figures: Mapping[str, Any], *, doubts_result: bool = True
+) -> tuple[list[str], list[str]]:
+    """The notes on a brain mask from its :func:`brain_mask_figures`, in two lists.
+
+    Those on the skull removal (:func:`brain_volume_note`, :func:`brain_coverage_note`)
+    and that on the voxel size (:func:`brain_size_note`). The first doubt a tumour
+    segmented inside the mask (``doubts_result`` False words them for a method that
+    reads the whole head); the second doubts every volume. No coverage note for a
+    given mask (the user's) nor without the slice counts, no size note without the
+    largest slice (figures stored before they were).
+
+    >>> brain_mask_notes({"brain_volume_ml": 1400.0})
+    ([], [])
+    >>> skull, size = brain_mask_notes({"brain_volume_ml": 3257.0, "brain_max_slice_mm2": 150.0})
+    >>> [n[:22] for n in skull], [n[:22] for n in size]
+    (['brain mask of 3257 mL:'], ['brain mask of at most '])
+    """
+    skull = [brain_volume_note(figures.get("brain_volume_ml", 0.0), doubts_result=doubts_result)]
+    if figures.get("brain_extraction") != "given":
+        slices = (figures.get("brain_slices", 0), figures.get("tissue_slices", 0))
+        skull.append(
+            brain_coverage_note(
+                *slices, figures.get("brain_extraction", ""), doubts_result=doubts_result
+            )
+        )
+    size = []
+    if "brain_max_slice_mm2" in figures:  # a mask of the user's too: theirs may be off
+        size.append(brain_size_note(figures["brain_max_slice_mm2"]))
+    return [n for n in skull if n], [n for n in size if n]
