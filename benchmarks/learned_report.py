@@ -213,7 +213,7 @@ def review_table(
         "and 9 within 10 %: no sign of a bad volume), and the brain mask's notes doubt a mask\n"
         "that lies inside the brain mask, which the learned one, read from the whole head's\n"
         "tissue, does not (they named 11, 4 off by > 25 % and 4 within 10 %; they are still\n"
-        "said in the notes). With both, the status flagged 60 % of the real cases within 10 %.\n"
+        "said in the notes). Counted as doubts, the two flag 60 % of the real cases within 10 %.\n"
         "On T2 the default runs the robust method (the first row), which has no probability\n"
         "to review: its status asks for a check only when its caveats (a tumour reaching the\n"
         "brain's midline, cut by the end of the scan), the brain mask's notes or an empty\n"
