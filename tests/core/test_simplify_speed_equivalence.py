@@ -3,7 +3,8 @@
 * the indexed vertex heap pops in the order of ``(key, v)`` under inserts,
   key changes (ties included) and removals (anywhere, and of the top by
   Floyd's pop), like the lazy-deletion heap it replaced;
-* int32 and int64 index arrays give the same mesh;
+* the engine's int32 input (the curvature method's) holds the int64 one's
+  values, and a mesh whose corners do not fit in int32 is refused in one line;
 * the engine's Algorithm 2 loop gives the same mesh, bit for bit, as
   :func:`_reference_vertex_priority` below: the loop written naively (each
   star re-gathered, every Eq. 6 cost from
@@ -82,26 +83,35 @@ def test_indexed_heap_pops_in_key_then_vertex_order():
     assert all(pos[v] >= 0 for v in model)
 
 
-def _engine_loop(mesh: Mesh, target: int, compact_index: bool):
-    tol = DEFAULT_TOLERANCES
-    arr = prepare(mesh, "curvature", compact_index=compact_index)
-    assert arr.faces.dtype == (np.int32 if compact_index else np.int64)
-    alive = _engine.run_vertex_priority(
-        arr.vertices, arr.faces, arr.head, arr.nxt, arr.status, target, False,
-        tol.max_star, tol.min_quality, True,
-    )[0]  # fmt: skip
-    return _engine.compact(arr.vertices, arr.faces, alive)
+def test_int32_input_holds_the_int64_values():
+    """The curvature method's compact input is the wide one narrowed: the same faces,
+    corner lists and vertex status (the engine computes in int64 either way)."""
+    mesh = _blob(1)
+    wide = prepare(mesh, "curvature")
+    arr = prepare(mesh, "curvature", compact_index=True)
+    assert wide.faces.dtype == np.int64 and arr.faces.dtype == np.int32
+    for name in ("faces", "head", "nxt", "status"):
+        a, w = getattr(arr, name), getattr(wide, name)
+        assert np.array_equal(a.astype(np.int64), w.astype(np.int64)), name
+    assert np.array_equal(arr.vertices, wide.vertices)
 
 
-@pytest.mark.parametrize("seed", [1, 2])
-@pytest.mark.parametrize("keep", [0.6, 0.2])
-def test_int32_and_int64_indices_give_the_same_mesh(seed, keep):
-    mesh = _blob(seed)
-    target = int(mesh.n_faces * keep)
-    ref_v, ref_f = _engine_loop(mesh, target, False)
-    v, f = _engine_loop(mesh, target, True)
-    assert np.array_equal(f, ref_f)
-    assert np.array_equal(v, ref_v)
+def test_a_mesh_too_large_for_int32_corners_is_refused(monkeypatch):
+    """Beyond ``MAX_COMPACT_FACES`` (715,827,882 faces: 3 corners each in int32) the
+    curvature method stops in one line instead of overflowing its indices; the limit is
+    lowered here to a small mesh's size to reach the check."""
+    from tumor3d.errors import InputError
+    from tumor3d.simplify import _prepare
+    from tumor3d.simplify.curvature import simplify_curvature
+
+    assert _prepare.MAX_COMPACT_FACES == 715_827_882
+    assert 3 * _prepare.MAX_COMPACT_FACES <= np.iinfo(np.int32).max
+    mesh = _blob(2)
+    monkeypatch.setattr(_prepare, "MAX_COMPACT_FACES", mesh.n_faces - 1)
+    with pytest.raises(InputError, match=f"{mesh.n_faces:,} faces.*method='qem'"):
+        simplify_curvature(mesh, target_faces=mesh.n_faces // 2)
+    monkeypatch.setattr(_prepare, "MAX_COMPACT_FACES", mesh.n_faces)
+    assert simplify_curvature(mesh, target_faces=mesh.n_faces // 2).n_faces < mesh.n_faces
 
 
 def _reference_vertex_priority(

@@ -69,24 +69,36 @@ def check_target(mesh: Mesh, target_faces: int) -> int:
     return int(target_faces)
 
 
+# The most faces whose corner indices (3 per face) fit in int32.
+MAX_COMPACT_FACES = (np.iinfo(np.int32).max - 1) // 3
+
+
 def prepare(mesh: Mesh, method: str, *, compact_index: bool = False) -> EngineInput:
     """Copy the mesh into engine arrays and check it is a closed oriented 2-manifold.
 
     With ``compact_index`` the index arrays (faces, corner lists) are int32
-    when every corner index fits, else int64: the engine gives the same
-    results with either, int32 moves half the bytes.
+    (half the bytes of int64, which they are otherwise); every corner index
+    must then fit in int32 (at most ``MAX_COMPACT_FACES`` faces).
 
     Raises
     ------
+    InputError
+        With ``compact_index``, if the mesh has more than ``MAX_COMPACT_FACES``
+        faces.
     InputError
         If any edge is a boundary edge, is shared by more than two faces or
         by two faces in the same direction, or a face repeats a vertex. A
         vertex where several closed fans meet (a pinch) is accepted and
         locked: it is never removed and never kept by a collapse.
     """
+    if compact_index and len(mesh.faces) > MAX_COMPACT_FACES:
+        raise InputError(
+            f"simplification method {method!r} indexes corners in int32: this mesh has "
+            f"{len(mesh.faces):,} faces, more than {MAX_COMPACT_FACES:,} "
+            "(use method='qem', or a coarser mesh)"
+        )
     vertices = np.array(mesh.vertices, dtype=np.float64, order="C")
-    small = compact_index and 3 * len(mesh.faces) < np.iinfo(np.int32).max
-    faces = np.array(mesh.faces, dtype=np.int32 if small else np.int64, order="C")
+    faces = np.array(mesh.faces, dtype=np.int32 if compact_index else np.int64, order="C")
     head, nxt = _engine.build_corner_lists(faces, len(vertices))
     status = _engine.vertex_status(faces, len(vertices), head.copy(), nxt.copy())
     if np.any(status == _engine.STATUS_DEFECT):
