@@ -1147,7 +1147,9 @@ def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
         row = score(p, seg.tumor_mask, cfg)
         row["fold"] = -1
         row["method"] = seg.method  # "auto" resolved (without a model: never "learned")
-        # a rule-based method's review, judged by review_cv.py --default-rows
+        # a rule-based method's review, judged by review_cv.py --default-rows; the caveats
+        # said, doubting or not (learned_report.py weighs the midline caveat on them)
+        row["caveats"] = list(seg.caveats)
         row["doubts"] = status_doubts(
             pre, p.spacing_mm, seg.tumor_mask, seg.caveats, seg.method, segmentation_values(seg)
         )

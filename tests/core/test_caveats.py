@@ -27,6 +27,7 @@ from tumor3d.segmentation.lesion import (
     MirrorPlane,
     NormalModel,
 )
+from tumor3d.segmentation.review import review_status, run_notes
 from tumor3d.segmentation.segment import segment_tumor
 
 SHAPE = (6, 96, 96)
@@ -217,6 +218,22 @@ def test_segmentation_caveats_skips_the_midline_without_a_plane():
     assert segmentation_caveats(np.zeros(SHAPE, bool), plane=plane, spacing_mm=SPACING) == ()
     with pytest.raises(InputError, match="shape"):
         segmentation_caveats(np.zeros((4, 4), bool))
+
+
+def test_the_midline_caveat_is_shown_and_the_others_doubt_the_volume():
+    """The status rule reads the caveats as the functions above write them: the midline
+    caveat is a note (out of fold it named bad and good volumes alike, INFORMING_CAVEATS),
+    the scan-end caveat beside it a doubt that makes the status check."""
+    m = _disc(CENTRE, 8.0, slices=(0, 1, 2))
+    end, midline = segmentation_caveats(m, plane=MID_PLANE, spacing_mm=SPACING)
+    notes, doubts = run_notes(tumour_found=True, caveats=[end, midline])
+    assert notes == [end, midline] and doubts == [end]
+    assert review_status(doubts).status == "check"
+    alone = segmentation_caveats(_disc(CENTRE, 8.0, slices=(1, 2, 3)), plane=MID_PLANE,
+                                 spacing_mm=SPACING)  # fmt: skip
+    notes, doubts = run_notes(tumour_found=True, caveats=alone)
+    assert len(alone) == 1 and notes == list(alone) and doubts == []
+    assert review_status(doubts).status == "ok"
 
 
 def _detection_with_lesion(mask, plane, midline=False):

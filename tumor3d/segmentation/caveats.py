@@ -28,6 +28,10 @@ looks as trustworthy as any other:
   :mod:`tumor3d.segmentation.lesion` now takes the deep crossing back in part (native
   pat0003: 7.3 of those 12.4 mL, was 0.3; the algoseg FLAIR 1.2 of 2.1 mL,
   was 0.2), so the caveat still holds there: a part may be missing.
+  It is shown and does not make the status ``check``
+  (:data:`tumor3d.segmentation.review.INFORMING_CAVEATS`): out of fold it
+  named bad and good volumes alike, and the masks it named were seldom
+  short.
 - **The lesion was found without the symmetry rule's confirmation**
   (robust method, FLAIR). A lesion centred on the midline leaves the
   symmetry rule no asymmetric seed; step 3f of :mod:`tumor3d.segmentation.lesion` then
@@ -73,6 +77,7 @@ from tumor3d.segmentation.lesion import (
     area_in_pixels,
     mirror_image,
 )
+from tumor3d.segmentation.review import MIDLINE_CAVEAT_START
 from tumor3d.validation import check_binary_mask
 
 __all__ = [
@@ -183,7 +188,7 @@ def midline_caveat(
     zs = np.concatenate([np.arange(a, b) for a, b in runs])
     plural = "s" if zs.size > 1 else ""
     return (
-        f"tumour reaches the brain's midline on slice{plural} {_slice_runs(zs)} (0-based, within "
+        f"{MIDLINE_CAVEAT_START} on slice{plural} {_slice_runs(zs)} (0-based, within "
         f"{0.5 * SYMMETRY_TOLERANCE_MM:g} mm of the mid-sagittal plane): the symmetry rule "
         "cannot tell a tumour that crosses the midline from a bilateral normal structure, "
         "so a part in the other hemisphere may be missing (check those slices in "
