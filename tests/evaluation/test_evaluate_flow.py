@@ -125,7 +125,12 @@ def test_evaluate_scores_the_phantom_commands_own_manifest(tmp_path, evaluated):
     # evaluated, and the tumour-free run asks to confirm its empty result (run_status)
     assert df.loc["phantom001n", "run_status"] == "check"
     assert df.loc["phantom001n", "notes"].startswith("no tumour found: confirm")
+    # issue 28 item 5: when to check, as metrics.parquet publishes it
+    assert df.loc["phantom001n", "needs_review"]
+    assert df.loc["phantom001n", "review_reasons"].startswith("no tumour found: confirm")
+    assert df.loc["phantom000", "needs_review"] == (df.loc["phantom000", "run_status"] == "check")
     report = (tmp_path / "ev" / "REPORT.md").read_text()
+    assert "| phantom001n |" in report and "default: check" in report.split("## Table 2")[0]
     table2 = report.split("## Table 2")[1].split("## Table 3")[0]
     table3 = report.split("## Table 3")[1].split("\n## ")[0]
     for pid in ("phantom000", "phantom001n"):

@@ -66,3 +66,28 @@ def test_no_notes_section_when_no_run_said_anything(tmp_path):
         {"config": "peer", "patient_id": "a", "status": "ok"},
     ])  # fmt: skip
     assert "Notes of the runs" not in text
+
+
+def test_cases_show_the_runs_own_status_and_the_flagged_share_of_bad_and_good_volumes(tmp_path):
+    """The cases table says a run's own ok / check (was "ok" for every evaluated run, a
+    check among them), a failed run with its error; "When to check" counts, per
+    configuration, the volumes off by > 25 % and within 10 % that the status flagged,
+    leaving out a tumour-free reference (no % error)."""
+
+    def row(cfg, pid, run_status, err, ref_mm3=1000.0):
+        return {"config": cfg, "patient_id": pid, "status": "ok", "run_status": run_status,
+                "ref_volume_mm3": ref_mm3, "volume_eq7_mm3": 1000.0 * (1 + err / 100),
+                "volume_eq7_error_percent": err if ref_mm3 else float("inf")}  # fmt: skip
+
+    text = _report(tmp_path, [
+        row("default", "a", "check", -40.0), row("default", "b", "ok", 5.0),
+        row("peer", "a", "ok", 30.0),
+        {"config": "peer", "patient_id": "b", "status": "failed",
+         "error": "InputError: no brain", "run_status": "failed"},
+        row("peer", "c", "check", 20.0, ref_mm3=0.0),
+    ])  # fmt: skip
+    cases = text.split("## Cases")[1].split("## Table 2")[0]
+    assert "| a | " in cases and "default: check, peer: ok" in cases
+    assert "default: ok, peer: failed (InputError: no brain)" in cases
+    assert "- default: 1 of the 1 volumes off by > 25 % flagged `check`; 0 of the 1 within" in cases
+    assert "- peer: 0 of the 1 volumes off by > 25 % flagged `check`; 0 of the 0 within" in cases

@@ -266,6 +266,10 @@ def evaluate_flow(
                 continue
             base.update({k: v for k, v in o.metrics.items() if k.startswith(("volume_", "n_"))})
             base["notes"] = str(o.metrics.get("notes") or "")
+            # when to check, as the run published it (metrics.parquet's columns)
+            for key in ("needs_review", "review_reasons", "segmentation_quality_score"):
+                if key in o.metrics:
+                    base[key] = o.metrics[key]
             try:
                 case = load_case(p, o.output_dir)
                 for ev in chosen.values():

@@ -86,8 +86,7 @@ class Review:
 # named 14 of the 41 volumes off by more than 25 % and 9 of the 19 within 10 %, and a mask
 # it named was less often short by more than 25 % (3 of 28) than one it did not name
 # (18 of 48): no sign of the far part it says may be missing (reports/learned_cv.md,
-# "The review"). (The learned
-# method does not say it: tumor3d.segmentation.segment.learned.learned_caveats.)
+# "The review"). The learned method does not say it (learned_caveats).
 MIDLINE_CAVEAT_START = "tumour reaches the brain's midline"
 INFORMING_CAVEATS = (MIDLINE_CAVEAT_START,)
 

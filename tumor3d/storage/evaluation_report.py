@@ -3,7 +3,9 @@
 Tables (one row per patient, one column group per configuration, side by
 side):
 
-* cases: group (reference kind, acquisition), image, status;
+* cases: group (reference kind, acquisition), image, the run's status (``ok``,
+  ``check``: the run's own doubts, or ``failed``); when to check: of the volumes
+  off by more than 25 % and of those within 10 %, how many the status flagged;
 * Table 2 (as in the paper): slices, reference-abnormal slices, and per
   configuration TP / FN / FP / TN of the published segmentation ("slice has
   tumour"), pooled per group, with recall and specificity; the detector's
@@ -72,6 +74,41 @@ def _get(df: pd.DataFrame, cfg: str, pid: str, col: str) -> Any:
     if sel.empty or col not in sel.columns:
         return None
     return sel.iloc[0][col]
+
+
+def _run_status(df: pd.DataFrame, cfg: str, pid: str) -> str:
+    """The run's status (``ok`` / ``check``) of an evaluated case, else ``failed (error)``."""
+    if _get(df, cfg, pid, "status") != "ok":
+        return f"failed ({_get(df, cfg, pid, 'error')})"
+    run = _get(df, cfg, pid, "run_status")
+    return run if isinstance(run, str) and run else "ok"
+
+
+def _flagged_lines(ok: pd.DataFrame, names: list[str]) -> list[str]:
+    """How many volumes the status flagged, per configuration.
+
+    Of the evaluated cases with tumour in the reference: those off by more than 25 %
+    (Eq. 7) and those within 10 %, and how many of each have status ``check``.
+    """
+    col = "volume_eq7_error_percent"
+    if col not in ok.columns or "run_status" not in ok.columns:
+        return []
+    out = []
+    for n in names:
+        sel = ok[ok["config"] == n]
+        if "ref_volume_mm3" in sel.columns:  # a tumour-free reference has no % error
+            sel = sel[pd.to_numeric(sel["ref_volume_mm3"], errors="coerce").fillna(0) > 0]
+        err = pd.to_numeric(sel[col], errors="coerce").abs()
+        check = sel["run_status"] == "check"
+        bad, good = err > 25.0, err <= 10.0
+        if not (bad.any() or good.any()):
+            continue
+        out.append(
+            f"- {n}: {int((bad & check).sum())} of the {int(bad.sum())} volumes off by "
+            f"> 25 % flagged `check`; {int((good & check).sum())} of the {int(good.sum())} "
+            "within 10 %"
+        )
+    return out
 
 
 def _conf(df: pd.DataFrame, prefix: str = "") -> SliceConfusion:
@@ -174,13 +211,17 @@ def write_report(
     rows = []
     for p in prepared:
         pid = p.source.patient_id
-        status = ", ".join(
-            f"{n}: {_get(df, n, pid, 'status')}"
-            + (f" ({_get(df, n, pid, 'error')})" if _get(df, n, pid, "status") != "ok" else "")
-            for n in names
-        )
+        status = ", ".join(f"{n}: {_run_status(df, n, pid)}" for n in names)
         rows.append([pid, groups[pid], p.source.modality, p.source.image.name, status])
     parts.append(_table(["patient", "reference, acquisition", "modality", "image", "status"], rows))
+    parts += ["", "Status: the run's own (`ok`; `check`: its doubts or its segmentation's "
+              "review ask a human to look, the reasons in `review_reasons` of "
+              "`evaluation.parquet`; `failed`)."]  # fmt: skip
+    flagged = _flagged_lines(ok, names)
+    if flagged:
+        parts += ["", "When to check, judged on these cases (Eq. 7 against the reference; the "
+                  "learned method was trained on some of them: its cross-validated figures "
+                  "are in `reports/learned_cv.md`):", "", *flagged]  # fmt: skip
     if skipped:
         parts += ["", "Skipped rows:", ""]
         for s in skipped:
