@@ -92,8 +92,15 @@ def fixed_flags(rows: list[dict]) -> np.ndarray:
     (:func:`tumor3d.segmentation.review.review_status`): an empty segmentation (no tumour
     found asks a human to confirm there is none), or any of the row's ``doubts`` (the
     segmentation's caveats and the brain mask's notes: ``benchmarks/review_doubts.py``,
-    ``learned_cv.py --method`` rows; rows without them count none)."""
-    return np.array([float(r["est_ml"]) == 0.0 or bool(r.get("doubts")) for r in rows], bool)
+    ``learned_cv.py --method`` rows; rows without them count none). A caveat that only
+    informs (``INFORMING_CAVEATS``: rows saved before it stopped doubting hold it) is not
+    counted."""
+    from tumor3d.segmentation.review import INFORMING_CAVEATS
+
+    def doubted(r: dict) -> bool:
+        return any(not d.startswith(INFORMING_CAVEATS) for d in r.get("doubts") or ())
+
+    return np.array([float(r["est_ml"]) == 0.0 or doubted(r) for r in rows], bool)
 
 
 def flags(rows: list[dict], limits: dict) -> np.ndarray:

@@ -106,6 +106,7 @@ def test_a_mesh_too_large_for_int32_corners_is_refused(monkeypatch):
 
     assert _prepare.MAX_COMPACT_FACES == 715_827_882
     assert 3 * _prepare.MAX_COMPACT_FACES <= np.iinfo(np.int32).max
+    assert 3 * (_prepare.MAX_COMPACT_FACES + 1) > np.iinfo(np.int32).max
     mesh = _blob(2)
     monkeypatch.setattr(_prepare, "MAX_COMPACT_FACES", mesh.n_faces - 1)
     with pytest.raises(InputError, match=f"{mesh.n_faces:,} faces.*method='qem'"):

@@ -119,6 +119,8 @@ def test_evaluate_scores_the_phantom_commands_own_manifest(tmp_path, evaluated):
                               "--store", str(first_out / ".tumor3d-store")])  # fmt: skip
     assert res.exit_code == 0, res.output
     assert "WARNING" not in res.output  # Prefect's own records stay off the console
+    # the console's table says the run's own status, as REPORT.md does
+    assert any("phantom001n" in line and "check" in line for line in res.output.splitlines())
     df = pd.read_parquet(tmp_path / "ev" / "evaluation.parquet").set_index("patient_id")
     assert list(df.index) == ["phantom000", "phantom001n"]
     assert set(df["status"]) == {"ok"} and set(df["reference_kind"]) == {"truth", "tumor_free"}

@@ -89,5 +89,24 @@ def test_cases_show_the_runs_own_status_and_the_flagged_share_of_bad_and_good_vo
     cases = text.split("## Cases")[1].split("## Table 2")[0]
     assert "| a | " in cases and "default: check, peer: ok" in cases
     assert "default: ok, peer: failed (InputError: no brain)" in cases
-    assert "- default: 1 of the 1 volumes off by > 25 % flagged `check`; 0 of the 1 within" in cases
-    assert "- peer: 0 of the 1 volumes off by > 25 % flagged `check`; 0 of the 0 within" in cases
+    assert ("- default: 1 of the 1 volumes off by > 25 % flagged `check`; 0 of the 1 volumes "
+            "within 10 % flagged") in cases  # fmt: skip
+    assert "- peer: 0 of the 1 volumes off by > 25 % flagged `check`; none within 10 %" in cases
+
+
+def test_a_review_reason_that_is_no_note_is_listed_and_an_evaluation_failure_keeps_the_status(
+    tmp_path,
+):
+    """Why a run is ``check`` when its segmentation's review says so (those reasons are
+    not among its notes): listed beside the notes, once; a run whose comparison with the
+    reference failed keeps its own status in the cases table."""
+    caveat = "tumour on the last slice of the scan"
+    text = _report(tmp_path, [
+        {"config": "default", "patient_id": "a", "status": "ok", "run_status": "check",
+         "notes": caveat, "review_reasons": f"{caveat}; mean probability 0.70 below 0.85"},
+        {"config": "default", "patient_id": "b", "status": "failed", "run_status": "ok",
+         "error": "ValueError: no label"},
+    ])  # fmt: skip
+    assert "- default, a: review: mean probability 0.70 below 0.85" in text
+    assert f"review: {caveat}" not in text and f"- default, a: {caveat}" in text
+    assert "default: ok (evaluation failed: ValueError: no label)" in text

@@ -191,7 +191,7 @@ def midline_caveat(
         f"{MIDLINE_CAVEAT_START} on slice{plural} {_slice_runs(zs)} (0-based, within "
         f"{0.5 * SYMMETRY_TOLERANCE_MM:g} mm of the mid-sagittal plane): the symmetry rule "
         "cannot tell a tumour that crosses the midline from a bilateral normal structure, "
-        "so a part in the other hemisphere may be missing (check those slices in "
+        "so a part in the other hemisphere may be missing (look at those slices in "
         "overlay_tumor.png)"
     )
 

@@ -1,8 +1,9 @@
 """A run's status: ``ok``, ``check`` or ``failed``, and the reasons a human should look.
 
 One rule, used everywhere a status is shown (console, ``metrics.parquet``,
-the cohort table, ``cohort.html``, ``cohort.md``, ``report.html`` and the
-command's exit code):
+the cohort table, ``cohort.html``, ``cohort.md``, ``report.html``, the
+evaluation's ``evaluation.parquet`` and ``REPORT.md``, and the command's exit
+code):
 
 * ``failed`` -- the run did not complete (an error);
 * ``check`` -- it completed, but the tool's own checks doubt the result: a
@@ -32,6 +33,7 @@ from typing import Any
 
 __all__ = [
     "INFORMING_CAVEATS",
+    "MIDLINE_CAVEAT_START",
     "NO_TUMOUR_NOTE",
     "STATUSES",
     "STATUS_CHECK",
@@ -80,14 +82,17 @@ class Review:
         return self.status != STATUS_OK
 
 
-# Caveats that are shown but do not doubt the volume, by the words they start with: the
-# robust method's midline caveat (tumor3d.segmentation.caveats.midline_caveat). Out of
-# fold (benchmarks/learned_cv.py --method robust, the 76 real cases of every group) it
-# named 14 of the 41 volumes off by more than 25 % and 9 of the 19 within 10 %, and a mask
-# it named was less often short by more than 25 % (3 of 28) than one it did not name
-# (18 of 48): no sign of the far part it says may be missing (reports/learned_cv.md,
-# "The review"). The learned method does not say it (learned_caveats).
+#: How the robust method's midline caveat begins
+#: (:func:`tumor3d.segmentation.caveats.midline_caveat`).
 MIDLINE_CAVEAT_START = "tumour reaches the brain's midline"
+#: Caveats shown in the notes that do not doubt the volume, by the words they start
+#: with: the midline caveat. Out of fold (``benchmarks/learned_cv.py --method robust``,
+#: the 76 real cases of every group) it named 14 of the 41 volumes off by more than 25 %
+#: and 9 of the 19 within 10 %, and a mask it named was less often short by more than
+#: 25 % (3 of 28) than one it did not name (18 of 48): no sign of the far part it says
+#: may be missing (``reports/learned_cv.md``, "When to check: the review,
+#: cross-validated"; the rule was chosen on those rows, not nested). The learned method
+#: does not say it (``learned_caveats``).
 INFORMING_CAVEATS = (MIDLINE_CAVEAT_START,)
 
 

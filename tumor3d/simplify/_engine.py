@@ -46,9 +46,9 @@ entries are recognised and skipped when popped) and compacts the heap when
 stale entries dominate, so memory stays ``O(n_faces)``.
 
 Index arrays (``F``, ``head``, ``nxt``) may be int64 or int32; the curvature
-method passes int32 (half the memory traffic of the adjacency; it refuses a
+simplifier passes int32 (half the memory traffic of the adjacency; it refuses a
 mesh whose corners do not fit, ``_prepare.MAX_COMPACT_FACES``), the edge
-scheduler int64.
+scheduler and ``vertex_curvatures`` int64.
 
 This module holds the kernels called from Python (the entry points); the
 rest is split by concept: :mod:`~tumor3d.simplify._topology` (corner lists,

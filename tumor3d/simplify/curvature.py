@@ -177,8 +177,10 @@ def simplify_curvature(
     Raises
     ------
     InputError
-        On a bad target or option, or a mesh that is not a closed oriented
-        2-manifold.
+        On a bad target or option, a mesh that is not a closed oriented
+        2-manifold, or one of more than
+        :data:`tumor3d.simplify._prepare.MAX_COMPACT_FACES` faces (its corners
+        are indexed in int32).
     """
     target = check_target(mesh, target_faces)
     if curvedness not in _CURVEDNESS:

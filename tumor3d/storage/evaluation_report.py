@@ -26,6 +26,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -39,7 +40,7 @@ from tumor3d.storage.patient_outputs import split_notes
 from tumor3d.storage.store import atomic_write_bytes
 from tumor3d.storage.versions import versions
 
-__all__ = ["bland_altman_png", "write_report"]
+__all__ = ["bland_altman_png", "run_status_cell", "write_report"]
 
 _VOLUMES = {
     "volume_eq7_mm3": "Eq. 7",
@@ -76,12 +77,40 @@ def _get(df: pd.DataFrame, cfg: str, pid: str, col: str) -> Any:
     return sel.iloc[0][col]
 
 
+def run_status_cell(row: Mapping[str, Any]) -> str:
+    """A case's status in words, from its ``evaluation.parquet`` row.
+
+    The run's own ``ok`` / ``check``; ``failed (error)`` for a run that failed; a run
+    that completed but could not be compared with its reference keeps its status,
+    with ``(evaluation failed: error)``.
+
+    Examples
+    --------
+    >>> run_status_cell({"status": "ok", "run_status": "check"})
+    'check'
+    >>> run_status_cell({"status": "failed", "run_status": "failed", "error": "no brain"})
+    'failed (no brain)'
+    >>> run_status_cell({"status": "failed", "run_status": "ok", "error": "no label"})
+    'ok (evaluation failed: no label)'
+    """
+    run = row.get("run_status")
+    run = run if isinstance(run, str) and run else None
+    if row.get("status") == "ok":
+        return run or "ok"
+    if run in ("ok", "check"):
+        return f"{run} (evaluation failed: {row.get('error')})"
+    return f"failed ({row.get('error')})"
+
+
 def _run_status(df: pd.DataFrame, cfg: str, pid: str) -> str:
-    """The run's status (``ok`` / ``check``) of an evaluated case, else ``failed (error)``."""
-    if _get(df, cfg, pid, "status") != "ok":
-        return f"failed ({_get(df, cfg, pid, 'error')})"
-    run = _get(df, cfg, pid, "run_status")
-    return run if isinstance(run, str) and run else "ok"
+    return run_status_cell({k: _get(df, cfg, pid, k) for k in ("status", "run_status", "error")})
+
+
+def _share(cases: pd.Series, check: pd.Series, what: str) -> str:
+    n = int(cases.sum())
+    if n == 0:
+        return f"none {what}"
+    return f"{int((cases & check).sum())} of the {n} volumes {what} flagged `check`"
 
 
 def _flagged_lines(ok: pd.DataFrame, names: list[str]) -> list[str]:
@@ -104,9 +133,7 @@ def _flagged_lines(ok: pd.DataFrame, names: list[str]) -> list[str]:
         if not (bad.any() or good.any()):
             continue
         out.append(
-            f"- {n}: {int((bad & check).sum())} of the {int(bad.sum())} volumes off by "
-            f"> 25 % flagged `check`; {int((good & check).sum())} of the {int(good.sum())} "
-            "within 10 %"
+            f"- {n}: {_share(bad, check, 'off by > 25 %')}; {_share(good, check, 'within 10 %')}"
         )
     return out
 
@@ -219,9 +246,11 @@ def write_report(
               "`evaluation.parquet`; `failed`)."]  # fmt: skip
     flagged = _flagged_lines(ok, names)
     if flagged:
-        parts += ["", "When to check, judged on these cases (Eq. 7 against the reference; the "
-                  "learned method was trained on some of them: its cross-validated figures "
-                  "are in `reports/learned_cv.md`):", "", *flagged]  # fmt: skip
+        parts += ["", "When to check, judged on these cases (Eq. 7 against the reference, "
+                  "every case with tumour in it: phantoms and algorithm-made references "
+                  "included; the learned method was trained on some of them: its "
+                  "cross-validated figures are in `reports/learned_cv.md`):", "",
+                  *flagged]  # fmt: skip
     if skipped:
         parts += ["", "Skipped rows:", ""]
         for s in skipped:
@@ -236,7 +265,11 @@ def write_report(
         for pid in pids:
             if _get(df, n, pid, "status") != "ok":
                 continue
-            for note in split_notes(_get(df, n, pid, "notes")):
+            notes = split_notes(_get(df, n, pid, "notes"))
+            # a segmentation's own review reasons are not among the notes: said as well
+            reasons = [f"review: {r}" for r in split_notes(_get(df, n, pid, "review_reasons"))
+                       if r not in notes]  # fmt: skip
+            for note in notes + reasons:
                 noted.setdefault((n, note), []).append(pid)
     if noted:
         parts += ["", "Notes of the runs (said by the pipeline itself, without the reference):", ""]

@@ -21,7 +21,8 @@ problem, never a traceback; nothing is published under the final names):
   object that could not be repaired, a Prefect server that cannot be started
   or reached (:data:`EXIT_ENVIRONMENT`);
 * 4 -- ``run``/``demo``/``cohort``: every result was published, but some has
-  status ``check``: the tool's own checks doubt it (a segmentation caveat, a
+  status ``check``: the tool's own checks doubt it (a segmentation caveat but
+  the midline one, a
   brain mask that makes the volume unreliable, skipped files, a segmentation
   that asks for review); the summary says why (:data:`EXIT_CHECK`,
   :mod:`tumor3d.segmentation.review`). A cohort with failures exits 1.

@@ -13,6 +13,7 @@ from rich.table import Table
 from tumor3d.flows.cli.app import Verbose, app, console, err_console
 from tumor3d.flows.cli.errors import _HANDLED, _fail
 from tumor3d.flows.cli.session import _prefect
+from tumor3d.storage.evaluation_report import run_status_cell
 
 
 @app.command()
@@ -92,7 +93,7 @@ def evaluate(
             return "-" if v is None or v != v else fmt.format(v)
 
         table.add_row(
-            str(r["config"]), str(r["patient_id"]), str(r["status"]),
+            str(r["config"]), str(r["patient_id"]), run_status_cell(r),
             cell("dice_slices_mean", "{:.3f}"), cell("dice_3d", "{:.3f}"),
             cell("hd95_mm", "{:.1f}"), cell("volume_eq7_error_percent", "{:+.1f} %"),
         )  # fmt: skip
