@@ -25,12 +25,12 @@ demo: setup
 # of its current file is left (tests/conftest.py's scheduler). TEST_WORKERS=0 runs
 # everything in this process. The test Prefect servers and flow runs are set up to idle
 # and burn little (tests/conftest.py). Measured (issue 31 item 7): .ci/run on clean clones
-# on 2 quiet cores (load ~1, 2026-12-05) 284-322 s of pytest (median 302 s of 9 runs),
-# 6.6-7.4 min in all; with other jobs on the cores (load 2 or more) 297-333 s; after 273033f
-# (two waits trimmed) 295.5-321.3 s in four runs (295.5, 295.7, 296.5, 321.3), 6.9-7.4 min in all
-# (1,736 tests). This shared machine's speed moves
-# by ~12 % within a day: compare runs made back to back (-5.5 % for c7b64e4 against
-# 7e83123 in alternating runs). TEST_WORKERS=3 was no faster (322 s against 320 s).
+# on 2 cores, 1,748 tests: 293.7 and 308.4 s of pytest (quiet cores), 308.8 s (light load),
+# 6.9-7.2 min in all (2026-12-05). About 45 test-seconds of a clean clone's run are numba
+# compiling what the warm-up of `make setup` does not (the warm-up test's own warm-up
+# into an empty cache, 24 s, and kernels only tests call). This shared machine's speed
+# moves by ~12 % within a day: compare runs made back to back. TEST_WORKERS=3 was no
+# faster (322 s against 320 s).
 TEST_WORKERS ?= 2
 test: setup
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder \

@@ -236,3 +236,18 @@ def test_the_learned_method_measures_its_models_disagreeing_and_judges_its_ensem
     assert not any(r.startswith("the U-Net ensemble") for r in pair.review.reasons)
     lowered = review_segmentation(pair.review.figures, {"net_spread": want_spread / 2})
     assert any(r.startswith("the U-Net ensemble's nets disagree") for r in lowered.reasons)
+
+
+def test_no_lesion_kept_is_said_in_words_not_as_an_infinite_ratio():
+    """A map with uncertain and lesion-like voxels but no lesion kept: both ratios are
+    infinite (nothing to divide by) and asked about, in words that name the empty lesion;
+    "inf" never reaches a reason (it did: "inf voxels of probability 0.2-0.8 per lesion
+    voxel" in a published review_reasons)."""
+    p = np.zeros((3, 20, 20), np.float32)
+    p[1, 4:8, 4:8] = 0.5  # uncertain
+    p[1, 12:16, 12:16] = 0.9  # lesion-like, left outside the (empty) lesion
+    figures = review_features(p, np.zeros(p.shape, bool), (5.0, 1.0, 1.0))
+    assert figures["uncertain_ratio"] == figures["outside_ratio"] == float("inf")
+    review = review_segmentation(figures, {"uncertain_ratio": 1.2})
+    assert review.needs_review and len(review.reasons) == 2
+    assert all("no lesion kept" in r and "inf" not in r for r in review.reasons)

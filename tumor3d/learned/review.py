@@ -25,6 +25,7 @@ import numpy as np
 from tumor3d.errors import InputError
 
 __all__ = [
+    "EMPTY_LESION_REASONS",
     "REVIEW_CHECKS",
     "REVIEW_LIMITS",
     "Review",
@@ -93,6 +94,16 @@ REVIEW_CHECKS: dict[str, tuple[str, str]] = {
         "the U-Net ensemble's nets disagree: their probabilities differ by {v:.2f} on "
         "average inside the lesion (limit {lim:.2f})",
     ),
+}
+
+#: The reason of a ratio that is infinite because no lesion was kept (its denominator),
+#: in place of :data:`REVIEW_CHECKS`' text, which would read "inf voxels ... per lesion
+#: voxel".
+EMPTY_LESION_REASONS: dict[str, str] = {
+    "uncertain_ratio": "uncertain boundary: voxels of probability 0.2-0.8 and no lesion kept "
+    "(limit {lim:.2f} per lesion voxel)",
+    "outside_ratio": "lesion-like tissue left outside and no lesion kept (limit {lim:.2f} "
+    "of its probability)",
 }
 
 
@@ -259,6 +270,9 @@ def review_segmentation(
     >>> review_segmentation({"mean_probability": 0.95, "outside_ratio": 0.0,
     ...                      "model_disagreement": 0.4, "net_spread": 0.2}).reasons[0][:38]
     "the U-Net ensemble's nets disagree: th"
+    >>> review_segmentation({"uncertain_ratio": float("inf"), "mean_probability": float("nan"),
+    ...                      "outside_ratio": 0.0}).reasons[0][:60]
+    'uncertain boundary: voxels of probability 0.2-0.8 and no les'
     """
     lim = dict(REVIEW_LIMITS[review_kind(figures)])
     lim.update(limits or {})
@@ -279,6 +293,8 @@ def review_segmentation(
             beyond = v < limit
             excess.append((1.0 - v) / max(1.0 - limit, 1e-6) if np.isfinite(v) else 10.0)
         if beyond:
+            if np.isinf(v) and name in EMPTY_LESION_REASONS:
+                text = EMPTY_LESION_REASONS[name]
             reasons.append(text.format(v=v, lim=limit))
     score = float(np.clip(1.0 - 0.5 * max(excess), 0.0, 1.0))
     return Review(bool(reasons), tuple(reasons), score, dict(figures))
