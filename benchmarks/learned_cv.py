@@ -1095,21 +1095,14 @@ def status_doubts(
     mask's notes of preprocessing ``pre`` (doubting where ``method``'s mask lies inside the
     brain mask), and a segmentation that flags itself (``seg_values``: its
     ``needs_review`` and reasons, ``tumor3d.api.segmentation_values``)."""
-    from tumor3d.imaging.preprocess import brain_mask_figures, brain_mask_notes, tissue_slice_count
-    from tumor3d.segmentation.methods import brain_mask_doubts_volume
-    from tumor3d.segmentation.review import run_notes, segmentation_review
+    from tumor3d.imaging.preprocess import brain_mask_figures, tissue_slice_count
+    from tumor3d.segmentation.review import brain_mask_run_notes, run_notes, segmentation_review
 
-    inside = brain_mask_doubts_volume(method)
     figures = brain_mask_figures(
         pre.brain_mask, spacing_mm, str(pre.brain_extraction), tissue_slice_count(pre.original_u8)
     )
-    skull, size = brain_mask_notes(figures, doubts_result=inside)
     _, doubts = run_notes(
-        tumour_found=bool(mask.any()),
-        caveats=caveats,
-        brain_notes=skull,
-        brain_doubts=inside,
-        scale_notes=size,
+        tumour_found=bool(mask.any()), caveats=caveats, **brain_mask_run_notes(figures, method)
     )
     flagged, reasons, _ = segmentation_review(seg_values)
     return doubts + (list(reasons) if flagged else [])

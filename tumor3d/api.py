@@ -34,7 +34,7 @@ from tumor3d.geometry.mesh import Mesh
 from tumor3d.imaging.scan import MODALITIES, Scan, slab_height_mm
 from tumor3d.metrics import measure_volumes
 from tumor3d.segmentation.lesion import left_right_axis
-from tumor3d.segmentation.review import review_status, run_notes
+from tumor3d.segmentation.review import brain_mask_run_notes, review_status, run_notes
 
 __all__ = ["Reconstruction", "reconstruct", "reconstruct_scan", "segmentation_values"]
 
@@ -208,17 +208,12 @@ def reconstruct_scan(
     from tumor3d.geometry.interpolate import interpolate_stack
     from tumor3d.imaging.preprocess import (
         brain_mask_figures,
-        brain_mask_notes,
         preprocess_volume,
         tissue_slice_count,
     )
     from tumor3d.pipeline import tumour_surface
     from tumor3d.segmentation.detect import detect_abnormal_slices
-    from tumor3d.segmentation.methods import (
-        brain_mask_doubts_volume,
-        method_spec,
-        method_uses_lesion,
-    )
+    from tumor3d.segmentation.methods import method_spec, method_uses_lesion
     from tumor3d.segmentation.segment import lesion_definition, resolve_method, segment_tumor
     from tumor3d.simplify import simplify_mesh, target_face_count
 
@@ -301,17 +296,13 @@ def reconstruct_scan(
     )
     # notes and status (tumor3d.segmentation.review), as the pipeline's
     extraction = "given" if given is not None else str(pre.brain_extraction)
-    inside = brain_mask_doubts_volume(seg.method)
     figures = brain_mask_figures(brain, spacing, extraction, tissue_slice_count(pre.original_u8))
-    skull_notes, size_notes = brain_mask_notes(figures, doubts_result=inside)
     notes, doubts = run_notes(
         tumour_found=not surface.is_empty,
         caveats=seg.caveats,
         skipped_files=scan.skipped_files,
         brain_mask_note="brain mask given: no skull removal" if given is not None else None,
-        brain_notes=skull_notes,
-        brain_doubts=inside,
-        scale_notes=size_notes,
+        **brain_mask_run_notes(figures, seg.method),
     )
     if tumour_given is not None:  # informational, as tumor3d.flows.patient.run_notes
         said = f" ({segmentation_name})" if segmentation_name else ""

@@ -13,13 +13,20 @@ import pytest
 from tumor3d.config import PipelineConfig, SimplifyConfig
 from tumor3d.flows.patient import run_stages_direct
 from tumor3d.geometry.mesh import Mesh
+from tumor3d.imaging.preprocess import brain_mask_notes
 from tumor3d.phantom import make_phantom_patient
 from tumor3d.storage.patient_outputs import join_notes, split_notes
 from tumor3d.storage.phantom_io import write_phantom_patient
 from tumor3d.storage.store import ArtifactStore
 from tumor3d.tasks import stages
-from tumor3d.tasks.preprocess import preprocess_notes
 from tumor3d.tasks.spec import StageOutput
+
+
+def preprocess_notes(values):
+    """The run's notes on the brain mask from the preprocess stage's values, in a run's
+    order (tumor3d.imaging.preprocess.brain_mask_notes: skull removal, then voxel size)."""
+    skull, size = brain_mask_notes(values)
+    return skull + size
 
 # Small phantoms (128 x 128 pixels of 1.875 mm, the default field of view, 16 slices) where
 # the image size is not the question: a run costs a third.

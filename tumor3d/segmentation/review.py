@@ -40,6 +40,7 @@ __all__ = [
     "STATUS_FAILED",
     "STATUS_OK",
     "Review",
+    "brain_mask_run_notes",
     "review_status",
     "run_notes",
     "segmentation_review",
@@ -243,3 +244,29 @@ def run_notes(
     notes += brain + scale
     doubting = [c for c in caveat_list if not c.startswith(INFORMING_CAVEATS)]
     return notes, none + doubting + skipped_note + (brain if brain_doubts else []) + scale
+
+
+def brain_mask_run_notes(figures: Mapping[str, Any], method: str | None) -> dict[str, Any]:
+    """:func:`run_notes`' keywords on the brain mask of a run of segmentation ``method``.
+
+    The notes of :func:`tumor3d.imaging.preprocess.brain_mask_notes` on the mask's
+    ``figures`` (the preprocess stage's values,
+    :func:`tumor3d.imaging.preprocess.brain_mask_figures`): those on the skull removal
+    (``brain_notes``), worded for and doubting only a method whose mask lies inside the
+    brain mask (``brain_doubts``:
+    :func:`tumor3d.segmentation.methods.brain_mask_doubts_volume`), and that on the
+    voxel size (``scale_notes``), which doubts every volume.
+
+    >>> kw = brain_mask_run_notes({"brain_volume_ml": 3257.0}, "learned")
+    >>> kw["brain_doubts"], [n[:22] for n in kw["brain_notes"]], kw["scale_notes"]
+    (False, ['brain mask of 3257 mL:'], [])
+    >>> run_notes(tumour_found=True, **brain_mask_run_notes({"brain_volume_ml": 3257.0},
+    ...                                                     "robust"))[1][0][:22]
+    'brain mask of 3257 mL:'
+    """
+    from tumor3d.imaging.preprocess import brain_mask_notes
+    from tumor3d.segmentation.methods import brain_mask_doubts_volume
+
+    inside = brain_mask_doubts_volume(method)
+    skull, size = brain_mask_notes(figures, doubts_result=inside)
+    return {"brain_notes": skull, "brain_doubts": inside, "scale_notes": size}

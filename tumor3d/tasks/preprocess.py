@@ -2,22 +2,18 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
-
 import numpy as np
 
 from tumor3d.config import PreprocessConfig
 from tumor3d.imaging.preprocess import (
     brain_mask_figures,
-    brain_mask_notes,
     preprocess_volume,
     tissue_slice_count,
 )
 from tumor3d.tasks.kinds import Artifact, Volume
 from tumor3d.tasks.spec import Input, StageResult, scan_spacing_mm, stage
 
-__all__ = ["SPEC", "preprocess_notes"]
+__all__ = ["SPEC"]
 
 
 @stage(
@@ -61,23 +57,6 @@ def preprocess(
             tissue_slice_count(result.original_u8),
         ),
     )
-
-
-def preprocess_notes(values: Mapping[str, Any]) -> list[str]:
-    """The run's notes on the brain mask, from the preprocess stage's values.
-
-    A mask larger than any skull holds (:func:`tumor3d.imaging.preprocess.brain_volume_note`),
-    found on too few of the slices that hold tissue
-    (:func:`tumor3d.imaging.preprocess.brain_coverage_note`; not for a given mask, which is
-    the user's), or smaller than any human brain
-    (:func:`tumor3d.imaging.preprocess.brain_size_note`, a given mask too: a wrong voxel size
-    in the header shrinks it as well): :func:`tumor3d.imaging.preprocess.brain_mask_notes`,
-    in a run's order. Values without the slice counts give no coverage note; the stage
-    always stores them, and its code enters its cache key, so none reach here from
-    an older cache.
-    """
-    skull, size = brain_mask_notes(values)
-    return skull + size
 
 
 SPEC = preprocess

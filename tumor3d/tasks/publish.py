@@ -19,10 +19,8 @@ from typing import Any
 
 from tumor3d.config import PipelineConfig
 from tumor3d.errors import InputError
-from tumor3d.imaging.preprocess import brain_mask_notes
 from tumor3d.metrics import EQ7_SLICE_RULES
-from tumor3d.segmentation.methods import brain_mask_doubts_volume
-from tumor3d.segmentation.review import Review
+from tumor3d.segmentation.review import Review, brain_mask_run_notes
 from tumor3d.segmentation.review import run_notes as review_notes
 from tumor3d.storage import bids
 from tumor3d.storage.brain_mask import GivenBrainMask
@@ -124,16 +122,12 @@ def run_notes(
     ``header_notes``).
     """
     seg = outputs["segment-tumor"].values
-    inside = brain_mask_doubts_volume(seg.get("segment_method"))
-    skull, size = brain_mask_notes(outputs["preprocess"].values, doubts_result=inside)
     notes, doubts = review_notes(
         tumour_found=outputs["extract-surface"].values["faces"] > 0,
         caveats=seg.get("caveats") or [],
         skipped_files=outputs["ingest-scan"].values.get("skipped_files") or [],
         brain_mask_note=None if brain_mask is None else brain_mask_note(brain_mask),
-        brain_notes=skull,
-        brain_doubts=inside,
-        scale_notes=size,
+        **brain_mask_run_notes(outputs["preprocess"].values, seg.get("segment_method")),
     )
     # nibabel's repairs of a NIfTI header (tumor3d.tasks.ingest): informational, never printed
     notes.extend(outputs["ingest-scan"].values.get("header_notes") or [])
