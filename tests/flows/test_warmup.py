@@ -12,6 +12,7 @@ warm-up itself wrote; had it needed a seeded kernel, it would compile it and fai
 from __future__ import annotations
 
 import filecmp
+import json
 import os
 import shutil
 import subprocess
@@ -88,23 +89,68 @@ def _seed(cache: Path) -> dict[Path, Path]:
     return seeded
 
 
+# ``python -m tumor3d.warmup``, printing after its own line what it compiled: one JSON
+# line of [qualified name, argument types, the same without literal values and read-only
+# flags] per compilation
+_WARM_UP = """
+import json
+from numba.core import event, types
+from tumor3d.warmup import main
+
+def plain(t):
+    t = types.unliteral(t)
+    return t.copy(readonly=False) if isinstance(t, types.Array) else t
+
+with event.install_recorder("numba:compile") as rec:
+    main()
+compiled = [[f.__module__ + "." + f.__qualname__, [repr(a) for a in d["args"]],
+             [repr(plain(a)) for a in d["args"]]]
+            for d in (e.data for _, e in rec.buffer if e.is_start)
+            for f in [d["dispatcher"].py_func]]
+print(json.dumps(compiled))
+"""
+
+
 @pytest.fixture(scope="module")
-def warm_cache(tmp_path_factory):
-    """A new installation's numba cache after ``python -m tumor3d.warmup`` (see above)."""
+def warm_up_run(tmp_path_factory):
+    """A new installation's numba cache after ``python -m tumor3d.warmup`` (see above),
+    and what the warm-up compiled (qualified name, argument types) on the way."""
     cache = tmp_path_factory.mktemp("numba-cache")
     seeded = _seed(cache)
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
     warm = subprocess.run(
-        [sys.executable, "-m", "tumor3d.warmup"], env=env, capture_output=True, text=True,
+        [sys.executable, "-c", _WARM_UP], env=env, capture_output=True, text=True,
         timeout=900,
     )  # fmt: skip
-    assert warm.returncode == 0 and "numba kernels compiled and cached" in warm.stdout
+    assert warm.returncode == 0, warm.stderr[-2000:]
+    said, compiled = warm.stdout.strip().splitlines()[-2:]
+    assert "numba kernels compiled and cached" in said
     # the seeded entries go again (an index the warm-up rewrote is the warm-up's own)
     for copy, src in seeded.items():
         if filecmp.cmp(copy, src, shallow=False):
             copy.unlink()
     assert any(cache.rglob("*.nbi")), "numba wrote no cache index"
-    return cache
+    return cache, json.loads(compiled)
+
+
+@pytest.fixture(scope="module")
+def warm_cache(warm_up_run):
+    return warm_up_run[0]
+
+
+def test_the_warm_up_compiles_a_kernel_once_per_index_type(warm_up_run):
+    """Every new installation waits for these compilations: no kernel of ours is compiled
+    twice for argument types that differ only in a literal value or an array's read-only
+    flag (a ``0`` passed as a constant compiled a second copy of the edge simplifier's
+    heap and all it calls, ~5 s; the renderer's faces, read-only or not, two of it)."""
+    _, compiled = warm_up_run
+    ours = {(name, tuple(args), tuple(plain)) for name, args, plain in compiled
+            if name.startswith("tumor3d.")}  # fmt: skip
+    assert len(ours) > 20  # the edge simplifier, the renderer, the distances (not seeded)
+    once = {(name, plain) for name, _, plain in ours}
+    twice = sorted((name, args) for name, args, plain in ours
+                   if sum(1 for n, _, p in ours if (n, p) == (name, plain)) > 1)  # fmt: skip
+    assert len(once) == len(ours), twice
 
 
 def test_after_the_warm_up_a_first_patient_compiles_nothing(tmp_path, warm_cache, first_scan):

@@ -399,7 +399,7 @@ def run_edge_priority(
     init = 3 * nf // 2 + 16
     keys = np.empty(init)
     pay = np.empty((init, 4), dtype=np.int64)
-    size = 0
+    size = np.int64(0)  # not the literal 0, nor below (_heap's docstring)
     for u in range(nv):
         if locked[u]:
             continue
@@ -466,7 +466,7 @@ def run_edge_priority(
         # compaction: drop stale entries once they outnumber the live edges 2:1
         n_live_edges -= 3
         if size > 3 * max(n_live_edges, 1024):
-            keep = 0
+            keep = np.int64(0)
             for e in range(size):
                 a = pay[e, 0]
                 b = pay[e, 1]
@@ -502,7 +502,8 @@ def compact(V, F, face_alive):  # pragma: no cover - numba
     out_v = np.empty((n_v, 3))
     for v in range(nv):
         if used[v]:
-            out_v[remap[v]] = V[v]
+            for k in range(3):  # not a row copy (_heap's docstring)
+                out_v[remap[v], k] = V[v, k]
     out_f = np.empty((n_f, 3), dtype=np.int64)
     m = 0
     for f in range(F.shape[0]):

@@ -4,6 +4,12 @@
   ``(key, a, b)``, with lazy deletion by the caller (the edge scheduler);
 * an indexed binary min-heap of vertices on ``(key, v)``, one entry per
   vertex, with its position array (the vertex scheduler of Algorithm 2).
+
+Written for compile time as well as run time (every new installation compiles them,
+``python -m tumor3d.warmup``): a constant ``0`` passed to a kernel is typed
+``Literal[int](0)`` and compiles a second copy of the kernel and of everything it
+calls, so callers pass ``np.int64(0)``; arrays are copied element by element, since
+a slice copy compiles numba's shape-mismatch message (string formatting, about 2 s).
 """
 
 from __future__ import annotations
@@ -57,8 +63,10 @@ def _heap_push(keys, pay, size, key, p0, p1, p2, p3):  # pragma: no cover - numb
     if size == keys.shape[0]:
         nk = np.empty(2 * size + 16, dtype=np.float64)
         npay = np.empty((2 * size + 16, pay.shape[1]), dtype=np.int64)
-        nk[:size] = keys[:size]
-        npay[:size] = pay[:size]
+        for i in range(size):  # not a slice copy (module docstring)
+            nk[i] = keys[i]
+            for c in range(pay.shape[1]):
+                npay[i, c] = pay[i, c]
         keys = nk
         pay = npay
     pos = size
@@ -82,8 +90,9 @@ def _heap_push(keys, pay, size, key, p0, p1, p2, p3):  # pragma: no cover - numb
 def _heap_pop(keys, pay, size):  # pragma: no cover - numba
     """Move the minimum to slot ``size - 1`` and restore the heap; return the new size."""
     size -= 1
-    _swap(keys, pay, 0, size)
-    _sift_down(keys, pay, size, 0)
+    top = np.int64(0)  # not the literal 0 (module docstring)
+    _swap(keys, pay, top, size)
+    _sift_down(keys, pay, size, top)
     return size
 
 

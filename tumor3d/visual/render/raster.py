@@ -136,9 +136,13 @@ class _Geometry(NamedTuple):
 
     @classmethod
     def of(cls, geom: dict[str, Any]) -> _Geometry:
+        # read-only whatever the caller's array (a Mesh's faces are, a brain surface's
+        # are not): the kernels are typed on the flag, so one signature, one compilation
+        faces = np.ascontiguousarray(geom["faces"], dtype=np.int64).view()
+        faces.setflags(write=False)
         return cls(
             geom["vertices"],
-            np.ascontiguousarray(geom["faces"], dtype=np.int64),
+            faces,
             np.ascontiguousarray(geom["normals"], dtype=np.float64),
             np.ascontiguousarray(geom["color"], dtype=np.float64),
             float(geom["opacity"]),
