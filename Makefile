@@ -25,12 +25,12 @@ demo: setup
 # of its current file is left (tests/conftest.py's scheduler). TEST_WORKERS=0 runs
 # everything in this process. The test Prefect servers and flow runs are set up to idle
 # and burn little (tests/conftest.py). Measured (issue 31 item 7): .ci/run on clean clones
-# on 2 cores, 1,748 tests: 293.7 and 308.4 s of pytest (quiet cores), 308.8 s (light load),
-# 6.9-7.2 min in all (2026-12-05). About 45 test-seconds of a clean clone's run are numba
-# compiling what the warm-up of `make setup` does not (the warm-up test's own warm-up
-# into an empty cache, 24 s, and kernels only tests call). This shared machine's speed
-# moves by ~12 % within a day: compare runs made back to back. TEST_WORKERS=3 was no
-# faster (322 s against 320 s).
+# on 2 cores, 1,748-1,751 tests: 293.7-312.9 s of pytest over eight runs (310.0 s at
+# efddb58), 7.2 min in all; a warm checkout 281-333 s within one evening (2026-12-05).
+# Numba compiling what the warm-up of `make setup` does not: the warm-up test's own
+# warm-up into an empty cache (18 s) and kernels only tests call (8.5 s). This shared
+# machine's speed moves by ~12 % within a day: compare runs made back to back.
+# TEST_WORKERS=3 was no faster (311.4 s against 311.3 s, back to back).
 TEST_WORKERS ?= 2
 test: setup
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder \
