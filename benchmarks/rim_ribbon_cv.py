@@ -41,18 +41,21 @@ from tumor3d.config import PipelineConfig  # noqa: E402
 SETTINGS = ((2.5, 8.0), (2.0, 8.0), (3.0, 8.0), (2.5, 5.0), (2.5, 12.0))
 
 
-def _disk(r_px: int) -> np.ndarray:
-    y, x = np.mgrid[-r_px : r_px + 1, -r_px : r_px + 1]
-    return x * x + y * y <= r_px * r_px
+def _disk(r_mm: float, pixel_mm: tuple[float, float]) -> np.ndarray:
+    """A disk of radius ``r_mm`` on pixels of ``pixel_mm`` (rows, columns): an ellipse of
+    semi-axes ``r_mm / pixel_mm`` rounded, at least one pixel."""
+    ry, rx = (max(1, int(round(r_mm / p))) for p in pixel_mm)
+    y, x = np.mgrid[-ry : ry + 1, -rx : rx + 1]
+    return (y / ry) ** 2 + (x / rx) ** 2 <= 1.0
 
 
 def drop_rim_ribbons(
     mask: np.ndarray, brain: np.ndarray, pixel_mm: tuple[float, float], r_mm: float, rim_mm: float
 ) -> np.ndarray:
     """``mask`` (z, y, x) less what an opening of radius ``r_mm`` removes within ``rim_mm``
-    of the edge of ``brain`` (in-plane, per slice)."""
+    of the edge of ``brain`` or outside it (in-plane, per slice)."""
     out = mask.copy()
-    disk = _disk(max(1, int(round(r_mm / pixel_mm[0]))))
+    disk = _disk(r_mm, pixel_mm)
     for z in np.flatnonzero(mask.any(axis=(1, 2))):
         rim = ndi.distance_transform_edt(brain[z], sampling=pixel_mm) < rim_mm
         thin = mask[z] & ~ndi.binary_opening(mask[z], structure=disk)

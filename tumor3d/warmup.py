@@ -9,7 +9,8 @@ on their first call in a process and written to numba's cache (by default
 ``__pycache__`` beside their source; ``NUMBA_CACHE_DIR`` elsewhere), which
 every later process loads in milliseconds. Without a warm-up the first
 ``tumor3d demo`` of a new installation spent 18-29 s of ``simplify-mesh``
-compiling the collapse engine (``reports/benchmarks.md``).
+compiling the collapse engine (2026-12-04; since each kernel compiles once, a
+first patient's kernels take about 14 s: ``reports/benchmarks.md``).
 
 :func:`warm_up` calls them through the same public functions, with the
 same argument types, as a run does: a small phantom patient reconstructed

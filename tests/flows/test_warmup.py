@@ -89,9 +89,9 @@ def _seed(cache: Path) -> dict[Path, Path]:
     return seeded
 
 
-# ``python -m tumor3d.warmup``, printing after its own line what it compiled: one JSON
-# line of [qualified name, argument types, the same without literal values and read-only
-# flags] per compilation
+# ``python -m tumor3d.warmup``, then one line "compiled: " + JSON of what it compiled:
+# [qualified name, argument types, the same without literal values and read-only flags]
+# per compilation
 _WARM_UP = """
 import json
 from numba.core import event, types
@@ -107,14 +107,15 @@ compiled = [[f.__module__ + "." + f.__qualname__, [repr(a) for a in d["args"]],
              [repr(plain(a)) for a in d["args"]]]
             for d in (e.data for _, e in rec.buffer if e.is_start)
             for f in [d["dispatcher"].py_func]]
-print(json.dumps(compiled))
+print("compiled:", json.dumps(compiled))
 """
 
 
 @pytest.fixture(scope="module")
 def warm_up_run(tmp_path_factory):
     """A new installation's numba cache after ``python -m tumor3d.warmup`` (see above),
-    and what the warm-up compiled (qualified name, argument types) on the way."""
+    and what the warm-up compiled on the way (qualified name, argument types, the same
+    types without literal values and read-only flags)."""
     cache = tmp_path_factory.mktemp("numba-cache")
     seeded = _seed(cache)
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
@@ -123,8 +124,10 @@ def warm_up_run(tmp_path_factory):
         timeout=900,
     )  # fmt: skip
     assert warm.returncode == 0, warm.stderr[-2000:]
-    said, compiled = warm.stdout.strip().splitlines()[-2:]
-    assert "numba kernels compiled and cached" in said
+    assert "numba kernels compiled and cached" in warm.stdout, warm.stdout[-2000:]
+    lines = [ln for ln in warm.stdout.splitlines() if ln.startswith("compiled: ")]
+    assert len(lines) == 1, warm.stdout[-2000:]
+    compiled = lines[0].removeprefix("compiled: ")
     # the seeded entries go again (an index the warm-up rewrote is the warm-up's own)
     for copy, src in seeded.items():
         if filecmp.cmp(copy, src, shallow=False):
@@ -135,14 +138,17 @@ def warm_up_run(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def warm_cache(warm_up_run):
+    """The numba cache folder of :func:`warm_up_run`."""
     return warm_up_run[0]
 
 
-def test_the_warm_up_compiles_a_kernel_once_per_index_type(warm_up_run):
-    """Every new installation waits for these compilations: no kernel of ours is compiled
-    twice for argument types that differ only in a literal value or an array's read-only
-    flag (a ``0`` passed as a constant compiled a second copy of the edge simplifier's
-    heap and all it calls, ~5 s; the renderer's faces, read-only or not, two of it)."""
+def test_the_warm_up_compiles_a_kernel_once_per_argument_types(warm_up_run):
+    """Every new installation waits for these compilations: no kernel the warm-up compiles
+    (the seeded ones above load from the cache) is compiled twice for argument types that
+    differ only in a literal value or an array's read-only flag (a ``0`` passed as a
+    constant compiled a second copy of the edge simplifier's heap and all it calls, ~5 s;
+    the renderer compiled twice, for a mesh's read-only faces and a cut-away's writable
+    ones)."""
     _, compiled = warm_up_run
     ours = {(name, tuple(args), tuple(plain)) for name, args, plain in compiled
             if name.startswith("tumor3d.")}  # fmt: skip

@@ -136,8 +136,8 @@ class _Geometry(NamedTuple):
 
     @classmethod
     def of(cls, geom: dict[str, Any]) -> _Geometry:
-        # read-only whatever the caller's array (a Mesh's faces are, a brain surface's
-        # are not): the kernels are typed on the flag, so one signature, one compilation
+        # read-only whatever the caller's array (a Mesh's faces are, a cut-away's are
+        # not): the kernels are typed on the flag, so one signature, one compilation
         faces = np.ascontiguousarray(geom["faces"], dtype=np.int64).view()
         faces.setflags(write=False)
         return cls(
