@@ -25,8 +25,9 @@ demo: setup
 # of its current file is left (tests/conftest.py's scheduler). TEST_WORKERS=0 runs
 # everything in this process. The test Prefect servers and flow runs are set up to idle
 # and burn little (tests/conftest.py). Measured (issue 31 item 7): .ci/run on clean clones
-# on 2 cores, 1,748-1,751 tests: 293.7-312.9 s of pytest over eight runs (310.0 s at
-# efddb58), 7.2 min in all; a warm checkout 281-333 s within one evening (2026-12-05).
+# on 2 cores, 1,748-1,751 tests: 293.7-312.9 s of pytest over eleven runs (the last
+# three 300.0, 300.1, 304.3 s), about 7 min in all; a warm checkout 281-333 s within one
+# evening (2026-12-05).
 # Numba compiling what the warm-up of `make setup` does not: the warm-up test's own
 # warm-up into an empty cache (18 s) and kernels only tests call (8.5 s). This shared
 # machine's speed moves by ~12 % within a day: compare runs made back to back.
