@@ -17,6 +17,7 @@ import os
 import shutil
 import subprocess
 import sys
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -153,10 +154,9 @@ def test_the_warm_up_compiles_a_kernel_once_per_argument_types(warm_up_run):
     ours = {(name, tuple(args), tuple(plain)) for name, args, plain in compiled
             if name.startswith("tumor3d.")}  # fmt: skip
     assert len(ours) > 20  # the edge simplifier, the renderer, the distances (not seeded)
-    once = {(name, plain) for name, _, plain in ours}
-    twice = sorted((name, args) for name, args, plain in ours
-                   if sum(1 for n, _, p in ours if (n, p) == (name, plain)) > 1)  # fmt: skip
-    assert len(once) == len(ours), twice
+    copies = Counter((name, plain) for name, _, plain in ours)
+    twice = sorted((name, args) for name, args, plain in ours if copies[name, plain] > 1)
+    assert not twice, twice
 
 
 def test_after_the_warm_up_a_first_patient_compiles_nothing(tmp_path, warm_cache, first_scan):

@@ -44,6 +44,7 @@ from tumor3d.storage.formats import encode_parquet
 from tumor3d.storage.manifest import ManifestRow, RowProblem, read_manifest_rows
 from tumor3d.storage.objectstore import default_store_location
 from tumor3d.storage.store import atomic_write_bytes
+from tumor3d.tasks.publish import REVIEW_COLUMNS
 
 __all__ = [
     "EvaluationResult",
@@ -267,7 +268,7 @@ def evaluate_flow(
             base.update({k: v for k, v in o.metrics.items() if k.startswith(("volume_", "n_"))})
             base["notes"] = str(o.metrics.get("notes") or "")
             # when to check, as the run published it (metrics.parquet's columns)
-            for key in ("needs_review", "review_reasons", "segmentation_quality_score"):
+            for key in REVIEW_COLUMNS:
                 if key in o.metrics:
                     base[key] = o.metrics[key]
             try:

@@ -53,6 +53,7 @@ from tumor3d.tasks.runner import StageRun
 from tumor3d.tasks.spec import InputSource, StageOutput
 
 __all__ = [
+    "REVIEW_COLUMNS",
     "brain_mask_note",
     "check_layout_destination",
     "config_digest",
@@ -64,6 +65,11 @@ __all__ = [
     "publisher_code_digest",
     "run_notes",
 ]
+
+#: ``metrics.parquet``'s columns of when to check (:func:`metrics_row`): needs_review,
+#: the review's reasons, the segmentation's own quality score (a method that scores
+#: itself); ``evaluation.parquet`` copies them (:mod:`tumor3d.flows.evaluate`).
+REVIEW_COLUMNS = ("needs_review", "review_reasons", "segmentation_quality_score")
 
 
 def config_digest(cfg: PipelineConfig) -> str:
@@ -152,10 +158,11 @@ def metrics_row(
     row: dict[str, Any] = {"patient_id": pid}
     # ok or check (a failed run publishes no metrics); tumor3d.segmentation.review decides
     row["status"] = review.status
-    row["needs_review"] = review.needs_review
-    row["review_reasons"] = join_notes(review.reasons)
+    needs, reasons, score = REVIEW_COLUMNS
+    row[needs] = review.needs_review
+    row[reasons] = join_notes(review.reasons)
     if review.quality_score is not None:  # a segmentation method that scores itself
-        row["segmentation_quality_score"] = float(review.quality_score)
+        row[score] = float(review.quality_score)
     row.update(stages.metric_columns(outputs))
     row["tumour_found"] = row["faces_mc"] > 0
     row["notes"] = join_notes(notes)
