@@ -17,6 +17,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 
 SCRIPT = """
@@ -33,22 +35,6 @@ with s._watch_server(f"http://127.0.0.1:{port}/api"):
     time.sleep(3)              # 15 watch periods: 5x what ends a command
 print("body finished", flush=True)
 """
-
-
-def _run(script: str, *args: str):
-    return subprocess.run(
-        [sys.executable, "-c", script, *args], capture_output=True, text=True, timeout=60,
-        cwd=str(ROOT),
-    )  # fmt: skip
-
-
-def test_a_vanished_server_ends_the_command_in_one_line():
-    res = _run(SCRIPT, "kill")
-    assert res.returncode == 3, res.stderr
-    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and "stopped answering" in lines[0], res.stderr
-    # ended by the watch (os._exit in the hook) before the body's own end
-    assert "hook 3" in res.stdout and "body finished" not in res.stdout
 
 
 SERVER_PROCESS = """
@@ -81,24 +67,67 @@ async def app(scope, receive, send):
 s._run_uvicorn(app, int(sys.argv[1]), lifespan="off")
 """
 
+#: Every command of this module: (script, arguments) by name.
+COMMANDS = {
+    "killed server": (SCRIPT, ["kill"]),
+    "server kept": (SCRIPT, ["keep"]),
+    "server ctrl-c": (SERVER_PROCESS, ["sigint", APP]),
+    "server killed": (SERVER_PROCESS, ["kill", APP]),
+    "server ctrl-c alone": (SERVER_PROCESS, ["sigint", APP, "1.0"]),
+}
 
-def test_a_temporary_server_stopped_by_ctrl_c_leaves_the_ending_to_the_command():
-    res = _run(SERVER_PROCESS, "sigint", APP)
+
+@pytest.fixture(scope="module")
+def ran():
+    """Every command of the module, started together: each mostly sleeps through its watch
+    periods, so running them one after another spent about 10 s of a test worker idle."""
+    procs = {
+        name: subprocess.Popen(
+            [sys.executable, "-c", script, *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=str(ROOT),
+        )
+        for name, (script, args) in COMMANDS.items()
+    }
+    results = {}
+    try:
+        for name, proc in procs.items():
+            out, err = proc.communicate(timeout=60)
+            results[name] = subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+    finally:
+        for proc in procs.values():
+            proc.kill()
+    return results
+
+
+def test_a_vanished_server_ends_the_command_in_one_line(ran):
+    res = ran["killed server"]
+    assert res.returncode == 3, res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "stopped answering" in lines[0], res.stderr
+    # ended by the watch (os._exit in the hook) before the body's own end
+    assert "hook 3" in res.stdout and "body finished" not in res.stdout
+
+
+def test_a_temporary_server_stopped_by_ctrl_c_leaves_the_ending_to_the_command(ran):
+    res = ran["server ctrl-c"]
     # the server's runner exits EXIT_CTRL_C for a SIGINT (uvicorn alone: 0), the watch
     # stands down and the body runs on
     assert res.returncode == 0 and "body finished" in res.stdout, res.stderr
     assert "server exit 130" in res.stdout and "stopped answering" not in res.stderr
-    killed = _run(SERVER_PROCESS, "kill", APP)
+    killed = ran["server killed"]
     assert killed.returncode == 3 and "stopped answering" in killed.stderr, killed.stderr
     assert "body finished" not in killed.stdout
     # a SIGINT that reached the server alone: once the grace has passed without the
     # command's own Ctrl-C handling, the watch ends the command as for a crash
-    alone = _run(SERVER_PROCESS, "sigint", APP, "1.0")
+    alone = ran["server ctrl-c alone"]
     assert alone.returncode == 3 and "stopped answering" in alone.stderr, alone.stderr
     assert "body finished" not in alone.stdout
 
 
-def test_a_server_that_stays_is_left_alone():
-    res = _run(SCRIPT, "keep")
+def test_a_server_that_stays_is_left_alone(ran):
+    res = ran["server kept"]
     assert res.returncode == 0, res.stderr
     assert "body finished" in res.stdout and res.stderr.strip() == ""

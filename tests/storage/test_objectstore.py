@@ -78,6 +78,11 @@ def _keys(client, prefix: str) -> list[str]:
     return sorted(o["Key"] for page in pages for o in page.get("Contents", []))
 
 
+def _stamps(client, prefix: str) -> dict[str, tuple[str, object]]:
+    pages = client.get_paginator("list_objects_v2").paginate(Bucket=BUCKET, Prefix=prefix)
+    return {o["Key"]: (o["ETag"], o["LastModified"]) for p in pages for o in p.get("Contents", [])}
+
+
 def _mesh() -> Mesh:
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=np.float64)
     f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], dtype=np.int64)
@@ -326,67 +331,29 @@ def test_a_corrupted_object_is_detected_after_the_copy_and_after_publication(
     assert verify_folder(out, "p1") == []
 
 
-@pytest.mark.slow
-@pytest.mark.usefixtures("prefect_harness")
-def test_cohort_with_an_s3_store_matches_a_local_store_and_reruns_from_cache(
-    s3_endpoint, local_pair, tmp_path
-):
-    rows, local, _ = local_pair
-    url = f"s3://{BUCKET}/cohort"
-    first = run_cohort(rows, tmp_path / "out", workers=2, store_dir=url)
-    assert first.exit_code == 0
-    for a, b in zip(local.patients, first.patients, strict=True):
-        assert b.metrics["volume_eq7_mm3"] == a.metrics["volume_eq7_mm3"]
-        assert b.metrics["volume_mesh_mm3"] == a.metrics["volume_mesh_mm3"]
-        assert [s.artifacts for s in b.stages] == [s.artifacts for s in a.stages]
-    keys = _keys(s3_endpoint, "cohort/")
-    digests = {d for p in first.patients for s in p.stages for d in s.artifacts.values()}
-    stored = {k.rsplit("/", 1)[-1].split(".")[0] for k in keys if "/objects/" in k}
-    assert digests <= stored  # every artifact is on S3 ...
-    assert any(k.startswith("cohort/prefect-results/") for k in keys)  # ... and the cache
-    assert not [k for k in keys if k.startswith("cohort/tmp/")]
-    assert not (tmp_path / "out" / ".tumor3d-store").exists()  # nothing kept locally
-    again = run_cohort(rows, tmp_path / "out2", workers=2, store_dir=url)
-    assert all(s.cached for p in again.patients for s in p.stages)
-    assert [p.metrics["volume_eq7_mm3"] for p in again.patients] == [
-        p.metrics["volume_eq7_mm3"] for p in first.patients
-    ]
+@pytest.fixture(scope="module")
+def s3_cohort(s3_endpoint, local_pair):
+    """The S3 cohorts' one computation, read by the three tests below: the phantoms of
+    ``local_pair`` published to ``s3://{BUCKET}/outs`` with the default store beside them
+    on S3 (``outs/.tumor3d-store``), computed on two Dask worker *processes*
+    (``--dask-workers 2``) when the Dask extra is installed, else by the local runner.
 
+    The folders handed to the uploader are captured as they were staged. One run serves
+    the store, the publishing and the worker processes: three separate S3 cohorts of two
+    patients each cost about 20 s of a test worker more (reports/test_suite.md).
+    """
+    import tumor3d.tasks.publish as publish_mod  # where the uploads are made
 
-@pytest.mark.slow
-@pytest.mark.usefixtures("prefect_harness")
-def test_dask_worker_processes_share_the_s3_store_and_its_cache(s3_endpoint, tmp_path):
-    """Two Dask worker *processes* (--dask-workers 2): the store, the Prefect result
-    block and the endpoint from the environment reach them; a re-run in another process
-    than the workers that wrote (this one, on the local runner: a new worker process would
-    load numpy, numba's kernels and Prefect afresh for the same check) finds every stage's
-    cache record in the bucket and is all hits."""
-    pytest.importorskip("prefect_dask", reason="prefect-dask not installed")
-    from tumor3d.flows.dask_runner import DaskSpec
+    try:
+        import prefect_dask  # noqa: F401
 
-    rows = _rows(tmp_path / "in", [0, 1])
-    url = f"s3://{BUCKET}/dask"
-    first = run_cohort(rows, tmp_path / "o1", store_dir=url, dask=DaskSpec(n_workers=2))
-    assert [p.status for p in first.patients] == ["ok", "ok"], [p.error for p in first.patients]
-    assert not (tmp_path / "o1" / ".tumor3d-store").exists()
-    again = run_cohort(rows, tmp_path / "o2", store_dir=url, workers=1)
-    assert again.workers == 1 and all(s.cached for p in again.patients for s in p.stages)
-    assert not (tmp_path / "o2" / ".tumor3d-store").exists()
+        from tumor3d.flows.dask_runner import DaskSpec
 
-
-@pytest.mark.slow
-@pytest.mark.usefixtures("prefect_harness")
-def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patients(
-    s3_endpoint, local_pair, tmp_path, monkeypatch
-):
-    """``--out s3://``: every patient's objects are the bytes of its local staging folder
-    (captured as handed to the uploader), the same files and deterministic bytes as a
-    local ``--out``, a marker per patient and for the cohort files; a re-run without a
-    patient reports it removed (a prefix without a marker is no patient)."""
-    import tumor3d.tasks.publish as patient_mod  # where the uploads are made
-
+        dask = DaskSpec(n_workers=2)
+    except ImportError:
+        dask = None
     staged: dict[str, dict[str, bytes]] = {}
-    real = patient_mod.publish_folder
+    real = publish_mod.publish_folder
 
     def spy(folder, url, **kwargs):
         staged[url] = {
@@ -396,11 +363,75 @@ def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patient
         }
         return real(folder, url, **kwargs)
 
-    rows, local, local_out = local_pair
-    monkeypatch.setattr(patient_mod, "publish_folder", spy)
+    rows = local_pair[0]
     url = f"s3://{BUCKET}/outs"
-    first = run_cohort(rows, url, workers=2)
+    mp = pytest.MonkeyPatch()
+    mp.setattr(publish_mod, "publish_folder", spy)
+    try:
+        first = run_cohort(rows, url, workers=2, dask=dask)
+    finally:
+        mp.undo()
     assert first.exit_code == 0, [p.error for p in first.patients]
+    return url, first, staged, dask is not None
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_cohort_with_an_s3_store_matches_a_local_store_and_reruns_from_cache(
+    s3_endpoint, local_pair, s3_cohort, tmp_path
+):
+    """The S3 store holds every artifact of the cohort (the same digests as a local store)
+    and the cache records; a local ``--out`` with that store keeps nothing locally and is
+    all hits, in this process, not the workers that wrote (a new worker process would load
+    numpy, numba's kernels and Prefect afresh for the same check)."""
+    rows, local, _ = local_pair
+    _, first, _, _ = s3_cohort
+    for a, b in zip(local.patients, first.patients, strict=True):
+        assert b.metrics["volume_eq7_mm3"] == a.metrics["volume_eq7_mm3"]
+        assert b.metrics["volume_mesh_mm3"] == a.metrics["volume_mesh_mm3"]
+        assert [s.artifacts for s in b.stages] == [s.artifacts for s in a.stages]
+        assert not any(s.cached for s in b.stages)  # its own store: computed afresh
+    keys = _keys(s3_endpoint, "outs/.tumor3d-store/")
+    digests = {d for p in first.patients for s in p.stages for d in s.artifacts.values()}
+    stored = {k.rsplit("/", 1)[-1].split(".")[0] for k in keys if "/objects/" in k}
+    assert digests <= stored  # every artifact is on S3 ...
+    assert any(k.startswith("outs/.tumor3d-store/prefect-results/") for k in keys)  # ... the cache
+    assert not [k for k in keys if k.startswith("outs/.tumor3d-store/tmp/")]
+    store = f"s3://{BUCKET}/outs/.tumor3d-store"
+    again = run_cohort(rows, tmp_path / "out", workers=2, store_dir=store)
+    assert again.workers == 2 and all(s.cached for p in again.patients for s in p.stages)
+    assert [p.metrics["volume_eq7_mm3"] for p in again.patients] == [
+        p.metrics["volume_eq7_mm3"] for p in first.patients
+    ]
+    assert (tmp_path / "out" / "s3p0" / "metrics.parquet").is_file()
+    assert not (tmp_path / "out" / ".tumor3d-store").exists()  # nothing kept locally
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_dask_worker_processes_share_the_s3_store_and_its_cache(s3_endpoint, s3_cohort):
+    """Two Dask worker *processes* (--dask-workers 2) computed ``s3_cohort``: the store, the
+    Prefect result block and the endpoint from the environment reached them (the test
+    above finds their artifacts and cache records in the bucket and re-runs all hits)."""
+    pytest.importorskip("prefect_dask", reason="prefect-dask not installed")
+    _, first, _, on_dask = s3_cohort
+    assert on_dask and first.workers == 2
+    assert [p.status for p in first.patients] == ["ok", "ok"], [p.error for p in first.patients]
+    assert any(k.startswith("outs/.tumor3d-store/objects/") for k in _keys(s3_endpoint, "outs/"))
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patients(
+    s3_endpoint, local_pair, s3_cohort
+):
+    """``--out s3://``: every patient's objects are the bytes of its local staging folder
+    (captured as handed to the uploader), the same files and deterministic bytes as a
+    local ``--out``, a marker per patient and for the cohort files; a re-run without a
+    patient reports it removed (a prefix without a marker is no patient), and, every stage
+    of the patient it keeps cached, rewrites no object of that patient's folder."""
+    rows, local, local_out = local_pair
+    url, first, staged, _ = s3_cohort
     assert [p.output_dir for p in first.patients] == [f"{url}/s3p0", f"{url}/s3p1"]
     out = RemoteFolder(url)
     assert published_names(out) == ["s3p0", "s3p1"]
@@ -429,19 +460,19 @@ def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patient
     assert not [k for k in root if k.startswith("outs/.tumor3d-tmp/")]
     # a prefix without a marker (an interrupted publish) is not a published patient
     s3_endpoint.put_object(Bucket=BUCKET, Key="outs/ghost/metrics.parquet", Body=b"half")
+    before = _stamps(s3_endpoint, "outs/s3p0/")
+    assert len(before) > 5
+    time.sleep(1.1)  # LastModified has a resolution of a second
     again = run_cohort(rows[:1], url, workers=1)
     assert again.removed == ["s3p1"] and all(s.cached for s in again.patients[0].stages)
+    assert _stamps(s3_endpoint, "outs/s3p0/") == before  # a cached patient uploads nothing
+    assert verify_folder(out, "s3p0") == []
     md = _body(s3_endpoint, "outs/cohort.md").decode()
     assert "Removed from the manifest" in md and "s3p1" in md
     assert f"outs/s3p1/{MARKER}" in _keys(s3_endpoint, "outs/s3p1/")  # reported, not deleted
 
 
 # -- issue 29: `run` to s3 is s3; a cached re-run uploads nothing -----------------------
-
-
-def _stamps(client, prefix: str) -> dict[str, tuple[str, object]]:
-    pages = client.get_paginator("list_objects_v2").paginate(Bucket=BUCKET, Prefix=prefix)
-    return {o["Key"]: (o["ETag"], o["LastModified"]) for p in pages for o in p.get("Contents", [])}
 
 
 @pytest.mark.slow
@@ -469,27 +500,6 @@ def test_run_with_an_s3_output_or_store_writes_the_bucket_not_a_local_folder(
     res = CliRunner().invoke(app, [*args, "--out", "s3://no-such-bucket/x"])
     assert res.exit_code == 3 and "no-such-bucket" in res.output
     assert "Traceback" not in res.output and not (tmp_path / "s3:").exists()
-
-
-@pytest.mark.slow
-@pytest.mark.usefixtures("prefect_harness")
-def test_a_fully_cached_cohort_rerun_to_s3_uploads_no_patient_object(s3_endpoint, local_pair):
-    # the first publish to S3 takes its stages from the local reference run's store (what
-    # it uploads is not the question here); the re-run after it must upload nothing
-    rows, _, local_out = local_pair
-    store = local_out / ".tumor3d-store"
-    url = f"s3://{BUCKET}/again"
-    first = run_cohort(rows, url, workers=1, store_dir=store)
-    assert first.exit_code in (0, 4)
-    before = {k: v for k, v in _stamps(s3_endpoint, "again/").items() if "/s3p" in f"/{k}"}
-    assert len(before) > 2 * 5
-    time.sleep(1.1)  # LastModified has a resolution of a second
-    again = run_cohort(rows, url, workers=1, store_dir=store)
-    assert all(s.cached for p in again.patients for s in p.stages)
-    after = {k: v for k, v in _stamps(s3_endpoint, "again/").items() if "/s3p" in f"/{k}"}
-    assert after == before  # no object of a patient's folder rewritten
-    for p in again.patients:
-        assert verify_folder(RemoteFolder(url), p.patient_id) == []
 
 
 def test_temporary_keys_of_killed_writers_are_removed_by_age(s3_endpoint, monkeypatch):
