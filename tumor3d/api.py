@@ -348,7 +348,8 @@ def reconstruct(
         nibabel's ``img.affine``). Required then (voxel sizes are never
         assumed); the coarsest axis is the slice axis.
     modality : {"t2", "flair", "t1c"}
-        Required (it decides the segmentation method); a Scan's own by default.
+        Required (it decides the segmentation method), except for a Scan (its
+        own by default) and a folder of slices whose sidecar names it.
     config : PipelineConfig, dict or YAML text, optional
         As ``tumor3d run --config``; the defaults when None.
     brain_mask : path or ndarray, optional
@@ -385,6 +386,10 @@ def reconstruct(
         return reconstruct_scan(image, config=config, brain_mask=mask, segmentation=tumour)
     from tumor3d.storage.readers.options import ReadOptions
 
+    if modality is None and isinstance(image, str | os.PathLike):
+        from tumor3d.storage.readers import declared_modality
+
+        modality = declared_modality(image)  # a stack's sidecar; None: the error below
     mod = _modality(modality, None)
     cfg = _config(config)  # a bad configuration fails before the image is read
     options = ReadOptions(  # the reading options, checked once

@@ -446,6 +446,55 @@ def test_run_says_the_modality_it_uses_and_when_it_is_the_default(tmp_path, monk
     assert "modality: flair" in given.output and "default" not in given.output
 
 
+def test_a_stacks_sidecar_names_the_modality_when_none_is_given(tmp_path, monkeypatch):
+    """stack.yaml's ``modality`` (documented) is the run's when --modality is not given:
+    the command line, the flow's source and the Python API take it before the default,
+    and --modality still overrides it."""
+    import types
+
+    import yaml
+    from PIL import Image
+
+    import tumor3d.api
+    import tumor3d.flows.cli as cli
+    from tumor3d.flows.patient import prepare_source
+
+    stack = tmp_path / "stk"
+    stack.mkdir()
+    rng = np.random.default_rng(6)
+    for k in range(4):
+        Image.fromarray(rng.integers(10, 250, (12, 12)).astype(np.uint8)).save(stack / f"s{k}.png")
+    sidecar = {"pixel_spacing_mm": 1.0, "slice_thickness_mm": 2.0, "slice_gap_mm": 3.0}
+    (stack / "stack.yaml").write_text(yaml.safe_dump({**sidecar, "modality": "FLAIR"}))
+    seen = {}
+    result_stub = types.SimpleNamespace(metrics={"status": "ok"})
+    monkeypatch.setattr(cli, "_run_with_progress", lambda **kw: (seen.update(kw), result_stub)[1])
+    monkeypatch.setattr(cli, "print_summary", lambda result: None)
+    named = runner.invoke(app, ["run", str(stack), "--out", str(tmp_path / "o")])
+    assert named.exit_code == 0, named.output
+    assert seen["modality"] == "flair"
+    assert "modality: flair (named by the stack's sidecar)" in " ".join(named.output.split())
+    given = runner.invoke(
+        app, ["run", str(stack), "--out", str(tmp_path / "o"), "--modality", "t1c"]
+    )
+    assert given.exit_code == 0 and seen["modality"] == "t1c" and "sidecar" not in given.output
+    assert prepare_source(stack).modality == "flair"
+    assert prepare_source(stack, modality="t2").modality == "t2"
+    scans = []
+    monkeypatch.setattr(tumor3d.api, "reconstruct_scan", lambda scan, **kw: scans.append(scan))
+    tumor3d.api.reconstruct(stack)  # no "give modality=": the sidecar names it
+    assert scans[-1].modality == "flair"
+    # without the key: the default, said as the default; a bad value names the sidecar
+    (stack / "stack.yaml").write_text(yaml.safe_dump(sidecar))
+    assert prepare_source(stack).modality == "t2"
+    with pytest.raises(InputError, match="give modality="):
+        tumor3d.api.reconstruct(stack)
+    (stack / "stack.yaml").write_text(yaml.safe_dump({**sidecar, "modality": "pd"}))
+    bad = runner.invoke(app, ["run", str(stack), "--out", str(tmp_path / "o")])
+    assert bad.exit_code == 2 and "unknown modality 'pd'" in bad.output
+    assert "stack.yaml" in bad.output and "Traceback" not in bad.output
+
+
 def test_prefect_run_records_stay_off_the_console_without_verbose():
     import logging
 

@@ -37,7 +37,12 @@ from tumor3d.storage.inputs import input_digest, input_location
 from tumor3d.storage.objectstore import default_store_location, is_url, open_store
 from tumor3d.storage.product_memo import products
 from tumor3d.storage.publish import check_destination, check_output_not_input
-from tumor3d.storage.readers import ReadOptions, derive_patient_id, suggest_patient_id
+from tumor3d.storage.readers import (
+    ReadOptions,
+    derive_patient_id,
+    resolve_modality,
+    suggest_patient_id,
+)
 from tumor3d.storage.readers.handoff import kept_or_read
 from tumor3d.storage.store import ArtifactRef, ArtifactStore
 from tumor3d.tasks import stages
@@ -114,7 +119,9 @@ def prepare_source(
     ``options`` (a :class:`~tumor3d.storage.readers.options.ReadOptions`), or
     its fields as keywords (``modality``, ``patient_id``, ``series_uid``,
     ``slice_thickness_mm``, ``slice_gap_mm``, ``skip_unreadable``,
-    ``max_voxels``), say how to read it; the modality defaults to ``"t2"``.
+    ``max_voxels``), say how to read it; without a modality, an image stack's
+    sidecar names it, else it is ``"t2"``
+    (:func:`tumor3d.storage.readers.resolve_modality`).
 
     With ``out_dir``, also refuse (before any work) an output folder
     ``<out_dir>/<patient_id>`` that is or contains the input, that holds
@@ -136,6 +143,7 @@ def prepare_source(
         raise InputError("no such file or folder", path=str(path))
     patient_id = options.patient_id
     pid = patient_id if patient_id is not None else derive_patient_id(path)
+    modality, _ = resolve_modality(path, options.modality)  # a stack's sidecar, else "t2"
     digest = input_digest(path)
     if out_dir is not None and not is_url(out_dir):  # an object store holds no local input
         check_destination(
@@ -143,7 +151,7 @@ def prepare_source(
             location=input_location(path), suggestion=suggest_patient_id(path),
         )  # fmt: skip
     return InputSource(
-        **{**options.model_dump(), "modality": options.modality or "t2", "patient_id": pid},
+        **{**options.model_dump(), "modality": modality, "patient_id": pid},
         path=str(path.resolve()),
         name=path.name,
         digest=digest,

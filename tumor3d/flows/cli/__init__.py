@@ -87,7 +87,6 @@ from tumor3d.flows.cli.output import (  # noqa: E402, F401
     print_summary,
 )
 from tumor3d.flows.cli.preflight import (  # noqa: E402
-    DEFAULT_MODALITY,
     _location,
     _preflight,
     _say_modality,
@@ -154,13 +153,14 @@ def run(
     verbose: Verbose = False,
 ) -> None:
     """Reconstruct one patient's tumour: masks, meshes, renders and volumes under OUT/<id>/."""
+    from tumor3d.storage.readers import resolve_modality
     from tumor3d.storage.readers.handoff import forget_kept
     from tumor3d.storage.readers.options import ReadOptions
 
     try:
         cfg = _load_config(config)
-        assumed = modality is None
-        modality = DEFAULT_MODALITY if modality is None else modality
+        # the option, else what an image stack's sidecar names, else the default (said)
+        modality, origin = resolve_modality(input_path, modality)
         options = ReadOptions(  # the reading options, checked once and passed on as one
             modality=modality, patient_id=patient_id, series_uid=series_uid,
             slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm,
@@ -181,7 +181,7 @@ def run(
         raise _fail(exc) from None
     finally:
         forget_kept()  # a scan the ingest stage did not need (its result was cached)
-    _say_modality(modality, assumed)
+    _say_modality(modality, origin)
     print_summary(result)
     raise typer.Exit(code=_patient_exit_code(result))
 

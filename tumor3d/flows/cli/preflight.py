@@ -146,20 +146,22 @@ def _check_given_masks(
         read_given_segmentation(segmentation, scan, max_voxels=limit)
 
 
-#: The modality ``run`` assumes when --modality is not given (said on the console).
-DEFAULT_MODALITY = "t2"
+def _say_modality(modality: str, origin: str) -> None:
+    """Say the modality the run used, and where it came from when not from --modality.
 
-
-def _say_modality(modality: str, assumed: bool) -> None:
-    """Say the modality the run used, and that it was the default when it was."""
-    if not assumed:
+    ``origin``: as :func:`tumor3d.storage.readers.resolve_modality` gives it.
+    """
+    if origin == "given":
         console.print(f"modality: {escape(modality)}", highlight=False)
-        return
-    console.print(
-        f"modality: [bold]{escape(modality)}[/] (the default: --modality was not given; it "
-        "decides the segmentation, so give --modality flair or t1c for those images)",
-        highlight=False, soft_wrap=True,
-    )  # fmt: skip
+    elif origin == "input":
+        said = f"modality: {escape(modality)} (named by the stack's sidecar)"
+        console.print(said, highlight=False)
+    else:
+        console.print(
+            f"modality: [bold]{escape(modality)}[/] (the default: --modality was not given; it "
+            "decides the segmentation, so give --modality flair or t1c for those images)",
+            highlight=False, soft_wrap=True,
+        )  # fmt: skip
 
 
 def _check_out_dir(out: Path) -> None:

@@ -104,12 +104,14 @@ from tumor3d.storage.readers.registry import read_with_registry, registered_read
 from tumor3d.storage.readers.stack import (
     IMAGE_STACK_SUFFIXES,
     STACK_SIDECAR_NAMES,
+    declared_modality,
     read_image_stack,
 )
 
 __all__ = [
     "IMAGE_STACK_SUFFIXES",
     "ITK_SUFFIXES",
+    "DEFAULT_MODALITY",
     "MAX_VOXELS_DEFAULT",
     "MODALITIES",
     "REL_TOL",
@@ -117,6 +119,7 @@ __all__ = [
     "ReadOptions",
     "check_modality",
     "choose_slice_axis",
+    "declared_modality",
     "derive_patient_id",
     "read_dicom_series",
     "read_image_stack",
@@ -124,8 +127,38 @@ __all__ = [
     "read_nifti_scan",
     "read_scan",
     "registered_readers",
+    "resolve_modality",
     "suggest_patient_id",
 ]
+
+#: The modality a read takes when none is given and the input names none (said on the
+#: console by ``tumor3d run``: it decides the segmentation method).
+DEFAULT_MODALITY = "t2"
+
+
+def resolve_modality(path: str | os.PathLike[str], modality: str | None) -> tuple[str, str]:
+    """The modality of a read and where it came from.
+
+    ``"given"``: the ``modality`` option (checked); ``"input"``: an image stack's
+    sidecar names it (:func:`declared_modality`); ``"default"``: neither,
+    :data:`DEFAULT_MODALITY`.
+
+    Raises
+    ------
+    InputError
+        An unknown modality, or a sidecar that cannot be read (naming it).
+
+    Examples
+    --------
+    >>> resolve_modality("scan.nii.gz", "FLAIR"), resolve_modality("scan.nii.gz", None)
+    (('flair', 'given'), ('t2', 'default'))
+    """
+    if modality is not None:
+        return check_modality(modality), "given"
+    declared = declared_modality(path)
+    if declared is not None:
+        return declared, "input"
+    return DEFAULT_MODALITY, "default"
 
 
 def read_scan(

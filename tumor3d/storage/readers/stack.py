@@ -28,7 +28,7 @@ from tumor3d.storage.readers.options import ReadOptions
 from tumor3d.storage.readers.registry import register_reader
 from tumor3d.validation import short_repr
 
-__all__ = ["IMAGE_STACK_SUFFIXES", "STACK_SIDECAR_NAMES", "read_image_stack"]
+__all__ = ["IMAGE_STACK_SUFFIXES", "STACK_SIDECAR_NAMES", "declared_modality", "read_image_stack"]
 
 STACK_SIDECAR_NAMES = ("stack.yaml", "slices.yaml")
 """File names of the image-stack sidecar, in order of preference."""
@@ -90,38 +90,7 @@ def read_image_stack(
     gap_override = _check_override("slice_gap_mm", slice_gap_mm, allow_zero=True)
     if not d.is_dir():
         raise InputError("no such folder", str(d))
-    present = [d / n for n in STACK_SIDECAR_NAMES if (d / n).is_file()]
-    if not present:
-        raise InputError(
-            "missing sidecar: the folder needs it to give pixel_spacing_mm, "
-            "slice_thickness_mm and slice_gap_mm",
-            str(d / STACK_SIDECAR_NAMES[0]),
-        )
-    if len(present) > 1:
-        raise InputError(
-            f"both {STACK_SIDECAR_NAMES[0]} and {STACK_SIDECAR_NAMES[1]} are present: keep one",
-            str(d),
-        )
-    sidecar = present[0]
-    where = str(sidecar)
-    try:
-        size = sidecar.stat().st_size
-        if size > YAML_MAX_BYTES:
-            raise InputError(
-                f"a sidecar of {size:,} bytes, more than the {YAML_MAX_BYTES:,} allowed", where
-            )
-        meta = load_yaml(sidecar.read_text(encoding="utf-8"), source=where)
-    except ConfigError as exc:
-        raise InputError(f"not a readable YAML sidecar ({exc.problem})", where) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"not a readable YAML sidecar ({_describe(exc)})", where) from exc
-    if not isinstance(meta, dict):
-        raise InputError("the sidecar must hold a mapping of keys to values", where)
-    unknown = sorted(str(k) for k in meta if k not in _STACK_KEYS)
-    if unknown:
-        raise InputError(
-            f"unknown key(s) {', '.join(unknown)}; allowed: {', '.join(_STACK_KEYS)}", where
-        )
+    meta, where = _read_sidecar(d)
 
     if "pixel_spacing_mm" not in meta:
         raise InputError(
@@ -276,6 +245,77 @@ def _read_slice(f: Path) -> np.ndarray:
 
 def _has_sidecar(folder: Path) -> bool:
     return any((folder / name).is_file() for name in STACK_SIDECAR_NAMES)
+
+
+def _read_sidecar(d: Path) -> tuple[dict, str]:
+    """The stack folder's sidecar as a mapping of its known keys, and its path.
+
+    Raises
+    ------
+    InputError
+        No sidecar or two, too large, not YAML, not a mapping, or an unknown key.
+    """
+    present = [d / n for n in STACK_SIDECAR_NAMES if (d / n).is_file()]
+    if not present:
+        raise InputError(
+            "missing sidecar: the folder needs it to give pixel_spacing_mm, "
+            "slice_thickness_mm and slice_gap_mm",
+            str(d / STACK_SIDECAR_NAMES[0]),
+        )
+    if len(present) > 1:
+        raise InputError(
+            f"both {STACK_SIDECAR_NAMES[0]} and {STACK_SIDECAR_NAMES[1]} are present: keep one",
+            str(d),
+        )
+    sidecar = present[0]
+    where = str(sidecar)
+    try:
+        size = sidecar.stat().st_size
+        if size > YAML_MAX_BYTES:
+            raise InputError(
+                f"a sidecar of {size:,} bytes, more than the {YAML_MAX_BYTES:,} allowed", where
+            )
+        meta = load_yaml(sidecar.read_text(encoding="utf-8"), source=where)
+    except ConfigError as exc:
+        raise InputError(f"not a readable YAML sidecar ({exc.problem})", where) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"not a readable YAML sidecar ({_describe(exc)})", where) from exc
+    if not isinstance(meta, dict):
+        raise InputError("the sidecar must hold a mapping of keys to values", where)
+    unknown = sorted(str(k) for k in meta if k not in _STACK_KEYS)
+    if unknown:
+        raise InputError(
+            f"unknown key(s) {', '.join(unknown)}; allowed: {', '.join(_STACK_KEYS)}", where
+        )
+    return meta, where
+
+
+def declared_modality(path: str | os.PathLike[str]) -> str | None:
+    """The modality an image-stack folder's sidecar names (its ``modality`` key), else ``None``.
+
+    A file, a DICOM folder or a stack whose sidecar has no ``modality`` declares
+    none. The command line and the flows take it before their default (``"t2"``),
+    so a documented key is not overridden by a default.
+
+    Raises
+    ------
+    InputError
+        The sidecar cannot be read, or names an unknown modality (naming the sidecar).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> d = Path(tempfile.mkdtemp())
+    >>> _ = (d / "stack.yaml").write_text("modality: FLAIR")
+    >>> declared_modality(d), declared_modality(d / "stack.yaml")
+    ('flair', None)
+    """
+    d = Path(path)
+    if not d.is_dir() or not any((d / n).is_file() for n in STACK_SIDECAR_NAMES):
+        return None
+    meta, where = _read_sidecar(d)
+    value = meta.get("modality")
+    return None if value is None else check_modality(value, where=where)
 
 
 def _missing_sidecar(folder: Path) -> InputError | None:
