@@ -67,6 +67,24 @@ async def app(scope, receive, send):
 s._run_uvicorn(app, int(sys.argv[1]), lifespan="off")
 """
 
+RUN_CTRL_C = """
+import contextlib, os, signal, time
+import tumor3d.flows.cli.session as session
+import tumor3d.flows.patient as patient
+import tumor3d.flows.server as server
+server.EXIT_HOOKS.append(lambda code: print(f"hook {code}", flush=True))
+session._prefect = contextlib.nullcontext  # no server: the command's Ctrl-C handling alone
+
+def run_patient(**kwargs):
+    os.kill(os.getpid(), signal.SIGINT)  # a Ctrl-C in the middle of a patient
+    time.sleep(5)
+    print("run finished", flush=True)
+
+patient.run_patient = run_patient
+session._run_with_progress(input_path="x")
+print("returned", flush=True)
+"""
+
 #: Every command of this module: (script, arguments) by name.
 COMMANDS = {
     "killed server": (SCRIPT, ["kill"]),
@@ -74,6 +92,7 @@ COMMANDS = {
     "server ctrl-c": (SERVER_PROCESS, ["sigint", APP]),
     "server killed": (SERVER_PROCESS, ["kill", APP]),
     "server ctrl-c alone": (SERVER_PROCESS, ["sigint", APP, "1.0"]),
+    "run ctrl-c": (RUN_CTRL_C, []),
 }
 
 
@@ -131,3 +150,16 @@ def test_a_server_that_stays_is_left_alone(ran):
     res = ran["server kept"]
     assert res.returncode == 0, res.stderr
     assert "body finished" in res.stdout and res.stderr.strip() == ""
+
+
+def test_ctrl_c_during_run_ends_it_in_one_line_exit_130_after_the_exit_hooks(ran):
+    """``run`` and ``demo`` (``_run_with_progress``) end at a Ctrl-C as ``cohort`` does: at
+    once, one line, exit 130, the exit hooks called first (a background runner's child
+    reports its exit code there). They waited for Prefect's engine instead, which retried
+    the temporary server the same Ctrl-C had stopped, until the watch ended them with
+    exit 3 and "stopped answering"."""
+    res = ran["run ctrl-c"]
+    assert res.returncode == 130, (res.returncode, res.stderr)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert lines == ["interrupted: Ctrl-C stopped the run; a re-run continues from the cache"]
+    assert "hook 130" in res.stdout and "run finished" not in res.stdout

@@ -63,9 +63,14 @@ def _ctrl_c_ends(message: str) -> Iterator[None]:
     a hidden folder and renamed at the end; a staging folder of this ended
     process is removed by the next publish of that patient), the temporary
     server dies with its parent (:mod:`tumor3d.flows.server`), and Prefect's unsent
-    events are dropped. Install from the main thread only.
+    events are dropped. The exit hooks run first (:data:`tumor3d.flows.server.EXIT_HOOKS`:
+    a background runner's child reports the exit code to its client there). Install
+    from the main thread only.
     """
+    import contextlib
     import signal
+
+    from tumor3d.flows.server import EXIT_HOOKS
 
     def on_sigint(signum: int, frame: Any) -> None:
         try:
@@ -76,6 +81,9 @@ def _ctrl_c_ends(message: str) -> Iterator[None]:
             sys.stderr.write(("\n" if console.is_terminal else "") + f"interrupted: {message}\n")
             sys.stderr.flush()
         finally:
+            for hook in EXIT_HOOKS:
+                with contextlib.suppress(Exception):
+                    hook(EXIT_INTERRUPTED)
             os._exit(EXIT_INTERRUPTED)
 
     previous = signal.signal(signal.SIGINT, on_sigint)

@@ -11,7 +11,7 @@ import typer
 from rich.table import Table
 
 from tumor3d.flows.cli.app import Verbose, app, console, err_console
-from tumor3d.flows.cli.errors import _HANDLED, _fail
+from tumor3d.flows.cli.errors import _HANDLED, _ctrl_c_ends, _fail
 from tumor3d.flows.cli.session import _prefect
 from tumor3d.storage.evaluation_report import run_status_cell
 
@@ -71,7 +71,8 @@ def evaluate(
         for m in manifest:
             read_manifest_rows(m)  # fail fast on a bad manifest (header, missing file)
         command = "tumor3d " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-        with _prefect():
+        stopped = "Ctrl-C stopped the evaluation; a re-run continues from the cache"
+        with _ctrl_c_ends(stopped), _prefect():
             result = run_evaluation(
                 manifest, out, config_files=specs, workers=workers,
                 store_dir=None if store is None else str(store), phantoms=phantoms,

@@ -87,7 +87,14 @@ def _reporting(make_reporter: Any) -> Iterator[None]:
 
 
 def _run_with_progress(**kwargs: Any) -> Any:
+    """``run_patient`` with the console's progress, under Prefect.
+
+    Ctrl-C ends it at once, one line and exit 130, as ``cohort``
+    (:func:`tumor3d.flows.cli.errors._ctrl_c_ends`).
+    """
+    from tumor3d.flows.cli.errors import _ctrl_c_ends
     from tumor3d.flows.patient import run_patient
 
-    with _prefect(), _reporting(_ProgressReporter):
+    stopped = "Ctrl-C stopped the run; a re-run continues from the cache"
+    with _ctrl_c_ends(stopped), _prefect(), _reporting(_ProgressReporter):
         return run_patient(**kwargs)
