@@ -424,18 +424,14 @@ def reconstruct(
     mask = None
     if brain_mask is not None:
         if isinstance(brain_mask, np.ndarray):
-            mask = brain_mask
-            if mask.shape == scan.source_grid.shape:  # the file's voxel order
-                mask = np.ascontiguousarray(mask.transpose(scan.source_grid.axes[::-1]))
+            mask = _on_scan_grid(brain_mask, scan, "brain_mask")
         else:
             from tumor3d.storage.brain_mask import read_given_brain_mask
 
             mask = read_given_brain_mask(brain_mask, scan).mask
     tumour, name = None, None
     if isinstance(segmentation, np.ndarray):
-        tumour = segmentation
-        if tumour.shape == scan.source_grid.shape:  # the file's voxel order
-            tumour = np.ascontiguousarray(tumour.transpose(scan.source_grid.axes[::-1]))
+        tumour = _on_scan_grid(segmentation, scan, "segmentation")
     elif segmentation is not None:
         from tumor3d.storage.given_segmentation import read_given_segmentation
 
@@ -443,6 +439,23 @@ def reconstruct(
         tumour, name = given_seg.mask, given_seg.name
     return reconstruct_scan(
         scan, config=cfg, brain_mask=mask, segmentation=tumour, segmentation_name=name
+    )
+
+
+def _on_scan_grid(arr: np.ndarray, scan: Scan, what: str) -> np.ndarray:
+    """An array given beside a file, in the file's voxel order (first) or the scan's ``(z, y, x)``.
+
+    Raises
+    ------
+    InputError
+        Neither shape; the message gives the file's, as the user sees the image.
+    """
+    if arr.shape == scan.source_grid.shape:  # the file's voxel order
+        return np.ascontiguousarray(arr.transpose(scan.source_grid.axes[::-1]))
+    if arr.shape == scan.image.shape:
+        return arr
+    raise InputError(
+        f"{what} has shape {arr.shape}, the image {scan.source_grid.shape} (its file's voxel order)"
     )
 
 

@@ -244,8 +244,9 @@ def mm3_to_ml(volume_mm3: float) -> float:
 #: Which acquired slices Eq. 7 sums, by rule name.
 EQ7_SLICE_RULES: dict[str, str] = {
     "segmented": (
-        "every acquired slice with segmented tumour: the slices detection flagged "
-        "abnormal plus the tumour's end slices that segmentation found beyond them"
+        "every acquired slice with segmented tumour: the sum runs over the slices "
+        "detection flagged abnormal (one without tumour adds nothing) plus the tumour's "
+        "end slices that segmentation found beyond them"
     ),
     "abnormal": "only the slices detection flagged abnormal (the paper read literally)",
 }

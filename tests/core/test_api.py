@@ -68,6 +68,13 @@ def test_an_array_with_its_affine_and_a_file_give_the_same_result(phantom, resul
     assert from_file.patient_id == row.image.name.split(".")[0]
     for key, v in result.volumes_mm3.items():
         assert from_file.volumes_mm3[key] == pytest.approx(v, rel=1e-6), key
+    # an array off the file's grid beside it: named in the file's voxel order, not (z, y, x)
+    for what in ("segmentation", "brain_mask"):
+        with pytest.raises(InputError) as exc:
+            tumor3d.reconstruct(str(row.image), modality="t2", **{what: np.zeros((3, 3, 3))})
+        assert str(exc.value) == (
+            f"{what} has shape (3, 3, 3), the image {grid.shape} (its file's voxel order)"
+        )
 
 
 def test_the_api_agrees_with_the_pipeline_stage_for_stage(phantom, result, tmp_path):

@@ -446,6 +446,27 @@ def test_run_says_the_modality_it_uses_and_when_it_is_the_default(tmp_path, monk
     assert "modality: flair" in given.output and "default" not in given.output
 
 
+def test_run_says_the_patient_id_it_made_when_it_is_not_the_files_name(tmp_path, monkeypatch):
+    import types
+
+    import tumor3d.flows.cli as cli
+
+    seen = {}
+    result_stub = types.SimpleNamespace(metrics={"status": "ok"})
+    monkeypatch.setattr(cli, "_run_with_progress", lambda **kw: (seen.update(kw), result_stub)[1])
+    monkeypatch.setattr(cli, "print_summary", lambda result: None)
+    data = np.random.default_rng(4).random((12, 12, 4)) + 1
+    odd = _nifti(tmp_path / "Pat 01 é.nii.gz", data)
+    res = runner.invoke(app, ["run", str(odd), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    said = " ".join(res.output.split())
+    assert "patient id: Pat_01__ (made folder-safe from the name 'Pat 01 é'" in said
+    plain = _nifti(tmp_path / "pat02.nii.gz", data)
+    for args in (["run", str(plain)], ["run", str(odd), "--patient-id", "p1"]):
+        res = runner.invoke(app, [*args, "--out", str(tmp_path / "o2")])
+        assert res.exit_code == 0 and "patient id:" not in res.output, res.output
+
+
 def test_a_stacks_sidecar_names_the_modality_when_none_is_given(tmp_path, monkeypatch):
     """stack.yaml's ``modality`` (documented) is the run's when --modality is not given:
     the command line, the flow's source and the Python API take it before the default,

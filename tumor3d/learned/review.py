@@ -18,6 +18,7 @@ limits are chosen by cross-validation by patient (``benchmarks/review_cv.py``,
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -295,6 +296,32 @@ def review_segmentation(
         if beyond:
             if np.isinf(v) and name in EMPTY_LESION_REASONS:
                 text = EMPTY_LESION_REASONS[name]
-            reasons.append(text.format(v=v, lim=limit))
+            reasons.append(_reason(text, v, limit))
     score = float(np.clip(1.0 - 0.5 * max(excess), 0.0, 1.0))
     return Review(bool(reasons), tuple(reasons), score, dict(figures))
+
+
+_FIGURE_SPEC = re.compile(r"\{(v|lim):\.(\d)([f%])\}")
+
+
+def _reason(text: str, v: float, limit: float) -> str:
+    """A check's reason with its figure and limit.
+
+    Both get more decimals (up to 3 more) while the figure would read as its
+    limit: "0.20 (limit 0.20)" for 0.203 over 0.2.
+
+    >>> _reason("ratio {v:.2f} (limit {lim:.2f})", 0.203, 0.2)
+    'ratio 0.203 (limit 0.200)'
+    >>> _reason("ratio {v:.2f} (limit {lim:.2f})", 0.31, 0.2)
+    'ratio 0.31 (limit 0.20)'
+    """
+
+    def widen(extra: int) -> str:
+        return _FIGURE_SPEC.sub(lambda m: f"{{{m[1]}:.{int(m[2]) + extra}{m[3]}}}", text)
+
+    for extra in range(4):
+        widened = widen(extra)
+        spec = next((f".{m[2]}{m[3]}" for m in _FIGURE_SPEC.finditer(widened) if m[1] == "v"), None)
+        if spec is None or not np.isfinite(v) or format(v, spec) != format(limit, spec):
+            break
+    return widened.format(v=v, lim=limit)

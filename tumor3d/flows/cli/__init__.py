@@ -89,6 +89,7 @@ from tumor3d.flows.cli.output import (  # noqa: E402, F401
 from tumor3d.flows.cli.preflight import (  # noqa: E402
     _location,
     _preflight,
+    _say_derived_id,
     _say_modality,
 )
 from tumor3d.flows.cli.process import finish_process, main, run_command  # noqa: E402, F401
@@ -182,6 +183,8 @@ def run(
     finally:
         forget_kept()  # a scan the ingest stage did not need (its result was cached)
     _say_modality(modality, origin)
+    if patient_id is None:
+        _say_derived_id(input_path)
     print_summary(result)
     raise typer.Exit(code=_patient_exit_code(result))
 

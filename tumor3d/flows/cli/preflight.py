@@ -164,6 +164,19 @@ def _say_modality(modality: str, origin: str) -> None:
         )  # fmt: skip
 
 
+def _say_derived_id(input_path: Path) -> None:
+    """Say the patient id made from the input's name when making it folder-safe changed it."""
+    from tumor3d.storage.readers.common import derive_patient_id, id_source_name
+
+    name, pid = id_source_name(input_path), derive_patient_id(input_path)
+    if pid != name:
+        console.print(
+            f"patient id: {escape(pid)} (made folder-safe from the name {escape(repr(name))}; "
+            "--patient-id gives your own)",
+            highlight=False, soft_wrap=True,
+        )  # fmt: skip
+
+
 def _check_out_dir(out: Path) -> None:
     """An output folder that exists as a file is bad input (exit 2), found before any work."""
     from tumor3d.errors import InputError

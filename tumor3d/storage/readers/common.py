@@ -44,6 +44,7 @@ __all__ = [
     "check_voxel_count",
     "choose_slice_axis",
     "derive_patient_id",
+    "id_source_name",
     "scan_from_volume",
     "suggest_patient_id",
 ]
@@ -112,6 +113,20 @@ def check_field_of_view(
         )
 
 
+def id_source_name(path: str | os.PathLike[str]) -> str:
+    """The input's file or folder name without its volume suffix: what an id is made from.
+
+    >>> id_source_name("/data/pat 03.nii.gz")
+    'pat 03'
+    """
+    name = Path(os.path.abspath(os.fspath(path))).name
+    lower = name.lower()
+    for suffix in VOLUME_FILE_SUFFIXES:
+        if lower.endswith(suffix):
+            return name[: -len(suffix)]
+    return name
+
+
 def derive_patient_id(path: str | os.PathLike[str]) -> str:
     """Make a folder-safe patient id from an input's file or folder name.
 
@@ -142,12 +157,7 @@ def derive_patient_id(path: str | os.PathLike[str]) -> str:
     'pat_03'
     """
     full_name = Path(os.path.abspath(os.fspath(path))).name
-    name = full_name
-    lower = name.lower()
-    for suffix in VOLUME_FILE_SUFFIXES:
-        if lower.endswith(suffix):
-            name = name[: -len(suffix)]
-            break
+    name = id_source_name(path)
     candidate = _UNSAFE_ID_CHARS.sub("_", name).lstrip("._-")[:128]
     try:
         return validate_patient_id(candidate)
