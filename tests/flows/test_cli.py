@@ -467,6 +467,31 @@ def test_run_says_the_patient_id_it_made_when_it_is_not_the_files_name(tmp_path,
         assert res.exit_code == 0 and "patient id:" not in res.output, res.output
 
 
+def test_every_commands_help_names_each_option_in_full_at_80_columns():
+    """--help in an 80-column terminal: no option name or help text cut off with "…"
+    (Rich's help tables cut --slice-thickness-mm, --skip-unreadable-dicom and the
+    s3:// examples); every option of every command named in full."""
+    import typer
+
+    def commands(group, path):  # typer vendors click: walk its groups by their commands
+        for name, command in group.commands.items():
+            yield [*path, name], command
+            if hasattr(command, "commands"):
+                yield from commands(command, [*path, name])
+
+    listed = list(commands(typer.main.get_command(app), []))
+    assert ["run"] in [path for path, _ in listed] and len(listed) > 8
+    for path, command in listed:
+        res = runner.invoke(app, [*path, "--help"], terminal_width=80)
+        assert res.exit_code == 0, (path, res.output)
+        assert "…" not in res.output, (path, res.output)
+        assert max(len(line) for line in res.output.splitlines()) <= 80, (path, res.output)
+        for param in command.params:
+            if param.param_type_name == "option":
+                for opt in param.opts:
+                    assert opt in res.output, (path, opt)
+
+
 def test_a_stacks_sidecar_names_the_modality_when_none_is_given(tmp_path, monkeypatch):
     """stack.yaml's ``modality`` (documented) is the run's when --modality is not given:
     the command line, the flow's source and the Python API take it before the default,

@@ -115,7 +115,10 @@ def run(
     config: Annotated[Path | None, typer.Option(help="YAML configuration file.")] = None,
     modality: Annotated[
         str | None,
-        typer.Option(help="t2, flair or t1c (default t2, said on the console when assumed)."),
+        typer.Option(
+            help="t2, flair or t1c (default: what a slice folder's stack.yaml names, else t2; "
+            "said on the console)."
+        ),
     ] = None,
     slice_thickness_mm: Annotated[
         float | None, typer.Option(help="Override the slice thickness (mm).")

@@ -15,6 +15,7 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,  # click's help: wrapped to the terminal; Rich's tables cut names
 )
 console = Console()
 err_console = Console(stderr=True)
