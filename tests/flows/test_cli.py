@@ -492,6 +492,44 @@ def test_every_commands_help_names_each_option_in_full_at_80_columns():
                     assert opt in res.output, (path, opt)
 
 
+def test_an_output_folder_that_cannot_be_written_is_named_before_any_work(tmp_path, monkeypatch):
+    """With --store elsewhere nothing wrote in --out before publishing: an immutable folder
+    failed after every stage (chattr +i; root ignores a read-only mode, so the refusal is
+    simulated where the probe writes)."""
+    import errno
+    import tempfile
+
+    import tumor3d.flows.cli as cli
+
+    ran = []
+    monkeypatch.setattr(cli, "_run_with_progress", lambda **kw: ran.append(kw))
+    good = _nifti(tmp_path / "good.nii.gz", np.random.default_rng(4).random((12, 12, 4)) + 1)
+    out = tmp_path / "frozen"
+    out.mkdir()
+    real = tempfile.mkstemp
+
+    def refused(*args, dir=None, **kwargs):
+        if dir is not None and str(dir) == str(out):
+            raise PermissionError(errno.EPERM, "Operation not permitted", str(out / ".probe"))
+        return real(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "mkstemp", refused)
+    args = ["run", str(good), "--out", str(out), "--store", str(tmp_path / "store")]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 3 and not ran, res.output
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert lines[-1] == f"error: {out}: operation not permitted (EPERM)", res.output
+    assert list(out.iterdir()) == []
+    manifest = tmp_path / "m.csv"
+    manifest.write_text(f"patient_id,image,modality\np1,{good},t2\n")
+    res = runner.invoke(app, ["cohort", str(manifest), *args[2:]])  # cohort: the same
+    assert res.exit_code == 3 and not ran, res.output
+    assert f"error: {out}: operation not permitted (EPERM)" in res.output
+    monkeypatch.setattr(tempfile, "mkstemp", real)
+    res = runner.invoke(app, args)  # writable: on to the run, no probe left behind
+    assert ran and list(out.iterdir()) == [], res.output
+
+
 def test_a_stacks_sidecar_names_the_modality_when_none_is_given(tmp_path, monkeypatch):
     """stack.yaml's ``modality`` (documented) is the run's when --modality is not given:
     the command line, the flow's source and the Python API take it before the default,

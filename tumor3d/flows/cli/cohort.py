@@ -23,7 +23,7 @@ from tumor3d.flows.cli.app import (
 )
 from tumor3d.flows.cli.errors import _HANDLED, _ctrl_c_ends, _fail
 from tumor3d.flows.cli.output import _CohortReporter, print_cohort_summary
-from tumor3d.flows.cli.preflight import _check_out_dir, _preflight_cohort
+from tumor3d.flows.cli.preflight import _check_out_dir, _check_out_writable, _preflight_cohort
 from tumor3d.flows.cli.session import _prefect, _reporting
 
 
@@ -61,6 +61,8 @@ def cohort(
         rows = read_manifest(manifest, require_files=False)
         dask = DaskSpec(dask_address, dask_workers)
         _preflight_cohort(out, store, dask.address)  # before a Prefect server is started
+        if not is_url(out):
+            _check_out_writable(Path(out))
         stopped = (
             "Ctrl-C stopped the cohort; the patients published before it are complete, "
             "a re-run continues from the cache"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -74,6 +75,24 @@ def _preflight(
 
     check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
     _reach_destinations(out, store, make_local_store=True)
+    _check_out_writable(out)
+
+
+def _check_out_writable(out: Path) -> None:
+    """A local output folder that cannot be written is named before any work (exit 3).
+
+    With ``--store`` elsewhere nothing else writes there before publishing: an
+    immutable or read-only folder failed after every stage had run.
+    """
+    import tempfile
+
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".tumor3d-probe-", dir=out)
+    except OSError as exc:  # named by the folder, not the probe's random name
+        raise OSError(exc.errno, exc.strerror, str(out)) from None
+    os.close(fd)
+    os.unlink(probe)
 
 
 def _preflight_remote(
