@@ -530,6 +530,66 @@ def test_an_output_folder_that_cannot_be_written_is_named_before_any_work(tmp_pa
     assert ran and list(out.iterdir()) == [], res.output
 
 
+def test_the_cohort_table_fits_80_columns_with_every_id_in_full(monkeypatch):
+    """A piped or 80-column console cut every id to "phanto…", so an ok and a check patient
+    could not be told apart; the volume methods are named, in mL."""
+    import io
+    import types
+
+    from rich.console import Console
+
+    import tumor3d.flows.cli.output as output
+    from tumor3d.storage.derivatives import VOLUME_LABELS
+
+    def patient(pid, status):
+        metrics = {key: 12345.0 for key in VOLUME_LABELS} | {"notes": "", "review_reasons": ""}
+        stages = [types.SimpleNamespace(cached=True)] * 10
+        return types.SimpleNamespace(patient_id=pid, status=status, metrics=metrics, stages=stages)
+
+    ids = ["phantom000", "phantom001n", "a-rather-long-patient-id-of-a-site-0042"]
+    result = types.SimpleNamespace(
+        patients=[patient(i, s) for i, s in zip(ids, ["ok", "check", "ok"], strict=True)],
+        failed=[], removed=[], wall_seconds=1.0, out_dir="out",
+    )  # fmt: skip
+    buf = io.StringIO()
+    monkeypatch.setattr(output, "console", Console(file=buf, width=80))
+    output.print_cohort_summary(result)
+    text = buf.getvalue()
+    assert "…" not in text and max(len(line.rstrip()) for line in text.splitlines()) <= 80
+    rows = [line.split() for line in text.splitlines()]
+    for pid, status in zip(ids[:2], ["ok", "check"], strict=True):
+        assert [pid, status, "12.345"] in [row[:3] for row in rows], text
+    assert ids[2] in "".join(row[0] for row in rows if row), text  # folded, not cut
+    flat = " ".join(text.split())
+    assert "volumes in mL by " + ", ".join(VOLUME_LABELS.values()) in flat
+
+
+def test_the_demos_errors_against_the_truth_keep_their_sign(monkeypatch):
+    """demo printed |error|: +1.43 % and -1.22 % both read as a plain percentage."""
+    import io
+    import types
+
+    from rich.console import Console
+
+    import tumor3d.flows.cli.output as output
+    from tumor3d.flows.patient import VOLUME_LABELS, VOLUME_METHODS
+
+    volumes = dict(zip(VOLUME_METHODS, [10143.0, 9878.0, 10000.0, 10050.0], strict=True))
+    metrics = volumes | {
+        "faces_mc": 10, "faces_simplified": 5, "mesh_watertight": True, "n_slices": 9,
+        "n_abnormal_slices": 3, "n_tumor_slices": 3, "slab_height_mm": 5.0, "slices_between": 4,
+    }  # fmt: skip
+    result = types.SimpleNamespace(
+        patient_id="p", metrics=metrics, stages=[], notes=[], up_to_date=False, output_dir="o"
+    )
+    buf = io.StringIO()
+    monkeypatch.setattr(output, "console", Console(file=buf, width=120))
+    output.print_summary(result, truth_mm3=10000.0)
+    rows = {line.split("│")[1].strip(): line for line in buf.getvalue().splitlines() if "│" in line}
+    errors = [rows[VOLUME_LABELS[key]].split("│")[4].strip() for key in VOLUME_METHODS]
+    assert errors == ["+1.43 %", "-1.22 %", "+0.00 %", "+0.50 %"]
+
+
 def test_a_stacks_sidecar_names_the_modality_when_none_is_given(tmp_path, monkeypatch):
     """stack.yaml's ``modality`` (documented) is the run's when --modality is not given:
     the command line, the flow's source and the Python API take it before the default,

@@ -112,6 +112,8 @@ def test_a_triggered_run_computes_only_the_added_patient_and_reports_removed(tmp
     assert (out / "srv0" / "metrics.parquet").is_file()
     md = (out / "cohort.md").read_text()
     assert "## Removed from the manifest" in md and "srv0, srv2" in md
+    page = (out / "cohort.html").read_text()  # the page too (it had only the kept rows)
+    assert "<h2>Removed from the manifest</h2>" in page and "kept (not deleted): srv0, srv2" in page
 
 
 def test_cli_serve_builds_the_deployment_and_hands_it_to_prefect(tmp_path, monkeypatch):
@@ -150,3 +152,18 @@ def test_a_bad_cron_says_why_in_one_line_without_a_pydantic_url(tmp_path, cron, 
     text = str(exc.value)
     assert reason in text and "\n" not in text
     assert "pydantic" not in text and "http" not in text
+
+
+def test_a_bad_time_zone_is_named_and_a_row_not_there_yet_is_accepted(tmp_path):
+    """--timezone is named for a bad time zone (it was blamed on the cron), and a manifest
+    row whose image has not arrived is accepted as ``cohort`` accepts it (serve refused
+    the whole manifest; a scheduled run fails that row alone)."""
+    manifest = write_manifest([_row(0, tmp_path)], tmp_path / "m.csv")
+    with pytest.raises(InputError) as exc:
+        cohort_deployment(manifest, tmp_path / "out", cron="0 2 * * *", timezone="Mars/Base")
+    assert str(exc.value).startswith("invalid --timezone 'Mars/Base': not an IANA time zone")
+    text = manifest.read_text()
+    late = text.splitlines()[1].replace("srv0", "late", 1).replace("srv0", "NOPE")
+    manifest.write_text(text + late + "\n")
+    dep = cohort_deployment(manifest, tmp_path / "out", cron="0 2 * * *", timezone="Europe/Paris")
+    assert dep.schedules[0].schedule.timezone == "Europe/Paris"

@@ -469,6 +469,8 @@ def test_cohort_published_to_s3_is_the_local_publish_and_reports_removed_patient
     assert verify_folder(out, "s3p0") == []
     md = _body(s3_endpoint, "outs/cohort.md").decode()
     assert "Removed from the manifest" in md and "s3p1" in md
+    page = _body(s3_endpoint, "outs/cohort.html").decode()
+    assert "kept (not deleted): s3p1." in page.split("<h2>Removed from the manifest</h2>")[1]
     assert f"outs/s3p1/{MARKER}" in _keys(s3_endpoint, "outs/s3p1/")  # reported, not deleted
 
 

@@ -134,24 +134,34 @@ def cohort_deployment(
 
     Paths are made absolute, since a scheduled run may start in another
     working folder. The manifest and configuration are checked once here, so
-    a typo fails at ``serve`` time rather than at 2 a.m.
+    a typo fails at ``serve`` time rather than at 2 a.m. A row whose image is
+    not there yet is accepted, as ``cohort`` accepts it: each run fails that
+    row alone (a scan that arrives later is run by the next schedule).
 
     Raises
     ------
     InputError
-        An invalid cron expression, a missing manifest or an invalid
-        configuration.
+        An invalid cron expression or time zone, a missing or invalid
+        manifest or an invalid configuration.
     """
+    import zoneinfo
+
     from prefect.client.schemas.schedules import CronSchedule
 
     from tumor3d.storage.manifest import read_manifest
 
     try:
+        zoneinfo.ZoneInfo(timezone)
+    except (zoneinfo.ZoneInfoNotFoundError, ValueError):
+        raise InputError(
+            f"invalid --timezone {timezone!r}: not an IANA time zone (UTC, Europe/Paris, ...)"
+        ) from None
+    try:
         schedule = CronSchedule(cron=cron, timezone=timezone)
     except ValueError as exc:
         raise InputError(f"invalid --cron {cron!r}: {_cron_reason(cron, exc)}") from None
     manifest_path = Path(manifest).expanduser().resolve()
-    read_manifest(manifest_path)
+    read_manifest(manifest_path, require_files=False)
     cfg_path = None if config_path is None else Path(config_path).expanduser().resolve()
     load_config_file(cfg_path)
     DaskSpec(dask_address, dask_workers)

@@ -256,14 +256,17 @@ def cohort_output_files(
     *,
     name: str | None = None,
     exists: Callable[[str], bool] | None = None,
+    removed: Sequence[str] = (),
 ) -> dict[str, bytes]:
     """The bytes of ``cohort.parquet``, ``cohort.md`` and ``cohort.html`` (file name -> bytes).
 
     ``name`` is the cohort's name in the page title (:func:`cohort_title`;
-    default ``out_dir``'s name); ``exists`` as :func:`cohort_page_rows`.
+    default ``out_dir``'s name); ``exists`` as :func:`cohort_page_rows`; ``removed``
+    as :func:`cohort_markdown` (the page lists them too).
     """
     title = cohort_title(name if name is not None else Path(out_dir).name)
-    page = cohort_report_html(cohort_page_rows(table, out_dir, exists=exists), title=title)
+    rows = cohort_page_rows(table, out_dir, exists=exists)
+    page = cohort_report_html(rows, title=title, removed=removed)
     return {
         "cohort.parquet": encode_parquet(table),
         "cohort.md": markdown.encode(),
@@ -271,8 +274,10 @@ def cohort_output_files(
     }
 
 
-def write_cohort_outputs(out_dir: str | Path, table: pd.DataFrame, markdown: str) -> None:
+def write_cohort_outputs(
+    out_dir: str | Path, table: pd.DataFrame, markdown: str, removed: Sequence[str] = ()
+) -> None:
     """Write ``cohort.parquet``, ``cohort.md`` and ``cohort.html`` atomically into ``out_dir``."""
     out = Path(out_dir)
-    for fname, data in cohort_output_files(table, markdown, out).items():
+    for fname, data in cohort_output_files(table, markdown, out, removed=removed).items():
         atomic_write_bytes(out / fname, data)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from rich import box
 from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
@@ -113,7 +114,7 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     for key in VOLUME_METHODS:
         row = [VOLUME_LABELS[key], f"{m[key]:,.1f}", f"{m[key] / 1000.0:.3f}"]
         if truth_mm3 is not None:
-            row.append(f"{100.0 * abs(m[key] - truth_mm3) / truth_mm3:.2f} %" if truth_mm3 else "-")
+            row.append(f"{100.0 * (m[key] - truth_mm3) / truth_mm3:+.2f} %" if truth_mm3 else "-")
         table.add_row(*row)
     if truth_mm3 is not None:
         table.add_row("truth (phantom)", f"{truth_mm3:,.1f}", f"{truth_mm3 / 1000.0:.3f}", "")
@@ -174,17 +175,33 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
         console.print(f"status: {_status_text(status)}")
 
 
+#: The cohort table's headers of the volume methods (named in full in its title).
+_SHORT_VOLUME_HEADERS = {
+    "volume_eq7_mm3": "Eq. 7",
+    "volume_voxel_mm3": "voxels",
+    "volume_mesh_mm3": "mesh",
+    "volume_mesh_simplified_mm3": "simplified",
+}
+
+
 def print_cohort_summary(result: Any) -> None:
     """Print each patient's status, volumes and notes; name the failures and the checks."""
     from tumor3d.flows.patient import VOLUME_LABELS
     from tumor3d.storage.cohort_report import row_notes
 
-    table = Table(title=f"Cohort: {len(result.patients)} patients", title_justify="left")
-    table.add_column("patient")
-    table.add_column("status")
+    table = Table(  # short headers, no column rules: eight columns fit 80 characters
+        title=f"Cohort: {len(result.patients)} patients; volumes in mL by "
+        + ", ".join(VOLUME_LABELS.values()),
+        title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True,
+    )  # fmt: skip
+    # the ids in full (up to 16 characters on one line, longer ones folded, never cut with
+    # an ellipsis): a narrow or piped console showed "phanto…" for every patient
+    longest = max((len(p.patient_id) for p in result.patients), default=7)
+    table.add_column("patient", min_width=min(longest, 16), overflow="fold")
+    table.add_column("status", no_wrap=True)
     for key in VOLUME_LABELS:
-        table.add_column(f"{VOLUME_LABELS[key]} (mL)", justify="right")
-    table.add_column("cache hits", justify="right")
+        table.add_column(_SHORT_VOLUME_HEADERS[key], justify="right")
+    table.add_column("cached", justify="right")
     table.add_column("notes", justify="right")
     for p in result.patients:
         if p.status != "failed":

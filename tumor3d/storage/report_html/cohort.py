@@ -77,7 +77,9 @@ def _distribution_svg(
     return "".join(out)
 
 
-def cohort_report_html(rows: Sequence[Mapping[str, Any]], *, title: str = "tumor3d cohort") -> str:
+def cohort_report_html(
+    rows: Sequence[Mapping[str, Any]], *, title: str = "tumor3d cohort", removed: Sequence[str] = ()
+) -> str:
     """The cohort page: one row per patient and a volume distribution plot.
 
     Parameters
@@ -88,6 +90,9 @@ def cohort_report_html(rows: Sequence[Mapping[str, Any]], *, title: str = "tumor
         paths), all but the id optional.
     title : str
         Page title.
+    removed : sequence of str
+        Patients published by an earlier run and no longer in the manifest (their
+        folders kept), listed as ``cohort.md`` lists them.
 
     Returns
     -------
@@ -144,6 +149,12 @@ def cohort_report_html(rows: Sequence[Mapping[str, Any]], *, title: str = "tumor
     parts.append("<h2>Volume distribution</h2>" + _distribution_svg(points))
     parts.append("<h2>Patients</h2>")
     parts += table
+    if removed:
+        parts.append(
+            f"<h2>Removed from the manifest</h2><p>{len(removed)} patient(s) published by an "
+            "earlier run are no longer in the manifest; their folders are kept (not deleted): "
+            + _e(", ".join(removed)) + ".</p>"
+        )  # fmt: skip
     parts.append("<h2>Definitions</h2><ul>")
     parts += [
         f"<li><b>{_e(VOLUME_DEFINITIONS[k][0])}</b>: {_e(VOLUME_DEFINITIONS[k][1])}</li>"
