@@ -70,7 +70,7 @@ def test_patient_summary_artifacts_on_the_flow_run():
     assert set(arts) == {md_key, table_key}
     assert arts[md_key].type == "markdown" and arts[table_key].type == "table"
     md = arts[md_key].data
-    assert "| Eq. 7 (slices) | 12,345.6 | 12.346 |" in md
+    assert "| Eq. 7 (slab sum) | 12,345.6 | 12.346 |" in md
     assert "95 % interval 11,377.8 to 13,313.4 mm³" in md
     rows = arts[table_key].data
     rows = json.loads(rows) if isinstance(rows, str) else rows

@@ -471,7 +471,7 @@ def test_summary_artifacts_are_on_the_patient_flow_run(first_run):
             assert client.read_flow_run(art.flow_run_id).name == "patient-flowpat"
     md = next(a for a in arts if a.key == keys[0]).data
     row = pd.read_parquet(out / "flowpat" / "metrics.parquet").iloc[0]
-    assert f"| Eq. 7 (slices) | {row['volume_eq7_mm3']:,.1f} | {row['volume_eq7_ml']:.3f} |" in md
+    assert f"| Eq. 7 (slab sum) | {row['volume_eq7_mm3']:,.1f} | {row['volume_eq7_ml']:.3f} |" in md
 
 
 def test_run_name_is_the_patient_id_derived_from_the_file(nifti_input, first_run, tmp_path):

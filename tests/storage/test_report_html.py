@@ -123,7 +123,7 @@ def test_precision_cache_hits_counts_and_notes():
 def test_markdown_summary_has_the_same_numbers():
     md = patient_report_markdown(_data())
     assert md.startswith("# Tumour reconstruction: pat<01>")
-    assert "| Eq. 7 (slices) | 12,345.6 | 12.346 |" in md
+    assert "| Eq. 7 (slab sum) | 12,345.6 | 12.346 |" in md
     assert "| Voxel count | 12,000.0 | 12.000 |" in md
     assert "Abnormal slices: 3 (9, 10, 11)" in md
     assert "| render-views | 0.75 |" in md
@@ -132,8 +132,8 @@ def test_markdown_summary_has_the_same_numbers():
 def test_summary_table_rows():
     rows = patient_summary_table(_data())
     table = {(r["quantity"], r["unit"]): r["value"] for r in rows}
-    assert table[("volume, Eq. 7 (slices)", "mm³")] == "12,345.6"
-    assert table[("volume, Eq. 7 (slices)", "mL")] == "12.346"
+    assert table[("volume, Eq. 7 (slab sum)", "mm³")] == "12,345.6"
+    assert table[("volume, Eq. 7 (slab sum)", "mL")] == "12.346"
     assert table[("abnormal slices", "")] == "3"
     assert table[("time, segment", "s")] == "1.25"
     assert all(set(r) == {"quantity", "value", "unit"} for r in rows)
@@ -293,3 +293,13 @@ def test_a_result_to_check_says_so_and_why_in_every_summary():
     assert {"quantity": "check", "value": reason, "unit": ""} in rows
     ok = patient_report_html(_data())
     assert '<strong class="status-ok">ok</strong>' in ok and "Check before" not in ok
+
+
+def test_the_pages_name_the_volume_methods_as_the_console_and_the_tables_do():
+    """report.html and cohort.html called Eq. 7 "(slices)" where the console, cohort.md and
+    the summary said "(slab sum)": one name per method, capitalised in the pages."""
+    from tumor3d.storage.derivatives import VOLUME_LABELS
+    from tumor3d.storage.report_html import VOLUME_DEFINITIONS
+
+    pages = [label for label, _ in VOLUME_DEFINITIONS.values()]
+    assert pages == [label[0].upper() + label[1:] for label in VOLUME_LABELS.values()]

@@ -14,10 +14,11 @@ from urllib.parse import quote
 
 from tumor3d.errors import InputError
 
-#: Volume estimators: key -> (label, definition).
+#: Volume estimators: key -> (label, definition); the labels are
+#: :data:`tumor3d.storage.derivatives.VOLUME_LABELS` capitalised (a test holds them equal).
 VOLUME_DEFINITIONS: dict[str, tuple[str, str]] = {
     "eq7": (
-        "Eq. 7 (slices)",
+        "Eq. 7 (slab sum)",
         "V = h · Σᵢ Aᵢ: the tumour area Aᵢ = nᵢ·Δx·Δy on each acquired slice times the "
         "slab height h (slice thickness plus gap), the Cavalieri estimator of the paper's Eq. 7.",
     ),
@@ -27,12 +28,12 @@ VOLUME_DEFINITIONS: dict[str, tuple[str, str]] = {
         "interpolated voxel (Δx·Δy·Δz/(m+1)).",
     ),
     "mesh": (
-        "Mesh",
+        "Mesh (marching cubes)",
         "Volume enclosed by the marching-cubes surface, by the divergence theorem "
         "(Σ over faces of v₀·(v₁×v₂)/6).",
     ),
     "mesh_simplified": (
-        "Simplified mesh",
+        "Mesh (simplified)",
         "Volume enclosed by the simplified surface (same formula).",
     ),
 }
