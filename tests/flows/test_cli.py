@@ -590,6 +590,16 @@ def test_the_demos_errors_against_the_truth_keep_their_sign(monkeypatch):
     assert errors == ["+1.43 %", "-1.22 %", "+0.00 %", "+0.50 %"]
 
 
+def test_a_piped_console_says_when_a_patient_was_up_to_date(capsys):
+    from tumor3d.flows.cli.output import _PlainReporter
+    from tumor3d.tasks.progress import ProgressEvent
+
+    report = _PlainReporter()
+    report(ProgressEvent("p1", "up to date", "published", 10, 10))
+    report(ProgressEvent("p2", "published", "published", 10, 10))
+    assert capsys.readouterr().out == "p1\tpublish\tup to date\np2\tpublish\tpublished\n"
+
+
 def test_a_stacks_sidecar_names_the_modality_when_none_is_given(tmp_path, monkeypatch):
     """stack.yaml's ``modality`` (documented) is the run's when --modality is not given:
     the command line, the flow's source and the Python API take it before the default,

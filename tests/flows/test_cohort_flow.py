@@ -198,9 +198,16 @@ def test_rerun_is_all_cache_hits_and_a_new_patient_computes_alone(first, inputs)
     live = some.with_name(f".{some.name}.tmp-{HOST_TAG}-{os.getpid()}-0123abcd")
     killed.write_bytes(b"half")
     live.write_bytes(b"being written")
-    again = run_cohort(rows, out, workers=2)
+    from tumor3d.tasks.progress import use_reporter
+
+    events = []
+    with use_reporter(events.append):
+        again = run_cohort(rows, out, workers=2)
     assert again.exit_code == 0
     assert not killed.exists() and live.exists()
+    # the patients' last progress lines say nothing was rewritten (they said "published")
+    done = {e.patient_id: e.stage for e in events if e.status == "published"}
+    assert done == {p.patient_id: "up to date" for p in again.patients}
     live.unlink()
     for p in again.patients:
         missed = [(s.stage, s.repaired) for s in p.stages if not s.cached]
@@ -211,7 +218,11 @@ def test_rerun_is_all_cache_hits_and_a_new_patient_computes_alone(first, inputs)
                 "volume_eq7_mm3"
             ]
         )
-    more = run_cohort([*rows, _phantom_row(3, folder)], out, workers=2)
+    events.clear()
+    with use_reporter(events.append):
+        more = run_cohort([*rows, _phantom_row(3, folder)], out, workers=2)
+    done = {e.patient_id: e.stage for e in events if e.status == "published"}
+    assert done["coh3"] == "published" and set(done.values()) == {"published", "up to date"}
     hits = {p.patient_id: [s.cached for s in p.stages] for p in more.patients}
     assert not any(hits["coh3"])
     assert all(all(h) for pid, h in hits.items() if pid != "coh3")

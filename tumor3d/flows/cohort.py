@@ -242,7 +242,9 @@ def _run_one(
             patient_id=pid, status=STATUS_FAILED, failed_stage=stage, error=one_line_error(exc),
             stages=list(runs), row=_json_row(row), lane_seconds=time.perf_counter() - t0,
         )  # fmt: skip
-    report(ProgressEvent(pid, "published", "published", len(names), len(names)))
+    # "up to date": every stage cached and the published folder already this result
+    said = "up to date" if result.up_to_date else "published"
+    report(ProgressEvent(pid, said, "published", len(names), len(names)))
     return PatientOutcome(
         patient_id=pid, status=str(result.metrics.get("status", STATUS_OK)),
         output_dir=result.output_dir, metrics=result.metrics,

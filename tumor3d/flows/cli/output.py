@@ -85,6 +85,9 @@ class _PlainReporter:
             what = "cache hit"
         elif event.status == "done":
             what = f"{event.seconds:.2f} s"
+        elif event.status == "published":  # its stage says "published" or "up to date"
+            print(f"{event.patient_id}\tpublish\t{event.stage}", flush=True)
+            return
         else:
             what = event.status
         print(f"{event.patient_id}\t{event.stage}\t{what}", flush=True)
