@@ -600,6 +600,32 @@ def test_a_piped_console_says_when_a_patient_was_up_to_date(capsys):
     assert capsys.readouterr().out == "p1\tpublish\tup to date\np2\tpublish\tpublished\n"
 
 
+def test_the_evaluation_table_shows_the_metrics_the_run_has():
+    """``--evaluation interpolation`` alone printed Dice, HD95 and Eq. 7 columns of dashes."""
+    import io
+
+    import pandas as pd
+    from rich.console import Console
+
+    from tumor3d.flows.cli.evaluate import _evaluation_table
+
+    def shown(df):
+        buf = io.StringIO()
+        Console(file=buf, width=150).print(_evaluation_table(df))
+        return buf.getvalue()
+
+    base = {"config": "default", "patient_id": "p1", "status": "ok", "run_status": "ok"}
+    geometry = pd.DataFrame([{**base, "interp_se_eps_percent": 1.0, "dice_3d": float("nan")}])
+    text = shown(geometry)
+    assert "p1" in text and "Dice" not in text and "HD95" not in text and "Eq. 7" not in text
+    scored = pd.DataFrame([{**base, "dice_slices_mean": 0.9, "dice_3d": 0.91, "hd95_mm": 2.0,
+                            "volume_eq7_error_percent": -3.0}])  # fmt: skip
+    text = shown(scored)
+    for header, value in (("slice Dice", "0.900"), ("3-D Dice", "0.910"), ("HD95 mm", "2.0"),
+                          ("Eq. 7 err", "-3.0 %")):  # fmt: skip
+        assert header in text and value in text, text
+
+
 def test_a_stacks_sidecar_names_the_modality_when_none_is_given(tmp_path, monkeypatch):
     """stack.yaml's ``modality`` (documented) is the run's when --modality is not given:
     the command line, the flow's source and the Python API take it before the default,

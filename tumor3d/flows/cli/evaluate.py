@@ -83,9 +83,30 @@ def evaluate(
     for s in result.skipped:
         tag = "skipped (file absent)" if s["missing_file"] else "invalid row"
         err_console.print(f"[yellow]{tag}:[/] {s['reason']}", highlight=False, soft_wrap=True)
-    df = result.patients
+    console.print(_evaluation_table(result.patients))
+    console.print(f"report: [bold]{result.report}[/]")
+    if result.n_failed or result.n_invalid:
+        raise typer.Exit(code=1)
+
+
+#: The console's evaluation columns: header, evaluation.parquet column, format.
+_CONSOLE_METRICS = (
+    ("slice Dice", "dice_slices_mean", "{:.3f}"),
+    ("3-D Dice", "dice_3d", "{:.3f}"),
+    ("HD95 mm", "hd95_mm", "{:.1f}"),
+    ("Eq. 7 err", "volume_eq7_error_percent", "{:+.1f} %"),
+)
+
+
+def _evaluation_table(df: Any) -> Table:
+    """The console's table of ``evaluation.parquet``.
+
+    A metric column only when some row has a value: ``--evaluation interpolation``
+    alone printed a table of dashes.
+    """
+    shown = [m for m in _CONSOLE_METRICS if m[1] in df.columns and df[m[1]].notna().any()]
     table = Table(title="Evaluation", title_justify="left")
-    for col in ("config", "patient", "status", "slice Dice", "3-D Dice", "HD95 mm", "Eq. 7 err"):
+    for col in ("config", "patient", "status", *(header for header, _, _ in shown)):
         table.add_column(col)
     for _, r in df.iterrows():
 
@@ -93,12 +114,6 @@ def evaluate(
             v = _r.get(key)
             return "-" if v is None or v != v else fmt.format(v)
 
-        table.add_row(
-            str(r["config"]), str(r["patient_id"]), run_status_cell(r),
-            cell("dice_slices_mean", "{:.3f}"), cell("dice_3d", "{:.3f}"),
-            cell("hd95_mm", "{:.1f}"), cell("volume_eq7_error_percent", "{:+.1f} %"),
-        )  # fmt: skip
-    console.print(table)
-    console.print(f"report: [bold]{result.report}[/]")
-    if result.n_failed or result.n_invalid:
-        raise typer.Exit(code=1)
+        cells = [cell(key, fmt) for _, key, fmt in shown]
+        table.add_row(str(r["config"]), str(r["patient_id"]), run_status_cell(r), *cells)
+    return table
