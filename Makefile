@@ -25,7 +25,7 @@ demo: setup
 # of its current file is left (tests/conftest.py's scheduler). TEST_WORKERS=0 runs
 # everything in this process. The test Prefect servers and flow runs are set up to idle
 # and burn little (tests/conftest.py). Measured (issue 31 item 7, reports/test_suite.md):
-# .ci/run on clean clones on 2 cores, 1,762-1,764 tests: 282.1-293.6 s of pytest over three
+# .ci/run on clean clones on 2 cores, 1,762-1,765 tests: 282.1-301.6 s of pytest over four
 # runs, about 7 min in all (2026-12-06; 288.0-312.9 s over thirteen runs before the S3 test
 # cohorts were computed once); a warm checkout took 355-417 s in a slow hour of this
 # shared machine.
