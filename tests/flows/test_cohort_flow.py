@@ -90,6 +90,10 @@ def test_cohort_table_and_report(first):
     table = pd.read_parquet(out / "cohort.parquet")
     assert list(table["patient_id"]) == ["coh0", "ghost", "coh1", "coh2"]
     assert list(table["status"]) == ["ok", "failed", "ok", "ok"]
+    # relative to the cohort's folder, wherever the command ran (was: to its working folder)
+    assert [None if pd.isna(v) else v for v in table["output_dir"]] == [
+        "coh0", None, "coh1", "coh2"
+    ]  # fmt: skip
     metrics_cols = set(pd.read_parquet(out / "coh1" / "metrics.parquet").columns)
     assert metrics_cols <= set(table.columns)
     ok = table.set_index("patient_id").loc["coh1"]

@@ -321,7 +321,7 @@ def cohort_flow(
         outcomes = [f.result() for f in futures]
     sweep_killed_writers(store, logger)  # of writers killed mid-stage (a lost Dask worker)
     wall = time.perf_counter() - t0
-    table = cohort_table([o.model_dump() for o in outcomes])
+    table = cohort_table([o.model_dump() for o in outcomes], out_dir=out_dir)
     markdown = cohort_markdown(
         table, volume_labels=VOLUME_LABELS, stage_names=list(stages.STAGES),
         title=cohort_title(Path(out_dir).name), wall_seconds=wall, workers=workers,

@@ -12,6 +12,7 @@ hold an earlier run's results), so the cohort folder can be moved as a whole.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -38,7 +39,9 @@ __all__ = [
 _FIRST = ("patient_id", "status", "failed_stage", "error", "output_dir")
 
 
-def cohort_table(outcomes: Sequence[Mapping[str, Any]]) -> pd.DataFrame:
+def cohort_table(
+    outcomes: Sequence[Mapping[str, Any]], out_dir: str | Path | None = None
+) -> pd.DataFrame:
     """One row per patient: id, status, failing stage, error, then every metrics column.
 
     Parameters
@@ -47,10 +50,22 @@ def cohort_table(outcomes: Sequence[Mapping[str, Any]]) -> pd.DataFrame:
         Each with ``patient_id``, ``status``, ``failed_stage``, ``error``,
         ``output_dir`` and ``metrics`` (that patient's ``metrics.parquet`` row,
         empty when it failed).
+    out_dir : str or path, optional
+        The cohort's folder or URL: ``output_dir`` is then written relative to it
+        (``p1``, ``sub-p1``), so the table resolves wherever the folder is read or
+        moved to; it was relative to the working folder of the command.
+
+    Examples
+    --------
+    >>> t = cohort_table([{"patient_id": "p1", "status": "ok", "output_dir": "runs/out/p1"}],
+    ...                  out_dir="runs/out")
+    >>> t.loc[0, "output_dir"]
+    'p1'
     """
     rows = []
     for o in outcomes:
         row = {k: o.get(k) for k in _FIRST}
+        row["output_dir"] = _relative_to(row["output_dir"], out_dir)
         row.update({k: v for k, v in dict(o.get("metrics") or {}).items() if k != "patient_id"})
         rows.append(row)
     table = pd.DataFrame(rows, columns=None)
@@ -59,6 +74,17 @@ def cohort_table(outcomes: Sequence[Mapping[str, Any]]) -> pd.DataFrame:
             table[col] = None
         table[col] = table[col].astype(object)
     return table[[*_FIRST, *[c for c in table.columns if c not in _FIRST]]]
+
+
+def _relative_to(folder: Any, base: str | Path | None) -> Any:
+    """``folder`` relative to ``base`` when it lies in it (a path or a URL), else as given."""
+    if base is None or not isinstance(folder, str) or not folder:
+        return folder
+    if "://" in str(base):  # an object store's URL
+        prefix = str(base).rstrip("/") + "/"
+        return folder[len(prefix) :] if folder.startswith(prefix) else folder
+    rel = os.path.relpath(folder, base)
+    return folder if rel == ".." or rel.startswith("../") else rel
 
 
 def cohort_title(name: str | None) -> str:
