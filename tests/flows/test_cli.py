@@ -424,16 +424,24 @@ def test_exit_code_of_a_result_to_check_is_documented():
     assert row in readme
 
 
-def test_run_says_the_modality_it_uses_and_when_it_is_the_default(tmp_path, monkeypatch):
+@pytest.fixture
+def run_flow_given(monkeypatch):
+    """``run`` with its flow replaced: the keywords the flow was given (the flow itself is
+    tested elsewhere), an ``ok`` result, no summary."""
     import types
 
     import tumor3d.flows.cli as cli
 
-    seen = {}  # what the flow was given (the flow itself is tested elsewhere)
-    good = _nifti(tmp_path / "good.nii.gz", np.random.default_rng(4).random((12, 12, 4)) + 1)
+    seen: dict = {}
     result_stub = types.SimpleNamespace(metrics={"status": "ok"})
     monkeypatch.setattr(cli, "_run_with_progress", lambda **kw: (seen.update(kw), result_stub)[1])
     monkeypatch.setattr(cli, "print_summary", lambda result: None)
+    return seen
+
+
+def test_run_says_the_modality_it_uses_and_when_it_is_the_default(tmp_path, run_flow_given):
+    seen = run_flow_given
+    good = _nifti(tmp_path / "good.nii.gz", np.random.default_rng(4).random((12, 12, 4)) + 1)
     assumed = runner.invoke(app, ["run", str(good), "--out", str(tmp_path / "o")])
     assert assumed.exit_code == 0, assumed.output
     assert seen["modality"] == "t2"
@@ -446,15 +454,7 @@ def test_run_says_the_modality_it_uses_and_when_it_is_the_default(tmp_path, monk
     assert "modality: flair" in given.output and "default" not in given.output
 
 
-def test_run_says_the_patient_id_it_made_when_it_is_not_the_files_name(tmp_path, monkeypatch):
-    import types
-
-    import tumor3d.flows.cli as cli
-
-    seen = {}
-    result_stub = types.SimpleNamespace(metrics={"status": "ok"})
-    monkeypatch.setattr(cli, "_run_with_progress", lambda **kw: (seen.update(kw), result_stub)[1])
-    monkeypatch.setattr(cli, "print_summary", lambda result: None)
+def test_run_says_the_patient_id_it_made_when_it_is_not_the_files_name(tmp_path, run_flow_given):
     data = np.random.default_rng(4).random((12, 12, 4)) + 1
     odd = _nifti(tmp_path / "Pat 01 é.nii.gz", data)
     res = runner.invoke(app, ["run", str(odd), "--out", str(tmp_path / "o")])
@@ -626,17 +626,16 @@ def test_the_evaluation_table_shows_the_metrics_the_run_has():
         assert header in text and value in text, text
 
 
-def test_a_stacks_sidecar_names_the_modality_when_none_is_given(tmp_path, monkeypatch):
+def test_a_stacks_sidecar_names_the_modality_when_none_is_given(
+    tmp_path, monkeypatch, run_flow_given
+):
     """stack.yaml's ``modality`` (documented) is the run's when --modality is not given:
     the command line, the flow's source and the Python API take it before the default,
     and --modality still overrides it."""
-    import types
-
     import yaml
     from PIL import Image
 
     import tumor3d.api
-    import tumor3d.flows.cli as cli
     from tumor3d.flows.patient import prepare_source
 
     stack = tmp_path / "stk"
@@ -646,10 +645,7 @@ def test_a_stacks_sidecar_names_the_modality_when_none_is_given(tmp_path, monkey
         Image.fromarray(rng.integers(10, 250, (12, 12)).astype(np.uint8)).save(stack / f"s{k}.png")
     sidecar = {"pixel_spacing_mm": 1.0, "slice_thickness_mm": 2.0, "slice_gap_mm": 3.0}
     (stack / "stack.yaml").write_text(yaml.safe_dump({**sidecar, "modality": "FLAIR"}))
-    seen = {}
-    result_stub = types.SimpleNamespace(metrics={"status": "ok"})
-    monkeypatch.setattr(cli, "_run_with_progress", lambda **kw: (seen.update(kw), result_stub)[1])
-    monkeypatch.setattr(cli, "print_summary", lambda result: None)
+    seen = run_flow_given
     named = runner.invoke(app, ["run", str(stack), "--out", str(tmp_path / "o")])
     assert named.exit_code == 0, named.output
     assert seen["modality"] == "flair"

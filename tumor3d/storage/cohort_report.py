@@ -21,6 +21,7 @@ import pandas as pd
 
 from tumor3d.segmentation.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
 from tumor3d.storage.formats import encode_parquet
+from tumor3d.storage.objectstore import is_url
 from tumor3d.storage.patient_outputs import split_notes
 from tumor3d.storage.report_html import cohort_report_html
 from tumor3d.storage.store import atomic_write_bytes
@@ -80,7 +81,7 @@ def _relative_to(folder: Any, base: str | Path | None) -> Any:
     """``folder`` relative to ``base`` when it lies in it (a path or a URL), else as given."""
     if base is None or not isinstance(folder, str) or not folder:
         return folder
-    if "://" in str(base):  # an object store's URL
+    if is_url(base):  # an object store's URL
         prefix = str(base).rstrip("/") + "/"
         return folder[len(prefix) :] if folder.startswith(prefix) else folder
     rel = os.path.relpath(folder, base)

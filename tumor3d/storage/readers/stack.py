@@ -311,7 +311,7 @@ def declared_modality(path: str | os.PathLike[str]) -> str | None:
     ('flair', None)
     """
     d = Path(path)
-    if not d.is_dir() or not any((d / n).is_file() for n in STACK_SIDECAR_NAMES):
+    if not d.is_dir() or not _has_sidecar(d):
         return None
     meta, where = _read_sidecar(d)
     value = meta.get("modality")
