@@ -213,7 +213,7 @@ def reconstruct_scan(
     )
     from tumor3d.pipeline import tumour_surface
     from tumor3d.segmentation.detect import detect_abnormal_slices
-    from tumor3d.segmentation.methods import method_spec, method_uses_lesion
+    from tumor3d.segmentation.methods import method_spec, method_uses_lesion, slices_flagged
     from tumor3d.segmentation.segment import lesion_definition, resolve_method, segment_tumor
     from tumor3d.simplify import simplify_mesh, target_face_count
 
@@ -285,7 +285,8 @@ def reconstruct_scan(
     dy, dx = scan.pixel_spacing_mm
     slab = slab_height_mm(scan.slice_step_mm, scan.slice_thickness_mm, scan.slice_gap_mm)
     row = measure_volumes(
-        seg.tumor_pixels, det.abnormal, stack.mask, fine_affine, pixel_area_mm2=dy * dx,
+        seg.tumor_pixels, slices_flagged(seg.method, det.abnormal, seg.tumor_pixels),
+        stack.mask, fine_affine, pixel_area_mm2=dy * dx,
         slab_height_mm=slab, mesh=surface, mesh_simplified=simplified,
     ).to_row()  # fmt: skip
     row.update(

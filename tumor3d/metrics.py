@@ -245,10 +245,10 @@ def mm3_to_ml(volume_mm3: float) -> float:
 EQ7_SLICE_RULES: dict[str, str] = {
     "segmented": (
         "every acquired slice with segmented tumour: the sum runs over the slices "
-        "detection flagged abnormal (one without tumour adds nothing) plus the tumour's "
+        "flagged abnormal (one without tumour adds nothing) plus the tumour's "
         "end slices that segmentation found beyond them"
     ),
-    "abnormal": "only the slices detection flagged abnormal (the paper read literally)",
+    "abnormal": "only the slices flagged abnormal (the paper read literally)",
 }
 
 Eq7SliceRule = Literal["segmented", "abnormal"]
@@ -270,7 +270,9 @@ class VolumeMeasurement:
     n_slices : int
         Acquired slices.
     n_abnormal_slices : int
-        Slices detection flagged abnormal.
+        Slices flagged abnormal: by the detection, or by the segmentation for a
+        method that reads every slice
+        (:func:`tumor3d.segmentation.methods.slices_flagged`).
     n_tumor_slices : int
         Acquired slices with at least one segmented tumour pixel.
     n_eq7_slices : int
@@ -332,7 +334,9 @@ def measure_volumes(
     tumor_pixels : (n_slices,) array_like of int
         Tumour pixels ``N_i`` per acquired slice.
     abnormal : (n_slices,) array_like of bool
-        Detection's abnormal flags ``a_i``.
+        The abnormal flags ``a_i`` (the detection's, or the slices with tumour
+        of a method that reads every slice:
+        :func:`tumor3d.segmentation.methods.slices_flagged`).
     fine_mask : (z, y, x) ndarray of bool
         The interpolated 3-D mask.
     fine_affine : (4, 4) ndarray

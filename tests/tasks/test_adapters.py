@@ -91,21 +91,20 @@ def test_mesh_too_small_to_simplify_passes_through(tmp_path, percent):
 
 
 def test_measure_stage_counts_the_tumour_tip_beyond_the_abnormal_slices(tumour_run):
-    """Eq. 7 sums a slice where segmentation found tumour that detection did not flag."""
+    """Eq. 7 sums a slice where segmentation found tumour that was not flagged abnormal."""
     run, store = tumour_run
     outs = run.outputs
-    det = store.get_table(outs["detect-abnormal"].artifacts["detection"])
     seg = store.get_table(outs["segment-tumor"].artifacts["segmentation"])
     tumour = seg["tumor_pixels"].to_numpy() > 0
     assert tumour.any()
     # Un-flag the first tumour slice: it becomes a tip that only segmentation saw.
     tip = int(np.flatnonzero(tumour)[0])
-    det = det.copy()
-    det.loc[det["slice_index"] == tip, "abnormal"] = False
+    seg = seg.copy()
+    seg.loc[seg["slice_index"] == tip, "flagged"] = False
+    flagged = seg["flagged"].to_numpy(bool)
     scan = outs["ingest-scan"].artifacts["scan"]
     kwargs = dict(
-        scan=scan, detection=store.put_table(det),
-        segmentation=outs["segment-tumor"].artifacts["segmentation"],
+        scan=scan, segmentation=store.put_table(seg),
         tumor_mask_slices=outs["segment-tumor"].artifacts["tumor_mask_slices"],
         tumor_mask=outs["interpolate-slices"].artifacts["tumor_mask"],
         mesh=outs["extract-surface"].artifacts["mesh"],
@@ -118,11 +117,48 @@ def test_measure_stage_counts_the_tumour_tip_beyond_the_abnormal_slices(tumour_r
     expected = slab * dy * dx * int(seg["tumor_pixels"].sum())
     assert got["volume_eq7_mm3"] == pytest.approx(expected, rel=1e-12)
     assert got["eq7_slice_rule"] == "segmented"
-    assert got["n_eq7_slices"] == int((det["abnormal"].to_numpy(bool) | tumour).sum())
-    assert got["n_abnormal_slices"] == int(det["abnormal"].sum())
+    assert got["n_eq7_slices"] == int((flagged | tumour).sum())
+    assert got["n_abnormal_slices"] == int(flagged.sum())
     assert got["volume_eq7_ml"] == pytest.approx(got["volume_eq7_mm3"] / 1000.0)
     tip_mm3 = slab * dy * dx * int(seg.loc[seg["slice_index"] == tip, "tumor_pixels"].iloc[0])
     assert tip_mm3 > 0  # so the tip really matters to the assertion above
+
+
+def test_a_robust_run_flags_the_slices_its_detection_flagged(tumour_run):
+    run, store = tumour_run
+    outs = run.outputs
+    det = store.get_table(outs["detect-abnormal"].artifacts["detection"])
+    seg = store.get_table(outs["segment-tumor"].artifacts["segmentation"])
+    assert outs["segment-tumor"].values["segment_method"] in ("robust", "paper")
+    np.testing.assert_array_equal(seg["flagged"].to_numpy(bool), det["abnormal"].to_numpy(bool))
+    assert outs["measure-volume"].values["n_abnormal_slices"] == int(det["abnormal"].sum())
+
+
+def test_a_method_reading_every_slice_flags_its_tumour_slices_not_the_detections(tmp_path):
+    """The histogram detection made to flag nothing; the multi-Otsu peer, which reads every
+    slice, still finds the phantom's tumour: its slices are the ones flagged abnormal (the
+    console's "N flagged abnormal", the overlay's frames), not the detection's none."""
+    import tumor3d
+
+    patient = make_phantom_patient(3, patient_id="every3", **SMALL)
+    image = write_phantom_patient(patient, tmp_path / "in").image
+    cfg = {
+        "detect": {"method": "histogram", "abnormal_min_modes": 10},
+        "segment": {"method": "multiotsu"},
+    }
+    run = run_stages_direct(image, tmp_path / "store", config=cfg, patient_id="every3")
+    store = ArtifactStore(tmp_path / "store")
+    det = store.get_table(run.outputs["detect-abnormal"].artifacts["detection"])
+    seg = store.get_table(run.outputs["segment-tumor"].artifacts["segmentation"])
+    assert not det["abnormal"].any()
+    tumour = seg["tumor_pixels"].to_numpy() > 0
+    assert tumour.any()
+    np.testing.assert_array_equal(seg["flagged"].to_numpy(bool), tumour)
+    measured = run.outputs["measure-volume"].values
+    assert measured["n_abnormal_slices"] == measured["n_tumor_slices"] == int(tumour.sum())
+    # the API says the same
+    api = tumor3d.reconstruct(str(image), modality="t2", config=cfg)
+    assert api.metrics["n_abnormal_slices"] == int(tumour.sum())
 
 
 def test_preprocess_counts_the_slices_with_brain_and_with_tissue(tumour_run):

@@ -41,6 +41,8 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
+import numpy as np
+
 from tumor3d.errors import InputError
 from tumor3d.imaging.scan import MODALITIES
 
@@ -53,6 +55,7 @@ __all__ = [
     "method_spec",
     "method_uses_lesion",
     "register_method",
+    "slices_flagged",
     "brain_mask_doubts_volume",
     "registered_methods",
 ]
@@ -94,6 +97,11 @@ class SegmentMethod:
         notes then make the status ``check``
         (:func:`tumor3d.segmentation.review.run_notes`). False for a method
         that reads the whole head (the learned one): the notes only inform.
+    within_detection : bool
+        It segments only the slices the detection flags abnormal (robust,
+        paper), so those flags are its slice verdict. False for a method that
+        reads every slice (learned, multiotsu): the slices it flags are those
+        its mask holds tumour on (:func:`slices_flagged`).
     keywords : frozenset of str
         The keywords ``fn`` takes (read from its signature).
     """
@@ -106,6 +114,7 @@ class SegmentMethod:
     uses_lesion: bool = False
     needs_model: bool = False
     within_brain_mask: bool = True
+    within_detection: bool = True
     keywords: frozenset[str] = frozenset()
     takes_any: bool = False
 
@@ -135,6 +144,7 @@ def register_method(
     uses_lesion: bool = False,
     needs_model: bool = False,
     within_brain_mask: bool = True,
+    within_detection: bool = True,
 ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
     """Decorator registering a segmentation method under ``name``.
 
@@ -150,7 +160,7 @@ def register_method(
         mapping modality -> words (key ``None``: the other modalities).
     modalities : tuple of str
         Sequences it segments (default all of :data:`tumor3d.imaging.scan.MODALITIES`).
-    uses_lesion, needs_model, within_brain_mask : bool
+    uses_lesion, needs_model, within_brain_mask, within_detection : bool
         See :class:`SegmentMethod`.
 
     Raises
@@ -186,6 +196,7 @@ def register_method(
             uses_lesion=bool(uses_lesion),
             needs_model=bool(needs_model),
             within_brain_mask=bool(within_brain_mask),
+            within_detection=bool(within_detection),
             keywords=keywords,
             takes_any=takes_any,
         )
@@ -236,6 +247,32 @@ def method_spec(method: str) -> SegmentMethod:
         check_method_name(method)  # raises, naming the registered ones
         raise InputError(f"{method!r} is the rule that picks a method: resolve it first")
     return spec
+
+
+def slices_flagged(method: str, detected: Any, tumor_pixels: Any) -> np.ndarray:
+    """The acquired slices the segmentation ``method`` flags abnormal, ``(z,)`` bool.
+
+    A method that segments the slices the detection flags (robust, paper) flags
+    those (``detected``); one that reads every slice (learned, multiotsu; a
+    given mask, ``"given"``, or any name not registered) flags the slices its
+    mask holds tumour on (``tumor_pixels > 0``): the detection did not find its
+    tumour, so its flags would contradict the mask (0 slices flagged abnormal
+    beside 52 with tumour). Eq. 7, the overlay's frames and ``n_abnormal_slices``
+    read this.
+
+    >>> slices_flagged("robust", [False, True, True], [0, 3, 0]).tolist()
+    [False, True, True]
+    >>> slices_flagged("learned", [False, False, True], [4, 3, 0]).tolist()
+    [True, True, False]
+    """
+    detected = np.asarray(detected, dtype=bool)
+    tumour = np.asarray(tumor_pixels) > 0
+    if detected.shape != tumour.shape:
+        raise InputError(
+            f"the detection has {detected.shape} slices but the segmentation {tumour.shape}"
+        )
+    spec = registered_methods().get(method) if isinstance(method, str) else None
+    return detected if spec is not None and spec.within_detection else tumour
 
 
 def method_uses_lesion(method: str) -> bool:

@@ -138,9 +138,13 @@ class PatientProducts:
 
     @cached_property
     def abnormal_slices(self) -> list[int]:
-        """0-based indices of the slices detection flagged abnormal."""
-        det = self.table("detect-abnormal.detection")
-        return det.loc[det["abnormal"].astype(bool), "slice_index"].astype(int).tolist()
+        """0-based indices of the slices flagged abnormal.
+
+        By the detection, or by the segmentation itself for a method that reads
+        every slice (:func:`tumor3d.segmentation.methods.slices_flagged`).
+        """
+        seg = self.table("segment-tumor.segmentation")
+        return seg.loc[seg["flagged"].astype(bool), "slice_index"].astype(int).tolist()
 
 
 @dataclass(frozen=True)
@@ -333,7 +337,7 @@ DERIVATIVES: tuple[Derivative, ...] = (
     ),
     Derivative(
         "slices.parquet", ("detect-abnormal.detection", "segment-tumor.segmentation"), _slices,
-        description="per acquired slice: detection, tumour pixels and area",
+        description="per acquired slice: detection, tumour pixels and area, flagged",
     ),
     Derivative(
         "metrics.parquet", ("metrics",), lambda p: encode_parquet(pd.DataFrame([p.metrics])),

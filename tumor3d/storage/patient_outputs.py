@@ -213,7 +213,8 @@ def patient_report_data(
     stage_runs : iterable of mapping
         Per stage ``stage``, ``compute_seconds``, ``cached`` (``StageRun`` dumps).
     abnormal_slices : sequence of int
-        0-based indices of the slices detection flagged abnormal.
+        0-based indices of the slices flagged abnormal
+        (:func:`tumor3d.segmentation.methods.slices_flagged`).
     files : iterable of str
         Names of the files published beside the report (links are made only
         to these).

@@ -19,7 +19,6 @@ __all__ = ["SPEC"]
     entry=measure_volumes,
     inputs={
         "scan": Input("scan", "ingest-scan.scan", load=False),  # its slice geometry
-        "detection": Input("table", "detect-abnormal.detection"),
         "segmentation": Input("table", "segment-tumor.segmentation"),
         "tumor_mask_slices": Input("mask", "segment-tumor.tumor_mask_slices"),
         "tumor_mask": Input("mask", "interpolate-slices.tumor_mask"),
@@ -33,7 +32,6 @@ __all__ = ["SPEC"]
 )
 def measure_volume(
     scan: Artifact,
-    detection: pd.DataFrame,
     segmentation: pd.DataFrame,
     tumor_mask_slices: Volume,
     tumor_mask: Volume,
@@ -48,7 +46,7 @@ def measure_volume(
     )
     measured = measure_volumes(
         segmentation["tumor_pixels"].to_numpy(),
-        detection["abnormal"].to_numpy(dtype=bool),
+        segmentation["flagged"].to_numpy(dtype=bool),  # the method's (slices_flagged)
         tumor_mask.array,
         tumor_mask.affine,
         pixel_area_mm2=dy * dx,

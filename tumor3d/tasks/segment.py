@@ -19,8 +19,13 @@ from tumor3d.learned.shipped import CNN_MODELS, learned_models
 from tumor3d.segmentation.detect import SliceDetection
 from tumor3d.segmentation.given_segmentation import given_definition, given_segmentation
 from tumor3d.segmentation.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
-from tumor3d.segmentation.methods import method_spec, method_uses_lesion
-from tumor3d.segmentation.segment import lesion_definition, resolve_method, segment_tumor
+from tumor3d.segmentation.methods import method_spec, method_uses_lesion, slices_flagged
+from tumor3d.segmentation.segment import (
+    SegmentationResult,
+    lesion_definition,
+    resolve_method,
+    segment_tumor,
+)
 from tumor3d.tasks.kinds import Artifact, Volume
 from tumor3d.tasks.spec import Input, Metric, StageResult, scan_spacing_mm, stage
 
@@ -76,6 +81,17 @@ def load_detection(
     return det, meta
 
 
+def _records(result: SegmentationResult, detected: Any) -> list[dict[str, Any]]:
+    """The per-slice table: :meth:`SegmentationResult.to_records` and ``flagged``.
+
+    ``flagged``: the slices the method flags abnormal
+    (:func:`tumor3d.segmentation.methods.slices_flagged`: the detection's for a
+    method that segments those, else the slices with tumour).
+    """
+    flags = slices_flagged(result.method, detected, result.tumor_pixels)
+    return [{**r, "flagged": bool(f)} for r, f in zip(result.to_records(), flags, strict=True)]
+
+
 @stage(
     "segment-tumor",
     entry=segment_tumor,
@@ -124,7 +140,7 @@ def segment(
         return StageResult(
             artifacts={
                 "tumor_mask_slices": Volume(res.tumor_mask, mask_affine),
-                "segmentation": res.to_records(),
+                "segmentation": _records(res, detection["abnormal"]),
             },
             values={
                 "tumor_pixels_total": int(np.sum(res.tumor_pixels)),
@@ -159,7 +175,7 @@ def segment(
     )
     artifacts: dict[str, Any] = {
         "tumor_mask_slices": Volume(result.tumor_mask, affine),
-        "segmentation": result.to_records(),
+        "segmentation": _records(result, det.abnormal),
     }
     review: dict[str, Any] = {}
     if result.probability is not None:

@@ -82,6 +82,7 @@ def learned_caveats(
     uses_lesion=True,
     needs_model=True,
     within_brain_mask=False,  # the forest reads the head's tissue, not the brain mask
+    within_detection=False,  # and every slice: its own slices with tumour are its flags
 )
 def _segment_learned(
     enhanced: np.ndarray,

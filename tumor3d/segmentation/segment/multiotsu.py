@@ -28,6 +28,7 @@ from tumor3d.segmentation.segment.result import (
         "the peer: the brightest of the multi-Otsu classes of the brain on {seq}, its "
         "largest 3-D component"
     ),
+    within_detection=False,  # the whole brain at once: the detection is ignored
 )
 def segment_multiotsu(
     enhanced: np.ndarray,
