@@ -5,11 +5,14 @@ run triggered through the Prefect API after a patient is added to the manifest
 is executed the way Prefect's runner executes it (``python -m prefect.engine``
 with the flow run's id: the flow is loaded from the deployment's entrypoint
 and parameters) and computes only the new patient. A patient dropped from the
-manifest is reported, its folder kept.
+manifest is reported, its folder kept. A run ends Failed when a patient failed
+or the manifest broke after the deployment was made (one line, no traceback),
+and every run records its outcome in ``DIR/last_run.json``.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -59,8 +62,12 @@ def test_deployment_refuses_a_bad_cron_or_a_missing_manifest(tmp_path):
         cohort_deployment(tmp_path / "absent.csv", tmp_path / "out", cron="0 2 * * *")
 
 
-def _trigger_and_execute(dep) -> None:
-    """Register the deployment, create a run through the API, execute it like a runner."""
+def _execute_triggered_run(dep):
+    """Register the deployment, create a run through the API, execute it like a runner.
+
+    Returns the flow run's id, its final state and the finished process (its output is
+    what the ``serve`` console shows of the run).
+    """
     from prefect.client.orchestration import get_client
     from prefect.settings import PREFECT_API_URL
 
@@ -73,10 +80,22 @@ def _trigger_and_execute(dep) -> None:
         [sys.executable, "-m", "prefect.engine"], env=env, capture_output=True, text=True,
         timeout=600,
     )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
     with get_client(sync_client=True) as client:
         state = client.read_flow_run(flow_run.id).state
-    assert state is not None and state.is_completed(), state
+    assert state is not None
+    return str(flow_run.id), state, proc
+
+
+def _trigger_and_execute(dep) -> str:
+    """:func:`_execute_triggered_run`, which must complete; returns the flow run's id."""
+    run_id, state, proc = _execute_triggered_run(dep)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert state.is_completed(), state
+    return run_id
+
+
+def _last_run(out) -> dict:
+    return json.loads((out / "last_run.json").read_text())
 
 
 @pytest.mark.slow
@@ -93,7 +112,12 @@ def test_a_triggered_run_computes_only_the_added_patient_and_reports_removed(tmp
 
     # a patient is added to the manifest; the scheduled run re-reads it
     write_manifest([*rows, _row(2, inputs)], manifest)
-    _trigger_and_execute(dep)
+    run_id = _trigger_and_execute(dep)
+    last = _last_run(out)  # an all-ok run: recorded as completed
+    assert (last["flow_run_id"], last["state"]) == (run_id, "completed")
+    assert last["patients"] == {"ok": 3, "check": 0, "failed": 0}
+    assert last["message"] == "3 patients completed"
+    assert last["started_utc"] <= last["finished_utc"]
     table = pd.read_parquet(out / "cohort.parquet").set_index("patient_id")
     cached = [f"cached_{s.replace('-', '_')}" for s in STAGES]
     assert list(table.index) == ["srv0", "srv1", "srv2"]
@@ -114,6 +138,64 @@ def test_a_triggered_run_computes_only_the_added_patient_and_reports_removed(tmp
     assert "## Removed from the manifest" in md and "srv0, srv2" in md
     page = (out / "cohort.html").read_text()  # the page too (it had only the kept rows)
     assert "<h2>Removed from the manifest</h2>" in page and "kept (not deleted): srv0, srv2" in page
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_manifest_broken_after_serve_started_fails_the_run_in_one_line(tmp_path):
+    """Audit: a scheduled run on a manifest edited into an invalid one printed a traceback,
+    and the folder's earlier cohort.md still looked like the latest run."""
+    manifest = write_manifest([_row(0, tmp_path / "in")], tmp_path / "m.csv")
+    out = tmp_path / "out"
+    dep = cohort_deployment(manifest, out, cron="0 2 * * *", workers=1)
+    manifest.write_text("patient,scan\nsrv0,srv0.nii.gz\n")  # no longer a manifest
+
+    run_id, state, proc = _execute_triggered_run(dep)
+    assert state.is_failed(), state
+    message = state.message
+    assert message.startswith(f"InputError: {manifest.resolve()}: ") and "column" in message
+    assert "\n" not in message
+    console = proc.stdout + proc.stderr
+    assert message in console, console[-3000:]
+    assert "Traceback" not in console, console[-3000:]
+    last = _last_run(out)
+    assert (last["flow_run_id"], last["state"], last["message"]) == (run_id, "failed", message)
+    assert last["patients"] == {"ok": 0, "check": 0, "failed": 0}
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_run_where_a_patient_failed_writes_the_outputs_and_ends_failed(tmp_path):
+    """Audit: a scheduled run with a failed patient ended Completed."""
+    manifest = write_manifest([_row(0, tmp_path / "in")], tmp_path / "m.csv")
+    text = manifest.read_text()  # a row whose image is not there: accepted, fails alone
+    late = text.splitlines()[1].replace("srv0", "late", 1).replace("srv0", "NOPE")
+    manifest.write_text(text + late + "\n")
+    out = tmp_path / "out"
+    dep = cohort_deployment(manifest, out, cron="0 2 * * *", workers=1)
+
+    state = scheduled_cohort_flow(**dep.parameters, return_state=True)
+    assert state.is_failed(), state
+    assert state.message.startswith("1 of 2 patients failed: late (prepare-input: ")
+    assert "NOPE" in state.message and "\n" not in state.message
+    table = pd.read_parquet(out / "cohort.parquet").set_index("patient_id")
+    assert table["status"].to_dict() == {"srv0": "ok", "late": "failed"}
+    assert "late" in (out / "cohort.md").read_text()
+    last = _last_run(out)
+    assert (last["state"], last["message"]) == ("failed", state.message)
+    assert last["patients"] == {"ok": 1, "check": 0, "failed": 1}
+
+
+def test_an_output_folder_that_cannot_be_made_fails_the_run_in_one_line(tmp_path):
+    """An environment error (OSError, as the CLI's exit 3) is the user's to fix: one line,
+    state Failed, before any patient runs (run_cohort probes DIR first)."""
+    manifest = write_manifest([_row(0, tmp_path / "in")], tmp_path / "m.csv")
+    (tmp_path / "a_file").write_text("not a folder")
+    out = tmp_path / "a_file" / "out"
+    dep = cohort_deployment(manifest, out, cron="0 2 * * *", workers=1)
+    state = scheduled_cohort_flow(**dep.parameters, return_state=True)
+    assert state.is_failed(), state
+    assert state.message.startswith("NotADirectoryError: ") and str(out) in state.message
 
 
 def test_cli_serve_builds_the_deployment_and_hands_it_to_prefect(tmp_path, monkeypatch):

@@ -76,3 +76,26 @@ def test_unreadable_input_is_one_line_naming_the_file(tmp_path, monkeypatch):
     monkeypatch.setattr("builtins.open", open_denied)
     with pytest.raises(InputError, match=r"scan\.nii\.gz: cannot read the input \(permission"):
         input_digest(f)
+
+
+def test_a_writable_folder_is_made_and_left_as_it_was(tmp_path):
+    from tumor3d.storage.store import check_writable_dir
+
+    check_writable_dir(tmp_path / "a" / "b")
+    assert (tmp_path / "a" / "b").is_dir() and not list((tmp_path / "a" / "b").iterdir())
+
+
+def test_an_unwritable_folder_is_named_not_the_probe(tmp_path, monkeypatch):
+    """Made (it exists) but no file can be created in it, as an immutable folder: the
+    error names the folder, not the probe's random name."""
+    import tempfile
+
+    from tumor3d.storage.store import check_writable_dir
+
+    def denied(*args, dir=None, **kwargs):
+        raise PermissionError(errno.EACCES, "Permission denied", os.path.join(dir, ".x123"))
+
+    monkeypatch.setattr(tempfile, "mkstemp", denied)
+    with pytest.raises(PermissionError) as info:
+        check_writable_dir(tmp_path)
+    assert info.value.filename == str(tmp_path)

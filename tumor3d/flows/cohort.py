@@ -67,7 +67,7 @@ from tumor3d.storage.manifest import ManifestRow, read_manifest
 from tumor3d.storage.objectstore import ObjectStore, default_store_location, is_url, open_store
 from tumor3d.storage.publish import check_destination, check_outputs_not_inputs
 from tumor3d.storage.remote_publish import RemoteFolder, publish_files, published_names
-from tumor3d.storage.store import ArtifactStore
+from tumor3d.storage.store import ArtifactStore, check_writable_dir
 from tumor3d.tasks import stages
 from tumor3d.tasks.progress import ProgressEvent, report
 from tumor3d.tasks.runner import StageRun
@@ -433,6 +433,8 @@ def run_cohort(
     StoreError
         An object store whose endpoint, bucket or credentials do not work
         (before any work).
+    OSError
+        A local ``DIR`` that cannot be made or written (before any work).
     """
     rows_in = (
         read_manifest(manifest, require_files=False)
@@ -461,7 +463,7 @@ def run_cohort(
     elif dask is not None and dask.n_workers and workers is None:
         n = dask.n_workers
     if isinstance(out, Path):
-        out.mkdir(parents=True, exist_ok=True)
+        check_writable_dir(out)  # an unwritable DIR named before any patient starts
     flow_fn = cohort_flow.with_options(task_runner=cohort_task_runner(n, dask))
     with tags(f"config:{config_digest(cfg)[:12]}", "cohort"):
         return flow_fn(

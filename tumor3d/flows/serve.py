@@ -12,32 +12,63 @@ in the manifest are reported in ``cohort.md`` and the result, not deleted.
 schedule and parameters; :func:`serve_cohort` hands it to Prefect's
 ``serve`` (blocks, polling the Prefect API for scheduled and UI-triggered
 runs).
+
+Every run ends in a Prefect state that says how it went, so the Prefect UI,
+automations and notifications see a failure: **Failed** when some patient
+failed (the cohort outputs are still written; the message names up to three of
+them) or when a project error (:class:`tumor3d.errors.Tumor3DError`: a manifest
+or configuration broken after ``serve`` started, an unreachable store) or an
+environment error (``OSError``: an output folder that cannot be written)
+stopped the run; the error is then one line on the run's logger, no traceback, and the
+state's message. A patient with status ``check`` is not a failure: the run is
+Completed, its message says how many need a check. Any other exception is a bug
+and propagates as Prefect reports it. Each run also records its outcome in
+``DIR/last_run.json`` (:data:`LAST_RUN_FILE`), so a folder whose ``cohort.md``
+is an earlier run's does not look current after a run that failed before
+writing it.
 """
 
 from __future__ import annotations
 
+import json
+import logging
 import re
+import time
 from pathlib import Path
 from typing import Any
 
-from prefect import flow
+from prefect import flow, get_run_logger
 from prefect.deployments.runner import EntrypointType, RunnerDeployment
+from prefect.states import Completed, Failed, State
 
 from tumor3d.config import parse_config
-from tumor3d.errors import ConfigError, InputError
-from tumor3d.flows.cohort import CohortResult, run_cohort
+from tumor3d.errors import ConfigError, InputError, Tumor3DError
+from tumor3d.flows.cohort import CohortResult, one_line_error, run_cohort
 from tumor3d.flows.dask_runner import DaskSpec
+from tumor3d.segmentation.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
+from tumor3d.storage.objectstore import is_url
+from tumor3d.storage.store import atomic_write_bytes
 
 __all__ = [
     "DEFAULT_DEPLOYMENT_NAME",
+    "LAST_RUN_FILE",
     "cohort_deployment",
     "load_config_file",
+    "run_message",
     "scheduled_cohort_flow",
     "serve_cohort",
 ]
 
 #: Deployment name when ``--name`` is not given.
 DEFAULT_DEPLOYMENT_NAME = "tumor3d-cohort-nightly"
+
+#: The outcome of the latest scheduled run, in ``DIR`` (written by every run, at its end).
+LAST_RUN_FILE = "last_run.json"
+
+#: Failed patients named in a run's message (the others are counted).
+_NAMED_FAILURES = 3
+#: Longest error of a patient quoted in a run's message (characters).
+_MESSAGE_ERROR = 100
 
 
 def load_config_file(path: str | Path | None) -> dict[str, Any]:
@@ -93,8 +124,14 @@ def scheduled_cohort_flow(
     store_dir: str | None = None,
     dask_address: str | None = None,
     dask_workers: int | None = None,
-) -> CohortResult:
+) -> State[CohortResult]:
     """Re-read ``manifest`` and run the cohort flow on it (one scheduled run).
+
+    The run's final state says how it went (module docstring): Completed with
+    the :class:`~tumor3d.flows.cohort.CohortResult` as its result (what a
+    direct call returns) when no patient failed; Failed, with a one-line
+    message, when some patient failed or a project error stopped the run.
+    Either way the outcome is written to ``DIR/last_run.json``.
 
     Parameters
     ----------
@@ -111,10 +148,141 @@ def scheduled_cohort_flow(
     dask_address, dask_workers : optional
         Run the stages on Dask (:mod:`tumor3d.flows.dask_runner`).
     """
-    return run_cohort(
-        manifest, out_dir, config=load_config_file(config_path), workers=workers,
-        store_dir=store_dir, dask=DaskSpec(dask_address, dask_workers),
-    )  # fmt: skip
+    logger = get_run_logger()
+    started = _utc_now()
+    try:
+        result = run_cohort(
+            manifest, out_dir, config=load_config_file(config_path), workers=workers,
+            store_dir=store_dir, dask=DaskSpec(dask_address, dask_workers),
+        )  # fmt: skip
+    except (Tumor3DError, OSError) as exc:  # the user's to fix, as the CLI's: one line, Failed
+        line = one_line_error(exc)
+        logger.error("scheduled run failed: %s", line)
+        _write_last_run(out_dir, started, "failed", line, None, logger)
+        return _failed(line)
+    except Exception as exc:  # a bug: recorded, then Prefect reports it as it does
+        _write_last_run(out_dir, started, "failed", one_line_error(exc), None, logger)
+        raise
+    message = run_message(result)
+    if result.failed:
+        logger.error("scheduled run failed: %s", message)
+        _write_last_run(out_dir, started, "failed", message, result, logger)
+        return _failed(message)
+    (logger.warning if result.to_check else logger.info)("scheduled run: %s", message)
+    _write_last_run(out_dir, started, "completed", message, result, logger)
+    return Completed(message=message, data=result)
+
+
+class _NoTracebackOfOwnFailures(logging.Filter):
+    """Drops Prefect's traceback of a run that :func:`scheduled_cohort_flow` ended Failed.
+
+    When a flow returns a Failed state, a runner's process (``python -m
+    prefect.engine``, how ``serve`` executes a run) asks the engine for the run's
+    result, which raises the state as ``FailedRun``, and logs that with its
+    traceback as "Engine execution exited with unexpected exception"
+    (``prefect.flow_engine.run_flow``, Prefect 3.8). The failure is already one
+    line on the run's logger and the state's message; only the ``FailedRun``
+    records of the runs listed here are dropped (any other exception keeps its
+    traceback).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.run_ids: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        from prefect.exceptions import FailedRun
+
+        exc = record.exc_info[1] if record.exc_info else None
+        return not (
+            isinstance(exc, FailedRun) and getattr(record, "flow_run_id", None) in self.run_ids
+        )
+
+
+_NO_TRACEBACK = _NoTracebackOfOwnFailures()
+
+
+def _failed(message: str) -> State[Any]:
+    """The Failed state of this run, whose ``FailedRun`` Prefect then logs without a traceback."""
+    from prefect.runtime import flow_run
+
+    _NO_TRACEBACK.run_ids.add(str(flow_run.id))
+    logging.getLogger("prefect.flow_runs").addFilter(_NO_TRACEBACK)  # once: same instance
+    return Failed(message=message)
+
+
+def run_message(result: CohortResult) -> str:
+    """One line on a cohort run: who failed (three named, with stage and error), who needs a check.
+
+    Examples
+    --------
+    >>> from tumor3d.flows.cohort import PatientOutcome
+    >>> ok = PatientOutcome(patient_id="p0", status="ok")
+    >>> bad = PatientOutcome(patient_id="p1", status="failed", failed_stage="segment",
+    ...                      error="ValueError: empty")
+    >>> run_message(CohortResult(patients=[ok, bad]))
+    '1 of 2 patients failed: p1 (segment: ValueError: empty)'
+    >>> run_message(CohortResult(patients=[ok, PatientOutcome(patient_id="p2", status="check")]))
+    '2 patients completed, 1 needs a check: p2'
+    """
+    n = len(result.patients)
+    failed, check = result.failed, result.to_check
+    if failed:
+        named = [f"{p.patient_id} ({p.failed_stage}: {_cut(p.error or '?')})"
+                 for p in failed[:_NAMED_FAILURES]]  # fmt: skip
+        more = len(failed) - len(named)
+        text = f"{len(failed)} of {n} patients failed: " + ", ".join(named)
+        text += f" and {more} more" if more else ""
+        if check:
+            text += f"; {len(check)} {'needs' if len(check) == 1 else 'need'} a check"
+        return text
+    text = f"{n} patient{'' if n == 1 else 's'} completed"
+    if check:
+        names = ", ".join(p.patient_id for p in check[:_NAMED_FAILURES])
+        more = len(check) - _NAMED_FAILURES
+        names += f" and {more} more" if more > 0 else ""
+        text += f", {len(check)} {'needs' if len(check) == 1 else 'need'} a check: {names}"
+    return text
+
+
+def _cut(text: str, limit: int = _MESSAGE_ERROR) -> str:
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _utc_now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+def _write_last_run(
+    out_dir: str,
+    started: str,
+    state: str,
+    message: str,
+    result: CohortResult | None,
+    logger: Any,
+) -> None:
+    """Write ``DIR/last_run.json`` atomically (a local ``DIR`` only; ``serve`` takes no URL).
+
+    A failure to write it is a warning: the run's state already says how it went.
+    """
+    if is_url(out_dir):
+        return
+    from prefect.runtime import flow_run
+
+    statuses = [p.status for p in result.patients] if result is not None else []
+    record = {
+        "flow_run_id": flow_run.id,
+        "started_utc": started,
+        "finished_utc": _utc_now(),
+        "state": state,
+        "message": message,
+        "patients": {s: statuses.count(s) for s in (STATUS_OK, STATUS_CHECK, STATUS_FAILED)},
+    }
+    path = Path(out_dir) / LAST_RUN_FILE
+    try:
+        atomic_write_bytes(path, (json.dumps(record, indent=1) + "\n").encode())
+    except OSError as exc:
+        logger.warning("cannot write %s: %s", path, one_line_error(exc))
 
 
 def cohort_deployment(

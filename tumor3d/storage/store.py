@@ -38,6 +38,7 @@ import json
 import os
 import re
 import socket
+import tempfile
 import time
 import uuid
 from dataclasses import asdict, dataclass
@@ -62,6 +63,7 @@ __all__ = [
     "StoreError",
     "atomic_write_bytes",
     "canonical_dumps",
+    "check_writable_dir",
     "process_alive",
 ]
 
@@ -204,6 +206,28 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def check_writable_dir(folder: Path) -> None:
+    """Make ``folder`` (with its parents) and check that a file can be created in it.
+
+    Called before any work by the commands and flows that write results there, so
+    an immutable or read-only output folder is named at once instead of after every
+    stage has run.
+
+    Raises
+    ------
+    OSError
+        Naming ``folder`` (not the probe's random name): it cannot be made or written.
+    """
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".tumor3d-probe-", dir=folder)
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror, str(folder)) from None
+    os.close(fd)
+    os.unlink(probe)
 
 
 def _utc_now() -> str:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
@@ -84,15 +83,9 @@ def _check_out_writable(out: Path) -> None:
     With ``--store`` elsewhere nothing else writes there before publishing: an
     immutable or read-only folder failed after every stage had run.
     """
-    import tempfile
+    from tumor3d.storage.store import check_writable_dir
 
-    out.mkdir(parents=True, exist_ok=True)
-    try:
-        fd, probe = tempfile.mkstemp(prefix=".tumor3d-probe-", dir=out)
-    except OSError as exc:  # named by the folder, not the probe's random name
-        raise OSError(exc.errno, exc.strerror, str(out)) from None
-    os.close(fd)
-    os.unlink(probe)
+    check_writable_dir(out)
 
 
 def _preflight_remote(
