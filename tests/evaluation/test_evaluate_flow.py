@@ -158,3 +158,7 @@ def test_the_geometry_evaluations_run_when_named(evaluated, tmp_path):
     assert "dice_3d" not in df.columns  # segmentation was not asked for
     report = again.report.read_text()
     assert "### interpolation (default)" in report and "### simplification (default)" in report
+    # and no segmentation tables left empty: they belong to the segmentation evaluation
+    assert "## Table 2" not in report and "## Volumes" not in report
+    assert "## Table 2" in (out / "REPORT.md").read_text()
+    assert not list((tmp_path / "geo").glob("bland_altman_*.png"))

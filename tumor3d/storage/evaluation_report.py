@@ -188,97 +188,16 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def write_report(
-    out_dir: Path,
-    patients: pd.DataFrame,
-    slices: pd.DataFrame,
-    *,
-    configs: dict[str, dict[str, Any]],
-    config_files: dict[str, str | None],
-    prepared: list[Any],
-    skipped: list[dict[str, Any]],
-    evaluations: dict[str, Any],
-    command: str | None,
-    elapsed_s: float,
-) -> Path:
-    """Write ``REPORT.md`` and ``bland_altman_<config>.png`` in ``out_dir``; return the former."""
-    del slices  # per-slice rows are in evaluation_slices.parquet
-    names = list(configs)
-    pids = [p.source.patient_id for p in prepared]
-    # one group per kind of reference, acquisition and modality: pooled figures never mix
-    # FLAIR with T1c, whose targets differ (whole tumour against rim and core)
-    groups = {
-        p.source.patient_id: f"{p.reference_kind}, {p.acquisition}, {p.source.modality}"
-        for p in prepared
-    }
-    df = patients if len(patients) else pd.DataFrame(columns=["config", "patient_id", "status"])
+def _segmentation_parts(
+    df: pd.DataFrame, names: list[str], pids: list[str], groups: dict[str, str], out_dir: Path
+) -> list[str]:
+    """The segmentation evaluation's sections of ``REPORT.md``.
+
+    Tables 2 and 3, overlap, volumes (the Bland-Altman figures written to
+    ``out_dir``) and the summary per group.
+    """
+    parts: list[str] = []
     ok = df[df["status"] == "ok"]
-    parts: list[str] = ["# Evaluation report", ""]
-    parts.append(
-        f"Generated {datetime.now(UTC).isoformat(timespec='seconds')} in {elapsed_s:.0f} s; "
-        f"configurations: {', '.join(f'`{n}`' for n in names)}."
-    )
-    parts += ["", "```", command or "(called from Python)", "```", ""]
-    parts.append(
-        "Definitions: a slice is truly abnormal iff the reference has tumour on it; the "
-        "method calls a slice abnormal iff its published segmentation "
-        "(`tumor_mask_slices.nii.gz`) has tumour on it. Eq. 9: |N_p - N_g| / N_g x 100 "
-        "with N = tumour pixels on the acquired slices. Emulated cases: the image is "
-        "resampled to thick slices (mean over the thickness) before the pipeline; the "
-        "per-slice reference is emulated the same way (tumour where the mean >= 0.5); the "
-        "3-D comparison (3-D Dice, HD) samples the interpolated mask at the full-resolution "
-        "reference's voxel centres (nearest neighbour). HD: symmetric distances between "
-        "boundary voxels in mm; HD95 = max of the two directed 95th percentiles. Volume "
-        "error: (method - reference) / reference x 100, reference = reference voxels x "
-        "voxel volume."
-    )
-
-    # ---------------------------------------------------------------- cases
-    parts += ["", "## Cases", ""]
-    rows = []
-    for p in prepared:
-        pid = p.source.patient_id
-        status = ", ".join(f"{n}: {_run_status(df, n, pid)}" for n in names)
-        rows.append([pid, groups[pid], p.source.modality, p.source.image.name, status])
-    parts.append(_table(["patient", "reference, acquisition", "modality", "image", "status"], rows))
-    parts += ["", "Status: the run's own (`ok`; `check`: its doubts or its segmentation's "
-              "review ask a human to look, the reasons in `review_reasons` of "
-              "`evaluation.parquet`; `failed`)."]  # fmt: skip
-    flagged = _flagged_lines(ok, names)
-    if flagged:
-        parts += ["", "When to check, judged on these cases (Eq. 7 against the reference, "
-                  "every case with tumour in it: phantoms and algorithm-made references "
-                  "included; the learned method was trained on some of them: its "
-                  "cross-validated figures are in `reports/learned_cv.md`):", "",
-                  *flagged]  # fmt: skip
-    if skipped:
-        parts += ["", "Skipped rows:", ""]
-        for s in skipped:
-            tag = "file absent" if s["missing_file"] else "invalid"
-            parts.append(f"- {s['patient_id'] or ('row ' + str(s['row']))} ({tag}): {s['reason']}")
-    # the notes each run said about its own result (tumor3d.segmentation.caveats, "no tumour
-    # found", a
-    # brain mask larger than a skull, ...), one line per configuration and note, with the
-    # cases that said it, so that a reader can see whether they point at the worst cases
-    noted: dict[tuple[str, str], list[str]] = {}
-    for n in names:
-        for pid in pids:
-            if _get(df, n, pid, "status") != "ok":
-                continue
-            notes = split_notes(_get(df, n, pid, "notes"))
-            # a segmentation's own review reasons are not among the notes: said as well
-            reasons = [f"review: {r}" for r in split_notes(_get(df, n, pid, "review_reasons"))
-                       if r not in notes]  # fmt: skip
-            for note in notes + reasons:
-                noted.setdefault((n, note), []).append(pid)
-    if noted:
-        parts += ["", "Notes of the runs (said by the pipeline itself, without the reference):", ""]
-        parts += [f"- {n}, {', '.join(cases)}: {note}" for (n, note), cases in noted.items()]
-    algo = [p.source.patient_id for p in prepared if p.reference_kind == "algorithmic"]
-    if algo:
-        parts += ["", f"**Note:** the reference of {', '.join(algo)} was made by a segmentation "
-                  "ALGORITHM, not an expert: agreement with it is not accuracy."]  # fmt: skip
-
     with_ref = [pid for pid in pids if groups[pid].split(",")[0] != "unspecified"]
     # ---------------------------------------------------------------- Table 2
     parts += ["", "## Table 2: recognition of abnormal slices", ""]
@@ -432,6 +351,103 @@ def write_report(
             cells = [_f(_mean(sel, col), fmt) for col, _, fmt in metrics]
             rows.append([g, n, f"{len(sel)}/{len(members)}", *cells])
     parts.append(_table(header, rows))
+
+    return parts
+
+
+def write_report(
+    out_dir: Path,
+    patients: pd.DataFrame,
+    slices: pd.DataFrame,
+    *,
+    configs: dict[str, dict[str, Any]],
+    config_files: dict[str, str | None],
+    prepared: list[Any],
+    skipped: list[dict[str, Any]],
+    evaluations: dict[str, Any],
+    command: str | None,
+    elapsed_s: float,
+) -> Path:
+    """Write ``REPORT.md`` and ``bland_altman_<config>.png`` in ``out_dir``; return the former."""
+    del slices  # per-slice rows are in evaluation_slices.parquet
+    names = list(configs)
+    pids = [p.source.patient_id for p in prepared]
+    # one group per kind of reference, acquisition and modality: pooled figures never mix
+    # FLAIR with T1c, whose targets differ (whole tumour against rim and core)
+    groups = {
+        p.source.patient_id: f"{p.reference_kind}, {p.acquisition}, {p.source.modality}"
+        for p in prepared
+    }
+    df = patients if len(patients) else pd.DataFrame(columns=["config", "patient_id", "status"])
+    ok = df[df["status"] == "ok"]
+    parts: list[str] = ["# Evaluation report", ""]
+    parts.append(
+        f"Generated {datetime.now(UTC).isoformat(timespec='seconds')} in {elapsed_s:.0f} s; "
+        f"configurations: {', '.join(f'`{n}`' for n in names)}."
+    )
+    parts += ["", "```", command or "(called from Python)", "```", ""]
+    parts.append(
+        "Definitions: a slice is truly abnormal iff the reference has tumour on it; the "
+        "method calls a slice abnormal iff its published segmentation "
+        "(`tumor_mask_slices.nii.gz`) has tumour on it. Eq. 9: |N_p - N_g| / N_g x 100 "
+        "with N = tumour pixels on the acquired slices. Emulated cases: the image is "
+        "resampled to thick slices (mean over the thickness) before the pipeline; the "
+        "per-slice reference is emulated the same way (tumour where the mean >= 0.5); the "
+        "3-D comparison (3-D Dice, HD) samples the interpolated mask at the full-resolution "
+        "reference's voxel centres (nearest neighbour). HD: symmetric distances between "
+        "boundary voxels in mm; HD95 = max of the two directed 95th percentiles. Volume "
+        "error: (method - reference) / reference x 100, reference = reference voxels x "
+        "voxel volume."
+    )
+
+    # ---------------------------------------------------------------- cases
+    parts += ["", "## Cases", ""]
+    rows = []
+    for p in prepared:
+        pid = p.source.patient_id
+        status = ", ".join(f"{n}: {_run_status(df, n, pid)}" for n in names)
+        rows.append([pid, groups[pid], p.source.modality, p.source.image.name, status])
+    parts.append(_table(["patient", "reference, acquisition", "modality", "image", "status"], rows))
+    parts += ["", "Status: the run's own (`ok`; `check`: its doubts or its segmentation's "
+              "review ask a human to look, the reasons in `review_reasons` of "
+              "`evaluation.parquet`; `failed`)."]  # fmt: skip
+    flagged = _flagged_lines(ok, names)
+    if flagged:
+        parts += ["", "When to check, judged on these cases (Eq. 7 against the reference, "
+                  "every case with tumour in it: phantoms and algorithm-made references "
+                  "included; the learned method was trained on some of them: its "
+                  "cross-validated figures are in `reports/learned_cv.md`):", "",
+                  *flagged]  # fmt: skip
+    if skipped:
+        parts += ["", "Skipped rows:", ""]
+        for s in skipped:
+            tag = "file absent" if s["missing_file"] else "invalid"
+            parts.append(f"- {s['patient_id'] or ('row ' + str(s['row']))} ({tag}): {s['reason']}")
+    # the notes each run said about its own result (tumor3d.segmentation.caveats, "no tumour
+    # found", a
+    # brain mask larger than a skull, ...), one line per configuration and note, with the
+    # cases that said it, so that a reader can see whether they point at the worst cases
+    noted: dict[tuple[str, str], list[str]] = {}
+    for n in names:
+        for pid in pids:
+            if _get(df, n, pid, "status") != "ok":
+                continue
+            notes = split_notes(_get(df, n, pid, "notes"))
+            # a segmentation's own review reasons are not among the notes: said as well
+            reasons = [f"review: {r}" for r in split_notes(_get(df, n, pid, "review_reasons"))
+                       if r not in notes]  # fmt: skip
+            for note in notes + reasons:
+                noted.setdefault((n, note), []).append(pid)
+    if noted:
+        parts += ["", "Notes of the runs (said by the pipeline itself, without the reference):", ""]
+        parts += [f"- {n}, {', '.join(cases)}: {note}" for (n, note), cases in noted.items()]
+    algo = [p.source.patient_id for p in prepared if p.reference_kind == "algorithmic"]
+    if algo:
+        parts += ["", f"**Note:** the reference of {', '.join(algo)} was made by a segmentation "
+                  "ALGORITHM, not an expert: agreement with it is not accuracy."]  # fmt: skip
+
+    if "segmentation" in evaluations:  # its tables; a geometry-only run has none to fill
+        parts += _segmentation_parts(df, names, pids, groups, out_dir)
 
     # ---------------------------------------------------------------- registry
     parts += ["", "## Registered evaluations", ""]
