@@ -211,6 +211,26 @@ def test_dicom_shuffled_series_order_step_affine_rescale(tmp_path):
     np.testing.assert_array_equal(scan.source_grid.affine, scan.affine)
 
 
+def test_dicom_series_with_rows_along_left_right_is_read_with_its_columns_as_x(tmp_path):
+    """Rows stored left-right, columns front-back (yaw 90 degrees): the Scan orders the
+    slice's axes as any volume file's (x the left-right one, in_plane_axes), while every
+    voxel keeps its DICOM position and the source grid gives the files' own order back."""
+    s = write_series(tmp_path / "rot90", yaw_deg=90.0, pitch_deg=0.0)
+    scan = read_scan(tmp_path / "rot90", modality="T2")
+    raw = s.raw.astype(np.float32) * 2 - 10  # (k, row j, column i)
+    assert scan.shape == (6, 12, 16)  # (z, y = the files' columns, x = the files' rows)
+    np.testing.assert_array_equal(scan.image, raw.transpose(0, 2, 1))
+    assert abs(scan.affine[0, 0]) == pytest.approx(0.8, abs=1e-5)  # x along R/L, row spacing
+    assert scan.pixel_spacing_mm == pytest.approx((0.9, 0.8))
+    for k in range(6):
+        for j, i in [(0, 0), (15, 0), (0, 11), (7, 5)]:  # file row j, file column i
+            np.testing.assert_allclose(
+                scan.index_to_ras([[k, i, j]])[0], dicom_expected_ras(s, k, j, i), atol=1e-4
+            )
+    assert scan.source_grid.shape == (12, 16, 6)
+    np.testing.assert_array_equal(scan.source_grid.to_source(scan.image), raw.transpose(2, 1, 0))
+
+
 def test_dicom_no_phi_anywhere(tmp_path):
     write_series(tmp_path / "anon")
     scan = read_scan(tmp_path / "anon")

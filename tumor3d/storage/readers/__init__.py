@@ -31,8 +31,10 @@ are within 1 % of the coarsest spacing (e.g. an isotropic 1 mm volume), the
 one among them whose direction is **closest to superior-inferior** (largest
 ``|S|`` component of its unit affine column) is chosen, i.e. axial; an exact
 tie goes to the highest voxel axis. The voxel axes are only permuted (never
-resampled, never flipped) so that the slice axis becomes ``z``; the two other
-axes keep their source order as ``(x, y)``. See :func:`choose_slice_axis`.
+resampled, never flipped) so that the slice axis becomes ``z``; of the two
+other axes, ``x`` is the one closer to left-right (then to front-back), so a
+file storing the slices transposed gives the same stack (DICOM series too).
+See :func:`choose_slice_axis` and :func:`in_plane_axes`.
 The two in-plane axes must be perpendicular; the slice step is the distance
 between slice planes, ``|det A| / |c_x x c_y|``, which on a sheared grid is
 less than the slice-axis column's length
@@ -94,6 +96,7 @@ from tumor3d.storage.readers.common import (
     check_modality,
     choose_slice_axis,
     derive_patient_id,
+    in_plane_axes,
     suggest_patient_id,
 )
 from tumor3d.storage.readers.dicom import read_dicom_series
@@ -121,6 +124,7 @@ __all__ = [
     "choose_slice_axis",
     "declared_modality",
     "derive_patient_id",
+    "in_plane_axes",
     "read_dicom_series",
     "read_image_stack",
     "read_itk_scan",

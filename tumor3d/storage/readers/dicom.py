@@ -30,6 +30,7 @@ from tumor3d.storage.readers.common import (
     check_modality,
     check_voxel_count,
     derive_patient_id,
+    in_plane_axes,
 )
 from tumor3d.storage.readers.options import ReadOptions
 from tumor3d.storage.readers.registry import NotThisFormat, register_reader
@@ -201,6 +202,14 @@ def read_dicom_series(
         step, file_thickness, thickness_override, gap_override, str(d)
     )
     nz, ny, nx = image.shape
+    # the in-plane order of a volume file (in_plane_axes): rows and columns swapped when
+    # the series stores them the other way round; the source grid keeps the files' order
+    axes = (*in_plane_axes(affine, 2), 2)
+    source_affine = affine
+    if axes != (0, 1, 2):
+        image = np.ascontiguousarray(image.transpose(0, 2, 1))
+        affine = affine[:, [1, 0, 2, 3]]
+        pixel_spacing = (pixel_spacing[1], pixel_spacing[0])
     return Scan(
         image=image,
         affine=affine,
@@ -213,7 +222,7 @@ def read_dicom_series(
         source=f"DICOM series in folder {d.name}, {nz} slices"
         + _tilt_note(affine, step)
         + (f", {len(skipped)} unreadable file(s) skipped" if skipped else ""),
-        source_grid=SourceGrid(shape=(nx, ny, nz), affine=affine, axes=(0, 1, 2)),
+        source_grid=SourceGrid(shape=(nx, ny, nz), affine=source_affine, axes=axes),
         skipped_files=skipped,
     )
 
