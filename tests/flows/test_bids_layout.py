@@ -126,7 +126,11 @@ def test_gifti_surfaces_are_the_ply_meshes_in_ras(published):
         mesh = decode_ply((anat / ply).read_bytes())
         assert np.allclose(verts, mesh.vertices, atol=1e-3)
         assert np.array_equal(faces, mesh.faces)
-        assert surf.darrays[0].coordsys.dataspace == 3  # NIFTI_XFORM_SCANNER_ANAT (RAS)
+        # scanner RAS, as the file says in words (code 3 would be Talairach)
+        space = surf.darrays[0].coordsys
+        scanner = nib.nifti1.xform_codes.code["scanner"]
+        assert space.dataspace == space.xformspace == scanner == 1
+        assert b"<DataSpace>NIFTI_XFORM_SCANNER_ANAT</DataSpace>" in (anat / gii).read_bytes()
 
 
 def test_a_rerun_is_up_to_date_and_the_report_links_resolve(published):

@@ -160,3 +160,20 @@ def test_fine_volume_written_on_its_own_grid_keeps_world_positions(tmp_path):
         world_fine = fine_affine @ np.array([x, y, z, 1.0])
         world_written = affine @ np.array([*src_index, 1.0])
         np.testing.assert_allclose(world_written, world_fine, atol=1e-4)
+
+
+def test_masks_say_they_are_labels_and_a_probability_map_does_not(tmp_path):
+    """NIFTI_INTENT_LABEL (1002) on the masks, as viewers that read intents expect."""
+    f = tmp_path / "input.nii.gz"
+    _save(f, np.arange(60, dtype=np.int16).reshape(5, 4, 3), LAS)
+    scan = read_scan(f)
+    mask = np.zeros(scan.shape, np.uint8)
+
+    def intent(blob: bytes) -> str:
+        return nib.Nifti1Image.from_bytes(gzip.decompress(blob)).header.get_intent()[0]
+
+    grid = scan.source_grid
+    assert intent(mask_to_source_nifti_bytes(mask, grid)) == "label"
+    assert intent(volume_to_source_nifti_bytes(mask, scan.affine, grid, dtype="uint8")) == "label"
+    prob = volume_to_source_nifti_bytes(mask, scan.affine, grid, dtype="float32")
+    assert intent(prob) == "none"

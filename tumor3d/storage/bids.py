@@ -213,7 +213,8 @@ def encode_gifti_surface(vertices_mm: np.ndarray, faces: np.ndarray) -> bytes:
         raise InputError(
             f"a surface needs (n, 3) vertices and (m, 3) faces, got {v.shape}, {f.shape}"
         )
-    space = nib.gifti.GiftiCoordSystem(dataspace=3, xformspace=3, xform=np.eye(4))
+    scanner = "NIFTI_XFORM_SCANNER_ANAT"  # code 1 (3 would say Talairach)
+    space = nib.gifti.GiftiCoordSystem(dataspace=scanner, xformspace=scanner, xform=np.eye(4))
     points = nib.gifti.GiftiDataArray(
         v, intent="NIFTI_INTENT_POINTSET", datatype="NIFTI_TYPE_FLOAT32",
         encoding="GIFTI_ENCODING_B64BIN", coordsys=space,

@@ -41,7 +41,13 @@ _GZIP_LEVEL = 6
 _GZIP_MAGIC = b"\x1f\x8b"
 
 
-def encode_nifti(array: np.ndarray, affine: np.ndarray, *, dtype: np.dtype | type | str) -> bytes:
+def encode_nifti(
+    array: np.ndarray,
+    affine: np.ndarray,
+    *,
+    dtype: np.dtype | type | str,
+    label: bool = False,
+) -> bytes:
     """Encode a 3-D voxel array as gzip-compressed NIfTI-1 bytes, deterministically.
 
     Parameters
@@ -55,6 +61,9 @@ def encode_nifti(array: np.ndarray, affine: np.ndarray, *, dtype: np.dtype | typ
     dtype : {uint8, int16, float32}
         Stored voxel type. For the integer types the values must be whole
         numbers within the type's range (nothing is rounded or clipped).
+    label : bool
+        A mask: the header's intent is ``NIFTI_INTENT_LABEL`` (each value an
+        index into a set of labels, here 0 = background, 1 = the structure).
 
     Returns
     -------
@@ -85,6 +94,8 @@ def encode_nifti(array: np.ndarray, affine: np.ndarray, *, dtype: np.dtype | typ
     img.set_sform(aff, code=1)
     img.set_qform(aff, code=1)
     img.header.set_xyzt_units(xyz="mm")
+    if label:
+        img.header.set_intent("label")
     img.header["descrip"] = _DESCRIP
     raw = img.to_bytes()
     return gzip.compress(raw, compresslevel=_GZIP_LEVEL, mtime=0)
@@ -199,7 +210,7 @@ def mask_to_source_nifti_bytes(mask_zyx: np.ndarray, grid: SourceGrid) -> bytes:
     if m.ndim != 3:
         raise ValueError(f"mask must be 3-D (z, y, x), got shape {m.shape}")
     source = grid.to_source(m)
-    return encode_nifti(source, grid.affine, dtype=np.uint8)
+    return encode_nifti(source, grid.affine, dtype=np.uint8, label=True)
 
 
 def volume_to_source_nifti_bytes(
@@ -224,7 +235,8 @@ def volume_to_source_nifti_bytes(
     grid : SourceGrid
         ``scan.source_grid`` of the scan the volume derives from.
     dtype : {uint8, int16, float32}
-        Stored voxel type (see :func:`encode_nifti`).
+        Stored voxel type (see :func:`encode_nifti`); uint8 is a mask (its
+        intent ``NIFTI_INTENT_LABEL``).
 
     Returns
     -------
@@ -236,7 +248,7 @@ def volume_to_source_nifti_bytes(
         raise ValueError(f"array must be 3-D (z, y, x), got shape {arr.shape}")
     aff = _check_affine(affine_xyz)
     source, source_affine = grid.to_source_with_affine(arr, aff)
-    return encode_nifti(source, source_affine, dtype=dtype)
+    return encode_nifti(source, source_affine, dtype=dtype, label=np.dtype(dtype) == np.uint8)
 
 
 def _check_affine(affine: np.ndarray) -> np.ndarray:
