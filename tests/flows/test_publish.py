@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -43,20 +44,34 @@ def test_folder_that_is_or_contains_an_input_is_refused(tmp_path):
 
 
 def test_killed_run_leftovers_are_cleaned_by_the_next_publish(tmp_path):
-    dead = _dead_pid()
-    stale = tmp_path / f".p1.partial-{dead}-0123abcd"
-    stale_old = tmp_path / f".p1.old-{dead}-89abcdef"
-    live = tmp_path / f".p1.partial-{os.getpid()}-deadbeef"  # a concurrent run of ours
-    other = tmp_path / f".p2.partial-{dead}-0123abcd"  # another patient's: not ours to clean
-    for folder in (stale, stale_old, live, other):
+    """Any patient's leftovers of this machine's dead publishers go, another machine's
+    only once untouched for an hour (its pids cannot be asked here); a live run's stay.
+    Folders named before the host tag: their own name's only, as before."""
+    from tumor3d.storage.store import HOST_TAG
+
+    dead, me = _dead_pid(), os.getpid()
+    other_host = "0123abcd" if HOST_TAG != "0123abcd" else "4567cdef"
+    stale = tmp_path / f".p1.partial-{HOST_TAG}-{dead}-0123abcd"
+    stale_old = tmp_path / f".p1.old-{HOST_TAG}-{dead}-89abcdef"
+    live = tmp_path / f".p1.partial-{HOST_TAG}-{me}-deadbeef"  # a concurrent run of ours
+    other = tmp_path / f".p2.partial-{HOST_TAG}-{dead}-0123abcd"  # another patient's, dead
+    remote = tmp_path / f".p3.partial-{other_host}-{me}-0123abcd"  # another machine's
+    remote_old = tmp_path / f".p4.partial-{other_host}-{me}-0123abcd"
+    legacy = tmp_path / f".p1.partial-{dead}-0123abcd"  # no host tag: p1's
+    legacy_other = tmp_path / f".p2.old-{dead}-0123abcd"  # no host tag: p2's, not p1's
+    folders = (stale, stale_old, live, other, remote, remote_old, legacy, legacy_other)
+    for folder in folders:
         folder.mkdir()
         (folder / "tumor.ply").write_bytes(b"half")
+    two_hours_ago = time.time() - 7200.0
+    os.utime(remote_old, (two_hours_ago, two_hours_ago))
     with staged_folder(tmp_path, "p1") as staging:
+        assert staging.name.startswith(f".p1.partial-{HOST_TAG}-{me}-")
         (staging / "metrics.parquet").write_bytes(b"new")
     names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == sorted(["p1", live.name, other.name])
+    assert names == sorted(["p1", live.name, remote.name, legacy_other.name])
     assert (tmp_path / "p1" / "metrics.parquet").read_bytes() == b"new"
-    assert clean_stale_staging(tmp_path, "p2") == [other]
+    assert clean_stale_staging(tmp_path, "p2") == [legacy_other]
 
 
 def test_failure_while_staging_leaves_the_old_folder(tmp_path):

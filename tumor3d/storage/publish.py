@@ -1,9 +1,10 @@
 """Publishing a result folder as one unit: staging folder, fsync, rename swap.
 
 ``<out_dir>/<name>/`` is replaced as a whole: files are written to a hidden
-staging folder ``<out_dir>/.<name>.partial-<pid>-<random>`` beside it,
-fsynced, and the staging folder is renamed into place (the previous folder,
-if any, is first renamed aside to ``.<name>.old-<pid>-<random>`` and removed
+staging folder ``<out_dir>/.<name>.partial-<host>-<pid>-<random>`` beside it
+(``<host>``: :data:`tumor3d.storage.store.HOST_TAG`), fsynced, and the staging
+folder is renamed into place (the previous folder, if any, is first renamed
+aside to ``.<name>.old-<host>-<pid>-<random>`` and removed
 afterwards; restored if the swap fails). A failed run leaves nothing under
 the final name.
 
@@ -24,8 +25,10 @@ Four safety rules:
   a folder holding another input file's results is not replaced (checked
   before any work and, by :func:`staged_folder`, right before the swap);
 * :func:`clean_stale_staging` -- staging and trash folders left by a killed
-  run (its process is gone) are removed by the next publish of that name;
-  those of a live concurrent run are left alone.
+  run are removed by the next publish into the folder, whatever their name:
+  this machine's when their process is gone, another machine's (a folder
+  shared over the network) when untouched for an hour; those of a live
+  concurrent run are left alone.
 
 A re-run whose result is already published need not rewrite it:
 :func:`write_publish_manifest` records, in the staging folder, a key (the
@@ -43,6 +46,7 @@ import json
 import os
 import re
 import shutil
+import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
@@ -50,7 +54,7 @@ from pathlib import Path
 
 from tumor3d.errors import InputError
 from tumor3d.storage.inputs import input_files
-from tumor3d.storage.store import process_alive
+from tumor3d.storage.store import HOST_TAG, STALE_TMP_S, process_alive
 
 __all__ = [
     "PUBLISH_MANIFEST",
@@ -103,7 +107,12 @@ def is_tumor3d_result(folder: str | Path) -> bool:
         "tumor3d" in prov["versions"]
     )
 
-_LEFTOVER = re.compile(r"^\.(?P<name>.+)\.(?:partial|old)-(?P<pid>\d+)-[0-9a-f]{8}$")
+
+#: ``.<name>.partial-<host>-<pid>-<random>`` and ``.old-`` (without ``<host>-``
+#: before it was added: such a folder's writer is asked by pid, for its own name only).
+_LEFTOVER = re.compile(
+    r"^\.(?P<name>.+)\.(?:partial|old)-(?:(?P<host>[0-9a-f]{8})-)?(?P<pid>\d+)-[0-9a-f]{8}$"
+)
 
 
 def _over_input(target: Path, src: Path) -> InputError:
@@ -265,8 +274,18 @@ def check_destination(
         check_same_input(final, derived_from, location=location, suggestion=suggestion)
 
 
-def clean_stale_staging(out_dir: str | Path, name: str) -> list[Path]:
-    """Remove ``.<name>.partial-*`` / ``.<name>.old-*`` folders whose process is gone.
+def clean_stale_staging(
+    out_dir: str | Path, name: str, *, max_age_s: float = STALE_TMP_S
+) -> list[Path]:
+    """Remove the staging and trash folders of killed publishers in ``out_dir``.
+
+    A folder written under this machine's :data:`~tumor3d.storage.store.HOST_TAG`
+    goes when its process is gone, whatever patient it was for; one of another
+    machine (a folder shared over a network file system, whose pids cannot be
+    asked here) when untouched for ``max_age_s``; one named before the host tag
+    was added, when it is ``name``'s and its pid is gone. A live publisher's
+    folder is never touched. Housekeeping: a folder that cannot be examined or
+    removed is left.
 
     Returns
     -------
@@ -277,14 +296,25 @@ def clean_stale_staging(out_dir: str | Path, name: str) -> list[Path]:
     removed: list[Path] = []
     if not folder.is_dir():
         return removed
+    now = time.time()
     for entry in folder.iterdir():
         m = _LEFTOVER.match(entry.name)
-        if m is None or m["name"] != name or not entry.is_dir():
+        if m is None:
             continue
-        if process_alive(int(m["pid"])):
+        try:
+            if not entry.is_dir():
+                continue
+            if m["host"] is None:
+                stale = m["name"] == name and not process_alive(int(m["pid"]))
+            elif m["host"] == HOST_TAG:
+                stale = not process_alive(int(m["pid"]))
+            else:
+                stale = now - entry.stat().st_mtime > max_age_s
+        except OSError:
             continue
-        shutil.rmtree(entry, ignore_errors=True)
-        removed.append(entry)
+        if stale:
+            shutil.rmtree(entry, ignore_errors=True)
+            removed.append(entry)
     return removed
 
 
@@ -301,7 +331,7 @@ def _fsync_tree(folder: Path) -> None:
 
 
 def _tag() -> str:
-    return f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    return f"{HOST_TAG}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
 
 
 def _swap_into_place(staging: Path, final: Path, *, attempts: int = 20) -> None:
@@ -343,8 +373,8 @@ def staged_folder(
     ``<out_dir>/<name>`` must be absent, empty or a tumor3d result
     (:func:`check_replaceable`), and pass ``check`` (e.g. :func:`check_same_input`),
     both at entry and again right before the swap: a concurrent run may have put
-    its folder there meanwhile. Leftovers of killed runs for ``name`` are
-    cleaned first. On an exception
+    its folder there meanwhile. Leftovers of killed runs
+    (:func:`clean_stale_staging`) are cleaned first. On an exception
     the staging folder is removed and ``<out_dir>/<name>`` is untouched; an
     OS error that names no file (a full disk while writing) is re-raised
     naming ``<out_dir>/<name>``.
