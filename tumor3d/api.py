@@ -42,7 +42,7 @@ __all__ = ["Reconstruction", "reconstruct", "reconstruct_scan", "segmentation_va
 VOLUME_KEYS = ("eq7", "voxel", "mesh", "mesh_simplified")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # arrays inside: == is identity, as numpy's results
 class Reconstruction:
     """What :func:`reconstruct` returns.
 
@@ -468,8 +468,15 @@ def _scan_from_array(data: np.ndarray, affine: np.ndarray | None, options: Any) 
             "assumed"
         )
     aff = np.asarray(affine, dtype=np.float64)
-    if aff.shape != (4, 4) or not np.all(np.isfinite(aff)) or np.linalg.det(aff[:3, :3]) == 0:
-        raise InputError(f"affine must be a finite invertible 4x4 matrix, got shape {aff.shape}")
+    if aff.shape != (4, 4):
+        raise InputError(f"affine must be a 4x4 matrix, got shape {aff.shape}")
+    if not np.all(np.isfinite(aff)):
+        raise InputError("affine must be finite, got NaN or infinity in it")
+    if np.linalg.det(aff[:3, :3]) == 0:
+        raise InputError(
+            "affine must be invertible: its 3x3 part is singular (a voxel axis of length 0 "
+            "or two parallel axes)"
+        )
     if data.ndim != 3:
         raise InputError(f"image must be a 3-D array, got shape {data.shape}")
     from tumor3d.storage.readers.common import scan_from_volume

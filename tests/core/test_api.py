@@ -139,6 +139,20 @@ def test_bad_input_is_one_line():
         tumor3d.reconstruct(arr, affine=np.eye(4), modality="t2", config={"nope": 1})
     with pytest.raises(InputError, match="no such file"):
         tumor3d.reconstruct("/nonexistent/x.nii.gz", modality="t2")
+    singular = np.diag([1.0, 1.0, 0.0, 1.0])  # a voxel axis of length 0
+    with pytest.raises(InputError, match="invertible: its 3x3 part is singular"):
+        tumor3d.reconstruct(arr, affine=singular, modality="t2")
+    with pytest.raises(InputError, match="got shape \\(3, 3\\)"):
+        tumor3d.reconstruct(arr, affine=np.eye(3), modality="t2")
+
+
+def test_results_compare_by_identity_and_hash(result):
+    """A result holds arrays: == must not raise numpy's ambiguous-truth error, and a
+    result can be a dict key or set member (both by identity)."""
+    import dataclasses
+
+    assert result == result and result != dataclasses.replace(result)
+    assert len({result, result}) == 1
 
 
 def test_import_tumor3d_needs_no_prefect_and_reconstruct_runs_without_it():

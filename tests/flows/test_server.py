@@ -186,3 +186,28 @@ def test_a_temporary_server_is_stopped_when_its_command_ends(home):
         port = int(url.rsplit(":", 1)[1].split("/")[0])
     assert not server.healthy(f"http://127.0.0.1:{port}/api", timeout_s=1.0)
     assert server.server_status().state == "stopped"  # no state file for a temporary one
+
+
+def test_a_python_call_uses_the_background_server_when_none_is_configured(monkeypatch):
+    """run_cohort & co. from a notebook: the running background server, as the commands
+    (Prefect's own temporary server would open its database beside it: "database is
+    locked"); a configured PREFECT_API_URL stays as it is; with neither, Prefect's own."""
+    from prefect.settings import PREFECT_API_URL
+
+    background = "http://127.0.0.1:9/api"
+    running = server.ServerStatus(
+        "running", "state.json", server.ServerInfo(pid=1, port=9, api_url=background)
+    )
+    before = PREFECT_API_URL.value()
+    assert before != background
+    monkeypatch.setattr(server, "server_status", lambda: running)
+    monkeypatch.setattr(server, "_configured_api_url", lambda: "http://configured:1/api")
+    with server.api_of_python_call():
+        assert PREFECT_API_URL.value() == before  # a configured API wins: nothing changed
+    monkeypatch.setattr(server, "_configured_api_url", lambda: None)
+    with server.api_of_python_call():
+        assert PREFECT_API_URL.value() == background
+    assert PREFECT_API_URL.value() == before  # restored after
+    monkeypatch.setattr(server, "server_status", lambda: server.ServerStatus("stopped", "s"))
+    with server.api_of_python_call():
+        assert PREFECT_API_URL.value() == before  # nothing imposed: Prefect's default

@@ -293,8 +293,11 @@ def test_dicom_folder_without_images(tmp_path):
     folder.mkdir()
     (folder / "README.txt").write_text("hello")
     write_non_image_dicom(folder / "DICOMDIR")
-    with pytest.raises(InputError, match=r"no DICOM images found in .*empty"):
+    with pytest.raises(InputError, match=r"no DICOM images found in .*empty") as info:
         read_scan(folder)
+    # the public class (the reader's own is an internal signal), and what a folder may hold
+    assert type(info.value) is InputError
+    assert "a folder input is a DICOM series folder, or a folder of 2-D" in str(info.value)
 
 
 def test_dicom_single_file_series(tmp_path):

@@ -53,6 +53,7 @@ from tumor3d.flows.patient import (
     prepare_source,
     sweep_killed_writers,
 )
+from tumor3d.flows.server import api_of_python_call
 from tumor3d.segmentation.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
 from tumor3d.storage import bids
 from tumor3d.storage.cohort_report import (
@@ -465,7 +466,8 @@ def run_cohort(
     if isinstance(out, Path):
         check_writable_dir(out)  # an unwritable DIR named before any patient starts
     flow_fn = cohort_flow.with_options(task_runner=cohort_task_runner(n, dask))
-    with tags(f"config:{config_digest(cfg)[:12]}", "cohort"):
+    # the background server, when a Python caller configured none (flows.server)
+    with api_of_python_call(), tags(f"config:{config_digest(cfg)[:12]}", "cohort"):
         return flow_fn(
             rows=[_json_row(r) for r in rows], out_dir=str(out),
             config=cfg.model_dump(mode="json"), workers=n,

@@ -337,9 +337,16 @@ def run_evaluation(
     command: str | None = None,
     evaluations: Sequence[str] | None = None,
 ) -> EvaluationResult:
-    """Run :func:`evaluate_flow` (arguments as there) from Python code."""
-    return evaluate_flow(
-        [str(m) for m in manifests], str(out_dir), config_files=config_files, workers=workers,
-        store_dir=None if store_dir is None else str(store_dir), phantoms=phantoms,
-        command=command, evaluations=None if evaluations is None else list(evaluations),
-    )  # fmt: skip
+    """Run :func:`evaluate_flow` (arguments as there) from Python code.
+
+    Against the Prefect API :func:`tumor3d.flows.server.api_of_python_call` picks.
+    """
+    from tumor3d.flows.server import api_of_python_call
+
+    with api_of_python_call():
+        return evaluate_flow(
+            [str(m) for m in manifests], str(out_dir), config_files=config_files,
+            workers=workers, store_dir=None if store_dir is None else str(store_dir),
+            phantoms=phantoms, command=command,
+            evaluations=None if evaluations is None else list(evaluations),
+        )  # fmt: skip

@@ -418,6 +418,8 @@ def run_patient(input_path: str | Path, out_dir: str | Path, **kwargs: Any) -> P
     """
     from prefect import tags
 
+    from tumor3d.flows.server import api_of_python_call
+
     cfg = parse_config(kwargs.get("config") or {}, source="config")
-    with tags(f"config:{config_digest(cfg)[:12]}"):
+    with api_of_python_call(), tags(f"config:{config_digest(cfg)[:12]}"):
         return patient_flow(str(input_path), str(out_dir), **kwargs)

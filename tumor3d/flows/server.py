@@ -411,6 +411,27 @@ def _use_api(api_url: str, *, drain: bool) -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def api_of_python_call() -> Iterator[None]:
+    """The Prefect API of a flow run from Python (``run_patient``, ``run_cohort``, ...).
+
+    A configured ``PREFECT_API_URL`` (a command's :func:`prefect_api`, a user's) is
+    used as it is; else the running background server (``tumor3d server start``), as
+    the commands use it: Prefect's own temporary server would open the same database
+    beside it (a notebook saw "database is locked" tracebacks); else Prefect's default
+    (its temporary server). No watch: a notebook's process is not ended for a server.
+    """
+    if _configured_api_url():
+        yield
+        return
+    status = server_status()
+    if status.state == "running" and status.info is not None:
+        with _use_api(status.info.api_url, drain=False):
+            yield
+        return
+    yield
+
+
+@contextlib.contextmanager
 def prefect_api(on_temporary_start: Callable[[], None] | None = None) -> Iterator[str]:
     """Run the body against a Prefect API; yields where it is (see the module docstring).
 

@@ -329,5 +329,11 @@ def _sha256(data: bytes) -> str:
 
 
 def run_training(manifest: str | Path, out_dir: str | Path, **kwargs: Any) -> TrainResult:
-    """Run :func:`train_flow` (keyword arguments as its parameters)."""
-    return train_flow(str(manifest), str(out_dir), **kwargs)
+    """Run :func:`train_flow` (keyword arguments as its parameters).
+
+    Against the Prefect API :func:`tumor3d.flows.server.api_of_python_call` picks.
+    """
+    from tumor3d.flows.server import api_of_python_call
+
+    with api_of_python_call():
+        return train_flow(str(manifest), str(out_dir), **kwargs)

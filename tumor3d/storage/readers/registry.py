@@ -211,10 +211,16 @@ def read_with_registry(p: Path, options: ReadOptions) -> Scan:
     reader = reader_for(p)
     try:
         return reader.read(p, options)
-    except NotThisFormat:
+    except NotThisFormat as exc:
+        readers = list(registered_readers().values())
         if reader.fallback:
-            for other in registered_readers().values():
+            for other in readers:
                 hint = other.hint(p) if other.hint is not None else None
                 if hint is not None:
                     raise hint from None
-        raise
+        # a plain InputError (the reader's own class is an internal signal), naming what a
+        # folder may hold
+        folders = [r for r in readers if r.is_folder]
+        raise InputError(
+            f"{exc.problem}; a folder input is {_listing(folders)}", exc.path
+        ) from None
