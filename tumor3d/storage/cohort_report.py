@@ -111,6 +111,17 @@ def _fmt(value: Any, spec: str) -> str:
         return "-"
 
 
+def _eq7_slices(row: Any) -> str:
+    """The slices Eq. 7 summed and its rule: ``31 (segmented)``; ``-`` when unknown.
+
+    >>> _eq7_slices({"n_eq7_slices": 12, "eq7_slice_rule": "segmented"})
+    '12 (segmented)'
+    """
+    n, rule = row.get("n_eq7_slices"), row.get("eq7_slice_rule")
+    count = _fmt(n, ".0f")
+    return count if not rule or not isinstance(rule, str) else f"{count} ({rule})"
+
+
 def cohort_markdown(
     table: pd.DataFrame,
     *,
@@ -148,7 +159,7 @@ def cohort_markdown(
         "",
         "| patient | status | "
         + " | ".join(f"{volume_labels[k]} (mm3) | (mL)" for k in volume_labels)
-        + " | Eq. 7 slices | notes |",
+        + " | Eq. 7 slices (rule) | notes |",
         "|---|---|" + "---:|---:|" * len(volume_labels) + "---:|---|",
     ]
     for _, r in ok.iterrows():
@@ -160,7 +171,7 @@ def cohort_markdown(
         lines.append(
             f"| {r['patient_id']} | {status} | "
             + " | ".join(cells)
-            + f" | {r.get('eq7_slice_rule', '-')} | {notes} |"
+            + f" | {_eq7_slices(r)} | {notes} |"
         )
     lines += ["", "## Failures", ""]
     if failed.empty:

@@ -49,7 +49,7 @@ __all__ = [
 
 #: Volume columns of metrics.parquet and the method each names.
 VOLUME_METHODS: dict[str, str] = {
-    "volume_eq7_mm3": "Eq. 7: (thickness + gap) x sum of tumour areas over every acquired "
+    "volume_eq7_mm3": "(thickness + gap) x sum of tumour areas over every acquired "
     "slice with segmented tumour (the abnormal slices and the tumour's end slices)",
     "volume_voxel_mm3": "voxel count of the interpolated 3-D mask x voxel volume",
     "volume_mesh_mm3": "volume enclosed by the marching-cubes mesh",

@@ -17,6 +17,15 @@ from tumor3d.flows.cli.errors import EXIT_CHECK
 _STATUS_STYLE = {"ok": "bold green", "check": "bold yellow", "failed": "bold red"}
 
 
+def _slices_inserted(n: int) -> str:
+    """``1 slice inserted`` / ``4 slices inserted``.
+
+    >>> _slices_inserted(1), _slices_inserted(0)
+    ('1 slice inserted', '0 slices inserted')
+    """
+    return f"{n} slice{'' if n == 1 else 's'} inserted"
+
+
 def _status_text(status: str) -> str:
     return f"[{_STATUS_STYLE.get(status, 'bold')}]{escape(status)}[/]"
 
@@ -137,7 +146,7 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     console.print(
         f"slices: {m['n_slices']} acquired, {m['n_abnormal_slices']} flagged abnormal, "
         f"{m['n_tumor_slices']} with tumour; slab (thickness + gap) "
-        f"{m['slab_height_mm']:.2f} mm; {m['slices_between']} slices inserted per gap; "
+        f"{m['slab_height_mm']:.2f} mm; {_slices_inserted(m['slices_between'])} per gap; "
         f"{mesh_note}"
     )
     times = Table(title="Stages", title_justify="left")

@@ -72,7 +72,7 @@ def patient_report_html(data: Mapping[str, Any]) -> str:
     if vols:
         parts.append(
             "<h2>Volume</h2><table><tr><th>Estimator</th><th>mm³</th><th>mL</th>"
-            "<th>95 % interval (mm³)</th><th>Definition</th></tr>"
+            "<th>95 % interval of slice sampling (mm³)</th><th>Definition</th></tr>"
         )
         for key, label, v in vols:
             interval = (
