@@ -97,6 +97,15 @@ def test_patient_report_contents():
     assert '"renderer": "numpy"' in text
 
 
+def test_no_tumour_is_said_first_in_words_and_only_then():
+    _, text = _parse(patient_report_html(_data(tumour_found=False, n_slices=31)))
+    text = re.sub(r"\s+", " ", text)
+    assert "No tumour found on any of the 31 acquired slices" in text
+    assert text.index("No tumour found") < text.index("Volume")
+    _, found = _parse(patient_report_html(_data(tumour_found=True)))
+    assert "No tumour found" not in found
+
+
 def test_precision_cache_hits_counts_and_notes():
     data = _data(
         eq7_precision={"ce": 0.0412, "ci95_low_mm3": 11348.9, "ci95_high_mm3": 13342.3},

@@ -14,6 +14,7 @@ A mapping with the keys (all but ``patient_id`` optional)::
     patient_id        str
     status            str: "ok", "check" or "failed" (:mod:`tumor3d.segmentation.review`)
     review_reasons    list of str: why a human should check (status "check")
+    tumour_found      bool: False says "No tumour found" first, in words
     measured          str, what the mask (every volume) holds, in words
                       (:func:`tumor3d.segmentation.segment.lesion_definition`)
     volumes_mm3       {"eq7": float, "voxel": float, "mesh": float,

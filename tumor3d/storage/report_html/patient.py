@@ -56,6 +56,13 @@ def patient_report_html(data: Mapping[str, Any]) -> str:
         f"<h1>Tumour reconstruction: {_e(pid)}</h1>",
         f'<p>Status: <strong class="{_status_class(status)}">{_e(status)}</strong></p>',
     ]
+    if data.get("tumour_found") is False:  # said first, in words: the zeros below follow
+        n = data.get("n_slices")
+        on = f"any of the {int(n)} acquired slices" if n else "any slice"
+        parts.append(
+            f"<p><strong>No tumour found</strong> on {on}: every volume below is 0 and "
+            "there is no surface to render.</p>"
+        )
     reasons = _reasons(data)
     if reasons:
         parts.append(
