@@ -56,7 +56,8 @@ def test_disagreeing_models_are_flagged_where_their_confident_mean_is_not():
     assert review_kind(both) == "single_net"
     flagged = review_segmentation(both)
     assert flagged.needs_review and len(flagged.reasons) == 1
-    assert flagged.reasons[0].startswith("the forest and the U-Net disagree on 30% of the lesion")
+    assert flagged.reasons[0].startswith("the forest and the U-Net disagree, check the outline")
+    assert "on 30% of the lesion" in flagged.reasons[0]
     # the same mean without the two it came from (a forest alone): nothing to judge
     alone = review_features(mean, lesion, (5.0, 1.0, 1.0))
     assert np.isnan(alone["model_disagreement"])
@@ -98,8 +99,8 @@ def test_an_ensemble_whose_nets_disagree_is_flagged_where_their_mean_is_confiden
         assert review.needs_review == (share * doubt > limit)
         if review.needs_review:
             assert review.reasons == (
-                "the U-Net ensemble's nets disagree: their probabilities differ by 0.24 on "
-                "average inside the lesion (limit 0.08)",
+                "the U-Net ensemble's nets disagree on the outline, check its edges: their "
+                "probabilities differ by 0.24 on average inside the lesion (limit 0.08)",
             )
     # one net (or none): no spread; an empty lesion: 0; a mismatched shape: refused
     one = review_features(prob, lesion, (1.0, 1.0, 1.0), cnn_members=members[:1])
@@ -134,7 +135,8 @@ def test_a_forest_alone_is_judged_by_its_own_limits_and_a_net_case_is_not():
     assert review_kind(alone) == "forest_alone"
     flagged = review_segmentation(alone)
     assert flagged.needs_review and len(flagged.reasons) == 1
-    assert flagged.reasons[0].startswith("uncertain boundary: 1.56 voxels")
+    assert flagged.reasons[0].startswith("uncertain tumour edge, check the outline")
+    assert "1.56 voxels" in flagged.reasons[0]
     # a narrow rim under the limit passes
     ok = review_features(narrow, narrow > 0.5, (5.0, 1.0, 1.0))
     assert ok["uncertain_ratio"] == pytest.approx(0.44)
@@ -251,3 +253,16 @@ def test_no_lesion_kept_is_said_in_words_not_as_an_infinite_ratio():
     review = review_segmentation(figures, {"uncertain_ratio": 1.2})
     assert review.needs_review and len(review.reasons) == 2
     assert all("no lesion kept" in r and "inf" not in r for r in review.reasons)
+
+
+def test_every_reason_says_what_to_check_before_its_figures():
+    """A clinician reads the first words: each reason starts with what is doubted and what
+    to look at, in words; the model's figure and limit come after (a user audit found the
+    reasons model jargon: "outside_ratio 0.31")."""
+    from tumor3d.learned.review import EMPTY_LESION_REASONS, REVIEW_CHECKS
+
+    texts = [text for _, text in REVIEW_CHECKS.values()] + list(EMPTY_LESION_REASONS.values())
+    for text in texts:
+        words, _, _ = text.partition("{")
+        assert "check" in words, text
+        assert not any(c.isdigit() for c in words.replace("0.2-0.8", "")), text

@@ -69,31 +69,33 @@ REVIEW_LIMITS: dict[str, dict[str, float]] = {
 REVIEW_CHECKS: dict[str, tuple[str, str]] = {
     "uncertain_ratio": (
         "above",
-        "uncertain boundary: {v:.2f} voxels of probability 0.2-0.8 per lesion voxel "
-        "(limit {lim:.2f})",
+        "uncertain tumour edge, check the outline on the overlay (the volume may be off "
+        "either way): {v:.2f} voxels of probability 0.2-0.8 per lesion voxel (limit {lim:.2f})",
     ),
     "mean_probability": (
         "below",
-        "low confidence: mean lesion probability {v:.2f} (limit {lim:.2f})",
+        "low confidence that the outlined region is tumour, check it on the overlay: mean "
+        "lesion probability {v:.2f} (limit {lim:.2f})",
     ),
     "outside_ratio": (
         "above",
-        "lesion-like tissue left outside the kept lesion: {v:.2f} of its probability "
-        "(limit {lim:.2f})",
+        "tumour-like tissue left outside the outline, check around it (the volume may be too "
+        "small): {v:.2f} of the lesion probability (limit {lim:.2f})",
     ),
     "prior_agreement": (
         "below",
-        "the model and the rule-based lesion disagree: Dice {v:.2f} between them (limit {lim:.2f})",
+        "the model and the rule-based lesion disagree, check the outline: Dice {v:.2f} between "
+        "them (limit {lim:.2f})",
     ),
     "model_disagreement": (
         "above",
-        "the forest and the U-Net disagree on {v:.0%} of the lesion (their probabilities "
-        "differ by more than 0.5; limit {lim:.0%})",
+        "the forest and the U-Net disagree, check the outline: on {v:.0%} of the lesion their "
+        "probabilities differ by more than 0.5 (limit {lim:.0%})",
     ),
     "net_spread": (
         "above",
-        "the U-Net ensemble's nets disagree: their probabilities differ by {v:.2f} on "
-        "average inside the lesion (limit {lim:.2f})",
+        "the U-Net ensemble's nets disagree on the outline, check its edges: their "
+        "probabilities differ by {v:.2f} on average inside the lesion (limit {lim:.2f})",
     ),
 }
 
@@ -101,10 +103,10 @@ REVIEW_CHECKS: dict[str, tuple[str, str]] = {
 #: in place of :data:`REVIEW_CHECKS`' text, which would read "inf voxels ... per lesion
 #: voxel".
 EMPTY_LESION_REASONS: dict[str, str] = {
-    "uncertain_ratio": "uncertain boundary: voxels of probability 0.2-0.8 and no lesion kept "
-    "(limit {lim:.2f} per lesion voxel)",
-    "outside_ratio": "lesion-like tissue left outside and no lesion kept (limit {lim:.2f} "
-    "of its probability)",
+    "uncertain_ratio": "uncertain tumour edge and no lesion kept, check the overlay for a "
+    "missed tumour: voxels of probability 0.2-0.8 (limit {lim:.2f} per lesion voxel)",
+    "outside_ratio": "tumour-like tissue found but no lesion kept, check the overlay for a "
+    "missed tumour (limit {lim:.2f} of its probability)",
 }
 
 
@@ -266,14 +268,14 @@ def review_segmentation(
     ...                      "outside_ratio": 0.0, "volume_ml": 20.0}).needs_review
     False
     >>> review_segmentation({"uncertain_ratio": 2.0, "mean_probability": 0.95,
-    ...                      "outside_ratio": 0.0}).reasons[0][:20]
-    'uncertain boundary: '
+    ...                      "outside_ratio": 0.0}).reasons[0][:22]
+    'uncertain tumour edge,'
     >>> review_segmentation({"mean_probability": 0.95, "outside_ratio": 0.0,
     ...                      "model_disagreement": 0.4, "net_spread": 0.2}).reasons[0][:38]
-    "the U-Net ensemble's nets disagree: th"
+    "the U-Net ensemble's nets disagree on "
     >>> review_segmentation({"uncertain_ratio": float("inf"), "mean_probability": float("nan"),
     ...                      "outside_ratio": 0.0}).reasons[0][:60]
-    'uncertain boundary: voxels of probability 0.2-0.8 and no les'
+    'uncertain tumour edge and no lesion kept, check the overlay '
     """
     lim = dict(REVIEW_LIMITS[review_kind(figures)])
     lim.update(limits or {})
