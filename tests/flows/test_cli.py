@@ -398,6 +398,9 @@ def test_the_modality_is_case_insensitive_for_run_as_for_a_manifest(tmp_path):
     image = _nifti(tmp_path / "scan.nii.gz", np.random.default_rng(4).random((12, 12, 4)) + 1)
     assert prepare_source(image, modality="FLAIR").modality == "flair"
     assert prepare_source(image, modality=" T1c ").modality == "t1c"
+    assert not prepare_source(image, modality="FLAIR").modality_default
+    defaulted = prepare_source(image)
+    assert defaulted.modality == "t2" and defaulted.modality_default
     with pytest.raises(InputError, match="unknown modality 't1'"):
         prepare_source(image, modality="t1")
 
@@ -654,7 +657,7 @@ def test_a_stacks_sidecar_names_the_modality_when_none_is_given(
         app, ["run", str(stack), "--out", str(tmp_path / "o"), "--modality", "t1c"]
     )
     assert given.exit_code == 0 and seen["modality"] == "t1c" and "sidecar" not in given.output
-    assert prepare_source(stack).modality == "flair"
+    assert prepare_source(stack).modality == "flair" and not prepare_source(stack).modality_default
     assert prepare_source(stack, modality="t2").modality == "t2"
     scans = []
     monkeypatch.setattr(tumor3d.api, "reconstruct_scan", lambda scan, **kw: scans.append(scan))

@@ -59,3 +59,15 @@ def test_a_voxel_size_no_brain_can_have_doubts_every_method():
         notes, doubts = run_notes(outputs)
         (size,) = [n for n in notes if n.startswith("brain mask of at most 1.5 cm2")]
         assert size in doubts
+
+
+def test_a_default_modality_is_said_in_the_notes_and_doubts_nothing():
+    """Issue 28 item 4: the modality is never assumed silently. The report and metrics
+    say a default one (the console says it at the start); it informs, the status stays."""
+    outputs = _outputs("robust")
+    outputs["segment-tumor"].values["modality"] = "t2"
+    notes, doubts = run_notes(outputs, modality_default=True)
+    (said,) = [n for n in notes if n.startswith("modality: t2 by default")]
+    assert "give the modality if the scan is not T2" in said and said not in doubts
+    named, _ = run_notes(outputs)
+    assert not [n for n in named if n.startswith("modality:")]

@@ -143,7 +143,7 @@ def prepare_source(
         raise InputError("no such file or folder", path=str(path))
     patient_id = options.patient_id
     pid = patient_id if patient_id is not None else derive_patient_id(path)
-    modality, _ = resolve_modality(path, options.modality)  # a stack's sidecar, else "t2"
+    modality, origin = resolve_modality(path, options.modality)  # a stack's sidecar, else t2
     digest = input_digest(path)
     if out_dir is not None and not is_url(out_dir):  # an object store holds no local input
         check_destination(
@@ -156,6 +156,7 @@ def prepare_source(
         name=path.name,
         digest=digest,
         id_derived=patient_id is None,
+        modality_default=origin == "default",
     )
 
 
@@ -260,7 +261,9 @@ def patient_pipeline(
         given = stages.store_given(store, brain_mask=brain_mask, segmentation=segmentation)
         outputs = run_stages(runner, source, cfg, str(store.root), given=given)
         flow_seconds = time.perf_counter() - t0
-        notes, doubts = run_notes(outputs, brain_mask, segmentation)
+        notes, doubts = run_notes(
+            outputs, brain_mask, segmentation, modality_default=source.modality_default
+        )
         review = review_status(doubts, segmentation=outputs["segment-tumor"].values)
         metrics = metrics_row(outputs, runner.runs, pid, flow_seconds, notes, review)
         t_publish = time.perf_counter()

@@ -118,6 +118,8 @@ def run_notes(
     outputs: dict[str, StageOutput],
     brain_mask: GivenBrainMask | None = None,
     segmentation: GivenSegmentation | None = None,
+    *,
+    modality_default: bool = False,
 ) -> tuple[list[str], list[str]]:
     """The run's notes (summary, metrics, provenance) and those that doubt the result.
 
@@ -125,7 +127,8 @@ def run_notes(
     the status ``check`` (:func:`tumor3d.segmentation.review.review_status`). A given
     segmentation adds an informational note (``segmentation: given (FILE, ...)``),
     as do nibabel's repairs of the input's NIfTI header (the ingest-scan stage's
-    ``header_notes``).
+    ``header_notes``) and, with ``modality_default``, the modality taken by default
+    (nothing named it: the report says which sequence the method assumed).
     """
     seg = outputs["segment-tumor"].values
     notes, doubts = review_notes(
@@ -139,6 +142,12 @@ def run_notes(
     notes.extend(outputs["ingest-scan"].values.get("header_notes") or [])
     if segmentation is not None:
         notes.append(segmentation.note())
+    if modality_default:
+        mod = str(seg.get("modality", "t2"))
+        notes.append(
+            f"modality: {mod} by default (nothing named it: no option, manifest value or "
+            f"sidecar); give the modality if the scan is not {mod.upper()}"
+        )
     return notes, doubts
 
 

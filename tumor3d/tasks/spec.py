@@ -128,10 +128,15 @@ class InputSource(ReadOptions):
     #: The patient id was derived from the file name (no ``--patient-id``): publishing
     #: then never replaces another input's results (``tumor3d.storage.publish.check_same_input``).
     id_derived: bool = False
+    #: Nothing named the modality (no option, no manifest value, no sidecar): ``modality``
+    #: is the default, which the run's notes say.
+    modality_default: bool = False
 
-    #: Where the input lives, which patient it is published as, and how that id was
-    #: chosen, do not change what it is.
-    __cache_exclude__: ClassVar[frozenset[str]] = frozenset({"path", "patient_id", "id_derived"})
+    #: Where the input lives, which patient it is published as, and how that id or the
+    #: modality was chosen, do not change what it is.
+    __cache_exclude__: ClassVar[frozenset[str]] = frozenset(
+        {"path", "patient_id", "id_derived", "modality_default"}
+    )
 
 
 #: Where an input comes from, besides another stage's output (``"<stage>.<artifact>"``).
