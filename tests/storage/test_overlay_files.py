@@ -44,7 +44,9 @@ def test_overlays_show_only_brain_slices_cropped_with_a_two_pixel_contour(tmp_pa
     assert pic.shape[1] == 2 * (OVERLAY_TILE_PX + 4) + 4
     header = round(0.12 * OVERLAY_TILE_PX)  # a tile's label line; the title line as high
     crop_tile_h = round(26 * OVERLAY_TILE_PX / 42)  # not round(60 * ... / 80) uncropped
-    assert pic.shape[0] == (header + 4) + 2 * (crop_tile_h + header + 4) + 4
+    # the title ("brain mask contour; 4 of 6 slices, those with brain" and the patient
+    # directions) is wider than two tiles: two lines, each a label line high
+    assert pic.shape[0] == (2 * header + 4) + 2 * (crop_tile_h + header + 4) + 4
     red = np.all(pic == RED, axis=2)
     # a row through the middle of a top tile crosses the brain's left and right edges:
     # two red runs of exactly 2 pixels each, in each of the two tiles of that row
@@ -64,3 +66,18 @@ def test_without_any_brain_every_slice_is_shown_whole(tmp_path):
     pic = _png(tmp_path / "overlay_brain.png")
     # 6 slices -> 3 columns of whole (80-voxel-wide) slices
     assert pic.shape[1] == 3 * (OVERLAY_TILE_PX + 4) + 4
+
+
+def test_a_narrow_mosaic_wraps_its_title_instead_of_cutting_it(tmp_path):
+    """Two tiles are narrower than the title: it is wrapped, not cut at the right edge
+    (the patient directions at its end were cut off)."""
+    img, brain, tumour, aff = _case()
+    brain[3:] = False  # brain on slices 1 and 2 only: two tiles
+    write_overlays(tmp_path, img, aff, brain, tumour & brain, [2])
+    pic = _png(tmp_path / "overlay_tumor.png")
+    assert pic.shape[1] == 2 * (OVERLAY_TILE_PX + 4) + 4
+    header = round(0.12 * OVERLAY_TILE_PX)
+    band = pic[: 2 * header]  # the title's lines
+    background = band[0, 0]
+    ink = np.any(band != background, axis=2)
+    assert ink.any() and not ink[:, -4:].any()  # written, and clear of the right edge

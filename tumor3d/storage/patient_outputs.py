@@ -109,9 +109,13 @@ def overlay_png(
     tumour = np.asarray(tumour_zyx).astype(bool)
     region = brain | tumour
     which, title = _OVERLAY_MASKS[name]
+    shown = region.any(axis=(1, 2))
+    n_shown, n_slices = int(shown.sum()), int(shown.size)
+    if 0 < n_shown < n_slices:  # say which slices are left out, and why
+        title += f"; {n_shown} of {n_slices} slices, those with brain"
     rgb = overlay_mosaic(
         image_zyx, tumour if which == "tumour" else brain, affine, abnormal_slices=abnormal,
-        title=title, slices=region.any(axis=(1, 2)), crop_mask=region,
+        title=title, slices=shown, crop_mask=region,
         crop_margin=OVERLAY_MARGIN_VOXELS, contour_px=OVERLAY_CONTOUR_PX, tile_px=OVERLAY_TILE_PX,
     )  # fmt: skip
     return encode_png(rgb)

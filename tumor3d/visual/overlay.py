@@ -43,6 +43,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -344,6 +345,20 @@ def _inner_boundary(mask: np.ndarray, width: int = 1) -> np.ndarray:
     return mask & ~inner
 
 
+def _wrap(text: str, font: Any, width_px: int) -> list[str]:
+    """``text`` in lines of at most ``width_px`` pixels in ``font``, broken between words.
+
+    A word longer than the width keeps a line of its own.
+    """
+    lines: list[str] = []
+    for word in text.split(" "):
+        if lines and font.getlength(f"{lines[-1]} {word}") <= width_px:
+            lines[-1] = f"{lines[-1]} {word}"
+        else:
+            lines.append(word)
+    return lines or [""]
+
+
 def _compose(
     gray: np.ndarray,
     mask: np.ndarray,
@@ -379,9 +394,13 @@ def _compose(
     rows = math.ceil(nz / columns)
     sides = f"left {edges[0]}, right {edges[1]}, top {edges[2]}, bottom {edges[3]}"
     title = f"{title}   ({sides})" if title else sides
-    title_h = header + _GAP_PX
     cell_w, cell_h = tw + _GAP_PX, th + header + _GAP_PX
     big_w = columns * cell_w + _GAP_PX
+    font = _font(max(8, int(header * 0.6)))
+    # a mosaic of one or two tiles is narrower than its title: wrapped, never cut (the
+    # patient directions at its end were lost)
+    title_lines = _wrap(title, font, big_w - 2 * _GAP_PX)
+    title_h = header * len(title_lines) + _GAP_PX
     big_h = title_h + rows * cell_h + _GAP_PX
     out = np.empty((big_h, big_w, 3), dtype=np.uint8)
     out[:] = _BACKGROUND_RGB
@@ -406,11 +425,12 @@ def _compose(
         labels.append(f"#{int(index[k])} {letter} {pos[k]:+.1f} mm" + (" abn." if flags[k] else ""))
     pil = Image.fromarray(out)
     draw = ImageDraw.Draw(pil)
-    font = _font(max(8, int(header * 0.6)))
     for k, (r0, c0, _, _) in enumerate(tiles):
         ink = _ABNORMAL_RGB if flags[k] else _TEXT_RGB
         draw.text((c0, r0 - frame - 1), labels[k], fill=ink, font=font, anchor="lb")
-    draw.text((_GAP_PX, _GAP_PX + header // 2), title, fill=_TEXT_RGB, font=font, anchor="lm")
+    for i, line in enumerate(title_lines):
+        y = _GAP_PX + i * header + header // 2
+        draw.text((_GAP_PX, y), line, fill=_TEXT_RGB, font=font, anchor="lm")
     layout = MosaicLayout(
         tiles=tuple(tiles),
         labels=tuple(labels),
