@@ -42,3 +42,8 @@ def __getattr__(name: str):
 
         return getattr(api, name)
     raise AttributeError(f"module 'tumor3d' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    """The public names, the lazy ones included (tab completion in a notebook)."""
+    return sorted({*globals(), *__all__})

@@ -146,6 +146,11 @@ def test_bad_input_is_one_line():
         tumor3d.reconstruct(arr, affine=np.eye(3), modality="t2")
 
 
+def test_the_lazy_names_are_listed_for_tab_completion():
+    names = set(dir(tumor3d))
+    assert {"reconstruct", "Reconstruction", "reconstruct_scan", "__version__"} <= names
+
+
 def test_results_compare_by_identity_and_hash(result):
     """A result holds arrays: == must not raise numpy's ambiguous-truth error, and a
     result can be a dict key or set member (both by identity)."""

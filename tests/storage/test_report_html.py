@@ -119,6 +119,7 @@ def test_precision_cache_hits_counts_and_notes():
     assert EQ7_PRECISION_DEFINITION in text
     assert "cache hit" in text and "computed" in text
     assert "Slices summed by Eq. 7" in text and "x.dcm" in text
+    assert text.index("Notes:") < text.index("x.dcm")  # headed, not under "What is measured"
     md = patient_report_markdown(data)
     assert "CE 4.1 %, 95 % interval 11,348.9 to 13,342.3 mm³" in md
     assert "| segment | 1.25 | cache hit |" in md and "| render-views | 0.75 | computed |" in md

@@ -138,7 +138,28 @@ class PatientOutcome(BaseModel):
 
 
 class CohortResult(BaseModel):
-    """What :func:`cohort_flow` returns."""
+    """What :func:`cohort_flow` (and :func:`run_cohort`) returns.
+
+    Attributes
+    ----------
+    patients : list of PatientOutcome
+        One per manifest row, in its order: ``patient_id``, ``status`` (ok, check,
+        failed), ``metrics`` (the ``metrics.parquet`` row), ``output_dir``, the failing
+        stage and its one-line error.
+    removed : list of str
+        Patients published in ``out_dir`` by an earlier run but no longer in the
+        manifest (reported, their folders kept).
+    out_dir : str
+        ``DIR``.
+    workers : int
+        Stages run at a time.
+    wall_seconds : float
+        The cohort's wall time.
+    failed, to_check : list of PatientOutcome
+        The patients that failed, and those that completed with status ``check``.
+    exit_code : int
+        1 when some patient failed, else 4 when some needs a check, else 0.
+    """
 
     model_config = ConfigDict(frozen=True)
 

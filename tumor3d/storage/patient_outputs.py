@@ -262,7 +262,8 @@ def patient_report_data(
             if _num(metrics, key) is not None:
                 meas[label] = f"{_num(metrics, key):.1f} mm"
         if _num(metrics, "rano_product_mm2") is not None:
-            meas["RANO-style product"] = f"{_num(metrics, 'rano_product_mm2'):,.1f} mm²"
+            # whole mm²: the product of two diameters given to 0.1 mm has no decimal to tell
+            meas["RANO-style product"] = f"{_num(metrics, 'rano_product_mm2'):,.0f} mm²"
         if metrics.get("rano_slice_index") is not None:
             meas["RANO-style slice (0-based)"] = str(int(metrics["rano_slice_index"]))
         if meas and str(metrics.get("modality") or "") in ("flair", "t2"):

@@ -72,8 +72,10 @@ def patient_report_html(data: Mapping[str, Any]) -> str:
     if data.get("measured"):
         parts.append(f"<p>What is measured: {_e(data['measured'])}</p>")
     notes = _other_notes(data)
-    if notes:
-        parts.append("<ul>" + "".join(f"<li>{_e(n)}</li>" for n in notes) + "</ul>")
+    if notes:  # headed: not read as part of what is measured, just above
+        parts.append(
+            "<p>Notes:</p><ul>" + "".join(f"<li>{_e(n)}</li>" for n in notes) + "</ul>"
+        )
     vols = _volumes(data)
     prec = _precision(data)
     if vols:
