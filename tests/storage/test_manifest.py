@@ -250,6 +250,18 @@ def test_data_dir_variable_in_paths(cohort, monkeypatch, tmp_path):
     assert len(rows) + len(problems) == 1
 
 
+def test_an_unset_variable_in_a_path_is_named_as_such(cohort, monkeypatch, tmp_path):
+    """A user audit: ``${NOPE_VAR}/flair.nii.gz`` was read as a relative path and failed
+    later as "no such file"; it is an invalid row (a cohort refuses it before any work)."""
+    monkeypatch.delenv("NOPE_VAR", raising=False)
+    p = write_csv(cohort, "patient_id,image,modality\np1,${NOPE_VAR}/flair.nii.gz,t2\n")
+    said = r"data row 1 .*'image': environment variable \$NOPE_VAR is not set \(in '\$\{NOPE"
+    with pytest.raises(InputError, match=said):
+        read_manifest(p, require_files=False)
+    monkeypatch.setenv("NOPE_VAR", str(tmp_path))
+    assert read_manifest(p, require_files=False)[0].image == (tmp_path / "flair.nii.gz").resolve()
+
+
 def test_missing_image_is_kept_for_a_cohort_but_other_problems_are_not(cohort):
     """Issue 12/6: a cohort row whose image is absent fails alone; the manifest is not invalid."""
     p = write_csv(

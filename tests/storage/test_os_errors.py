@@ -99,3 +99,16 @@ def test_an_unwritable_folder_is_named_not_the_probe(tmp_path, monkeypatch):
     with pytest.raises(PermissionError) as info:
         check_writable_dir(tmp_path)
     assert info.value.filename == str(tmp_path)
+
+
+def test_a_check_before_the_input_is_validated_makes_no_folder(tmp_path):
+    """create=False (the commands' check before a row may be refused): an absent folder is
+    judged by its nearest existing parent and not made; under a file, the file is named."""
+    from tumor3d.storage.store import check_writable_dir
+
+    check_writable_dir(tmp_path / "a" / "b", create=False)
+    assert not (tmp_path / "a").exists() and not list(tmp_path.iterdir())
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(NotADirectoryError) as info:
+        check_writable_dir(tmp_path / "f" / "out", create=False)
+    assert info.value.filename == str(tmp_path / "f")

@@ -408,6 +408,18 @@ def _validate_rows(
         raise InputError("--layout bids writes a local folder: give a local --out")
 
 
+def check_cohort_rows(
+    rows: list[ManifestRow], out_dir: str | Path, layout: str = "default"
+) -> None:
+    """The checks :func:`run_cohort` makes of its rows before any work.
+
+    Ids, folders over inputs, the BIDS labels: for a caller that wants them first (the
+    command line, before it starts a Prefect server).
+    """
+    out = None if is_url(out_dir) else Path(out_dir)
+    _validate_rows([_row_dict(r) for r in rows], out, bids.check_layout(layout))
+
+
 def run_cohort(
     manifest: str | Path | list[ManifestRow],
     out_dir: str | Path,

@@ -57,6 +57,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import re
 import tempfile
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -357,22 +358,22 @@ def _parse_row(
             "modality",
             f"unknown modality {cells['modality']!r}: expected one of {', '.join(MODALITIES)}",
         )
-    image = _resolve(base, cells["image"])
+    image = _resolve(base, cells["image"], fail, "image")
     if require_files and not image.exists():
         raise fail("image", f"{image} does not exist", missing=True)
     brain_mask = None
     if cells.get("brain_mask"):
-        brain_mask = _resolve(base, cells["brain_mask"])
+        brain_mask = _resolve(base, cells["brain_mask"], fail, "brain_mask")
         if require_files and not brain_mask.exists():
             raise fail("brain_mask", f"{brain_mask} does not exist", missing=True)
     segmentation = None
     if cells.get("segmentation"):
-        segmentation = _resolve(base, cells["segmentation"])
+        segmentation = _resolve(base, cells["segmentation"], fail, "segmentation")
         if require_files and not segmentation.exists():
             raise fail("segmentation", f"{segmentation} does not exist", missing=True)
     reference = None
     if cells.get("reference"):
-        reference = _resolve(base, cells["reference"])
+        reference = _resolve(base, cells["reference"], fail, "reference")
         if require_files and not reference.exists():
             raise fail("reference", f"{reference} does not exist", missing=True)
     labels = None
@@ -531,7 +532,23 @@ def data_dir() -> Path:
     return Path(env).resolve() if env else DATA_DIR_DEFAULT
 
 
-def _resolve(base: Path, value: str) -> Path:
+#: ``$NAME`` or ``${NAME}`` in a path.
+_VARIABLE = re.compile(r"\$(?:\{(\w+)\}|(\w+))")
+
+
+def _resolve(base: Path, value: str, fail: _Fail | None = None, column: str = "") -> Path:
+    """``value`` with its variables and ``~`` expanded, relative to ``base``.
+
+    A variable the environment does not set (``${TUMOR3D_DATA_DIR}`` has a
+    default) is an error of the row's ``column``: left as text, it made a path
+    that "does not exist" without saying why.
+    """
+    unset = sorted(
+        {a or b for a, b in _VARIABLE.findall(value)} - set(os.environ) - {"TUMOR3D_DATA_DIR"}
+    )
+    if unset and fail is not None:
+        names = ", ".join(f"${n}" for n in unset)
+        raise fail(column, f"environment variable {names} is not set (in {value!r})")
     if "TUMOR3D_DATA_DIR" in value:
         folder = str(data_dir())
         value = value.replace("${TUMOR3D_DATA_DIR}", folder)

@@ -33,6 +33,7 @@ arrays.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -208,12 +209,14 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             tmp.unlink()
 
 
-def check_writable_dir(folder: Path) -> None:
-    """Make ``folder`` (with its parents) and check that a file can be created in it.
+def check_writable_dir(folder: Path, *, create: bool = True) -> None:
+    """Check that a file can be created in ``folder``, made with its parents if ``create``.
 
     Called before any work by the commands and flows that write results there, so
     an immutable or read-only output folder is named at once instead of after every
-    stage has run.
+    stage has run. Without ``create`` (a check before the input is validated: a
+    refused command leaves nothing behind) an absent folder is judged by its
+    nearest existing parent, where it would be made.
 
     Raises
     ------
@@ -221,9 +224,16 @@ def check_writable_dir(folder: Path) -> None:
         Naming ``folder`` (not the probe's random name): it cannot be made or written.
     """
     folder = Path(folder)
+    where = folder
+    if not create:
+        while not where.exists() and where.parent != where:
+            where = where.parent
+        if where.exists() and not where.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(where))
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".tumor3d-probe-", dir=folder)
+        if create:
+            folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".tumor3d-probe-", dir=where)
     except OSError as exc:
         raise OSError(exc.errno, exc.strerror, str(folder)) from None
     os.close(fd)

@@ -49,7 +49,7 @@ def cohort(
     output, an unreachable Dask scheduler or object store, a Prefect server
     that cannot start).
     """
-    from tumor3d.flows.cohort import run_cohort
+    from tumor3d.flows.cohort import check_cohort_rows, run_cohort
     from tumor3d.flows.dask_runner import DaskSpec
     from tumor3d.storage.manifest import read_manifest
     from tumor3d.storage.objectstore import is_url
@@ -59,6 +59,7 @@ def cohort(
         if not is_url(out):  # an object-store URL is checked by run_cohort
             _check_out_dir(Path(out))
         rows = read_manifest(manifest, require_files=False)
+        check_cohort_rows(rows, out, layout)  # a refused row: before a server starts
         dask = DaskSpec(dask_address, dask_workers)
         _preflight_cohort(out, store, dask.address)  # before a Prefect server is started
         if not is_url(out):

@@ -85,7 +85,7 @@ def _check_out_writable(out: Path) -> None:
     """
     from tumor3d.storage.store import check_writable_dir
 
-    check_writable_dir(out)
+    check_writable_dir(out, create=False)  # made when the run starts, not by a refused one
 
 
 def _preflight_remote(
