@@ -88,7 +88,7 @@ class CaseSpec:
     native: bool = False
 
 
-def case_specs(data: Path) -> list[CaseSpec]:
+def case_specs(data: Path, brats2013_t1c_labels: tuple[int, ...] = (1, 4)) -> list[CaseSpec]:
     out: list[CaseSpec] = []
     for d in sorted((data / "brats2018").glob("*")):
         if not (d / "seg.nii.gz").is_file():
@@ -152,7 +152,9 @@ def case_specs(data: Path) -> list[CaseSpec]:
                 str(d / "t1c.nii.gz"),
                 str(d / "seg.nii.gz"),
                 "t1c",
-                labels=(1, 4),
+                # BraTS 2013: 1 necrosis, 3 non-enhancing, 4 enhancing; the core as T1c
+                # shows it, 1 + 4 (--brats2013-t1c-labels; reports/learned_cv.md, last section)
+                labels=brats2013_t1c_labels,
             )
         )
     d = data / "brats_t2_algoseg"
@@ -337,7 +339,9 @@ def cached_prepare(spec: CaseSpec, cfg, with_prior: bool, cache: str | None) -> 
         return prepare(spec, cfg, with_prior)
     import hashlib
 
-    tag = hashlib.sha256(_prepare_config_json(cfg).encode()).hexdigest()[:10]
+    # the reference's labels too: the same image scored against another label set
+    labels = "" if spec.labels is None else f"labels={list(spec.labels)}"
+    tag = hashlib.sha256((_prepare_config_json(cfg) + labels).encode()).hexdigest()[:10]
     path = Path(cache) / f"{spec.name.replace('/', '__')}-{tag}-{int(with_prior)}.npz"
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
@@ -480,6 +484,13 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--config", default=str(ROOT / "configs" / "default.yaml"))
     ap.add_argument("--folds", type=int, default=5)
+    ap.add_argument(
+        "--brats2013-t1c-labels",
+        type=int,
+        nargs="+",
+        default=[1, 4],
+        help="the BraTS 2013 T1c reference's labels (1 necrosis, 3 non-enhancing, 4 enhancing)",
+    )
     ap.add_argument("--groups", nargs="*", default=None)
     ap.add_argument("--limit-lgg", type=int, default=None)
     ap.add_argument(
@@ -575,7 +586,7 @@ def main(argv=None) -> int:
         print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
         return 0
     cfg = parse_config(Path(args.config).read_text(), source=args.config)
-    specs = case_specs(data)
+    specs = case_specs(data, tuple(args.brats2013_t1c_labels))
     if args.groups:
         specs = [s for s in specs if s.group in args.groups]
     specs += phantom_specs(args.phantoms)
@@ -1026,6 +1037,9 @@ def write_final_models(preps: list[Prepared], cv_rows: list[dict], args, cfg) ->
     out.mkdir(parents=True, exist_ok=True)
     for fam, mods in FAMILIES:
         train = [p for p in preps if p.spec.modality in mods]
+        if not train:  # --groups left this family no case: its file is not written
+            print(f"no case of {fam}: {out / f'{fam}.npz'} not written")
+            continue
         meta = _model_meta(fam, mods, train, cv_rows, args)
         model = train_forest(
             TrainingRows.concatenate([rows_of[p.spec.name] for p in train]), meta=meta

@@ -75,8 +75,9 @@ def learned_caveats(
         "flair": _WHOLE_TUMOUR.format(seq="FLAIR"),
         "t2": _WHOLE_TUMOUR.format(seq="T2"),
         "t1c": (
-            "tumour core: the contrast-enhancing lesion with its enclosed necrotic core and "
-            "non-enhancing tumour (no oedema), as the BraTS labels 1 + 4 it was trained on"
+            "tumour core as T1c shows it: the contrast-enhancing lesion with its enclosed "
+            "necrotic core, no oedema (BraTS labels 1 + 4, as it was trained); "
+            "non-enhancing tumour is mostly missed"
         ),
     },
     uses_lesion=True,
