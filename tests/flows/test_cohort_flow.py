@@ -101,6 +101,11 @@ def test_cohort_table_and_report(first):
     assert pd.isna(table.set_index("patient_id").loc["ghost"]["volume_eq7_mm3"])
     md = (out / "cohort.md").read_text()
     assert "ghost" in md and "prepare-input" in md and "mL" in md
+    # each row says its sequence (T1c's core and FLAIR's whole tumour are other things) and
+    # the slices Eq. 7 summed with their rule
+    row = next(line for line in md.splitlines() if line.startswith("| coh1 |"))
+    assert row.startswith(f"| coh1 | ok | {ok['modality']} | ")
+    assert f"| {int(ok['n_eq7_slices'])} (segmented) |" in row
     for stage in STAGES:
         assert f"| {stage} |" in md
 

@@ -157,10 +157,10 @@ def cohort_markdown(
         "",
         "## Volumes",
         "",
-        "| patient | status | "
+        "| patient | status | modality | "
         + " | ".join(f"{volume_labels[k]} (mm3) | (mL)" for k in volume_labels)
         + " | Eq. 7 slices (rule) | notes |",
-        "|---|---|" + "---:|---:|" * len(volume_labels) + "---:|---|",
+        "|---|---|---|" + "---:|---:|" * len(volume_labels) + "---:|---|",
     ]
     for _, r in ok.iterrows():
         cells = []
@@ -169,7 +169,7 @@ def cohort_markdown(
         notes = "; ".join(row_notes(r)).replace("|", "\\|")
         status = f"**{r['status']}**" if r["status"] == STATUS_CHECK else str(r["status"])
         lines.append(
-            f"| {r['patient_id']} | {status} | "
+            f"| {r['patient_id']} | {status} | {r.get('modality') or '-'} | "
             + " | ".join(cells)
             + f" | {_eq7_slices(r)} | {notes} |"
         )
