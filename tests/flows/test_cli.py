@@ -688,6 +688,10 @@ def test_prefect_run_records_stay_off_the_console_without_verbose():
     assert not keep.filter(record("prefect.flow_runs", logging.WARNING))
     assert not keep.filter(record("prefect.task_runs", logging.ERROR))
     assert keep.filter(record("prefect.client", logging.WARNING))
+    # an events worker draining as the command ends (a user audit saw it after the error line)
+    draining = record("EventsWorker", logging.WARNING)
+    draining.msg = "Still processing items: 1 items remaining..."
+    assert not keep.filter(draining)
 
 
 def test_methods_lists_the_registered_segmentation_methods_and_formats():

@@ -26,11 +26,16 @@ class _NoFailureTracebacks:
     what the command prints itself as one line (a failed patient, a skipped
     row, a patient no longer in the manifest); they still reach the Prefect
     server (its API handler is not filtered), and ``--verbose`` shows them.
+    So does a background service's "Still processing items" while it sends
+    its last events as the command ends (Prefect's ``EventsWorker``): not the
+    user's to act on.
     """
 
     def filter(self, record: Any) -> bool:
         name = record.name
-        return not name.startswith(("prefect.flow_runs", "prefect.task_runs"))
+        if name.startswith(("prefect.flow_runs", "prefect.task_runs")):
+            return False
+        return not str(record.msg).startswith("Still processing items")
 
 
 def _quiet_prefect_failures() -> None:
