@@ -305,7 +305,7 @@ def patient_flow(
     out_dir: str,
     patient_id: str | None = None,
     config: dict[str, Any] | None = None,
-    modality: str = "t2",
+    modality: str | None = None,
     slice_thickness_mm: float | None = None,
     slice_gap_mm: float | None = None,
     series_uid: str | None = None,
@@ -331,7 +331,9 @@ def patient_flow(
         Folder-safe id; derived from the input's name if omitted.
     config : dict, optional
         Pipeline configuration (validated into :class:`PipelineConfig`).
-    modality : {"t2", "flair", "t1c"}
+    modality : {"t2", "flair", "t1c"}, optional
+        None: what an image stack's sidecar names, else ``"t2"``, which the run's
+        notes then say (:func:`prepare_source`).
     slice_thickness_mm, slice_gap_mm : float, optional
         Override what the input says about its slices.
     series_uid : str, optional

@@ -179,7 +179,9 @@ def run(
             brain_mask=None if brain_mask is None else str(brain_mask),
             segmentation=None if segmentation is None else str(segmentation),
             layout=layout,
-            **options.model_dump(),
+            # a default modality passed as none: the flow takes the same and says so in
+            # the run's notes (report, metrics), not only on this console
+            **{**options.model_dump(), "modality": None if origin == "default" else modality},
         )
     except _HANDLED as exc:
         raise _fail(exc) from None
