@@ -404,14 +404,13 @@ def reconstruct(
             arr = np.asarray(brain_mask)
             if arr.shape != image.shape:
                 raise InputError(f"brain_mask has shape {arr.shape}, the image {image.shape}")
-            axes = scan.source_grid.axes
-            mask = np.ascontiguousarray(arr.transpose(axes[::-1]))
+            mask = scan.source_grid.from_source(arr)
         tumour = None
         if segmentation is not None:
             arr = np.asarray(segmentation)
             if arr.shape != image.shape:
                 raise InputError(f"segmentation has shape {arr.shape}, the image {image.shape}")
-            tumour = np.ascontiguousarray(arr.transpose(scan.source_grid.axes[::-1]))
+            tumour = scan.source_grid.from_source(arr)
         return reconstruct_scan(scan, config=cfg, brain_mask=mask, segmentation=tumour)
     if not isinstance(image, str | os.PathLike):
         raise InputError(
@@ -452,7 +451,7 @@ def _on_scan_grid(arr: np.ndarray, scan: Scan, what: str) -> np.ndarray:
         Neither shape; the message gives the file's, as the user sees the image.
     """
     if arr.shape == scan.source_grid.shape:  # the file's voxel order
-        return np.ascontiguousarray(arr.transpose(scan.source_grid.axes[::-1]))
+        return scan.source_grid.from_source(arr)
     if arr.shape == scan.image.shape:
         return arr
     raise InputError(

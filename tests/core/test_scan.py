@@ -68,6 +68,10 @@ def test_source_grid_round_trip_for_a_permuted_source():
     np.testing.assert_array_equal(grid.to_source(zyx), source)
     with pytest.raises(ValueError, match="does not match"):
         grid.to_source(zyx[:-1])
+    # and back: a mask given in the file's voxel order, on the scan's grid
+    np.testing.assert_array_equal(grid.from_source(source), zyx)
+    with pytest.raises(ValueError, match="does not match"):
+        grid.from_source(source[:-1])
 
 
 def test_zyx_index_to_ras_reverses_axes_before_the_affine():

@@ -250,6 +250,18 @@ class SourceGrid:
         object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
         object.__setattr__(self, "axes", tuple(int(a) for a in self.axes))
 
+    def from_source(self, array: np.ndarray) -> np.ndarray:
+        """Return a source-order array on the Scan's ``(z, y, x)`` grid (C-contiguous).
+
+        The inverse of :meth:`to_source`: a mask given in the input file's voxel order.
+        """
+        arr = np.asarray(array)
+        if arr.shape != self.shape:
+            raise ValueError(
+                f"array of shape {arr.shape} does not match the source grid {self.shape}"
+            )
+        return np.ascontiguousarray(arr.transpose(self.axes[::-1]))
+
     def to_source(self, array_zyx: np.ndarray) -> np.ndarray:
         """Return a Scan-grid ``(z, y, x)`` array in the source's voxel order."""
         xyz = np.asarray(array_zyx).transpose(2, 1, 0)

@@ -238,7 +238,7 @@ def read_mask_on_image_grid(
     grid = image.source_grid
     try:
         check_same_grid(values.shape, affine, grid.shape, grid.affine)
-        mask = binarize(values.transpose(tuple(grid.axes)[::-1]))
+        mask = binarize(grid.from_source(values))
     except InputError as exc:
         raise _fail(exc.problem, p, what) from None
     return p, mask
