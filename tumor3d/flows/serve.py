@@ -33,7 +33,6 @@ from __future__ import annotations
 import json
 import logging
 import re
-import time
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +46,7 @@ from tumor3d.flows.cohort import CohortResult, one_line_error, run_cohort
 from tumor3d.flows.dask_runner import DaskSpec
 from tumor3d.segmentation.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
 from tumor3d.storage.objectstore import is_url
-from tumor3d.storage.store import atomic_write_bytes
+from tumor3d.storage.store import atomic_write_bytes, utc_now
 
 __all__ = [
     "DEFAULT_DEPLOYMENT_NAME",
@@ -149,7 +148,7 @@ def scheduled_cohort_flow(
         Run the stages on Dask (:mod:`tumor3d.flows.dask_runner`).
     """
     logger = get_run_logger()
-    started = _utc_now()
+    started = utc_now()
     try:
         result = run_cohort(
             manifest, out_dir, config=load_config_file(config_path), workers=workers,
@@ -249,10 +248,6 @@ def _cut(text: str, limit: int = _MESSAGE_ERROR) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def _utc_now() -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-
-
 def _write_last_run(
     out_dir: str,
     started: str,
@@ -273,7 +268,7 @@ def _write_last_run(
     record = {
         "flow_run_id": flow_run.id,
         "started_utc": started,
-        "finished_utc": _utc_now(),
+        "finished_utc": utc_now(),
         "state": state,
         "message": message,
         "patients": {s: statuses.count(s) for s in (STATUS_OK, STATUS_CHECK, STATUS_FAILED)},

@@ -49,6 +49,7 @@ from tumor3d.storage.store import (
     Repair,
     StoreError,
     canonical_dumps,
+    utc_now,
 )
 
 __all__ = [
@@ -283,7 +284,7 @@ class ObjectStore(ArtifactStore):
                 action="quarantined",
                 detail=detail,
                 quarantined_to=moved,
-                time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                time_utc=utc_now(),
             )
         )
 
@@ -375,7 +376,7 @@ class ObjectStore(ArtifactStore):
                         relpath=relpath,
                         action="rewritten",
                         detail=f"{relpath}: existing content did not match its digest; rewritten",
-                        time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                        time_utc=utc_now(),
                     )
                 )
         return ArtifactRef(kind=kind, digest=digest, relpath=relpath, metadata=meta)

@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Any
 
 from tumor3d.storage.objectstore import check_reachable, first_line, modified_time, open_fs
-from tumor3d.storage.store import STALE_TMP_S, StoreError
+from tumor3d.storage.store import STALE_TMP_S, StoreError, utc_now
 
 __all__ = [
     "MARKER",
@@ -294,7 +294,7 @@ def publish_files(
             "name": name,
             "files": entries,
             **({"key": key} if key else {}),
-            "published_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "published_utc": utc_now(),
         }
         out.fs.pipe_file(out.key(_marker_path(name)), json.dumps(marker, indent=1).encode())
     except StoreError:

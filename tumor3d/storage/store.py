@@ -66,6 +66,7 @@ __all__ = [
     "canonical_dumps",
     "check_writable_dir",
     "process_alive",
+    "utc_now",
 ]
 
 _DIGEST_PREFIX = b"tumor3d-artifact-v1\0"
@@ -240,7 +241,8 @@ def check_writable_dir(folder: Path, *, create: bool = True) -> None:
     os.unlink(probe)
 
 
-def _utc_now() -> str:
+def utc_now() -> str:
+    """The time now in UTC, to the second, as the records write it (``2026-12-06T03:12:00Z``)."""
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 
 
@@ -316,7 +318,7 @@ class ArtifactStore:
                 action="quarantined",
                 detail=detail,
                 quarantined_to=moved,
-                time_utc=_utc_now(),
+                time_utc=utc_now(),
             )
         )
 
@@ -438,7 +440,7 @@ class ArtifactStore:
                         relpath=relpath,
                         action="rewritten",
                         detail=f"{relpath}: existing content did not match its digest; rewritten",
-                        time_utc=_utc_now(),
+                        time_utc=utc_now(),
                     )
                 )
         return ArtifactRef(kind=kind, digest=digest, relpath=relpath, metadata=meta)
