@@ -57,14 +57,16 @@ def test_killed_run_leftovers_are_cleaned_by_the_next_publish(tmp_path):
     other = tmp_path / f".p2.partial-{HOST_TAG}-{dead}-0123abcd"  # another patient's, dead
     remote = tmp_path / f".p3.partial-{other_host}-{me}-0123abcd"  # another machine's
     remote_old = tmp_path / f".p4.partial-{other_host}-{me}-0123abcd"
+    reused = tmp_path / f".p5.partial-{HOST_TAG}-{me}-0123abcd"  # ours by pid, hour-old: reused
     legacy = tmp_path / f".p1.partial-{dead}-0123abcd"  # no host tag: p1's
     legacy_other = tmp_path / f".p2.old-{dead}-0123abcd"  # no host tag: p2's, not p1's
-    folders = (stale, stale_old, live, other, remote, remote_old, legacy, legacy_other)
+    folders = (stale, stale_old, live, other, remote, remote_old, reused, legacy, legacy_other)
     for folder in folders:
         folder.mkdir()
         (folder / "tumor.ply").write_bytes(b"half")
     two_hours_ago = time.time() - 7200.0
-    os.utime(remote_old, (two_hours_ago, two_hours_ago))
+    for old in (remote_old, reused):  # the store's rule for its temporary files
+        os.utime(old, (two_hours_ago, two_hours_ago))
     with staged_folder(tmp_path, "p1") as staging:
         assert staging.name.startswith(f".p1.partial-{HOST_TAG}-{me}-")
         (staging / "metrics.parquet").write_bytes(b"new")

@@ -54,7 +54,7 @@ from pathlib import Path
 
 from tumor3d.errors import InputError
 from tumor3d.storage.inputs import input_files
-from tumor3d.storage.store import HOST_TAG, STALE_TMP_S, process_alive
+from tumor3d.storage.store import HOST_TAG, STALE_TMP_S, process_alive, writer_gone
 
 __all__ = [
     "PUBLISH_MANIFEST",
@@ -279,11 +279,11 @@ def clean_stale_staging(
 ) -> list[Path]:
     """Remove the staging and trash folders of killed publishers in ``out_dir``.
 
-    A folder written under this machine's :data:`~tumor3d.storage.store.HOST_TAG`
-    goes when its process is gone, whatever patient it was for; one of another
-    machine (a folder shared over a network file system, whose pids cannot be
-    asked here) when untouched for ``max_age_s``; one named before the host tag
-    was added, when it is ``name``'s and its pid is gone. A live publisher's
+    Whatever patient it was for, a folder whose writer is gone by the store's rule
+    for its temporary files (:func:`tumor3d.storage.store.writer_gone`): this
+    machine's when its process is gone, any (another machine's, on a folder shared
+    over a network file system) when untouched for ``max_age_s``; one named before
+    the host tag was added, when it is ``name``'s and its pid is gone. A live publisher's
     folder is never touched. Housekeeping: a folder that cannot be examined or
     removed is left.
 
@@ -306,10 +306,8 @@ def clean_stale_staging(
                 continue
             if m["host"] is None:
                 stale = m["name"] == name and not process_alive(int(m["pid"]))
-            elif m["host"] == HOST_TAG:
-                stale = not process_alive(int(m["pid"]))
-            else:
-                stale = now - entry.stat().st_mtime > max_age_s
+            else:  # as the store's temporary files
+                stale = writer_gone(m["host"], int(m["pid"]), entry, now=now, max_age_s=max_age_s)
         except OSError:
             continue
         if stale:

@@ -67,6 +67,7 @@ __all__ = [
     "check_writable_dir",
     "process_alive",
     "utc_now",
+    "writer_gone",
 ]
 
 _DIGEST_PREFIX = b"tumor3d-artifact-v1\0"
@@ -185,6 +186,22 @@ def process_alive(pid: int) -> bool:
     except PermissionError:  # someone else's live process
         return True
     return True
+
+
+def writer_gone(
+    host: str | None, pid: int, path: Path, *, now: float, max_age_s: float = STALE_TMP_S
+) -> bool:
+    """Whether a temporary file or folder, named with its writer's host tag and pid, is left.
+
+    Left by a writer that is gone: this machine's and pid namespace's
+    (:data:`HOST_TAG`) when its process no longer exists; any when ``path`` is
+    untouched for ``max_age_s`` (another machine's, whose pids cannot be asked
+    here, or one whose pid was since reused). Raises ``OSError`` when ``path``
+    cannot be examined (the caller leaves it).
+    """
+    if host == HOST_TAG and not process_alive(pid):
+        return True
+    return now - Path(path).stat().st_mtime > max_age_s
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -351,9 +368,7 @@ class ArtifactStore:
             if m is None:
                 continue
             try:
-                stale = (
-                    m["host"] == HOST_TAG and not process_alive(int(m["pid"]))
-                ) or now - tmp.stat().st_mtime > max_age_s
+                stale = writer_gone(m["host"], int(m["pid"]), tmp, now=now, max_age_s=max_age_s)
                 if stale:
                     tmp.unlink()
             except OSError:  # renamed into place meanwhile, another user's, read-only
