@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import logging
 import re
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -226,22 +227,19 @@ def run_message(result: CohortResult) -> str:
     """
     n = len(result.patients)
     failed, check = result.failed, result.to_check
+    needs = f"{len(check)} {'needs' if len(check) == 1 else 'need'} a check"
     if failed:
-        named = [f"{p.patient_id} ({p.failed_stage}: {_cut(p.error or '?')})"
-                 for p in failed[:_NAMED_FAILURES]]  # fmt: skip
-        more = len(failed) - len(named)
-        text = f"{len(failed)} of {n} patients failed: " + ", ".join(named)
-        text += f" and {more} more" if more else ""
-        if check:
-            text += f"; {len(check)} {'needs' if len(check) == 1 else 'need'} a check"
-        return text
+        named = _some(f"{p.patient_id} ({p.failed_stage}: {_cut(p.error or '?')})" for p in failed)
+        return f"{len(failed)} of {n} patients failed: {named}" + (f"; {needs}" if check else "")
     text = f"{n} patient{'' if n == 1 else 's'} completed"
-    if check:
-        names = ", ".join(p.patient_id for p in check[:_NAMED_FAILURES])
-        more = len(check) - _NAMED_FAILURES
-        names += f" and {more} more" if more > 0 else ""
-        text += f", {len(check)} {'needs' if len(check) == 1 else 'need'} a check: {names}"
-    return text
+    return text + (f", {needs}: {_some(p.patient_id for p in check)}" if check else "")
+
+
+def _some(items: Iterable[str]) -> str:
+    """The first :data:`_NAMED_FAILURES` of ``items``, then how many more."""
+    listed = list(items)
+    more = len(listed) - _NAMED_FAILURES
+    return ", ".join(listed[:_NAMED_FAILURES]) + (f" and {more} more" if more > 0 else "")
 
 
 def _cut(text: str, limit: int = _MESSAGE_ERROR) -> str:
