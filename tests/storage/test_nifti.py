@@ -177,3 +177,26 @@ def test_masks_say_they_are_labels_and_a_probability_map_does_not(tmp_path):
     assert intent(volume_to_source_nifti_bytes(mask, scan.affine, grid, dtype="uint8")) == "label"
     prob = volume_to_source_nifti_bytes(mask, scan.affine, grid, dtype="float32")
     assert intent(prob) == "none"
+
+
+def test_a_stored_probability_is_rounded_to_1_255_keeps_the_side_of_a_half_and_compresses():
+    """The learned method's map is stored and published to 1/255 (``probability_for_storage``):
+    within 1/510 of the model's values, on the 0.5 side they were, and a map whose
+    background differs in its last bits (as a model's does) compresses as a smooth one."""
+    from tumor3d.storage.nifti import probability_for_storage
+
+    rng = np.random.default_rng(3)
+    z, y, x = np.mgrid[0:12, 0:64, 0:64]
+    blob = np.exp(-((y - 32.0) ** 2 + (x - 30.0) ** 2 + (4 * (z - 6.0)) ** 2) / 200.0)
+    prob = np.clip(blob + rng.uniform(1e-6, 1e-4, blob.shape), 0, 1).astype(np.float32)
+    prob[0, 0, :4] = [0.5, np.nextafter(np.float32(0.5), np.float32(0)), 1.0, 0.0]
+    stored = probability_for_storage(prob)
+    assert stored.dtype == np.float32 and stored.shape == prob.shape
+    assert np.abs(stored.astype(np.float64) - prob).max() <= 0.5 / 255 + 1e-7
+    levels = stored.astype(np.float64) * 255
+    np.testing.assert_allclose(levels, np.round(levels), atol=1e-4)  # multiples of 1/255
+    np.testing.assert_array_equal(stored >= 0.5, prob >= 0.5)  # no voxel changes side
+    sizes = [len(encode_nifti(a, OBLIQUE, dtype=np.float32)) for a in (prob, stored)]
+    assert sizes[1] * 10 < sizes[0], sizes  # noise in the last bits does not compress
+    array, _ = decode_nifti(encode_nifti(stored, OBLIQUE, dtype=np.float32))
+    np.testing.assert_array_equal(array, stored)

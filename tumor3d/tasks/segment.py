@@ -26,6 +26,7 @@ from tumor3d.segmentation.segment import (
     resolve_method,
     segment_tumor,
 )
+from tumor3d.storage.nifti import probability_for_storage
 from tumor3d.tasks.kinds import Artifact, Volume
 from tumor3d.tasks.spec import Input, Metric, StageResult, scan_spacing_mm, stage
 
@@ -179,7 +180,7 @@ def segment(
     }
     review: dict[str, Any] = {}
     if result.probability is not None:
-        artifacts["tumor_probability"] = Volume(result.probability.astype(np.float32), affine)
+        artifacts["tumor_probability"] = Volume(probability_for_storage(result.probability), affine)
     cnn = learned.get("cnn") if result.method == "learned" else None
     segment_model = (
         "" if result.method != "learned" else ("forest" if cnn is None else "forest + U-Net mean")
