@@ -200,6 +200,38 @@ def test_cohort_page_rows_links_and_plot():
     assert "4.000" in text  # p3's Eq. 7 volume in mL in the table
 
 
+@pytest.mark.parametrize(
+    "volumes_ml", [[3.1, 12.7, 45.0, 46.2, 80.4], [0.3, 0.35], [5.0] * 30, [0.012], [0.0, 2.0]]
+)
+def test_cohort_histogram_bins_start_on_the_ticks_and_count_each_dot(volumes_ml):
+    """Each tick of the volume axis is a bin edge, labelled with the volume at its x, and
+    every patient's dot lies over the bin that counts it."""
+    from tumor3d.storage.report_html.cohort import _distribution_svg
+
+    svg = _distribution_svg([(f"p{i}", v) for i, v in enumerate(volumes_ml)])
+    ticks = [(float(x), float(label)) for x, label in re.findall(
+        r'<text x="([0-9.]+)" y="[0-9.]+" font-size="11" text-anchor="middle">([^<]+)<', svg
+    )]  # fmt: skip
+    bars = [(float(x), float(w), int(c)) for x, w, c in re.findall(
+        r'<rect x="([0-9.]+)" y="[0-9.]+" width="([0-9.]+)" height="[0-9.]+" fill="#d9a39a">'
+        r"<title>(\d+) patient", svg
+    )]  # fmt: skip
+    dots = [float(x) for x in re.findall(r'<circle cx="([0-9.]+)"', svg)]
+    assert ticks[0][1] == 0 and ticks[-1][1] >= max(volumes_ml)
+    (x0, v0), (x1, v1) = ticks[0], ticks[-1]
+    mm_per_ml = (x1 - x0) / (v1 - v0)
+    for x, label in ticks:  # labels are the axis' values
+        assert x == pytest.approx(x0 + label * mm_per_ml, abs=0.15)
+    width = bars[0][1] + 1  # bars are a pixel narrower than their bins
+    for x, _ in ticks:  # every tick on a bin edge
+        k = (x - x0) / width
+        assert k == pytest.approx(round(k), abs=0.02), (x, width)
+    assert sum(c for _, _, c in bars) == len(volumes_ml)
+    for v, cx in zip(volumes_ml, dots, strict=True):
+        assert cx == pytest.approx(x0 + v * mm_per_ml, abs=0.15)
+        assert any(bx - 0.15 <= cx <= bx + width + 0.15 for bx, _, _ in bars), (v, cx)
+
+
 def test_cohort_validation():
     with pytest.raises(InputError, match="sequence of per-patient mappings"):
         cohort_report_html({"patient_id": "p"})

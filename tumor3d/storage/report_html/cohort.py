@@ -24,21 +24,40 @@ from tumor3d.storage.report_html.fields import (
 )
 
 
+def _nice_step(span: float, n_intervals: int = 5) -> float:
+    """A tick step of 1, 2, 2.5 or 5 times a power of ten giving about ``n_intervals``.
+
+    >>> [_nice_step(s) for s in (1.0, 7.3, 12.0, 130.0, 0.04)]
+    [0.2, 2.0, 2.5, 50.0, 0.01]
+    """
+    raw = span / n_intervals
+    power = 10.0 ** math.floor(math.log10(raw))
+    return next(m * power for m in (1.0, 2.0, 2.5, 5.0, 10.0) if m * power >= raw * (1 - 1e-9))
+
+
 def _distribution_svg(
     values_ml: list[tuple[str, float]], width: int = 640, height: int = 180
 ) -> str:
-    """A strip plot with a histogram of the Eq. 7 volumes (mL), as inline SVG."""
+    """A strip plot with a histogram of the Eq. 7 volumes (mL), as inline SVG.
+
+    The axis runs from 0 to a whole number of tick steps (1, 2, 2.5 or 5 times a
+    power of ten) and the bins split each step into 1, 2 or 5, so that every
+    tick is a bin edge; about ``sqrt(n)`` bins, at most 20.
+    """
     if not values_ml:
         return "<p>No volumes to plot.</p>"
     vals = [v for _, v in values_ml]
-    lo, hi = 0.0, max(vals) * 1.05 or 1.0
+    step = _nice_step(max(vals) or 1.0)
+    n_steps = max(1, math.ceil(max(vals) / step - 1e-9))
+    lo, hi = 0.0, n_steps * step
     left, right, top, bottom = 50, 20, 15, 35
     pw, ph = width - left - right, height - top - bottom
 
     def x(v: float) -> float:
         return left + (v - lo) / (hi - lo) * pw
 
-    n_bins = max(1, min(20, int(math.ceil(math.sqrt(len(vals))))))
+    wanted = max(n_steps, min(20, math.ceil(math.sqrt(len(vals)))))
+    n_bins = n_steps * max(k for k in (1, 2, 5) if n_steps * k <= wanted)
     counts = [0] * n_bins
     for v in vals:
         counts[min(n_bins - 1, int((v - lo) / (hi - lo) * n_bins))] += 1
@@ -63,12 +82,12 @@ def _distribution_svg(
     out.append(
         f'<line x1="{left}" y1="{top + ph}" x2="{left + pw}" y2="{top + ph}" stroke="#333"/>'
     )
-    for k in range(6):
-        v = lo + (hi - lo) * k / 5
+    for k in range(n_steps + 1):
+        v = lo + k * step
         out.append(
             f'<line x1="{x(v):.1f}" y1="{top + ph}" x2="{x(v):.1f}" y2="{top + ph + 4}" '
             f'stroke="#333"/><text x="{x(v):.1f}" y="{top + ph + 16}" font-size="11" '
-            f'text-anchor="middle">{v:.2f}</text>'
+            f'text-anchor="middle">{round(v, 9):g}</text>'
         )
     out.append(
         f'<text x="{left + pw / 2}" y="{height - 3}" font-size="12" text-anchor="middle">'
