@@ -66,6 +66,16 @@ def test_a_cylinder_along_the_slices_is_recreated_exactly():
     assert all(8 <= s["slice_index"] < 52 for s in rows.slices)
 
 
+def test_the_pipelines_default_interpolation_is_among_those_evaluated():
+    """The methods the evaluation compares include the one ``interpolate`` runs by default."""
+    from tumor3d.config import InterpolateConfig
+    from tumor3d.evaluation.interpolation.methods import METHODS
+
+    default = InterpolateConfig()
+    evaluated = [METHODS[m] for m in INTERPOLATION_METHODS]
+    assert {"method": default.method, "parts": default.parts} in evaluated
+
+
 def test_the_slice_direction_comes_from_the_acquisition_not_the_voxel_order():
     """The same cylinder stored with world z as voxel axis 0: still exact. Read along
     another axis its sections are bands of varying width, which no method re-creates."""
