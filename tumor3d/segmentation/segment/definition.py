@@ -58,11 +58,11 @@ def resolve_method(
     """``"auto"`` -> ``"learned"`` on FLAIR and T1c; on T2 ``"paper"`` where its premise holds.
 
     The learned method on FLAIR and T1c because it beats the robust one by
-    cross-validation by patient (``reports/learned_cv.md``: 3-D Dice 0.706
-    against 0.479 on the 45 clinical LGG FLAIR heads, 0.814 against 0.819 on
-    BraTS FLAIR; T1c 0.627 against 0.615 with 6 volumes within 10 % against
-    3); on the BraTS T2 cases it does not (0.726 against 0.747), so T2 keeps
-    the rule below.
+    cross-validation by patient (``reports/learned_cv.md``, the figures as
+    shipped: 3-D Dice 0.765 against 0.479 on the 45 clinical LGG FLAIR heads,
+    0.821 against 0.819 on BraTS FLAIR; T1c 0.637 against 0.615 with 5
+    volumes within 10 % against 3); on the BraTS T2 cases it does not (0.726
+    against 0.747), so T2 keeps the rule below.
 
     On T2, ``"paper"`` when the detection's histograms show the three tissue
     modes the paper assumes on nearly every slice
