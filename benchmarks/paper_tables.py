@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 import tempfile
 import time
@@ -354,8 +355,11 @@ def geometry_rows(cfg: PipelineConfig, n: int, normal: int) -> list[str]:
     return lines
 
 
-def demo_rows(configs: dict[str, PipelineConfig], seed: int = 7) -> tuple[list[str], list[str]]:
-    """The demo patient end to end (every stage, no Prefect): volumes and phase times."""
+def demo_rows(
+    configs: dict[str, PipelineConfig], figures_dir: Path, seed: int = 7
+) -> tuple[list[str], list[str]]:
+    """The demo patient end to end (every stage, no Prefect): volumes and phase times; the
+    first configuration's renders are written to ``figures_dir`` (the report's folder)."""
     from tumor3d.flows.patient import VOLUME_LABELS, VOLUME_METHODS, run_stages_direct
     from tumor3d.storage.phantom_io import write_phantom_patient
 
@@ -374,7 +378,9 @@ def demo_rows(configs: dict[str, PipelineConfig], seed: int = 7) -> tuple[list[s
         run = run_stages_direct(image, store_dir, config=cfg, patient_id=f"demo{seed:03d}")
         vol = run.outputs["measure-volume"].values
         if not figures:  # Figures 11-12: the first configuration's (the paper's) renders
-            figures = _save_renders(store_dir, run.outputs["render-views"].artifacts, name)
+            figures = _save_renders(
+                store_dir, run.outputs["render-views"].artifacts, name, figures_dir
+            )
         vol_lines.append(
             f"| {name} | "
             + " | ".join(
@@ -413,8 +419,8 @@ RENDERS = {
 }
 
 
-def _save_renders(store_dir: Path, artifacts: dict, config_name: str) -> list[str]:
-    """Copy the demo's renders to ``reports/``; markdown image lines."""
+def _save_renders(store_dir: Path, artifacts: dict, config_name: str, folder: Path) -> list[str]:
+    """Copy the demo's renders to ``folder`` (the report's); markdown image lines."""
     from tumor3d.storage.store import ArtifactStore
 
     store = ArtifactStore(store_dir)
@@ -423,7 +429,7 @@ def _save_renders(store_dir: Path, artifacts: dict, config_name: str) -> list[st
         ref = artifacts.get(f"render_{view}")
         if ref is None:
             continue
-        (ROOT / "reports" / filename).write_bytes(store.get_bytes(ref))
+        (folder / filename).write_bytes(store.get_bytes(ref))
         lines.append(f"![{view}, {config_name}]({filename})")
     return lines
 
@@ -641,6 +647,11 @@ KEPT_MARKER = (
 )
 
 
+def _arguments() -> str:
+    """This run's command-line arguments, as typed (none for ``make paper``)."""
+    return "".join(f" {shlex.quote(a)}" for a in sys.argv[1:])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=8, help="T2 phantoms with a tumour (seeds 0..n-1)")
@@ -675,7 +686,8 @@ def main() -> None:
     demo_vol, demo_time, figures = ([], [], [])
     if not args.no_demo:
         demo_vol, demo_time, figures = demo_rows(
-            {k: v for k, v in configs.items() if not k.startswith("paper read")}
+            {k: v for k, v in configs.items() if not k.startswith("paper read")},
+            args.report.parent,
         )
     geometry = []
     if args.geometry_n > 0:
@@ -692,8 +704,9 @@ def main() -> None:
     lines = [
         "# The paper's tables beside ours",
         "",
-        "Arakeri & Reddy (2013), IJSIP 6(3). Made by `make paper` "
-        f"(`PYTHONPATH=. python benchmarks/paper_tables.py --n {args.n} --normal {args.normal}`) "
+        "Arakeri & Reddy (2013), IJSIP 6(3). Made by "
+        f"`PYTHONPATH=. python benchmarks/paper_tables.py{_arguments()}` "
+        f"({'`make paper`, ' if not sys.argv[1:] else ''}TUMOR3D_DATA_DIR for the real cases) "
         f"in {elapsed:.0f} s on {phantom_note}. The paper's data (53 patients, 1.5 T T2, "
         "640 x 480) are private: its numbers are printed beside ours, not re-measured.",
         "",
@@ -820,7 +833,7 @@ def main() -> None:
         "## Table 4: interpolation (Eq. 10)",
         "",
         "From `reports/interpolation.table4.csv` (`PYTHONPATH=. python "
-        "benchmarks/interpolation_eval.py`, ~15 min, not re-run by `make paper`); details and "
+        "benchmarks/interpolation_eval.py`, about 5 min, not re-run by `make paper`); details and "
         "the every-k-th-slice protocol in `reports/interpolation.md`. Mean epsilon (%) over "
         "the triplets of each case; the paper's rows are slices of its own data.",
         "",
