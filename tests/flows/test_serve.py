@@ -12,6 +12,7 @@ and every run records its outcome in ``DIR/last_run.json``.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import subprocess
@@ -60,6 +61,33 @@ def test_deployment_refuses_a_bad_cron_or_a_missing_manifest(tmp_path):
         cohort_deployment(manifest, tmp_path / "out", cron="61 2 * * *")
     with pytest.raises(InputError, match="absent.csv"):
         cohort_deployment(tmp_path / "absent.csv", tmp_path / "out", cron="0 2 * * *")
+
+
+@pytest.mark.usefixtures("prefect_harness")
+def test_the_server_makes_the_runs_of_the_cron_schedule_one_at_a_time(tmp_path):
+    """The deployment's cron schedule becomes scheduled runs on the server: what the
+    server's scheduler service does every loop, asked here once through the API. Prefect
+    3.8's server fails this insert under SQLAlchemy 2.1, and no scheduled run was ever
+    made (pyproject.toml pins 2.0). The deployment runs one run at a time."""
+    from datetime import timedelta
+
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import DeploymentFilter, DeploymentFilterId
+
+    manifest = write_manifest([_row(0, tmp_path)], tmp_path / "m.csv")
+    dep = cohort_deployment(manifest, tmp_path / "out", cron="*/10 * * * *", name="every10")
+    deployment_id = dep.apply()
+    with get_client(sync_client=True) as client:
+        client._client.post(f"/deployments/{deployment_id}/schedule", json={})
+        runs = client.read_flow_runs(
+            deployment_filter=DeploymentFilter(id=DeploymentFilterId(any_=[deployment_id]))
+        )
+        limit = client.read_deployment(deployment_id).global_concurrency_limit
+    starts = sorted(r.expected_start_time for r in runs)
+    assert len(starts) >= 3 and all(r.state is not None and r.state.is_scheduled() for r in runs)
+    assert all(t.minute % 10 == 0 and t.second == 0 for t in starts)  # the cron's times
+    assert all(b - a == timedelta(minutes=10) for a, b in itertools.pairwise(starts))
+    assert limit is not None and limit.limit == 1
 
 
 def _execute_triggered_run(dep):

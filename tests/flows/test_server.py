@@ -211,3 +211,37 @@ def test_a_python_call_uses_the_background_server_when_none_is_configured(monkey
     monkeypatch.setattr(server, "server_status", lambda: server.ServerStatus("stopped", "s"))
     with server.api_of_python_call():
         assert PREFECT_API_URL.value() == before  # nothing imposed: Prefect's default
+
+
+def test_the_temporary_server_of_serve_runs_the_scheduler_and_a_commands_does_not(
+    monkeypatch, tmp_path
+):
+    """A temporary server is ephemeral (no services) unless asked for its services: the
+    scheduler that makes a served deployment's cron runs. ``tumor3d serve`` asks for them;
+    before, it served on an ephemeral server and its cron never fired."""
+    from phantom_rows import small_phantom_rows
+
+    import tumor3d.flows.serve
+    from tumor3d.storage.manifest import write_manifest
+
+    spawned: list[bool] = []
+
+    class Stop(Exception):
+        pass
+
+    def spawn(port, *, parent, ephemeral, log):
+        spawned.append(ephemeral)
+        raise Stop
+
+    monkeypatch.setattr(server, "_configured_api_url", lambda: None)
+    monkeypatch.setattr(server, "server_status", lambda: server.ServerStatus("stopped", "s"))
+    monkeypatch.setattr(server, "_spawn", spawn)
+    for services in (False, True):
+        with pytest.raises(Stop), server.prefect_api(services=services):
+            pass
+    assert spawned == [True, False]
+    monkeypatch.setattr(tumor3d.flows.serve, "serve_cohort", lambda dep: None)
+    manifest = write_manifest(small_phantom_rows(tmp_path, [0], "tmp"), tmp_path / "m.csv")
+    args = ["serve", str(manifest), "--out", str(tmp_path / "o"), "--cron", "0 2 * * *"]
+    CliRunner().invoke(app, args)
+    assert spawned[2:] == [False]  # serve: with the scheduler

@@ -338,6 +338,8 @@ def cohort_deployment(
     return scheduled_cohort_flow.to_deployment(
         name=name,
         schedule=schedule,
+        # one run at a time: a run triggered while another writes DIR waits for it
+        concurrency_limit=1,
         parameters=parameters,
         tags=["tumor3d", "cohort", "scheduled"],
         description=f"tumor3d cohort of {manifest_path} into {parameters['out_dir']}, "

@@ -432,11 +432,15 @@ def api_of_python_call() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def prefect_api(on_temporary_start: Callable[[], None] | None = None) -> Iterator[str]:
+def prefect_api(
+    on_temporary_start: Callable[[], None] | None = None, *, services: bool = False
+) -> Iterator[str]:
     """Run the body against a Prefect API; yields where it is (see the module docstring).
 
     ``on_temporary_start`` is called (to print a message) only when a
-    temporary server is really started. While the body runs, a server that
+    temporary server is really started. That server runs no services
+    (ephemeral) unless ``services``: a deployment served on it needs the
+    scheduler, which makes the runs of its schedule. While the body runs, a server that
     goes away (nothing listens on its port any more: killed, stopped) ends
     the command with one line and exit code 3 (:func:`_watch_server`)
     instead of minutes of Prefect's retries and tracebacks.
@@ -457,7 +461,7 @@ def prefect_api(on_temporary_start: Callable[[], None] | None = None) -> Iterato
         on_temporary_start()
     port = _free_port()
     api_url = f"http://127.0.0.1:{port}/api"
-    proc = _spawn(port, parent=os.getpid(), ephemeral=True, log=None)
+    proc = _spawn(port, parent=os.getpid(), ephemeral=not services, log=None)
     try:
         _wait_healthy(proc, api_url, _startup_timeout_s())
         with _use_api(api_url, drain=True), _watch_server(api_url, server=proc):

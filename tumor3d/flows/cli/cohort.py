@@ -125,12 +125,12 @@ def serve(
     def temporary_note() -> None:
         console.print(
             "[yellow]no Prefect server configured (PREFECT_API_URL) or running (`tumor3d server "
-            "start`): serving against a temporary local server that stops with this command "
-            "(see README, Scheduled reprocessing).[/]"
+            "start`): serving against a temporary local server, with its scheduler, that "
+            "stops with this command (see README, Scheduled reprocessing).[/]"
         )
 
     try:
-        with prefect_api(on_temporary_start=temporary_note) as api_url:
+        with prefect_api(on_temporary_start=temporary_note, services=True) as api_url:
             console.print(
                 f"serving deployment [bold]tumor3d-scheduled-cohort/{escape(name)}[/] "
                 f"(cron {escape(cron)} {escape(timezone)}) on {escape(api_url)}; Ctrl-C to stop"
