@@ -106,3 +106,26 @@ def test_the_paper_configuration_reads_the_paper_method():
     assert cfg.preprocess.brain_extraction == "skull_strip"
     assert cfg.preprocess.skull_threshold == "otsu"
     assert cfg.interpolate.method == "enhanced" and cfg.simplify.method == "curvature"
+
+
+def test_outside_its_premise_the_paper_method_asks_for_a_check(tumour_run):
+    """The paper's method assumes white matter, grey matter and CSF each form a histogram
+    mode on (nearly) every slice (T2). On the T2 phantom every slice shows them and the
+    run says nothing; on the same head as FLAIR, whose CSF is dark and thin, fewer than
+    half of the slices do (0.26-0.53 over seeds 1000-1009): the run says it ran outside
+    its premise, with the share of slices, and its status is check."""
+    from tumor3d.segmentation.detect.methods import paper_premise_share
+    from tumor3d.segmentation.review import review_status
+
+    _, det, seg = tumour_run
+    assert paper_premise_share(det.n_modes, det.brain_pixels) == 1.0
+    assert not [c for c in seg.caveats if "premise" in c]
+    assert review_status(seg.caveats).status == "ok"
+    flair = make_phantom_patient(1, modality="flair")
+    det2, seg2 = _run(flair, _paper_config())
+    share = paper_premise_share(det2.n_modes, det2.brain_pixels)
+    assert share < 0.95
+    said = [c for c in seg2.caveats if "outside its premise" in c]
+    assert len(said) == 1 and f"on {100 * share:.0f} % of the slices with brain" in said[0]
+    assert said[0].index("check") < said[0].index("%")  # what to do comes first
+    assert review_status(seg2.caveats).status == "check"

@@ -15,6 +15,30 @@ PAPER_PREMISE_FRACTION = 0.95
 PREMISE_MIN_BRAIN_PIXELS = 500
 
 
+def paper_premise_share(n_modes: np.ndarray, brain_pixels: np.ndarray) -> float:
+    """The share of the slices with brain that show at least three tissue modes.
+
+    Parameters
+    ----------
+    n_modes, brain_pixels : (z,) array_like of int
+        ``SliceDetection.n_modes`` and ``.brain_pixels``; a slice counts when it
+        has at least ``PREMISE_MIN_BRAIN_PIXELS`` brain pixels.
+
+    Returns
+    -------
+    float
+        In [0, 1]; 0 when no slice has that much brain.
+
+    Examples
+    --------
+    >>> paper_premise_share([3, 4, 2, 0], [900, 900, 900, 10])
+    0.6666666666666666
+    """
+    k = np.asarray(n_modes)
+    ok = np.asarray(brain_pixels) >= PREMISE_MIN_BRAIN_PIXELS
+    return float(np.mean(k[ok] >= 3)) if ok.any() else 0.0
+
+
 def paper_premise_holds(n_modes: np.ndarray, brain_pixels: np.ndarray) -> bool:
     """Whether the slices show the three tissue modes the paper's method assumes.
 
@@ -23,8 +47,4 @@ def paper_premise_holds(n_modes: np.ndarray, brain_pixels: np.ndarray) -> bool:
     n_modes, brain_pixels : (z,) array_like of int
         ``SliceDetection.n_modes`` and ``.brain_pixels``.
     """
-    k = np.asarray(n_modes)
-    ok = np.asarray(brain_pixels) >= PREMISE_MIN_BRAIN_PIXELS
-    if not ok.any():
-        return False
-    return bool(np.mean(k[ok] >= 3) >= PAPER_PREMISE_FRACTION)
+    return paper_premise_share(n_modes, brain_pixels) >= PAPER_PREMISE_FRACTION

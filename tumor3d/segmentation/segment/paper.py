@@ -10,6 +10,7 @@ from tumor3d.errors import InputError
 from tumor3d.imaging.scan import MODALITIES
 from tumor3d.segmentation.caveats import segmentation_caveats
 from tumor3d.segmentation.detect import SliceDetection, _check_pair
+from tumor3d.segmentation.detect.methods import PAPER_PREMISE_FRACTION, paper_premise_share
 from tumor3d.segmentation.fcm import _check_fcm_params, _fcm_histogram, fcm_memberships
 from tumor3d.segmentation.methods import register_method
 from tumor3d.segmentation.segment.clusters import (
@@ -322,4 +323,28 @@ def segment_paper(
     caveats = segmentation_caveats(
         res.tumor_mask, spacing_mm=spacing_mm, head_exterior=head_exterior
     )
-    return replace(res, caveats=caveats, method="paper")
+    return replace(res, caveats=caveats + premise_caveat(detection), method="paper")
+
+
+def premise_caveat(detection: SliceDetection) -> tuple[str, ...]:
+    """The paper's method run where its premise does not hold, in words (or nothing).
+
+    The method finds the tumour as the histogram mode a normal slice lacks:
+    it assumes white matter, grey matter and CSF each form a mode on every
+    slice (T2 at the paper's resolution; [A5], [A6]). Where fewer slices
+    show them than ``segment.method: auto`` asks before choosing the method
+    (:data:`tumor3d.segmentation.detect.methods.PAPER_PREMISE_FRACTION`), its
+    clusters are not the tissues it names: measured on the labelled real
+    cases (0.46-0.79 of their thick slices show the three modes; every
+    slice of the T2 phantoms does), it finds little or nothing there
+    (``reports/learned_cv.md``). The run then asks for a check.
+    """
+    share = paper_premise_share(detection.n_modes, detection.brain_pixels)
+    if share >= PAPER_PREMISE_FRACTION:
+        return ()
+    return (
+        "the paper's method ran outside its premise, check the outline (it may miss most of "
+        f"the tumour): three tissue modes (white matter, grey matter, CSF) show on "
+        f"{100.0 * share:.0f} % of the slices with brain, where it assumes nearly all "
+        f"({100.0 * PAPER_PREMISE_FRACTION:.0f} %)",
+    )
