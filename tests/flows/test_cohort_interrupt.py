@@ -106,3 +106,32 @@ def test_ctrl_c_during_a_cohort_is_one_line_exit_130_and_leaves_nothing(
     assert again.exit_code == 0, [p.error for p in again.patients]
     left = [p.name for p in out.iterdir() if ".partial-" in p.name or ".old-" in p.name]
     assert not left, left
+
+
+@pytest.mark.parametrize(
+    ("signum", "code", "line"),
+    [
+        (signal.SIGINT, 130, "interrupted: Ctrl-C stopped the test; a re-run continues"),
+        (signal.SIGTERM, 143, "terminated: SIGTERM stopped the test; a re-run continues"),
+    ],
+)
+def test_sigterm_ends_a_command_as_ctrl_c_does_in_one_line(signum, code, line):
+    """``timeout``, systemd and Kubernetes stop a job with SIGTERM: the command ends at
+    once with one line on stderr and exit code 143 (it ended silently with 143 before,
+    its last line a stage's "failed"), as Ctrl-C ends it with 130."""
+    script = (
+        "import time\n"
+        "from tumor3d.flows.cli.errors import _ctrl_c_ends\n"
+        "with _ctrl_c_ends('Ctrl-C stopped the test; a re-run continues'):\n"
+        "    print('ready', flush=True)\n"
+        "    time.sleep(60)\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+    proc.send_signal(signum)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == code
+    assert err.strip() == line

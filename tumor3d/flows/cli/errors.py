@@ -22,6 +22,8 @@ EXIT_ENVIRONMENT = 3
 EXIT_CHECK = 4
 #: Exit code of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
 EXIT_INTERRUPTED = 130
+#: Exit code of a command stopped by SIGTERM (128 + 15: ``timeout``, systemd, Kubernetes).
+EXIT_TERMINATED = 143
 
 
 def _error_line(exc: BaseException) -> tuple[str, int]:
@@ -54,6 +56,9 @@ _HANDLED = (Tumor3DError, OSError)
 def _ctrl_c_ends(message: str) -> Iterator[None]:
     """Ctrl-C (SIGINT) ends the command at once: one line on stderr, exit code 130.
 
+    SIGTERM (what ``timeout``, systemd and Kubernetes send) alike, exit code 143,
+    the line saying SIGTERM where ``message`` says Ctrl-C.
+
     Python's KeyboardInterrupt did not stop a cohort: the main thread's
     interrupt waited for every patient lane to finish, and those lanes (with
     Prefect's event and log services) retried for minutes against the
@@ -72,22 +77,34 @@ def _ctrl_c_ends(message: str) -> Iterator[None]:
 
     from tumor3d.flows.server import EXIT_HOOKS
 
-    def on_sigint(signum: int, frame: Any) -> None:
-        try:
-            if console.is_terminal:
-                console.show_cursor(True)  # a live progress bar hides it
-            for stream in (sys.stdout, sys.stderr):
-                stream.flush()
-            sys.stderr.write(("\n" if console.is_terminal else "") + f"interrupted: {message}\n")
-            sys.stderr.flush()
-        finally:
-            for hook in EXIT_HOOKS:
-                with contextlib.suppress(Exception):
-                    hook(EXIT_INTERRUPTED)
-            os._exit(EXIT_INTERRUPTED)
+    def ends(code: int, line: str) -> Any:
+        def on_signal(signum: int, frame: Any) -> None:
+            try:
+                if console.is_terminal:
+                    console.show_cursor(True)  # a live progress bar hides it
+                for stream in (sys.stdout, sys.stderr):
+                    stream.flush()
+                sys.stderr.write(("\n" if console.is_terminal else "") + line + "\n")
+                sys.stderr.flush()
+            finally:
+                for hook in EXIT_HOOKS:
+                    with contextlib.suppress(Exception):
+                        hook(code)
+                os._exit(code)
 
-    previous = signal.signal(signal.SIGINT, on_sigint)
+        return on_signal
+
+    terminated = message.replace("Ctrl-C", "SIGTERM", 1)
+    previous = {
+        signal.SIGINT: signal.signal(
+            signal.SIGINT, ends(EXIT_INTERRUPTED, f"interrupted: {message}")
+        ),
+        signal.SIGTERM: signal.signal(
+            signal.SIGTERM, ends(EXIT_TERMINATED, f"terminated: {terminated}")
+        ),
+    }
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
