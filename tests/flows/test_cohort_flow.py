@@ -237,6 +237,31 @@ def test_rerun_is_all_cache_hits_and_a_new_patient_computes_alone(first, inputs)
     assert all(all(h) for pid, h in hits.items() if pid != "coh3")
 
 
+def test_a_new_input_that_fails_says_its_folder_holds_the_earlier_result(first, inputs, tmp_path):
+    """A patient published by an earlier run whose new image fails keeps the earlier folder
+    (published results are not deleted): the run says that folder is not this input's, in
+    its result, cohort.md and the console line, and names no other patient."""
+    import shutil
+
+    out = tmp_path / "out"
+    shutil.copytree(first[0], out)
+    _, rows, _ = inputs
+    broken = tmp_path / "coh0_t2.nii.gz"
+    broken.write_bytes(rows[0].image.read_bytes()[:3000])  # cut short: ingest fails
+    again = run_cohort([dataclasses.replace(rows[0], image=broken), rows[1]], out, workers=1)
+    assert [p.status for p in again.patients] == ["failed", "ok"]
+    assert again.earlier == ["coh0"]
+    assert (out / "coh0" / "metrics.parquet").is_file()  # kept, not deleted
+    md = (out / "cohort.md").read_text()
+    assert "The folder of coh0 still holds an earlier run's result" in md
+    from tumor3d.flows.cli.app import console
+    from tumor3d.flows.cli.output import print_cohort_summary
+
+    with console.capture() as captured:
+        print_cohort_summary(again)
+    assert "earlier result kept" in captured.get() and "coh0" in captured.get()
+
+
 def test_cli_cohort_exit_codes(first, inputs, tmp_path):
     out, _ = first
     _, rows, _ = inputs

@@ -27,8 +27,10 @@ patient's final folder (:mod:`tumor3d.storage.publish`). ``DIR/cohort.parquet`` 
 
 from __future__ import annotations
 
+import contextlib
 import contextvars
 import dataclasses
+import errno
 import functools
 import os
 import time
@@ -41,7 +43,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
-from tumor3d.errors import InputError, exception_line
+from tumor3d.errors import InputError, exception_line, os_error_text
 from tumor3d.flows.artifacts import publish_cohort_artifacts
 from tumor3d.flows.dask_runner import DaskSpec, check_scheduler, cohort_task_runner
 from tumor3d.flows.patient import (
@@ -64,11 +66,12 @@ from tumor3d.storage.cohort_report import (
     published_patient_ids,
     write_cohort_outputs,
 )
+from tumor3d.storage.folder_lock import writing_folder
 from tumor3d.storage.manifest import ManifestRow, read_manifest
 from tumor3d.storage.objectstore import ObjectStore, default_store_location, is_url, open_store
 from tumor3d.storage.publish import check_destination, check_outputs_not_inputs
 from tumor3d.storage.remote_publish import RemoteFolder, publish_files, published_names
-from tumor3d.storage.store import ArtifactStore, check_writable_dir
+from tumor3d.storage.store import ArtifactStore, StoreError, check_writable_dir
 from tumor3d.tasks import stages
 from tumor3d.tasks.progress import ProgressEvent, report
 from tumor3d.tasks.runner import StageRun
@@ -108,7 +111,11 @@ class PatientOutcome(BaseModel):
         The stage that raised (``prepare-input`` before the first stage,
         ``publish`` after the last).
     error : str or None
-        One line: exception type and message.
+        One line: exception type and message (an OS error: the file it names and
+        what happened, ``OSError: DIR/p1/...: no space left on device (ENOSPC)``).
+    environment : bool
+        Failed for the machine, not the input: an artifact store, or a full,
+        read-only or forbidden disk while writing (:func:`environment_failure`).
     output_dir : str or None
         ``DIR/<patient_id>`` when ok.
     metrics : dict
@@ -129,6 +136,7 @@ class PatientOutcome(BaseModel):
     status: str
     failed_stage: str | None = None
     error: str | None = None
+    environment: bool = False
     output_dir: str | None = None
     metrics: dict[str, Any] = Field(default_factory=dict)
     stages: list[StageRun] = Field(default_factory=list)
@@ -149,6 +157,10 @@ class CohortResult(BaseModel):
     removed : list of str
         Patients published in ``out_dir`` by an earlier run but no longer in the
         manifest (reported, their folders kept).
+    earlier : list of str
+        Failed patients whose folder still holds an earlier run's result (a new
+        input that failed leaves the old result in place: reported, so that its
+        ``metrics.parquet`` is not read as this run's).
     out_dir : str
         ``DIR``.
     workers : int
@@ -158,7 +170,9 @@ class CohortResult(BaseModel):
     failed, to_check : list of PatientOutcome
         The patients that failed, and those that completed with status ``check``.
     exit_code : int
-        1 when some patient failed, else 4 when some needs a check, else 0.
+        3 when some patient failed for the machine (``PatientOutcome.environment``:
+        a full disk, a store), else 1 when some failed, else 4 when some needs a
+        check, else 0.
     """
 
     model_config = ConfigDict(frozen=True)
@@ -167,6 +181,9 @@ class CohortResult(BaseModel):
     removed: list[str] = Field(default_factory=list)
     """Patients published in ``out_dir`` by an earlier run but no longer in the manifest
     (reported, their folders kept)."""
+    earlier: list[str] = Field(default_factory=list)
+    """Failed patients whose folder in ``out_dir`` still holds an earlier run's result,
+    not this run's input's (reported: nothing in that folder is this run's)."""
     out_dir: str = ""
     workers: int = 1
     wall_seconds: float = 0.0
@@ -183,12 +200,21 @@ class CohortResult(BaseModel):
 
     @property
     def exit_code(self) -> int:
-        """1 when some patient failed, else 4 when some needs a check, else 0."""
+        """3 when some failed for the machine, 1 when some failed, 4 when some needs a check."""
+        if any(p.environment for p in self.failed):
+            return EXIT_ENVIRONMENT
         return exit_code_of([p.status for p in self.patients])
 
 
 #: Exit code of a command whose results completed but some need a human's check.
 EXIT_CHECK = 4
+#: Exit code of a command some of whose patients failed for the machine, not their input.
+EXIT_ENVIRONMENT = 3
+
+#: OS errors that say the machine could not write, wherever they happen.
+_ENVIRONMENT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS})
+#: OS errors that say so once the input was read (before, a forbidden input file).
+_WRITE_ERRNOS = frozenset({errno.EACCES, errno.EPERM})
 
 
 def exit_code_of(statuses: list[str]) -> int:
@@ -211,8 +237,39 @@ def default_workers() -> int:
 
 
 def one_line_error(exc: BaseException) -> str:
-    """``Type: first line of the message``, at most 300 characters."""
+    """``Type: first line of the message``, at most 300 characters.
+
+    An OS error names its file and says what happened in words, as the commands'
+    own errors do.
+
+    >>> one_line_error(OSError(28, "No space left on device", "out/p1/mesh.ply"))
+    'OSError: out/p1/mesh.ply: no space left on device (ENOSPC)'
+    """
+    if isinstance(exc, OSError) and exc.errno is not None:
+        where = f"{exc.filename}: " if exc.filename else ""
+        line = f"{type(exc).__name__}: {where}{os_error_text(exc)}"
+        return line if len(line) <= _MAX_ERROR else line[: _MAX_ERROR - 3] + "..."
     return exception_line(exc, limit=_MAX_ERROR)
+
+
+def environment_failure(exc: BaseException, *, input_read: bool) -> bool:
+    """Whether a patient's failure is the machine's (exit code 3), not its input's.
+
+    An artifact store that fails, a full or read-only disk anywhere, and a
+    forbidden write once the input was read (``input_read``).
+
+    >>> environment_failure(OSError(28, "No space left on device"), input_read=False)
+    True
+    >>> environment_failure(OSError(13, "Permission denied"), input_read=False)
+    False
+    >>> environment_failure(ValueError("bad"), input_read=True)
+    False
+    """
+    if isinstance(exc, StoreError):
+        return True
+    if not isinstance(exc, OSError) or exc.errno is None:
+        return False
+    return exc.errno in _ENVIRONMENT_ERRNOS or (input_read and exc.errno in _WRITE_ERRNOS)
 
 
 def _row_dict(row: ManifestRow | dict[str, Any]) -> dict[str, Any]:
@@ -262,6 +319,7 @@ def _run_one(
         report(ProgressEvent(pid, stage, "failed", done, len(names)))
         return PatientOutcome(
             patient_id=pid, status=STATUS_FAILED, failed_stage=stage, error=one_line_error(exc),
+            environment=environment_failure(exc, input_read=prepared),
             stages=list(runs), row=_json_row(row), lane_seconds=time.perf_counter() - t0,
         )  # fmt: skip
     # "up to date": every stage cached and the published folder already this result
@@ -344,10 +402,14 @@ def cohort_flow(
     sweep_killed_writers(store, logger)  # of writers killed mid-stage (a lost Dask worker)
     wall = time.perf_counter() - t0
     table = cohort_table([o.model_dump() for o in outcomes], out_dir=out_dir)
+    earlier = [
+        o.patient_id for o in outcomes
+        if o.status == STATUS_FAILED and bids.folder_name(o.patient_id, layout) in published
+    ]  # fmt: skip
     markdown = cohort_markdown(
         table, volume_labels=VOLUME_LABELS, stage_names=list(stages.STAGES),
         title=cohort_title(Path(out_dir).name), wall_seconds=wall, workers=workers,
-        removed=removed,
+        removed=removed, earlier=earlier,
     )  # fmt: skip
     if remote is None:
         write_cohort_outputs(out_dir, table, markdown, removed)
@@ -364,8 +426,8 @@ def cohort_flow(
         if o.status == STATUS_FAILED:
             logger.warning("patient %s failed at %s: %s", o.patient_id, o.failed_stage, o.error)
     return CohortResult(
-        patients=outcomes, removed=removed, out_dir=str(out_dir), workers=workers,
-        wall_seconds=wall,
+        patients=outcomes, removed=removed, earlier=earlier, out_dir=str(out_dir),
+        workers=workers, wall_seconds=wall,
     )  # fmt: skip
 
 
@@ -467,6 +529,9 @@ def run_cohort(
     StoreError
         An object store whose endpoint, bucket or credentials do not work
         (before any work).
+    FolderBusyError
+        Another cohort command is writing the local ``DIR``
+        (:mod:`tumor3d.storage.folder_lock`; before any work).
     OSError
         A local ``DIR`` that cannot be made or written (before any work).
     """
@@ -496,11 +561,13 @@ def run_cohort(
         n = max(1, n_cluster) if workers is None else workers
     elif dask is not None and dask.n_workers and workers is None:
         n = dask.n_workers
+    writer: contextlib.AbstractContextManager[None] = contextlib.nullcontext()
     if isinstance(out, Path):
         check_writable_dir(out)  # an unwritable DIR named before any patient starts
+        writer = writing_folder(out)  # one cohort command writes DIR at a time
     flow_fn = cohort_flow.with_options(task_runner=cohort_task_runner(n, dask))
     # the background server, when a Python caller configured none (flows.server)
-    with api_of_python_call(), tags(f"config:{config_digest(cfg)[:12]}", "cohort"):
+    with writer, api_of_python_call(), tags(f"config:{config_digest(cfg)[:12]}", "cohort"):
         return flow_fn(
             rows=[_json_row(r) for r in rows], out_dir=str(out),
             config=cfg.model_dump(mode="json"), workers=n,

@@ -131,8 +131,12 @@ def cohort_markdown(
     wall_seconds: float,
     workers: int,
     removed: Sequence[str] = (),
+    earlier: Sequence[str] = (),
 ) -> str:
     """A Markdown summary: status, volumes (mm3 and mL) per method and notes, failures, stages.
+
+    ``earlier``: failed patients whose folder still holds an earlier run's result,
+    said under the failures.
 
     Every patient that completed is in the volume table, with its status
     (``ok`` or ``check``) and notes (why to check first).
@@ -181,6 +185,13 @@ def cohort_markdown(
         for _, r in failed.iterrows():
             error = str(r["error"]).replace("|", "\\|")
             lines.append(f"| {r['patient_id']} | {r['failed_stage']} | {error} |")
+        if earlier:
+            lines += [
+                "",
+                f"The folder of {', '.join(earlier)} still holds an earlier run's result, not "
+                "this run's input's (this run failed before publishing): do not read it as "
+                "this run's.",
+            ]
     if removed:
         lines += [
             "",

@@ -240,6 +240,12 @@ def print_cohort_summary(result: Any) -> None:
             f"{escape(str(p.error))}",
             soft_wrap=True,
         )
+    if result.earlier:
+        console.print(
+            f"[yellow]earlier result kept[/] (this run failed before publishing, so the "
+            f"folder is not this input's): {escape(', '.join(result.earlier))}",
+            soft_wrap=True,
+        )
     if result.removed:
         console.print(
             f"[yellow]no longer in the manifest[/] (published earlier, folders kept): "

@@ -1,0 +1,65 @@
+"""One writer per output folder (tumor3d.storage.folder_lock): a second cohort command on the
+same DIR stops at once, in one line naming the holder, and a killed holder blocks nothing."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+import pytest
+from phantom_rows import small_phantom_rows
+
+from tumor3d.flows.cli.errors import EXIT_ENVIRONMENT, _error_line
+from tumor3d.flows.cohort import run_cohort
+from tumor3d.storage.folder_lock import LOCK_NAME, FolderBusyError, writing_folder
+
+
+def test_a_second_writer_is_refused_naming_the_first_and_may_write_after_it(tmp_path):
+    out = tmp_path / "out"
+    with writing_folder(out):
+        with pytest.raises(FolderBusyError) as busy, writing_folder(out):
+            pass
+        text = str(busy.value)
+        assert text.startswith(f"{out}: another tumor3d command is writing this folder")
+        assert f"pid {os.getpid()} on " in text and "\n" not in text
+        assert _error_line(busy.value) == (text, EXIT_ENVIRONMENT)  # exit code 3
+    with writing_folder(out):  # released at the end of the first
+        pass
+    assert (out / LOCK_NAME).is_file()
+
+
+def test_a_cohort_on_a_folder_another_command_writes_starts_nothing(tmp_path):
+    rows = small_phantom_rows(tmp_path / "in", [0], "lk")
+    out = tmp_path / "out"
+    with writing_folder(out), pytest.raises(FolderBusyError, match="another tumor3d command"):
+        run_cohort(rows, out, workers=1)
+    assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]  # no patient, no store
+
+
+def test_a_holder_killed_with_sigkill_leaves_the_folder_free(tmp_path):
+    out = tmp_path / "out"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(f"""
+            import sys, time
+            from tumor3d.storage.folder_lock import writing_folder
+            with writing_folder({str(out)!r}):
+                print("held", flush=True)
+                time.sleep(120)
+        """)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        with pytest.raises(FolderBusyError, match=f"pid {holder.pid} on "), writing_folder(out):
+            pass
+        holder.send_signal(signal.SIGKILL)
+        holder.wait(timeout=30)
+        with writing_folder(out):  # the operating system released it
+            pass
+    finally:
+        if holder.poll() is None:
+            holder.kill()
+        holder.wait()
