@@ -85,6 +85,9 @@ def test_patient_report_contents():
     for key in ("eq7", "voxel", "mesh"):
         assert VOLUME_DEFINITIONS[key][1] in text
     assert "3 (9, 10, 11)" in text and "24" in text
+    # the detection's flags are named as such, not as the slices with tumour (an audit
+    # read "Abnormal slices: 11" beside 8 slices with tumour as a contradiction)
+    assert "Slices flagged abnormal (detection) 3 (9, 10, 11)" in text
     assert "25000" in text and "10000" in text
     assert "2.00" in text  # total stage time
     assert c.imgs == [

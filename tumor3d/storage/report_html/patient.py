@@ -113,7 +113,7 @@ def patient_report_html(data: Mapping[str, Any]) -> str:
         rows.append(("Acquired slices", _e(data["n_slices"])))
     if "abnormal_slices" in data:
         shown = ", ".join(str(k) for k in abnormal) if abnormal else "none"
-        rows.append(("Abnormal slices", f"{len(abnormal)} ({_e(shown)})"))
+        rows.append(("Slices flagged abnormal (detection)", f"{len(abnormal)} ({_e(shown)})"))
     for label, count in _check_mapping(data.get("slice_counts", {}), "slice_counts").items():
         rows.append((_e(label), _e(count)))
     if "slab_height_mm" in data:
