@@ -96,7 +96,7 @@ evaluate: setup
 # default and the paper read literally, with each choice of paper.yaml reverted alone; the
 # demo patient end to end and Table 5 (time per phase); Table 4 and Figure 10 from the
 # interpolation and simplification evaluations' CSVs (reports/); the paper configuration at
-# 0.45 mm (the paper's 640 x 480) and 1.25 mm pixels; the real cases. About 5-7 minutes.
+# 0.45 mm (the paper's 640 x 480) and 1.25 mm pixels; the real cases. About 3 minutes (158 s).
 paper: setup
 	TUMOR3D_DATA_DIR="$(TUMOR3D_DATA_DIR)" PYTHONPATH=. $(BIN)/python benchmarks/paper_tables.py
 
