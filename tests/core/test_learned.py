@@ -136,11 +136,52 @@ def test_model_round_trip_is_plain_arrays_and_refuses_pickles(tiny_model):
         for k in ("feature", "threshold", "left", "right", "value", "roots")
     }
     np.savez(buf, meta=np.array([{"x": 1}], dtype=object), **arrays)
-    with pytest.raises(InputError, match="not a tumor3d forest model"):
+    with pytest.raises(InputError, match="not a readable tumor3d forest model"):
         ForestModel.from_bytes(buf.getvalue())
-    with pytest.raises(InputError):
-        ForestModel.from_bytes(b"not an npz")
     assert json.loads(json.dumps(back.meta)) == back.meta
+
+
+@pytest.mark.parametrize(
+    ("damage", "why"),
+    [
+        (lambda data: data[: len(data) // 2], "BadZipFile"),  # cut short
+        (lambda data: b"not an npz", "never unpickled"),  # a text file
+        (lambda data: data[:-40] + bytes(40), None),  # its end overwritten
+    ],
+)
+def test_a_damaged_model_file_is_one_line_naming_it_not_a_traceback(tiny_model, damage, why):
+    """A model file cut short or replaced (a user audit: a truncated hyper.npz gave a
+    151-line BadZipFile traceback; a text file was answered with allow_pickle advice)."""
+    with pytest.raises(InputError) as exc:
+        ForestModel.from_bytes(damage(tiny_model.to_bytes()), source="models/hyper.npz")
+    text = str(exc.value)
+    assert text.startswith("models/hyper.npz: not a readable tumor3d forest model (")
+    assert "\n" not in text and "allow_pickle" not in text
+    assert why is None or why in text
+
+
+def test_a_model_of_another_family_is_refused_naming_both(tiny_model, monkeypatch):
+    """A T1c (tumour core) model copied over hyper.npz (FLAIR, T2 whole tumour) was used
+    silently (a user audit: 17.7 mL against 15.3 mL, status check; through the API, ok)."""
+    from dataclasses import replace
+
+    from tumor3d.learned.shipped import check_family
+
+    t1c = replace(tiny_model, meta={**tiny_model.meta, "family": "t1c", "modalities": ["t1c"]})
+    with pytest.raises(InputError) as exc:
+        check_family(t1c, "hyper", "tumor3d/learned/models/hyper.npz")
+    assert str(exc.value) == (
+        "tumor3d/learned/models/hyper.npz: a model trained for t1c (t1c), not hyper (flair, "
+        "t2): put the hyper model there (`tumor3d train` writes hyper.npz)"
+    )
+    check_family(t1c, "t1c", "t1c.npz")  # its own family
+    check_family(tiny_model, "hyper", "hyper.npz")  # no record: taken as it is
+    # as the shipped files are read: hyper.npz holding the T1c model is refused
+    import tumor3d.learned.shipped as shipped
+
+    monkeypatch.setattr(shipped.ForestModel, "from_bytes", lambda data, source: t1c)
+    with pytest.raises(InputError, match="a model trained for t1c"):
+        shipped._load.__wrapped__("hyper")
 
 
 def test_a_forest_pointing_outside_its_nodes_is_refused():

@@ -17,13 +17,15 @@ import hashlib
 import io
 import json
 import os
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from typing import Any
 
 import numba
 import numpy as np
 
-from tumor3d.errors import InputError
+from tumor3d.errors import InputError, exception_line
 
 # The prediction runs on numba's parallel layer, OpenMP first: numba tries TBB
 # first and prints a warning when the TBB already loaded in the process is too
@@ -38,6 +40,21 @@ if not os.environ.get("NUMBA_THREADING_LAYER_PRIORITY") and (
 __all__ = ["ForestModel", "forest_from_lightgbm_dump", "predict_logit", "predict_proba"]
 
 _ARRAYS = ("feature", "threshold", "left", "right", "value", "roots")
+
+
+def _why(exc: BaseException) -> str:
+    """Why an ``.npz`` could not be read as a model, in words (never advice to unpickle).
+
+    >>> _why(ValueError("Cannot load file containing pickled data when allow_pickle=False"))
+    'not an .npz archive of plain arrays (a model is never unpickled)'
+    >>> _why(KeyError("feature"))
+    'no array feature'
+    """
+    if "pickle" in str(exc):
+        return "not an .npz archive of plain arrays (a model is never unpickled)"
+    if isinstance(exc, KeyError):
+        return f"no array {exc.args[0] if exc.args else ''}".strip()
+    return exception_line(exc)
 
 
 @dataclass(frozen=True)
@@ -129,8 +146,10 @@ class ForestModel:
                     )
                     for pre in stages
                 ]
-        except (OSError, ValueError, KeyError, UnicodeDecodeError) as exc:
-            raise InputError(f"{source}: not a tumor3d forest model ({exc})") from None
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+            raise InputError(
+                f"{source}: not a readable tumor3d forest model ({_why(exc)})"
+            ) from None
         context = None
         for arrays, meta in reversed(read):
             context = cls(

@@ -29,6 +29,7 @@ from tumor3d.learned.forest import ForestModel
 __all__ = [
     "CNN_MODELS",
     "MODEL_FAMILIES",
+    "check_family",
     "learned_models",
     "model_family",
     "shipped_cnn",
@@ -60,15 +61,42 @@ def model_family(modality: str) -> str:
 
 @cache
 def _load(family: str) -> ForestModel:
+    where = f"tumor3d/learned/models/{family}.npz"
     ref = resources.files("tumor3d.learned").joinpath("models", f"{family}.npz")
     try:
         data = ref.read_bytes()
     except (FileNotFoundError, OSError) as exc:
         raise InputError(
-            f"the learned model {family!r} is not installed (tumor3d/learned/models/"
-            f"{family}.npz): reinstall tumor3d or choose another segment.method"
+            f"the learned model {family!r} is not installed ({where}): reinstall tumor3d or "
+            "choose another segment.method"
         ) from exc
-    return ForestModel.from_bytes(data)
+    model = ForestModel.from_bytes(data, source=where)
+    check_family(model, family, where)
+    return model
+
+
+def check_family(model: ForestModel, family: str, where: str) -> None:
+    """Refuse a model trained for another family of sequences than the file it sits in.
+
+    ``tumor3d train`` records the family (``hyper``: FLAIR and T2, whole tumour; ``t1c``:
+    tumour core) and its sequences in the model's metadata; a T1c model copied over
+    ``hyper.npz`` would segment FLAIR's tumour core as if it were the whole tumour.
+    A model without the record (none shipped) is taken as it is.
+
+    Raises
+    ------
+    InputError
+        Naming the file, the model's family and sequences and the expected family.
+    """
+    trained = model.meta.get("family")
+    if trained is None or trained == family:
+        return
+    mods = ", ".join(str(m) for m in model.meta.get("modalities") or ()) or "?"
+    wanted = ", ".join(m for m, f in MODEL_FAMILIES.items() if f == family)
+    raise InputError(
+        f"{where}: a model trained for {trained} ({mods}), not {family} ({wanted}): "
+        f"put the {family} model there (`tumor3d train` writes {family}.npz)"
+    )
 
 
 def shipped_model(modality: str) -> ForestModel:
