@@ -140,9 +140,16 @@ def read_image_stack(
         )
     width, height = _slice_size(files[0])
     check_voxel_count((width, height, len(files)), limit, str(d))
-    slices = [_read_slice(files[0])]
+    first, depth = _read_slice(files[0])
+    slices = [first]
     for f in files[1:]:
-        arr = _read_slice(f)
+        arr, this_depth = _read_slice(f)
+        if this_depth != depth:  # gray levels on another scale: a tumour lost silently
+            raise InputError(
+                f"saved with {this_depth} gray levels, {files[0].name} with {depth}: save "
+                "every slice with the same bit depth",
+                str(f),
+            )
         if arr.shape != slices[0].shape:
             raise InputError(
                 f"slice size {arr.shape[1]}x{arr.shape[0]} (width x height) differs from "
@@ -215,7 +222,22 @@ def _slice_size(f: Path) -> tuple[int, int]:
         raise InputError(f"refused as a decompression bomb ({_describe(exc)})", str(f)) from None
 
 
-def _read_slice(f: Path) -> np.ndarray:
+#: The scale of a PIL image mode's gray levels (slices of one stack must share it).
+_DEPTHS = {"1": "1-bit", "I;16": "16-bit", "I;16B": "16-bit", "I;16L": "16-bit",
+           "I;16N": "16-bit", "I": "32-bit integer", "F": "32-bit float"}  # fmt: skip
+
+
+def _depth(mode: str) -> str:
+    """The bit depth of a PIL mode's values, in words (8-bit: gray, colour, palette).
+
+    >>> _depth("L"), _depth("RGB"), _depth("I;16B"), _depth("F")
+    ('8-bit', '8-bit', '16-bit', '32-bit float')
+    """
+    return _DEPTHS.get(mode, "8-bit")
+
+
+def _read_slice(f: Path) -> tuple[np.ndarray, str]:
+    """A slice's gray levels (float64, rows x columns) and its bit depth in words."""
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -240,7 +262,7 @@ def _read_slice(f: Path) -> np.ndarray:
         raise InputError(f"refused as a decompression bomb ({_describe(exc)})", str(f)) from None
     if arr.ndim != 2:
         raise InputError(f"expected a 2-D grayscale or RGB image, got shape {arr.shape}", str(f))
-    return arr
+    return arr, _depth(mode)
 
 
 def _has_sidecar(folder: Path) -> bool:
