@@ -89,6 +89,24 @@ def test_float_labels_that_are_not_integers_are_refused(thin, tmp_path, value, m
         reference_mask(ManifestRow("p5", image, "t2", reference=seg))
 
 
+def test_an_image_given_as_the_reference_is_refused(thin, tmp_path):
+    """A scan's gray levels given as the reference (integers, so no other check objects)
+    made nearly every voxel tumour: ``train`` then learned from it (a user audit: 6,000 of
+    6,268 rows lesion) and ``evaluate`` would score against it. A label map has a few
+    values (BraTS: 4 labels and 0)."""
+    image, seg, img, lab, aff = thin
+    gray = _write(tmp_path / "flair.nii.gz", np.rint(img).astype(np.int16), aff, "int16")
+    with pytest.raises(InputError) as exc:
+        reference_mask(ManifestRow("p6", image, "t2", reference=gray))
+    text = str(exc.value)
+    assert text.startswith(f"{gray}: patient p6: the reference holds ")
+    assert "distinct values (10-110): an image, not a label map (at most 32 labels)" in text
+    many = lab.astype(np.int16)
+    many[0, 0, :20] = np.arange(20) + 100  # 20 labels more: still a label map
+    ok = _write(tmp_path / "many.nii.gz", many, aff, "int16")
+    assert reference_mask(ManifestRow("p6", image, "t2", reference=ok))[0].sum() > 0
+
+
 def test_reference_without_requested_labels(thin, tmp_path):
     image, seg, *_ = thin
     row = ManifestRow("p7", image, "t2", reference=seg, reference_labels=(3, 4))

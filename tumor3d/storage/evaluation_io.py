@@ -78,6 +78,10 @@ def _squeeze3(array: np.ndarray, where: str) -> np.ndarray:
     return array
 
 
+#: A reference with more distinct values is an image, not a label map (BraTS has 4 labels).
+MAX_REFERENCE_LABELS = 32
+
+
 def reference_mask(row: ManifestRow) -> tuple[np.ndarray, np.ndarray]:
     """Read a row's reference as a boolean tumour mask ``(mask, affine)``.
 
@@ -87,7 +91,9 @@ def reference_mask(row: ManifestRow) -> tuple[np.ndarray, np.ndarray]:
     Raises
     ------
     InputError
-        Unreadable file, non-integer labels, or none of the requested labels present.
+        Unreadable file, non-integer labels, more than :data:`MAX_REFERENCE_LABELS`
+        distinct values (an image given as the reference), or none of the requested
+        labels present.
     """
     if row.reference is None:
         raise InputError(f"patient {row.patient_id}: no reference in the manifest")
@@ -107,6 +113,14 @@ def reference_mask(row: ManifestRow) -> tuple[np.ndarray, np.ndarray]:
                 f"patient {row.patient_id}: the reference labels are not integers", where
             )
         rounded = rounded.astype(np.int64)
+    values = np.unique(rounded)
+    if values.size > MAX_REFERENCE_LABELS:  # gray levels, not labels: every voxel "tumour"
+        raise InputError(
+            f"patient {row.patient_id}: the reference holds {values.size} distinct values "
+            f"({values[0]}-{values[-1]}): an image, not a label map (at most "
+            f"{MAX_REFERENCE_LABELS} labels)",
+            where,
+        )
     if row.reference_labels is None:
         mask = rounded > 0
         if not mask.any() and row.reference_kind != "tumor_free":
