@@ -558,7 +558,7 @@ def test_the_cohort_table_fits_80_columns_with_every_id_in_full(monkeypatch):
     ids = ["phantom000", "phantom001n", "a-rather-long-patient-id-of-a-site-0042"]
     result = types.SimpleNamespace(
         patients=[patient(i, s) for i, s in zip(ids, ["ok", "check", "ok"], strict=True)],
-        failed=[], removed=[], wall_seconds=1.0, out_dir="out",
+        failed=[], removed=[], earlier=[], wall_seconds=1.0, out_dir="out",
     )  # fmt: skip
     buf = io.StringIO()
     monkeypatch.setattr(output, "console", Console(file=buf, width=80))
