@@ -130,6 +130,9 @@ def test_a_row_without_reference_is_refused_in_one_line(tmp_path):
 
 def test_provenance_names_the_model_a_learned_run_used(tmp_path):
     """The learned method's model digest reaches provenance.json (issue 28 item 2)."""
+    import hashlib
+    from importlib import resources
+
     from tumor3d.flows.patient import run_patient
     from tumor3d.learned.shipped import shipped_model
 
@@ -138,7 +141,11 @@ def test_provenance_names_the_model_a_learned_run_used(tmp_path):
     result = run_patient(row.image, tmp_path / "out", patient_id="prov", modality="flair")
     prov = json.loads((tmp_path / "out" / "prov" / "provenance.json").read_text())
     assert prov["segmentation"]["method"] == "learned"
-    assert prov["segmentation"]["model_sha256"] == shipped_model("flair").digest()
+    # the file's SHA-256, as training.json and sha256sum give it (it was the arrays' digest)
+    shipped = resources.files("tumor3d.learned").joinpath("models", "hyper.npz").read_bytes()
+    assert prov["segmentation"]["model_sha256"] == hashlib.sha256(shipped).hexdigest()
+    assert prov["segmentation"]["model_sha256"] == shipped_model("flair").file_sha256
+    assert prov["segmentation"]["model_file"] == "tumor3d/learned/models/hyper.npz"
     assert result.metrics["segment_method"] == "learned"
 
 

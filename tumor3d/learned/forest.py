@@ -19,7 +19,7 @@ import json
 import os
 import zipfile
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numba
@@ -80,6 +80,10 @@ class ForestModel:
         An auto-context second stage (:mod:`tumor3d.learned.context`): a
         forest on the features plus the context features of this forest's
         probability, whose probability is the model's answer. None = one stage.
+    file_sha256 : str
+        SHA-256 of the bytes it was read from (:meth:`from_bytes`; ``sha256sum`` of the
+        ``.npz``, as ``tumor3d train`` records it in ``training.json``), "" when built
+        in memory. Not part of :meth:`digest` or equality.
     """
 
     feature: np.ndarray
@@ -90,6 +94,7 @@ class ForestModel:
     roots: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
     context: ForestModel | None = None
+    file_sha256: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
         if self.context is not None:
@@ -163,7 +168,7 @@ class ForestModel:
                 context,
             )
         assert context is not None
-        return context
+        return replace(context, file_sha256=hashlib.sha256(data).hexdigest())
 
     def digest(self) -> str:
         """SHA-256 of the arrays and metadata (independent of the compression)."""

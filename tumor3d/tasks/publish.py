@@ -278,7 +278,8 @@ def _provenance(
             "method": seg.get("segment_method"),
             # the learned method's model: its name and digest (absent for the others), and
             # the U-Net's file and SHA-256 where its probability was averaged with the forest's
-            **{k: seg[k] for k in ("model", "model_sha256", "cnn_model", "cnn_sha256") if k in seg},
+            **{k: seg[k] for k in ("model", "model_file", "model_sha256", "cnn_model",
+                                   "cnn_sha256") if k in seg},  # fmt: skip
         }
         if segmentation is None
         else segmentation.provenance()
