@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from prefect import flow, get_run_logger, tags
+from prefect.states import Failed, State
 from pydantic import BaseModel, ConfigDict, Field
 
 from tumor3d.config import PipelineConfig, parse_config
@@ -350,7 +351,7 @@ def cohort_flow(
     store_dir: str | None = None,
     max_voxels: int = MAX_VOXELS_DEFAULT,
     layout: str = "default",
-) -> CohortResult:
+) -> CohortResult | State[CohortResult]:
     """Run the single-patient pipeline for every row, ``workers`` stages at a time.
 
     Parameters
@@ -376,6 +377,13 @@ def cohort_flow(
     layout : {"default", "bids"}
         ``"bids"``: patients under ``DIR/sub-<label>/`` as BIDS derivatives
         (:mod:`tumor3d.storage.bids`).
+
+    Returns
+    -------
+    CohortResult or State
+        The result; when some patient failed, a ``Failed`` state holding it (the flow
+        run is then Failed in Prefect, as a scheduled run is; :func:`run_cohort`
+        returns the result either way).
     """
     t0 = time.perf_counter()
     cfg = parse_config(config or {}, source="config")
@@ -425,10 +433,19 @@ def cohort_flow(
     for o in outcomes:
         if o.status == STATUS_FAILED:
             logger.warning("patient %s failed at %s: %s", o.patient_id, o.failed_stage, o.error)
-    return CohortResult(
+    result = CohortResult(
         patients=outcomes, removed=removed, earlier=earlier, out_dir=str(out_dir),
         workers=workers, wall_seconds=wall,
     )  # fmt: skip
+    if result.failed:  # Failed in Prefect's UI and API too (as a scheduled run): its result kept
+        n = len(result.failed)
+        return Failed(
+            message=f"{n} of {len(outcomes)} patient{'s' if len(outcomes) != 1 else ''} "
+            f"failed: {', '.join(o.patient_id for o in result.failed[:3])}"
+            f"{f' and {n - 3} more' if n > 3 else ''}",
+            data=result,
+        )  # fmt: skip
+    return result
 
 
 def _default_store(out_dir: str | Path) -> str | Path:
@@ -568,9 +585,14 @@ def run_cohort(
     flow_fn = cohort_flow.with_options(task_runner=cohort_task_runner(n, dask))
     # the background server, when a Python caller configured none (flows.server)
     with writer, api_of_python_call(), tags(f"config:{config_digest(cfg)[:12]}", "cohort"):
-        return flow_fn(
+        state = flow_fn(
             rows=[_json_row(r) for r in rows], out_dir=str(out),
             config=cfg.model_dump(mode="json"), workers=n,
             store_dir=None if store_dir is None else str(store_dir), max_voxels=int(max_voxels),
-            layout=layout,
+            layout=layout, return_state=True,
         )  # fmt: skip
+    # a run with failed patients ends Failed, holding its CohortResult; an error, its exception
+    result = state.result(raise_on_failure=False)
+    if isinstance(result, BaseException):
+        raise result
+    return result
