@@ -112,6 +112,26 @@ def test_stored_rows_are_never_unpickled(trained):
         rows_from_bytes(buf.getvalue(), source="planted")
 
 
+def test_rows_of_one_class_name_each_patients_lesion_rows(trained, tmp_path):
+    """Training on tumour-free patients alone (or on references that miss their images):
+    one line naming each patient's lesion rows, before LightGBM (whose refusal named no
+    patient; a user audit). Its rows come from the fixture's store (cached)."""
+    import pandas as pd
+
+    manifest, out, _ = trained
+    free = pd.read_csv(manifest)
+    free = free[free["patient_id"] == "tr13n"]
+    free["image"] = [str((manifest.parent / p).resolve()) for p in free["image"]]
+    free.to_csv(tmp_path / "free.csv", index=False)
+    with pytest.raises(InputError) as exc:
+        run_training(tmp_path / "free.csv", tmp_path / "model", num_rounds=ROUNDS,
+                     store_dir=str(out / "model" / ".tumor3d-store"))  # fmt: skip
+    text = str(exc.value)
+    assert text.startswith("the hyper model's training rows hold one class only (lesion rows ")
+    assert "patient: tr13n 0 of " in text and "\n" not in text
+    assert not (tmp_path / "model").exists()
+
+
 def test_a_row_without_reference_is_refused_in_one_line(tmp_path):
     patient = make_phantom_patient(3, modality="flair", patient_id="noref", n_slices=10)
     row = write_phantom_patient(patient, tmp_path / "noref")

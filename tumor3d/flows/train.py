@@ -272,6 +272,15 @@ def train_flow(
             "training_cases": [c["patient_id"] for _, c in patients],
             "command": command,
         }
+        n_lesion = sum(c["lesion_rows"] for _, c in patients)
+        if n_lesion in (0, sum(c["rows"] for _, c in patients)):  # one class: say whose rows
+            counts = ", ".join(f"{c['patient_id']} {c['lesion_rows']} of {c['rows']}"
+                               for _, c in patients)  # fmt: skip
+            raise InputError(
+                f"the {family} model's training rows hold one class only (lesion rows per "
+                f"patient: {counts}): does each reference overlap its image, and is some "
+                "tissue outside the lesion?"
+            )
         model = train_forest(
             TrainingRows.concatenate([r for r, _ in patients]), num_rounds=num_rounds, meta=meta
         )
