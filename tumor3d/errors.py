@@ -17,6 +17,7 @@ __all__ = [
     "NoSurfaceError",
     "Tumor3DError",
     "exception_line",
+    "os_error_line",
     "os_error_path",
     "os_error_text",
 ]
@@ -68,8 +69,13 @@ def exception_line(exc: BaseException, limit: int | None = None) -> str:
     'KeyError'
     >>> exception_line(OSError("x" * 20), limit=12)
     'OSError: ...'
+    >>> exception_line(OSError(28, "No space left on device", "out/p1/mesh.ply"))
+    'OSError: out/p1/mesh.ply: no space left on device (ENOSPC)'
     """
-    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    if isinstance(exc, OSError) and exc.errno is not None:  # the file and what, in words
+        text = os_error_line(exc)
+    else:
+        text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
     line = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
     if limit is None or len(line) <= limit:
         return line
@@ -88,6 +94,24 @@ def os_error_text(exc: OSError) -> str:
     code = errno.errorcode.get(exc.errno or -1)
     text = text[:1].lower() + text[1:]
     return f"{text} ({code})" if code else text
+
+
+def os_error_line(exc: OSError) -> str:
+    """``FILE: what happened (CODE)``, a rename's two files as ``A -> B``, for a user.
+
+    Examples
+    --------
+    >>> os_error_line(OSError(28, "No space left on device", "out/p1/mesh.ply"))
+    'out/p1/mesh.ply: no space left on device (ENOSPC)'
+    >>> os_error_line(OSError(18, "Invalid cross-device link", "a", None, "b"))
+    'a -> b: invalid cross-device link (EXDEV)'
+    >>> os_error_line(OSError(28, "No space left on device"))
+    'no space left on device (ENOSPC)'
+    """
+    where = str(exc.filename) if exc.filename else ""
+    if exc.filename2:
+        where = f"{where} -> {exc.filename2}"
+    return f"{where}: {os_error_text(exc)}" if where else os_error_text(exc)
 
 
 def os_error_path(exc: OSError, default: str | os.PathLike[str]) -> str:

@@ -158,6 +158,20 @@ def test_cohort_table_artifact_is_on_the_cohort_flow_run(first):
     assert [r["status"] for r in rows] == ["ok", "failed", "ok", "ok"]
 
 
+def test_a_direct_call_of_the_failed_cohort_flow_raises_with_its_result(inputs, tmp_path):
+    """``cohort_flow`` called as a flow (a custom task runner: docs/ARCHITECTURE.md) raises
+    ``PatientsFailed`` holding the whole result when some patient failed, as Prefect raises
+    a failed flow's error (a Failed state holding the plain result made Prefect raise a
+    TypeError instead: the review of bc8ef5d)."""
+    from tumor3d.flows.cohort import PatientsFailed, cohort_flow
+
+    _, _, missing = inputs
+    row = {"patient_id": "ghost", "image": str(missing.image), "modality": "t2"}
+    with pytest.raises(PatientsFailed, match="1 of 1 patient failed: ghost") as exc:
+        cohort_flow(rows=[row], out_dir=str(tmp_path / "out"))
+    assert [p.status for p in exc.value.result.patients] == ["failed"]
+
+
 def test_the_flow_run_is_tagged_and_its_stage_task_runs_are_not(first):
     """The ``config:``/``cohort`` tags stay on the flow run: a tagged task run costs a
     round trip to the server for tag concurrency slots, every stage of every patient."""

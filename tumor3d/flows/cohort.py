@@ -44,7 +44,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
-from tumor3d.errors import InputError, exception_line, os_error_text
+from tumor3d.errors import InputError, Tumor3DError, exception_line
 from tumor3d.flows.artifacts import publish_cohort_artifacts
 from tumor3d.flows.dask_runner import DaskSpec, check_scheduler, cohort_task_runner
 from tumor3d.flows.patient import (
@@ -82,6 +82,7 @@ __all__ = [
     "EXIT_CHECK",
     "EXTRA_LANES",
     "PatientOutcome",
+    "PatientsFailed",
     "cohort_flow",
     "default_workers",
     "exit_code_of",
@@ -240,16 +241,8 @@ def default_workers() -> int:
 def one_line_error(exc: BaseException) -> str:
     """``Type: first line of the message``, at most 300 characters.
 
-    An OS error names its file and says what happened in words, as the commands'
-    own errors do.
-
-    >>> one_line_error(OSError(28, "No space left on device", "out/p1/mesh.ply"))
-    'OSError: out/p1/mesh.ply: no space left on device (ENOSPC)'
+    An OS error: the file and what happened in words (:func:`tumor3d.errors.os_error_line`).
     """
-    if isinstance(exc, OSError) and exc.errno is not None:
-        where = f"{exc.filename}: " if exc.filename else ""
-        line = f"{type(exc).__name__}: {where}{os_error_text(exc)}"
-        return line if len(line) <= _MAX_ERROR else line[: _MAX_ERROR - 3] + "..."
     return exception_line(exc, limit=_MAX_ERROR)
 
 
@@ -381,9 +374,10 @@ def cohort_flow(
     Returns
     -------
     CohortResult or State
-        The result; when some patient failed, a ``Failed`` state holding it (the flow
-        run is then Failed in Prefect, as a scheduled run is; :func:`run_cohort`
-        returns the result either way).
+        The result; when some patient failed, a ``Failed`` state holding
+        :class:`PatientsFailed` (the flow run is then Failed in Prefect, as a
+        scheduled run is). A direct call then raises that error, whose ``result``
+        is the whole result; :func:`run_cohort` returns the result either way.
     """
     t0 = time.perf_counter()
     cfg = parse_config(config or {}, source="config")
@@ -438,14 +432,25 @@ def cohort_flow(
         workers=workers, wall_seconds=wall,
     )  # fmt: skip
     if result.failed:  # Failed in Prefect's UI and API too (as a scheduled run): its result kept
-        n = len(result.failed)
-        return Failed(
-            message=f"{n} of {len(outcomes)} patient{'s' if len(outcomes) != 1 else ''} "
-            f"failed: {', '.join(o.patient_id for o in result.failed[:3])}"
-            f"{f' and {n - 3} more' if n > 3 else ''}",
-            data=result,
-        )  # fmt: skip
+        failed = PatientsFailed(result)
+        return Failed(message=str(failed), data=failed)
     return result
+
+
+class PatientsFailed(Tumor3DError):
+    """Some patients of a cohort failed; ``result`` is the whole :class:`CohortResult`.
+
+    The data of the cohort flow run's Failed state: a direct call of
+    :func:`cohort_flow` raises it (as Prefect raises a failed flow's error);
+    :func:`run_cohort` returns its ``result``.
+    """
+
+    def __init__(self, result: CohortResult) -> None:
+        n, total = len(result.failed), len(result.patients)
+        names = ", ".join(o.patient_id for o in result.failed[:3])
+        more = f" and {n - 3} more" if n > 3 else ""
+        super().__init__(f"{n} of {total} patient{'s' if total != 1 else ''} failed: {names}{more}")
+        self.result = result
 
 
 def _default_store(out_dir: str | Path) -> str | Path:
@@ -593,6 +598,8 @@ def run_cohort(
         )  # fmt: skip
     # a run with failed patients ends Failed, holding its CohortResult; an error, its exception
     result = state.result(raise_on_failure=False)
+    if isinstance(result, PatientsFailed):
+        return result.result
     if isinstance(result, BaseException):
         raise result
     return result

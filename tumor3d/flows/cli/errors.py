@@ -29,10 +29,9 @@ EXIT_TERMINATED = 143
 def _error_line(exc: BaseException) -> tuple[str, int]:
     """The one-line message and the exit code of an error that ends a command."""
     if isinstance(exc, OSError):
-        from tumor3d.errors import os_error_text
+        from tumor3d.errors import os_error_line
 
-        where = f"{exc.filename}: " if exc.filename else ""
-        return f"{where}{os_error_text(exc)}", EXIT_ENVIRONMENT
+        return os_error_line(exc), EXIT_ENVIRONMENT
     from tumor3d.flows.dask_runner import ClusterError
     from tumor3d.flows.server import ServerError
     from tumor3d.storage.store import StoreError
