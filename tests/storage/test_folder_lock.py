@@ -63,3 +63,50 @@ def test_a_holder_killed_with_sigkill_leaves_the_folder_free(tmp_path):
         if holder.poll() is None:
             holder.kill()
         holder.wait()
+
+
+def test_a_symbolic_link_in_place_of_the_lock_is_refused_and_its_target_untouched(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep me")
+    (out / LOCK_NAME).symlink_to(victim)
+    with pytest.raises(OSError) as exc, writing_folder(out):
+        pass
+    assert exc.value.filename == str(out / LOCK_NAME)
+    assert victim.read_text() == "keep me"
+
+
+def test_another_users_lock_file_is_locked_read_only(tmp_path, monkeypatch):
+    """A group-shared folder: the lock file of another user may not open read-write."""
+    import tumor3d.storage.folder_lock as folder_lock
+
+    out = tmp_path / "out"
+    with writing_folder(out):  # the file exists, as another user left it
+        pass
+    real_open = os.open
+
+    def no_write(path, flags, *args):
+        if flags & os.O_RDWR:
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_open(path, flags, *args)
+
+    monkeypatch.setattr(folder_lock.os, "open", no_write)
+    with writing_folder(out):
+        with pytest.raises(FolderBusyError), writing_folder(out):
+            pass
+
+
+def test_a_file_system_that_cannot_lock_runs_unlocked(tmp_path, monkeypatch):
+    import errno
+
+    import tumor3d.storage.folder_lock as folder_lock
+
+    def no_locks(fd, op):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(folder_lock.fcntl, "flock", no_locks)
+    ran = []
+    with writing_folder(tmp_path / "out"):
+        ran.append(True)
+    assert ran == [True]

@@ -11,17 +11,23 @@ pid, host and start time), an environment error (exit code 3).
 
 The operating system releases the lock when its process ends, however it
 ends (``kill -9`` included), so a stale lock cannot block a folder; the file
-itself stays (hidden), rewritten by the next holder. Output folders on S3 are
-not locked (no such lock there; ``README``, Artifact store on S3).
+itself stays (hidden), rewritten by the next holder; made writable by the
+users the umask lets (a group-shared folder), opened read-only when another
+user's file is not (``flock`` locks it all the same), never through a symbolic
+link. On a file system that cannot lock (NFS without its lock daemon) the
+command runs unlocked, as before. Output folders on S3 are not locked (no such
+lock there; ``README``, Artifact store on S3).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import json
 import os
 import socket
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -47,6 +53,28 @@ def _holder(fd: int) -> str:
         return "a process that did not say which"
 
 
+#: ``flock`` errors of a file system that cannot lock (NFS without its lock daemon, some
+#: network and FUSE file systems): the command then runs unlocked, as before the lock.
+_NO_LOCKING = frozenset({errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL})
+
+
+def _open_lock(lock: Path) -> tuple[int, bool]:
+    """The lock file's descriptor (never through a symbolic link) and whether it is writable.
+
+    Made readable and writable by everyone the umask lets (a group-shared folder): another
+    user's file is opened read-only, which ``flock`` locks as well.
+    """
+    flags = os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC
+    try:
+        fd, writable = os.open(lock, os.O_RDWR | flags, 0o666), True
+    except PermissionError:
+        fd, writable = os.open(lock, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC), False
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise OSError(errno.EEXIST, "exists and is not a regular file", str(lock))
+    return fd, writable
+
+
 @contextlib.contextmanager
 def writing_folder(folder: str | os.PathLike[str]) -> Iterator[None]:
     """Hold ``folder``'s writer lock for the body (the folder is made if absent).
@@ -56,14 +84,17 @@ def writing_folder(folder: str | os.PathLike[str]) -> Iterator[None]:
     FolderBusyError
         Another process holds it: one line naming the folder and that process.
     OSError
-        The folder or its lock file cannot be made (naming the folder).
+        The folder or its lock file cannot be made or opened (naming the lock file; a
+        symbolic link there is refused, never followed).
     """
     path = Path(folder)
+    lock = path / LOCK_NAME
     try:
         path.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+        fd, writable = _open_lock(lock)
     except OSError as exc:
-        raise OSError(exc.errno, exc.strerror, str(path)) from None
+        target = lock if path.is_dir() else path
+        raise OSError(exc.errno, exc.strerror, str(target)) from None
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -72,10 +103,15 @@ def writing_folder(folder: str | os.PathLike[str]) -> Iterator[None]:
                 f"{path}: another tumor3d command is writing this folder ({_holder(fd)}); "
                 "wait for it to end or give another output folder"
             ) from None
-        record = {"pid": os.getpid(), "host": socket.gethostname(), "started_utc": utc_now()}
-        with contextlib.suppress(OSError):  # who holds it is for the message only
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, json.dumps(record).encode("utf-8"), 0)
+        except OSError as exc:
+            if exc.errno not in _NO_LOCKING:
+                raise OSError(exc.errno, exc.strerror, str(lock)) from None
+            writable = False  # a file system that cannot lock: unlocked, as before
+        if writable:  # who holds it, for the message of the next one (best effort)
+            record = {"pid": os.getpid(), "host": socket.gethostname(), "started_utc": utc_now()}
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, json.dumps(record).encode("utf-8"), 0)
         yield
     finally:
         os.close(fd)  # releases the lock
