@@ -141,12 +141,26 @@ def test_model_round_trip_is_plain_arrays_and_refuses_pickles(tiny_model):
     assert json.loads(json.dumps(back.meta)) == back.meta
 
 
+def _npy(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array)
+    return buf.getvalue()
+
+
+def _npz(**arrays: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
 @pytest.mark.parametrize(
     ("damage", "why"),
     [
         (lambda data: data[: len(data) // 2], "BadZipFile"),  # cut short
         (lambda data: b"not an npz", "never unpickled"),  # a text file
         (lambda data: data[:-40] + bytes(40), None),  # its end overwritten
+        (lambda data: _npy(np.zeros(3)), "a single array, not an .npz"),  # one .npy array
+        (lambda data: _npz(x=np.zeros(3)), "no array feature)"),  # another archive
     ],
 )
 def test_a_damaged_model_file_is_one_line_naming_it_not_a_traceback(tiny_model, damage, why):

@@ -47,13 +47,14 @@ def _why(exc: BaseException) -> str:
 
     >>> _why(ValueError("Cannot load file containing pickled data when allow_pickle=False"))
     'not an .npz archive of plain arrays (a model is never unpickled)'
-    >>> _why(KeyError("feature"))
+    >>> _why(KeyError("feature is not a file in the archive"))
     'no array feature'
     """
     if "pickle" in str(exc):
         return "not an .npz archive of plain arrays (a model is never unpickled)"
-    if isinstance(exc, KeyError):
-        return f"no array {exc.args[0] if exc.args else ''}".strip()
+    if isinstance(exc, KeyError):  # numpy: "feature is not a file in the archive"
+        name = str(exc.args[0]).split(" is not a file")[0] if exc.args else ""
+        return f"no array {name}".strip()
     return exception_line(exc)
 
 
@@ -142,7 +143,10 @@ class ForestModel:
     def from_bytes(cls, data: bytes, *, source: str = "model") -> ForestModel:
         """Read :meth:`to_bytes`; never unpickles. ``source`` names it in errors."""
         try:
-            with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            loaded = np.load(io.BytesIO(data), allow_pickle=False)
+            if not isinstance(loaded, np.lib.npyio.NpzFile):  # one .npy array
+                raise ValueError("a single array, not an .npz archive of a model's arrays")
+            with loaded as z:
                 stages = [""] + ([_CTX] if _CTX + "feature" in z.files else [])
                 read = [
                     (
