@@ -105,6 +105,8 @@ def test_an_image_given_as_the_reference_is_refused(thin, tmp_path):
     many[0, 0, :20] = np.arange(20) + 100  # 20 labels more: still a label map
     ok = _write(tmp_path / "many.nii.gz", many, aff, "int16")
     assert reference_mask(ManifestRow("p6", image, "t2", reference=ok))[0].sum() > 0
+    named = ManifestRow("p6", image, "t2", reference=gray, reference_labels=(50,))
+    assert reference_mask(named)[0].sum() == (np.rint(img) == 50).sum()  # labels named: taken
 
 
 def test_reference_without_requested_labels(thin, tmp_path):

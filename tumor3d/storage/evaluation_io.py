@@ -78,7 +78,8 @@ def _squeeze3(array: np.ndarray, where: str) -> np.ndarray:
     return array
 
 
-#: A reference with more distinct values is an image, not a label map (BraTS has 4 labels).
+#: A reference with more distinct values and no labels named is an image, not a label map
+#: (BraTS has 4 labels; a map of many structures names its tumour's, ``reference_labels``).
 MAX_REFERENCE_LABELS = 32
 
 
@@ -92,8 +93,9 @@ def reference_mask(row: ManifestRow) -> tuple[np.ndarray, np.ndarray]:
     ------
     InputError
         Unreadable file, non-integer labels, more than :data:`MAX_REFERENCE_LABELS`
-        distinct values (an image given as the reference), or none of the requested
-        labels present.
+        distinct values where no labels are named (an image given as the reference;
+        a label map of many structures names its tumour's labels), or none of the
+        requested labels present.
     """
     if row.reference is None:
         raise InputError(f"patient {row.patient_id}: no reference in the manifest")
@@ -113,7 +115,7 @@ def reference_mask(row: ManifestRow) -> tuple[np.ndarray, np.ndarray]:
                 f"patient {row.patient_id}: the reference labels are not integers", where
             )
         rounded = rounded.astype(np.int64)
-    values = np.unique(rounded)
+    values = np.unique(rounded) if row.reference_labels is None else np.zeros(0)
     if values.size > MAX_REFERENCE_LABELS:  # gray levels, not labels: every voxel "tumour"
         raise InputError(
             f"patient {row.patient_id}: the reference holds {values.size} distinct values "
