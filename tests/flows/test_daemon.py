@@ -118,3 +118,32 @@ def test_a_client_without_stdin_runs_in_process(runner, tmp_path):
     )  # fmt: skip
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
     assert _served(runner) == before
+
+
+def test_sigterm_to_the_client_ends_the_forwarded_command_in_one_line(runner, tmp_path):
+    """``timeout`` or systemd stop the client with SIGTERM: it relays it to the forked
+    command (in a session of its own, which the signal would not reach), which ends as
+    in-process: one line, exit code 143. The client died silently with 143 before, the
+    command going on without it."""
+    import signal
+
+    from tumor3d.phantom import make_phantom_patient
+    from tumor3d.storage.phantom_io import write_phantom_patient
+
+    patient = make_phantom_patient(2, n_slices=8, matrix_size=(64, 64), patient_id="term")
+    image = write_phantom_patient(patient, tmp_path / "in").image
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CLIENT, "run", str(image), "--out", "out"],
+        env=_env(runner), cwd=str(tmp_path), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+    assert proc.stdout is not None
+    for line in proc.stdout:  # the command is under way: its Prefect server is starting
+        if "starting Prefect" in line:
+            break
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err[-2000:]
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("terminated: SIGTERM stopped"), err[-2000:]
+    assert not (tmp_path / "out" / "term").exists()

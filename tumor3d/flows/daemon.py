@@ -153,16 +153,26 @@ def forward(argv: list[str]) -> int | None:
         return None
     child = int(reply.get("pid", 0))
     sock.settimeout(None)
-    while True:
-        try:
-            done = _read_line(sock)
-            break
-        except KeyboardInterrupt:  # relayed: the command handles Ctrl-C as in-process
-            if child > 0:
-                try:
-                    os.kill(child, signal.SIGINT)
-                except OSError:
-                    pass
+
+    def relay(signum: int) -> None:  # the command handles it as in-process: one line, its code
+        if child > 0:
+            try:
+                os.kill(child, signum)
+            except OSError:
+                pass
+
+    # SIGTERM (timeout, systemd) too: the child runs in a session of its own, so it would
+    # otherwise go on writing after its client died silently with 143
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: relay(signum))
+    try:
+        while True:
+            try:
+                done = _read_line(sock)
+                break
+            except KeyboardInterrupt:
+                relay(signal.SIGINT)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     sock.close()
     if done is None or "exit" not in done:
         print("error: the background runner ended the command without a result", file=sys.stderr)
