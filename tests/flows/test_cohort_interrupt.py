@@ -135,3 +135,44 @@ def test_sigterm_ends_a_command_as_ctrl_c_does_in_one_line(signum, code, line):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == code
     assert err.strip() == line
+
+
+@pytest.mark.usefixtures("prefect_harness")
+def test_an_interrupted_cohort_is_crashed_on_its_persistent_server(tmp_path):
+    """A cohort on a persistent server (``PREFECT_API_URL``; here the tests' server)
+    stopped by Ctrl-C: exit 130 in one line, and its flow run is Crashed with that line on
+    the server, not Running for good (the runs send no heartbeats; a user audit found them
+    Running). SIGTERM is crashed by Prefect's own engine ("Execution was aborted by a
+    termination signal"), before the command's line."""
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterName
+    from prefect.settings import PREFECT_API_URL
+
+    rows = [
+        write_phantom_patient(
+            make_phantom_patient(7, patient_id="term7", **SMALL), tmp_path / "in" / "7"
+        )
+    ]
+    manifest = write_manifest(rows, tmp_path / "in" / "manifest.csv")
+    env = {**os.environ, "PREFECT_API_URL": PREFECT_API_URL.value(),
+           "TUMOR3D_HOME": str(tmp_path / "t3d")}  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tumor3d.flows.cli", "cohort", str(manifest), "--out",
+         str(tmp_path / "termout"), "--workers", "1"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
+    assert proc.stdout is not None
+    for line in proc.stdout:  # plain progress lines: patient<TAB>stage<TAB>seconds
+        if line.count("\t") == 2:
+            break
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err[-2000:]
+    assert err.strip().startswith("interrupted: Ctrl-C stopped the cohort"), err[-2000:]
+    name = FlowRunFilterName(any_=["cohort-termout-1-patients"])
+    with get_client(sync_client=True) as client:
+        runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(name=name))
+    assert len(runs) == 1 and runs[0].state is not None
+    assert runs[0].state.is_crashed(), runs[0].state
+    assert runs[0].state.message == err.strip()

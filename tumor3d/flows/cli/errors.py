@@ -51,12 +51,46 @@ def _fail(exc: BaseException) -> typer.Exit:
 _HANDLED = (Tumor3DError, OSError)
 
 
+def _crash_current_runs(message: str) -> None:
+    """Set the flow runs this command is inside Crashed on their server (best effort).
+
+    Called as an interrupted command ends: its runs would otherwise stay Running for
+    good on a persistent server (the flow runs send no heartbeats, so nothing else
+    notices). The innermost run of this thread and the flow runs above it; at most 2 s
+    a request, no retries (a temporary server stopped by the same Ctrl-C refuses at
+    once).
+    """
+    from prefect.context import FlowRunContext
+
+    ctx = FlowRunContext.get()
+    if ctx is None or ctx.flow_run is None:
+        return
+    from prefect.client.orchestration import get_client
+    from prefect.settings import (
+        PREFECT_API_REQUEST_TIMEOUT,
+        PREFECT_CLIENT_MAX_RETRIES,
+        temporary_settings,
+    )
+    from prefect.states import Crashed
+
+    quick = {PREFECT_CLIENT_MAX_RETRIES: 0, PREFECT_API_REQUEST_TIMEOUT: 2.0}
+    with temporary_settings(updates=quick), get_client(sync_client=True) as client:
+        run_id = ctx.flow_run.id
+        for _ in range(4):  # a cohort inside an evaluation, ...
+            client.set_flow_run_state(run_id, Crashed(message=message), force=True)
+            parent = client.read_flow_run(run_id).parent_task_run_id
+            if parent is None:
+                return
+            run_id = client.read_task_run(parent).flow_run_id
+
+
 @contextmanager
 def _ctrl_c_ends(message: str) -> Iterator[None]:
     """Ctrl-C (SIGINT) ends the command at once: one line on stderr, exit code 130.
 
     SIGTERM (what ``timeout``, systemd and Kubernetes send) alike, exit code 143,
-    the line saying SIGTERM where ``message`` says Ctrl-C.
+    the line saying SIGTERM where ``message`` says Ctrl-C. The flow runs under way
+    are set Crashed on their server, with that line (:func:`_crash_current_runs`).
 
     Python's KeyboardInterrupt did not stop a cohort: the main thread's
     interrupt waited for every patient lane to finish, and those lanes (with
@@ -85,6 +119,8 @@ def _ctrl_c_ends(message: str) -> Iterator[None]:
                     stream.flush()
                 sys.stderr.write(("\n" if console.is_terminal else "") + line + "\n")
                 sys.stderr.flush()
+                with contextlib.suppress(Exception):
+                    _crash_current_runs(line)
             finally:
                 for hook in EXIT_HOOKS:
                     with contextlib.suppress(Exception):
