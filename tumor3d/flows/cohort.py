@@ -47,6 +47,7 @@ from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError, Tumor3DError, exception_line
 from tumor3d.flows.artifacts import publish_cohort_artifacts
 from tumor3d.flows.dask_runner import DaskSpec, check_scheduler, cohort_task_runner
+from tumor3d.flows.exit_codes import EXIT_CHECK, EXIT_ENVIRONMENT
 from tumor3d.flows.patient import (
     VOLUME_LABELS,
     config_digest,
@@ -207,11 +208,6 @@ class CohortResult(BaseModel):
             return EXIT_ENVIRONMENT
         return exit_code_of([p.status for p in self.patients])
 
-
-#: Exit code of a command whose results completed but some need a human's check.
-EXIT_CHECK = 4
-#: Exit code of a command some of whose patients failed for the machine, not their input.
-EXIT_ENVIRONMENT = 3
 
 #: OS errors that say the machine could not write, wherever they happen.
 _ENVIRONMENT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS})

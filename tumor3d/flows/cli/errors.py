@@ -13,17 +13,13 @@ from rich.markup import escape
 
 from tumor3d.errors import Tumor3DError
 from tumor3d.flows.cli.app import console, err_console
-
-#: Exit code of bad input (a file, option, configuration or manifest the user gave).
-EXIT_INPUT = 2
-#: Exit code of environment errors: store or output not writable, server unavailable.
-EXIT_ENVIRONMENT = 3
-#: Exit code of results published with status ``check`` (a human should look).
-EXIT_CHECK = 4
-#: Exit code of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
-EXIT_INTERRUPTED = 130
-#: Exit code of a command stopped by SIGTERM (128 + 15: ``timeout``, systemd, Kubernetes).
-EXIT_TERMINATED = 143
+from tumor3d.flows.exit_codes import (  # noqa: F401  (the command line's names for them)
+    EXIT_CHECK,
+    EXIT_ENVIRONMENT,
+    EXIT_INPUT,
+    EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
+)
 
 
 def _error_line(exc: BaseException) -> tuple[str, int]:
