@@ -32,6 +32,7 @@ __all__ = [
     "check_family",
     "learned_models",
     "model_family",
+    "model_file",
     "shipped_cnn",
     "shipped_model",
 ]
@@ -59,9 +60,18 @@ def model_family(modality: str) -> str:
     return MODEL_FAMILIES[mod]
 
 
+def model_file(name: str) -> str:
+    """Where a shipped model file ``name`` (``hyper``, ``unet_flair_seed0``, ...) is, as said.
+
+    >>> model_file("hyper")
+    'tumor3d/learned/models/hyper.npz'
+    """
+    return f"tumor3d/learned/models/{name}.npz"
+
+
 @cache
 def _load(family: str) -> ForestModel:
-    where = f"tumor3d/learned/models/{family}.npz"
+    where = model_file(family)
     ref = resources.files("tumor3d.learned").joinpath("models", f"{family}.npz")
     try:
         data = ref.read_bytes()
@@ -106,7 +116,7 @@ def shipped_model(modality: str) -> ForestModel:
 
 @cache
 def _load_cnn(name: str) -> UNetWeights:
-    where = f"tumor3d/learned/models/{name}.npz"
+    where = model_file(name)
     ref = resources.files("tumor3d.learned").joinpath("models", f"{name}.npz")
     try:
         data = ref.read_bytes()

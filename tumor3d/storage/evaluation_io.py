@@ -115,15 +115,15 @@ def reference_mask(row: ManifestRow) -> tuple[np.ndarray, np.ndarray]:
                 f"patient {row.patient_id}: the reference labels are not integers", where
             )
         rounded = rounded.astype(np.int64)
-    values = np.unique(rounded) if row.reference_labels is None else np.zeros(0)
-    if values.size > MAX_REFERENCE_LABELS:  # gray levels, not labels: every voxel "tumour"
-        raise InputError(
-            f"patient {row.patient_id}: the reference holds {values.size} distinct values "
-            f"({values[0]}-{values[-1]}): an image, not a label map (at most "
-            f"{MAX_REFERENCE_LABELS} labels)",
-            where,
-        )
     if row.reference_labels is None:
+        values = np.unique(rounded)
+        if values.size > MAX_REFERENCE_LABELS:  # gray levels, not labels: all "tumour"
+            raise InputError(
+                f"patient {row.patient_id}: the reference holds {values.size} distinct "
+                f"values ({values[0]}-{values[-1]}): an image, not a label map (at most "
+                f"{MAX_REFERENCE_LABELS} labels)",
+                where,
+            )
         mask = rounded > 0
         if not mask.any() and row.reference_kind != "tumor_free":
             raise InputError(f"patient {row.patient_id}: the reference has no label > 0", where)

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from tumor3d.config import SegmentConfig
-from tumor3d.learned.shipped import CNN_MODELS, learned_models, model_family
+from tumor3d.learned.shipped import CNN_MODELS, learned_models, model_family, model_file
 from tumor3d.segmentation.detect import SliceDetection
 from tumor3d.segmentation.given_segmentation import given_definition, given_segmentation
 from tumor3d.segmentation.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
@@ -194,7 +194,7 @@ def segment(
             "model": learned["model"].meta.get("name", "shipped"),
             # of its file, as training.json and sha256sum give it (a model in memory: of
             # its arrays and metadata)
-            "model_file": f"tumor3d/learned/models/{model_family(modality)}.npz",
+            "model_file": model_file(model_family(modality)),
             "model_sha256": learned["model"].file_sha256 or learned["model"].digest(),
         }
         if cnn is not None:  # the U-Nets averaged with the forest: their files and SHA-256s
