@@ -31,7 +31,14 @@ from tumor3d.config import PipelineConfig, parse_config
 from tumor3d.errors import InputError
 from tumor3d.geometry.measures import clinical_measures
 from tumor3d.geometry.mesh import Mesh
-from tumor3d.imaging.scan import MODALITIES, Scan, slab_height_mm
+from tumor3d.imaging.scan import (
+    MODALITIES,
+    Scan,
+    canonical_flips,
+    canonical_orientation,
+    reverse_axes,
+    slab_height_mm,
+)
 from tumor3d.metrics import measure_volumes
 from tumor3d.segmentation.lesion import left_right_axis
 from tumor3d.segmentation.review import brain_mask_run_notes, review_status, run_notes
@@ -47,7 +54,9 @@ class Reconstruction:
     """What :func:`reconstruct` returns.
 
     Arrays are in the pipeline's ``(z, y, x)`` order (``z`` the slice axis)
-    with ``affine`` mapping ``(x, y, z, 1)`` to RAS mm; :meth:`on_input_grid`
+    with ``affine`` mapping ``(x, y, z, 1)`` to RAS mm, on ``scan``'s grid, in
+    the working orientation (LPS for an axial stack:
+    :func:`tumor3d.imaging.scan.canonical_orientation`); :meth:`on_input_grid`
     puts a mask back in the input's own voxel order.
 
     Attributes
@@ -190,6 +199,12 @@ def reconstruct_scan(
 ) -> Reconstruction:
     """Run the pipeline's stages on a :class:`~tumor3d.imaging.scan.Scan` (pure: arrays in and out).
 
+    A scan in another orientation than the readers' working one (a Scan built by
+    hand with an RAS affine, say) is first reversed into it
+    (:func:`~tumor3d.imaging.scan.canonical_orientation`), as a file is, so that the
+    learned method reads it as it was trained; the result's arrays are on the
+    reversed scan (``Reconstruction.scan``), and its ``on_input_grid`` puts them back.
+
     Parameters
     ----------
     scan : Scan
@@ -233,6 +248,13 @@ def reconstruct_scan(
         tumour_given = binarize_segmentation(segmentation)
         if tumour_given.shape != scan.shape:
             raise InputError(f"segmentation has shape {tumour_given.shape}, the image {scan.shape}")
+    flips = canonical_flips(scan.affine)
+    if any(flips):  # the working orientation, the given masks with it
+        given, tumour_given = (
+            None if a is None else np.ascontiguousarray(reverse_axes(a, scan.affine, flips)[0])
+            for a in (given, tumour_given)
+        )
+        scan = canonical_orientation(scan)
     spacing = scan.spacing_zyx_mm
     affine = np.asarray(scan.affine, dtype=np.float64)
     lr_axis = left_right_axis(affine)

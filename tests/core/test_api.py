@@ -77,6 +77,34 @@ def test_an_array_with_its_affine_and_a_file_give_the_same_result(phantom, resul
         )
 
 
+def test_a_scan_built_in_another_orientation_is_read_as_a_file_would_be(phantom, result):
+    """The phantom (LPS) as a hand-built Scan in RAS with its brain mask: the methods read
+    it in the working orientation (the learned one reads positions and slices as images),
+    so the result is the LPS one, and on_input_grid gives the masks back as built."""
+    import dataclasses
+
+    from tumor3d.imaging.scan import reverse_axes
+
+    lps = phantom.scan
+    image, affine = reverse_axes(lps.image, lps.affine, (True, True, False))
+    ras = dataclasses.replace(
+        lps, image=np.ascontiguousarray(image), affine=affine,
+        source_grid=dataclasses.replace(lps.source_grid, affine=affine),
+    )  # fmt: skip
+    given = result.brain_mask
+    want = tumor3d.reconstruct(lps, brain_mask=given)
+    got = tumor3d.reconstruct(ras, brain_mask=np.ascontiguousarray(given[:, ::-1, ::-1]))
+    assert got.volumes_mm3 == want.volumes_mm3 and got.notes == want.notes
+    np.testing.assert_array_equal(got.affine, lps.affine)
+    np.testing.assert_array_equal(got.tumor_mask_slices, want.tumor_mask_slices)
+    np.testing.assert_array_equal(got.brain_mask, given)
+    as_built = got.on_input_grid(got.tumor_mask_slices)
+    np.testing.assert_array_equal(
+        as_built,
+        ras.source_grid.to_source(np.ascontiguousarray(want.tumor_mask_slices[:, ::-1, ::-1])),
+    )
+
+
 def test_the_api_agrees_with_the_pipeline_stage_for_stage(phantom, result, tmp_path):
     """The same core functions in the same order as tumor3d.flows.patient.run_stages.
 

@@ -55,8 +55,14 @@ def test_nifti_keeps_affine_and_data(tmp_path):
     data = ramp_volume((12, 10, 4))
     f = save_nifti(tmp_path / "pat-01.nii.gz", data, LAS)
     scan = read_scan(f, modality="flair")
-    np.testing.assert_array_equal(scan.affine, nib.load(str(f)).affine)
-    np.testing.assert_array_equal(scan.image, data.transpose(2, 1, 0).astype(np.float32))
+    # LAS is worked on as LPS: the rows reversed, each voxel at its world position
+    lps = nib.load(str(f)).affine.copy()
+    lps[:3, 3] += lps[:3, 1] * (10 - 1)
+    lps[:3, 1] *= -1
+    np.testing.assert_array_equal(scan.affine, lps)
+    np.testing.assert_array_equal(scan.image, data.transpose(2, 1, 0)[:, ::-1].astype(np.float32))
+    assert scan.source.endswith("stored LAS, read as LPS")
+    np.testing.assert_array_equal(scan.source_grid.to_source(scan.image), data)
     assert scan.image.dtype == np.float32
     assert scan.shape == (4, 10, 12)
     assert scan.pixel_spacing_mm == pytest.approx((0.8, 0.9))
@@ -74,7 +80,7 @@ def test_nifti_4d_singleton_accepted(tmp_path):
     data = ramp_volume((8, 6, 3))
     f = save_nifti(tmp_path / "v.nii", data[..., None], LAS)
     scan = read_scan(f)
-    np.testing.assert_array_equal(scan.image, data.transpose(2, 1, 0))
+    np.testing.assert_array_equal(scan.image, data.transpose(2, 1, 0)[:, ::-1])  # LAS as LPS
     assert scan.source_grid.shape == (8, 6, 3)
 
 
@@ -133,11 +139,14 @@ def test_nifti_permuted_axes_slice_axis_first(tmp_path):
     assert scan.shape == (5, 7, 9)  # z = source 0, y = source 2, x = source 1
     assert scan.slice_step_mm == pytest.approx(4.0)
     assert scan.pixel_spacing_mm == pytest.approx((0.6, 0.7))
+    # worked on as LPS: x to the left, rows to posterior (source axis 2 runs anterior), S
+    assert np.sign(np.diag(scan.affine)[:3]).tolist() == [-1.0, -1.0, 1.0]
+    assert scan.source_grid.flips == (False, True, False)
     rng = np.random.default_rng(1)
     for a, b, c in rng.integers(0, [5, 9, 7], size=(20, 3)):
-        assert scan.image[a, c, b] == data[a, b, c]
+        assert scan.image[a, 7 - 1 - c, b] == data[a, b, c]
         world = affine @ np.array([a, b, c, 1.0])
-        np.testing.assert_allclose(scan.index_to_ras([[a, c, b]])[0], world[:3], atol=1e-5)
+        np.testing.assert_allclose(scan.index_to_ras([[a, 7 - 1 - c, b]])[0], world[:3], atol=1e-5)
     np.testing.assert_array_equal(scan.source_grid.to_source(scan.image), data)
 
 
@@ -219,13 +228,15 @@ def test_dicom_series_with_rows_along_left_right_is_read_with_its_columns_as_x(t
     scan = read_scan(tmp_path / "rot90", modality="T2")
     raw = s.raw.astype(np.float32) * 2 - 10  # (k, row j, column i)
     assert scan.shape == (6, 12, 16)  # (z, y = the files' columns, x = the files' rows)
-    np.testing.assert_array_equal(scan.image, raw.transpose(0, 2, 1))
-    assert abs(scan.affine[0, 0]) == pytest.approx(0.8, abs=1e-5)  # x along R/L, row spacing
+    # the files' rows run to the right: x reversed, to the left (the working orientation)
+    np.testing.assert_array_equal(scan.image, raw.transpose(0, 2, 1)[:, :, ::-1])
+    assert scan.affine[0, 0] == pytest.approx(-0.8, abs=1e-5)  # x to L, row spacing
+    assert scan.source.endswith("stored RPS, read as LPS")
     assert scan.pixel_spacing_mm == pytest.approx((0.9, 0.8))
     for k in range(6):
         for j, i in [(0, 0), (15, 0), (0, 11), (7, 5)]:  # file row j, file column i
             np.testing.assert_allclose(
-                scan.index_to_ras([[k, i, j]])[0], dicom_expected_ras(s, k, j, i), atol=1e-4
+                scan.index_to_ras([[k, i, 15 - j]])[0], dicom_expected_ras(s, k, j, i), atol=1e-4
             )
     assert scan.source_grid.shape == (12, 16, 6)
     np.testing.assert_array_equal(scan.source_grid.to_source(scan.image), raw.transpose(2, 1, 0))

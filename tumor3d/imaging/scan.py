@@ -2,9 +2,22 @@
 
 A `Scan` always holds its image as float32 ``(z, y, x)`` with ``z`` the slice
 (acquisition) axis, whatever the voxel order of the file it came from. The
-readers permute the voxel axes of the source (they never resample or flip),
-and :class:`SourceGrid` remembers how, so that every output can be written
-back in the input's own voxel grid and affine, voxel for voxel.
+readers permute the voxel axes of the source and reverse some of them (they
+never resample), and :class:`SourceGrid` remembers how, so that every output
+can be written back in the input's own voxel grid and affine, voxel for voxel.
+
+Working orientation
+-------------------
+The readers reverse the Scan axes that run against the working orientation
+(:func:`canonical_flips`, :func:`canonical_orientation`): ``x`` towards the
+patient's left, rows (``y``) towards posterior on an axial slice and towards
+inferior on a coronal or sagittal one, slices (``z``) towards superior on an
+axial stack (left on a sagittal one, posterior on a coronal one). This is how
+DICOM and the BraTS volumes store an axial head (LPS), and so how the learned
+method's training scans ran: its position features and its U-Net read an
+array, and a patient stored the other way (a LAS NIfTI, slices from the top
+down) would otherwise be another input to them (one BraTS FLAIR stored LAS
+lost 16 % of its learned volume).
 
 Affine convention
 -----------------
@@ -32,7 +45,7 @@ is ``dx * dy``.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -43,7 +56,10 @@ __all__ = [
     "MODALITIES",
     "Scan",
     "SourceGrid",
+    "canonical_flips",
+    "canonical_orientation",
     "in_plane_shear",
+    "reverse_axes",
     "slab_height_mm",
     "slice_plane_spacing_mm",
     "validate_patient_id",
@@ -233,11 +249,16 @@ class SourceGrid:
     axes : tuple of int
         ``axes[k]`` is the source voxel axis that became Scan axis ``k`` of
         ``(x, y, z)``; ``(0, 1, 2)`` when no permutation was needed.
+    flips : tuple of bool
+        ``flips[k]``: Scan axis ``k`` of ``(x, y, z)`` runs against source
+        axis ``axes[k]`` (index ``i`` of the Scan is ``n - 1 - i`` of the
+        source); none when the source already ran as the working orientation.
     """
 
     shape: tuple[int, int, int]
     affine: np.ndarray
     axes: tuple[int, int, int] = (0, 1, 2)
+    flips: tuple[bool, bool, bool] = (False, False, False)
 
     def __post_init__(self) -> None:
         if sorted(self.axes) != [0, 1, 2]:
@@ -249,6 +270,17 @@ class SourceGrid:
         object.__setattr__(self, "affine", aff)
         object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
         object.__setattr__(self, "axes", tuple(int(a) for a in self.axes))
+        if len(self.flips) != 3:
+            raise ValueError(f"flips must hold 3 booleans, got {self.flips}")
+        object.__setattr__(self, "flips", tuple(bool(f) for f in self.flips))
+
+    def _flip_zyx(self, array_zyx: np.ndarray) -> np.ndarray:
+        """Reverse the ``(z, y, x)`` axes named by ``flips`` (its own inverse)."""
+        out = array_zyx
+        for k, flipped in enumerate(self.flips):
+            if flipped:
+                out = np.flip(out, 2 - k)
+        return out
 
     def from_source(self, array: np.ndarray) -> np.ndarray:
         """Return a source-order array on the Scan's ``(z, y, x)`` grid (C-contiguous).
@@ -260,11 +292,11 @@ class SourceGrid:
             raise ValueError(
                 f"array of shape {arr.shape} does not match the source grid {self.shape}"
             )
-        return np.ascontiguousarray(arr.transpose(self.axes[::-1]))
+        return np.ascontiguousarray(self._flip_zyx(arr.transpose(self.axes[::-1])))
 
     def to_source(self, array_zyx: np.ndarray) -> np.ndarray:
         """Return a Scan-grid ``(z, y, x)`` array in the source's voxel order."""
-        xyz = np.asarray(array_zyx).transpose(2, 1, 0)
+        xyz = self._flip_zyx(np.asarray(array_zyx)).transpose(2, 1, 0)
         inverse = np.argsort(self.axes)
         out = xyz.transpose(inverse)
         if out.shape != self.shape:
@@ -280,8 +312,9 @@ class SourceGrid:
         """Put an array on another grid in the source's axis order.
 
         Used for volumes that share the scan's world space but not its grid
-        (the finely interpolated mask): the axes are permuted as the source's
-        are, and the affine's columns with them, so world positions are kept.
+        (the finely interpolated mask): the axes are reversed and permuted as
+        the source's are, and the affine's columns with them, so world
+        positions are kept.
 
         Parameters
         ----------
@@ -296,9 +329,9 @@ class SourceGrid:
         affine : (4, 4) ndarray
             Its affine (source-order voxel index -> RAS mm).
         """
-        xyz = np.asarray(array_zyx).transpose(2, 1, 0)
+        arr, aff = reverse_axes(np.asarray(array_zyx), np.asarray(affine_xyz), self.flips)
+        xyz = arr.transpose(2, 1, 0)
         inverse = np.argsort(self.axes)
-        aff = np.asarray(affine_xyz, dtype=np.float64)
         new_aff = np.eye(4)
         new_aff[:3, 3] = aff[:3, 3]
         # source axis a holds Scan axis inverse[a]
@@ -443,3 +476,97 @@ class Scan:
     def index_to_ras(self, points_zyx: np.ndarray) -> np.ndarray:
         """Map ``(z, y, x)`` voxel indices to RAS mm (see :func:`zyx_index_to_ras`)."""
         return zyx_index_to_ras(points_zyx, self.affine)
+
+
+def reverse_axes(
+    array_zyx: np.ndarray, affine_xyz: np.ndarray, flips: tuple[bool, bool, bool]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reverse some axes of a grid, keeping every voxel at its world position.
+
+    Parameters
+    ----------
+    array_zyx : ndarray, shape (z, y, x)
+    affine_xyz : (4, 4) array_like
+        Maps ``(x, y, z, 1)`` of ``array_zyx`` to RAS mm.
+    flips : tuple of bool
+        Which of ``(x, y, z)`` to reverse.
+
+    Returns
+    -------
+    array : ndarray, shape (z, y, x)
+        A view of ``array_zyx`` with those axes reversed.
+    affine : (4, 4) ndarray
+        Its affine: a reversed axis' column negated and the origin moved to
+        that axis' last voxel.
+    """
+    arr = np.asarray(array_zyx)
+    aff = np.array(affine_xyz, dtype=np.float64)
+    for k, flipped in enumerate(flips):
+        if flipped:
+            arr = np.flip(arr, 2 - k)
+            aff[:3, 3] += aff[:3, k] * (arr.shape[2 - k] - 1)
+            aff[:3, k] = -aff[:3, k]
+    return arr, aff
+
+
+def canonical_flips(affine: np.ndarray) -> tuple[bool, bool, bool]:
+    """Which Scan axes ``(x, y, z)`` run against the working orientation.
+
+    Each axis is judged by the RAS direction its affine column is closest to
+    (the largest absolute component; a tie goes to the first of R, A, S): an
+    axis along left-right should run towards the left, one along front-back
+    towards posterior, and one along superior-inferior towards inferior in
+    the slice plane (rows run top to bottom) and towards superior across
+    slices. For an axial head that is LPS, the order of DICOM and of the
+    BraTS volumes.
+
+    Parameters
+    ----------
+    affine : (4, 4) array_like
+        Maps the Scan's ``(x, y, z, 1)`` to RAS mm.
+
+    Returns
+    -------
+    tuple of bool
+        ``True`` where that axis should be reversed.
+
+    Examples
+    --------
+    >>> canonical_flips(np.diag([-1.0, -1.0, 5.0, 1.0]))  # LPS
+    (False, False, False)
+    >>> canonical_flips(np.diag([-1.0, 1.0, -5.0, 1.0]))  # LAI
+    (False, True, True)
+    >>> canonical_flips(np.eye(4)[:, [0, 2, 1, 3]])  # coronal RSA: x to R, rows to S
+    (True, True, True)
+    """
+    cols = np.asarray(affine, dtype=np.float64)[:3, :3]
+    units = cols / np.linalg.norm(cols, axis=0)
+    flips = []
+    for k in range(3):
+        u = units[:, k]
+        d = int(np.argmax(np.round(np.abs(u), 9)))
+        wanted = 1.0 if (d == 2 and k == 2) else -1.0  # S across slices; L, P, I otherwise
+        flips.append(bool(u[d] * wanted < 0))
+    return flips[0], flips[1], flips[2]
+
+
+def canonical_orientation(scan: Scan) -> Scan:
+    """The same scan with its axes run as the working orientation (see the module docstring).
+
+    Axes are only reversed (:func:`canonical_flips`); voxels keep their values
+    and world positions, and the source grid records the reversal, so outputs
+    are still written in the input's own voxel order. A scan already in the
+    working orientation is returned as it is.
+    """
+    flips = canonical_flips(scan.affine)
+    if not any(flips):
+        return scan
+    image, affine = reverse_axes(scan.image, scan.affine, flips)
+    grid = scan.source_grid
+    combined = tuple(a != b for a, b in zip(grid.flips, flips, strict=True))
+    return replace(
+        scan,
+        image=np.ascontiguousarray(image),
+        affine=affine,
+        source_grid=replace(grid, flips=combined),
+    )

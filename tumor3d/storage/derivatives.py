@@ -252,6 +252,7 @@ def _slices(p: PatientProducts) -> bytes:
     table = slice_table(
         p.table("detect-abnormal.detection"), p.table("segment-tumor.segmentation"),
         pixel_area_mm2=p.values["measure-volume"]["pixel_area_mm2"],
+        slices_reversed=p.grid.flips[2],
     )  # fmt: skip
     return encode_parquet(table)
 

@@ -578,6 +578,8 @@ class ArtifactStore:
                 "axes": list(grid.axes),
             },
         }
+        if any(grid.flips):  # only when present, so other scans keep their digests
+            extra["source_grid"]["flips"] = list(grid.flips)
         if scan.skipped_files:  # only when present, so other scans keep their digests
             extra["skipped_files"] = list(scan.skipped_files)
         return self.put_volume(scan.image, scan.affine, kind="scan", dtype="float32", extra=extra)
@@ -645,5 +647,8 @@ def source_grid_from_metadata(meta: dict[str, Any]) -> SourceGrid:
     """The `SourceGrid` recorded in a scan artifact's metadata."""
     sg = meta["source_grid"]
     return SourceGrid(
-        shape=tuple(sg["shape"]), affine=np.asarray(sg["affine"]), axes=tuple(sg["axes"])
+        shape=tuple(sg["shape"]),
+        affine=np.asarray(sg["affine"]),
+        axes=tuple(sg["axes"]),
+        flips=tuple(bool(f) for f in sg.get("flips", (False, False, False))),
     )

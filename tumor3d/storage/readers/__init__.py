@@ -30,10 +30,16 @@ voxel axis with the **coarsest spacing** is the slice axis. When several axes
 are within 1 % of the coarsest spacing (e.g. an isotropic 1 mm volume), the
 one among them whose direction is **closest to superior-inferior** (largest
 ``|S|`` component of its unit affine column) is chosen, i.e. axial; an exact
-tie goes to the highest voxel axis. The voxel axes are only permuted (never
-resampled, never flipped) so that the slice axis becomes ``z``; of the two
-other axes, ``x`` is the one closer to left-right (then to front-back), so a
-file storing the slices transposed gives the same stack (DICOM series too).
+tie goes to the highest voxel axis. The voxel axes are permuted (never
+resampled) so that the slice axis becomes ``z``; of the two other axes, ``x``
+is the one closer to left-right (then to front-back). Then the axes that run
+against the working orientation are reversed: ``x`` to the patient's left,
+rows to posterior (inferior on a coronal or sagittal slice), slices to
+superior; LPS for an axial stack, as DICOM and BraTS store it
+(:func:`tumor3d.imaging.scan.canonical_flips`; ``Scan.source`` ends with, for
+example, ``stored LAS, read as LPS``). So a file storing the same slices
+transposed, mirrored or from the top down gives the same stack (DICOM series
+too), and outputs are written back in the file's own order.
 See :func:`choose_slice_axis` and :func:`in_plane_axes`.
 The two in-plane axes must be perpendicular; the slice step is the distance
 between slice planes, ``|det A| / |c_x x c_y|``, which on a sheared grid is

@@ -10,10 +10,12 @@ import math
 import os
 import re
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from nibabel.orientations import aff2axcodes
 
 from tumor3d.constants import (
     IN_PLANE_ORTHOGONALITY_TOL,
@@ -26,6 +28,7 @@ from tumor3d.imaging.scan import (
     MODALITIES,
     Scan,
     SourceGrid,
+    canonical_orientation,
     in_plane_shear,
     slice_plane_spacing_mm,
     validate_patient_id,
@@ -233,7 +236,7 @@ def in_plane_axes(affine: np.ndarray, slice_axis: int) -> tuple[int, int]:
     trained on are stored. So a file storing the same slices transposed gives the
     same ``(z, y, x)`` array (the methods read a transposed slice otherwise: a
     BraTS FLAIR stored P-S-R lost 14.5 % of its learned volume). Only the order is
-    chosen; the directions are the file's (never flipped).
+    chosen here; :func:`working_orientation` then sets the directions.
 
     Examples
     --------
@@ -269,9 +272,10 @@ def scan_from_volume(
     """Make a `Scan` from a 3-D volume in its file's voxel order and its RAS affine.
 
     The geometry rules of every volume file (NIfTI, NRRD, MetaImage): the
-    slice axis is :func:`choose_slice_axis`; the voxel axes are only
-    permuted (never resampled or flipped) so that it becomes ``z``, and the
-    in-plane ones ordered by :func:`in_plane_axes`; the
+    slice axis is :func:`choose_slice_axis`; the voxel axes are permuted
+    (never resampled) so that it becomes ``z``, the in-plane ones ordered by
+    :func:`in_plane_axes`, and reversed into the working orientation
+    (:func:`working_orientation`); the
     pixel spacings are the in-plane column lengths, which must be
     perpendicular; the slice step is the distance between slice planes
     (:func:`tumor3d.imaging.scan.slice_plane_spacing_mm`, less than the column
@@ -330,7 +334,7 @@ def scan_from_volume(
         text += (
             f" (sheared grid: slice planes {step:.4g} mm apart, slice-axis column {column:.4g} mm)"
         )
-    return Scan(
+    scan = Scan(
         image=image,
         affine=scan_affine,
         pixel_spacing_mm=(dy, dx),
@@ -342,6 +346,21 @@ def scan_from_volume(
         source=text,
         source_grid=SourceGrid(shape=tuple(data.shape), affine=affine, axes=axes),
     )
+    return working_orientation(scan)
+
+
+def working_orientation(scan: Scan) -> Scan:
+    """A read scan in the working orientation, its source naming the stored one.
+
+    :func:`tumor3d.imaging.scan.canonical_orientation`, whose axis reversals
+    the source grid records; ``Scan.source`` then ends with, for example,
+    ``"stored LAS, read as LPS"`` (nibabel's axis codes of the Scan's axes).
+    """
+    out = canonical_orientation(scan)
+    if out is scan:
+        return scan
+    stored, working = ("".join(aff2axcodes(a)) for a in (scan.affine, out.affine))
+    return replace(out, source=f"{scan.source}, stored {stored}, read as {working}")
 
 
 def check_max_voxels(max_voxels: int) -> int:

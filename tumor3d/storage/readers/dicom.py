@@ -31,6 +31,7 @@ from tumor3d.storage.readers.common import (
     check_voxel_count,
     derive_patient_id,
     in_plane_axes,
+    working_orientation,
 )
 from tumor3d.storage.readers.options import ReadOptions
 from tumor3d.storage.readers.registry import NotThisFormat, register_reader
@@ -210,7 +211,7 @@ def read_dicom_series(
         image = np.ascontiguousarray(image.transpose(0, 2, 1))
         affine = affine[:, [1, 0, 2, 3]]
         pixel_spacing = (pixel_spacing[1], pixel_spacing[0])
-    return Scan(
+    scan = Scan(
         image=image,
         affine=affine,
         pixel_spacing_mm=pixel_spacing,
@@ -225,6 +226,7 @@ def read_dicom_series(
         source_grid=SourceGrid(shape=(nx, ny, nz), affine=source_affine, axes=axes),
         skipped_files=skipped,
     )
+    return working_orientation(scan)
 
 
 def _tilt_note(affine: np.ndarray, step: float) -> str:
