@@ -77,3 +77,28 @@ def test_a_later_logging_set_up_does_not_bring_the_messages_back(tmp_path, capfd
         read_scan(path, patient_id="hdr")
     assert "qform_code" not in capfd.readouterr().err
     assert not [r for r in caplog.records if r.name.startswith("nibabel")]
+
+
+def test_a_header_without_orientation_is_a_doubt_of_the_run(tmp_path):
+    """sform and qform codes 0 (an Analyze-style header): nibabel assumes its default
+    axes, so the side and the front are a guess; the run says so and is checked. The
+    same file with its orientation stated gives no such note."""
+    img = nib.load(write_phantom_patient(_patient(), tmp_path / "in").image)
+    stated = nib.Nifti1Image(np.asarray(img.dataobj), img.affine)
+    nib.save(stated, tmp_path / "stated.nii")
+    unstated = nib.Nifti1Image(np.asarray(img.dataobj), None)
+    unstated.header.set_zooms(img.header.get_zooms())
+    assert int(unstated.header["sform_code"]) == int(unstated.header["qform_code"]) == 0
+    nib.save(unstated, tmp_path / "unstated.nii")
+    run = run_stages_direct(tmp_path / "unstated.nii", tmp_path / "store", patient_id="hdr")
+    notes, doubts = run_notes(run.outputs)
+    said = [n for n in notes if "states no orientation" in n]
+    assert said == [
+        "unstated.nii: the NIfTI header states no orientation (sform and qform codes 0): "
+        "read with nibabel's default axes (LAS), so left-right and front-back are "
+        "unverified; check them, or give the file its orientation"
+    ]
+    assert said[0] in doubts
+    run = run_stages_direct(tmp_path / "stated.nii", tmp_path / "store", patient_id="hdr")
+    notes, doubts = run_notes(run.outputs)
+    assert not [n for n in notes if "orientation" in n]

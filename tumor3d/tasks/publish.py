@@ -45,6 +45,7 @@ from tumor3d.storage.publish import (
     staged_folder,
     write_publish_manifest,
 )
+from tumor3d.storage.readers.nifti import ORIENTATION_UNSTATED
 from tumor3d.storage.remote_publish import publish_folder
 from tumor3d.storage.store import ArtifactStore, canonical_dumps
 from tumor3d.storage.viewer import ASSETS_DIR, write_viewer_assets
@@ -127,8 +128,10 @@ def run_notes(
     the status ``check`` (:func:`tumor3d.segmentation.review.review_status`). A given
     segmentation adds an informational note (``segmentation: given (FILE, ...)``),
     as do nibabel's repairs of the input's NIfTI header (the ingest-scan stage's
-    ``header_notes``) and, with ``modality_default``, the modality taken by default
-    (nothing named it: the report says which sequence the method assumed).
+    ``header_notes``; the note that the header states no orientation,
+    :data:`tumor3d.storage.readers.nifti.ORIENTATION_UNSTATED`, doubts) and, with
+    ``modality_default``, the modality taken by default (nothing named it: the report
+    says which sequence the method assumed).
     """
     seg = outputs["segment-tumor"].values
     notes, doubts = review_notes(
@@ -138,8 +141,11 @@ def run_notes(
         brain_mask_note=None if brain_mask is None else brain_mask_note(brain_mask),
         **brain_mask_run_notes(outputs["preprocess"].values, seg.get("segment_method")),
     )
-    # nibabel's repairs of a NIfTI header (tumor3d.tasks.ingest): informational, never printed
-    notes.extend(outputs["ingest-scan"].values.get("header_notes") or [])
+    # nibabel's repairs of a NIfTI header (tumor3d.tasks.ingest): informational, never printed;
+    # a header that states no orientation doubts the result (the side, and the learned method)
+    header_notes = outputs["ingest-scan"].values.get("header_notes") or []
+    notes.extend(header_notes)
+    doubts.extend(n for n in header_notes if ORIENTATION_UNSTATED in n)
     if segmentation is not None:
         notes.append(segmentation.note())
     if modality_default:

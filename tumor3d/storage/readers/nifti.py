@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from nibabel.orientations import aff2axcodes
 
 from tumor3d.constants import SINGULAR_DET_TOL
 from tumor3d.errors import InputError
@@ -32,11 +33,26 @@ from tumor3d.storage.readers.common import (
 from tumor3d.storage.readers.options import ReadOptions
 from tumor3d.storage.readers.registry import register_reader
 
-__all__ = ["load_nifti_volume", "nibabel_header_notes", "quiet_nibabel", "read_nifti_scan"]
+__all__ = [
+    "ORIENTATION_UNSTATED",
+    "load_nifti_volume",
+    "nibabel_header_notes",
+    "quiet_nibabel",
+    "read_nifti_scan",
+]
 
 #: nibabel's logger of the header repairs it makes on reading (``nibabel.imageglobals``).
 _NIBABEL_LOGGER = "nibabel.global"
 _collected: ContextVar[list[str] | None] = ContextVar("nibabel_header_notes", default=None)
+#: Axis codes of the inputs read in the collecting block whose header states no orientation.
+_unstated: ContextVar[list[str] | None] = ContextVar("nifti_orientation_unstated", default=None)
+
+#: The words of a run's note on an input whose NIfTI header states no orientation
+#: (``sform_code`` and ``qform_code`` 0, an Analyze-style header): nibabel then assumes
+#: its default axes, so which side is left and which is front is a guess, and the
+#: learned method may read the head mirrored. The note doubts the result
+#: (:func:`tumor3d.tasks.publish.run_notes`).
+ORIENTATION_UNSTATED = "the NIfTI header states no orientation (sform and qform codes 0)"
 
 
 class _NibabelCollector(logging.Handler):
@@ -89,15 +105,24 @@ def nibabel_header_notes(name: str) -> Iterator[list[str]]:
 
     quiet_nibabel()
     found: list[str] = []
+    unstated: list[str] = []
     notes: list[str] = []
     token = _collected.set(found)
+    token_unstated = _unstated.set(unstated)
     try:
         yield notes
     finally:
         _collected.reset(token)
+        _unstated.reset(token_unstated)
         if found:
             notes.append(
                 f"{name}: nibabel repaired the NIfTI header on reading: {'; '.join(found)}"
+            )
+        for codes in unstated[:1]:
+            notes.append(
+                f"{name}: {ORIENTATION_UNSTATED}: read with nibabel's default axes ({codes}), "
+                "so left-right and front-back are unverified; check them, or give the file "
+                "its orientation"
             )
 
 
@@ -223,6 +248,9 @@ def load_nifti_volume(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
     affine = _affine_in_mm(img.header, np.asarray(img.affine, dtype=np.float64))
     if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < SINGULAR_DET_TOL:
         raise InputError("the image affine is singular or not finite", where)
+    unstated = _unstated.get()
+    if unstated is not None and not any(int(img.header[f"{f}_code"]) for f in ("sform", "qform")):
+        unstated.append("".join(aff2axcodes(affine)))
     try:
         data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32)
     except Exception as exc:
