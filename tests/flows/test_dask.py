@@ -13,7 +13,9 @@ has a stage that kills its worker every time (Dask gives up with ``KilledWorker`
 
 from __future__ import annotations
 
+import os
 import socket
+import threading
 import time
 
 import pytest
@@ -73,6 +75,72 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+@pytest.fixture
+def not_a_scheduler():
+    """Two local services that accept a connection but are no Dask scheduler: one stays
+    silent (a dashboard's port as the handshake sees it), one answers garbage (whose
+    length prefix numpy cannot allocate). Their addresses."""
+    servers, addresses = [], {}
+    for kind, reply in (("silent", b""), ("garbage", b"\xff" * 64 + b"HTTP/1.1 400\r\n" * 9)):
+        srv = socket.socket()
+        srv.bind(("127.0.0.1", 0))
+        srv.listen(8)
+        held = []
+
+        def serve(srv=srv, reply=reply, held=held):
+            while True:
+                try:
+                    conn, _ = srv.accept()
+                except OSError:
+                    return
+                held.append(conn)  # kept open until the test ends
+                if reply:
+                    conn.sendall(reply)
+
+        threading.Thread(target=serve, daemon=True).start()
+        servers.append((srv, held))
+        addresses[kind] = f"tcp://127.0.0.1:{srv.getsockname()[1]}"
+    yield addresses
+    for srv, held in servers:
+        srv.close()
+        for conn in held:
+            conn.close()
+
+
+def test_an_address_that_is_no_scheduler_is_one_line_not_a_hang(
+    not_a_scheduler, tmp_path, monkeypatch
+):
+    """A user audit: the dashboard's port hung the cohort with no output for 10 minutes,
+    and a non-Dask service's answer gave an 81-line traceback (a 3 EiB allocation) and
+    exit 1. Both are one line, exit 3, within the timeout and its grace."""
+    monkeypatch.setattr(dask_runner, "CONNECT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(dask_runner, "CONNECT_GRACE_S", 2.0)
+    expected = {
+        "silent": "no answer as a Dask scheduler within 1 s",
+        "garbage": "what answered is not a Dask scheduler",
+    }
+    for kind, address in not_a_scheduler.items():
+        t0 = time.perf_counter()
+        with pytest.raises(ClusterError) as exc:
+            dask_runner.check_scheduler(address)
+        assert time.perf_counter() - t0 < 60, kind
+        text = str(exc.value)
+        assert text.startswith(f"Dask scheduler {address}: {expected[kind]}"), text
+        assert "\n" not in text and text.endswith("fix --dask-address")
+    with pytest.raises(ClusterError, match=r"^Dask scheduler nonsense: not a scheduler address"):
+        dask_runner.check_scheduler("nonsense")
+    rows = _rows(tmp_path / "in", [0])
+    manifest = write_manifest(rows, tmp_path / "m.csv")
+    out = tmp_path / "out"
+    res = CliRunner().invoke(
+        app, ["cohort", str(manifest), "--out", str(out), "--dask-address",
+              not_a_scheduler["silent"]],
+    )  # fmt: skip
+    assert res.exit_code == 3, res.output
+    assert "no answer as a Dask scheduler" in res.output and "Traceback" not in res.output
+    assert not out.exists()
 
 
 def test_unreachable_scheduler_is_one_line_before_any_patient(tmp_path, monkeypatch):
@@ -269,6 +337,40 @@ def test_a_stage_that_kills_its_worker_every_time_fails_that_patient_only(
     assert again.exit_code == 0
     assert all(s.cached for s in again.patients[0].stages)
     assert again.patients[1].stages[0].cached and not again.patients[1].stages[1].cached
+
+
+def test_a_local_clusters_workers_keep_prefect_run_records_off_the_console(monkeypatch):
+    """A user audit: with --dask-workers, a failed patient's task run printed four Prefect
+    tracebacks on stderr (the worker processes log to the command's stderr), where the
+    command promises one line. The workers preload the console filter when the command's
+    console is quiet; the hook, run in a fresh process, drops the run records only."""
+    import subprocess
+    import sys
+
+    from tumor3d.flows.dask_runner import cohort_task_runner
+
+    monkeypatch.setattr(dask_runner, "console_is_quiet", lambda: True)
+    kwargs = cohort_task_runner(2, DaskSpec(n_workers=2)).cluster_kwargs
+    assert kwargs["preload"] == ["tumor3d.flows.quiet_logs"]
+    monkeypatch.setattr(dask_runner, "console_is_quiet", lambda: False)  # --verbose
+    assert "preload" not in cohort_task_runner(2, DaskSpec(n_workers=2)).cluster_kwargs
+    code = (
+        "import logging\n"
+        "from tumor3d.flows.quiet_logs import console_is_quiet, dask_setup\n"
+        "assert not console_is_quiet()\n"
+        "dask_setup(None)\n"
+        "assert console_is_quiet()\n"
+        "logging.getLogger('prefect.task_runs').error('TASK-RUN-FAILED')\n"
+        "logging.getLogger('prefect.flow_runs').warning('FLOW-RUN-WARNED')\n"
+        "logging.getLogger('prefect.client').warning('CLIENT-WARNED')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+        env={**os.environ, "PREFECT_LOGGING_LEVEL": "WARNING"},
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "CLIENT-WARNED" in done.stderr  # the console still works
+    assert "TASK-RUN-FAILED" not in done.stderr and "FLOW-RUN-WARNED" not in done.stderr
 
 
 def test_a_local_cluster_starts_while_another_holds_the_dashboard_port():

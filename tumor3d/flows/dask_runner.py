@@ -19,11 +19,16 @@ URL) and import this project (same code, same ``PYTHONPATH``).
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import subprocess
+import sys
 from typing import Any
 
 from tumor3d.errors import InputError, Tumor3DError
+from tumor3d.flows.dask_check import connect_once
+from tumor3d.flows.quiet_logs import console_is_quiet
 from tumor3d.storage.product_memo import MEMO_ENV
 
 __all__ = [
@@ -42,6 +47,8 @@ except ImportError:  # pragma: no cover - without the extra
 
 #: Seconds to wait for a Dask scheduler to answer before giving up.
 CONNECT_TIMEOUT_S = 10.0
+#: Seconds beyond it before a connection that hangs (no scheduler behind it) is given up.
+CONNECT_GRACE_S = 5.0
 
 #: MiB of decoded volumes a local cluster's worker process keeps
 #: (:mod:`tumor3d.storage.product_memo`; about one patient's stage volumes), unless
@@ -130,27 +137,66 @@ def check_scheduler(address: str, *, timeout_s: float | None = None) -> int:
     Raises
     ------
     ClusterError
-        If the scheduler does not answer within ``timeout_s`` (one line
-        naming the address).
+        One line naming the address: nothing answers within ``timeout_s``,
+        something that is no Dask scheduler answers (or hangs), or the
+        address is malformed.
     """
     try:
-        import distributed
+        from distributed.comm import get_address_host_port, parse_address
     except ImportError:
         raise InputError(
             "Dask needs the optional dependencies: pip install 'tumor3d[dask]'"
         ) from None
     if timeout_s is None:
         timeout_s = CONNECT_TIMEOUT_S
+    fix = "start the scheduler or fix --dask-address"
     try:
-        with distributed.Client(address, timeout=timeout_s, set_as_default=False) as client:
-            info = client.scheduler_info()
-    except (OSError, TimeoutError, ValueError) as exc:
-        text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        scheme, _ = parse_address(address)
+        if scheme != "inproc":
+            get_address_host_port(address)
+    except ValueError as exc:
         raise ClusterError(
-            f"Dask scheduler {address}: cannot connect within {timeout_s:g} s ({text}); "
-            "start the scheduler or fix --dask-address"
+            f"Dask scheduler {address}: not a scheduler address ({exc}); {fix}"
         ) from None
-    return len(info.get("workers", {}))
+    if scheme == "inproc":  # a cluster of this process (a notebook's): nothing else answers
+        found = connect_once(address, timeout_s)
+    else:
+        found = _connect_in_child(address, timeout_s, fix)
+    if "workers" in found:
+        return int(found["workers"])
+    kind, text = found["error"], found["text"] or found["error"]
+    if kind in ("OSError", "TimeoutError") or kind.endswith(("ConnectionError", "CommClosedError")):
+        raise ClusterError(
+            f"Dask scheduler {address}: cannot connect within {timeout_s:g} s ({text}); {fix}"
+        )
+    raise ClusterError(
+        f"Dask scheduler {address}: what answered is not a Dask scheduler ({kind}: {text}); {fix}"
+    )
+
+
+def _connect_in_child(address: str, timeout_s: float, fix: str) -> dict[str, Any]:
+    """:func:`tumor3d.flows.dask_check.connect_once` in a child process, with a deadline.
+
+    A service that accepts the connection but is no Dask scheduler (its dashboard's
+    port, a proxy) may never complete the handshake, and its half-made client then
+    blocks, and prints, at interpreter exit: the child is killed instead.
+    """
+    try:
+        done = subprocess.run(
+            [sys.executable, "-m", "tumor3d.flows.dask_check", address, repr(float(timeout_s))],
+            capture_output=True, text=True, timeout=timeout_s + CONNECT_GRACE_S, check=False,
+        )  # fmt: skip
+    except subprocess.TimeoutExpired:
+        raise ClusterError(
+            f"Dask scheduler {address}: no answer as a Dask scheduler within {timeout_s:g} s "
+            f"(something accepted the connection: the dashboard's port?); {fix}"
+        ) from None
+    lines = done.stdout.strip().splitlines()
+    try:
+        return dict(json.loads(lines[-1]))
+    except (IndexError, ValueError):
+        last = (done.stderr.strip().splitlines() or [f"exit code {done.returncode}"])[-1]
+        raise ClusterError(f"Dask scheduler {address}: the check failed ({last}); {fix}") from None
 
 
 def _dask_runner_class() -> Any:
@@ -193,6 +239,9 @@ def cohort_task_runner(workers: int, spec: DaskSpec | None = None) -> Any:
         # when another cluster (a user's, a second cohort) holds it
         "dashboard_address": ":0",
     }
+    if spec.processes and console_is_quiet():
+        # the workers' Prefect logs reach the command's stderr: as quiet as its own console
+        cluster_kwargs["preload"] = ["tumor3d.flows.quiet_logs"]
     if spec.processes and MEMO_ENV not in os.environ:
         # a worker process never publishes, so nothing forgets its volumes: a small bound
         cluster_kwargs["env"] = {MEMO_ENV: str(WORKER_PRODUCT_MEMO_MIB)}

@@ -10,6 +10,7 @@ from typing import Any
 
 from tumor3d.flows.cli.app import console
 from tumor3d.flows.cli.output import _PlainReporter, _progress, _ProgressReporter
+from tumor3d.flows.quiet_logs import NoRunRecords, quiet_run_records
 
 
 def _starting_prefect_note() -> None:
@@ -19,36 +20,14 @@ def _starting_prefect_note() -> None:
     )
 
 
-class _NoFailureTracebacks:
-    """Console filter: drop Prefect's own records of flow and task runs (any level).
-
-    Their warnings and errors repeat, under a run name and with a traceback,
-    what the command prints itself as one line (a failed patient, a skipped
-    row, a patient no longer in the manifest); they still reach the Prefect
-    server (its API handler is not filtered), and ``--verbose`` shows them.
-    So does a background service's "Still processing items" while it sends
-    its last events as the command ends (Prefect's ``EventsWorker``): not the
-    user's to act on.
-    """
-
-    def filter(self, record: Any) -> bool:
-        name = record.name
-        if name.startswith(("prefect.flow_runs", "prefect.task_runs")):
-            return False
-        return not str(record.msg).startswith("Still processing items")
+#: The console filter (tumor3d.flows.quiet_logs), by the name the tests import
+_NoFailureTracebacks = NoRunRecords
 
 
 def _quiet_prefect_failures() -> None:
-    import logging
-
-    from prefect.logging.configuration import ensure_logging_setup
-
     if "--verbose" in sys.argv or "-v" in sys.argv:
         return
-    ensure_logging_setup()
-    for handler in logging.getLogger().handlers:
-        if not any(isinstance(f, _NoFailureTracebacks) for f in handler.filters):
-            handler.addFilter(_NoFailureTracebacks())
+    quiet_run_records()
 
 
 @contextmanager
