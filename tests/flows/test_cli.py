@@ -7,6 +7,7 @@ problem on stderr, exit code 2, nothing under the output folder.
 from __future__ import annotations
 
 import json
+import sys
 
 import nibabel as nib
 import numpy as np
@@ -245,6 +246,7 @@ def test_console_entry_keeps_exit_codes_and_flushes_output(tmp_path):
 
     root = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": str(root), "TUMOR3D_HOME": str(tmp_path / "home")}
+    env.pop("COLUMNS", None)
 
     def cli(*args):
         return subprocess.run(
@@ -252,8 +254,12 @@ def test_console_entry_keeps_exit_codes_and_flushes_output(tmp_path):
             env=env, capture_output=True, text=True, timeout=300, cwd=str(root),
         )  # fmt: skip
 
-    missing = cli("run", str(tmp_path / "absent.nii.gz"), "--out", str(tmp_path / "o"))
+    absent = tmp_path / ("a folder with a long name " * 4) / "absent.nii.gz"
+    missing = cli("run", str(absent), "--out", str(tmp_path / "o"))
     assert missing.returncode == 2 and "absent.nii.gz: no such file" in missing.stderr
+    # piped, an error with a long path stays one line
+    (line,) = [line for line in missing.stderr.splitlines() if line.strip()]
+    assert str(absent) in line and len(line) > 120
     status = cli("server", "status")
     assert status.returncode == 1 and "no tumor3d Prefect server running" in status.stdout
     helped = cli("--help")
@@ -571,6 +577,42 @@ def test_the_cohort_table_fits_80_columns_with_every_id_in_full(monkeypatch):
     assert ids[2] in "".join(row[0] for row in rows if row), text  # folded, not cut
     flat = " ".join(text.split())
     assert "volumes in mL by " + ", ".join(VOLUME_LABELS.values()) in flat
+
+
+def test_a_piped_console_keeps_ids_and_lines_whole(monkeypatch):
+    """A user audit piped a cohort to a file: Rich wrapped at 80 columns, splitting ids
+    ("TCGA_CS_4942_199" / "70222") and the outputs line, so neither could be grepped.
+    Not a terminal and no COLUMNS: the commands' consoles do not wrap."""
+    import importlib
+    import io
+    import types
+
+    import tumor3d.flows.cli.output as output
+    from tumor3d.storage.derivatives import VOLUME_LABELS
+
+    app_module = importlib.import_module("tumor3d.flows.cli.app")  # not the Typer app
+    monkeypatch.delenv("COLUMNS", raising=False)
+    monkeypatch.setattr(sys, "stdout", io.StringIO())  # piped
+    console = app_module._console()
+    assert not console.is_terminal
+    monkeypatch.setattr(output, "console", console)
+    ids = [f"TCGA_CS_4942_1997022{k}_a_rather_long_site_suffix" for k in range(3)]
+    metrics = {key: 12345.0 for key in VOLUME_LABELS} | {"notes": "", "review_reasons": ""}
+    result = types.SimpleNamespace(
+        patients=[
+            types.SimpleNamespace(patient_id=i, status="ok", metrics=metrics,
+                                  stages=[types.SimpleNamespace(cached=True)] * 10)
+            for i in ids
+        ],
+        failed=[], removed=[], earlier=[], wall_seconds=1.0,
+        out_dir="/a/rather/long/output/folder/of/a/site/that/runs/cohorts/every/night",
+    )  # fmt: skip
+    output.print_cohort_summary(result)
+    lines = sys.stdout.getvalue().splitlines()
+    for pid in ids:
+        assert [line for line in lines if pid in line], (pid, lines)
+    (last,) = [line for line in lines if line.startswith("3 ok")]
+    assert last.endswith("(cohort.parquet, cohort.md, cohort.html)"), last
 
 
 def test_the_demos_errors_against_the_truth_keep_their_sign(monkeypatch):

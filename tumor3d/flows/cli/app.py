@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import sys
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -17,8 +19,24 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     rich_markup_mode=None,  # click's help: wrapped to the terminal; Rich's tables cut names
 )
-console = Console()
-err_console = Console(stderr=True)
+#: Line width of a console whose stream is not a terminal (a pipe, a log file) and no
+#: ``COLUMNS``: wide enough that an error, a path or a patient id stays on its line for
+#: grep, where Rich would wrap at 80.
+PIPED_WIDTH = 1000
+
+
+def _console(*, stderr: bool = False) -> Console:
+    stream = sys.stderr if stderr else sys.stdout
+    try:
+        piped = not stream.isatty()
+    except (AttributeError, ValueError):  # replaced or closed
+        piped = True
+    wide = piped and "COLUMNS" not in os.environ
+    return Console(stderr=stderr, width=PIPED_WIDTH if wide else None)
+
+
+console = _console()
+err_console = _console(stderr=True)
 
 
 def _print_version(value: bool) -> None:
