@@ -133,3 +133,33 @@ def test_the_report_says_what_is_measured_and_on_which_sequence_the_diameters_ar
     t1c = patient_report_data({**metrics, "modality": "t1c"}, stage_runs=RUNS,
                               abnormal_slices=[10], files=[])  # fmt: skip
     assert "RANO-style diameters of" not in t1c["measurements"]  # RANO's own sequence
+
+
+def test_the_report_names_the_method_that_ran_and_how_the_input_was_read():
+    """A user audit found the method only in the folded provenance JSON, and the input's
+    orientation nowhere: the page, its table and the markdown say both."""
+    from tumor3d.storage.report_html import patient_report_markdown, patient_summary_table
+
+    metrics = {**METRICS, "segment_method": "learned", "segment_model": "forest + U-Net mean"}
+    provenance = {"input": {"orientation": {"stored": "LAS", "read_as": "LPS"}}}
+    data = patient_report_data(
+        metrics, stage_runs=RUNS, abnormal_slices=[10], files=[], provenance=provenance
+    )
+    said = (
+        "Segmentation method learned (forest + U-Net mean); input orientation stored LAS, "
+        "read as LPS."
+    )
+    assert said in patient_report_html(data)
+    rows = patient_summary_table(data)
+    assert {"quantity": "segmentation method", "value": "learned (forest + U-Net mean)",
+            "unit": ""} in rows  # fmt: skip
+    assert {"quantity": "input orientation", "value": "stored LAS, read as LPS", "unit": ""} in rows
+    assert "stored LAS, read as LPS" in patient_report_markdown(data)
+    # a file in the working orientation, and a run recorded before either was
+    lps = {"input": {"orientation": {"stored": "LPS", "read_as": "LPS"}}}
+    data = patient_report_data(metrics, stage_runs=RUNS, abnormal_slices=[], files=[],
+                               provenance=lps)  # fmt: skip
+    assert data["orientation"] == "LPS, read as stored"
+    old = patient_report_data(METRICS, stage_runs=RUNS, abnormal_slices=[], files=[])
+    assert "orientation" not in old and old["method"] == ""
+    assert "Segmentation method" not in patient_report_html(old)

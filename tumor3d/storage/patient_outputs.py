@@ -31,6 +31,8 @@ __all__ = [
     "OVERLAY_TILE_PX",
     "RENDER_ORDER",
     "join_notes",
+    "method_words",
+    "orientation_words",
     "overlay_png",
     "patient_report_data",
     "split_notes",
@@ -199,6 +201,31 @@ def _num(row: Mapping[str, Any], key: str) -> float | None:
     return f if np.isfinite(f) else None
 
 
+def method_words(metrics: Mapping[str, Any]) -> str:
+    """The segmentation method that ran, and its model, in words ("" when not recorded).
+
+    >>> method_words({"segment_method": "learned", "segment_model": "forest + U-Net mean"})
+    'learned (forest + U-Net mean)'
+    >>> method_words({"segment_method": "robust", "segment_model": ""})
+    'robust'
+    """
+    method = str(metrics.get("segment_method") or "")
+    model = str(metrics.get("segment_model") or "")
+    return f"{method} ({model})" if method and model else method
+
+
+def orientation_words(orientation: Mapping[str, Any]) -> str:
+    """How the input was read, from ``provenance.json``'s ``input.orientation``.
+
+    >>> orientation_words({"stored": "LAS", "read_as": "LPS"})
+    'stored LAS, read as LPS'
+    >>> orientation_words({"stored": "LPS", "read_as": "LPS"})
+    'LPS, read as stored'
+    """
+    stored, read = str(orientation.get("stored")), str(orientation.get("read_as"))
+    return f"{stored}, read as stored" if stored == read else f"stored {stored}, read as {read}"
+
+
 def patient_report_data(
     metrics: Mapping[str, Any],
     *,
@@ -244,11 +271,15 @@ def patient_report_data(
         "review_reasons": split_notes(metrics.get("review_reasons")),
         "tumour_found": found,
         "measured": str(metrics.get("measured") or ""),
+        "method": method_words(metrics),
         "volumes_mm3": vols,
         "notes": split_notes(metrics.get("notes")),
         "n_slices": int(metrics.get("n_slices", 0)),
         "abnormal_slices": [int(k) for k in abnormal_slices],
     }
+    orientation = ((provenance or {}).get("input") or {}).get("orientation")
+    if isinstance(orientation, Mapping) and orientation.get("stored"):
+        data["orientation"] = orientation_words(orientation)
     ce = _num(metrics, "volume_eq7_ce")
     lo, hi = _num(metrics, "volume_eq7_ci95_low_mm3"), _num(metrics, "volume_eq7_ci95_high_mm3")
     if found and ce is not None and lo is not None and hi is not None:

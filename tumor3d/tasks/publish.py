@@ -19,6 +19,7 @@ from typing import Any
 
 from tumor3d.config import PipelineConfig
 from tumor3d.errors import InputError
+from tumor3d.imaging.scan import SourceGrid
 from tumor3d.metrics import EQ7_SLICE_RULES
 from tumor3d.segmentation.review import Review, brain_mask_run_notes
 from tumor3d.segmentation.review import run_notes as review_notes
@@ -59,6 +60,7 @@ __all__ = [
     "check_layout_destination",
     "config_digest",
     "given_inputs",
+    "grid_orientation",
     "metrics_row",
     "publish_key",
     "publish_patient",
@@ -237,6 +239,26 @@ def publish_key(
     return hashlib.sha256(canonical_dumps(doc).encode()).hexdigest()
 
 
+def grid_orientation(grid: SourceGrid) -> dict[str, str]:
+    """Axis codes (nibabel's) of the input file's voxel axes and of the Scan's ``x, y, z``.
+
+    >>> import numpy as np
+    >>> las = SourceGrid(shape=(4, 4, 3), affine=np.diag([-1.0, 1.0, 5.0, 1.0]),
+    ...                  flips=(False, True, False))
+    >>> grid_orientation(las)
+    {'stored': 'LAS', 'read_as': 'LPS'}
+    """
+    from nibabel.orientations import aff2axcodes
+
+    stored = [str(c) for c in aff2axcodes(grid.affine)]
+    opposite = {"L": "R", "R": "L", "A": "P", "P": "A", "S": "I", "I": "S"}
+    read = [
+        opposite[stored[a]] if flipped else stored[a]
+        for a, flipped in zip(grid.axes, grid.flips, strict=True)
+    ]
+    return {"stored": "".join(stored), "read_as": "".join(read)}
+
+
 def _provenance(
     source: InputSource,
     outputs: dict[str, StageOutput],
@@ -245,8 +267,13 @@ def _provenance(
     cfg: PipelineConfig,
     brain_mask: GivenBrainMask | None,
     segmentation: GivenSegmentation | None,
+    grid: SourceGrid,
 ) -> dict[str, Any]:
-    """The ``provenance.json`` record (:func:`tumor3d.storage.provenance.build_provenance`)."""
+    """The ``provenance.json`` record (:func:`tumor3d.storage.provenance.build_provenance`).
+
+    ``input.orientation``: the axis codes of the file's voxel order and of the
+    working orientation the methods read (:func:`grid_orientation`).
+    """
     rule = str(metrics.get("eq7_slice_rule", "segmented"))
     input_info = {
         "name": source.name,
@@ -254,6 +281,7 @@ def _provenance(
         "location_sha256": input_location(source.path),
     }
     input_info.update(modality=source.modality, patient_id=source.patient_id)
+    input_info["orientation"] = grid_orientation(grid)
     code = {name: spec.code_digest for name, spec in stages.STAGES.items()}
     provenance = build_provenance(
         input_info=input_info,
@@ -386,7 +414,7 @@ def publish_patient(
             check_same_input(final, source.digest, location=location)
 
     products.provenance = _provenance(
-        source, outputs, runs, metrics, cfg, brain_mask, segmentation
+        source, outputs, runs, metrics, cfg, brain_mask, segmentation, products.grid
     )
     with staged_folder(out_dir, folder, check=same_input) as staging:
         files = write_derivatives(staging, products)

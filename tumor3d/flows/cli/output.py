@@ -114,7 +114,7 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     own checks doubt the result (:mod:`tumor3d.segmentation.review`).
     """
     from tumor3d.flows.patient import VOLUME_LABELS, VOLUME_METHODS
-    from tumor3d.storage.patient_outputs import split_notes
+    from tumor3d.storage.patient_outputs import method_words, split_notes
 
     m = result.metrics
     table = Table(title=f"Tumour volume, patient {escape(result.patient_id)}", title_justify="left")
@@ -133,6 +133,8 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     console.print(table)
     if m.get("measured"):
         console.print(f"what is measured: {escape(str(m['measured']))}")
+    if method_words(m):
+        console.print(f"segmentation method: {escape(method_words(m))}")
     console.print(
         "[dim]" + "; ".join(f"{VOLUME_LABELS[k]}: {d}" for k, d in VOLUME_METHODS.items()) + "[/]"
     )

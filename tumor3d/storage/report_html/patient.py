@@ -71,6 +71,13 @@ def patient_report_html(data: Mapping[str, Any]) -> str:
         )
     if data.get("measured"):
         parts.append(f"<p>What is measured: {_e(data['measured'])}</p>")
+    read = [
+        f"segmentation method {_e(data['method'])}" if data.get("method") else "",
+        f"input orientation {_e(data['orientation'])}" if data.get("orientation") else "",
+    ]
+    if any(read):
+        text = "; ".join(r for r in read if r)
+        parts.append(f"<p>{text[0].upper()}{text[1:]}.</p>")
     notes = _other_notes(data)
     if notes:  # headed: not read as part of what is measured, just above
         parts.append(

@@ -56,6 +56,9 @@ def patient_report_markdown(data: Mapping[str, Any]) -> str:
         lines.append("")
     if data.get("measured"):
         lines += [f"What is measured: {md(data['measured'])}", ""]
+    for key, label in (("method", "Segmentation method"), ("orientation", "Input orientation")):
+        if data.get(key):
+            lines += [f"{label}: {md(data[key])}", ""]
     vols = _volumes(data)
     if vols:
         lines += ["| Estimator | mm³ | mL |", "|---|---:|---:|"]
@@ -125,6 +128,9 @@ def patient_summary_table(data: Mapping[str, Any]) -> list[dict[str, str]]:
         rows.append({"quantity": "check", "value": reason, "unit": ""})
     if data.get("measured"):
         rows.append({"quantity": "what is measured", "value": str(data["measured"]), "unit": ""})
+    for key, quantity in (("method", "segmentation method"), ("orientation", "input orientation")):
+        if data.get(key):
+            rows.append({"quantity": quantity, "value": str(data[key]), "unit": ""})
     for _key, label, v in _volumes(data):
         rows.append({"quantity": f"volume, {label}", "value": _fmt(v), "unit": "mm³"})
         ml = None if v is None else v / 1000.0
