@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -196,6 +196,7 @@ def reconstruct_scan(
     brain_mask: np.ndarray | None = None,
     segmentation: np.ndarray | None = None,
     segmentation_name: str | None = None,
+    header_notes: Sequence[str] = (),
 ) -> Reconstruction:
     """Run the pipeline's stages on a :class:`~tumor3d.imaging.scan.Scan` (pure: arrays in and out).
 
@@ -219,6 +220,11 @@ def reconstruct_scan(
         still runs, nothing trims the mask.
     segmentation_name : str, optional
         Its file name, said in ``measured`` and the notes.
+    header_notes : sequence of str
+        The reader's notes on the input file's header
+        (:func:`tumor3d.storage.readers.handoff.read_noting`), as the ingest stage
+        records them: informational, except that the header states no orientation
+        (a doubt).
     """
     from tumor3d.geometry.interpolate import interpolate_stack
     from tumor3d.imaging.preprocess import (
@@ -330,6 +336,11 @@ def reconstruct_scan(
     if tumour_given is not None:  # informational, as tumor3d.flows.patient.run_notes
         said = f" ({segmentation_name})" if segmentation_name else ""
         notes.append(f"segmentation: given{said}")
+    if header_notes:  # as tumor3d.tasks.publish.run_notes
+        from tumor3d.storage.readers.nifti import ORIENTATION_UNSTATED
+
+        notes.extend(header_notes)
+        doubts.extend(n for n in header_notes if ORIENTATION_UNSTATED in n)
     review = review_status(doubts, segmentation=segmentation_values(seg))
     vols = {k: float(row[f"volume_{k}_mm3"]) for k in VOLUME_KEYS}
     lo, hi = float(row["volume_eq7_ci95_low_mm3"]), float(row["volume_eq7_ci95_high_mm3"])
@@ -378,7 +389,10 @@ def reconstruct(
     brain_mask : path or ndarray, optional
         A brain mask on the image's grid (brain = values > 0.5) used instead
         of skull removal: a file for a path input, an array of the image
-        array's shape for an array input.
+        array's shape for an array input. Beside a file, an array is in the
+        file's voxel order (nibabel's ``img.get_fdata()``) or on the working
+        ``(z, y, x)`` grid, as ``Reconstruction.brain_mask`` is; a nibabel
+        array transposed is the latter only for a file stored LPS.
     segmentation : path or ndarray, optional
         Your own tumour mask on the image's grid (tumour = values > 0.5),
         used instead of the segmentation; detection, interpolation, meshes,
@@ -440,9 +454,9 @@ def reconstruct(
         )
     if affine is not None:
         raise InputError("affine is for an array input; a file carries its own")
-    from tumor3d.storage.readers import read_scan
+    from tumor3d.storage.readers.handoff import read_noting
 
-    scan = read_scan(image, options)
+    scan, header_notes = read_noting(image, options)  # nibabel's header notes, as ingest's
     mask = None
     if brain_mask is not None:
         if isinstance(brain_mask, np.ndarray):
@@ -460,7 +474,8 @@ def reconstruct(
         given_seg = read_given_segmentation(segmentation, scan)
         tumour, name = given_seg.mask, given_seg.name
     return reconstruct_scan(
-        scan, config=cfg, brain_mask=mask, segmentation=tumour, segmentation_name=name
+        scan, config=cfg, brain_mask=mask, segmentation=tumour, segmentation_name=name,
+        header_notes=header_notes,
     )
 
 

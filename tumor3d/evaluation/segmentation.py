@@ -58,7 +58,8 @@ def evaluate_segmentation(case: EvaluationCase) -> EvaluationRows:
         ``jaccard_3d``, ``hd95_mm``, ``hd_max_mm``, ``hd95_surface_mm``,
         ``hd_max_surface_mm``, ``ref_volume_mm3``, and per
         volume method ``<method>_error_percent`` (signed). ``slices``: per
-        acquired slice ``slice_index``, ``n_p``, ``n_g``, ``truly_abnormal``,
+        acquired slice ``slice_index`` (in the published masks' order: the input
+        file's), ``n_p``, ``n_g``, ``truly_abnormal``,
         ``pred_abnormal``, ``detector_abnormal``, ``dice``, ``jaccard``,
         ``eq9_percent``. Everything needing a reference is ``nan`` without one.
     """

@@ -40,7 +40,14 @@ from tumor3d.storage.manifest import ManifestRow
 from tumor3d.storage.readers import choose_slice_axis
 from tumor3d.storage.store import atomic_write_bytes
 
-__all__ = ["PreparedCase", "acquired_reference", "load_case", "prepare_case", "reference_mask"]
+__all__ = [
+    "PreparedCase",
+    "acquired_reference",
+    "detector_flags",
+    "load_case",
+    "prepare_case",
+    "reference_mask",
+]
 
 
 @dataclass(frozen=True)
@@ -300,6 +307,29 @@ def acquired_reference(
     return lab.volume, lab.affine
 
 
+def detector_flags(slices: Any, n_slices: int) -> np.ndarray | None:
+    """The detection's ``abnormal`` flag per slice of ``slices.parquet``, in the file's order.
+
+    The published masks are in the input file's slice order; ``slice_index`` is the
+    working order (reversed for a file that stores its slices the other way round), and
+    ``file_slice_index`` the file's (absent in results published before it: the same
+    order then). None without the columns, or for another number of slices.
+
+    >>> import pandas as pd
+    >>> top_down = pd.DataFrame({"slice_index": [0, 1, 2], "abnormal": [False, True, True],
+    ...                          "file_slice_index": [2, 1, 0]})
+    >>> detector_flags(top_down, 3).tolist()
+    [True, True, False]
+    >>> detector_flags(top_down.drop(columns="file_slice_index"), 3).tolist()
+    [False, True, True]
+    """
+    if "abnormal" not in slices.columns or "slice_index" not in slices.columns:
+        return None
+    index = "file_slice_index" if "file_slice_index" in slices.columns else "slice_index"
+    order = slices.sort_values(index)
+    return order["abnormal"].to_numpy(dtype=bool) if len(order) == n_slices else None
+
+
 def load_case(prepared: PreparedCase, output_dir: str | Path) -> EvaluationCase:
     """Read one patient's published outputs and its reference into an EvaluationCase.
 
@@ -325,11 +355,7 @@ def load_case(prepared: PreparedCase, output_dir: str | Path) -> EvaluationCase:
     slices = decode_parquet((out / "slices.parquet").read_bytes())
     metrics = decode_parquet((out / "metrics.parquet").read_bytes()).iloc[0].to_dict()
     axis = choose_slice_axis(acq_aff)
-    det = None
-    if "abnormal" in slices.columns and "slice_index" in slices.columns:
-        order = slices.sort_values("slice_index")
-        if len(order) == pred_slices.shape[axis]:
-            det = order["abnormal"].to_numpy(dtype=bool)
+    det = detector_flags(slices, pred_slices.shape[axis])
 
     reference = ref_aff = ref_slices = on_ref = None
     row = prepared.source

@@ -15,8 +15,9 @@ the first two rows negated, exactly as for DICOM. ``GetArrayFromImage``
 returns the voxels as ``(k, j, i)``; they are transposed to the file's own
 order ``(i, j, k)`` and then follow the same rules as a NIfTI volume
 (:func:`tumor3d.storage.readers.common.scan_from_volume`: the slice axis by
-:func:`tumor3d.storage.readers.common.choose_slice_axis`, axes only permuted, never
-resampled, the slice step the distance between slice planes).
+:func:`tumor3d.storage.readers.common.choose_slice_axis`, axes permuted and reversed
+into the working orientation, never resampled, the slice step the distance between
+slice planes).
 """
 
 from __future__ import annotations
