@@ -23,7 +23,7 @@ def connect_once(address: str, timeout_s: float) -> dict[str, Any]:
 
         with distributed.Client(address, timeout=timeout_s, set_as_default=False) as client:
             return {"workers": len(client.scheduler_info().get("workers", {}))}
-    except BaseException as exc:  # reported as one line by the caller
+    except Exception as exc:  # reported as one line by the caller (Ctrl-C stays Ctrl-C)
         kind = "OSError" if isinstance(exc, OSError) else type(exc).__name__
         lines = str(exc).strip().splitlines()
         return {"error": kind, "text": lines[0] if lines else ""}

@@ -153,7 +153,9 @@ def check_scheduler(address: str, *, timeout_s: float | None = None) -> int:
     try:
         scheme, _ = parse_address(address)
         if scheme != "inproc":
-            get_address_host_port(address)
+            port = get_address_host_port(address)[1]
+            if not 0 < port < 65536:
+                raise ValueError(f"port {port} is not between 1 and 65535")
     except ValueError as exc:
         raise ClusterError(
             f"Dask scheduler {address}: not a scheduler address ({exc}); {fix}"

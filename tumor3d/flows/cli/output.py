@@ -117,7 +117,10 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
     from tumor3d.storage.patient_outputs import method_words, split_notes
 
     m = result.metrics
-    table = Table(title=f"Tumour volume, patient {escape(result.patient_id)}", title_justify="left")
+    # the title on a line of its own: a table's title wraps at the table's width, which
+    # split the patient id from "Tumour volume, patient" in a piped log
+    console.print(f"[italic]Tumour volume, patient {escape(result.patient_id)}[/]", soft_wrap=True)
+    table = Table()
     table.add_column("method")
     table.add_column("volume (mm3)", justify="right")
     table.add_column("volume (mL)", justify="right")
