@@ -256,6 +256,42 @@ def test_rerun_is_all_cache_hits_and_a_new_patient_computes_alone(first, inputs)
     assert all(all(h) for pid, h in hits.items() if pid != "coh3")
 
 
+def test_a_patient_computed_again_says_why(first, inputs, tmp_path):
+    """A user audit re-ran a cohort and saw "cached 0/10" for every patient, with no way
+    to tell that a code change caused it. A published patient whose stages ran again says
+    why: here the render colour changed (only the render stage ran), and a cleared store;
+    one all from the cache, or new, says nothing."""
+    import io
+    import shutil
+
+    from rich.console import Console
+
+    import tumor3d.flows.cli.output as output
+
+    out, result = first
+    _, rows, _ = inputs
+    assert all(p.recomputed is None for p in result.patients)  # nothing published before
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    red_config = {"render": {"color_rgb": [0.9, 0.1, 0.1]}}
+    red = run_cohort(rows[:2], copy, workers=2, config=red_config)
+    for p in red.patients:
+        assert [s.stage for s in p.stages if not s.cached] == ["render-views"], p.patient_id
+        assert p.recomputed == "configuration changed", p.patient_id
+    shutil.rmtree(copy / ".tumor3d-store")
+    cleared = run_cohort(rows[:1], copy, workers=1, config=red_config)
+    assert cleared.patients[0].recomputed.startswith("not in this artifact store")
+    again = run_cohort(rows[:1], copy, workers=1, config=red_config)
+    assert again.patients[0].recomputed is None  # all from the cache
+    buf = io.StringIO()
+    output.console, saved = Console(file=buf, width=200), output.console
+    try:
+        output.print_cohort_summary(red)
+    finally:
+        output.console = saved
+    assert "computed again (configuration changed): coh0, coh1" in buf.getvalue()
+
+
 def test_a_new_input_that_fails_says_its_folder_holds_the_earlier_result(first, inputs, tmp_path):
     """A patient published by an earlier run whose new image fails keeps the earlier folder
     (published results are not deleted): the run says that folder is not this input's, in

@@ -71,6 +71,7 @@ from tumor3d.storage.cohort_report import (
 from tumor3d.storage.folder_lock import writing_folder
 from tumor3d.storage.manifest import ManifestRow, read_manifest
 from tumor3d.storage.objectstore import ObjectStore, default_store_location, is_url, open_store
+from tumor3d.storage.provenance import cache_identity, recompute_reason
 from tumor3d.storage.publish import check_destination, check_outputs_not_inputs
 from tumor3d.storage.remote_publish import RemoteFolder, publish_files, published_names
 from tumor3d.storage.store import ArtifactStore, StoreError, check_writable_dir
@@ -131,6 +132,11 @@ class PatientOutcome(BaseModel):
         Time the patient's lane spent on it: preparing, every stage, publishing.
     publish_seconds : float
         Of which publishing (:attr:`tumor3d.flows.patient.PatientResult.publish_seconds`).
+    recomputed : str or None
+        Why stages ran for a patient that an earlier run had published in ``DIR``
+        (:func:`tumor3d.storage.provenance.recompute_reason`: its input, the
+        configuration, a given file or the code changed, or the results were not in
+        this store); None when every stage was a cache hit or nothing was published.
     """
 
     model_config = ConfigDict(frozen=True)
@@ -146,6 +152,7 @@ class PatientOutcome(BaseModel):
     row: dict[str, Any] = Field(default_factory=dict)
     lane_seconds: float = 0.0
     publish_seconds: float = 0.0
+    recomputed: str | None = None
 
 
 class CohortResult(BaseModel):
@@ -388,6 +395,13 @@ def cohort_flow(
     if removed:
         logger.warning("%d published patient(s) no longer in the manifest, kept: %s",
                        len(removed), ", ".join(removed))  # fmt: skip
+    # what decided each published patient's cache keys, to say why one is computed again
+    before = {} if remote is None else None
+    if before is not None:
+        for r in rows:
+            folder = bids.folder_name(str(r.get("patient_id")), layout)
+            if folder in published:
+                before[folder] = cache_identity(Path(out_dir) / folder)
     for spec in stages.STAGES.values():  # per-process constants, once, before the lanes start
         _ = spec.code_digest
     lanes = max(1, min(len(rows), workers + EXTRA_LANES))
@@ -398,6 +412,8 @@ def cohort_flow(
         futures = [pool.submit(contextvars.copy_context().run, lane, row) for row in rows]
         outcomes = [f.result() for f in futures]
     sweep_killed_writers(store, logger)  # of writers killed mid-stage (a lost Dask worker)
+    if before:
+        outcomes = [_with_recompute_reason(o, before, layout) for o in outcomes]
     wall = time.perf_counter() - t0
     table = cohort_table([o.model_dump() for o in outcomes], out_dir=out_dir)
     earlier = [
@@ -431,6 +447,24 @@ def cohort_flow(
         failed = PatientsFailed(result)
         return Failed(message=str(failed), data=failed)
     return result
+
+
+def _with_recompute_reason(
+    outcome: PatientOutcome, before: dict[str, dict[str, Any] | None], layout: str
+) -> PatientOutcome:
+    """``outcome`` with :attr:`PatientOutcome.recomputed` when stages ran that were published."""
+    earlier = before.get(bids.folder_name(outcome.patient_id, layout))
+    if (
+        earlier is None
+        or outcome.status == STATUS_FAILED
+        or outcome.output_dir is None
+        or all(s.cached for s in outcome.stages)
+    ):
+        return outcome
+    now = cache_identity(outcome.output_dir)
+    if now is None:
+        return outcome
+    return outcome.model_copy(update={"recomputed": recompute_reason(earlier, now)})
 
 
 class PatientsFailed(Tumor3DError):

@@ -10,12 +10,20 @@ from __future__ import annotations
 
 import json
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 from tumor3d.storage.store import canonical_dumps
 from tumor3d.storage.versions import PACKAGES, versions
 
-__all__ = ["PACKAGES", "METHOD", "build_provenance", "versions"]
+__all__ = [
+    "METHOD",
+    "PACKAGES",
+    "build_provenance",
+    "cache_identity",
+    "recompute_reason",
+    "versions",
+]
 
 #: The method, as cited in every record.
 METHOD = "Arakeri & Reddy (2013), IJSIP 6(3); see ALGORITHMS.md choices [A1]-[A29]"
@@ -63,3 +71,70 @@ def build_provenance(
         "stages": stages,
         "notes": list(notes or []),
     }
+
+
+def cache_identity(folder: str | Path) -> dict[str, Any] | None:
+    """What decided a published patient's cache keys, from its ``provenance.json``.
+
+    ``input`` (the input's content digest), ``config`` (the configuration's
+    digest), ``given`` (a given brain mask's and segmentation's records),
+    ``code`` (stage -> code digest) and ``versions``; None when the folder
+    holds no readable record (never published, or by another tool).
+    """
+    try:
+        doc = json.loads((Path(folder) / "provenance.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(doc, dict):
+        return None
+    stages = [s for s in doc.get("stages") or [] if isinstance(s, dict)]
+    given = {
+        key: doc.get(key) for key in ("brain_mask", "segmentation")
+        if isinstance(doc.get(key), dict) and doc[key].get("given")
+    }  # fmt: skip
+    return {
+        "input": (doc.get("input") or {}).get("digest_sha256"),
+        "config": doc.get("config_sha256"),
+        "given": given,
+        "code": {str(s.get("stage")): s.get("code_sha256") for s in stages},
+        "versions": dict(doc.get("versions") or {}),
+    }
+
+
+def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
+    """Why a patient published before was computed again, in words.
+
+    ``before`` and ``after`` are :func:`cache_identity` of the earlier and the
+    new record: its input, its configuration, a given file, or the code of some
+    stages (with the package versions that moved) changed; else the results were
+    not in this artifact store (another ``--store``, or one cleared).
+
+    >>> old = {"input": "a", "config": "c", "given": {}, "code": {"segment": "1", "render": "2"},
+    ...        "versions": {"tumor3d": "0.1.0", "numpy": "2.4.6"}}
+    >>> recompute_reason(old, {**old, "config": "d"})
+    'configuration changed'
+    >>> new = {**old, "code": {"segment": "9", "render": "2"}, "versions": {"tumor3d": "0.1.0",
+    ...        "numpy": "2.4.7"}}
+    >>> recompute_reason(old, new)
+    'code of 1 of 2 stages changed (numpy 2.4.6 -> 2.4.7)'
+    >>> recompute_reason(old, old)
+    'not in this artifact store (another --store, or one cleared)'
+    """
+    if before.get("input") != after.get("input"):
+        return "input changed"
+    if before.get("config") != after.get("config"):
+        return "configuration changed"
+    if before.get("given") != after.get("given"):
+        return "given brain mask or segmentation changed"
+    code_after = after.get("code") or {}
+    moved = [s for s, digest in code_after.items() if (before.get("code") or {}).get(s) != digest]
+    if moved:
+        old_v, new_v = before.get("versions") or {}, after.get("versions") or {}
+        packages = [
+            f"{name} {old_v.get(name, '?')} -> {version}"
+            for name, version in new_v.items()
+            if name not in ("python", "platform") and old_v.get(name) != version
+        ]
+        said = f" ({'; '.join(packages)})" if packages else ""
+        return f"code of {len(moved)} of {len(code_after)} stages changed{said}"
+    return "not in this artifact store (another --store, or one cleared)"

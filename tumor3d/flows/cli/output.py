@@ -251,6 +251,14 @@ def print_cohort_summary(result: Any) -> None:
             f"folder is not this input's): {escape(', '.join(result.earlier))}",
             soft_wrap=True,
         )
+    recomputed: dict[str, list[str]] = {}
+    for p in result.patients:  # published before, not all from the cache: say why
+        if getattr(p, "recomputed", None):
+            recomputed.setdefault(str(p.recomputed), []).append(p.patient_id)
+    for why, ids in recomputed.items():
+        console.print(
+            f"[dim]computed again[/] ({escape(why)}): {escape(', '.join(ids))}", soft_wrap=True
+        )
     if result.removed:
         console.print(
             f"[yellow]no longer in the manifest[/] (published earlier, folders kept): "
