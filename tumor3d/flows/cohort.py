@@ -414,6 +414,9 @@ def cohort_flow(
     sweep_killed_writers(store, logger)  # of writers killed mid-stage (a lost Dask worker)
     if before:
         outcomes = [_with_recompute_reason(o, before, layout) for o in outcomes]
+        for o in outcomes:
+            if o.recomputed:
+                logger.info("patient %s computed again: %s", o.patient_id, o.recomputed)
     wall = time.perf_counter() - t0
     table = cohort_table([o.model_dump() for o in outcomes], out_dir=out_dir)
     earlier = [

@@ -37,7 +37,7 @@ __all__ = [
     "write_cohort_outputs",
 ]
 
-_FIRST = ("patient_id", "status", "failed_stage", "error", "output_dir")
+_FIRST = ("patient_id", "status", "failed_stage", "error", "output_dir", "recomputed")
 
 
 def cohort_table(
@@ -192,6 +192,13 @@ def cohort_markdown(
                 "this run's input's (this run failed before publishing): do not read it as "
                 "this run's.",
             ]
+    again: dict[str, list[str]] = {}
+    for _, r in table.iterrows():  # published before and not all from the cache: why
+        if isinstance(r.get("recomputed"), str) and r["recomputed"]:
+            again.setdefault(r["recomputed"], []).append(str(r["patient_id"]))
+    if again:
+        lines += ["", "## Computed again", ""]
+        lines += [f"- {why}: {', '.join(ids)}" for why, ids in again.items()]
     if removed:
         lines += [
             "",

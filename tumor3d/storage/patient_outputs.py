@@ -208,9 +208,13 @@ def method_words(metrics: Mapping[str, Any]) -> str:
     'learned (forest + U-Net mean)'
     >>> method_words({"segment_method": "robust", "segment_model": ""})
     'robust'
+    >>> method_words({"segment_method": "given"})
+    'none (the segmentation was given)'
     """
     method = str(metrics.get("segment_method") or "")
     model = str(metrics.get("segment_model") or "")
+    if method == "given":
+        return "none (the segmentation was given)"
     return f"{method} ({model})" if method and model else method
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from tumor3d.storage.store import canonical_dumps
-from tumor3d.storage.versions import PACKAGES, versions
+from tumor3d.storage.versions import NUMERICAL_PACKAGES, PACKAGES, versions
 
 __all__ = [
     "METHOD",
@@ -77,7 +77,7 @@ def cache_identity(folder: str | Path) -> dict[str, Any] | None:
     """What decided a published patient's cache keys, from its ``provenance.json``.
 
     ``input`` (the input's content digest), ``config`` (the configuration's
-    digest), ``given`` (a given brain mask's and segmentation's records),
+    digest), ``given`` (the SHA-256 of a given brain mask and segmentation),
     ``code`` (stage -> code digest) and ``versions``; None when the folder
     holds no readable record (never published, or by another tool).
     """
@@ -89,7 +89,7 @@ def cache_identity(folder: str | Path) -> dict[str, Any] | None:
         return None
     stages = [s for s in doc.get("stages") or [] if isinstance(s, dict)]
     given = {
-        key: doc.get(key) for key in ("brain_mask", "segmentation")
+        key: doc[key].get("sha256") for key in ("brain_mask", "segmentation")
         if isinstance(doc.get(key), dict) and doc[key].get("given")
     }  # fmt: skip
     return {
@@ -101,40 +101,50 @@ def cache_identity(folder: str | Path) -> dict[str, Any] | None:
     }
 
 
+#: The distributions whose versions are in the stages' cache keys.
+_KEYED = tuple(name for names in NUMERICAL_PACKAGES.values() for name in names)
+
+
 def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
     """Why a patient published before was computed again, in words.
 
     ``before`` and ``after`` are :func:`cache_identity` of the earlier and the
-    new record: its input, its configuration, a given file, or the code of some
-    stages (with the package versions that moved) changed; else the results were
-    not in this artifact store (another ``--store``, or one cleared).
+    new record. In this order: its input or a given file changed; the code of
+    some stages or the versions of the numerical packages the keys hold moved
+    (a new release, whose configuration defaults may have moved with it); the
+    configuration changed; else the results were not in this artifact store
+    (another ``--store``, or one cleared).
 
     >>> old = {"input": "a", "config": "c", "given": {}, "code": {"segment": "1", "render": "2"},
     ...        "versions": {"tumor3d": "0.1.0", "numpy": "2.4.6"}}
     >>> recompute_reason(old, {**old, "config": "d"})
     'configuration changed'
-    >>> new = {**old, "code": {"segment": "9", "render": "2"}, "versions": {"tumor3d": "0.1.0",
-    ...        "numpy": "2.4.7"}}
-    >>> recompute_reason(old, new)
-    'code of 1 of 2 stages changed (numpy 2.4.6 -> 2.4.7)'
+    >>> recompute_reason(old, {**old, "config": "d", "code": {"segment": "9", "render": "2"}})
+    'code of 1 of 2 stages changed'
+    >>> recompute_reason(old, {**old, "versions": {"tumor3d": "0.1.0", "numpy": "2.4.7"}})
+    'package versions changed: numpy 2.4.6 -> 2.4.7'
     >>> recompute_reason(old, old)
-    'not in this artifact store (another --store, or one cleared)'
+    'not in this artifact store: another --store, or one cleared'
     """
     if before.get("input") != after.get("input"):
         return "input changed"
-    if before.get("config") != after.get("config"):
-        return "configuration changed"
     if before.get("given") != after.get("given"):
         return "given brain mask or segmentation changed"
     code_after = after.get("code") or {}
     moved = [s for s, digest in code_after.items() if (before.get("code") or {}).get(s) != digest]
+    old_v, new_v = before.get("versions") or {}, after.get("versions") or {}
+    packages = [
+        f"{name} {old_v.get(name, '?')} -> {new_v[name]}"
+        for name in _KEYED
+        if name in new_v and old_v.get(name) != new_v[name]
+    ]
+    said = []
     if moved:
-        old_v, new_v = before.get("versions") or {}, after.get("versions") or {}
-        packages = [
-            f"{name} {old_v.get(name, '?')} -> {version}"
-            for name, version in new_v.items()
-            if name not in ("python", "platform") and old_v.get(name) != version
-        ]
-        said = f" ({'; '.join(packages)})" if packages else ""
-        return f"code of {len(moved)} of {len(code_after)} stages changed{said}"
-    return "not in this artifact store (another --store, or one cleared)"
+        said.append(f"code of {len(moved)} of {len(code_after)} stages changed")
+    if packages:
+        said.append(f"package versions changed: {', '.join(packages)}")
+    if said:
+        return "; ".join(said)
+    if before.get("config") != after.get("config"):
+        return "configuration changed"
+    return "not in this artifact store: another --store, or one cleared"

@@ -257,7 +257,7 @@ def print_cohort_summary(result: Any) -> None:
             recomputed.setdefault(str(p.recomputed), []).append(p.patient_id)
     for why, ids in recomputed.items():
         console.print(
-            f"[dim]computed again[/] ({escape(why)}): {escape(', '.join(ids))}", soft_wrap=True
+            f"[dim]computed again[/], {escape(why)}: {escape(', '.join(ids))}", soft_wrap=True
         )
     if result.removed:
         console.print(
