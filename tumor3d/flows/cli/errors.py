@@ -102,12 +102,17 @@ def _ctrl_c_ends(message: str) -> Iterator[None]:
     from the main thread only.
     """
     import contextlib
+    import logging
     import signal
 
     from tumor3d.flows.server import EXIT_HOOKS
 
     def ends(code: int, line: str) -> Any:
         def on_signal(signum: int, frame: Any) -> None:
+            # nothing logs from here on: Prefect's services, whose temporary server the same
+            # Ctrl-C stopped, would print their failures beside the one line (a CI run saw
+            # the events worker's "failed to process item" after it)
+            logging.disable(logging.CRITICAL)
             try:
                 if console.is_terminal:
                     console.show_cursor(True)  # a live progress bar hides it
