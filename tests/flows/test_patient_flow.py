@@ -160,6 +160,7 @@ def test_second_run_is_all_cache_hits(first_run, nifti_input):
     out, first = first_run
     second = run_patient(nifti_input, out, patient_id="flowpat")
     assert all(second.cache_hits), [s.stage for s in second.stages if not s.cached]
+    assert first.recomputed is None and second.recomputed is None  # new, then all hits
     for key in VOLUME_METHODS:
         assert second.metrics[key] == first.metrics[key]
 
@@ -269,6 +270,9 @@ def test_config_change_recomputes_that_stage_and_later_only(
     result = run_patient(nifti_input, out, patient_id="flowpat", config=config)
     k = STAGE_NAMES.index(first_changed)
     hits = result.cache_hits
+    # the folder held the result of another configuration (the default's, or the case
+    # before's): the run says why stages ran again
+    assert result.recomputed == "configuration changed"
     assert all(hits[:k]), "stages before the changed one must be cache hits"
     assert not hits[k], "the changed stage must recompute"
     assert hits[STAGE_NAMES.index("extract-brain-surface")], "the brain surface is reused"

@@ -30,12 +30,14 @@ from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
 from tumor3d.flows.artifacts import publish_patient_artifacts
 from tumor3d.segmentation.review import NO_TUMOUR_NOTE, review_status
+from tumor3d.storage import bids
 from tumor3d.storage.brain_mask import GivenBrainMask, read_given_brain_mask
 from tumor3d.storage.derivatives import VOLUME_LABELS, VOLUME_METHODS
 from tumor3d.storage.given_segmentation import GivenSegmentation, read_given_segmentation
 from tumor3d.storage.inputs import input_digest, input_location
 from tumor3d.storage.objectstore import default_store_location, is_url, open_store
 from tumor3d.storage.product_memo import products
+from tumor3d.storage.provenance import cache_identity, recompute_reason
 from tumor3d.storage.publish import check_destination, check_output_not_input
 from tumor3d.storage.readers import (
     ReadOptions,
@@ -100,6 +102,10 @@ class PatientResult(BaseModel):
     report: dict[str, Any] = {}
     #: The output folder already held exactly this result: nothing was rewritten.
     up_to_date: bool = False
+    #: Why stages ran for a patient published before in this folder
+    #: (:func:`tumor3d.storage.provenance.recompute_reason`); None when all were cache
+    #: hits or nothing was published.
+    recomputed: str | None = None
 
     @property
     def cache_hits(self) -> list[bool]:
@@ -369,9 +375,17 @@ def patient_flow(
     logger = get_run_logger()
     digest = config_digest(cfg)[:12]
     logger.info("patient %s: %s (config %s)", source.patient_id, source.name, digest)
+    # what decided the published result's cache keys, to say why stages run again
+    before = None if is_url(out_dir) else cache_identity(
+        Path(out_dir) / bids.folder_name(source.patient_id, layout)
+    )  # fmt: skip
     result = patient_pipeline(
         source, out_dir, cfg, store, brain_mask=given, segmentation=seg, layout=layout
     )
+    now = None if before is None or all(result.cache_hits) else cache_identity(result.output_dir)
+    if now is not None:
+        result = result.model_copy(update={"recomputed": recompute_reason(before, now)})
+        logger.info("patient %s computed again: %s", source.patient_id, result.recomputed)
     publish_patient_artifacts(result.report)
     logger.info("patient %s: published %s", source.patient_id, result.output_dir)
     sweep_killed_writers(store, logger)  # an earlier run's, killed mid-write

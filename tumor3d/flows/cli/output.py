@@ -165,6 +165,8 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
             "cache hit" if s.cached else f"{s.wall_seconds:.2f} s",
         )
     console.print(times)
+    if getattr(result, "recomputed", None):  # published before: why stages ran again
+        console.print(f"[dim]computed again[/], {escape(str(result.recomputed))}", soft_wrap=True)
     reasons = split_notes(m.get("review_reasons"))
     for note in getattr(result, "notes", []):
         if note not in reasons:
