@@ -99,11 +99,13 @@ def test_a_header_without_orientation_is_a_doubt_of_the_run(tmp_path):
         "unverified; check them, or give the file its orientation"
     ]
     assert said[0] in doubts
+    assert run.outputs["ingest-scan"].values["orientation_stated"] is False
     # the Python API says the same (a review: it read the file without the notes)
     import tumor3d
 
     api = tumor3d.reconstruct(str(tmp_path / "unstated.nii"), modality="t2")
     assert api.status == "check" and said[0] in api.review_reasons
     run = run_stages_direct(tmp_path / "stated.nii", tmp_path / "store", patient_id="hdr")
+    assert run.outputs["ingest-scan"].values["orientation_stated"] is True
     notes, doubts = run_notes(run.outputs)
     assert not [n for n in notes if "orientation" in n]

@@ -350,6 +350,7 @@ def test_png_stack_natural_order_and_geometry(tmp_path):
     assert scan.modality == "t2"
     assert scan.source_grid.shape == (8, 10, 12)
     assert "12 slices" in scan.source
+    assert not scan.orientation_stated  # LPS by convention: the report says assumed
 
 
 def test_png_stack_explicit_order_modality_and_slices_yaml(tmp_path):

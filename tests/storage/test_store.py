@@ -123,6 +123,9 @@ def test_scan_round_trip_keeps_geometry(store):
     assert (back.slice_step_mm, back.slice_thickness_mm, back.slice_gap_mm) == (5.0, 2.0, 3.0)
     assert (back.modality, back.patient_id, back.source) == ("flair", "p01", "test")
     assert back.source_grid.axes == grid.axes and back.source_grid.shape == grid.shape
+    assert back.orientation_stated
+    assumed = dataclasses.replace(scan, orientation_stated=False)
+    assert not store.get_scan(store.put_scan(assumed), patient_id="p01").orientation_stated
     # the patient id is not stored (issue 29): the same image under another id is the
     # same artifact, and the reader names the patient
     assert "p01" not in json.dumps(ref.metadata)

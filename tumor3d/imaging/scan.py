@@ -375,6 +375,10 @@ class Scan:
         Names (relative to the input folder) of files the reader skipped as
         unreadable on request (DICOM ``skip_unreadable``); empty otherwise.
         The summary and provenance should list them.
+    orientation_stated : bool
+        The input states its orientation. False for a folder of 2-D slices (its
+        axes are assumed LPS) and a NIfTI header with sform and qform codes 0
+        (nibabel's default axes): the affine's directions are then a convention.
     """
 
     image: np.ndarray
@@ -388,6 +392,7 @@ class Scan:
     source: str
     source_grid: SourceGrid = field(repr=False)
     skipped_files: tuple[str, ...] = ()
+    orientation_stated: bool = True
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "skipped_files", tuple(str(f) for f in self.skipped_files))

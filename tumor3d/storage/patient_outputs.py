@@ -225,9 +225,14 @@ def orientation_words(orientation: Mapping[str, Any]) -> str:
     'stored LAS, read as LPS'
     >>> orientation_words({"stored": "LPS", "read_as": "LPS"})
     'LPS, read as stored'
+    >>> orientation_words({"stored": "LPS", "read_as": "LPS", "stated": False})
+    'LPS, read as stored (assumed: the input does not state its orientation)'
     """
     stored, read = str(orientation.get("stored")), str(orientation.get("read_as"))
-    return f"{stored}, read as stored" if stored == read else f"stored {stored}, read as {read}"
+    words = f"{stored}, read as stored" if stored == read else f"stored {stored}, read as {read}"
+    if orientation.get("stated") is False:
+        words += " (assumed: the input does not state its orientation)"
+    return words
 
 
 def patient_report_data(

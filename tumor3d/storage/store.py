@@ -582,6 +582,8 @@ class ArtifactStore:
             extra["source_grid"]["flips"] = list(grid.flips)
         if scan.skipped_files:  # only when present, so other scans keep their digests
             extra["skipped_files"] = list(scan.skipped_files)
+        if not scan.orientation_stated:  # likewise
+            extra["orientation_stated"] = False
         return self.put_volume(scan.image, scan.affine, kind="scan", dtype="float32", extra=extra)
 
     def get_scan(self, ref: ArtifactRef, *, patient_id: str) -> Scan:
@@ -640,6 +642,7 @@ def scan_from_metadata(
         source=meta["source"],
         source_grid=source_grid_from_metadata(meta),
         skipped_files=tuple(meta.get("skipped_files", ())),
+        orientation_stated=bool(meta.get("orientation_stated", True)),
     )
 
 

@@ -47,6 +47,7 @@ def ingest_scan(source: InputSource) -> StageResult:
             "slice_gap_mm": scan.slice_gap_mm,
             "skipped_files": list(scan.skipped_files),
             "header_notes": header_notes,
+            "orientation_stated": scan.orientation_stated,
         },
     )
 

@@ -281,7 +281,11 @@ def _provenance(
         "location_sha256": input_location(source.path),
     }
     input_info.update(modality=source.modality, patient_id=source.patient_id)
-    input_info["orientation"] = grid_orientation(grid)
+    input_info["orientation"] = {
+        **grid_orientation(grid),
+        # False: a folder of 2-D slices, or a NIfTI header without orientation (assumed)
+        "stated": bool(outputs["ingest-scan"].values.get("orientation_stated", True)),
+    }
     code = {name: spec.code_digest for name, spec in stages.STAGES.items()}
     provenance = build_provenance(
         input_info=input_info,

@@ -268,6 +268,7 @@ def scan_from_volume(
     slice_thickness_mm: float | None,
     slice_gap_mm: float | None,
     file_thickness: Callable[[float], float | None] | None = None,
+    orientation_stated: bool = True,
 ) -> Scan:
     """Make a `Scan` from a 3-D volume in its file's voxel order and its RAS affine.
 
@@ -298,6 +299,9 @@ def scan_from_volume(
     file_thickness : callable, optional
         Given the slice step (mm), returns the thickness the file's metadata
         states, or None (and checks any stated spacing against the step).
+    orientation_stated : bool
+        False when the affine's directions are a reader's assumption
+        (``Scan.orientation_stated``).
 
     Returns
     -------
@@ -345,6 +349,7 @@ def scan_from_volume(
         patient_id=patient_id,
         source=text,
         source_grid=SourceGrid(shape=tuple(data.shape), affine=affine, axes=axes),
+        orientation_stated=orientation_stated,
     )
     return working_orientation(scan)
 

@@ -172,6 +172,8 @@ def read_nifti_scan(
     if not p.is_file():
         raise InputError("no such file", where)
     data, affine = load_nifti_volume(p, limit)
+    header = _header(p)
+    stated = header is None or any(int(header[f"{f}_code"]) for f in ("sform", "qform"))
 
     return scan_from_volume(
         data,
@@ -183,7 +185,18 @@ def read_nifti_scan(
         slice_thickness_mm=thickness_override,
         slice_gap_mm=gap_override,
         file_thickness=lambda step: _read_bids_sidecar(p, step),
+        orientation_stated=stated,
     )
+
+
+def _header(p: Path) -> Any:
+    """The NIfTI header of a file :func:`load_nifti_volume` has read (None if unreadable)."""
+    import nibabel as nib
+
+    try:
+        return nib.load(str(p)).header
+    except Exception:  # read just before: a file replaced since says nothing
+        return None
 
 
 def load_nifti_volume(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:

@@ -173,6 +173,7 @@ def read_image_stack(
         patient_id=pid,
         source=f"image stack in folder {d.name}, {nz} slices",
         source_grid=SourceGrid(shape=(nx, ny, nz), affine=affine, axes=(0, 1, 2)),
+        orientation_stated=False,  # 2-D images: LPS by convention
     )
 
 
