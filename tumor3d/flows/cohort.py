@@ -134,9 +134,10 @@ class PatientOutcome(BaseModel):
         Of which publishing (:attr:`tumor3d.flows.patient.PatientResult.publish_seconds`).
     recomputed : str or None
         Why stages ran for a patient that an earlier run had published in ``DIR``
-        (:func:`tumor3d.storage.provenance.recompute_reason`: its input, the
-        configuration, a given file or the code changed, or the results were not in
-        this store); None when every stage was a cache hit or nothing was published.
+        (:func:`tumor3d.storage.provenance.recompute_reason`: its input or a given
+        file, the code or the numerical packages' versions, or the configuration
+        changed, or the results were not in this store); None when every stage was a
+        cache hit or nothing was published.
     """
 
     model_config = ConfigDict(frozen=True)
