@@ -285,7 +285,7 @@ def test_a_patient_computed_again_says_why(first, inputs, tmp_path):
     assert "- configuration changed: coh0, coh1" in (copy / "cohort.md").read_text()
     shutil.rmtree(copy / ".tumor3d-store")
     cleared = run_cohort(rows[:1], copy, workers=1, config=red_config)
-    assert cleared.patients[0].recomputed.startswith("not in this artifact store")
+    assert cleared.patients[0].recomputed.startswith("nothing recorded changed, but the results")
     again = run_cohort(rows[:1], copy, workers=1, config=red_config)
     assert again.patients[0].recomputed is None  # all from the cache
     buf = io.StringIO()
@@ -294,9 +294,9 @@ def test_a_patient_computed_again_says_why(first, inputs, tmp_path):
         output.print_cohort_summary(red)
     finally:
         output.console = saved
-    assert "computed again, configuration changed: coh0, coh1" in buf.getvalue()
+    assert "since the earlier result, configuration changed: coh0, coh1" in buf.getvalue()
     assert pd.read_parquet(copy / "cohort.parquet")["recomputed"].isna().all()  # the last run's
-    assert "Computed again" not in (copy / "cohort.md").read_text()
+    assert "Since the earlier result" not in (copy / "cohort.md").read_text()
 
 
 def test_a_new_input_that_fails_says_its_folder_holds_the_earlier_result(first, inputs, tmp_path):

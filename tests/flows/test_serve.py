@@ -146,6 +146,7 @@ def test_a_triggered_run_computes_only_the_added_patient_and_reports_removed(tmp
     assert last["patients"] == {"ok": 3, "check": 0, "failed": 0}
     assert last["message"] == "3 patients completed"
     assert last["started_utc"] <= last["finished_utc"]
+    assert "since_earlier_result" not in last  # two all from the cache, one new
     table = pd.read_parquet(out / "cohort.parquet").set_index("patient_id")
     cached = [f"cached_{s.replace('-', '_')}" for s in STAGES]
     assert list(table.index) == ["srv0", "srv1", "srv2"]
@@ -277,3 +278,23 @@ def test_a_bad_time_zone_is_named_and_a_row_not_there_yet_is_accepted(tmp_path):
     manifest.write_text(text + late + "\n")
     dep = cohort_deployment(manifest, tmp_path / "out", cron="0 2 * * *", timezone="Europe/Paris")
     assert dep.schedules[0].schedule.timezone == "Europe/Paris"
+
+
+def test_last_run_says_which_patients_changed_since_their_earlier_result(tmp_path):
+    """A user audit: a scheduled run's reason for recomputing a patient was only in
+    cohort.md, which the next run replaces; last_run.json keeps it with the run."""
+    import logging
+
+    from tumor3d.flows.cohort import CohortResult, PatientOutcome
+    from tumor3d.flows.serve import _write_last_run
+
+    patients = [
+        PatientOutcome(patient_id="p1", status="ok", recomputed="configuration changed"),
+        PatientOutcome(patient_id="p2", status="ok"),
+        PatientOutcome(patient_id="p3", status="check", recomputed="configuration changed"),
+    ]
+    _write_last_run(str(tmp_path), "t0", "completed", "3 patients completed",
+                    CohortResult(patients=patients), logging.getLogger("test"))  # fmt: skip
+    last = _last_run(tmp_path)
+    assert last["since_earlier_result"] == {"configuration changed": ["p1", "p3"]}
+    assert last["patients"] == {"ok": 2, "check": 1, "failed": 0}

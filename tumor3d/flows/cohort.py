@@ -71,7 +71,7 @@ from tumor3d.storage.cohort_report import (
 from tumor3d.storage.folder_lock import writing_folder
 from tumor3d.storage.manifest import ManifestRow, read_manifest
 from tumor3d.storage.objectstore import ObjectStore, default_store_location, is_url, open_store
-from tumor3d.storage.provenance import cache_identity, recompute_reason
+from tumor3d.storage.provenance import cache_identity, changed_since
 from tumor3d.storage.publish import check_destination, check_outputs_not_inputs
 from tumor3d.storage.remote_publish import RemoteFolder, publish_files, published_names
 from tumor3d.storage.store import ArtifactStore, StoreError, check_writable_dir
@@ -396,7 +396,7 @@ def cohort_flow(
     if removed:
         logger.warning("%d published patient(s) no longer in the manifest, kept: %s",
                        len(removed), ", ".join(removed))  # fmt: skip
-    # what decided each published patient's cache keys, to say why one is computed again
+    # what decided each published patient's cache keys, to say why its result changed
     before = {} if remote is None else None
     if before is not None:
         for r in rows:
@@ -416,8 +416,9 @@ def cohort_flow(
     if before:
         outcomes = [_with_recompute_reason(o, before, layout) for o in outcomes]
         for o in outcomes:
-            if o.recomputed:
-                logger.info("patient %s computed again: %s", o.patient_id, o.recomputed)
+            if o.recomputed:  # a warning: the flow run's log on the server (not the console)
+                logger.warning("patient %s changed since its earlier result: %s",
+                               o.patient_id, o.recomputed)  # fmt: skip
     wall = time.perf_counter() - t0
     table = cohort_table([o.model_dump() for o in outcomes], out_dir=out_dir)
     earlier = [
@@ -458,17 +459,10 @@ def _with_recompute_reason(
 ) -> PatientOutcome:
     """``outcome`` with :attr:`PatientOutcome.recomputed` when stages ran that were published."""
     earlier = before.get(bids.folder_name(outcome.patient_id, layout))
-    if (
-        earlier is None
-        or outcome.status == STATUS_FAILED
-        or outcome.output_dir is None
-        or all(s.cached for s in outcome.stages)
-    ):
+    if earlier is None or outcome.status == STATUS_FAILED or outcome.output_dir is None:
         return outcome
-    now = cache_identity(outcome.output_dir)
-    if now is None:
-        return outcome
-    return outcome.model_copy(update={"recomputed": recompute_reason(earlier, now)})
+    reason = changed_since(earlier, outcome.output_dir, all(s.cached for s in outcome.stages))
+    return outcome if reason is None else outcome.model_copy(update={"recomputed": reason})
 
 
 class PatientsFailed(Tumor3DError):

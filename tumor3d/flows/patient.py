@@ -37,7 +37,7 @@ from tumor3d.storage.given_segmentation import GivenSegmentation, read_given_seg
 from tumor3d.storage.inputs import input_digest, input_location
 from tumor3d.storage.objectstore import default_store_location, is_url, open_store
 from tumor3d.storage.product_memo import products
-from tumor3d.storage.provenance import cache_identity, recompute_reason
+from tumor3d.storage.provenance import cache_identity, changed_since
 from tumor3d.storage.publish import check_destination, check_output_not_input
 from tumor3d.storage.readers import (
     ReadOptions,
@@ -382,10 +382,13 @@ def patient_flow(
     result = patient_pipeline(
         source, out_dir, cfg, store, brain_mask=given, segmentation=seg, layout=layout
     )
-    now = None if before is None or all(result.cache_hits) else cache_identity(result.output_dir)
-    if now is not None:
-        result = result.model_copy(update={"recomputed": recompute_reason(before, now)})
-        logger.info("patient %s computed again: %s", source.patient_id, result.recomputed)
+    reason = None if before is None else changed_since(
+        before, result.output_dir, all(result.cache_hits)
+    )  # fmt: skip
+    if reason is not None:  # a warning: the flow run's log on the server (not the console)
+        result = result.model_copy(update={"recomputed": reason})
+        logger.warning("patient %s changed since its earlier result: %s", source.patient_id,
+                       reason)  # fmt: skip
     publish_patient_artifacts(result.report)
     logger.info("patient %s: published %s", source.patient_id, result.output_dir)
     sweep_killed_writers(store, logger)  # an earlier run's, killed mid-write

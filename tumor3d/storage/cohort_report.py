@@ -193,11 +193,11 @@ def cohort_markdown(
                 "this run's.",
             ]
     again: dict[str, list[str]] = {}
-    for _, r in table.iterrows():  # published before and not all from the cache: why
+    for _, r in table.iterrows():  # published before, and this result is not that one: why
         if isinstance(r.get("recomputed"), str) and r["recomputed"]:
             again.setdefault(r["recomputed"], []).append(str(r["patient_id"]))
     if again:
-        lines += ["", "## Computed again", ""]
+        lines += ["", "## Since the earlier result", ""]
         lines += [f"- {why}: {', '.join(ids)}" for why, ids in again.items()]
     if removed:
         lines += [

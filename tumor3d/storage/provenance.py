@@ -21,7 +21,9 @@ __all__ = [
     "PACKAGES",
     "build_provenance",
     "cache_identity",
+    "changed_since",
     "recompute_reason",
+    "same_identity",
     "versions",
 ]
 
@@ -105,6 +107,18 @@ def cache_identity(folder: str | Path) -> dict[str, Any] | None:
 _KEYED = tuple(name for names in NUMERICAL_PACKAGES.values() for name in names)
 
 
+def same_identity(before: dict[str, Any], after: dict[str, Any]) -> bool:
+    """Whether two :func:`cache_identity` records agree on all that decides the result.
+
+    The versions of the numerical packages only (not of python or the platform).
+    """
+    keys = ("input", "config", "given", "code")
+    old_v, new_v = before.get("versions") or {}, after.get("versions") or {}
+    return all(before.get(k) == after.get(k) for k in keys) and all(
+        old_v.get(name) == new_v.get(name) for name in _KEYED
+    )
+
+
 def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
     """Why a patient published before was computed again, in words.
 
@@ -112,8 +126,10 @@ def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
     new record. In this order: its input or a given file changed; the code of
     some stages or the versions of the numerical packages the keys hold moved
     (a new release, whose configuration defaults may have moved with it); the
-    configuration changed; else the results were not in this artifact store
-    (another ``--store``, or one cleared).
+    configuration changed; else nothing the records hold changed, and the
+    results were not found in this artifact store (another ``--store``, one
+    cleared, or code edited while the earlier run was under way: the records
+    hold the code as the run began).
 
     >>> old = {"input": "a", "config": "c", "given": {}, "code": {"segment": "1", "render": "2"},
     ...        "versions": {"tumor3d": "0.1.0", "numpy": "2.4.6"}}
@@ -123,8 +139,8 @@ def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
     'code of 1 of 2 stages changed'
     >>> recompute_reason(old, {**old, "versions": {"tumor3d": "0.1.0", "numpy": "2.4.7"}})
     'package versions changed: numpy 2.4.6 -> 2.4.7'
-    >>> recompute_reason(old, old)
-    'not in this artifact store: another --store, or one cleared'
+    >>> recompute_reason(old, old)[:70]
+    'nothing recorded changed, but the results were not in this artifact st'
     """
     if before.get("input") != after.get("input"):
         return "input changed"
@@ -147,4 +163,20 @@ def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
         return "; ".join(said)
     if before.get("config") != after.get("config"):
         return "configuration changed"
-    return "not in this artifact store: another --store, or one cleared"
+    return (
+        "nothing recorded changed, but the results were not in this artifact store (another "
+        "--store, one cleared, or the code changed during the earlier run)"
+    )
+
+
+def changed_since(earlier: dict[str, Any], folder: str | Path, all_cached: bool) -> str | None:
+    """Why ``folder``'s new result is not the one published before (``earlier``), or None.
+
+    A recorded change (input, given file, code, versions, configuration) is said even
+    when every stage was a cache hit (another patient of the same content computed it);
+    with nothing recorded changed, only stages that ran need a reason.
+    """
+    now = cache_identity(folder)
+    if now is None or (all_cached and same_identity(earlier, now)):
+        return None
+    return recompute_reason(earlier, now)

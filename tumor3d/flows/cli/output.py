@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -85,7 +87,19 @@ def _progress() -> Progress:
 
 
 class _PlainReporter:
-    """For a pipe or a file: one plain line per finished stage (stage, time, cache hit)."""
+    """For a pipe or a file: one plain line per finished stage (stage, time, cache hit).
+
+    Each line is written whole, under a lock: the patient lanes report from their own
+    threads, and ``print`` writes a line and its newline separately (an audit's log
+    had two lanes' lines run together).
+    """
+
+    _lock = threading.Lock()
+
+    def _say(self, line: str) -> None:
+        with self._lock:
+            sys.stdout.write(line + "\n")
+            sys.stdout.flush()
 
     def __call__(self, event: Any) -> None:
         if event.status == "started":
@@ -95,11 +109,11 @@ class _PlainReporter:
         elif event.status == "done":
             what = f"{event.seconds:.2f} s"
         elif event.status == "published":  # its stage says "published" or "up to date"
-            print(f"{event.patient_id}\tpublish\t{event.stage}", flush=True)
+            self._say(f"{event.patient_id}\tpublish\t{event.stage}")
             return
         else:
             what = event.status
-        print(f"{event.patient_id}\t{event.stage}\t{what}", flush=True)
+        self._say(f"{event.patient_id}\t{event.stage}\t{what}")
 
 
 def _patient_exit_code(result: Any) -> int:
@@ -166,7 +180,9 @@ def print_summary(result: Any, truth_mm3: float | None = None) -> None:
         )
     console.print(times)
     if getattr(result, "recomputed", None):  # published before: why stages ran again
-        console.print(f"[dim]computed again[/], {escape(str(result.recomputed))}", soft_wrap=True)
+        console.print(
+            f"[dim]since the earlier result[/], {escape(str(result.recomputed))}", soft_wrap=True
+        )
     reasons = split_notes(m.get("review_reasons"))
     for note in getattr(result, "notes", []):
         if note not in reasons:
@@ -254,12 +270,13 @@ def print_cohort_summary(result: Any) -> None:
             soft_wrap=True,
         )
     recomputed: dict[str, list[str]] = {}
-    for p in result.patients:  # published before, not all from the cache: say why
+    for p in result.patients:  # published before, and this result is not that one: why
         if getattr(p, "recomputed", None):
             recomputed.setdefault(str(p.recomputed), []).append(p.patient_id)
     for why, ids in recomputed.items():
         console.print(
-            f"[dim]computed again[/], {escape(why)}: {escape(', '.join(ids))}", soft_wrap=True
+            f"[dim]since the earlier result[/], {escape(why)}: {escape(', '.join(ids))}",
+            soft_wrap=True,
         )
     if result.removed:
         console.print(
