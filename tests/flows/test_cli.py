@@ -651,6 +651,46 @@ def test_a_piped_console_says_when_a_patient_was_up_to_date(capsys):
     assert capsys.readouterr().out == "p1\tpublish\tup to date\np2\tpublish\tpublished\n"
 
 
+def test_plain_progress_lines_of_parallel_lanes_stay_whole(monkeypatch):
+    """An audit's piped log had two lanes' lines run together ("0.70 sp004 ..."): each
+    lane reports from its own thread, and print writes the line and its newline apart.
+    A stream that yields between writes makes the interleaving happen every time."""
+    import threading
+    import time
+
+    from tumor3d.flows.cli.output import _PlainReporter
+    from tumor3d.tasks.progress import ProgressEvent
+
+    class Yielding:
+        def __init__(self):
+            self.parts = []
+
+        def write(self, text):
+            self.parts.append(text)
+            time.sleep(0.0002)  # another thread runs here
+            return len(text)
+
+        def flush(self):
+            pass
+
+    out = Yielding()
+    monkeypatch.setattr(sys, "stdout", out)
+    report = _PlainReporter()
+
+    def lane(pid):
+        for k in range(20):
+            report(ProgressEvent(pid, f"stage{k}", "done", k, 20, seconds=0.5))
+
+    threads = [threading.Thread(target=lane, args=(f"p{i}",)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    lines = "".join(out.parts).splitlines()
+    assert len(lines) == 80
+    assert all(line.count("\t") == 2 and line.endswith(" s") for line in lines), lines[:6]
+
+
 def test_the_evaluation_table_shows_the_metrics_the_run_has():
     """``--evaluation interpolation`` alone printed Dice, HD95 and Eq. 7 columns of dashes."""
     import io
