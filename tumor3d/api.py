@@ -38,6 +38,7 @@ from tumor3d.imaging.scan import (
     canonical_orientation,
     reverse_axes,
     slab_height_mm,
+    slice_order_note,
 )
 from tumor3d.metrics import measure_volumes
 from tumor3d.segmentation.lesion import left_right_axis
@@ -333,14 +334,17 @@ def reconstruct_scan(
         brain_mask_note="brain mask given: no skull removal" if given is not None else None,
         **brain_mask_run_notes(figures, seg.method),
     )
-    if tumour_given is not None:  # informational, as tumor3d.flows.patient.run_notes
-        said = f" ({segmentation_name})" if segmentation_name else ""
-        notes.append(f"segmentation: given{said}")
-    if header_notes:  # as tumor3d.tasks.publish.run_notes
+    if header_notes:  # in the order of tumor3d.tasks.publish.run_notes
         from tumor3d.storage.readers.nifti import ORIENTATION_UNSTATED
 
         notes.extend(header_notes)
         doubts.extend(n for n in header_notes if ORIENTATION_UNSTATED in n)
+    order = slice_order_note(scan.source_grid)
+    if order is not None:
+        notes.append(order)
+    if tumour_given is not None:  # informational
+        said = f" ({segmentation_name})" if segmentation_name else ""
+        notes.append(f"segmentation: given{said}")
     review = review_status(doubts, segmentation=segmentation_values(seg))
     vols = {k: float(row[f"volume_{k}_mm3"]) for k in VOLUME_KEYS}
     lo, hi = float(row["volume_eq7_ci95_low_mm3"]), float(row["volume_eq7_ci95_high_mm3"])

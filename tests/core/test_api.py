@@ -105,6 +105,28 @@ def test_a_scan_built_in_another_orientation_is_read_as_a_file_would_be(phantom,
     )
 
 
+def test_a_file_stored_top_down_says_where_its_slice_numbers_count_from(phantom, tmp_path):
+    """The notes and the report count slices in the working order (inferior first); a file
+    stored top down counts them from the other end, which the run says, in the flow's
+    notes and the API's alike."""
+    import nibabel as nib
+
+    from tumor3d.flows.patient import run_notes, run_stages_direct
+    from tumor3d.imaging.scan import reverse_axes
+
+    lps = phantom.scan
+    image, affine = reverse_axes(lps.image, lps.affine, (False, False, True))
+    path = tmp_path / "lpi.nii.gz"
+    nib.save(nib.Nifti1Image(np.ascontiguousarray(image.transpose(2, 1, 0)), affine), path)
+    run = run_stages_direct(path, tmp_path / "store", patient_id="lpi", modality="t2")
+    notes, _ = run_notes(run.outputs)
+    said = [n for n in notes if n.startswith("slice numbers count from the other end")]
+    assert said and f"the file's slice {lps.n_slices - 1} - k" in said[0]
+    api = tumor3d.reconstruct(str(path), modality="t2")
+    assert said[0] in api.notes and api.status == "ok"  # informational
+    assert not [n for n in tumor3d.reconstruct(lps).notes if n.startswith("slice numbers")]
+
+
 def test_the_api_agrees_with_the_pipeline_stage_for_stage(phantom, result, tmp_path):
     """The same core functions in the same order as tumor3d.flows.patient.run_stages.
 

@@ -61,6 +61,7 @@ __all__ = [
     "in_plane_shear",
     "reverse_axes",
     "slab_height_mm",
+    "slice_order_note",
     "slice_plane_spacing_mm",
     "validate_patient_id",
     "zyx_index_to_ras",
@@ -574,4 +575,26 @@ def canonical_orientation(scan: Scan) -> Scan:
         image=np.ascontiguousarray(image),
         affine=affine,
         source_grid=replace(grid, flips=combined),
+    )
+
+
+def slice_order_note(grid: SourceGrid) -> str | None:
+    """A note for a file that stores its slices the other way round (None otherwise).
+
+    The notes, the report and ``slices.parquet``'s ``slice_index`` count slices in the
+    working order (inferior to superior on an axial stack); such a file, and a viewer
+    showing it, counts them from the other end.
+
+    >>> flipped = SourceGrid(shape=(4, 4, 31), affine=np.eye(4), flips=(False, False, True))
+    >>> slice_order_note(flipped)[:60]
+    'slice numbers count from the other end of the file: it store'
+    >>> slice_order_note(SourceGrid(shape=(4, 4, 31), affine=np.eye(4))) is None
+    True
+    """
+    if not grid.flips[2]:
+        return None
+    last = grid.shape[grid.axes[2]] - 1
+    return (
+        "slice numbers count from the other end of the file: it stores its slices the other "
+        f"way round (slice k here is the file's slice {last} - k; slices.parquet has both)"
     )

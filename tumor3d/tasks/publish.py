@@ -19,7 +19,7 @@ from typing import Any
 
 from tumor3d.config import PipelineConfig
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import SourceGrid
+from tumor3d.imaging.scan import SourceGrid, slice_order_note
 from tumor3d.metrics import EQ7_SLICE_RULES
 from tumor3d.segmentation.review import Review, brain_mask_run_notes
 from tumor3d.segmentation.review import run_notes as review_notes
@@ -48,7 +48,7 @@ from tumor3d.storage.publish import (
 )
 from tumor3d.storage.readers.nifti import ORIENTATION_UNSTATED
 from tumor3d.storage.remote_publish import publish_folder
-from tumor3d.storage.store import ArtifactStore, canonical_dumps
+from tumor3d.storage.store import ArtifactStore, canonical_dumps, source_grid_from_metadata
 from tumor3d.storage.viewer import ASSETS_DIR, write_viewer_assets
 from tumor3d.tasks import stages
 from tumor3d.tasks.runner import StageRun
@@ -148,6 +148,10 @@ def run_notes(
     header_notes = outputs["ingest-scan"].values.get("header_notes") or []
     notes.extend(header_notes)
     doubts.extend(n for n in header_notes if ORIENTATION_UNSTATED in n)
+    scan = outputs["ingest-scan"].artifacts.get("scan")
+    order = None if scan is None else slice_order_note(source_grid_from_metadata(scan.metadata))
+    if order is not None:  # informational: which end the slice numbers count from
+        notes.append(order)
     if segmentation is not None:
         notes.append(segmentation.note())
     if modality_default:
