@@ -135,6 +135,8 @@ def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
     ...        "versions": {"tumor3d": "0.1.0", "numpy": "2.4.6"}}
     >>> recompute_reason(old, {**old, "config": "d"})
     'configuration changed'
+    >>> recompute_reason(old, {**old, "given": {"brain_mask": "e3b0"}})
+    'given brain mask changed'
     >>> recompute_reason(old, {**old, "config": "d", "code": {"segment": "9", "render": "2"}})
     'code of 1 of 2 stages changed'
     >>> recompute_reason(old, {**old, "versions": {"tumor3d": "0.1.0", "numpy": "2.4.7"}})
@@ -144,8 +146,11 @@ def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
     """
     if before.get("input") != after.get("input"):
         return "input changed"
-    if before.get("given") != after.get("given"):
-        return "given brain mask or segmentation changed"
+    old_given, new_given = before.get("given") or {}, after.get("given") or {}
+    files = [k for k in ("brain_mask", "segmentation") if old_given.get(k) != new_given.get(k)]
+    if files:
+        words = {"brain_mask": "brain mask", "segmentation": "segmentation"}
+        return f"given {' and '.join(words[k] for k in files)} changed"
     code_after = after.get("code") or {}
     moved = [s for s, digest in code_after.items() if (before.get("code") or {}).get(s) != digest]
     old_v, new_v = before.get("versions") or {}, after.get("versions") or {}
