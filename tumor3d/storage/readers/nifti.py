@@ -171,9 +171,10 @@ def read_nifti_scan(
     limit = check_max_voxels(max_voxels)
     if not p.is_file():
         raise InputError("no such file", where)
-    data, affine = load_nifti_volume(p, limit)
-    header = _header(p)
-    stated = header is None or any(int(header[f"{f}_code"]) for f in ("sform", "qform"))
+    data, affine, stated = _load_nifti(p, limit)
+    unstated = _unstated.get()
+    if not stated and unstated is not None:  # the run's note (nibabel_header_notes)
+        unstated.append("".join(aff2axcodes(affine)))
 
     return scan_from_volume(
         data,
@@ -187,16 +188,6 @@ def read_nifti_scan(
         file_thickness=lambda step: _read_bids_sidecar(p, step),
         orientation_stated=stated,
     )
-
-
-def _header(p: Path) -> Any:
-    """The NIfTI header of a file :func:`load_nifti_volume` has read (None if unreadable)."""
-    import nibabel as nib
-
-    try:
-        return nib.load(str(p)).header
-    except Exception:  # read just before: a file replaced since says nothing
-        return None
 
 
 def load_nifti_volume(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
@@ -219,6 +210,15 @@ def load_nifti_volume(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
     ------
     InputError
         Naming the file and the problem.
+    """
+    return _load_nifti(p, limit)[:2]
+
+
+def _load_nifti(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray, bool]:
+    """:func:`load_nifti_volume`, and whether the header states the orientation.
+
+    Stated: an sform or a qform code above 0; without either, nibabel's affine is its
+    default axes (LAS), a guess.
     """
     import nibabel as nib
 
@@ -261,14 +261,12 @@ def load_nifti_volume(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
     affine = _affine_in_mm(img.header, np.asarray(img.affine, dtype=np.float64))
     if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < SINGULAR_DET_TOL:
         raise InputError("the image affine is singular or not finite", where)
-    unstated = _unstated.get()
-    if unstated is not None and not any(int(img.header[f"{f}_code"]) for f in ("sform", "qform")):
-        unstated.append("".join(aff2axcodes(affine)))
+    stated = any(int(img.header[f"{f}_code"]) for f in ("sform", "qform"))
     try:
         data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32)
     except Exception as exc:
         raise InputError(f"cannot read the voxel data ({_describe(exc)})", where) from exc
-    return data.reshape(shape), affine
+    return data.reshape(shape), affine, stated
 
 
 #: The NIfTI spatial units (``xyzt_units``) and their length in mm; "unknown" is read as
