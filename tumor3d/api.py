@@ -333,16 +333,9 @@ def reconstruct_scan(
         skipped_files=scan.skipped_files,
         brain_mask_note="brain mask given: no skull removal" if given is not None else None,
         **brain_mask_run_notes(figures, seg.method),
+        header_notes=header_notes, slice_order_note=slice_order_note(scan.source_grid),
     )
-    if header_notes:  # in the order of tumor3d.tasks.publish.run_notes
-        from tumor3d.storage.readers.nifti import ORIENTATION_UNSTATED
-
-        notes.extend(header_notes)
-        doubts.extend(n for n in header_notes if ORIENTATION_UNSTATED in n)
-    order = slice_order_note(scan.source_grid)
-    if order is not None:
-        notes.append(order)
-    if tumour_given is not None:  # informational
+    if tumour_given is not None:  # informational, as tumor3d.tasks.publish.run_notes
         said = f" ({segmentation_name})" if segmentation_name else ""
         notes.append(f"segmentation: given{said}")
     review = review_status(doubts, segmentation=segmentation_values(seg))

@@ -35,6 +35,7 @@ __all__ = [
     "INFORMING_CAVEATS",
     "MIDLINE_CAVEAT_START",
     "NO_TUMOUR_NOTE",
+    "ORIENTATION_UNSTATED",
     "STATUSES",
     "STATUS_CHECK",
     "STATUS_FAILED",
@@ -51,6 +52,12 @@ STATUS_CHECK = "check"
 STATUS_FAILED = "failed"
 #: Every status, from best to worst.
 STATUSES = (STATUS_OK, STATUS_CHECK, STATUS_FAILED)
+
+#: The words of the reader's note on an input whose NIfTI header states no orientation
+#: (``sform_code`` and ``qform_code`` 0, an Analyze-style header): nibabel then assumes
+#: its default axes, so which side is left and which is front is a guess, and the
+#: learned method may read the head mirrored. Among a run's header notes, it doubts.
+ORIENTATION_UNSTATED = "the NIfTI header states no orientation (sform and qform codes 0)"
 
 #: The note of a run that found no tumour: a doubt (the status is ``check``), since
 #: an empty result on a scan sent to be measured cannot tell a missed tumour from none.
@@ -195,6 +202,8 @@ def run_notes(
     brain_notes: Iterable[str] = (),
     brain_doubts: bool = True,
     scale_notes: Iterable[str] = (),
+    header_notes: Iterable[str] = (),
+    slice_order_note: str | None = None,
 ) -> tuple[list[str], list[str]]:
     """A run's notes, in their fixed order, and those of them that doubt the result.
 
@@ -209,6 +218,9 @@ def run_notes(
     that ran); for one read from the whole head they inform (worded so by
     :func:`tumor3d.imaging.preprocess.brain_mask_notes`). ``scale_notes``
     (a voxel size in the header that cannot be right) doubt every volume.
+    ``header_notes`` (the reader's notes on the input's header) inform, except one
+    that the header states no orientation (:data:`ORIENTATION_UNSTATED`), which
+    doubts; ``slice_order_note`` (which end the slice numbers count from) informs.
 
     Returns
     -------
@@ -241,9 +253,13 @@ def run_notes(
     if brain_mask_note:
         notes.append(brain_mask_note)
     scale = _words(scale_notes, "scale_notes")
-    notes += brain + scale
+    header = _words(header_notes, "header_notes")
+    notes += brain + scale + header + ([slice_order_note] if slice_order_note else [])
     doubting = [c for c in caveat_list if not c.startswith(INFORMING_CAVEATS)]
-    return notes, none + doubting + skipped_note + (brain if brain_doubts else []) + scale
+    unstated = [n for n in header if ORIENTATION_UNSTATED in n]
+    return notes, (
+        none + doubting + skipped_note + (brain if brain_doubts else []) + scale + unstated
+    )
 
 
 def brain_mask_run_notes(figures: Mapping[str, Any], method: str | None) -> dict[str, Any]:

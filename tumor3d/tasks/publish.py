@@ -46,7 +46,6 @@ from tumor3d.storage.publish import (
     staged_folder,
     write_publish_manifest,
 )
-from tumor3d.storage.readers.nifti import ORIENTATION_UNSTATED
 from tumor3d.storage.remote_publish import publish_folder
 from tumor3d.storage.store import ArtifactStore, canonical_dumps, source_grid_from_metadata
 from tumor3d.storage.viewer import ASSETS_DIR, write_viewer_assets
@@ -131,27 +130,25 @@ def run_notes(
     segmentation adds an informational note (``segmentation: given (FILE, ...)``),
     as do nibabel's repairs of the input's NIfTI header (the ingest-scan stage's
     ``header_notes``; the note that the header states no orientation,
-    :data:`tumor3d.storage.readers.nifti.ORIENTATION_UNSTATED`, doubts) and, with
+    :data:`tumor3d.segmentation.review.ORIENTATION_UNSTATED`, doubts), which end the
+    slice numbers count from (:func:`tumor3d.imaging.scan.slice_order_note`) and, with
     ``modality_default``, the modality taken by default (nothing named it: the report
     says which sequence the method assumed).
     """
     seg = outputs["segment-tumor"].values
+    scan = outputs["ingest-scan"].artifacts.get("scan")
     notes, doubts = review_notes(
         tumour_found=outputs["extract-surface"].values["faces"] > 0,
         caveats=seg.get("caveats") or [],
         skipped_files=outputs["ingest-scan"].values.get("skipped_files") or [],
         brain_mask_note=None if brain_mask is None else brain_mask_note(brain_mask),
         **brain_mask_run_notes(outputs["preprocess"].values, seg.get("segment_method")),
-    )
-    # nibabel's repairs of a NIfTI header (tumor3d.tasks.ingest): informational, never printed;
-    # a header that states no orientation doubts the result (the side, and the learned method)
-    header_notes = outputs["ingest-scan"].values.get("header_notes") or []
-    notes.extend(header_notes)
-    doubts.extend(n for n in header_notes if ORIENTATION_UNSTATED in n)
-    scan = outputs["ingest-scan"].artifacts.get("scan")
-    order = None if scan is None else slice_order_note(source_grid_from_metadata(scan.metadata))
-    if order is not None:  # informational: which end the slice numbers count from
-        notes.append(order)
+        # nibabel's repairs of a NIfTI header (tumor3d.tasks.ingest), never printed
+        header_notes=outputs["ingest-scan"].values.get("header_notes") or [],
+        slice_order_note=None if scan is None else slice_order_note(
+            source_grid_from_metadata(scan.metadata)
+        ),
+    )  # fmt: skip
     if segmentation is not None:
         notes.append(segmentation.note())
     if modality_default:

@@ -17,6 +17,7 @@ from nibabel.orientations import aff2axcodes
 from tumor3d.constants import SINGULAR_DET_TOL
 from tumor3d.errors import InputError
 from tumor3d.imaging.scan import Scan, validate_patient_id
+from tumor3d.segmentation.review import ORIENTATION_UNSTATED
 from tumor3d.storage.readers.common import (
     MAX_VOXELS_DEFAULT,
     NIFTI_SUFFIXES,
@@ -46,13 +47,6 @@ _NIBABEL_LOGGER = "nibabel.global"
 _collected: ContextVar[list[str] | None] = ContextVar("nibabel_header_notes", default=None)
 #: Axis codes of the inputs read in the collecting block whose header states no orientation.
 _unstated: ContextVar[list[str] | None] = ContextVar("nifti_orientation_unstated", default=None)
-
-#: The words of a run's note on an input whose NIfTI header states no orientation
-#: (``sform_code`` and ``qform_code`` 0, an Analyze-style header): nibabel then assumes
-#: its default axes, so which side is left and which is front is a guess, and the
-#: learned method may read the head mirrored. The note doubts the result
-#: (:func:`tumor3d.tasks.publish.run_notes`).
-ORIENTATION_UNSTATED = "the NIfTI header states no orientation (sform and qform codes 0)"
 
 
 class _NibabelCollector(logging.Handler):
