@@ -71,7 +71,7 @@ from tumor3d.storage.cohort_report import (
 from tumor3d.storage.folder_lock import writing_folder
 from tumor3d.storage.manifest import ManifestRow, read_manifest
 from tumor3d.storage.objectstore import ObjectStore, default_store_location, is_url, open_store
-from tumor3d.storage.provenance import cache_identity, changed_since
+from tumor3d.storage.provenance import cache_identity, changed_since, patients_by_reason
 from tumor3d.storage.publish import check_destination, check_outputs_not_inputs
 from tumor3d.storage.remote_publish import RemoteFolder, publish_files, published_names
 from tumor3d.storage.store import ArtifactStore, StoreError, check_writable_dir
@@ -208,6 +208,11 @@ class CohortResult(BaseModel):
     def to_check(self) -> list[PatientOutcome]:
         """The patients that completed with status ``check``."""
         return [p for p in self.patients if p.status == STATUS_CHECK]
+
+    @property
+    def since_earlier(self) -> dict[str, list[str]]:
+        """Patient ids under the reason their result is not the earlier published one."""
+        return patients_by_reason((p.patient_id, p.recomputed) for p in self.patients)
 
     @property
     def exit_code(self) -> int:

@@ -271,10 +271,7 @@ def _write_last_run(
         "message": message,
         "patients": {s: statuses.count(s) for s in (STATUS_OK, STATUS_CHECK, STATUS_FAILED)},
     }
-    changed: dict[str, list[str]] = {}
-    for p in result.patients if result is not None else []:
-        if p.recomputed:  # published before, and this result is not that one: why
-            changed.setdefault(p.recomputed, []).append(p.patient_id)
+    changed = {} if result is None else result.since_earlier  # published before: why
     if changed:
         record["since_earlier_result"] = changed
     path = Path(out_dir) / LAST_RUN_FILE

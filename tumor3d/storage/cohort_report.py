@@ -23,6 +23,7 @@ from tumor3d.segmentation.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
 from tumor3d.storage.formats import encode_parquet
 from tumor3d.storage.objectstore import is_url
 from tumor3d.storage.patient_outputs import split_notes
+from tumor3d.storage.provenance import patients_by_reason
 from tumor3d.storage.report_html import cohort_report_html
 from tumor3d.storage.store import atomic_write_bytes
 
@@ -192,10 +193,12 @@ def cohort_markdown(
                 "this run's input's (this run failed before publishing): do not read it as "
                 "this run's.",
             ]
-    again: dict[str, list[str]] = {}
-    for _, r in table.iterrows():  # published before, and this result is not that one: why
-        if isinstance(r.get("recomputed"), str) and r["recomputed"]:
-            again.setdefault(r["recomputed"], []).append(str(r["patient_id"]))
+    # published before, and this result is not that one: why
+    again = (
+        patients_by_reason(zip(table["patient_id"], table["recomputed"], strict=True))
+        if "recomputed" in table.columns
+        else {}
+    )
     if again:
         lines += ["", "## Since the earlier result", ""]
         lines += [f"- {why}: {', '.join(ids)}" for why, ids in again.items()]

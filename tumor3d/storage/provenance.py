@@ -9,6 +9,7 @@ as ``provenance.json``.
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,7 @@ __all__ = [
     "build_provenance",
     "cache_identity",
     "changed_since",
+    "patients_by_reason",
     "recompute_reason",
     "same_identity",
     "versions",
@@ -185,3 +187,19 @@ def changed_since(earlier: dict[str, Any], folder: str | Path, all_cached: bool)
     if now is None or (all_cached and same_identity(earlier, now)):
         return None
     return recompute_reason(earlier, now)
+
+
+def patients_by_reason(pairs: Iterable[tuple[str, Any]]) -> dict[str, list[str]]:
+    """Patient ids under the reason their result is not the earlier one, in order.
+
+    ``pairs`` are ``(patient_id, reason)``; a reason that is not a non-empty string
+    (None, NaN) leaves its patient out.
+
+    >>> patients_by_reason([("p1", "input changed"), ("p2", None), ("p3", "input changed")])
+    {'input changed': ['p1', 'p3']}
+    """
+    grouped: dict[str, list[str]] = {}
+    for pid, reason in pairs:
+        if isinstance(reason, str) and reason:
+            grouped.setdefault(reason, []).append(str(pid))
+    return grouped

@@ -269,11 +269,7 @@ def print_cohort_summary(result: Any) -> None:
             f"folder is not this input's): {escape(', '.join(result.earlier))}",
             soft_wrap=True,
         )
-    recomputed: dict[str, list[str]] = {}
-    for p in result.patients:  # published before, and this result is not that one: why
-        if getattr(p, "recomputed", None):
-            recomputed.setdefault(str(p.recomputed), []).append(p.patient_id)
-    for why, ids in recomputed.items():
+    for why, ids in getattr(result, "since_earlier", {}).items():  # published before: why
         console.print(
             f"[dim]since the earlier result[/], {escape(why)}: {escape(', '.join(ids))}",
             soft_wrap=True,
