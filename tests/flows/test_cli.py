@@ -765,9 +765,9 @@ def test_a_stacks_sidecar_names_the_modality_when_none_is_given(
 def test_prefect_run_records_stay_off_the_console_without_verbose():
     import logging
 
-    from tumor3d.flows.cli import _NoFailureTracebacks
+    from tumor3d.flows.quiet_logs import NoRunRecords
 
-    keep = _NoFailureTracebacks()
+    keep = NoRunRecords()
 
     def record(name, level):
         return logging.LogRecord(name, level, __file__, 1, "x", None, None)

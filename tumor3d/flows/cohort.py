@@ -402,12 +402,9 @@ def cohort_flow(
         logger.warning("%d published patient(s) no longer in the manifest, kept: %s",
                        len(removed), ", ".join(removed))  # fmt: skip
     # what decided each published patient's cache keys, to say why its result changed
-    before = {} if remote is None else None
-    if before is not None:
-        for r in rows:
-            folder = bids.folder_name(str(r.get("patient_id")), layout)
-            if folder in published:
-                before[folder] = cache_identity(Path(out_dir) / folder)
+    before = {} if remote is not None else {
+        f: cache_identity(Path(out_dir) / f) for f in listed if f in published
+    }  # fmt: skip
     for spec in stages.STAGES.values():  # per-process constants, once, before the lanes start
         _ = spec.code_digest
     lanes = max(1, min(len(rows), workers + EXTRA_LANES))

@@ -95,7 +95,6 @@ from tumor3d.flows.cli.preflight import (  # noqa: E402
 from tumor3d.flows.cli.process import finish_process, main, run_command  # noqa: E402, F401
 from tumor3d.flows.cli.session import (  # noqa: E402, F401
     _no_heartbeats,
-    _NoFailureTracebacks,
     _run_with_progress,
 )
 

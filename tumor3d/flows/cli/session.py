@@ -10,7 +10,7 @@ from typing import Any
 
 from tumor3d.flows.cli.app import console
 from tumor3d.flows.cli.output import _PlainReporter, _progress, _ProgressReporter
-from tumor3d.flows.quiet_logs import NoRunRecords, quiet_run_records
+from tumor3d.flows.quiet_logs import quiet_run_records
 
 
 def _starting_prefect_note() -> None:
@@ -18,10 +18,6 @@ def _starting_prefect_note() -> None:
         "[dim]starting Prefect: a temporary local server for this command (10-20 s; "
         "`tumor3d server start` keeps one running for fast repeated runs)...[/]"
     )
-
-
-#: The console filter (tumor3d.flows.quiet_logs), by the name the tests import
-_NoFailureTracebacks = NoRunRecords
 
 
 def _quiet_prefect_failures() -> None:
