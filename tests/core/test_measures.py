@@ -92,6 +92,12 @@ def test_cavalieri_volume_is_eq7_and_interval_brackets_it():
     eq7 = volume_eq7_mm3(counts, counts > 0, pixel_area_mm2=0.25, slab_height_mm=5.0)
     assert p.volume_mm3 == pytest.approx(eq7)
     assert p.ci95_low_mm3 < p.volume_mm3 < p.ci95_high_mm3
+    # the normal 95 % interval of the predicted error, z from scipy, not the module's constant
+    from scipy.stats import norm
+
+    z = norm.ppf(0.975)
+    assert p.ci95_high_mm3 == pytest.approx(p.volume_mm3 * (1 + z * p.ce), rel=1e-6)
+    assert p.ci95_low_mm3 == pytest.approx(p.volume_mm3 * (1 - z * p.ce), rel=1e-6)
     assert p.n_sections == 5
     q0 = cavalieri_precision(counts * 0.25, 5.0, smoothness=0.0)
     assert q0.ce == pytest.approx(p.ce * np.sqrt(240 / 12))  # variance scales with alpha

@@ -169,7 +169,7 @@ def _cube_mesh(side: float):
 def test_measure_volumes_slice_rules():
     from tumor3d.metrics import measure_volumes
 
-    counts = np.array([3, 10, 20, 4, 0])
+    counts = np.array([1, 10, 20, 4, 0])  # an unflagged slice of one tumour pixel counts too
     flags = np.array([False, True, True, False, True])
     fine = np.zeros((4, 2, 2), bool)
     fine[1:3, :, :1] = True  # 4 voxels
@@ -179,7 +179,7 @@ def test_measure_volumes_slice_rules():
         counts, flags, fine, np.diag([1.0, 1.0, 2.0, 1.0]), eq7_slices="abnormal", **kw
     )
     # independent: the segmented rule counts every tumour pixel, the literal only flagged ones
-    assert seg.volume_eq7_mm3 == pytest.approx(5.0 * 0.5 * (3 + 10 + 20 + 4))
+    assert seg.volume_eq7_mm3 == pytest.approx(5.0 * 0.5 * (1 + 10 + 20 + 4))
     assert lit.volume_eq7_mm3 == pytest.approx(5.0 * 0.5 * (10 + 20))
     assert (seg.n_eq7_slices, lit.n_eq7_slices) == (5, 3)
     assert (seg.n_abnormal_slices, seg.n_tumor_slices, seg.n_slices) == (3, 4, 5)

@@ -29,6 +29,12 @@ def test_the_segmentation_stage_can_ask_for_review_with_its_own_reasons_and_scor
     r = review_status([], segmentation={"needs_review": True, "quality_score": 0.2})
     assert r.status == "check" and r.reasons == ("the segmentation asks for review "
                                                  "(quality score 0.20)",)  # fmt: skip
+    # words without a flag (a method of the API's that gives only its reasons) are a doubt;
+    # an explicit False keeps them as information
+    r = review_status([], segmentation={"review_reasons": ["thin rim"]})
+    assert r.status == "check" and r.reasons == ("thin rim",)
+    r = review_status([], segmentation={"needs_review": False, "review_reasons": ["thin rim"]})
+    assert r.status == "ok"
 
 
 def test_a_confident_segmentation_keeps_ok_and_its_score():
