@@ -126,6 +126,13 @@ def test_scan_round_trip_keeps_geometry(store):
     assert back.orientation_stated
     assumed = dataclasses.replace(scan, orientation_stated=False)
     assert not store.get_scan(store.put_scan(assumed), patient_id="p01").orientation_stated
+    assert back.source_grid.flips == (False,) * 3 and back.source_grid.xform_codes == (1, 1)
+    # a file's axis reversals and header codes, which its outputs are written back with
+    kept = dataclasses.replace(
+        scan, source_grid=dataclasses.replace(grid, flips=(True, False, True), xform_codes=(0, 0))
+    )
+    kept_back = store.get_scan(store.put_scan(kept), patient_id="p01").source_grid
+    assert kept_back.flips == (True, False, True) and kept_back.xform_codes == (0, 0)
     # the patient id is not stored (issue 29): the same image under another id is the
     # same artifact, and the reader names the patient
     assert "p01" not in json.dumps(ref.metadata)

@@ -254,12 +254,19 @@ class SourceGrid:
         ``flips[k]``: Scan axis ``k`` of ``(x, y, z)`` runs against source
         axis ``axes[k]`` (index ``i`` of the Scan is ``n - 1 - i`` of the
         source); none when the source already ran as the working orientation.
+    xform_codes : tuple of int
+        The NIfTI ``(sform_code, qform_code)`` of the source file, which the outputs on
+        its grid keep (:func:`tumor3d.storage.nifti.mask_to_source_nifti_bytes`); ``(1,
+        1)`` (scanner anatomical) for every other source. ``(0, 0)``: the file states no
+        orientation, and its outputs state none either, so that a viewer places them
+        where it places the file.
     """
 
     shape: tuple[int, int, int]
     affine: np.ndarray
     axes: tuple[int, int, int] = (0, 1, 2)
     flips: tuple[bool, bool, bool] = (False, False, False)
+    xform_codes: tuple[int, int] = (1, 1)
 
     def __post_init__(self) -> None:
         if sorted(self.axes) != [0, 1, 2]:
@@ -274,6 +281,10 @@ class SourceGrid:
         if len(self.flips) != 3:
             raise ValueError(f"flips must hold 3 booleans, got {self.flips}")
         object.__setattr__(self, "flips", tuple(bool(f) for f in self.flips))
+        codes = tuple(int(c) for c in self.xform_codes)
+        if len(codes) != 2 or not all(0 <= c <= 5 for c in codes):
+            raise ValueError(f"xform_codes must be two NIfTI codes 0-5, got {self.xform_codes}")
+        object.__setattr__(self, "xform_codes", codes)
 
     def _flip_zyx(self, array_zyx: np.ndarray) -> np.ndarray:
         """Reverse the ``(z, y, x)`` axes named by ``flips`` (its own inverse)."""

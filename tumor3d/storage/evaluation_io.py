@@ -165,7 +165,7 @@ def _image_grid(row: ManifestRow) -> tuple[tuple[int, int, int], np.ndarray]:
 
         img = nib.load(str(row.image))
         shape = tuple(int(s) for s in img.shape[:3])
-        return shape, np.asarray(img.affine, dtype=np.float64)  # type: ignore[return-value]
+        return shape, nifti.placed_affine(img)  # type: ignore[return-value]
     from tumor3d.storage.readers import read_scan
 
     scan = read_scan(row.image, modality=row.modality, patient_id=row.patient_id)

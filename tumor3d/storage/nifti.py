@@ -3,7 +3,9 @@
 :func:`encode_nifti` turns a voxel array and its affine into gzip-compressed
 NIfTI-1 bytes that are identical for identical inputs (gzip ``mtime=0``, no
 file name, a fixed ``descrip``), so that the bytes can be content-addressed.
-sform and qform both hold the affine (code 1, scanner), units are mm.
+sform and qform both hold the affine (code 1, scanner, unless the input's own
+codes are kept: ``SourceGrid.xform_codes``), units are mm. :func:`placed_affine`
+is where every NIfTI file read is placed in the world.
 
 The ``*_to_source_nifti_bytes`` helpers write Scan-grid ``(z, y, x)``
 arrays back in the input's own voxel grid and affine through
@@ -16,6 +18,7 @@ from __future__ import annotations
 import gzip
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -29,6 +32,7 @@ __all__ = [
     "decode_nifti",
     "encode_nifti",
     "mask_to_source_nifti_bytes",
+    "placed_affine",
     "probability_for_storage",
     "read_nifti",
     "volume_to_source_nifti_bytes",
@@ -39,6 +43,45 @@ NIFTI_DTYPES = (np.dtype(np.uint8), np.dtype(np.int16), np.dtype(np.float32))
 
 PROBABILITY_LEVELS = 255
 """A stored probability map holds multiples of ``1 / PROBABILITY_LEVELS``."""
+
+#: The NIfTI spatial units (``xyzt_units``) and their length in mm; "unknown" is read as
+#: mm, as every NIfTI reader does. Meters and microns are converted, as ITK, MINC's
+#: nii2mnc and Connectome Workbench do (nibabel's ``affine`` ignores the field).
+UNIT_MM = {"mm": 1.0, "unknown": 1.0, "meter": 1000.0, "micron": 0.001}
+
+
+def xform_codes(header: Any) -> tuple[int, int]:
+    """A NIfTI header's ``(sform_code, qform_code)``."""
+    return int(header["sform_code"]), int(header["qform_code"])
+
+
+def placed_affine(img: Any) -> np.ndarray:
+    """The affine (voxel index -> RAS mm) of a loaded NIfTI image, as tumor3d places it.
+
+    nibabel's ``img.affine`` (the sform, else the qform), its lengths converted to mm by
+    the header's spatial unit (:data:`UNIT_MM`). A header that states no orientation
+    (sform and qform codes 0) is placed as ITK, 3D Slicer and ITK-SNAP place it: origin
+    0, the voxel axes towards left, posterior and superior at the header's voxel size,
+    not nibabel's centred LAS guess, so that the meshes and the interpolated mask of such
+    a file open on it in those viewers (its outputs on its own grid keep codes 0:
+    ``SourceGrid.xform_codes``).
+
+    >>> import nibabel as nib
+    >>> img = nib.Nifti1Image(np.zeros((2, 2, 2), np.float32), np.diag([2.0, 3.0, 4.0, 1.0]))
+    >>> img.set_sform(None, code=0); img.set_qform(None, code=0)
+    >>> placed_affine(img).diagonal().tolist()
+    [-2.0, -3.0, 4.0, 1.0]
+    """
+    header = img.header
+    if xform_codes(header) == (0, 0):
+        zooms = [float(abs(z)) for z in header.get_zooms()[:3]]
+        zooms += [1.0] * (3 - len(zooms))
+        affine = np.diag([-zooms[0], -zooms[1], zooms[2], 1.0])
+    else:
+        affine = np.array(img.affine, dtype=np.float64)
+    affine[:3, :] *= UNIT_MM.get(str(header.get_xyzt_units()[0]), 1.0)
+    return affine
+
 
 _DESCRIP = b"tumor3d"
 _GZIP_LEVEL = 6
@@ -51,6 +94,7 @@ def encode_nifti(
     *,
     dtype: np.dtype | type | str,
     label: bool = False,
+    codes: tuple[int, int] = (1, 1),
 ) -> bytes:
     """Encode a 3-D voxel array as gzip-compressed NIfTI-1 bytes, deterministically.
 
@@ -61,13 +105,17 @@ def encode_nifti(
         axis is the fastest-varying voxel index ``i``). Not modified.
     affine : (4, 4) array_like
         Maps the voxel index ``(i, j, k, 1)`` to RAS mm; stored as sform and
-        qform (code 1). Its last row must be ``(0, 0, 0, 1)``.
+        qform. Its last row must be ``(0, 0, 0, 1)``.
     dtype : {uint8, int16, float32}
         Stored voxel type. For the integer types the values must be whole
         numbers within the type's range (nothing is rounded or clipped).
     label : bool
         A mask: the header's intent is ``NIFTI_INTENT_LABEL`` (each value an
         index into a set of labels, here 0 = background, 1 = the structure).
+    codes : tuple of int
+        ``(sform_code, qform_code)``: 1 (scanner) unless an input's own codes are kept
+        (``SourceGrid.xform_codes``); with both 0 the file states no orientation, and
+        a reader places it by its voxel size alone, as it places such an input.
 
     Returns
     -------
@@ -95,8 +143,8 @@ def encode_nifti(
     header = nib.Nifti1Header()
     header.set_data_dtype(dt)
     img = nib.Nifti1Image(data, aff, header=header)
-    img.set_sform(aff, code=1)
-    img.set_qform(aff, code=1)
+    img.set_sform(aff, code=int(codes[0]))
+    img.set_qform(aff, code=int(codes[1]))
     img.header.set_xyzt_units(xyz="mm")
     if label:
         img.header.set_intent("label")
@@ -186,7 +234,7 @@ def read_nifti(
         raise InputError(
             f"not a readable NIfTI image ({type(exc).__name__}: {exc})", str(p)
         ) from exc
-    return array, np.array(img.affine, dtype=np.float64)
+    return array, placed_affine(img)
 
 
 def probability_for_storage(probability: np.ndarray) -> np.ndarray:
@@ -243,7 +291,7 @@ def mask_to_source_nifti_bytes(mask_zyx: np.ndarray, grid: SourceGrid) -> bytes:
     if m.ndim != 3:
         raise ValueError(f"mask must be 3-D (z, y, x), got shape {m.shape}")
     source = grid.to_source(m)
-    return encode_nifti(source, grid.affine, dtype=np.uint8, label=True)
+    return encode_nifti(source, grid.affine, dtype=np.uint8, label=True, codes=grid.xform_codes)
 
 
 def volume_to_source_nifti_bytes(
@@ -281,7 +329,14 @@ def volume_to_source_nifti_bytes(
         raise ValueError(f"array must be 3-D (z, y, x), got shape {arr.shape}")
     aff = _check_affine(affine_xyz)
     source, source_affine = grid.to_source_with_affine(arr, aff)
-    return encode_nifti(source, source_affine, dtype=dtype, label=np.dtype(dtype) == np.uint8)
+    # the input's codes; but on another grid than the input's, codes 0 would place the
+    # volume by its own shape, not on the input: an input without orientation gets the
+    # scanner code there, with the affine the input was placed by
+    on_input_grid = source.shape == grid.shape and np.allclose(source_affine, grid.affine)
+    codes = grid.xform_codes if on_input_grid or any(grid.xform_codes) else (1, 1)
+    return encode_nifti(
+        source, source_affine, dtype=dtype, label=np.dtype(dtype) == np.uint8, codes=codes
+    )
 
 
 def _check_affine(affine: np.ndarray) -> np.ndarray:

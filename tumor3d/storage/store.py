@@ -580,6 +580,8 @@ class ArtifactStore:
         }
         if any(grid.flips):  # only when present, so other scans keep their digests
             extra["source_grid"]["flips"] = list(grid.flips)
+        if grid.xform_codes != (1, 1):  # likewise
+            extra["source_grid"]["xform_codes"] = list(grid.xform_codes)
         if scan.skipped_files:  # only when present, so other scans keep their digests
             extra["skipped_files"] = list(scan.skipped_files)
         if not scan.orientation_stated:  # likewise
@@ -654,4 +656,5 @@ def source_grid_from_metadata(meta: dict[str, Any]) -> SourceGrid:
         affine=np.asarray(sg["affine"]),
         axes=tuple(sg["axes"]),
         flips=tuple(bool(f) for f in sg.get("flips", (False, False, False))),
+        xform_codes=tuple(int(c) for c in sg.get("xform_codes", (1, 1))),
     )

@@ -269,6 +269,7 @@ def scan_from_volume(
     slice_gap_mm: float | None,
     file_thickness: Callable[[float], float | None] | None = None,
     orientation_stated: bool = True,
+    xform_codes: tuple[int, int] = (1, 1),
 ) -> Scan:
     """Make a `Scan` from a 3-D volume in its file's voxel order and its RAS affine.
 
@@ -302,6 +303,9 @@ def scan_from_volume(
     orientation_stated : bool
         False when the affine's directions are a reader's assumption
         (``Scan.orientation_stated``).
+    xform_codes : tuple of int
+        A NIfTI file's ``(sform_code, qform_code)``, which its outputs keep
+        (``SourceGrid.xform_codes``).
 
     Returns
     -------
@@ -348,7 +352,9 @@ def scan_from_volume(
         modality=modality,
         patient_id=patient_id,
         source=text,
-        source_grid=SourceGrid(shape=tuple(data.shape), affine=affine, axes=axes),
+        source_grid=SourceGrid(
+            shape=tuple(data.shape), affine=affine, axes=axes, xform_codes=xform_codes
+        ),
         orientation_stated=orientation_stated,
     )
     return working_orientation(scan)

@@ -18,6 +18,7 @@ from tumor3d.constants import SINGULAR_DET_TOL
 from tumor3d.errors import InputError
 from tumor3d.imaging.scan import Scan, validate_patient_id
 from tumor3d.segmentation.review import ORIENTATION_UNSTATED
+from tumor3d.storage.nifti import placed_affine, xform_codes
 from tumor3d.storage.readers.common import (
     MAX_VOXELS_DEFAULT,
     NIFTI_SUFFIXES,
@@ -114,9 +115,10 @@ def nibabel_header_notes(name: str) -> Iterator[list[str]]:
             )
         for codes in unstated[:1]:
             notes.append(
-                f"{name}: {ORIENTATION_UNSTATED}: read with nibabel's default axes ({codes}), "
-                "so left-right and front-back are unverified; check them, or give the file "
-                "its orientation"
+                f"{name}: {ORIENTATION_UNSTATED}: placed as ITK, 3D Slicer and ITK-SNAP place "
+                f"it (origin 0, voxel axes {codes}), so left-right and front-back are "
+                "unverified; check them, or give the file its orientation (the masks on its "
+                "grid state none either and overlay it in any viewer)"
             )
 
 
@@ -165,7 +167,8 @@ def read_nifti_scan(
     limit = check_max_voxels(max_voxels)
     if not p.is_file():
         raise InputError("no such file", where)
-    data, affine, stated = _load_nifti(p, limit)
+    data, affine, codes = _load_nifti(p, limit)
+    stated = any(codes)
     unstated = _unstated.get()
     if not stated and unstated is not None:  # the run's note (nibabel_header_notes)
         unstated.append("".join(aff2axcodes(affine)))
@@ -181,6 +184,7 @@ def read_nifti_scan(
         slice_gap_mm=gap_override,
         file_thickness=lambda step: _read_bids_sidecar(p, step),
         orientation_stated=stated,
+        xform_codes=codes,
     )
 
 
@@ -198,7 +202,7 @@ def load_nifti_volume(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
     data : ndarray of float32, 3-D
         Voxel values in the file's own index order.
     affine : (4, 4) ndarray
-        Voxel index ``(i, j, k, 1)`` -> RAS mm (nibabel's ``img.affine``).
+        Voxel index ``(i, j, k, 1)`` -> RAS mm (:func:`tumor3d.storage.nifti.placed_affine`).
 
     Raises
     ------
@@ -208,11 +212,12 @@ def load_nifti_volume(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
     return _load_nifti(p, limit)[:2]
 
 
-def _load_nifti(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray, bool]:
-    """:func:`load_nifti_volume`, and whether the header states the orientation.
+def _load_nifti(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """:func:`load_nifti_volume`, and the header's ``(sform_code, qform_code)``.
 
-    Stated: an sform or a qform code above 0; without either, nibabel's affine is its
-    default axes (LAS), a guess.
+    The orientation is stated by a code above 0; without either, the affine is the
+    placement ITK, 3D Slicer and ITK-SNAP give such a file
+    (:func:`tumor3d.storage.nifti.placed_affine`), a guess.
     """
     import nibabel as nib
 
@@ -252,29 +257,15 @@ def _load_nifti(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray, bool]:
         )
     _check_voxel_size(p, img)
     # in mm first: a 0.1 mm grid written in metres has a determinant of 1e-12
-    affine = _affine_in_mm(img.header, np.asarray(img.affine, dtype=np.float64))
+    affine = placed_affine(img)
     if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < SINGULAR_DET_TOL:
         raise InputError("the image affine is singular or not finite", where)
-    stated = any(int(img.header[f"{f}_code"]) for f in ("sform", "qform"))
+    codes = xform_codes(img.header)
     try:
         data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32)
     except Exception as exc:
         raise InputError(f"cannot read the voxel data ({_describe(exc)})", where) from exc
-    return data.reshape(shape), affine, stated
-
-
-#: The NIfTI spatial units (``xyzt_units``) and their length in mm; "unknown" is read as
-#: mm, as every NIfTI reader does. Meters and microns are converted, as ITK, MINC's
-#: nii2mnc and Connectome Workbench do (nibabel's ``affine`` ignores the field).
-_UNIT_MM = {"mm": 1.0, "unknown": 1.0, "meter": 1000.0, "micron": 0.001}
-
-
-def _affine_in_mm(header: Any, affine: np.ndarray) -> np.ndarray:
-    """``affine`` with its lengths in mm (the header's spatial unit converted)."""
-    unit = str(header.get_xyzt_units()[0])
-    out = affine.copy()
-    out[:3, :] *= _UNIT_MM.get(unit, 1.0)
-    return out
+    return data.reshape(shape), affine, codes
 
 
 def _check_voxel_size(p: Path, img: Any) -> None:
