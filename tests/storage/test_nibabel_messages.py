@@ -80,8 +80,8 @@ def test_a_later_logging_set_up_does_not_bring_the_messages_back(tmp_path, capfd
 
 
 def test_a_header_without_orientation_is_a_doubt_of_the_run(tmp_path):
-    """sform and qform codes 0 (an Analyze-style header): placed as ITK places it, the
-    side and the front are a guess; the run says so and is checked. The
+    """sform and qform codes 0 (an Analyze-style header): nibabel assumes its default
+    axes, so the side and the front are a guess; the run says so and is checked. The
     same file with its orientation stated gives no such note."""
     img = nib.load(write_phantom_patient(_patient(), tmp_path / "in").image)
     stated = nib.Nifti1Image(np.asarray(img.dataobj), img.affine)
@@ -95,9 +95,10 @@ def test_a_header_without_orientation_is_a_doubt_of_the_run(tmp_path):
     said = [n for n in notes if "states no orientation" in n]
     assert said == [
         "unstated.nii: the NIfTI header states no orientation (sform and qform codes 0): "
-        "placed as ITK, 3D Slicer and ITK-SNAP place it (origin 0, voxel axes LPS), so "
-        "left-right and front-back are unverified; check them, or give the file its "
-        "orientation (the masks on its grid state none either and overlay it in any viewer)"
+        "read with nibabel's default axes (LAS), so left-right and front-back are "
+        "unverified; check them, or give the file its orientation (the masks on its grid "
+        "state none either and overlay it in any viewer; the meshes and the interpolated "
+        "mask are placed by that guess, which 3D Slicer and ITK-SNAP do not share)"
     ]
     assert said[0] in doubts
     assert run.outputs["ingest-scan"].values["orientation_stated"] is False

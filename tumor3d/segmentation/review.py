@@ -54,9 +54,8 @@ STATUS_FAILED = "failed"
 STATUSES = (STATUS_OK, STATUS_CHECK, STATUS_FAILED)
 
 #: The words of the reader's note on an input whose NIfTI header states no orientation
-#: (``sform_code`` and ``qform_code`` 0, an Analyze-style header): the reader then places
-#: it as ITK does (:func:`tumor3d.storage.nifti.placed_affine`), so which side is left and
-#: which is front is a guess, and the
+#: (``sform_code`` and ``qform_code`` 0, an Analyze-style header): nibabel then assumes
+#: its default axes, so which side is left and which is front is a guess, and the
 #: learned method may read the head mirrored. Among a run's header notes, it doubts.
 ORIENTATION_UNSTATED = "the NIfTI header states no orientation (sform and qform codes 0)"
 

@@ -5,7 +5,7 @@ NIfTI-1 bytes that are identical for identical inputs (gzip ``mtime=0``, no
 file name, a fixed ``descrip``), so that the bytes can be content-addressed.
 sform and qform both hold the affine (code 1, scanner, unless the input's own
 codes are kept: ``SourceGrid.xform_codes``), units are mm. :func:`placed_affine`
-is where every NIfTI file read is placed in the world.
+reads where every NIfTI file is placed in the world.
 
 The ``*_to_source_nifti_bytes`` helpers write Scan-grid ``(z, y, x)``
 arrays back in the input's own voxel grid and affine through
@@ -58,28 +58,19 @@ def xform_codes(header: Any) -> tuple[int, int]:
 def placed_affine(img: Any) -> np.ndarray:
     """The affine (voxel index -> RAS mm) of a loaded NIfTI image, as tumor3d places it.
 
-    nibabel's ``img.affine`` (the sform, else the qform), its lengths converted to mm by
-    the header's spatial unit (:data:`UNIT_MM`). A header that states no orientation
-    (sform and qform codes 0) is placed as ITK, 3D Slicer and ITK-SNAP place it: origin
-    0, the voxel axes towards left, posterior and superior at the header's voxel size,
-    not nibabel's centred LAS guess, so that the meshes and the interpolated mask of such
-    a file open on it in those viewers (its outputs on its own grid keep codes 0:
-    ``SourceGrid.xform_codes``).
+    nibabel's ``img.affine`` (the sform, else the qform, else for a header that states
+    no orientation, codes 0, nibabel's guess: LAS, centred), its lengths converted to mm
+    by the header's spatial unit (:data:`UNIT_MM`). The one reading of a NIfTI file's
+    placement: the scan readers, a given mask and the evaluation's references.
 
     >>> import nibabel as nib
     >>> img = nib.Nifti1Image(np.zeros((2, 2, 2), np.float32), np.diag([2.0, 3.0, 4.0, 1.0]))
-    >>> img.set_sform(None, code=0); img.set_qform(None, code=0)
+    >>> img.header.set_xyzt_units("micron")
     >>> placed_affine(img).diagonal().tolist()
-    [-2.0, -3.0, 4.0, 1.0]
+    [0.002, 0.003, 0.004, 1.0]
     """
-    header = img.header
-    if xform_codes(header) == (0, 0):
-        zooms = [float(abs(z)) for z in header.get_zooms()[:3]]
-        zooms += [1.0] * (3 - len(zooms))
-        affine = np.diag([-zooms[0], -zooms[1], zooms[2], 1.0])
-    else:
-        affine = np.array(img.affine, dtype=np.float64)
-    affine[:3, :] *= UNIT_MM.get(str(header.get_xyzt_units()[0]), 1.0)
+    affine = np.array(img.affine, dtype=np.float64)
+    affine[:3, :] *= UNIT_MM.get(str(img.header.get_xyzt_units()[0]), 1.0)
     return affine
 
 
@@ -331,7 +322,7 @@ def volume_to_source_nifti_bytes(
     source, source_affine = grid.to_source_with_affine(arr, aff)
     # the input's codes; but on another grid than the input's, codes 0 would place the
     # volume by its own shape, not on the input: an input without orientation gets the
-    # scanner code there, with the affine the input was placed by
+    # scanner code there, with the affine it was read by (nibabel's guess)
     on_input_grid = source.shape == grid.shape and np.allclose(source_affine, grid.affine)
     codes = grid.xform_codes if on_input_grid or any(grid.xform_codes) else (1, 1)
     return encode_nifti(

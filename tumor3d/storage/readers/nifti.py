@@ -115,10 +115,11 @@ def nibabel_header_notes(name: str) -> Iterator[list[str]]:
             )
         for codes in unstated[:1]:
             notes.append(
-                f"{name}: {ORIENTATION_UNSTATED}: placed as ITK, 3D Slicer and ITK-SNAP place "
-                f"it (origin 0, voxel axes {codes}), so left-right and front-back are "
-                "unverified; check them, or give the file its orientation (the masks on its "
-                "grid state none either and overlay it in any viewer)"
+                f"{name}: {ORIENTATION_UNSTATED}: read with nibabel's default axes ({codes}), "
+                "so left-right and front-back are unverified; check them, or give the file "
+                "its orientation (the masks on its grid state none either and overlay it in "
+                "any viewer; the meshes and the interpolated mask are placed by that guess, "
+                "which 3D Slicer and ITK-SNAP do not share)"
             )
 
 
@@ -215,9 +216,8 @@ def load_nifti_volume(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
 def _load_nifti(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     """:func:`load_nifti_volume`, and the header's ``(sform_code, qform_code)``.
 
-    The orientation is stated by a code above 0; without either, the affine is the
-    placement ITK, 3D Slicer and ITK-SNAP give such a file
-    (:func:`tumor3d.storage.nifti.placed_affine`), a guess.
+    The orientation is stated by a code above 0; without either, the affine is
+    nibabel's default axes (LAS), a guess (:func:`tumor3d.storage.nifti.placed_affine`).
     """
     import nibabel as nib
 
