@@ -1109,11 +1109,11 @@ def status_doubts(
     mask's notes of preprocessing ``pre`` (doubting where ``method``'s mask lies inside the
     brain mask), and a segmentation that flags itself (``seg_values``: its
     ``needs_review`` and reasons, ``tumor3d.api.segmentation_values``)."""
-    from tumor3d.imaging.preprocess import brain_mask_figures, tissue_slice_count
+    from tumor3d.imaging.preprocess import brain_mask_figures
     from tumor3d.segmentation.review import brain_mask_run_notes, run_notes, segmentation_review
 
     figures = brain_mask_figures(
-        pre.brain_mask, spacing_mm, str(pre.brain_extraction), tissue_slice_count(pre.original_u8)
+        pre.brain_mask, spacing_mm, str(pre.brain_extraction), pre.original_u8
     )
     _, doubts = run_notes(
         tumour_found=bool(mask.any()), caveats=caveats, **brain_mask_run_notes(figures, method)

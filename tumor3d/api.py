@@ -231,7 +231,6 @@ def reconstruct_scan(
     from tumor3d.imaging.preprocess import (
         brain_mask_figures,
         preprocess_volume,
-        tissue_slice_count,
     )
     from tumor3d.pipeline import tumour_surface
     from tumor3d.segmentation.detect import detect_abnormal_slices
@@ -326,7 +325,7 @@ def reconstruct_scan(
     )
     # notes and status (tumor3d.segmentation.review), as the pipeline's
     extraction = "given" if given is not None else str(pre.brain_extraction)
-    figures = brain_mask_figures(brain, spacing, extraction, tissue_slice_count(pre.original_u8))
+    figures = brain_mask_figures(brain, spacing, extraction, pre.original_u8)
     notes, doubts = run_notes(
         tumour_found=not surface.is_empty,
         caveats=seg.caveats,

@@ -5,11 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from tumor3d.config import PreprocessConfig
-from tumor3d.imaging.preprocess import (
-    brain_mask_figures,
-    preprocess_volume,
-    tissue_slice_count,
-)
+from tumor3d.imaging.preprocess import brain_mask_figures, preprocess_volume
 from tumor3d.tasks.kinds import Artifact, Volume
 from tumor3d.tasks.spec import Input, StageResult, scan_spacing_mm, stage
 
@@ -51,10 +47,7 @@ def preprocess(
             "head_exterior": Volume(exterior, affine),
         },
         values=brain_mask_figures(
-            result.brain_mask,
-            spacing,
-            result.brain_extraction,
-            tissue_slice_count(result.original_u8),
+            result.brain_mask, spacing, result.brain_extraction, result.original_u8
         ),
     )
 

@@ -47,6 +47,7 @@ from tumor3d.imaging.preprocess.intensity import (
 from tumor3d.imaging.preprocess.masks import fill_holes_per_slice, foreground_brain_mask
 from tumor3d.imaging.preprocess.notes import (
     MAX_INTRACRANIAL_ML,
+    MAX_OUTLINE_SHIFT_STEPS,
     MIN_BRAIN_SLICE_MM2,
     MIN_BRAIN_SLICE_SHARE,
     brain_coverage_note,
@@ -54,6 +55,8 @@ from tumor3d.imaging.preprocess.notes import (
     brain_mask_notes,
     brain_size_note,
     brain_volume_note,
+    outline_shift_mm,
+    slice_step_note,
     tissue_slice_count,
 )
 from tumor3d.imaging.preprocess.skull import SKULL_THRESHOLDS, remove_skull
@@ -64,6 +67,7 @@ __all__ = [
     "BACKGROUND_TOLERANCE",
     "BRAIN_EXTRACTIONS",
     "MAX_INTRACRANIAL_ML",
+    "MAX_OUTLINE_SHIFT_STEPS",
     "MIN_BRAIN_SLICE_MM2",
     "MIN_BRAIN_SLICE_SHARE",
     "SKULL_THRESHOLDS",
@@ -78,8 +82,10 @@ __all__ = [
     "fill_holes_per_slice",
     "foreground_brain_mask",
     "masked_background",
+    "outline_shift_mm",
     "preprocess_volume",
     "remove_skull",
+    "slice_step_note",
     "tissue_slice_count",
     "to_uint8",
     "unsharp_kernel",

@@ -1,0 +1,74 @@
+"""The header's slice step checked against the head's own shape (tumor3d.imaging.preprocess).
+
+Images exported without their voxel size are often written with a nominal 1 mm: the 45
+clinical LGG heads of the shared data are, and every volume in mL was silently wrong by
+the true step's factor. The head's outline then moves several "steps" per slice; with the
+true step it moves at most about one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tumor3d.imaging.preprocess import (
+    MAX_OUTLINE_SHIFT_STEPS,
+    brain_mask_figures,
+    brain_mask_notes,
+    outline_shift_mm,
+    preprocess_volume,
+)
+from tumor3d.phantom import make_phantom_patient
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return make_phantom_patient(11, n_slices=24, matrix_size=(128, 128)).scan
+
+
+def _size_notes(image, spacing_mm):
+    pre = preprocess_volume(image, spacing_mm=spacing_mm)
+    figures = brain_mask_figures(pre.brain_mask, spacing_mm, pre.brain_extraction, pre.original_u8)
+    return figures, brain_mask_notes(figures)[1]
+
+
+def test_a_sphere_moves_its_outline_by_its_radius_steps():
+    """Independent: a ball of radius 40 mm cut every 4 mm; the outlines' shift between
+    neighbouring slices is the difference of their radii (the median over the slices
+    whose section is at least a quarter of the largest)."""
+    zz, yy, xx = np.mgrid[-40:41:4, -60:60, -60:60].astype(float)
+    ball = ((zz**2 + yy**2 + xx**2) < 40.0**2).astype(np.uint8) * 200
+    radii = np.sqrt(np.maximum(40.0**2 - np.arange(-40, 41, 4.0) ** 2, 0))
+    big = np.pi * radii**2 >= 0.25 * np.pi * 40.0**2
+    steps = [abs(radii[k + 1] - radii[k]) for k in range(len(radii) - 1) if big[k] and big[k + 1]]
+    assert outline_shift_mm(ball, (4.0, 1.0, 1.0)) == pytest.approx(np.median(steps), abs=0.6)
+
+
+def test_the_true_step_gives_no_note_and_a_nominal_one_doubts_every_volume(phantom):
+    step, dy, dx = phantom.spacing_zyx_mm
+    assert step == 5.0
+    figures, size = _size_notes(phantom.image, (step, dy, dx))
+    assert size == []
+    assert figures["outline_shift_mm"] < MAX_OUTLINE_SHIFT_STEPS * step
+    # the same slices with a nominal 1 mm step, as an export without voxel size writes them
+    figures, size = _size_notes(phantom.image, (1.0, dy, dx))
+    assert len(size) == 1 and "slice step in the header (1 mm)" in size[0]
+    assert figures["outline_shift_mm"] > MAX_OUTLINE_SHIFT_STEPS * 1.0
+
+
+def test_a_nominal_step_makes_the_run_check():
+    """Through the Python API, a phantom of 1 mm pixels and 5 mm slices written as an
+    export without voxel size writes it (1 x 1 x 1 mm): the run asks for a check and
+    names the step; its true voxel size gives no such note."""
+    import tumor3d
+
+    scan = make_phantom_patient(
+        12, n_slices=24, matrix_size=(200, 200), pixel_spacing_mm=1.0
+    ).scan
+    image = scan.source_grid.to_source(scan.image)
+    true = tumor3d.reconstruct(image, affine=scan.source_grid.affine, modality="t2")
+    assert not [n for n in true.notes if "slice step in the header" in n]
+    nominal = np.diag([-1.0, -1.0, 1.0, 1.0])
+    r = tumor3d.reconstruct(image, affine=nominal, modality="t2")
+    assert r.status == "check"
+    assert any("slice step in the header (1 mm)" in reason for reason in r.review_reasons)
