@@ -62,9 +62,7 @@ def test_a_nominal_step_makes_the_run_check():
     names the step; its true voxel size gives no such note."""
     import tumor3d
 
-    scan = make_phantom_patient(
-        12, n_slices=24, matrix_size=(200, 200), pixel_spacing_mm=1.0
-    ).scan
+    scan = make_phantom_patient(12, n_slices=24, matrix_size=(200, 200), pixel_spacing_mm=1.0).scan
     image = scan.source_grid.to_source(scan.image)
     true = tumor3d.reconstruct(image, affine=scan.source_grid.affine, modality="t2")
     assert not [n for n in true.notes if "slice step in the header" in n]
@@ -72,3 +70,17 @@ def test_a_nominal_step_makes_the_run_check():
     r = tumor3d.reconstruct(image, affine=nominal, modality="t2")
     assert r.status == "check"
     assert any("slice step in the header (1 mm)" in reason for reason in r.review_reasons)
+
+
+def test_a_slab_of_one_end_of_the_head_gets_no_verdict():
+    """A stack from the head's widest section up holds only its steep part (the top 40 mm
+    of a 1 mm brain moved 1.1 steps, a coronal 3 mm head's first 8 slices 2.2: false
+    alarms): with the largest section on an end slice nothing is measured. A ball of
+    radius 40 mm cut every 4 mm, widest at z = 0 (index 10)."""
+    zz, yy, xx = np.mgrid[-40:41:4, -60:60, -60:60].astype(float)
+    ball = ((zz**2 + yy**2 + xx**2) < 40.0**2).astype(np.uint8) * 200
+    spacing = (4.0, 1.0, 1.0)
+    assert outline_shift_mm(ball, spacing) is not None
+    assert outline_shift_mm(ball[10:], spacing) is None  # the upper half
+    assert outline_shift_mm(ball[:11], spacing) is None  # the lower half
+    assert outline_shift_mm(ball[9:], spacing) is not None  # through the widest: measured
