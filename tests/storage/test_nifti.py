@@ -203,22 +203,37 @@ def test_a_stored_probability_is_rounded_to_1_255_keeps_the_side_of_a_half_and_c
     np.testing.assert_array_equal(array, stored)
 
 
-@pytest.mark.parametrize("codes", [(0, 0), (2, 0), (0, 1), (1, 2), (4, 4)])
-def test_outputs_are_placed_where_itk_places_the_input_whatever_its_header_codes(tmp_path, codes):
+@pytest.mark.parametrize(
+    ("codes", "qform_moved"),
+    [((0, 0), False), ((2, 0), False), ((0, 1), False), ((1, 2), False), ((4, 4), False),
+     ((2, 1), True), ((4, 2), True), ((1, 2), True)],
+)  # fmt: skip
+def test_outputs_are_placed_where_itk_places_the_input_whatever_its_header_codes(
+    tmp_path, codes, qform_moved
+):
     """3D Slicer and ITK-SNAP read NIfTI through ITK. A mask or map on the input's grid
     is placed by ITK (SimpleITK: origin, direction, spacing) and by nibabel exactly where
     they place the input, and keeps the input's sform and qform codes; a finer
     interpolated volume's voxel on an acquired slice lies on that slice's voxel (by ITK
     only when the input states its orientation). For codes 0 ITK places the input at the
     origin along L, P, S, nibabel centred along L, A, S: a mask written with codes 1 and
-    nibabel's guess landed up to 176 mm away in ITK."""
+    nibabel's guess landed up to 176 mm away in ITK. A qform that differs from the sform
+    (``qform_moved``: turned 5 degrees and shifted, as a registration tool writes the
+    sform beside the scanner's qform) is what ITK reads unless the sform code is 1: the
+    outputs carry it, mapped onto their own grid (written as the sform, they sat 5 mm off
+    in ITK)."""
     sitk = pytest.importorskip("SimpleITK")
     rng = np.random.default_rng(5)
     source = rng.integers(0, 1000, size=(9, 8, 5)).astype(np.int16)
     affine = np.array([[-1.5, 0, 0, 40.0], [0, 2.0, 0, -60.0], [0, 0, 5.0, -20.0], [0, 0, 0, 1]])
     img = nib.Nifti1Image(source, affine)
     img.set_sform(affine, code=codes[0])
-    img.set_qform(affine, code=codes[1])
+    turn = np.radians(5.0)
+    moved = np.array(
+        [[np.cos(turn), -np.sin(turn), 0, 5.0], [np.sin(turn), np.cos(turn), 0, -3.0],
+         [0, 0, 1, 2.0], [0, 0, 0, 1]]
+    ) @ affine  # fmt: skip
+    img.set_qform(moved if qform_moved else affine, code=codes[1])
     img.header.set_zooms((1.5, 2.0, 5.0))
     f = tmp_path / "input.nii.gz"
     nib.save(img, f)

@@ -133,6 +133,11 @@ def test_scan_round_trip_keeps_geometry(store):
     )
     kept_back = store.get_scan(store.put_scan(kept), patient_id="p01").source_grid
     assert kept_back.flips == (True, False, True) and kept_back.xform_codes == (0, 0)
+    assert back.source_grid.qform is None
+    qform = np.diag([1.0, 1.0, 1.0, 1.0]) + np.eye(4, k=3) * 5.0  # shifted 5 mm in x
+    moved = dataclasses.replace(scan, source_grid=dataclasses.replace(grid, qform=qform))
+    moved_back = store.get_scan(store.put_scan(moved), patient_id="p01").source_grid
+    np.testing.assert_array_equal(moved_back.qform, qform)
     # the patient id is not stored (issue 29): the same image under another id is the
     # same artifact, and the reader names the patient
     assert "p01" not in json.dumps(ref.metadata)

@@ -260,6 +260,12 @@ class SourceGrid:
         1)`` (scanner anatomical) for every other source. ``(0, 0)``: the file states no
         orientation, and its outputs state none either, so that a viewer places them
         where it places the file.
+    qform : (4, 4) ndarray or None
+        The file's qform (source-order voxel index -> RAS mm) where it states one that
+        differs from ``affine`` (the sform, which nibabel and tumor3d read). ITK, so 3D
+        Slicer and ITK-SNAP, reads the qform unless the sform code is 1: the outputs
+        carry it, mapped onto their own grid, so that those viewers place them where
+        they place the file (:meth:`qform_of`).
     """
 
     shape: tuple[int, int, int]
@@ -267,6 +273,7 @@ class SourceGrid:
     axes: tuple[int, int, int] = (0, 1, 2)
     flips: tuple[bool, bool, bool] = (False, False, False)
     xform_codes: tuple[int, int] = (1, 1)
+    qform: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if sorted(self.axes) != [0, 1, 2]:
@@ -285,6 +292,30 @@ class SourceGrid:
         if len(codes) != 2 or not all(0 <= c <= 5 for c in codes):
             raise ValueError(f"xform_codes must be two NIfTI codes 0-5, got {self.xform_codes}")
         object.__setattr__(self, "xform_codes", codes)
+        if self.qform is not None:
+            q = np.array(self.qform, dtype=np.float64)
+            if q.shape != (4, 4):
+                raise ValueError(f"qform must be 4x4, got shape {q.shape}")
+            q.setflags(write=False)
+            object.__setattr__(self, "qform", q)
+
+    def qform_of(self, source_affine: np.ndarray) -> np.ndarray:
+        """The qform of a volume written in the source's axis order with ``source_affine``.
+
+        ``source_affine`` itself, unless the file's qform differs from its sform
+        (``qform``): then the volume's voxels are taken through the file's voxel
+        coordinates into the qform's world, ``qform @ inv(affine) @ source_affine``, so
+        that a reader of qforms places the volume on the file as it places the file.
+
+        >>> shifted = SourceGrid((2, 2, 2), np.eye(4), qform=np.array(
+        ...     [[1.0, 0, 0, 5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]))
+        >>> shifted.qform_of(np.diag([1.0, 1.0, 0.25, 1.0]))[:3, 3].tolist()
+        [5.0, 0.0, 0.0]
+        """
+        aff = np.asarray(source_affine, dtype=np.float64)
+        if self.qform is None:
+            return aff
+        return self.qform @ np.linalg.inv(self.affine) @ aff
 
     def _flip_zyx(self, array_zyx: np.ndarray) -> np.ndarray:
         """Reverse the ``(z, y, x)`` axes named by ``flips`` (its own inverse)."""

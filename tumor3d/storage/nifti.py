@@ -30,6 +30,7 @@ from tumor3d.validation import check_affine, check_int
 __all__ = [
     "NIFTI_DTYPES",
     "decode_nifti",
+    "differing_qform",
     "encode_nifti",
     "mask_to_source_nifti_bytes",
     "placed_affine",
@@ -74,6 +75,22 @@ def placed_affine(img: Any) -> np.ndarray:
     return affine
 
 
+def differing_qform(img: Any) -> np.ndarray | None:
+    """A loaded NIfTI image's qform in mm where both forms are stated and differ, else None.
+
+    nibabel (and so :func:`placed_affine`) reads the sform; ITK reads the qform unless
+    the sform code is 1, so a file whose two forms differ (an sform aligned to another
+    image beside the scanner's qform, as registration tools write) is placed differently
+    by the two (``SourceGrid.qform``).
+    """
+    sform_code, qform_code = xform_codes(img.header)
+    if not (sform_code and qform_code):
+        return None
+    qform = np.array(img.header.get_qform(), dtype=np.float64)
+    qform[:3, :] *= UNIT_MM.get(str(img.header.get_xyzt_units()[0]), 1.0)
+    return None if np.allclose(qform, placed_affine(img), atol=1e-4) else qform
+
+
 _DESCRIP = b"tumor3d"
 _GZIP_LEVEL = 6
 _GZIP_MAGIC = b"\x1f\x8b"
@@ -86,6 +103,7 @@ def encode_nifti(
     dtype: np.dtype | type | str,
     label: bool = False,
     codes: tuple[int, int] = (1, 1),
+    qform: np.ndarray | None = None,
 ) -> bytes:
     """Encode a 3-D voxel array as gzip-compressed NIfTI-1 bytes, deterministically.
 
@@ -107,6 +125,9 @@ def encode_nifti(
         ``(sform_code, qform_code)``: 1 (scanner) unless an input's own codes are kept
         (``SourceGrid.xform_codes``); with both 0 the file states no orientation, and
         a reader places it by its voxel size alone, as it places such an input.
+    qform : (4, 4) array_like, optional
+        Stored as the qform instead of ``affine`` (an input's own qform where it differs
+        from its sform: :meth:`tumor3d.imaging.scan.SourceGrid.qform_of`).
 
     Returns
     -------
@@ -135,7 +156,7 @@ def encode_nifti(
     header.set_data_dtype(dt)
     img = nib.Nifti1Image(data, aff, header=header)
     img.set_sform(aff, code=int(codes[0]))
-    img.set_qform(aff, code=int(codes[1]))
+    img.set_qform(aff if qform is None else _check_affine(qform), code=int(codes[1]))
     img.header.set_xyzt_units(xyz="mm")
     if label:
         img.header.set_intent("label")
@@ -282,7 +303,10 @@ def mask_to_source_nifti_bytes(mask_zyx: np.ndarray, grid: SourceGrid) -> bytes:
     if m.ndim != 3:
         raise ValueError(f"mask must be 3-D (z, y, x), got shape {m.shape}")
     source = grid.to_source(m)
-    return encode_nifti(source, grid.affine, dtype=np.uint8, label=True, codes=grid.xform_codes)
+    return encode_nifti(
+        source, grid.affine, dtype=np.uint8, label=True, codes=grid.xform_codes,
+        qform=grid.qform_of(grid.affine),
+    )  # fmt: skip
 
 
 def volume_to_source_nifti_bytes(
@@ -326,8 +350,9 @@ def volume_to_source_nifti_bytes(
     on_input_grid = source.shape == grid.shape and np.allclose(source_affine, grid.affine)
     codes = grid.xform_codes if on_input_grid or any(grid.xform_codes) else (1, 1)
     return encode_nifti(
-        source, source_affine, dtype=dtype, label=np.dtype(dtype) == np.uint8, codes=codes
-    )
+        source, source_affine, dtype=dtype, label=np.dtype(dtype) == np.uint8, codes=codes,
+        qform=grid.qform_of(source_affine),
+    )  # fmt: skip
 
 
 def _check_affine(affine: np.ndarray) -> np.ndarray:

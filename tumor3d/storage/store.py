@@ -582,6 +582,8 @@ class ArtifactStore:
             extra["source_grid"]["flips"] = list(grid.flips)
         if grid.xform_codes != (1, 1):  # likewise
             extra["source_grid"]["xform_codes"] = list(grid.xform_codes)
+        if grid.qform is not None:  # likewise
+            extra["source_grid"]["qform"] = _affine_list(grid.qform)
         if scan.skipped_files:  # only when present, so other scans keep their digests
             extra["skipped_files"] = list(scan.skipped_files)
         if not scan.orientation_stated:  # likewise
@@ -657,4 +659,5 @@ def source_grid_from_metadata(meta: dict[str, Any]) -> SourceGrid:
         axes=tuple(sg["axes"]),
         flips=tuple(bool(f) for f in sg.get("flips", (False, False, False))),
         xform_codes=tuple(int(c) for c in sg.get("xform_codes", (1, 1))),
+        qform=None if sg.get("qform") is None else np.asarray(sg["qform"]),
     )

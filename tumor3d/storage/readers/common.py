@@ -270,6 +270,7 @@ def scan_from_volume(
     file_thickness: Callable[[float], float | None] | None = None,
     orientation_stated: bool = True,
     xform_codes: tuple[int, int] = (1, 1),
+    qform: np.ndarray | None = None,
 ) -> Scan:
     """Make a `Scan` from a 3-D volume in its file's voxel order and its RAS affine.
 
@@ -306,6 +307,8 @@ def scan_from_volume(
     xform_codes : tuple of int
         A NIfTI file's ``(sform_code, qform_code)``, which its outputs keep
         (``SourceGrid.xform_codes``).
+    qform : (4, 4) ndarray, optional
+        A NIfTI file's qform where it differs from ``affine`` (``SourceGrid.qform``).
 
     Returns
     -------
@@ -353,8 +356,12 @@ def scan_from_volume(
         patient_id=patient_id,
         source=text,
         source_grid=SourceGrid(
-            shape=tuple(data.shape), affine=affine, axes=axes, xform_codes=xform_codes
-        ),
+            shape=tuple(data.shape),
+            affine=affine,
+            axes=axes,
+            xform_codes=xform_codes,
+            qform=qform,
+        ),  # fmt: skip
         orientation_stated=orientation_stated,
     )
     return working_orientation(scan)

@@ -18,7 +18,7 @@ from tumor3d.constants import SINGULAR_DET_TOL
 from tumor3d.errors import InputError
 from tumor3d.imaging.scan import Scan, validate_patient_id
 from tumor3d.segmentation.review import ORIENTATION_UNSTATED
-from tumor3d.storage.nifti import placed_affine, xform_codes
+from tumor3d.storage.nifti import differing_qform, placed_affine, xform_codes
 from tumor3d.storage.readers.common import (
     MAX_VOXELS_DEFAULT,
     NIFTI_SUFFIXES,
@@ -168,7 +168,7 @@ def read_nifti_scan(
     limit = check_max_voxels(max_voxels)
     if not p.is_file():
         raise InputError("no such file", where)
-    data, affine, codes = _load_nifti(p, limit)
+    data, affine, codes, qform = _load_nifti(p, limit)
     stated = any(codes)
     unstated = _unstated.get()
     if not stated and unstated is not None:  # the run's note (nibabel_header_notes)
@@ -186,6 +186,7 @@ def read_nifti_scan(
         file_thickness=lambda step: _read_bids_sidecar(p, step),
         orientation_stated=stated,
         xform_codes=codes,
+        qform=qform,
     )
 
 
@@ -213,11 +214,15 @@ def load_nifti_volume(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray]:
     return _load_nifti(p, limit)[:2]
 
 
-def _load_nifti(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
-    """:func:`load_nifti_volume`, and the header's ``(sform_code, qform_code)``.
+def _load_nifti(
+    p: Path, limit: int
+) -> tuple[np.ndarray, np.ndarray, tuple[int, int], np.ndarray | None]:
+    """:func:`load_nifti_volume`, the header's form codes and its differing qform.
 
-    The orientation is stated by a code above 0; without either, the affine is
-    nibabel's default axes (LAS), a guess (:func:`tumor3d.storage.nifti.placed_affine`).
+    The codes are ``(sform_code, qform_code)``; the qform is returned where it differs
+    from the affine read (:func:`tumor3d.storage.nifti.differing_qform`). The
+    orientation is stated by a code above 0; without either, the affine is nibabel's
+    default axes (LAS), a guess (:func:`tumor3d.storage.nifti.placed_affine`).
     """
     import nibabel as nib
 
@@ -265,7 +270,7 @@ def _load_nifti(p: Path, limit: int) -> tuple[np.ndarray, np.ndarray, tuple[int,
         data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32)
     except Exception as exc:
         raise InputError(f"cannot read the voxel data ({_describe(exc)})", where) from exc
-    return data.reshape(shape), affine, codes
+    return data.reshape(shape), affine, codes, differing_qform(img)
 
 
 def _check_voxel_size(p: Path, img: Any) -> None:
