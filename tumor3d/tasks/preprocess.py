@@ -7,7 +7,7 @@ import numpy as np
 from tumor3d.config import PreprocessConfig
 from tumor3d.imaging.preprocess import brain_mask_figures, preprocess_volume
 from tumor3d.tasks.kinds import Artifact, Volume
-from tumor3d.tasks.spec import Input, StageResult, scan_spacing_mm, stage
+from tumor3d.tasks.spec import Input, Metric, StageResult, scan_spacing_mm, stage
 
 __all__ = ["SPEC"]
 
@@ -22,6 +22,14 @@ __all__ = ["SPEC"]
         "brain_mask": Input("mask", "given:brain_mask", optional=True),
     },
     outputs={"enhanced": "image", "brain_mask": "mask", "head_exterior": "mask"},
+    metrics={
+        "brain_volume_ml": Metric("brain_volume_ml", "the brain mask's volume, mL"),
+        "outline_shift_mm": Metric(
+            "outline_shift_mm",
+            "median change of the head's circle-equivalent radius from slice to slice, mm "
+            "(empty: no verdict); above one slice step the header's step is doubted",
+        ),
+    },
 )
 def preprocess(
     scan: Artifact, config: PreprocessConfig, brain_mask: Volume | None = None

@@ -184,11 +184,12 @@ def brain_mask_notes(
     """The notes on a brain mask from its :func:`brain_mask_figures`, in two lists.
 
     Those on the skull removal (:func:`brain_volume_note`, :func:`brain_coverage_note`)
-    and that on the voxel size (:func:`brain_size_note`). The first doubt a tumour
-    segmented inside the mask (``doubts_result`` False words them for a method that
-    reads the whole head); the second doubts every volume. No coverage note for a
-    given mask (the user's) nor without the slice counts, no size note without the
-    largest slice (figures stored before they were).
+    and those on the voxel size (:func:`brain_size_note`, :func:`slice_step_note`). The
+    first doubt a tumour segmented inside the mask (``doubts_result`` False words them
+    for a method that reads the whole head); the second doubt every volume. No coverage
+    note for a given mask (the user's) nor without the slice counts, no size note
+    without the largest slice, no slice-step note without the outline's shift (figures
+    stored before they were, or a stack with no verdict: ``outline_shift_mm`` None).
 
     >>> brain_mask_notes({"brain_volume_ml": 1400.0})
     ([], [])
@@ -232,6 +233,8 @@ def outline_shift_mm(
 ) -> float | None:
     """How far the head's outline moves from one slice to the next, in mm (the median).
 
+    ``original_u8`` is the scan's 8-bit ``(z, y, x)`` stack, slices on axis 0;
+    ``spacing_mm`` is ``(slice step, row, column)``.
     The head (or a skull-stripped brain) is the stack's voxels above half the Otsu
     threshold of its non-zero ones, opened and hole-filled slice by slice; its outline's
     move between neighbouring slices is the change of its circle-equivalent radius
@@ -270,10 +273,10 @@ def outline_shift_mm(
     return float(np.median(np.abs(radius[pairs + 1] - radius[pairs])))
 
 
-def slice_step_note(outline_shift: float, slice_step_mm: float) -> str | None:
+def slice_step_note(outline_shift_mm: float, slice_step_mm: float) -> str | None:
     """A warning for a slice step the head's own shape contradicts, else None.
 
-    ``outline_shift`` (:func:`outline_shift_mm`) above :data:`MAX_OUTLINE_SHIFT_STEPS`
+    ``outline_shift_mm`` (:func:`outline_shift_mm`) above :data:`MAX_OUTLINE_SHIFT_STEPS`
     slice steps: the slices lie farther apart than the header says (or the pixels are
     smaller), as in images exported without their voxel size and written as 1 mm;
     every volume scales with the step.
@@ -283,15 +286,14 @@ def slice_step_note(outline_shift: float, slice_step_mm: float) -> str | None:
     >>> slice_step_note(2.8, 1.0)[:45]
     "the head's outline moves 2.8 mm from slice to"
     """
-    shift, step = float(outline_shift), float(slice_step_mm)
+    shift, step = float(outline_shift_mm), float(slice_step_mm)
     if not (step > 0 and shift > MAX_OUTLINE_SHIFT_STEPS * step):
         return None
     return (
         f"the head's outline moves {shift:.1f} mm from slice to slice, {shift / step:.1f} "
-        f"times the slice step in the header ({step:g} mm); with the true step it moves "
-        f"about half a step, at most {MAX_OUTLINE_SHIFT_STEPS:g} (a head's surface is "
-        "steeper), so the "
-        "slice step (or the pixel size) in the header is likely wrong (images exported "
-        "without their voxel size are often written as 1 mm), and every volume in mm3 and "
-        "mL scales with it: check the header's voxel size"
+        f"times the slice step in the header ({step:g} mm), where a head's outline moves "
+        f"about half a step and at most {MAX_OUTLINE_SHIFT_STEPS:g} step: the slice step "
+        "(or the pixel size) in the header is likely wrong (images exported without their "
+        "voxel size are often written as 1 mm), and every volume in mm3 and mL scales "
+        "with it: check the header's voxel size"
     )
