@@ -358,7 +358,17 @@ def _location(value: str | Path) -> str:
 
 
 def serve_cohort(deployment: RunnerDeployment) -> None:  # pragma: no cover - blocks
-    """Serve the deployment with Prefect (blocks until interrupted)."""
+    """Serve the deployment with Prefect (blocks until interrupted).
+
+    SIGTERM (systemd, ``kill``) ends it through Prefect's own handler
+    (``Runner.handle_sigterm``: exit 0), which creates ``Runner.astop`` without awaiting
+    it; the RuntimeWarning that leaves on stderr at exit is Prefect's and is not shown.
+    """
+    import warnings
+
     from prefect import serve
 
+    warnings.filterwarnings(
+        "ignore", message="coroutine 'Runner.astop' was never awaited", category=RuntimeWarning
+    )
     serve(deployment)
