@@ -397,3 +397,27 @@ def test_a_local_cluster_starts_while_another_holds_the_dashboard_port():
             cluster.close()
     finally:
         holder.close()
+
+
+def test_a_scheduler_that_just_answered_is_not_asked_again(monkeypatch):
+    """The command's preflight and the cohort it starts each checked --dask-address, a
+    child process and a connection each (about 1 s): an answer is kept for a minute, a
+    refusal is not."""
+    calls = []
+
+    def connect(address, timeout_s, fix):
+        calls.append(address)
+        return {"workers": 3} if address.endswith(":8786") else {"error": "OSError", "text": "no"}
+
+    monkeypatch.setattr(dask_runner, "_connect_in_child", connect)
+    monkeypatch.setattr(dask_runner, "_answered", {})
+    assert dask_runner.check_scheduler("tcp://10.0.0.1:8786") == 3
+    assert dask_runner.check_scheduler("tcp://10.0.0.1:8786") == 3
+    assert calls == ["tcp://10.0.0.1:8786"]
+    for _ in range(2):
+        with pytest.raises(ClusterError, match="cannot connect"):
+            dask_runner.check_scheduler("tcp://10.0.0.1:9999")
+    assert calls[1:] == ["tcp://10.0.0.1:9999"] * 2
+    monkeypatch.setattr(dask_runner, "RECENT_CHECK_S", 0.0)  # an old answer: asked again
+    assert dask_runner.check_scheduler("tcp://10.0.0.1:8786") == 3
+    assert calls[-1] == "tcp://10.0.0.1:8786" and len(calls) == 4

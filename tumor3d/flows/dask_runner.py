@@ -24,6 +24,7 @@ import logging
 import os
 import subprocess
 import sys
+import time
 from typing import Any
 
 from tumor3d.errors import InputError, Tumor3DError
@@ -49,6 +50,14 @@ except ImportError:  # pragma: no cover - without the extra
 CONNECT_TIMEOUT_S = 10.0
 #: Seconds beyond it before a connection that hangs (no scheduler behind it) is given up.
 CONNECT_GRACE_S = 5.0
+
+#: A scheduler that answered within this many seconds is not asked again: the command's
+#: preflight and the cohort it then starts each check the address (a child process and
+#: a connection each, about 1 s).
+RECENT_CHECK_S = 60.0
+
+#: address -> (time.monotonic() of its last answer, its workers then)
+_answered: dict[str, tuple[float, int]] = {}
 
 #: MiB of decoded volumes a local cluster's worker process keeps
 #: (:mod:`tumor3d.storage.product_memo`; about one patient's stage volumes), unless
@@ -132,7 +141,9 @@ class DaskSpec:
 def check_scheduler(address: str, *, timeout_s: float | None = None) -> int:
     """Connect to a Dask scheduler once and return its number of workers.
 
-    ``timeout_s`` defaults to :data:`CONNECT_TIMEOUT_S`, read at the call.
+    ``timeout_s`` defaults to :data:`CONNECT_TIMEOUT_S`, read at the call. A scheduler
+    that answered in the last :data:`RECENT_CHECK_S` seconds is not asked again (its
+    workers then); one that did not answer is asked each time.
 
     Raises
     ------
@@ -149,6 +160,9 @@ def check_scheduler(address: str, *, timeout_s: float | None = None) -> int:
         ) from None
     if timeout_s is None:
         timeout_s = CONNECT_TIMEOUT_S
+    recent = _answered.get(address)
+    if recent is not None and time.monotonic() - recent[0] < RECENT_CHECK_S:
+        return recent[1]
     fix = "start the scheduler or fix --dask-address"
     try:
         scheme, _ = parse_address(address)
@@ -165,6 +179,7 @@ def check_scheduler(address: str, *, timeout_s: float | None = None) -> int:
     else:
         found = _connect_in_child(address, timeout_s, fix)
     if "workers" in found:
+        _answered[address] = (time.monotonic(), int(found["workers"]))
         return int(found["workers"])
     kind, text = found["error"], found["text"] or found["error"]
     if kind in ("OSError", "TimeoutError") or kind.endswith(("ConnectionError", "CommClosedError")):
