@@ -240,6 +240,10 @@ def test_cli_serve_builds_the_deployment_and_hands_it_to_prefect(tmp_path, monke
     ok = CliRunner().invoke(app, [*args, "--cron", "30 1 * * 1-5", "--workers", "2"])
     assert ok.exit_code == 0, ok.output
     assert [d.name for d in served] == ["n1"]
+    # how to trigger it now from another shell, with the server it is served on
+    url = ok.output.split(" on ", 1)[1].split(";", 1)[0]
+    hint = f"PREFECT_API_URL={url} prefect deployment run 'tumor3d-scheduled-cohort/n1'"
+    assert hint in ok.output, ok.output
     assert served[0].schedules[0].schedule.cron == "30 1 * * 1-5"
     assert served[0].parameters["workers"] == 2
     bad = CliRunner().invoke(app, [*args, "--cron", "every night"])

@@ -135,6 +135,13 @@ def serve(
                 f"serving deployment [bold]tumor3d-scheduled-cohort/{escape(name)}[/] "
                 f"(cron {escape(cron)} {escape(timezone)}) on {escape(api_url)}; Ctrl-C to stop"
             )
+            # Prefect's own hint ("prefect deployment run [DEPLOYMENT_NAME]") reaches this
+            # server only from a shell that points at it
+            console.print(
+                f"run it now from another shell: PREFECT_API_URL={escape(api_url)} "
+                f"prefect deployment run 'tumor3d-scheduled-cohort/{escape(name)}'",
+                soft_wrap=True,
+            )
             serve_cohort(deployment)
     except _HANDLED as exc:
         raise _fail(exc) from None
