@@ -176,3 +176,30 @@ def test_an_interrupted_cohort_is_crashed_on_its_persistent_server(tmp_path):
     assert len(runs) == 1 and runs[0].state is not None
     assert runs[0].state.is_crashed(), runs[0].state
     assert runs[0].state.message == err.strip()
+    # kill -9 (the out-of-memory killer): no line, the run stays Running; the next
+    # command on this machine (any entering prefect_api) sets it Crashed, saying why
+    from tumor3d.flows.server import prefect_api
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tumor3d.flows.cli", "cohort", str(manifest), "--out",
+         str(tmp_path / "killout"), "--workers", "1"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        if line.count("\t") == 2:
+            break
+    proc.kill()
+    proc.communicate(timeout=60)
+    killed = FlowRunFilter(name=FlowRunFilterName(any_=["cohort-killout-1-patients"]))
+    with get_client(sync_client=True) as client:
+        (run,) = client.read_flow_runs(flow_run_filter=killed)
+    assert run.state is not None and run.state.is_running(), run.state
+    with prefect_api():
+        pass
+    with get_client(sync_client=True) as client:
+        (run,) = client.read_flow_runs(flow_run_filter=killed)
+        (first,) = client.read_flow_runs(flow_run_filter=FlowRunFilter(name=name))
+    assert run.state is not None and run.state.is_crashed(), run.state
+    assert run.state.message.startswith(f"its process ({proc.pid} on "), run.state.message
+    assert first.state is not None and first.state.message == err.strip()  # left as it was

@@ -448,13 +448,17 @@ def prefect_api(
     configured = _configured_api_url()
     if configured:
         check_configured_api()
-        with _watch_server(configured):
+        with _watch_server(configured), _this_process():
             yield configured
         return
     status = server_status()
     if status.state == "running" and status.info is not None:
         # its clients were made for this URL: they drain at exit on their own
-        with _use_api(status.info.api_url, drain=False), _watch_server(status.info.api_url):
+        with (
+            _use_api(status.info.api_url, drain=False),
+            _watch_server(status.info.api_url),
+            _this_process(),
+        ):
             yield status.info.api_url
         return
     if on_temporary_start is not None:
@@ -464,11 +468,28 @@ def prefect_api(
     proc = _spawn(port, parent=os.getpid(), ephemeral=not services, log=None)
     try:
         _wait_healthy(proc, api_url, _startup_timeout_s())
-        with _use_api(api_url, drain=True), _watch_server(api_url, server=proc):
+        with _use_api(api_url, drain=True), _watch_server(api_url, server=proc), _this_process():
             yield api_url
     finally:
         if proc.poll() is None:  # (the watch may have reaped it: its pid is then free)
             _terminate(proc.pid, grace_s=5.0)
+
+
+@contextlib.contextmanager
+def _this_process() -> Iterator[None]:
+    """Tag the body's flow runs with this machine and process, after crashing stale runs.
+
+    The Running runs of a killed command of this machine are set Crashed first
+    (:mod:`tumor3d.flows.stale_runs`; the runs of every server share Prefect's database).
+    """
+    from prefect import tags
+
+    from tumor3d.flows.stale_runs import crash_stale_runs, process_tags
+
+    with contextlib.suppress(Exception):  # best effort: never in the command's way
+        crash_stale_runs()
+    with tags(*process_tags()):
+        yield
 
 
 #: Exit code of a server process stopped by SIGINT (a Ctrl-C in its command's terminal).
