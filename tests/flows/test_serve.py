@@ -15,6 +15,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -241,7 +242,7 @@ def test_cli_serve_builds_the_deployment_and_hands_it_to_prefect(tmp_path, monke
     assert ok.exit_code == 0, ok.output
     assert [d.name for d in served] == ["n1"]
     # how to trigger it now from another shell, with the server it is served on
-    url = ok.output.split(" on ", 1)[1].split(";", 1)[0]
+    url = re.search(r" on\s+(\S+/api); Ctrl-C", ok.output).group(1)
     hint = f"PREFECT_API_URL={url} prefect deployment run 'tumor3d-scheduled-cohort/n1'"
     assert hint in ok.output, ok.output
     assert served[0].schedules[0].schedule.cron == "30 1 * * 1-5"

@@ -133,7 +133,8 @@ def serve(
         with prefect_api(on_temporary_start=temporary_note, services=True) as api_url:
             console.print(
                 f"serving deployment [bold]tumor3d-scheduled-cohort/{escape(name)}[/] "
-                f"(cron {escape(cron)} {escape(timezone)}) on {escape(api_url)}; Ctrl-C to stop"
+                f"(cron {escape(cron)} {escape(timezone)}) on {escape(api_url)}; Ctrl-C to stop",
+                soft_wrap=True,  # the URL in one piece, to copy
             )
             # Prefect's own hint ("prefect deployment run [DEPLOYMENT_NAME]") reaches this
             # server only from a shell that points at it
