@@ -25,11 +25,7 @@ demo: setup
 # of its current file is left (tests/conftest.py's scheduler). TEST_WORKERS=0 runs
 # everything in this process. The test Prefect servers and flow runs are set up to idle
 # and burn little (tests/conftest.py). Measured (issue 31 item 7, reports/test_suite.md):
-# .ci/run on clean clones on 2 cores, 1,762-1,765 tests: 282.1-301.6 s of pytest over four
-# runs, about 7 min in all (2026-12-06; 288.0-312.9 s over thirteen runs before the S3 test
-# cohorts were computed once); 1,791 tests: 300.2-319.6 s in slow hours; 1,826 tests:
-# 298.8 s and 325.3 s (2026-12-06, reports/test_suite.md); a warm checkout
-# took 355-417 s in a slow hour of this shared machine.
+# .ci/run on a clean clone on 2 cores, 1,873 tests: 345.5 s of pytest, about 8 min in all.
 # Numba compiling what the warm-up of `make setup` does not: the warm-up test's own
 # warm-up into an empty cache (18 s) and kernels only tests call (8.5 s). This shared
 # machine's speed moves by ~12 % within a day: compare runs made back to back.
