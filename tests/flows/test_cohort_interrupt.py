@@ -195,6 +195,21 @@ def test_an_interrupted_cohort_is_crashed_on_its_persistent_server(tmp_path):
     with get_client(sync_client=True) as client:
         (run,) = client.read_flow_runs(flow_run_filter=killed)
     assert run.state is not None and run.state.is_running(), run.state
+    # a Running run of a process in another pid namespace or boot (a container with the
+    # same host name): its process cannot be seen from here, so it is left alone
+    from prefect import flow
+    from prefect.states import Running
+
+    from tumor3d.flows.stale_runs import PLACE_TAG, PROCESS_TAG
+
+    @flow(name="elsewhere")
+    def elsewhere() -> None:  # never run: only its run record
+        pass
+
+    other_tags = [f"{PLACE_TAG}another-boot:4026531836", f"{PROCESS_TAG}999999:12345"]
+    with get_client(sync_client=True) as client:
+        other = client.create_flow_run(elsewhere, name="elsewhere-1", tags=other_tags,
+                                       state=Running())  # fmt: skip
     with prefect_api():
         pass
     with get_client(sync_client=True) as client:
@@ -203,3 +218,5 @@ def test_an_interrupted_cohort_is_crashed_on_its_persistent_server(tmp_path):
     assert run.state is not None and run.state.is_crashed(), run.state
     assert run.state.message.startswith(f"its process ({proc.pid} on "), run.state.message
     assert first.state is not None and first.state.message == err.strip()  # left as it was
+    with get_client(sync_client=True) as client:
+        assert client.read_flow_run(other.id).state.is_running()

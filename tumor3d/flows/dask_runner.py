@@ -51,10 +51,10 @@ CONNECT_TIMEOUT_S = 10.0
 #: Seconds beyond it before a connection that hangs (no scheduler behind it) is given up.
 CONNECT_GRACE_S = 5.0
 
-#: A scheduler that answered within this many seconds is not asked again: the command's
-#: preflight and the cohort it then starts each check the address (a child process and
-#: a connection each, about 1 s).
-RECENT_CHECK_S = 60.0
+#: A scheduler that answered within this many seconds is not asked again, once: the
+#: command's preflight and the cohort it then starts each check the address (a child
+#: process and a connection each, about 1 s); the second check takes the first's answer.
+RECENT_CHECK_S = 30.0
 
 #: address -> (time.monotonic() of its last answer, its workers then)
 _answered: dict[str, tuple[float, int]] = {}
@@ -142,8 +142,9 @@ def check_scheduler(address: str, *, timeout_s: float | None = None) -> int:
     """Connect to a Dask scheduler once and return its number of workers.
 
     ``timeout_s`` defaults to :data:`CONNECT_TIMEOUT_S`, read at the call. A scheduler
-    that answered in the last :data:`RECENT_CHECK_S` seconds is not asked again (its
-    workers then); one that did not answer is asked each time.
+    that answered in the last :data:`RECENT_CHECK_S` seconds is not asked again by the
+    next check (its workers then), but by the one after; one that did not answer is
+    asked each time.
 
     Raises
     ------
@@ -160,7 +161,7 @@ def check_scheduler(address: str, *, timeout_s: float | None = None) -> int:
         ) from None
     if timeout_s is None:
         timeout_s = CONNECT_TIMEOUT_S
-    recent = _answered.get(address)
+    recent = _answered.pop(address, None)  # used once
     if recent is not None and time.monotonic() - recent[0] < RECENT_CHECK_S:
         return recent[1]
     fix = "start the scheduler or fix --dask-address"

@@ -363,12 +363,16 @@ def serve_cohort(deployment: RunnerDeployment) -> None:  # pragma: no cover - bl
     SIGTERM (systemd, ``kill``) ends it through Prefect's own handler
     (``Runner.handle_sigterm``: exit 0), which creates ``Runner.astop`` without awaiting
     it; the RuntimeWarning that leaves on stderr at exit is Prefect's and is not shown.
+    The scheduled runs carry no process tags (:mod:`tumor3d.flows.stale_runs`): Prefect
+    runs each in a process of its own, which would inherit this one's.
     """
     import warnings
 
     from prefect import serve
+    from prefect.context import TagsContext
 
     warnings.filterwarnings(
         "ignore", message="coroutine 'Runner.astop' was never awaited", category=RuntimeWarning
     )
-    serve(deployment)
+    with TagsContext(current_tags=set()):
+        serve(deployment)

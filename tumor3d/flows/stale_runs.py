@@ -5,12 +5,16 @@ state (:mod:`tumor3d.flows.cli.errors`). One killed outright (``kill -9``, the k
 out-of-memory killer, a machine that stopped) cannot: its runs stayed Running on the
 server, since they send no heartbeats, and the UI showed them so forever.
 
-Every command's flow runs carry two tags (:func:`process_tags`): this machine's name and
-this process's id with its start time. At the start of each command
-(:func:`tumor3d.flows.server.prefect_api`), :func:`crash_stale_runs` sets Crashed the
-Running flow runs of this machine whose process is gone, with a message that says so.
-The start time guards against a process id reused by another process since; runs of
-other machines are left alone (their processes cannot be seen from here).
+Every command's flow runs carry two tags (:func:`process_tags`): where its processes
+are seen, and this process's id with its start time. Where is this boot of this
+machine's kernel and its process-id namespace (``/proc/sys/kernel/random/boot_id`` and
+the inode of ``/proc/self/ns/pid``), not the host name, which containers and cloned
+machines share. At the start of each command (:func:`tumor3d.flows.server.prefect_api`),
+:func:`crash_stale_runs` sets Crashed the Running flow runs tagged with this place whose
+process is gone, with a message that says so. The start time guards against a process
+id reused by another process since; runs of other places are left alone (their
+processes cannot be seen from here), and without ``/proc`` (macOS) nothing is tagged or
+swept. A run that has just ended is never overwritten (no forced state).
 """
 
 from __future__ import annotations
@@ -19,10 +23,10 @@ import os
 import socket
 from pathlib import Path
 
-__all__ = ["HOST_TAG", "PROCESS_TAG", "crash_stale_runs", "process_tags"]
+__all__ = ["PLACE_TAG", "PROCESS_TAG", "crash_stale_runs", "process_tags"]
 
-#: Tag prefix of the machine a flow run's process runs on.
-HOST_TAG = "tumor3d-host:"
+#: Tag prefix of where a flow run's process is seen: ``tumor3d-place:<boot id>:<pid ns>``.
+PLACE_TAG = "tumor3d-place:"
 #: Tag prefix of the process: ``tumor3d-process:<pid>:<start time in clock ticks>``.
 PROCESS_TAG = "tumor3d-process:"
 
@@ -46,25 +50,37 @@ def _start_ticks(pid: int) -> int | None:
         return None
 
 
-def process_tags() -> tuple[str, str]:
-    """The machine's and the process's tags, for the flow runs a command makes.
+def _place() -> str | None:
+    """The tag of this kernel boot and process-id namespace, or None without ``/proc``."""
+    try:
+        boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+        namespace = os.stat("/proc/self/ns/pid").st_ino
+    except OSError:
+        return None
+    return f"{PLACE_TAG}{boot}:{namespace}" if boot else None
 
-    >>> host, process = process_tags()
-    >>> host.startswith(HOST_TAG) and process.startswith(f"{PROCESS_TAG}{os.getpid()}:")
+
+def process_tags() -> tuple[str, ...]:
+    """The place's and the process's tags for the flow runs a command makes.
+
+    None without ``/proc``: a process there cannot be told apart from another.
+
+    >>> tags = process_tags()
+    >>> not tags or (tags[0].startswith(PLACE_TAG)
+    ...              and tags[1].startswith(f"{PROCESS_TAG}{os.getpid()}:"))
     True
     """
-    pid = os.getpid()
+    place, pid = _place(), os.getpid()
     ticks = _start_ticks(pid)
-    return (
-        f"{HOST_TAG}{socket.gethostname()}",
-        f"{PROCESS_TAG}{pid}:{'' if ticks is None else ticks}",
-    )
+    if place is None or ticks is None:
+        return ()
+    return place, f"{PROCESS_TAG}{pid}:{ticks}"
 
 
 def _process_gone(tag: str) -> int | None:
     """The process id of a :data:`PROCESS_TAG` tag whose process has ended, else None.
 
-    >>> _process_gone(process_tags()[1]) is None  # this one runs
+    >>> _process_gone(f"{PROCESS_TAG}{os.getpid()}:{_start_ticks(os.getpid())}") is None
     True
     """
     pid_text, _, ticks_text = tag.removeprefix(PROCESS_TAG).partition(":")
@@ -87,11 +103,12 @@ def _process_gone(tag: str) -> int | None:
     return None
 
 
-def crash_stale_runs() -> list[str]:
-    """Set Crashed the Running flow runs of this machine whose process has ended.
+def crash_stale_runs(limit: int = 200) -> list[str]:
+    """Set Crashed the Running flow runs of this place whose process has ended.
 
-    Uses the current Prefect API (at most 2 s a request, no retries); returns the names
-    of the runs it set.
+    Uses the current Prefect API (at most 2 s a request, no retries), on at most
+    ``limit`` Running runs; returns the names of the runs it set. A run that ended
+    since it was read keeps its final state (the server refuses Crashed after it).
     """
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import (
@@ -108,24 +125,27 @@ def crash_stale_runs() -> list[str]:
     )
     from prefect.states import Crashed
 
-    host = process_tags()[0]
+    place = _place()
+    if place is None:
+        return []
     running = FlowRunFilter(
         state=FlowRunFilterState(type=FlowRunFilterStateType(any_=[StateType.RUNNING])),
-        tags=FlowRunFilterTags(all_=[host]),
+        tags=FlowRunFilterTags(all_=[place]),
     )
     crashed = []
     quick = {PREFECT_CLIENT_MAX_RETRIES: 0, PREFECT_API_REQUEST_TIMEOUT: 2.0}
     with temporary_settings(updates=quick), get_client(sync_client=True) as client:
-        for run in client.read_flow_runs(flow_run_filter=running):
+        for run in client.read_flow_runs(flow_run_filter=running, limit=limit):
             tags = [t for t in run.tags if t.startswith(PROCESS_TAG)]
             pid = _process_gone(tags[0]) if tags else None
             if pid is None:
                 continue
             message = (
-                f"its process ({pid} on {host.removeprefix(HOST_TAG)}) ended without "
-                "reporting: killed (kill -9, out of memory) or the machine stopped; found by "
-                "a later tumor3d command"
+                f"its process ({pid} on {socket.gethostname()}) ended without reporting: "
+                "killed (kill -9, out of memory) or the machine stopped; found by a later "
+                "tumor3d command"
             )
-            client.set_flow_run_state(run.id, Crashed(message=message), force=True)
-            crashed.append(run.name)
+            result = client.set_flow_run_state(run.id, Crashed(message=message))
+            if str(getattr(result.status, "value", result.status)).upper() == "ACCEPT":
+                crashed.append(run.name)
     return crashed
