@@ -252,16 +252,15 @@ def outline_shift_mm(
     from scipy import ndimage as ndi
     from skimage.filters import threshold_otsu
 
+    from tumor3d.imaging.preprocess.masks import _IN_PLANE_4, fill_holes_per_slice
+
     u = np.asarray(original_u8)
     if u.ndim != 3 or len(u) < 4 or not (u > 0).any():
         return None
     values = u[u > 0]
     threshold = threshold_otsu(values) if values.min() < values.max() else values.min()
-    in_plane = np.zeros((3, 3, 3), bool)
-    in_plane[1] = ndi.generate_binary_structure(2, 1)
-    head = ndi.binary_opening(u > max(0.5 * float(threshold), 1.0), in_plane, iterations=2)
-    # padded: the first and last slices' holes are not on the array's border
-    head = ndi.binary_fill_holes(np.pad(head, ((1, 1), (0, 0), (0, 0))), in_plane)[1:-1]
+    head = ndi.binary_opening(u > max(0.5 * float(threshold), 1.0), _IN_PLANE_4, iterations=2)
+    head = fill_holes_per_slice(head)
     area = np.count_nonzero(head, axis=(1, 2)) * float(spacing_mm[1]) * float(spacing_mm[2])
     if area.max() <= 0 or int(np.argmax(area)) in (0, len(area) - 1):
         return None  # nothing, or not through the widest part: a slab off its middle
@@ -273,10 +272,10 @@ def outline_shift_mm(
     return float(np.median(np.abs(radius[pairs + 1] - radius[pairs])))
 
 
-def slice_step_note(outline_shift_mm: float, slice_step_mm: float) -> str | None:
+def slice_step_note(shift_mm: float, slice_step_mm: float) -> str | None:
     """A warning for a slice step the head's own shape contradicts, else None.
 
-    ``outline_shift_mm`` (:func:`outline_shift_mm`) above :data:`MAX_OUTLINE_SHIFT_STEPS`
+    ``shift_mm`` (:func:`outline_shift_mm`) above :data:`MAX_OUTLINE_SHIFT_STEPS`
     slice steps: the slices lie farther apart than the header says (or the pixels are
     smaller), as in images exported without their voxel size and written as 1 mm;
     every volume scales with the step.
@@ -286,7 +285,7 @@ def slice_step_note(outline_shift_mm: float, slice_step_mm: float) -> str | None
     >>> slice_step_note(2.8, 1.0)[:45]
     "the head's outline moves 2.8 mm from slice to"
     """
-    shift, step = float(outline_shift_mm), float(slice_step_mm)
+    shift, step = float(shift_mm), float(slice_step_mm)
     if not (step > 0 and shift > MAX_OUTLINE_SHIFT_STEPS * step):
         return None
     return (
