@@ -70,14 +70,20 @@ def placed_affine(img: Any) -> np.ndarray:
     >>> placed_affine(img).diagonal().tolist()
     [0.002, 0.003, 0.004, 1.0]
     """
-    affine = np.array(img.affine, dtype=np.float64)
-    affine[:3, :] *= UNIT_MM.get(str(img.header.get_xyzt_units()[0]), 1.0)
-    return affine
+    return _in_mm(img.header, img.affine)
 
 
-def differing_qform(img: Any) -> np.ndarray | None:
-    """A loaded NIfTI image's qform in mm where both forms are stated and differ, else None.
+def _in_mm(header: Any, affine: Any) -> np.ndarray:
+    """A copy of ``affine`` with its lengths in mm, by ``header``'s spatial unit."""
+    out = np.array(affine, dtype=np.float64)
+    out[:3, :] *= UNIT_MM.get(str(header.get_xyzt_units()[0]), 1.0)
+    return out
 
+
+def differing_qform(img: Any, affine: np.ndarray) -> np.ndarray | None:
+    """A loaded NIfTI image's qform in mm where it differs from its placed ``affine``.
+
+    None unless both forms are stated and differ; ``affine`` is :func:`placed_affine`'s.
     nibabel (and so :func:`placed_affine`) reads the sform; ITK reads the qform unless
     the sform code is 1, so a file whose two forms differ (an sform aligned to another
     image beside the scanner's qform, as registration tools write) is placed differently
@@ -86,9 +92,8 @@ def differing_qform(img: Any) -> np.ndarray | None:
     sform_code, qform_code = xform_codes(img.header)
     if not (sform_code and qform_code):
         return None
-    qform = np.array(img.header.get_qform(), dtype=np.float64)
-    qform[:3, :] *= UNIT_MM.get(str(img.header.get_xyzt_units()[0]), 1.0)
-    return None if np.allclose(qform, placed_affine(img), atol=1e-4) else qform
+    qform = _in_mm(img.header, img.header.get_qform())
+    return None if np.allclose(qform, affine, atol=1e-4) else qform
 
 
 _DESCRIP = b"tumor3d"

@@ -270,7 +270,7 @@ def _load_nifti(
         data = np.asarray(img.get_fdata(dtype=np.float32), dtype=np.float32)
     except Exception as exc:
         raise InputError(f"cannot read the voxel data ({_describe(exc)})", where) from exc
-    return data.reshape(shape), affine, codes, differing_qform(img)
+    return data.reshape(shape), affine, codes, differing_qform(img, affine)
 
 
 def _check_voxel_size(p: Path, img: Any) -> None:
