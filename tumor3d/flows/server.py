@@ -475,6 +475,32 @@ def prefect_api(
             _terminate(proc.pid, grace_s=5.0)
 
 
+#: Seconds a best-effort request to the Prefect API may take (:func:`quick_client`).
+QUICK_REQUEST_S = 2.0
+
+
+@contextlib.contextmanager
+def quick_client() -> Iterator[Any]:
+    """A synchronous Prefect client that gives up at once (no retries, short requests).
+
+    At most :data:`QUICK_REQUEST_S` a request. For the best-effort state reports that
+    must never hold a command up: an interrupted command's runs set Crashed
+    (:mod:`tumor3d.flows.cli.errors`), a killed one's found by the next
+    (:mod:`tumor3d.flows.stale_runs`); a server stopped by the same Ctrl-C refuses at
+    once.
+    """
+    from prefect.client.orchestration import get_client
+    from prefect.settings import (
+        PREFECT_API_REQUEST_TIMEOUT,
+        PREFECT_CLIENT_MAX_RETRIES,
+        temporary_settings,
+    )
+
+    quick = {PREFECT_CLIENT_MAX_RETRIES: 0, PREFECT_API_REQUEST_TIMEOUT: QUICK_REQUEST_S}
+    with temporary_settings(updates=quick), get_client(sync_client=True) as client:
+        yield client
+
+
 @contextlib.contextmanager
 def _this_process() -> Iterator[None]:
     """Tag the body's flow runs with this machine and process, after crashing stale runs.

@@ -43,7 +43,11 @@ def _proc_stat(pid: int) -> list[str]:
 
 def _start_ticks(pid: int) -> int | None:
     """When process ``pid`` started, in clock ticks since boot (Linux ``/proc``), or None."""
-    fields = _proc_stat(pid)
+    return _ticks_of(_proc_stat(pid))
+
+
+def _ticks_of(fields: list[str]) -> int | None:
+    """The start time in :func:`_proc_stat`'s fields, or None."""
     try:
         return int(fields[19])  # field 22 of proc(5), the 20th after the name
     except (IndexError, ValueError):
@@ -97,7 +101,7 @@ def _process_gone(tag: str) -> int | None:
     fields = _proc_stat(pid)
     if fields[:1] == ["Z"]:
         return pid  # ended, not yet reaped by its parent
-    ticks = _start_ticks(pid)
+    ticks = _ticks_of(fields)
     if ticks_text and ticks is not None and str(ticks) != ticks_text:
         return pid  # the id was given to another process since
     return None
@@ -110,7 +114,6 @@ def crash_stale_runs(limit: int = 200) -> list[str]:
     ``limit`` Running runs; returns the names of the runs it set. A run that ended
     since it was read keeps its final state (the server refuses Crashed after it).
     """
-    from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import (
         FlowRunFilter,
         FlowRunFilterState,
@@ -118,12 +121,10 @@ def crash_stale_runs(limit: int = 200) -> list[str]:
         FlowRunFilterTags,
     )
     from prefect.client.schemas.objects import StateType
-    from prefect.settings import (
-        PREFECT_API_REQUEST_TIMEOUT,
-        PREFECT_CLIENT_MAX_RETRIES,
-        temporary_settings,
-    )
+    from prefect.client.schemas.responses import SetStateStatus
     from prefect.states import Crashed
+
+    from tumor3d.flows.server import quick_client
 
     place = _place()
     if place is None:
@@ -133,8 +134,7 @@ def crash_stale_runs(limit: int = 200) -> list[str]:
         tags=FlowRunFilterTags(all_=[place]),
     )
     crashed = []
-    quick = {PREFECT_CLIENT_MAX_RETRIES: 0, PREFECT_API_REQUEST_TIMEOUT: 2.0}
-    with temporary_settings(updates=quick), get_client(sync_client=True) as client:
+    with quick_client() as client:
         for run in client.read_flow_runs(flow_run_filter=running, limit=limit):
             tags = [t for t in run.tags if t.startswith(PROCESS_TAG)]
             pid = _process_gone(tags[0]) if tags else None
@@ -146,6 +146,6 @@ def crash_stale_runs(limit: int = 200) -> list[str]:
                 "tumor3d command"
             )
             result = client.set_flow_run_state(run.id, Crashed(message=message))
-            if str(getattr(result.status, "value", result.status)).upper() == "ACCEPT":
+            if result.status == SetStateStatus.ACCEPT:
                 crashed.append(run.name)
     return crashed

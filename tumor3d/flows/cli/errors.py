@@ -61,16 +61,11 @@ def _crash_current_runs(message: str) -> None:
     ctx = FlowRunContext.get()
     if ctx is None or ctx.flow_run is None:
         return
-    from prefect.client.orchestration import get_client
-    from prefect.settings import (
-        PREFECT_API_REQUEST_TIMEOUT,
-        PREFECT_CLIENT_MAX_RETRIES,
-        temporary_settings,
-    )
     from prefect.states import Crashed
 
-    quick = {PREFECT_CLIENT_MAX_RETRIES: 0, PREFECT_API_REQUEST_TIMEOUT: 2.0}
-    with temporary_settings(updates=quick), get_client(sync_client=True) as client:
+    from tumor3d.flows.server import quick_client
+
+    with quick_client() as client:
         run_id = ctx.flow_run.id
         for _ in range(4):  # a cohort inside an evaluation, ...
             client.set_flow_run_state(run_id, Crashed(message=message), force=True)
