@@ -118,11 +118,24 @@ def test_ctrl_c_during_a_cohort_is_one_line_exit_130_and_leaves_nothing(
 def test_sigterm_ends_a_command_as_ctrl_c_does_in_one_line(signum, code, line):
     """``timeout``, systemd and Kubernetes stop a job with SIGTERM: the command ends at
     once with one line on stderr and exit code 143 (it ended silently with 143 before,
-    its last line a stage's "failed"), as Ctrl-C ends it with 130."""
+    its last line a stage's "failed"), as Ctrl-C ends it with 130.
+
+    The line stays the only one when another thread writes to stderr after it: a log
+    record made before the signal (logging is off after it) and written as the command
+    ends, as Prefect's events worker did once its server had stopped."""
     script = (
-        "import time\n"
+        "import logging, threading, time\n"
         "from tumor3d.flows.cli.errors import _ctrl_c_ends\n"
+        "from tumor3d.flows.server import EXIT_HOOKS\n"
+        "made, written = threading.Event(), threading.Event()\n"
+        "class Late(logging.StreamHandler):\n"
+        "    def emit(self, record):\n"
+        "        made.set(); written.wait(); super().emit(record)\n"
+        "log = logging.getLogger('late'); log.addHandler(Late()); log.propagate = False\n"
+        "late = threading.Thread(target=log.error, args=('a service failed',), daemon=True)\n"
+        "EXIT_HOOKS.append(lambda code: (written.set(), late.join(10)))\n"
         "with _ctrl_c_ends('Ctrl-C stopped the test; a re-run continues'):\n"
+        "    late.start(); made.wait()\n"
         "    print('ready', flush=True)\n"
         "    time.sleep(60)\n"
     )

@@ -524,6 +524,38 @@ EXIT_CTRL_C = 130
 #: Called with the exit code just before a command ends because its server went away
 #: (the warm runner's copy reports the code to its client).
 EXIT_HOOKS: list[Callable[[int], None]] = []
+
+
+def last_line(text: str) -> None:
+    """Write a command's last line to stderr and drop whatever is written there after it.
+
+    Called as a command ends early (Ctrl-C, SIGTERM, a vanished server), before
+    ``os._exit``: the process's other threads (Prefect's event and log services, whose
+    server has just gone) may still write to stderr, and logging off is not enough, since
+    a record made before it can be written after (a test run saw the events worker's
+    "failed to process item" after the Ctrl-C line). Here stderr's file descriptor is
+    pointed at the null device first, then the line is written to the stderr it was.
+    """
+    import logging
+
+    logging.disable(logging.CRITICAL)
+    data = (text + "\n").encode(getattr(sys.stderr, "encoding", None) or "utf-8", "replace")
+    with contextlib.suppress(Exception):
+        sys.stderr.flush()  # what was written before the line stays before it
+    try:
+        original = os.dup(2)
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, 2)
+        os.close(null)
+    except OSError:  # no stderr descriptor to redirect: the line as any other
+        with contextlib.suppress(Exception):
+            sys.stderr.write(text + "\n")
+            sys.stderr.flush()
+        return
+    with contextlib.suppress(OSError):
+        os.write(original, data)
+
+
 #: Seconds between two looks at the server's port, and refusals in a row that end the command.
 _WATCH_PERIOD_S, _WATCH_REFUSALS = 1.0, 3
 #: Seconds the watch leaves a command whose temporary server a Ctrl-C stopped to its own
@@ -578,13 +610,11 @@ def _watch_server(api_url: str, server: subprocess.Popen | None = None) -> Itera
                 if code is None and refusals < 4 * _WATCH_REFUSALS:
                     continue  # not listening any more, still exiting: look again
             if refusals >= _WATCH_REFUSALS and not stop.is_set():
-                with contextlib.suppress(Exception):
-                    sys.stderr.write(
-                        f"error: the Prefect server {api_url} stopped answering during the "
-                        "command (results published before it are complete; a re-run "
-                        "continues from the cache)\n"
-                    )
-                    sys.stderr.flush()
+                last_line(
+                    f"error: the Prefect server {api_url} stopped answering during the "
+                    "command (results published before it are complete; a re-run "
+                    "continues from the cache)"
+                )
                 for hook in EXIT_HOOKS:
                     with contextlib.suppress(Exception):
                         hook(3)

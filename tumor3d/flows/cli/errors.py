@@ -97,24 +97,20 @@ def _ctrl_c_ends(message: str) -> Iterator[None]:
     from the main thread only.
     """
     import contextlib
-    import logging
     import signal
 
-    from tumor3d.flows.server import EXIT_HOOKS
+    from tumor3d.flows.server import EXIT_HOOKS, last_line
 
     def ends(code: int, line: str) -> Any:
         def on_signal(signum: int, frame: Any) -> None:
-            # nothing logs from here on: Prefect's services, whose temporary server the same
-            # Ctrl-C stopped, would print their failures beside the one line (a CI run saw
-            # the events worker's "failed to process item" after it)
-            logging.disable(logging.CRITICAL)
+            # the line is the last thing on stderr: Prefect's services, whose temporary
+            # server the same Ctrl-C stopped, would print their failures after it
             try:
                 if console.is_terminal:
                     console.show_cursor(True)  # a live progress bar hides it
-                for stream in (sys.stdout, sys.stderr):
-                    stream.flush()
-                sys.stderr.write(("\n" if console.is_terminal else "") + line + "\n")
-                sys.stderr.flush()
+                with contextlib.suppress(Exception):
+                    sys.stdout.flush()
+                last_line(("\n" if console.is_terminal else "") + line)
                 with contextlib.suppress(Exception):
                     _crash_current_runs(line)
             finally:
