@@ -173,8 +173,9 @@ def test_a_direct_call_of_the_failed_cohort_flow_raises_with_its_result(inputs, 
 
 
 def test_the_flow_run_is_tagged_and_its_stage_task_runs_are_not(first):
-    """The ``config:``/``cohort`` tags stay on the flow run: a tagged task run costs a
-    round trip to the server for tag concurrency slots, every stage of every patient."""
+    """The ``config:``/``cohort`` tags (and the process's) stay on the flow run: a tagged
+    task run costs a round trip to the server for tag concurrency slots, every stage of
+    every patient."""
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import (
         ArtifactFilter,
@@ -186,6 +187,7 @@ def test_the_flow_run_is_tagged_and_its_stage_task_runs_are_not(first):
     from tumor3d.config import parse_config
     from tumor3d.flows.artifacts import artifact_key
     from tumor3d.flows.patient import config_digest
+    from tumor3d.flows.stale_runs import process_tags
 
     out, _ = first
     key = artifact_key("tumor3d", "cohort", out.name)
@@ -203,7 +205,12 @@ def test_the_flow_run_is_tagged_and_its_stage_task_runs_are_not(first):
             if len(task_runs) >= 3 * len(STAGES) or time.monotonic() > deadline:
                 break
             time.sleep(0.2)
-    assert set(run.tags) == {"cohort", f"config:{config_digest(parse_config({}))[:12]}"}
+    # ... with this process's tags (tumor3d.flows.stale_runs), as a command's runs
+    assert set(run.tags) == {
+        "cohort",
+        f"config:{config_digest(parse_config({}))[:12]}",
+        *process_tags(),
+    }
     assert len(task_runs) == 3 * len(STAGES)  # three patients published, ghost ran none
     assert [t.tags for t in task_runs if t.tags] == []
 

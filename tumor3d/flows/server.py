@@ -419,16 +419,23 @@ def api_of_python_call() -> Iterator[None]:
     the commands use it: Prefect's own temporary server would open the same database
     beside it (a notebook saw "database is locked" tracebacks); else Prefect's default
     (its temporary server). No watch: a notebook's process is not ended for a server.
+
+    Its flow runs are tagged with this process and the Running runs of a killed one are
+    set Crashed first, as a command's are (:func:`_this_process`; once, when a command or
+    an outer call has not done it already): a notebook's kernel killed mid-cohort left
+    its runs Running on a persistent server for good.
     """
     if _configured_api_url():
-        yield
+        with _this_process_once():
+            yield
         return
     status = server_status()
     if status.state == "running" and status.info is not None:
-        with _use_api(status.info.api_url, drain=False):
+        with _use_api(status.info.api_url, drain=False), _this_process_once():
             yield
         return
-    yield
+    with _this_process_once():
+        yield
 
 
 @contextlib.contextmanager
@@ -515,6 +522,20 @@ def _this_process() -> Iterator[None]:
     with contextlib.suppress(Exception):  # best effort: never in the command's way
         crash_stale_runs()
     with tags(*process_tags()):
+        yield
+
+
+@contextlib.contextmanager
+def _this_process_once() -> Iterator[None]:
+    """:func:`_this_process`, unless the body is inside it already (a command's call)."""
+    from prefect.context import TagsContext
+
+    from tumor3d.flows.stale_runs import PLACE_TAG
+
+    if any(t.startswith(PLACE_TAG) for t in TagsContext.get().current_tags):
+        yield
+        return
+    with _this_process():
         yield
 
 

@@ -1,0 +1,60 @@
+"""Flow runs made from Python (a notebook's ``run_patient``, ``run_cohort``) are tagged
+with their process, and the Running runs of a killed one are set Crashed, as a command's
+are (tumor3d.flows.stale_runs; the commands' case: tests/flows/test_cohort_interrupt.py)."""
+
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+
+from tumor3d.flows.stale_runs import PLACE_TAG, PROCESS_TAG, _start_ticks, process_tags
+
+pytestmark = pytest.mark.skipif(not process_tags(), reason="no /proc: nothing is tagged")
+
+
+def _ended_process_tag() -> str:
+    """The process tag of a process that has ended (a notebook's killed kernel)."""
+    proc = subprocess.Popen(["sleep", "30"])
+    ticks = _start_ticks(proc.pid)
+    proc.kill()
+    proc.wait()
+    return f"{PROCESS_TAG}{proc.pid}:{ticks}"
+
+
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_python_call_tags_its_runs_and_crashes_the_runs_of_a_killed_kernel():
+    from prefect import flow, tags
+    from prefect.client.orchestration import get_client
+    from prefect.context import FlowRunContext
+    from prefect.states import Running
+
+    from tumor3d.flows.server import api_of_python_call
+
+    @flow(name="notebook-call")
+    def probe() -> list[str]:
+        ctx = FlowRunContext.get()
+        assert ctx is not None and ctx.flow_run is not None
+        return sorted(ctx.flow_run.tags)
+
+    place = process_tags()[0]
+    with get_client(sync_client=True) as client:
+        killed = client.create_flow_run(
+            probe, name="killed-kernel", tags=[place, _ended_process_tag()], state=Running()
+        )
+        alive = client.create_flow_run(
+            probe, name="live-kernel", tags=list(process_tags()), state=Running()
+        )
+    with api_of_python_call():
+        tagged = probe()
+    assert set(process_tags()) <= set(tagged)  # this process, where it is seen
+    with get_client(sync_client=True) as client:
+        state = client.read_flow_run(killed.id).state
+        assert state is not None and state.is_crashed(), state
+        assert state.message.startswith("its process ("), state.message
+        assert client.read_flow_run(alive.id).state.is_running()  # its process lives
+    # inside a command (its runs tagged already): the same tags, once
+    other = f"{PLACE_TAG}elsewhere:1"
+    with tags(other), api_of_python_call():
+        inner = probe()
+    assert other in inner and not [t for t in inner if t.startswith(PLACE_TAG) and t != other]
