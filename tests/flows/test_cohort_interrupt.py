@@ -150,6 +150,81 @@ def test_sigterm_ends_a_command_as_ctrl_c_does_in_one_line(signum, code, line):
     assert err.strip() == line
 
 
+def test_the_last_line_is_written_once_and_in_stderrs_own_encoding():
+    """A later call (a second Ctrl-C's handler) writes nothing, nor does anything written
+    to stderr after the line, and a character stderr cannot encode is escaped as
+    Python's stderr escapes it. (Two calls at the same instant, the server watch beside
+    a Ctrl-C handler, are kept to one line by a lock this test does not reach.)"""
+    script = (
+        "import os, sys\n"
+        "from tumor3d.flows.server import last_line\n"
+        "last_line('stopped: caf\\u00e9')\n"
+        "last_line('a second caller')\n"
+        "sys.stderr.write('later\\n'); sys.stderr.flush()\n"
+        "os._exit(0)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, timeout=60,
+        env={**os.environ, "PYTHONIOENCODING": "ascii"},
+    )  # fmt: skip
+    assert done.returncode == 0 and done.stderr == b"stopped: caf\\xe9\n", done.stderr
+
+
+def test_on_a_terminal_the_progress_bar_does_not_erase_the_ctrl_c_line():
+    """On a terminal the live progress bar is redrawn by its own thread until the process
+    exits, each redraw moving the cursor up over the bar: while the interrupted command
+    still reported its runs to a persistent server (here an exit hook's 0.3 s) the redraws
+    erased its line. Nothing may be written to the terminal after the line."""
+    import pty
+    import select
+
+    script = (
+        "import sys, time\n"
+        "from tumor3d.flows.cli.errors import _ctrl_c_ends\n"
+        "from tumor3d.flows.cli.output import _progress\n"
+        "from tumor3d.flows.server import EXIT_HOOKS\n"
+        "EXIT_HOOKS.append(lambda code: time.sleep(0.3))\n"
+        "with _ctrl_c_ends('Ctrl-C stopped the test; a re-run continues'):\n"
+        "    with _progress() as bars:\n"
+        "        for i in range(3):\n"
+        "            bars.add_task(f'lane {i}', total=10)\n"
+        "        print('ready', file=sys.stderr, flush=True)\n"
+        "        time.sleep(60)\n"
+    )
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: a command on a terminal
+        os.environ.update(COLUMNS="100", LINES="30", TERM="xterm")
+        os.execv(sys.executable, [sys.executable, "-c", script])
+    out = b""
+
+    def read(seconds: float, until: bytes | None = None) -> None:
+        nonlocal out
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and (until is None or until not in out):
+            if select.select([fd], [], [], 0.05)[0]:
+                try:
+                    data = os.read(fd, 65536)
+                except OSError:  # the child has ended
+                    return
+                if not data:
+                    return
+                out += data
+
+    try:
+        read(60, until=b"ready")
+        assert b"ready" in out, out[-500:]
+        read(0.5)  # a few redraws of the bar
+        os.kill(pid, signal.SIGINT)
+        read(10)
+    finally:
+        _, status = os.waitpid(pid, 0)
+        os.close(fd)
+    assert os.waitstatus_to_exitcode(status) == 130, out[-500:]
+    line = b"interrupted: Ctrl-C stopped the test; a re-run continues"
+    assert line in out, out[-500:]
+    assert out.split(line)[-1].strip() == b"", out.split(line)[-1][:300]
+
+
 @pytest.mark.usefixtures("prefect_harness")
 def test_an_interrupted_cohort_is_crashed_on_its_persistent_server(tmp_path):
     """A cohort on a persistent server (``PREFECT_API_URL``; here the tests' server)

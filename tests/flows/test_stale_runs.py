@@ -23,13 +23,16 @@ def _ended_process_tag() -> str:
 
 
 @pytest.mark.usefixtures("prefect_harness")
-def test_a_python_call_tags_its_runs_and_crashes_the_runs_of_a_killed_kernel():
+def test_a_python_call_tags_its_runs_and_crashes_the_runs_of_a_killed_kernel(monkeypatch):
     from prefect import flow, tags
     from prefect.client.orchestration import get_client
     from prefect.context import FlowRunContext
     from prefect.states import Running
 
+    from tumor3d.flows import server
     from tumor3d.flows.server import api_of_python_call
+
+    monkeypatch.setattr(server, "_python_sweeps", {})  # this process has not swept yet
 
     @flow(name="notebook-call")
     def probe() -> list[str]:
@@ -53,6 +56,20 @@ def test_a_python_call_tags_its_runs_and_crashes_the_runs_of_a_killed_kernel():
         assert state is not None and state.is_crashed(), state
         assert state.message.startswith("its process ("), state.message
         assert client.read_flow_run(alive.id).state.is_running()  # its process lives
+    # a loop of calls: the next within the minute tags its run but does not sweep again
+    with get_client(sync_client=True) as client:
+        later = client.create_flow_run(
+            probe, name="killed-later", tags=[place, _ended_process_tag()], state=Running()
+        )
+    with api_of_python_call():
+        assert set(process_tags()) <= set(probe())
+    with get_client(sync_client=True) as client:
+        assert client.read_flow_run(later.id).state.is_running()
+    monkeypatch.setattr(server, "PYTHON_SWEEP_PERIOD_S", 0.0)  # ... and after it, does
+    with api_of_python_call():
+        probe()
+    with get_client(sync_client=True) as client:
+        assert client.read_flow_run(later.id).state.is_crashed()
     # inside a command (its runs tagged already): the same tags, once
     other = f"{PLACE_TAG}elsewhere:1"
     with tags(other), api_of_python_call():

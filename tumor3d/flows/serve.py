@@ -364,7 +364,8 @@ def serve_cohort(deployment: RunnerDeployment) -> None:  # pragma: no cover - bl
     (``Runner.handle_sigterm``: exit 0), which creates ``Runner.astop`` without awaiting
     it; the RuntimeWarning that leaves on stderr at exit is Prefect's and is not shown.
     The scheduled runs carry no process tags (:mod:`tumor3d.flows.stale_runs`): Prefect
-    runs each in a process of its own, which would inherit this one's.
+    runs each in a process of its own, which would inherit this one's. The cohort run
+    inside each is tagged with that process's (``run_cohort``'s Python call).
     """
     import warnings
 

@@ -29,6 +29,7 @@ app Prefect's own ``prefect server start`` and ephemeral server serve.
 from __future__ import annotations
 
 import argparse
+import codecs
 import contextlib
 import json
 import os
@@ -420,21 +421,24 @@ def api_of_python_call() -> Iterator[None]:
     beside it (a notebook saw "database is locked" tracebacks); else Prefect's default
     (its temporary server). No watch: a notebook's process is not ended for a server.
 
-    Its flow runs are tagged with this process and the Running runs of a killed one are
-    set Crashed first, as a command's are (:func:`_this_process`; once, when a command or
-    an outer call has not done it already): a notebook's kernel killed mid-cohort left
-    its runs Running on a persistent server for good.
+    Its flow runs are tagged with this process, as a command's are, and the Running runs
+    of a killed process are set Crashed first (:func:`_this_process_once`: at most once a
+    minute per API in a process that calls in a loop, and not on Prefect's temporary
+    server, which the sweep would start with its own short timeouts; the next command
+    sweeps its database): a notebook's kernel killed mid-cohort left its runs Running on
+    a persistent server for good.
     """
-    if _configured_api_url():
-        with _this_process_once():
+    configured = _configured_api_url()
+    if configured:
+        with _this_process_once(configured):
             yield
         return
     status = server_status()
     if status.state == "running" and status.info is not None:
-        with _use_api(status.info.api_url, drain=False), _this_process_once():
+        with _use_api(status.info.api_url, drain=False), _this_process_once(status.info.api_url):
             yield
         return
-    with _this_process_once():
+    with _this_process_once(None):
         yield
 
 
@@ -509,25 +513,38 @@ def quick_client() -> Iterator[Any]:
 
 
 @contextlib.contextmanager
-def _this_process() -> Iterator[None]:
+def _this_process(*, sweep: bool = True) -> Iterator[None]:
     """Tag the body's flow runs with this machine and process, after crashing stale runs.
 
-    The Running runs of a killed command of this machine are set Crashed first
-    (:mod:`tumor3d.flows.stale_runs`; the runs of every server share Prefect's database).
+    The Running runs of a killed command of this machine are set Crashed first, unless
+    not ``sweep`` (:mod:`tumor3d.flows.stale_runs`; the runs of every server share
+    Prefect's database).
     """
     from prefect import tags
 
     from tumor3d.flows.stale_runs import crash_stale_runs, process_tags
 
-    with contextlib.suppress(Exception):  # best effort: never in the command's way
-        crash_stale_runs()
+    if sweep:
+        with contextlib.suppress(Exception):  # best effort: never in the command's way
+            crash_stale_runs()
     with tags(*process_tags()):
         yield
 
 
+#: Seconds between two sweeps of one API by the Python calls of one process.
+PYTHON_SWEEP_PERIOD_S = 60.0
+#: API URL -> when this process's Python calls last swept it (time.monotonic()).
+_python_sweeps: dict[str, float] = {}
+
+
 @contextlib.contextmanager
-def _this_process_once() -> Iterator[None]:
-    """:func:`_this_process`, unless the body is inside it already (a command's call)."""
+def _this_process_once(api_url: str | None) -> Iterator[None]:
+    """:func:`_this_process` for a Python call, unless inside it already (a command's).
+
+    It sweeps ``api_url`` at most every :data:`PYTHON_SWEEP_PERIOD_S` (a notebook's
+    loop of a thousand ``run_patient`` calls would pay ~0.1 s each), and never without
+    one (Prefect's own temporary server, not yet started).
+    """
     from prefect.context import TagsContext
 
     from tumor3d.flows.stale_runs import PLACE_TAG
@@ -535,7 +552,12 @@ def _this_process_once() -> Iterator[None]:
     if any(t.startswith(PLACE_TAG) for t in TagsContext.get().current_tags):
         yield
         return
-    with _this_process():
+    now = time.monotonic()
+    last = _python_sweeps.get(api_url) if api_url else None
+    sweep = api_url is not None and (last is None or now - last >= PYTHON_SWEEP_PERIOD_S)
+    if sweep and api_url is not None:
+        _python_sweeps[api_url] = now
+    with _this_process(sweep=sweep):
         yield
 
 
@@ -547,25 +569,42 @@ EXIT_CTRL_C = 130
 EXIT_HOOKS: list[Callable[[int], None]] = []
 
 
-def last_line(text: str) -> None:
+_LAST_LINE_LOCK = threading.Lock()
+
+
+def last_line(text: str, *, quiet_stdout: bool = False) -> None:
     """Write a command's last line to stderr and drop whatever is written there after it.
 
     Called as a command ends early (Ctrl-C, SIGTERM, a vanished server), before
-    ``os._exit``: the process's other threads (Prefect's event and log services, whose
+    ``os._exit``: this process's other threads (Prefect's event and log services, whose
     server has just gone) may still write to stderr, and logging off is not enough, since
     a record made before it can be written after (a test run saw the events worker's
     "failed to process item" after the Ctrl-C line). Here stderr's file descriptor is
     pointed at the null device first, then the line is written to the stderr it was.
+    ``quiet_stdout``: stdout too (a terminal's live progress bar, redrawn by its own
+    thread until the exit, would move up over the line and erase it). Child processes
+    that share the descriptor (a local Dask cluster's workers) are not silenced. Once
+    per process: a second caller (the server watch beside a Ctrl-C) writes nothing.
     """
     import logging
 
+    if not _LAST_LINE_LOCK.acquire(blocking=False):
+        return  # another caller is writing the line; it ends the process
     logging.disable(logging.CRITICAL)
-    data = (text + "\n").encode(getattr(sys.stderr, "encoding", None) or "utf-8", "replace")
-    with contextlib.suppress(Exception):
-        sys.stderr.flush()  # what was written before the line stays before it
+    try:
+        encoding = codecs.lookup(getattr(sys.stderr, "encoding", None) or "utf-8").name
+    except (LookupError, TypeError):
+        encoding = "utf-8"
+    data = (text + "\n").encode(encoding, "backslashreplace")
+    for stream in (sys.stdout, sys.stderr) if quiet_stdout else (sys.stderr,):
+        with contextlib.suppress(Exception):
+            stream.flush()  # what was written before the line stays before it
     try:
         original = os.dup(2)
         null = os.open(os.devnull, os.O_WRONLY)
+        if quiet_stdout:
+            with contextlib.suppress(OSError):
+                os.dup2(null, 1)
         os.dup2(null, 2)
         os.close(null)
     except OSError:  # no stderr descriptor to redirect: the line as any other
@@ -631,11 +670,12 @@ def _watch_server(api_url: str, server: subprocess.Popen | None = None) -> Itera
                 if code is None and refusals < 4 * _WATCH_REFUSALS:
                     continue  # not listening any more, still exiting: look again
             if refusals >= _WATCH_REFUSALS and not stop.is_set():
-                last_line(
-                    f"error: the Prefect server {api_url} stopped answering during the "
-                    "command (results published before it are complete; a re-run "
-                    "continues from the cache)"
-                )
+                with contextlib.suppress(Exception):
+                    last_line(
+                        f"error: the Prefect server {api_url} stopped answering during the "
+                        "command (results published before it are complete; a re-run "
+                        "continues from the cache)"
+                    )
                 for hook in EXIT_HOOKS:
                     with contextlib.suppress(Exception):
                         hook(3)

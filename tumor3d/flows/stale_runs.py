@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import socket
+import time
 from pathlib import Path
 
 __all__ = ["PLACE_TAG", "PROCESS_TAG", "crash_stale_runs", "process_tags"]
@@ -107,12 +108,14 @@ def _process_gone(tag: str) -> int | None:
     return None
 
 
-def crash_stale_runs(limit: int = 200) -> list[str]:
+def crash_stale_runs(limit: int = 200, deadline_s: float = 5.0) -> list[str]:
     """Set Crashed the Running flow runs of this place whose process has ended.
 
     Uses the current Prefect API (at most 2 s a request, no retries), on at most
-    ``limit`` Running runs; returns the names of the runs it set. A run that ended
-    since it was read keeps its final state (the server refuses Crashed after it).
+    ``limit`` Running runs, and sets no more once ``deadline_s`` have passed (a slow
+    server holds a command up for seconds, not minutes; the next command goes on);
+    returns the names of the runs it set. A run that ended since it was read keeps its
+    final state (the server refuses Crashed after it).
     """
     from prefect.client.schemas.filters import (
         FlowRunFilter,
@@ -134,8 +137,11 @@ def crash_stale_runs(limit: int = 200) -> list[str]:
         tags=FlowRunFilterTags(all_=[place]),
     )
     crashed = []
+    deadline = time.monotonic() + deadline_s
     with quick_client() as client:
         for run in client.read_flow_runs(flow_run_filter=running, limit=limit):
+            if time.monotonic() > deadline:
+                break
             tags = [t for t in run.tags if t.startswith(PROCESS_TAG)]
             pid = _process_gone(tags[0]) if tags else None
             if pid is None:

@@ -106,11 +106,15 @@ def _ctrl_c_ends(message: str) -> Iterator[None]:
             # the line is the last thing on stderr: Prefect's services, whose temporary
             # server the same Ctrl-C stopped, would print their failures after it
             try:
-                if console.is_terminal:
-                    console.show_cursor(True)  # a live progress bar hides it
+                terminal = console.is_terminal
                 with contextlib.suppress(Exception):
+                    if terminal:
+                        console.show_cursor(True)  # a live progress bar hides it
                     sys.stdout.flush()
-                last_line(("\n" if console.is_terminal else "") + line)
+                with contextlib.suppress(Exception):
+                    # on a terminal, stdout goes quiet too: the progress bar's redraws
+                    # until the exit would erase the line
+                    last_line(("\n" if terminal else "") + line, quiet_stdout=terminal)
                 with contextlib.suppress(Exception):
                     _crash_current_runs(line)
             finally:
