@@ -146,8 +146,8 @@ def test_the_geometry_evaluations_run_when_named(evaluated, tmp_path):
 
     result, out = evaluated
     manifest = next((out.parent / "in").glob("*.csv"))
-    again = run_evaluation(
-        [manifest], tmp_path / "geo", store_dir=out / ".tumor3d-store", command="pytest",
+    again = run_evaluation(  # one manifest's path as a str (was read letter by letter)
+        str(manifest), tmp_path / "geo", store_dir=out / ".tumor3d-store", command="pytest",
         evaluations=["interpolation", "simplification"],
     )  # fmt: skip
     df = pd.read_parquet(tmp_path / "geo" / "evaluation.parquet")

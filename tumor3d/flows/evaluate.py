@@ -327,7 +327,7 @@ def _is_nan(v: Any) -> bool:
 
 
 def run_evaluation(
-    manifests: Sequence[str | Path],
+    manifests: str | Path | Sequence[str | Path],
     out_dir: str | Path,
     *,
     config_files: dict[str, str | None] | None = None,
@@ -339,13 +339,15 @@ def run_evaluation(
 ) -> EvaluationResult:
     """Run :func:`evaluate_flow` (arguments as there) from Python code.
 
-    Against the Prefect API :func:`tumor3d.flows.server.api_of_python_call` picks.
+    ``manifests``: one manifest's path, or a list of them. Against the Prefect API
+    :func:`tumor3d.flows.server.api_of_python_call` picks.
     """
     from tumor3d.flows.server import api_of_python_call
 
+    paths = [manifests] if isinstance(manifests, str | Path) else list(manifests)
     with api_of_python_call():
         return evaluate_flow(
-            [str(m) for m in manifests], str(out_dir), config_files=config_files,
+            [str(m) for m in paths], str(out_dir), config_files=config_files,
             workers=workers, store_dir=None if store_dir is None else str(store_dir),
             phantoms=phantoms, command=command,
             evaluations=None if evaluations is None else list(evaluations),

@@ -435,7 +435,11 @@ def api_of_python_call() -> Iterator[None]:
         return
     status = server_status()
     if status.state == "running" and status.info is not None:
-        with _use_api(status.info.api_url, drain=False), _this_process_once(status.info.api_url):
+        # drained at the end of each call: what a notebook's run buffered is sent to this
+        # server now, not at the process's exit to a server stopped since (a notebook that
+        # stopped and started it again spent 4 min at exit retrying the old one, and its
+        # next calls' events went there)
+        with _use_api(status.info.api_url, drain=True), _this_process_once(status.info.api_url):
             yield
         return
     with _this_process_once(None):
