@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from tumor3d.config import PipelineConfig, parse_config
+from tumor3d.config import PipelineConfig, as_config
 from tumor3d.errors import InputError
 from tumor3d.geometry.measures import clinical_measures
 from tumor3d.geometry.mesh import Mesh
@@ -152,15 +152,7 @@ def _modality(modality: str | None, scan: Scan | None) -> str:
 
 
 def _config(config: PipelineConfig | Mapping[str, Any] | str | None) -> PipelineConfig:
-    if isinstance(config, PipelineConfig):
-        return config
-    if config is None:
-        return parse_config({})
-    if isinstance(config, str | Mapping):
-        return parse_config(config, source="config")
-    raise InputError(
-        f"config must be a PipelineConfig, a dict or YAML text, got {type(config).__name__}"
-    )
+    return as_config(config)
 
 
 def segmentation_values(seg: Any) -> dict[str, Any]:

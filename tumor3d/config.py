@@ -13,6 +13,7 @@ The defaults are the recommended choices of ``ALGORITHMS.md`` ([A1]-[A29]);
 from __future__ import annotations
 
 import json
+import os
 from types import UnionType
 from typing import Any, Literal, Union, get_args, get_origin
 
@@ -40,6 +41,7 @@ __all__ = [
     "SegmentConfig",
     "SimplifyConfig",
     "SurfaceConfig",
+    "as_config",
     "canonical_json",
     "load_yaml",
     "parse_config",
@@ -569,16 +571,50 @@ def parse_config(data: Any, *, source: str = "<config>") -> PipelineConfig:
     >>> parse_config({"simplify": {"reduction_percent": 40}}).simplify.reduction_percent
     40.0
     """
-    if isinstance(data, str):
-        data = load_yaml(data, source=source)
+    text = data if isinstance(data, str) else None
+    if text is not None:
+        data = load_yaml(text, source=source)
     if data is None:
         data = {}
     if not isinstance(data, dict):
-        raise ConfigError("the configuration must be a mapping of stage names", path=source)
+        hint = ""
+        if (
+            text is not None
+            and "\n" not in text.strip()
+            and text.strip().endswith((".yaml", ".yml"))
+        ):
+            hint = f" (got the text {text.strip()!r}: a file's name? pass the file's text)"
+        raise ConfigError(f"the configuration must be a mapping of stage names{hint}", path=source)
     try:
         return PipelineConfig.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(_format_validation_error(exc, source)) from None
+
+
+def as_config(config: Any, *, source: str = "config") -> PipelineConfig:
+    """A Python caller's ``config=``: a :class:`PipelineConfig`, a mapping, YAML text or None.
+
+    The one rule of every Python entry point (``tumor3d.reconstruct``, ``run_patient``,
+    ``run_cohort``), as ``--config`` reads a file's text.
+
+    >>> as_config(None) == as_config({}) == as_config(PipelineConfig())
+    True
+    >>> as_config("simplify: {reduction_percent: 40}").simplify.reduction_percent
+    40.0
+    """
+    if isinstance(config, PipelineConfig):
+        return config
+    if config is None or isinstance(config, str | dict):
+        return parse_config(config, source=source)
+    from collections.abc import Mapping
+
+    if isinstance(config, Mapping):
+        return parse_config(dict(config), source=source)
+    raise ConfigError(
+        f"config must be a PipelineConfig, a dict or YAML text, got {type(config).__name__}"
+        + (" (a file's path? pass the file's text)" if isinstance(config, os.PathLike) else ""),
+        path=source,
+    )
 
 
 def canonical_json(model: BaseModel | dict[str, Any]) -> str:

@@ -6,6 +6,7 @@ on the background server, what they buffered sent before the call returns."""
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 
 import pytest
@@ -93,6 +94,7 @@ def test_a_call_on_the_background_server_sends_its_logs_and_events_before_it_ret
     from prefect._internal.concurrency.services import _QueueServiceBase
     from prefect.settings import PREFECT_API_URL
 
+    from tumor3d.config import PipelineConfig
     from tumor3d.flows import server
     from tumor3d.flows.patient import run_patient
 
@@ -100,7 +102,60 @@ def test_a_call_on_the_background_server_sends_its_logs_and_events_before_it_ret
     monkeypatch.setattr(server, "_configured_api_url", lambda: None)  # no PREFECT_API_URL
     monkeypatch.setattr(server, "server_status", lambda: server.ServerStatus("running", "", info))
     (row,) = small_phantom_rows(tmp_path / "in", [3], "nb")
-    result = run_patient(row.image, tmp_path / "out", modality=row.modality, patient_id="nb3")
+    result = run_patient(  # a PipelineConfig, as tumor3d.reconstruct takes it
+        row.image, tmp_path / "out", modality=row.modality, patient_id="nb3",
+        config=PipelineConfig(),
+    )  # fmt: skip
     assert result.metrics["status"] in ("ok", "check")
     senders = {type(w).__name__: w._stopped for w in _QueueServiceBase._instances.values()}
     assert all(senders.values()), f"left running after the call: {senders}"
+
+
+def test_a_python_calls_mistakes_are_one_line_before_any_flow_run(tmp_path, monkeypatch):
+    """What the commands refuse before Prefect starts, a Python call refuses too, as
+    tumor3d's (or Python's) own one-line error: an input that does not exist (it took
+    10 s, started a server and left a store folder behind), a misspelled keyword (was
+    Prefect's ParameterBindError with the flow's whole signature), a configuration
+    file's path where its text is asked (was "must be a mapping", no hint)."""
+    from tumor3d.errors import ConfigError, InputError
+    from tumor3d.flows import server
+    from tumor3d.flows.cohort import run_cohort
+    from tumor3d.flows.patient import run_patient
+
+    def no_flow_run():
+        raise AssertionError("a flow run (and a Prefect server) was started")
+
+    monkeypatch.setattr(server, "api_of_python_call", no_flow_run)
+    out = tmp_path / "out"
+    missing = tmp_path / "nowhere.nii.gz"
+    with pytest.raises(InputError, match="no such file or folder") as exc:
+        run_patient(missing, out, modality="t2")
+    assert str(missing) in str(exc.value) and "\n" not in str(exc.value)
+    with pytest.raises(TypeError, match="modalty") as bad:
+        run_patient(missing, out, modalty="t2")
+    assert type(bad.value) is TypeError  # Python's, not Prefect's ParameterBindError
+    with pytest.raises(ConfigError, match="a file's name"):
+        run_patient(missing, out, modality="t2", config="configs/paper.yaml")
+    with pytest.raises(ConfigError, match="a file's path"):
+        run_cohort([], out, config=tmp_path / "paper.yaml")
+    assert not out.exists()
+
+
+def test_an_unreachable_prefect_api_url_is_one_line_naming_it(tmp_path):
+    """The commands refuse a PREFECT_API_URL that does not answer in one line; a Python
+    call raised Prefect's bare RuntimeError ("Failed to reach API") after its retries."""
+    from phantom_rows import small_phantom_rows
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    from tumor3d.flows.patient import run_patient
+    from tumor3d.flows.server import ServerError
+
+    (row,) = small_phantom_rows(tmp_path / "in", [4], "nb")
+    with socket.socket() as sock:  # a port nothing listens on
+        sock.bind(("127.0.0.1", 0))
+        url = f"http://127.0.0.1:{sock.getsockname()[1]}/api"
+    with temporary_settings(updates={PREFECT_API_URL: url}):
+        with pytest.raises(ServerError, match="PREFECT_API_URL") as exc:
+            run_patient(row.image, tmp_path / "out", modality="t2")
+    assert url in str(exc.value) and "\n" not in str(exc.value)
+    assert not (tmp_path / "out").exists()

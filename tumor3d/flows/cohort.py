@@ -42,7 +42,7 @@ from prefect import flow, get_run_logger, tags
 from prefect.states import Failed, State
 from pydantic import BaseModel, ConfigDict, Field
 
-from tumor3d.config import PipelineConfig, parse_config
+from tumor3d.config import PipelineConfig, as_config, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError, Tumor3DError, exception_line
 from tumor3d.flows.artifacts import publish_cohort_artifacts
@@ -593,7 +593,7 @@ def run_cohort(
         else list(manifest)
     )
     rows = [_row_dict(r) for r in rows_in]
-    cfg = parse_config(config or {}, source="config")
+    cfg = as_config(config)
     if workers is not None and (
         isinstance(workers, bool) or not isinstance(workers, int) or workers < 1
     ):

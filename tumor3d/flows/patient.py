@@ -25,7 +25,7 @@ from typing import Any
 from prefect import flow, get_run_logger
 from pydantic import BaseModel, ConfigDict
 
-from tumor3d.config import PipelineConfig, parse_config
+from tumor3d.config import PipelineConfig, as_config, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
 from tumor3d.flows.artifacts import publish_patient_artifacts
@@ -436,12 +436,21 @@ def run_stages_direct(
 def run_patient(input_path: str | Path, out_dir: str | Path, **kwargs: Any) -> PatientResult:
     """Run :func:`patient_flow`, tagged with the configuration's digest.
 
-    Keyword arguments are those of :func:`patient_flow`.
+    Keyword arguments are those of :func:`patient_flow`; ``config`` may also be a
+    :class:`PipelineConfig` or YAML text (:func:`tumor3d.config.as_config`). Before any
+    flow run or server: an unknown keyword is Python's TypeError, an input path that
+    does not exist an InputError naming it.
     """
+    import inspect
+
     from prefect import tags
 
     from tumor3d.flows.server import api_of_python_call
 
-    cfg = parse_config(kwargs.get("config") or {}, source="config")
+    inspect.signature(patient_flow.fn).bind(str(input_path), str(out_dir), **kwargs)
+    cfg = as_config(kwargs.get("config"))
+    kwargs["config"] = cfg.model_dump(mode="json")
+    if not Path(input_path).exists():
+        raise InputError("no such file or folder", path=str(input_path))
     with api_of_python_call(), tags(f"config:{config_digest(cfg)[:12]}"):
         return patient_flow(str(input_path), str(out_dir), **kwargs)

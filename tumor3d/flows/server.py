@@ -430,6 +430,8 @@ def api_of_python_call() -> Iterator[None]:
     """
     configured = _configured_api_url()
     if configured:
+        if not _in_a_command():
+            check_configured_api()  # one line naming PREFECT_API_URL, before any run
         with _this_process_once(configured):
             yield
         return
@@ -442,8 +444,12 @@ def api_of_python_call() -> Iterator[None]:
         with _use_api(status.info.api_url, drain=True), _this_process_once(status.info.api_url):
             yield
         return
-    with _this_process_once(None):
-        yield
+    from prefect.settings import PREFECT_SERVER_ANALYTICS_ENABLED, temporary_settings
+
+    # Prefect's temporary server, if this call starts it: no telemetry, as the commands'
+    with temporary_settings(updates={PREFECT_SERVER_ANALYTICS_ENABLED: False}):
+        with _this_process_once(None):
+            yield
 
 
 @contextlib.contextmanager
@@ -535,6 +541,15 @@ def _this_process(*, sweep: bool = True) -> Iterator[None]:
         yield
 
 
+def _in_a_command() -> bool:
+    """Whether the caller runs inside a command's :func:`prefect_api` (its runs' tags)."""
+    from prefect.context import TagsContext
+
+    from tumor3d.flows.stale_runs import PLACE_TAG
+
+    return any(t.startswith(PLACE_TAG) for t in TagsContext.get().current_tags)
+
+
 #: Seconds between two sweeps of one API by the Python calls of one process.
 PYTHON_SWEEP_PERIOD_S = 60.0
 #: API URL -> when this process's Python calls last swept it (time.monotonic()).
@@ -549,11 +564,7 @@ def _this_process_once(api_url: str | None) -> Iterator[None]:
     loop of a thousand ``run_patient`` calls would pay ~0.1 s each), and never without
     one (Prefect's own temporary server, not yet started).
     """
-    from prefect.context import TagsContext
-
-    from tumor3d.flows.stale_runs import PLACE_TAG
-
-    if any(t.startswith(PLACE_TAG) for t in TagsContext.get().current_tags):
+    if _in_a_command():
         yield
         return
     now = time.monotonic()
