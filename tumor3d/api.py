@@ -235,10 +235,15 @@ def reconstruct_scan(
     cfg = _config(config)
     given = None
     if brain_mask is not None:
+        from tumor3d.imaging.brain_mask import binarize_brain_mask
+
         given = np.asarray(brain_mask)
         if given.shape != scan.shape:
             raise InputError(f"brain_mask has shape {given.shape}, the image {scan.shape}")
-        given = np.nan_to_num(given.astype(np.float64), nan=0.0) > 0.5
+        try:  # the checks of a brain mask file (non-finite, empty, off the head)
+            given = binarize_brain_mask(given, scan.image)
+        except InputError as exc:
+            raise InputError(f"brain_mask: {exc}") from None
     tumour_given = None
     if segmentation is not None:
         from tumor3d.segmentation.given_segmentation import binarize_segmentation
@@ -422,6 +427,12 @@ def reconstruct(
         slice_gap_mm=slice_gap_mm,
     )  # fmt: skip
     if isinstance(image, np.ndarray):
+        for what, given in (("brain_mask", brain_mask), ("segmentation", segmentation)):
+            if isinstance(given, str | os.PathLike):
+                raise InputError(
+                    f"{what} is a path ({given}): with an array image give {what} as an "
+                    "array on its grid, or give the image as a file"
+                )
         scan = _scan_from_array(image, affine, options)
         mask = None
         if brain_mask is not None:

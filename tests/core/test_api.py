@@ -194,6 +194,18 @@ def test_bad_input_is_one_line():
         tumor3d.reconstruct(arr, affine=singular, modality="t2")
     with pytest.raises(InputError, match="got shape \\(3, 3\\)"):
         tumor3d.reconstruct(arr, affine=np.eye(3), modality="t2")
+    # a brain mask array is checked as a brain mask file is (it ran: NaN made 0, empty
+    # gave "no tumour found"); a mask's path beside an array image is named as such (it
+    # said "has shape ()")
+    image = np.arange(8 * 8 * 4, dtype=np.float32).reshape(8, 8, 4)
+    nan = np.ones(image.shape)
+    nan[0, 0, 0] = np.nan
+    for mask, problem in ((np.zeros(image.shape), "empty"), (nan, "not finite")):
+        with pytest.raises(InputError, match=f"^brain_mask: .*{problem}"):
+            tumor3d.reconstruct(image, affine=np.eye(4), modality="t2", brain_mask=mask)
+    for what in ("brain_mask", "segmentation"):
+        with pytest.raises(InputError, match=f"^{what} is a path \\(m.nii.gz\\)"):
+            tumor3d.reconstruct(image, affine=np.eye(4), modality="t2", **{what: "m.nii.gz"})
 
 
 def test_the_lazy_names_are_listed_for_tab_completion():
