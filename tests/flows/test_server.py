@@ -202,6 +202,8 @@ def test_a_python_call_uses_the_background_server_when_none_is_configured(monkey
     assert before != background
     monkeypatch.setattr(server, "server_status", lambda: running)
     monkeypatch.setattr(server, "_configured_api_url", lambda: "http://configured:1/api")
+    # (that it answers: tests/flows/test_python_calls.py)
+    monkeypatch.setattr(server, "check_configured_api", lambda: None)
     with server.api_of_python_call():
         assert PREFECT_API_URL.value() == before  # a configured API wins: nothing changed
     monkeypatch.setattr(server, "_configured_api_url", lambda: None)

@@ -686,10 +686,11 @@ def _watch_server(api_url: str, server: subprocess.Popen | None = None) -> Itera
                     continue  # not listening any more, still exiting: look again
             if refusals >= _WATCH_REFUSALS and not stop.is_set():
                 with contextlib.suppress(Exception):
-                    last_line(
+                    last_line(  # a terminal's progress bar would erase it (last_line)
                         f"error: the Prefect server {api_url} stopped answering during the "
                         "command (results published before it are complete; a re-run "
-                        "continues from the cache)"
+                        "continues from the cache)",
+                        quiet_stdout=sys.stdout.isatty(),
                     )
                 for hook in EXIT_HOOKS:
                     with contextlib.suppress(Exception):
