@@ -611,7 +611,7 @@ def as_config(config: Any, *, source: str = "config") -> PipelineConfig:
     if isinstance(config, Mapping):
         return parse_config(dict(config), source=source)
     raise ConfigError(
-        f"config must be a PipelineConfig, a dict or YAML text, got {type(config).__name__}"
+        f"must be a PipelineConfig, a dict or YAML text, got {type(config).__name__}"
         + (" (a file's path? pass the file's text)" if isinstance(config, os.PathLike) else ""),
         path=source,
     )
