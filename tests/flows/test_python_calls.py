@@ -159,3 +159,35 @@ def test_an_unreachable_prefect_api_url_is_one_line_naming_it(tmp_path):
             run_patient(row.image, tmp_path / "out", modality="t2")
     assert url in str(exc.value) and "\n" not in str(exc.value)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_failed_stage_does_not_ask_the_user_to_change_the_serializer(tmp_path):
+    """A stage that fails (an unreadable input) is reported as failed; Prefect's attempt to
+    store its exception with the stage serializer, which refuses it on purpose, no longer
+    logs "Failed to write result ... You can try a different serializer" (it reached a
+    notebook's output beside the failure)."""
+    import logging
+
+    from tumor3d.errors import InputError
+    from tumor3d.flows.patient import run_patient
+
+    bad = tmp_path / "garbage.nii.gz"
+    bad.write_bytes(b"not a NIfTI file at all")
+    seen: list[str] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            seen.append(record.getMessage())
+
+    runs = logging.getLogger("prefect.task_runs")
+    keep = Keep(level=logging.DEBUG)
+    runs.addHandler(keep)
+    try:
+        with pytest.raises(InputError) as exc:
+            run_patient(bad, tmp_path / "out", modality="t2")
+    finally:
+        runs.removeHandler(keep)
+    assert "garbage.nii.gz" in str(exc.value)
+    assert any("garbage" in m or "ingest-scan" in m for m in seen), seen  # the logger was heard
+    assert not [m for m in seen if m.startswith("Failed to write result")], seen

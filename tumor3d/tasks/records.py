@@ -26,6 +26,7 @@ unpickled, and Prefect's JSON decoder imports whatever module a
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import stat
@@ -78,6 +79,34 @@ def _parse_output(blob: bytes | str) -> StageOutput:
         raise UntrustedRecord(
             f"its result is not a stage output ({exc.error_count()} schema errors)"
         ) from None
+
+
+class _NoRefusedExceptionRecords(logging.Filter):
+    """Drop Prefect's warning that a failed task's exception could not be stored.
+
+    Prefect tries to store the exception of a failed stage as its result, with the
+    stage's serializer, which refuses anything but a stage output on purpose (no record
+    of a random key in the store); its warning ("Failed to write result: ... serializer
+    'tumor3d-stage-output'. You can try a different serializer") asked a user of the
+    Python API to change a setting that is right. The failure itself is reported.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        """False for that warning about this module's serializer."""
+        return not (
+            str(record.msg).startswith("Failed to write result")
+            and SERIALIZER_TYPE in " ".join(str(a) for a in (record.args or ()))
+        )
+
+
+def _quiet_refused_exceptions() -> None:
+    """Install :class:`_NoRefusedExceptionRecords` on Prefect's task-run logger, once."""
+    runs = logging.getLogger("prefect.task_runs")
+    if not any(isinstance(f, _NoRefusedExceptionRecords) for f in runs.filters):
+        runs.addFilter(_NoRefusedExceptionRecords())
+
+
+_quiet_refused_exceptions()  # wherever the serializer is: a command, a notebook, a Dask worker
 
 
 class StageOutputSerializer(Serializer):  # type: ignore[type-arg]
