@@ -151,10 +151,6 @@ def _modality(modality: str | None, scan: Scan | None) -> str:
     return m
 
 
-def _config(config: PipelineConfig | Mapping[str, Any] | str | None) -> PipelineConfig:
-    return as_config(config)
-
-
 def segmentation_values(seg: Any) -> dict[str, Any]:
     """A segmentation's own review, as the segment-tumor stage's values hold it.
 
@@ -232,7 +228,7 @@ def reconstruct_scan(
 
     if not isinstance(scan, Scan):
         raise InputError(f"scan must be a tumor3d.imaging.scan.Scan, got {type(scan).__name__}")
-    cfg = _config(config)
+    cfg = as_config(config)
     given = None
     if brain_mask is not None:
         from tumor3d.imaging.brain_mask import binarize_brain_mask
@@ -421,7 +417,7 @@ def reconstruct(
 
         modality = declared_modality(image)  # a stack's sidecar; None: the error below
     mod = _modality(modality, None)
-    cfg = _config(config)  # a bad configuration fails before the image is read
+    cfg = as_config(config)  # a bad configuration fails before the image is read
     options = ReadOptions(  # the reading options, checked once
         modality=mod, patient_id=patient_id, slice_thickness_mm=slice_thickness_mm,
         slice_gap_mm=slice_gap_mm,

@@ -611,7 +611,7 @@ def last_line(text: str, *, quiet_stdout: bool = False) -> None:
     except (LookupError, TypeError):
         encoding = "utf-8"
     data = (text + "\n").encode(encoding, "backslashreplace")
-    for stream in (sys.stdout, sys.stderr) if quiet_stdout else (sys.stderr,):
+    for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()  # what was written before the line stays before it
     try:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -107,10 +106,9 @@ def _ctrl_c_ends(message: str) -> Iterator[None]:
             # server the same Ctrl-C stopped, would print their failures after it
             try:
                 terminal = console.is_terminal
-                with contextlib.suppress(Exception):
-                    if terminal:
+                if terminal:
+                    with contextlib.suppress(Exception):
                         console.show_cursor(True)  # a live progress bar hides it
-                    sys.stdout.flush()
                 with contextlib.suppress(Exception):
                     # on a terminal, stdout goes quiet too: the progress bar's redraws
                     # until the exit would erase the line
