@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import socket
 import subprocess
+import sys
 
 import pytest
 
@@ -162,11 +163,17 @@ def test_an_unreachable_prefect_api_url_is_one_line_naming_it(tmp_path):
 
 
 @pytest.mark.usefixtures("prefect_harness")
-def test_a_failed_stage_does_not_ask_the_user_to_change_the_serializer(tmp_path):
-    """A stage that fails (an unreadable input) is reported as failed; Prefect's attempt to
-    store its exception with the stage serializer, which refuses it on purpose, no longer
-    logs "Failed to write result ... You can try a different serializer" (it reached a
-    notebook's output beside the failure)."""
+def test_a_failed_stage_is_one_line_on_the_console_without_a_serializer_warning(tmp_path):
+    """A stage that fails (an unreadable input) is reported as failed, and a notebook's
+    console shows it in one-line records:
+
+    - Prefect's attempt to store its exception with the stage serializer, which refuses it
+      on purpose, no longer logs "Failed to write result ... You can try a different
+      serializer";
+    - Prefect's console (the root logger's handlers) drops its two tracebacks of the
+      InputError (task run, flow run: ~100 lines before the call's own one-line error)
+      and keeps its one-line records and the traceback of any other exception.
+    """
     import logging
 
     from tumor3d.errors import InputError
@@ -174,20 +181,45 @@ def test_a_failed_stage_does_not_ask_the_user_to_change_the_serializer(tmp_path)
 
     bad = tmp_path / "garbage.nii.gz"
     bad.write_bytes(b"not a NIfTI file at all")
-    seen: list[str] = []
+    records: list[logging.LogRecord] = []
 
     class Keep(logging.Handler):
         def emit(self, record: logging.LogRecord) -> None:
-            seen.append(record.getMessage())
+            records.append(record)
 
-    runs = logging.getLogger("prefect.task_runs")
+    runs = [logging.getLogger("prefect.task_runs"), logging.getLogger("prefect.flow_runs")]
     keep = Keep(level=logging.DEBUG)
-    runs.addHandler(keep)
+    for logger in runs:
+        logger.addHandler(keep)
     try:
         with pytest.raises(InputError) as exc:
             run_patient(bad, tmp_path / "out", modality="t2")
     finally:
-        runs.removeHandler(keep)
+        for logger in runs:
+            logger.removeHandler(keep)
+    seen = [r.getMessage() for r in records]
     assert "garbage.nii.gz" in str(exc.value)
     assert any("garbage" in m or "ingest-scan" in m for m in seen), seen  # the logger was heard
     assert not [m for m in seen if m.startswith("Failed to write result")], seen
+
+    from tumor3d.flows.quiet_logs import NoOwnFailureTracebacks
+
+    console = logging.getLogger().handlers  # Prefect's console handler, as a notebook's
+    ours = [[f for f in h.filters if isinstance(f, NoOwnFailureTracebacks)] for h in console]
+    assert console and all(ours)  # on every console handler (a command's own filter, which
+    # drops every run record, may be there too after an in-process command of another test)
+
+    def shown(record: logging.LogRecord) -> bool:
+        return all(f.filter(record) for fs in ours for f in fs)
+
+    tracebacks = [r for r in records if r.exc_info and isinstance(r.exc_info[1], InputError)]
+    assert {r.name for r in tracebacks} == {"prefect.task_runs", "prefect.flow_runs"}, seen
+    assert not [r.getMessage() for r in tracebacks if shown(r)]
+    one_liners = [r for r in records if not r.exc_info and r.levelno >= logging.ERROR]
+    assert one_liners and all(shown(r) for r in one_liners), seen  # "Finished in state Failed"
+    try:
+        raise RuntimeError("a defect")
+    except RuntimeError:
+        defect = logging.LogRecord("prefect.task_runs", logging.ERROR, __file__, 1, "x", (),
+                                   sys.exc_info())  # fmt: skip
+    assert shown(defect)  # another exception's traceback is kept

@@ -15,7 +15,14 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-__all__ = ["NoRunRecords", "console_is_quiet", "dask_setup", "quiet_run_records"]
+__all__ = [
+    "NoOwnFailureTracebacks",
+    "NoRunRecords",
+    "console_is_quiet",
+    "dask_setup",
+    "quiet_own_failure_tracebacks",
+    "quiet_run_records",
+]
 
 
 class NoRunRecords:
@@ -46,6 +53,39 @@ def quiet_run_records() -> None:
     for handler in logging.getLogger().handlers:
         if not any(isinstance(f, NoRunRecords) for f in handler.filters):
             handler.addFilter(NoRunRecords())
+
+
+class NoOwnFailureTracebacks:
+    """Console filter of a Python call: drop Prefect's traceback of tumor3d's own errors.
+
+    A flow or task run that fails with a :class:`~tumor3d.errors.Tumor3DError` (an
+    unreadable input, a bad configuration, a mask off the image's grid) is one line in
+    the exception that ``run_patient``, ``run_cohort`` or ``train`` raises, or in the
+    cohort's table; Prefect also logged it twice with its traceback (the task run, then
+    the flow run), some 100 lines of a notebook's output before that line. Only those
+    records are dropped: Prefect's one-line "Finished in state Failed(...)" stays, as do
+    its other records and the traceback of any other exception (a defect's); the Prefect
+    server still gets them all (its API handler is not filtered).
+    """
+
+    def filter(self, record: Any) -> bool:
+        """False for the record of a run that failed with one of tumor3d's own errors."""
+        from tumor3d.errors import Tumor3DError
+
+        if not str(record.name).startswith(("prefect.flow_runs", "prefect.task_runs")):
+            return True
+        exc = record.exc_info[1] if record.exc_info else None
+        return not isinstance(exc, Tumor3DError)
+
+
+def quiet_own_failure_tracebacks() -> None:
+    """Set up Prefect's logging (if not yet) and filter its console handlers (a Python call)."""
+    from prefect.logging.configuration import ensure_logging_setup
+
+    ensure_logging_setup()
+    for handler in logging.getLogger().handlers:
+        if not any(isinstance(f, NoOwnFailureTracebacks) for f in handler.filters):
+            handler.addFilter(NoOwnFailureTracebacks())
 
 
 def console_is_quiet() -> bool:

@@ -427,7 +427,15 @@ def api_of_python_call() -> Iterator[None]:
     server, which the sweep would start with its own short timeouts; the next command
     sweeps its database): a notebook's kernel killed mid-cohort left its runs Running on
     a persistent server for good.
+
+    Outside a command (whose console drops every run record), Prefect's console no
+    longer shows the tracebacks of runs that failed with tumor3d's own errors, which the
+    call raises as one line (:class:`~tumor3d.flows.quiet_logs.NoOwnFailureTracebacks`).
     """
+    if not _in_a_command():
+        from tumor3d.flows.quiet_logs import quiet_own_failure_tracebacks
+
+        quiet_own_failure_tracebacks()
     configured = _configured_api_url()
     if configured:
         if not _in_a_command():
