@@ -30,9 +30,11 @@ demo: setup
 # warm-up into an empty cache (18 s) and kernels only tests call (8.5 s). This shared
 # machine's speed moves by ~12 % within a day: compare runs made back to back.
 # TEST_WORKERS=3 was no faster (311.4 s against 311.3 s, back to back).
+# Bytecode is written even where PYTHONDONTWRITEBYTECODE is set: every worker would
+# otherwise rewrite the asserts of every test module again (4.5 s of its collection).
 TEST_WORKERS ?= 2
 test: setup
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder \
+	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder \
 	    tests --doctest-modules tumor3d
 
 setup: system-deps $(STAMP)

@@ -51,49 +51,135 @@ import pytest  # noqa: E402
 
 PREFECT_STARTUP_TIMEOUT_S = 120
 
-# A Prefect database with every migration applied, made once per session (by the first
-# process, xdist worker or not, to start a test server; the others wait for it) and copied
-# in before each test server starts: a server on a new database spends ~4 of its ~8 CPU-s
-# of start-up migrating it (once per xdist worker, and once per temporary server of a CLI
+# A Prefect database with every migration applied, made once per session and copied in
+# before each test server starts: a server on a new database spends ~4 of its ~8 CPU-s of
+# start-up migrating it (once per xdist worker, and once per temporary server of a CLI
 # command on the worker's PREFECT_HOME). The folder is the session's (made by the process
 # that starts it, the xdist controller, before the workers start; they find it in the
-# environment). A build that fails leaves ``failed`` there and the servers migrate their
-# own databases as before.
+# environment). The migration (Prefect's own command, ~9 CPU-s, 12 s) depends only on the
+# installed Prefect, Python and SQLite, so the template is also kept in pytest's cache
+# folder under those versions and copied from there by the next session. Under xdist the
+# controller makes it in a background thread from the start, while the workers start and
+# collect (they wait for it at their first test server); a single process makes it at its
+# first test server. A build that fails leaves ``failed`` in the session's folder and the
+# servers migrate their own databases as before.
 _DB_TEMPLATE_ENV = "TUMOR3D_TEST_PREFECT_DB_FOLDER"
 _DB_TEMPLATE_OWNER = False
+_DB_CACHE_ENV = "TUMOR3D_TEST_PREFECT_DB_CACHE"  # the kept templates' folder, if any
+_DB_BUILDS: list = []  # the controller's background build: (thread, its subprocess box)
+
+
+def _template_cache_file() -> Path | None:
+    """The kept template of the installed Prefect, Python and SQLite (None: no cache)."""
+    from importlib.metadata import version
+
+    folder = os.environ.get(_DB_CACHE_ENV)
+    if not folder:
+        return None
+    py = "{}.{}".format(*sys.version_info[:2])
+    return Path(folder) / f"prefect-{version('prefect')}-py{py}-sqlite{sqlite3.sqlite_version}.db"
+
+
+def _is_migrated(db: Path) -> bool:
+    """True if ``db`` is an SQLite file that Prefect's migrations have stamped."""
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro&immutable=1", uri=True) as con:
+            return bool(con.execute("SELECT version_num FROM alembic_version").fetchall())
+    except sqlite3.Error:
+        return False
+
+
+def _build_template(folder: Path, box: dict | None = None) -> None:
+    """Make ``folder/template.db`` (caller holds the folder's lock): from the kept copy, or
+    by Prefect's migration (kept for the next session); ``failed`` if that fails."""
+    template, build = folder / "template.db", folder / "build.db"
+    kept = _template_cache_file()
+    if kept is not None and kept.is_file() and _is_migrated(kept):
+        shutil.copyfile(kept, build)
+        build.replace(template)
+        return
+    try:  # Prefect's own command, on a database of this folder
+        if box is not None and box.get("stop"):
+            raise subprocess.SubprocessError("the session ended")
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "prefect", "server", "database", "upgrade", "-y"],
+            env={**os.environ, "PREFECT_HOME": str(folder / "home"),
+                 "PREFECT_SERVER_DATABASE_CONNECTION_URL": f"sqlite+aiosqlite:///{build}"},
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        if box is not None:
+            box["proc"] = proc
+        if proc.wait(timeout=600) != 0 or not _is_migrated(build):
+            raise subprocess.SubprocessError("the migration failed")
+    except (OSError, subprocess.SubprocessError):
+        (folder / "failed").touch()
+        return
+    build.replace(template)  # whole, or not at all
+    if kept is not None:  # kept whole too: a copy renamed into place
+        try:
+            kept.parent.mkdir(parents=True, exist_ok=True)
+            part = kept.with_name(f".{kept.name}.{os.getpid()}")
+            shutil.copyfile(template, part)
+            part.replace(kept)
+        except OSError:
+            pass
 
 
 def pytest_configure(config):
     global _DB_TEMPLATE_OWNER
-    if _DB_TEMPLATE_ENV not in os.environ:  # the session's first process
-        os.environ[_DB_TEMPLATE_ENV] = tempfile.mkdtemp(prefix="tumor3d-test-prefect-db-")
-        _DB_TEMPLATE_OWNER = True
+    if _DB_TEMPLATE_ENV in os.environ:  # an xdist worker: the controller made the folder
+        return
+    import fcntl
+    import threading
+
+    folder = Path(tempfile.mkdtemp(prefix="tumor3d-test-prefect-db-"))
+    os.environ[_DB_TEMPLATE_ENV] = str(folder)
+    _DB_TEMPLATE_OWNER = True
+    cache = getattr(config, "cache", None)  # None with -p no:cacheprovider
+    if cache is not None:
+        os.environ[_DB_CACHE_ENV] = str(cache.mkdir("tumor3d-prefect-db"))
+    if not getattr(config.option, "numprocesses", None):
+        return  # one process: the template is made at its first test server
+    lock = open(folder / "lock", "w")  # held from here: the workers wait for the build
+    fcntl.flock(lock, fcntl.LOCK_EX)
+    box: dict = {}
+
+    def build():
+        try:
+            _build_template(folder, box)
+        except Exception:  # a session ended under it (its folder removed): servers migrate
+            pass
+        finally:
+            lock.close()  # releases the lock
+
+    thread = threading.Thread(target=build, name="prefect-db-template", daemon=True)
+    thread.start()
+    _DB_BUILDS.append((thread, box))
+
+
+def _stop_template_builds() -> None:
+    """End the controller's build if the session ends first (a run of a few quick tests)."""
+    for thread, box in _DB_BUILDS:
+        box["stop"] = True
+        if thread.is_alive() and box.get("proc") is not None:
+            box["proc"].kill()
+        thread.join(timeout=10)
 
 
 def migrated_prefect_db() -> Path | None:
-    """The session's migrated Prefect database, built here if no process has yet."""
+    """The session's migrated Prefect database, made here if no process has yet."""
     import fcntl
 
     folder = Path(os.environ[_DB_TEMPLATE_ENV])
-    template, build = folder / "template.db", folder / "build.db"
+    template = folder / "template.db"
     with open(folder / "lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # one builds, the others wait for it
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one makes it, the others wait for it
         if template.is_file():
             return template
         if (folder / "failed").exists():
             return None
-        try:  # Prefect's own command, on a database of this folder
-            subprocess.run(
-                [sys.executable, "-m", "prefect", "server", "database", "upgrade", "-y"],
-                env={**os.environ, "PREFECT_HOME": str(folder / "home"),
-                     "PREFECT_SERVER_DATABASE_CONNECTION_URL": f"sqlite+aiosqlite:///{build}"},
-                timeout=600, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=True,
-            )  # fmt: skip
-        except (OSError, subprocess.SubprocessError):
-            (folder / "failed").touch()
-            return None
-        build.replace(template)  # whole, or not at all
-        return template
+        _build_template(folder)
+        return template if template.is_file() else None
 
 
 def seed_prefect_db(dest: Path) -> bool:
@@ -214,6 +300,7 @@ def pytest_xdist_make_scheduler(config, log):
 
 
 def pytest_sessionfinish(session, exitstatus):
+    _stop_template_builds()
     shutil.rmtree(_PREFECT_HOME, ignore_errors=True)
     if _DB_TEMPLATE_OWNER:  # the process that made the session's folder removes it
         shutil.rmtree(os.environ[_DB_TEMPLATE_ENV], ignore_errors=True)
