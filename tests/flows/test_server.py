@@ -191,7 +191,8 @@ def test_a_temporary_server_is_stopped_when_its_command_ends(home):
 def test_a_python_call_uses_the_background_server_when_none_is_configured(monkeypatch):
     """run_cohort & co. from a notebook: the running background server, as the commands
     (Prefect's own temporary server would open its database beside it: "database is
-    locked"); a configured PREFECT_API_URL stays as it is; with neither, Prefect's own."""
+    locked"); a configured PREFECT_API_URL stays as it is; with neither, the process's own
+    temporary server (the next test)."""
     from prefect.settings import PREFECT_API_URL
 
     background = "http://127.0.0.1:9/api"
@@ -211,8 +212,79 @@ def test_a_python_call_uses_the_background_server_when_none_is_configured(monkey
         assert PREFECT_API_URL.value() == background
     assert PREFECT_API_URL.value() == before  # restored after
     monkeypatch.setattr(server, "server_status", lambda: server.ServerStatus("stopped", "s"))
+    monkeypatch.setattr(server, "python_call_server", lambda: "http://127.0.0.1:7/api")
     with server.api_of_python_call():
-        assert PREFECT_API_URL.value() == before  # nothing imposed: Prefect's default
+        assert PREFECT_API_URL.value() == "http://127.0.0.1:7/api"  # the process's own
+    assert PREFECT_API_URL.value() == before
+
+
+# A notebook's calls, neither API configured nor background server: a call from a thread
+# that then ends, then the same server asked for again from the main thread.
+CALL_FROM_A_THREAD = """
+import sys, time
+from concurrent.futures import ThreadPoolExecutor
+import tumor3d.flows.server as server
+from tumor3d.flows.patient import run_patient
+
+def call():
+    result = run_patient(sys.argv[1], sys.argv[2], modality="t2")
+    return result.patient_id, server.python_call_server()
+
+with ThreadPoolExecutor(1) as pool:
+    patient, first = pool.submit(call).result()
+time.sleep(2.0)  # the calling thread has ended: a server it had spawned would be stopping
+again = server.python_call_server()
+print(patient, first, again, server.healthy(again), server._CALL_SERVER["proc"].pid, flush=True)
+time.sleep(600)
+"""
+
+
+def test_a_python_calls_server_outlives_its_calling_thread_not_a_killed_process(
+    home, tmp_path, seed_prefect_home
+):
+    """The temporary server of Python calls (no API configured, no background server) is
+    the commands' own: a call made from a thread that then ends leaves it serving the
+    next call (it is spawned from a thread that lasts: the kernel's parent-death signal
+    follows the spawning thread), and a ``kill -9`` of the process stops it (Prefect's
+    own temporary server, used before, outlived a killed notebook kernel)."""
+    from phantom_rows import small_phantom_rows
+
+    row = small_phantom_rows(tmp_path / "in", [0], "call")[0]
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
+    env.update(
+        TUMOR3D_HOME=str(home),
+        PREFECT_HOME=str(seed_prefect_home(tmp_path / "prefect-home")),
+        PYTHONPATH=str(ROOT),
+    )
+    script = tmp_path / "notebook.py"
+    script.write_text(CALL_FROM_A_THREAD)
+    log = open(tmp_path / "call.log", "wb")  # noqa: SIM115
+    call = subprocess.Popen(
+        [sys.executable, str(script), str(row.image), str(tmp_path / "out")],
+        env=env, stdout=subprocess.PIPE, stderr=log, cwd=str(ROOT),
+    )  # fmt: skip
+    try:
+        line = call.stdout.readline().decode().split()
+        assert len(line) == 5, (tmp_path / "call.log").read_text()
+        patient, first, again, healthy, pid = line
+        assert (tmp_path / "out" / patient / "metrics.parquet").is_file()  # the call ran
+        assert again == first and healthy == "True"  # the same server, still serving
+        assert server.healthy(first)
+        assert _server_children(call.pid) == [int(pid)]  # the commands' server module
+        call.send_signal(signal.SIGKILL)
+        call.wait()
+        assert _wait_gone(int(pid), 20), f"the calls' server {pid} outlived its process"
+    finally:
+        if call.poll() is None:
+            call.kill()
+        log.close()
+        for pid in _server_children(1):  # never leave ours behind, even if the test fails
+            try:
+                ours = str(tmp_path).encode() in Path(f"/proc/{pid}/environ").read_bytes()
+            except OSError:
+                continue
+            if ours:
+                os.kill(pid, signal.SIGKILL)
 
 
 def test_the_temporary_server_of_serve_runs_the_scheduler_and_a_commands_does_not(

@@ -192,7 +192,15 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _spawn(port: int, *, parent: int | None, ephemeral: bool, log: Path | None) -> subprocess.Popen:
+def _spawn(
+    port: int,
+    *,
+    parent: int | None,
+    ephemeral: bool,
+    log: Path | None,
+    new_session: bool | None = None,
+) -> subprocess.Popen:
+    """The server process (``new_session``: default, only without ``parent``)."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(
         [str(_PROJECT_ROOT), *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])]
@@ -212,7 +220,7 @@ def _spawn(port: int, *, parent: int | None, ephemeral: bool, log: Path | None) 
             stdout=out,
             stderr=subprocess.STDOUT,
             # the background server leaves the terminal's session (no SIGINT from ^C)
-            start_new_session=parent is None,
+            start_new_session=parent is None if new_session is None else new_session,
             cwd=str(_PROJECT_ROOT),
         )
     finally:
@@ -418,15 +426,15 @@ def api_of_python_call() -> Iterator[None]:
     A configured ``PREFECT_API_URL`` (a command's :func:`prefect_api`, a user's) is
     used as it is; else the running background server (``tumor3d server start``), as
     the commands use it: Prefect's own temporary server would open the same database
-    beside it (a notebook saw "database is locked" tracebacks); else Prefect's default
-    (its temporary server). No watch: a notebook's process is not ended for a server.
+    beside it (a notebook saw "database is locked" tracebacks); else this process's
+    temporary server (:func:`python_call_server`: started by the first call, stopped at
+    exit, and by itself when the process is killed). No watch: a notebook's process is
+    not ended for a server.
 
     Its flow runs are tagged with this process, as a command's are, and the Running runs
     of a killed process are set Crashed first (:func:`_this_process_once`: at most once a
-    minute per API in a process that calls in a loop, and not on Prefect's temporary
-    server, which the sweep would start with its own short timeouts; the next command
-    sweeps its database): a notebook's kernel killed mid-cohort left its runs Running on
-    a persistent server for good.
+    minute per API in a process that calls in a loop): a notebook's kernel killed
+    mid-cohort left its runs Running on a persistent server for good.
 
     Outside a command (whose console drops every run record), Prefect's console no
     longer shows the tracebacks of runs that failed with tumor3d's own errors, which the
@@ -452,12 +460,86 @@ def api_of_python_call() -> Iterator[None]:
         with _use_api(status.info.api_url, drain=True), _this_process_once(status.info.api_url):
             yield
         return
-    from prefect.settings import PREFECT_SERVER_ANALYTICS_ENABLED, temporary_settings
+    api_url = python_call_server()
+    with _use_api(api_url, drain=True), _this_process_once(api_url):
+        yield
 
-    # Prefect's temporary server, if this call starts it: no telemetry, as the commands'
-    with temporary_settings(updates={PREFECT_SERVER_ANALYTICS_ENABLED: False}):
-        with _this_process_once(None):
-            yield
+
+#: This process's temporary server for Python calls (:func:`python_call_server`).
+_CALL_SERVER: dict[str, Any] = {}
+_CALL_SERVER_LOCK = threading.Lock()
+
+
+def python_call_server() -> str:
+    """The API of this process's temporary server for Python calls, started on first use.
+
+    A notebook's calls with no configured API and no background server share one
+    server, started by the first (a few seconds) and stopped when the process exits,
+    as Prefect's own temporary server was. Unlike Prefect's, it is the commands'
+    temporary server (:func:`_spawn`: ephemeral, no telemetry, ``--parent``): it stops
+    itself when its process dies, even by ``kill -9`` (Prefect's outlived a killed
+    kernel). It is spawned from a thread of its own that lives as long as the process:
+    ``PR_SET_PDEATHSIG`` fires when the *thread* that spawned the child exits, so a
+    call made from a short-lived thread would otherwise take the server down after
+    it. Its own session: a Ctrl-C in a script's terminal interrupts the script, not
+    the server. A server found dead (its process ended) is started again.
+
+    Raises
+    ------
+    ServerError
+        When it does not become healthy in time (the process is then stopped).
+    """
+    with _CALL_SERVER_LOCK:
+        proc, api_url = _CALL_SERVER.get("proc"), _CALL_SERVER.get("api_url")
+        if proc is not None and proc.poll() is None:
+            return str(api_url)
+        port = _free_port()
+        api_url = f"http://127.0.0.1:{port}/api"
+        proc = _spawn_from_a_lasting_thread(port)
+        try:
+            _wait_healthy(proc, api_url, _startup_timeout_s())
+        except BaseException:
+            _terminate(proc.pid, grace_s=5.0)
+            raise
+        if not _CALL_SERVER:
+            import atexit
+
+            atexit.register(stop_python_call_server)
+        _CALL_SERVER.update(proc=proc, api_url=api_url)
+        return api_url
+
+
+def stop_python_call_server() -> None:
+    """Stop this process's server for Python calls, if it runs (at exit, or by hand)."""
+    with _CALL_SERVER_LOCK:
+        proc = _CALL_SERVER.get("proc")
+        if proc is not None and proc.poll() is None:
+            _drain_prefect_workers()
+            _terminate(proc.pid, grace_s=5.0)
+        _CALL_SERVER.pop("proc", None)
+
+
+def _spawn_from_a_lasting_thread(port: int) -> subprocess.Popen:
+    """:func:`_spawn` a Python call's server from a daemon thread that never ends."""
+    spawned: dict[str, Any] = {}
+    done = threading.Event()
+
+    def owner() -> None:
+        try:
+            spawned["proc"] = _spawn(
+                port, parent=os.getpid(), ephemeral=True, log=None, new_session=True
+            )
+        except BaseException as exc:  # handed to the caller
+            spawned["error"] = exc
+        done.set()
+        if "proc" in spawned:
+            threading.Event().wait()  # the spawning thread lives as long as the process
+
+    threading.Thread(target=owner, name="tumor3d-call-server", daemon=True).start()
+    done.wait()
+    if "error" in spawned:
+        raise spawned["error"]
+    return spawned["proc"]
 
 
 @contextlib.contextmanager
@@ -570,7 +652,7 @@ def _this_process_once(api_url: str | None) -> Iterator[None]:
 
     It sweeps ``api_url`` at most every :data:`PYTHON_SWEEP_PERIOD_S` (a notebook's
     loop of a thousand ``run_patient`` calls would pay ~0.1 s each), and never without
-    one (Prefect's own temporary server, not yet started).
+    one.
     """
     if _in_a_command():
         yield
