@@ -47,6 +47,17 @@ def _alive(pid: int) -> bool:
     return not (stat.exists() and stat.read_text().split(") ")[-1].startswith("Z"))
 
 
+def _kill_orphaned_servers_of(tmp_path: Path) -> None:
+    """SIGKILL the re-parented server processes whose environment names ``tmp_path``."""
+    for pid in _server_children(1):
+        try:
+            ours = str(tmp_path).encode() in Path(f"/proc/{pid}/environ").read_bytes()
+        except OSError:
+            continue
+        if ours:
+            os.kill(pid, signal.SIGKILL)
+
+
 def _wait_gone(pid: int, timeout_s: float) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -169,13 +180,7 @@ def test_kill_9_of_a_run_leaves_no_temporary_server(home, tmp_path, seed_prefect
         if run.poll() is None:
             run.kill()
         log.close()
-        for pid in _server_children(1):  # never leave ours behind, even if the test fails
-            try:
-                ours = str(tmp_path).encode() in Path(f"/proc/{pid}/environ").read_bytes()
-            except OSError:
-                continue
-            if ours:
-                os.kill(pid, signal.SIGKILL)
+        _kill_orphaned_servers_of(tmp_path)  # never leave ours behind, even if it fails
 
 
 def test_a_temporary_server_is_stopped_when_its_command_ends(home):
@@ -278,13 +283,7 @@ def test_a_python_calls_server_outlives_its_calling_thread_not_a_killed_process(
         if call.poll() is None:
             call.kill()
         log.close()
-        for pid in _server_children(1):  # never leave ours behind, even if the test fails
-            try:
-                ours = str(tmp_path).encode() in Path(f"/proc/{pid}/environ").read_bytes()
-            except OSError:
-                continue
-            if ours:
-                os.kill(pid, signal.SIGKILL)
+        _kill_orphaned_servers_of(tmp_path)  # never leave ours behind, even if it fails
 
 
 def test_the_temporary_server_of_serve_runs_the_scheduler_and_a_commands_does_not(
