@@ -23,6 +23,7 @@ import sqlite3
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 _PREFECT_HOME = tempfile.mkdtemp(prefix="tumor3d-test-prefect-")
@@ -62,11 +63,13 @@ PREFECT_STARTUP_TIMEOUT_S = 120
 # controller makes it in a background thread from the start, while the workers start and
 # collect (they wait for it at their first test server); a single process makes it at its
 # first test server. A build that fails leaves ``failed`` in the session's folder and the
-# servers migrate their own databases as before.
+# servers migrate their own databases as before; a kept copy that is not sound (or on which
+# the test server fails to start) is not used again.
 _DB_TEMPLATE_ENV = "TUMOR3D_TEST_PREFECT_DB_FOLDER"
 _DB_TEMPLATE_OWNER = False
 _DB_CACHE_ENV = "TUMOR3D_TEST_PREFECT_DB_CACHE"  # the kept templates' folder, if any
-_DB_BUILDS: list = []  # the controller's background build: (thread, its subprocess box)
+_DB_BUILD: dict = {}  # the controller's background build: thread, subprocess, stop flag
+_DB_BUILD_LOCK = threading.Lock()
 
 
 def _template_cache_file() -> Path | None:
@@ -81,15 +84,44 @@ def _template_cache_file() -> Path | None:
 
 
 def _is_migrated(db: Path) -> bool:
-    """True if ``db`` is an SQLite file that Prefect's migrations have stamped."""
+    """True if ``db`` is a sound SQLite file that Prefect's migrations have stamped."""
     try:
         with sqlite3.connect(f"file:{db}?mode=ro&immutable=1", uri=True) as con:
+            if con.execute("PRAGMA quick_check").fetchone() != ("ok",):
+                return False
             return bool(con.execute("SELECT version_num FROM alembic_version").fetchall())
     except sqlite3.Error:
         return False
 
 
-def _build_template(folder: Path, box: dict | None = None) -> None:
+def forget_kept_template() -> None:
+    """Remove the kept template (a test server failed to start on a copy of it)."""
+    kept = _template_cache_file()
+    if kept is not None:
+        kept.unlink(missing_ok=True)
+
+
+def _migrate(folder: Path, build: Path) -> bool:
+    """Prefect's own migration command on ``build``; False if it fails or is stopped."""
+    with _DB_BUILD_LOCK:
+        if _DB_BUILD.get("stop"):
+            return False
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "prefect", "server", "database", "upgrade", "-y"],
+            env={**os.environ, "PREFECT_HOME": str(folder / "home"),
+                 "PREFECT_SERVER_DATABASE_CONNECTION_URL": f"sqlite+aiosqlite:///{build}"},
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        _DB_BUILD["proc"] = proc
+    try:
+        return proc.wait(timeout=600) == 0 and _is_migrated(build)
+    finally:
+        if proc.poll() is None:  # a timeout, an interrupt: never left behind
+            proc.kill()
+            proc.wait()
+
+
+def _build_template(folder: Path) -> None:
     """Make ``folder/template.db`` (caller holds the folder's lock): from the kept copy, or
     by Prefect's migration (kept for the next session); ``failed`` if that fails."""
     template, build = folder / "template.db", folder / "build.db"
@@ -98,20 +130,11 @@ def _build_template(folder: Path, box: dict | None = None) -> None:
         shutil.copyfile(kept, build)
         build.replace(template)
         return
-    try:  # Prefect's own command, on a database of this folder
-        if box is not None and box.get("stop"):
-            raise subprocess.SubprocessError("the session ended")
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "prefect", "server", "database", "upgrade", "-y"],
-            env={**os.environ, "PREFECT_HOME": str(folder / "home"),
-                 "PREFECT_SERVER_DATABASE_CONNECTION_URL": f"sqlite+aiosqlite:///{build}"},
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        )  # fmt: skip
-        if box is not None:
-            box["proc"] = proc
-        if proc.wait(timeout=600) != 0 or not _is_migrated(build):
-            raise subprocess.SubprocessError("the migration failed")
+    try:
+        migrated = _migrate(folder, build)
     except (OSError, subprocess.SubprocessError):
+        migrated = False
+    if not migrated:
         (folder / "failed").touch()
         return
     build.replace(template)  # whole, or not at all
@@ -130,40 +153,47 @@ def pytest_configure(config):
     if _DB_TEMPLATE_ENV in os.environ:  # an xdist worker: the controller made the folder
         return
     import fcntl
-    import threading
 
     folder = Path(tempfile.mkdtemp(prefix="tumor3d-test-prefect-db-"))
     os.environ[_DB_TEMPLATE_ENV] = str(folder)
     _DB_TEMPLATE_OWNER = True
     cache = getattr(config, "cache", None)  # None with -p no:cacheprovider
-    if cache is not None:
-        os.environ[_DB_CACHE_ENV] = str(cache.mkdir("tumor3d-prefect-db"))
-    if not getattr(config.option, "numprocesses", None):
+    try:
+        if cache is not None:
+            os.environ[_DB_CACHE_ENV] = str(cache.mkdir("tumor3d-prefect-db"))
+    except OSError:  # a read-only checkout, a cache_dir that cannot be made: no kept copy
+        pass
+    if not getattr(config.option, "numprocesses", None) or getattr(config.option, "help", False):
         return  # one process: the template is made at its first test server
     lock = open(folder / "lock", "w")  # held from here: the workers wait for the build
     fcntl.flock(lock, fcntl.LOCK_EX)
-    box: dict = {}
 
     def build():
         try:
-            _build_template(folder, box)
+            _build_template(folder)
         except Exception:  # a session ended under it (its folder removed): servers migrate
             pass
         finally:
             lock.close()  # releases the lock
 
     thread = threading.Thread(target=build, name="prefect-db-template", daemon=True)
+    _DB_BUILD["thread"] = thread
     thread.start()
-    _DB_BUILDS.append((thread, box))
 
 
-def _stop_template_builds() -> None:
-    """End the controller's build if the session ends first (a run of a few quick tests)."""
-    for thread, box in _DB_BUILDS:
-        box["stop"] = True
-        if thread.is_alive() and box.get("proc") is not None:
-            box["proc"].kill()
+def pytest_unconfigure(config):
+    """End the controller's build if the session ends first (a few quick tests, ``--help``)
+    and remove the session's folder (the process that made it)."""
+    with _DB_BUILD_LOCK:
+        _DB_BUILD["stop"] = True
+        proc = _DB_BUILD.get("proc")
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+    thread = _DB_BUILD.get("thread")
+    if thread is not None:
         thread.join(timeout=10)
+    if _DB_TEMPLATE_OWNER:
+        shutil.rmtree(os.environ[_DB_TEMPLATE_ENV], ignore_errors=True)
 
 
 def migrated_prefect_db() -> Path | None:
@@ -225,12 +255,18 @@ def prefect_harness():
         return folder
 
     original, harness.mkdtemp = harness.mkdtemp, seeded_mkdtemp
+    started = False
     try:
         with (
             harness.prefect_test_harness(server_startup_timeout=PREFECT_STARTUP_TIMEOUT_S),
             temporary_settings(updates={"flows.heartbeat_frequency": None}),
         ):
+            started = True
             yield
+    except Exception:
+        if not started:  # on a copy of the kept template: the next session migrates anew
+            forget_kept_template()
+        raise
     finally:
         harness.mkdtemp = original
 
@@ -300,7 +336,4 @@ def pytest_xdist_make_scheduler(config, log):
 
 
 def pytest_sessionfinish(session, exitstatus):
-    _stop_template_builds()
     shutil.rmtree(_PREFECT_HOME, ignore_errors=True)
-    if _DB_TEMPLATE_OWNER:  # the process that made the session's folder removes it
-        shutil.rmtree(os.environ[_DB_TEMPLATE_ENV], ignore_errors=True)
