@@ -170,22 +170,29 @@ def test_a_failed_stage_is_one_line_on_the_console_without_a_serializer_warning(
     - Prefect's attempt to store its exception with the stage serializer, which refuses it
       on purpose, no longer logs "Failed to write result ... You can try a different
       serializer";
-    - Prefect's console (the root logger's handlers) drops its two tracebacks of the
-      InputError (task run, flow run: ~100 lines before the call's own one-line error)
-      and keeps its one-line records and the traceback of any other exception.
+    - while the call runs, Prefect's console (the root logger's handlers) drops its two
+      tracebacks of the InputError (task run, flow run: ~100 lines before the call's own
+      one-line error) and keeps its one-line records and the traceback of any other
+      exception; after the call, the user's own flows keep every traceback.
     """
     import logging
 
-    from tumor3d.errors import InputError
+    from tumor3d.errors import InputError, MeshError
     from tumor3d.flows.patient import run_patient
+    from tumor3d.flows.quiet_logs import NoOwnFailureTracebacks
 
     bad = tmp_path / "garbage.nii.gz"
     bad.write_bytes(b"not a NIfTI file at all")
-    records: list[logging.LogRecord] = []
+    heard: list[tuple[logging.LogRecord, int, bool]] = []
 
-    class Keep(logging.Handler):
+    def ours() -> list[NoOwnFailureTracebacks]:
+        return [f for h in logging.getLogger().handlers for f in h.filters
+                if isinstance(f, NoOwnFailureTracebacks)]  # fmt: skip
+
+    class Keep(logging.Handler):  # what the console would do with each record, as it comes
         def emit(self, record: logging.LogRecord) -> None:
-            records.append(record)
+            filters = ours()
+            heard.append((record, len(filters), all(f.filter(record) for f in filters)))
 
     runs = [logging.getLogger("prefect.task_runs"), logging.getLogger("prefect.flow_runs")]
     keep = Keep(level=logging.DEBUG)
@@ -197,29 +204,28 @@ def test_a_failed_stage_is_one_line_on_the_console_without_a_serializer_warning(
     finally:
         for logger in runs:
             logger.removeHandler(keep)
-    seen = [r.getMessage() for r in records]
+    seen = [r.getMessage() for r, _, _ in heard]
     assert "garbage.nii.gz" in str(exc.value)
     assert any("garbage" in m or "ingest-scan" in m for m in seen), seen  # the logger was heard
     assert not [m for m in seen if m.startswith("Failed to write result")], seen
 
-    from tumor3d.flows.quiet_logs import NoOwnFailureTracebacks
-
     console = logging.getLogger().handlers  # Prefect's console handler, as a notebook's
-    ours = [[f for f in h.filters if isinstance(f, NoOwnFailureTracebacks)] for h in console]
-    assert console and all(ours)  # on every console handler (a command's own filter, which
-    # drops every run record, may be there too after an in-process command of another test)
+    assert console and all(n == len(console) for _, n, _ in heard)  # on each, during the call
+    tracebacks = [
+        (r, s) for r, _, s in heard if r.exc_info and isinstance(r.exc_info[1], InputError)
+    ]
+    assert {r.name for r, _ in tracebacks} == {"prefect.task_runs", "prefect.flow_runs"}, seen
+    assert not [r.getMessage() for r, s in tracebacks if s]
+    one_liners = [s for r, _, s in heard if not r.exc_info and r.levelno >= logging.ERROR]
+    assert one_liners and all(one_liners), seen  # "Finished in state Failed"
+    assert not ours()  # removed after the call: the user's own flows keep their tracebacks
 
-    def shown(record: logging.LogRecord) -> bool:
-        return all(f.filter(record) for fs in ours for f in fs)
+    def record_of(error: Exception) -> logging.LogRecord:
+        try:
+            raise error
+        except type(error):
+            return logging.LogRecord("prefect.task_runs", logging.ERROR, __file__, 1, "x", (),
+                                     sys.exc_info())  # fmt: skip
 
-    tracebacks = [r for r in records if r.exc_info and isinstance(r.exc_info[1], InputError)]
-    assert {r.name for r in tracebacks} == {"prefect.task_runs", "prefect.flow_runs"}, seen
-    assert not [r.getMessage() for r in tracebacks if shown(r)]
-    one_liners = [r for r in records if not r.exc_info and r.levelno >= logging.ERROR]
-    assert one_liners and all(shown(r) for r in one_liners), seen  # "Finished in state Failed"
-    try:
-        raise RuntimeError("a defect")
-    except RuntimeError:
-        defect = logging.LogRecord("prefect.task_runs", logging.ERROR, __file__, 1, "x", (),
-                                   sys.exc_info())  # fmt: skip
-    assert shown(defect)  # another exception's traceback is kept
+    for kept in (RuntimeError("a defect"), MeshError("not a bad input")):
+        assert NoOwnFailureTracebacks().filter(record_of(kept))  # their tracebacks are kept

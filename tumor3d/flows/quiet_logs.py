@@ -12,7 +12,10 @@ console is quiet (:func:`console_is_quiet`).
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import threading
+from collections.abc import Iterator
 from typing import Any
 
 __all__ = [
@@ -20,7 +23,7 @@ __all__ = [
     "NoRunRecords",
     "console_is_quiet",
     "dask_setup",
-    "quiet_own_failure_tracebacks",
+    "own_failure_tracebacks_off",
     "quiet_run_records",
 ]
 
@@ -56,36 +59,59 @@ def quiet_run_records() -> None:
 
 
 class NoOwnFailureTracebacks:
-    """Console filter of a Python call: drop Prefect's traceback of tumor3d's own errors.
+    """Console filter of a Python call: drop Prefect's traceback of a bad input.
 
-    A flow or task run that fails with a :class:`~tumor3d.errors.Tumor3DError` (an
+    A flow or task run that fails with an :class:`~tumor3d.errors.InputError` (an
     unreadable input, a bad configuration, a mask off the image's grid) is one line in
-    the exception that ``run_patient``, ``run_cohort`` or ``train`` raises, or in the
-    cohort's table; Prefect also logged it twice with its traceback (the task run, then
-    the flow run), some 100 lines of a notebook's output before that line. Only those
-    records are dropped: Prefect's one-line "Finished in state Failed(...)" stays, as do
-    its other records and the traceback of any other exception (a defect's); the Prefect
-    server still gets them all (its API handler is not filtered).
+    the exception that ``run_patient`` or ``train`` raises (its cause chained), or in
+    ``run_cohort``'s results; Prefect also logged it twice with its traceback (the task
+    run, then the flow run), some 100 lines of a notebook's output before that line.
+    Only those records are dropped, while a call runs
+    (:func:`own_failure_tracebacks_off`): Prefect's one-line "Finished in state
+    Failed(...)" stays, as do its other records and the traceback of any other
+    exception; the Prefect server still gets them all (its API handler is not
+    filtered).
     """
 
     def filter(self, record: Any) -> bool:
-        """False for the record of a run that failed with one of tumor3d's own errors."""
-        from tumor3d.errors import Tumor3DError
+        """False for the record of a run that failed with a bad input."""
+        from tumor3d.errors import InputError
 
         if not str(record.name).startswith(("prefect.flow_runs", "prefect.task_runs")):
             return True
         exc = record.exc_info[1] if record.exc_info else None
-        return not isinstance(exc, Tumor3DError)
+        return not isinstance(exc, InputError)
 
 
-def quiet_own_failure_tracebacks() -> None:
-    """Set up Prefect's logging (if not yet) and filter its console handlers (a Python call)."""
+_OWN_FAILURES = NoOwnFailureTracebacks()
+_OWN_FAILURES_LOCK = threading.Lock()
+_own_failure_calls = 0
+
+
+@contextlib.contextmanager
+def own_failure_tracebacks_off() -> Iterator[None]:
+    """:class:`NoOwnFailureTracebacks` on Prefect's console handlers while the body runs.
+
+    Counted: calls that overlap (threads) share the filter, the last to end removes it;
+    the user's own flows outside a call keep their tracebacks.
+    """
+    global _own_failure_calls
     from prefect.logging.configuration import ensure_logging_setup
 
     ensure_logging_setup()
-    for handler in logging.getLogger().handlers:
-        if not any(isinstance(f, NoOwnFailureTracebacks) for f in handler.filters):
-            handler.addFilter(NoOwnFailureTracebacks())
+    with _OWN_FAILURES_LOCK:
+        _own_failure_calls += 1
+        if _own_failure_calls == 1:
+            for handler in logging.getLogger().handlers:
+                handler.addFilter(_OWN_FAILURES)
+    try:
+        yield
+    finally:
+        with _OWN_FAILURES_LOCK:
+            _own_failure_calls -= 1
+            if _own_failure_calls == 0:
+                for handler in logging.getLogger().handlers:
+                    handler.removeFilter(_OWN_FAILURES)
 
 
 def console_is_quiet() -> bool:

@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import codecs
 import contextlib
+import contextvars
 import json
 import os
 import signal
@@ -436,38 +437,60 @@ def api_of_python_call() -> Iterator[None]:
     minute per API in a process that calls in a loop): a notebook's kernel killed
     mid-cohort left its runs Running on a persistent server for good.
 
-    Outside a command (whose console drops every run record), Prefect's console no
-    longer shows the tracebacks of runs that failed with tumor3d's own errors, which the
-    call raises as one line (:class:`~tumor3d.flows.quiet_logs.NoOwnFailureTracebacks`).
+    Outside a command (whose console drops every run record), Prefect's console does
+    not show, while the call runs, the tracebacks of its runs that failed on a bad input,
+    which the call raises as one line
+    (:func:`~tumor3d.flows.quiet_logs.own_failure_tracebacks_off`).
     """
-    if not _in_a_command():
-        from tumor3d.flows.quiet_logs import quiet_own_failure_tracebacks
+    from tumor3d.flows.quiet_logs import own_failure_tracebacks_off
 
-        quiet_own_failure_tracebacks()
-    configured = _configured_api_url()
-    if configured:
-        if not _in_a_command():
-            check_configured_api()  # one line naming PREFECT_API_URL, before any run
-        with _this_process_once(configured):
+    in_a_command = _in_a_command()
+    with contextlib.nullcontext() if in_a_command else own_failure_tracebacks_off():
+        configured = _configured_api_url()
+        if configured and configured == _CALL_SERVER.get("api_url"):
+            configured = None  # this process's own server (set for the process), not a user's
+        if configured:
+            if not in_a_command:
+                check_configured_api()  # one line naming PREFECT_API_URL, before any run
+            with _this_process_once(configured):
+                yield
+            return
+        status = server_status()
+        if status.state == "running" and status.info is not None:
+            # drained at the end of each call: what a notebook's run buffered is sent to
+            # this server now, not at the process's exit to a server stopped since (a
+            # notebook that stopped and started it again spent 4 min at exit retrying the
+            # old one, and its next calls' events went there)
+            bg = status.info.api_url
+            with _use_api(bg, drain=True), _this_process_once(bg):
+                yield
+            return
+        # no drain per call: this server stops at exit only, after Prefect's own senders
+        # have sent what they hold (concurrent calls waited for each other's events and
+        # printed Prefect's "Still processing items")
+        api_url = python_call_server()
+        with _this_process_once(api_url):
             yield
-        return
-    status = server_status()
-    if status.state == "running" and status.info is not None:
-        # drained at the end of each call: what a notebook's run buffered is sent to this
-        # server now, not at the process's exit to a server stopped since (a notebook that
-        # stopped and started it again spent 4 min at exit retrying the old one, and its
-        # next calls' events went there)
-        with _use_api(status.info.api_url, drain=True), _this_process_once(status.info.api_url):
-            yield
-        return
-    api_url = python_call_server()
-    with _use_api(api_url, drain=True), _this_process_once(api_url):
-        yield
 
 
 #: This process's temporary server for Python calls (:func:`python_call_server`).
 _CALL_SERVER: dict[str, Any] = {}
 _CALL_SERVER_LOCK = threading.Lock()
+#: The one thread that spawns it (:func:`_spawn_from_a_lasting_thread`), and its requests.
+_SPAWNER: dict[str, Any] = {}
+_SPAWNER_LOCK = threading.Lock()
+
+
+def _forget_call_server_in_child() -> None:
+    """A forked child has neither the parent's server threads nor its locks' holders."""
+    global _CALL_SERVER_LOCK, _SPAWNER_LOCK
+    _CALL_SERVER.clear()
+    _SPAWNER.clear()
+    _CALL_SERVER_LOCK, _SPAWNER_LOCK = threading.Lock(), threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_call_server_in_child)
 
 
 def python_call_server() -> str:
@@ -483,6 +506,12 @@ def python_call_server() -> str:
     call made from a short-lived thread would otherwise take the server down after
     it. Its own session: a Ctrl-C in a script's terminal interrupts the script, not
     the server. A server found dead (its process ended) is started again.
+
+    Its API is this process's Prefect API from then on (the process-global settings,
+    set once, not per call: concurrent calls from threads restored each other's
+    settings in the wrong order), so the user's own flows use it too instead of
+    starting Prefect's beside it on the same database; no UI link is printed (the
+    server has no UI).
 
     Raises
     ------
@@ -506,40 +535,71 @@ def python_call_server() -> str:
 
             atexit.register(stop_python_call_server)
         _CALL_SERVER.update(proc=proc, api_url=api_url)
+        _set_process_api(api_url)
         return api_url
 
 
+def _set_process_api(api_url: str) -> None:
+    """Make ``api_url`` the process's Prefect API (its global settings), without a UI link."""
+    import prefect.context
+    from prefect.settings import PREFECT_API_URL, PREFECT_UI_URL
+
+    current = prefect.context.GLOBAL_SETTINGS_CONTEXT
+    settings = current.settings.copy_with_update(
+        updates={PREFECT_API_URL: api_url, PREFECT_UI_URL: ""}
+    )
+    prefect.context.GLOBAL_SETTINGS_CONTEXT = prefect.context.SettingsContext(
+        profile=current.profile, settings=settings
+    )
+
+
 def stop_python_call_server() -> None:
-    """Stop this process's server for Python calls, if it runs (at exit, or by hand)."""
-    with _CALL_SERVER_LOCK:
+    """Stop this process's server for Python calls, if it runs (at exit, or by hand).
+
+    At exit, a server still being started by another thread is left to its watchdog
+    (it stops when the process has gone) rather than waited for.
+    """
+    if not _CALL_SERVER_LOCK.acquire(timeout=5.0):
+        return
+    try:
         proc = _CALL_SERVER.get("proc")
         if proc is not None and proc.poll() is None:
             _drain_prefect_workers()
             _terminate(proc.pid, grace_s=5.0)
         _CALL_SERVER.pop("proc", None)
+    finally:
+        _CALL_SERVER_LOCK.release()
 
 
 def _spawn_from_a_lasting_thread(port: int) -> subprocess.Popen:
-    """:func:`_spawn` a Python call's server from a daemon thread that never ends."""
-    spawned: dict[str, Any] = {}
-    done = threading.Event()
+    """:func:`_spawn` a Python call's server from the one spawner thread, which never ends."""
+    import queue
 
-    def owner() -> None:
-        try:
-            spawned["proc"] = _spawn(
-                port, parent=os.getpid(), ephemeral=True, log=None, new_session=True
-            )
-        except BaseException as exc:  # handed to the caller
-            spawned["error"] = exc
-        done.set()
-        if "proc" in spawned:
-            threading.Event().wait()  # the spawning thread lives as long as the process
+    with _SPAWNER_LOCK:
+        thread = _SPAWNER.get("thread")
+        if thread is None or not thread.is_alive():
+            requests: queue.Queue = queue.Queue()
 
-    threading.Thread(target=owner, name="tumor3d-call-server", daemon=True).start()
-    done.wait()
-    if "error" in spawned:
-        raise spawned["error"]
-    return spawned["proc"]
+            def spawner() -> None:
+                while True:
+                    at, reply = requests.get()
+                    try:
+                        reply.put(_spawn(
+                            at, parent=os.getpid(), ephemeral=True, log=None, new_session=True
+                        ))  # fmt: skip
+                    except BaseException as exc:  # handed to the caller
+                        reply.put(exc)
+
+            thread = threading.Thread(target=spawner, name="tumor3d-call-server", daemon=True)
+            _SPAWNER.update(thread=thread, requests=requests)
+            thread.start()
+        requests = _SPAWNER["requests"]
+    reply: queue.Queue = queue.Queue(maxsize=1)
+    requests.put((port, reply))
+    got = reply.get()
+    if isinstance(got, BaseException):
+        raise got
+    return got
 
 
 @contextlib.contextmanager
@@ -556,6 +616,17 @@ def prefect_api(
     the command with one line and exit code 3 (:func:`_watch_server`)
     instead of minutes of Prefect's retries and tracebacks.
     """
+    token = _IN_A_COMMAND.set(True)
+    try:
+        with _command_api(on_temporary_start, services=services) as api_url:
+            yield api_url
+    finally:
+        _IN_A_COMMAND.reset(token)
+
+
+@contextlib.contextmanager
+def _command_api(on_temporary_start: Callable[[], None] | None, *, services: bool) -> Iterator[str]:
+    """:func:`prefect_api`'s choice of API, in the order of the module docstring."""
     configured = _configured_api_url()
     if configured:
         check_configured_api()
@@ -631,12 +702,20 @@ def _this_process(*, sweep: bool = True) -> Iterator[None]:
         yield
 
 
+#: Set inside a command's :func:`prefect_api` (also where processes carry no tags).
+_IN_A_COMMAND: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "tumor3d_in_a_command", default=False
+)
+
+
 def _in_a_command() -> bool:
-    """Whether the caller runs inside a command's :func:`prefect_api` (its runs' tags)."""
+    """Whether the caller runs inside a command's :func:`prefect_api` (or its runs' tags)."""
     from prefect.context import TagsContext
 
     from tumor3d.flows.stale_runs import PLACE_TAG
 
+    if _IN_A_COMMAND.get():
+        return True
     return any(t.startswith(PLACE_TAG) for t in TagsContext.get().current_tags)
 
 
