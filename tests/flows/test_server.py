@@ -197,31 +197,79 @@ def test_a_python_call_uses_the_background_server_when_none_is_configured(monkey
     """run_cohort & co. from a notebook: the running background server, as the commands
     (Prefect's own temporary server would open its database beside it: "database is
     locked"); a configured PREFECT_API_URL stays as it is; with neither, the process's own
-    temporary server (the next test)."""
-    from prefect.settings import PREFECT_API_URL
+    temporary server (the next test). The server a call used is the process's API from
+    then on, never taken for one the user configured: two overlapping calls from threads,
+    the background server stopped between them, restored each other's settings in the
+    wrong order and the next call refused the stopped server's URL as PREFECT_API_URL."""
+    import prefect.context
+    from prefect.settings import PREFECT_API_URL, PREFECT_UI_URL, temporary_settings
 
-    background = "http://127.0.0.1:9/api"
-    running = server.ServerStatus(
-        "running", "state.json", server.ServerInfo(pid=1, port=9, api_url=background)
-    )
+    # no API set (a test harness of this process may have set one, in its context and
+    # globally); the process's settings and this module's record of them, as they were,
+    # after the test
+    unset = [PREFECT_API_URL, PREFECT_UI_URL]
+    context = prefect.context.GLOBAL_SETTINGS_CONTEXT
+    monkeypatch.setattr(prefect.context, "GLOBAL_SETTINGS_CONTEXT", prefect.context.SettingsContext(
+        profile=context.profile, settings=context.settings.copy_with_update(restore_defaults=unset)
+    ))  # fmt: skip
+    with temporary_settings(restore_defaults=unset):
+        _calls_from_two_threads(monkeypatch)
+
+
+def _calls_from_two_threads(monkeypatch):
+    import contextlib
+    import threading
+
+    from prefect.settings import PREFECT_API_URL, PREFECT_UI_URL, temporary_settings
+
+    monkeypatch.setattr(server, "_PROCESS_APIS", set())
+    monkeypatch.setattr(server, "_PROCESS_API_BEFORE", {})
+    background, own = "http://127.0.0.1:9/api", "http://127.0.0.1:7/api"
+    state = {"bg": "running"}
+    info = server.ServerInfo(pid=1, port=9, api_url=background)
+    monkeypatch.setattr(server, "server_status", lambda: server.ServerStatus(
+        state["bg"], "state.json", info if state["bg"] == "running" else None))  # fmt: skip
+    monkeypatch.setattr(server, "python_call_server", lambda: own)
+    monkeypatch.setattr(server, "check_configured_api", lambda: None)  # (test_python_calls.py)
+    # no sweep of these made-up servers (test_python_calls.py checks the sweeps)
+    monkeypatch.setattr(server, "_this_process_once", lambda url: contextlib.nullcontext())
+    real_configured = server._configured_api_url
     before = PREFECT_API_URL.value()
-    assert before != background
-    monkeypatch.setattr(server, "server_status", lambda: running)
+    assert before not in (background, own)
     monkeypatch.setattr(server, "_configured_api_url", lambda: "http://configured:1/api")
-    # (that it answers: tests/flows/test_python_calls.py)
-    monkeypatch.setattr(server, "check_configured_api", lambda: None)
     with server.api_of_python_call():
         assert PREFECT_API_URL.value() == before  # a configured API wins: nothing changed
-    monkeypatch.setattr(server, "_configured_api_url", lambda: None)
-    with server.api_of_python_call():
-        assert PREFECT_API_URL.value() == background
-    assert PREFECT_API_URL.value() == before  # restored after
-    monkeypatch.setattr(server, "server_status", lambda: server.ServerStatus("stopped", "s"))
-    used = []  # the process's own server (it sets the process's API: the next test)
-    monkeypatch.setattr(server, "python_call_server", lambda: used.append(1) or "http://x:7/api")
-    with server.api_of_python_call():
-        assert used == [1]
-    assert PREFECT_API_URL.value() == before
+    monkeypatch.setattr(server, "_configured_api_url", real_configured)
+
+    inside: dict[str, str | None] = {}
+    a_in, b_done = threading.Event(), threading.Event()
+
+    def call_a():  # on the background server, still running while B calls
+        with server.api_of_python_call():
+            inside["a"] = PREFECT_API_URL.value()
+            a_in.set()
+            b_done.wait(30)
+
+    def call_b():  # a notebook thread's call (no settings context of its own: the global),
+        # inside the caller's own temporary settings, made while A's call runs
+        with temporary_settings(updates={"logging.level": "INFO"}):
+            with server.api_of_python_call():
+                inside["b"] = PREFECT_API_URL.value()
+                inside["b_ui"] = PREFECT_UI_URL.value()
+        inside["after"] = real_configured()  # what a next call reads
+
+    a = threading.Thread(target=call_a)
+    a.start()
+    assert a_in.wait(30)
+    state["bg"] = "stopped"  # `tumor3d server stop` between the two calls
+    b = threading.Thread(target=call_b)
+    b.start()
+    b.join(30)
+    b_done.set()
+    a.join(30)
+    # B did not take A's background server for a configured one; no UI link on its own
+    # server; the process's API from then on is B's, not the stopped one's
+    assert inside == {"a": background, "b": own, "b_ui": "", "after": own}
 
 
 # A notebook's calls, neither API configured nor background server: a call from a thread

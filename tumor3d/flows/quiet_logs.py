@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import threading
 from collections.abc import Iterator
 from typing import Any
@@ -88,12 +89,25 @@ _OWN_FAILURES_LOCK = threading.Lock()
 _own_failure_calls = 0
 
 
+def _no_filter_in_a_forked_child() -> None:
+    """A child forked during a call does not keep the call's filter for good."""
+    global _own_failure_calls, _OWN_FAILURES_LOCK
+    _own_failure_calls, _OWN_FAILURES_LOCK = 0, threading.Lock()
+    for handler in logging.getLogger().handlers:
+        handler.removeFilter(_OWN_FAILURES)
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_no_filter_in_a_forked_child)
+
+
 @contextlib.contextmanager
 def own_failure_tracebacks_off() -> Iterator[None]:
     """:class:`NoOwnFailureTracebacks` on Prefect's console handlers while the body runs.
 
     Counted: calls that overlap (threads) share the filter, the last to end removes it;
-    the user's own flows outside a call keep their tracebacks.
+    the user's own flows outside a call keep their tracebacks (those in other threads
+    while a call runs do not show a bad input's traceback either).
     """
     global _own_failure_calls
     from prefect.logging.configuration import ensure_logging_setup
@@ -108,7 +122,7 @@ def own_failure_tracebacks_off() -> Iterator[None]:
         yield
     finally:
         with _OWN_FAILURES_LOCK:
-            _own_failure_calls -= 1
+            _own_failure_calls = max(0, _own_failure_calls - 1)  # (a forked child's: 0)
             if _own_failure_calls == 0:
                 for handler in logging.getLogger().handlers:
                     handler.removeFilter(_OWN_FAILURES)

@@ -447,8 +447,8 @@ def api_of_python_call() -> Iterator[None]:
     in_a_command = _in_a_command()
     with contextlib.nullcontext() if in_a_command else own_failure_tracebacks_off():
         configured = _configured_api_url()
-        if configured and configured == _CALL_SERVER.get("api_url"):
-            configured = None  # this process's own server (set for the process), not a user's
+        if configured in _PROCESS_APIS:
+            configured = None  # set for the process by an earlier call, not by the user
         if configured:
             if not in_a_command:
                 check_configured_api()  # one line naming PREFECT_API_URL, before any run
@@ -462,15 +462,68 @@ def api_of_python_call() -> Iterator[None]:
             # notebook that stopped and started it again spent 4 min at exit retrying the
             # old one, and its next calls' events went there)
             bg = status.info.api_url
-            with _use_api(bg, drain=True), _this_process_once(bg):
-                yield
+            try:
+                with _process_api(bg, ui=True), _this_process_once(bg):
+                    yield
+            finally:
+                _drain_prefect_workers()
             return
         # no drain per call: this server stops at exit only, after Prefect's own senders
         # have sent what they hold (concurrent calls waited for each other's events and
         # printed Prefect's "Still processing items")
         api_url = python_call_server()
-        with _this_process_once(api_url):
+        with _process_api(api_url, ui=False), _this_process_once(api_url):
             yield
+
+
+#: The APIs that Python calls made the process's (:func:`_process_api`): never a user's.
+_PROCESS_APIS: set[str] = set()
+_PROCESS_API_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _process_api(api_url: str, *, ui: bool) -> Iterator[None]:
+    """A Python call's body against ``api_url``, the process's API from then on.
+
+    The process-global settings are set, not swapped and restored per call: concurrent
+    calls from threads restored each other's in the wrong order, leaving a stopped
+    server's URL as if configured. Prefect's senders and the threads that copy no
+    context read the global; the call's own settings context holds the URL too (a
+    caller inside ``temporary_settings`` does not see the global). ``ui``: the server
+    has a UI (the background server); else no "View at" link is printed.
+    """
+    from prefect.settings import PREFECT_API_URL, PREFECT_UI_URL, temporary_settings
+
+    updates: dict[Any, Any] = {PREFECT_API_URL: api_url}
+    if not ui:
+        updates[PREFECT_UI_URL] = ""
+    _set_process_api(updates, restore_ui=ui)
+    with temporary_settings(updates=updates, restore_defaults=[] if not ui else [PREFECT_UI_URL]):
+        yield
+
+
+def _set_process_api(updates: dict[Any, Any], *, restore_ui: bool) -> None:
+    """Make ``updates`` (the API URL, maybe the UI's) the process's global Prefect settings."""
+    import prefect.context
+    from prefect.settings import PREFECT_API_URL, PREFECT_UI_URL
+
+    with _PROCESS_API_LOCK:
+        current = prefect.context.GLOBAL_SETTINGS_CONTEXT
+        url = updates[PREFECT_API_URL]
+        _PROCESS_APIS.add(url)
+        if current.settings.api.url == url:
+            return
+        _PROCESS_API_BEFORE.setdefault("context", current)
+        settings = current.settings.copy_with_update(
+            updates=updates, restore_defaults=[PREFECT_UI_URL] if restore_ui else []
+        )
+        prefect.context.GLOBAL_SETTINGS_CONTEXT = prefect.context.SettingsContext(
+            profile=current.profile, settings=settings
+        )
+
+
+#: The process's global settings before a Python call first set them.
+_PROCESS_API_BEFORE: dict[str, Any] = {}
 
 
 #: This process's temporary server for Python calls (:func:`python_call_server`).
@@ -483,10 +536,11 @@ _SPAWNER_LOCK = threading.Lock()
 
 def _forget_call_server_in_child() -> None:
     """A forked child has neither the parent's server threads nor its locks' holders."""
-    global _CALL_SERVER_LOCK, _SPAWNER_LOCK
-    _CALL_SERVER.clear()
+    global _CALL_SERVER_LOCK, _SPAWNER_LOCK, _PROCESS_API_LOCK
+    _CALL_SERVER.pop("proc", None)  # the parent's: its URL stays known as not the user's
     _SPAWNER.clear()
     _CALL_SERVER_LOCK, _SPAWNER_LOCK = threading.Lock(), threading.Lock()
+    _PROCESS_API_LOCK = threading.Lock()
 
 
 if hasattr(os, "register_at_fork"):
@@ -535,22 +589,7 @@ def python_call_server() -> str:
 
             atexit.register(stop_python_call_server)
         _CALL_SERVER.update(proc=proc, api_url=api_url)
-        _set_process_api(api_url)
         return api_url
-
-
-def _set_process_api(api_url: str) -> None:
-    """Make ``api_url`` the process's Prefect API (its global settings), without a UI link."""
-    import prefect.context
-    from prefect.settings import PREFECT_API_URL, PREFECT_UI_URL
-
-    current = prefect.context.GLOBAL_SETTINGS_CONTEXT
-    settings = current.settings.copy_with_update(
-        updates={PREFECT_API_URL: api_url, PREFECT_UI_URL: ""}
-    )
-    prefect.context.GLOBAL_SETTINGS_CONTEXT = prefect.context.SettingsContext(
-        profile=current.profile, settings=settings
-    )
 
 
 def stop_python_call_server() -> None:
@@ -567,8 +606,20 @@ def stop_python_call_server() -> None:
             _drain_prefect_workers()
             _terminate(proc.pid, grace_s=5.0)
         _CALL_SERVER.pop("proc", None)
+        _restore_process_api(_CALL_SERVER.get("api_url"))
     finally:
         _CALL_SERVER_LOCK.release()
+
+
+def _restore_process_api(api_url: str | None) -> None:
+    """The process's settings as before the first call, if they still name ``api_url``."""
+    import prefect.context
+
+    with _PROCESS_API_LOCK:
+        before = _PROCESS_API_BEFORE.get("context")
+        current = prefect.context.GLOBAL_SETTINGS_CONTEXT
+        if before is not None and api_url and current.settings.api.url == api_url:
+            prefect.context.GLOBAL_SETTINGS_CONTEXT = before
 
 
 def _spawn_from_a_lasting_thread(port: int) -> subprocess.Popen:
@@ -596,10 +647,22 @@ def _spawn_from_a_lasting_thread(port: int) -> subprocess.Popen:
         requests = _SPAWNER["requests"]
     reply: queue.Queue = queue.Queue(maxsize=1)
     requests.put((port, reply))
-    got = reply.get()
+    try:
+        got = reply.get()
+    except BaseException:  # a Ctrl-C while it starts: stop the server the spawner hands over
+        threading.Thread(target=_stop_late, args=(reply,), daemon=True).start()
+        raise
     if isinstance(got, BaseException):
         raise got
     return got
+
+
+def _stop_late(reply: Any) -> None:
+    """Terminate the server a spawner reply brings after its caller has given up."""
+    with contextlib.suppress(Exception):
+        got = reply.get(timeout=60)
+        if isinstance(got, subprocess.Popen):
+            _terminate(got.pid, grace_s=5.0)
 
 
 @contextlib.contextmanager
@@ -628,6 +691,8 @@ def prefect_api(
 def _command_api(on_temporary_start: Callable[[], None] | None, *, services: bool) -> Iterator[str]:
     """:func:`prefect_api`'s choice of API, in the order of the module docstring."""
     configured = _configured_api_url()
+    if configured in _PROCESS_APIS:
+        configured = None  # set for the process by a Python call before, not by the user
     if configured:
         check_configured_api()
         with _watch_server(configured), _this_process():
