@@ -256,7 +256,8 @@ def _calls_from_two_threads(monkeypatch):
             with server.api_of_python_call():
                 inside["b"] = PREFECT_API_URL.value()
                 inside["b_ui"] = PREFECT_UI_URL.value()
-        inside["after"] = real_configured()  # what a next call reads
+        inside["after"] = PREFECT_API_URL.value()  # the process's API, as a next call reads it
+        inside["configured"] = real_configured()  # ... and not taken for the user's
 
     a = threading.Thread(target=call_a)
     a.start()
@@ -269,7 +270,7 @@ def _calls_from_two_threads(monkeypatch):
     a.join(30)
     # B did not take A's background server for a configured one; no UI link on its own
     # server; the process's API from then on is B's, not the stopped one's
-    assert inside == {"a": background, "b": own, "b_ui": "", "after": own}
+    assert inside == {"a": background, "b": own, "b_ui": "", "after": own, "configured": None}
 
 
 # A notebook's calls, neither API configured nor background server: a call from a thread

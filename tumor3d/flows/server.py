@@ -363,9 +363,15 @@ def stop_server() -> ServerStatus:
 
 
 def _configured_api_url() -> str | None:
+    """The Prefect API the user configured, if any.
+
+    Not one that a Python call made the process's (:data:`_PROCESS_APIS`; its server may
+    have stopped since).
+    """
     from prefect.settings import PREFECT_API_URL
 
-    return PREFECT_API_URL.value() or None
+    url = PREFECT_API_URL.value() or None
+    return None if url in _PROCESS_APIS else url
 
 
 def check_configured_api(timeout_s: float = 5.0) -> None:
@@ -447,8 +453,6 @@ def api_of_python_call() -> Iterator[None]:
     in_a_command = _in_a_command()
     with contextlib.nullcontext() if in_a_command else own_failure_tracebacks_off():
         configured = _configured_api_url()
-        if configured in _PROCESS_APIS:
-            configured = None  # set for the process by an earlier call, not by the user
         if configured:
             if not in_a_command:
                 check_configured_api()  # one line naming PREFECT_API_URL, before any run
@@ -561,11 +565,9 @@ def python_call_server() -> str:
     it. Its own session: a Ctrl-C in a script's terminal interrupts the script, not
     the server. A server found dead (its process ended) is started again.
 
-    Its API is this process's Prefect API from then on (the process-global settings,
-    set once, not per call: concurrent calls from threads restored each other's
-    settings in the wrong order), so the user's own flows use it too instead of
-    starting Prefect's beside it on the same database; no UI link is printed (the
-    server has no UI).
+    The calls make its API the process's Prefect API (:func:`_process_api`), so the
+    user's own flows use it too instead of starting Prefect's beside it on the same
+    database; no UI link is printed (the server has no UI).
 
     Raises
     ------
@@ -691,8 +693,6 @@ def prefect_api(
 def _command_api(on_temporary_start: Callable[[], None] | None, *, services: bool) -> Iterator[str]:
     """:func:`prefect_api`'s choice of API, in the order of the module docstring."""
     configured = _configured_api_url()
-    if configured in _PROCESS_APIS:
-        configured = None  # set for the process by a Python call before, not by the user
     if configured:
         check_configured_api()
         with _watch_server(configured), _this_process():
@@ -791,20 +791,19 @@ _python_sweeps: dict[str, float] = {}
 
 
 @contextlib.contextmanager
-def _this_process_once(api_url: str | None) -> Iterator[None]:
+def _this_process_once(api_url: str) -> Iterator[None]:
     """:func:`_this_process` for a Python call, unless inside it already (a command's).
 
     It sweeps ``api_url`` at most every :data:`PYTHON_SWEEP_PERIOD_S` (a notebook's
-    loop of a thousand ``run_patient`` calls would pay ~0.1 s each), and never without
-    one.
+    loop of a thousand ``run_patient`` calls would pay ~0.1 s each).
     """
     if _in_a_command():
         yield
         return
     now = time.monotonic()
-    last = _python_sweeps.get(api_url) if api_url else None
-    sweep = api_url is not None and (last is None or now - last >= PYTHON_SWEEP_PERIOD_S)
-    if sweep and api_url is not None:
+    last = _python_sweeps.get(api_url)
+    sweep = last is None or now - last >= PYTHON_SWEEP_PERIOD_S
+    if sweep:
         _python_sweeps[api_url] = now
     with _this_process(sweep=sweep):
         yield
