@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import socket
 import time
+import uuid
 
 import numpy as np
 import pytest
@@ -126,21 +127,88 @@ def test_cache_keys_do_not_depend_on_the_store_location():
     assert local_key == s3_key
 
 
-def test_a_write_interrupted_before_the_copy_leaves_no_object(s3_endpoint, monkeypatch):
-    store = ObjectStore(f"s3://{BUCKET}/crash")
+def test_a_write_interrupted_before_the_copy_leaves_no_object(monkeypatch):
+    """A back-end whose write is not all-or-nothing (fsspec's memory file system here)
+    writes under ``tmp/`` and copies: a writer stopped between the two leaves no final
+    object. (On S3 one PUT writes it: the next test.)"""
+    store = ObjectStore(f"memory://crash-{uuid.uuid4().hex[:8]}")
 
     def killed(*args, **kwargs):
         raise ConnectionError("worker killed between the temporary write and the copy")
 
-    monkeypatch.setattr(store.fs, "copy", killed)
+    monkeypatch.setattr(store.fs, "cp_file", killed)
     with pytest.raises(StoreError, match="cannot write the artifact") as exc:
         store.put_json({"half": True})
     assert "\n" not in str(exc.value)
-    assert not [k for k in _keys(s3_endpoint, "crash/") if k.startswith("crash/objects/")]
+    assert not store.fs.find(f"{store._base}/objects")
+    monkeypatch.undo()
+    ref = store.put_json({"half": True})
+    assert store.get_json(ref) == {"half": True}
+    assert store.fs.find(store._base) == [f"{store._base}/{ref.relpath}"]  # tmp/ removed
+    store.fs.rm(store._base, recursive=True)
+
+
+def test_a_failed_put_on_s3_is_one_line_and_leaves_no_object(s3_endpoint, monkeypatch):
+    store = ObjectStore(f"s3://{BUCKET}/crash")
+
+    def refused(*args, **kwargs):
+        raise PermissionError("Access Denied")
+
+    monkeypatch.setattr(store.fs, "pipe_file", refused)
+    with pytest.raises(StoreError, match="cannot write the artifact.*Access Denied") as exc:
+        store.put_json({"half": True})
+    assert "\n" not in str(exc.value) and str(exc.value).startswith(f"s3://{BUCKET}/crash/")
+    assert _keys(s3_endpoint, "crash/") == []
     monkeypatch.undo()
     ref = store.put_json({"half": True})
     assert store.get_json(ref) == {"half": True}
     assert _keys(s3_endpoint, "crash/") == [f"crash/{ref.relpath}"]
+
+
+def _s3_calls(monkeypatch, fs) -> list[str]:
+    """The S3 API operations s3fs sends through ``fs`` from now on, in order."""
+    calls: list[str] = []
+    real = fs._call_s3
+
+    async def counted(method, *args, **kwargs):
+        calls.append(method)
+        return await real(method, *args, **kwargs)
+
+    monkeypatch.setattr(fs, "_call_s3", counted)
+    return calls
+
+
+def test_on_s3_an_artifact_or_record_is_one_request_to_write_and_one_to_read(
+    s3_endpoint, monkeypatch
+):
+    """A round trip costs latency and money on S3: a new artifact is one GET (is it
+    there?) and one PUT (an S3 PUT is all-or-nothing: no temporary key to copy), a
+    present one one GET, a read one GET, a cache record one PUT and one GET; no HEAD
+    to size an object, no listing to tell a key from a folder, no server-side copy."""
+    from tumor3d.tasks.records import ScreenedRemoteFolder
+
+    store = ObjectStore(f"s3://{BUCKET}/calls")
+    calls = _s3_calls(monkeypatch, store.fs)
+    ref = store.put_json({"n": 1})
+    assert calls == ["get_object", "put_object"]
+    del calls[:]
+    assert store.put_json({"n": 1}) == ref and calls == ["get_object"]  # present: no write
+    del calls[:]
+    assert store.get_json(ref) == {"n": 1} and calls == ["get_object"]
+    assert _keys(s3_endpoint, "calls/") == [f"calls/{ref.relpath}"]  # no temporary key
+    records = ScreenedRemoteFolder(
+        basepath=f"s3://{BUCKET}/calls/prefect-results",
+        settings=objectstore._storage_options("s3"),
+    )
+    calls = _s3_calls(monkeypatch, records.filesystem)
+    records.write_path("a" * 32, b"{}")
+    assert calls == ["put_object"]  # no folder to make on S3
+    del calls[:]
+    assert records.read_raw("a" * 32) == b"{}" and calls == ["get_object"]
+    del calls[:]
+    with pytest.raises(FileNotFoundError):  # a cache miss: one request
+        records.read_raw("b" * 32)
+    assert calls == ["get_object"]
 
 
 def test_a_corrupted_object_is_quarantined_and_rewritten(s3_endpoint):
@@ -272,7 +340,7 @@ def test_an_interrupted_publish_leaves_no_marker_and_a_rerun_completes_it(
     out = RemoteFolder(f"s3://{BUCKET}/cut")
     publish_folder(_folder(tmp_path / "v1", V1), url)
     v2 = {**V1, "report.html": b"<html>v2</html>"}
-    real_copy, copies = out.fs.copy, []
+    real_copy, copies = out.fs.cp_file, []
 
     def copy_then_die(src, dst, **kw):
         if len(copies) == 1:  # the worker dies after the first file reached its final key
@@ -280,7 +348,7 @@ def test_an_interrupted_publish_leaves_no_marker_and_a_rerun_completes_it(
         copies.append(dst)
         return real_copy(src, dst, **kw)
 
-    monkeypatch.setattr(out.fs, "copy", copy_then_die)
+    monkeypatch.setattr(out.fs, "cp_file", copy_then_die)
     with pytest.raises(StoreError, match="left unpublished") as exc:
         publish_folder(_folder(tmp_path / "v2", v2), url)
     assert "\n" not in str(exc.value) and copies
@@ -302,14 +370,14 @@ def test_a_corrupted_object_is_detected_after_the_copy_and_after_publication(
     url = f"s3://{BUCKET}/bad/p1"
     out = RemoteFolder(f"s3://{BUCKET}/bad")
     staged = _folder(tmp_path / "v1", V1)
-    real_copy = out.fs.copy
+    real_copy = out.fs.cp_file
 
     def corrupting_copy(src, dst, **kw):
         real_copy(src, dst, **kw)
         if dst.endswith("report.html"):
             out.fs.pipe_file(dst, b"<html>X</html>")  # same size, other bytes
 
-    monkeypatch.setattr(out.fs, "copy", corrupting_copy)
+    monkeypatch.setattr(out.fs, "cp_file", corrupting_copy)
     with pytest.raises(StoreError, match="does not match the staged file's sha256"):
         publish_folder(staged, url)
     monkeypatch.undo()

@@ -7,12 +7,17 @@ keys, :class:`~tumor3d.storage.store.ArtifactRef` values and stage results do no
 depend on where the store lives. Only the raw-bytes layer differs; the typed
 helpers (``put_volume``, ``get_mesh``, ...) are the local class's own.
 
-* **Atomic publication**: an object is written under a temporary key
-  ``<url>/tmp/<name>.<random>``, then copied to its final key and the
-  temporary key removed; a writer killed before the copy leaves only a
-  ``tmp/`` key, never a partial object under a final name. (An S3 PUT is
-  itself all-or-nothing; the temporary key keeps the discipline of the local
-  store and holds for fsspec back-ends without that guarantee.)
+* **Atomic publication**: on S3 an object is written by one PUT, which is
+  all-or-nothing (the object appears complete or not at all, a multipart upload
+  only when completed). On other fsspec back-ends, which promise no such thing,
+  it is written under a temporary key ``<url>/tmp/<name>.<random>``, then
+  copied to its final key and the temporary key removed; a writer killed
+  before the copy leaves only a ``tmp/`` key, never a partial object under a
+  final name.
+* **One request where one will do** (:func:`read_object`, :func:`copy_object`):
+  every S3 request is a round trip, billed. A new artifact costs a GET (is it
+  there?) and a PUT, a read one GET: no HEAD to size the object first, no
+  listing to tell a key from a folder, no copy.
 * **Digest verified on read**: a mismatch moves the object to
   ``<url>/quarantine/<name>.<utc time>-<random>`` and raises
   :class:`~tumor3d.storage.store.CorruptArtifactError`, as locally. Repairs are
@@ -62,6 +67,9 @@ __all__ = [
     "modified_time",
     "open_fs",
     "open_store",
+    "put_is_atomic",
+    "read_object",
+    "copy_object",
 ]
 
 #: The artifact store's folder inside the output when no ``--store`` is given.
@@ -180,6 +188,47 @@ def open_fs(url: str) -> tuple[Any, str]:
     return fs, base.rstrip("/")
 
 
+#: fsspec protocols whose PUT is all-or-nothing and which have no folders (s3fs).
+ATOMIC_PUT_PROTOCOLS = frozenset({"s3", "s3a"})
+
+
+def put_is_atomic(fs: Any) -> bool:
+    """True if one write of ``fs`` makes an object appear whole or not at all (S3).
+
+    >>> import fsspec
+    >>> put_is_atomic(fsspec.filesystem("memory"))
+    False
+    """
+    protocol = fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)
+    return not ATOMIC_PUT_PROTOCOLS.isdisjoint(protocol)
+
+
+def read_object(fs: Any, key: str) -> bytes:
+    """The bytes of the object ``key``: one GET on S3.
+
+    s3fs's ``cat_file`` first asks an object's size (a HEAD, and a listing when the
+    key is missing) to read a large one in parallel ranges; the artifacts and
+    records here are read whole, in one request.
+
+    Raises
+    ------
+    FileNotFoundError
+        If there is no such object.
+    """
+    if put_is_atomic(fs):
+        return fs.cat_file(key, max_concurrency=1)
+    return fs.cat_file(key)
+
+
+def copy_object(fs: Any, src: str, dst: str) -> None:
+    """Copy one object to another key, server side.
+
+    ``fs.copy`` first expands both paths as globs and folders (listings); the keys
+    here are single objects.
+    """
+    fs.cp_file(src, dst)
+
+
 def check_reachable(fs: Any, base: str, url: str, *, what: str = "artifact store") -> None:
     """Contact the endpoint once: list the bucket of ``base``.
 
@@ -274,7 +323,7 @@ class ObjectStore(ArtifactStore):
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
         moved: str | None = f"quarantine/{Path(relpath).name}.{stamp}-{uuid.uuid4().hex[:8]}"
         try:
-            self.fs.copy(self._key(relpath), self._key(moved))
+            copy_object(self.fs, self._key(relpath), self._key(moved))
             self.fs.rm_file(self._key(relpath))
         except FileNotFoundError:  # another worker moved or rewrote it first
             moved = None
@@ -297,18 +346,25 @@ class ObjectStore(ArtifactStore):
         out = []
         for key in keys:
             try:
-                out.append(Repair(**json.loads(self.fs.cat_file(key))))
+                out.append(Repair(**json.loads(read_object(self.fs, key))))
             except (OSError, ValueError, TypeError):
                 continue
         return out
 
     # -- raw bytes ---------------------------------------------------------
     def _write_atomically(self, relpath: str, data: bytes) -> None:
-        """Write under a temporary key, copy to the final key, remove the temporary one."""
+        """One PUT where a PUT is all-or-nothing (S3), else a temporary key and a copy.
+
+        Elsewhere the bytes go under a temporary key, are copied to the final key,
+        and the temporary key is removed.
+        """
+        if put_is_atomic(self.fs):
+            self.fs.pipe_file(self._key(relpath), data)
+            return
         tmp = self._key(f"tmp/{Path(relpath).name}.{os.getpid()}-{uuid.uuid4().hex[:8]}")
         try:
             self.fs.pipe_file(tmp, data)
-            self.fs.copy(tmp, self._key(relpath))
+            copy_object(self.fs, tmp, self._key(relpath))
         finally:
             try:
                 self.fs.rm_file(tmp)
@@ -319,7 +375,8 @@ class ObjectStore(ArtifactStore):
         """Remove temporary keys (``tmp/``) untouched for ``max_age_s``: killed writers'.
 
         A remote writer's process cannot be asked whether it is alive, so a
-        temporary key is removed by age only (a write takes seconds).
+        temporary key is removed by age only (a write takes seconds). On S3 only
+        a writer of a back-end or version that wrote through ``tmp/`` leaves any.
 
         Returns
         -------
@@ -346,7 +403,7 @@ class ObjectStore(ArtifactStore):
     def put_bytes(
         self, data: bytes, *, kind: str, suffix: str, metadata: dict[str, Any] | None = None
     ) -> ArtifactRef:
-        """Store bytes (temporary key, then copy) and return their reference.
+        """Store bytes (one PUT on S3, else a temporary key and a copy); their reference.
 
         Same rules as :meth:`ArtifactStore.put_bytes`: an object already
         holding exactly these bytes is left alone, one with other bytes is
@@ -358,7 +415,7 @@ class ObjectStore(ArtifactStore):
         relpath = f"objects/{digest[:2]}/{digest}{suffix}"
         key = self._key(relpath)
         try:
-            existing: bytes | None = self.fs.cat_file(key)
+            existing: bytes | None = read_object(self.fs, key)
         except FileNotFoundError:
             existing = None
         except OSError:
@@ -394,7 +451,7 @@ class ObjectStore(ArtifactStore):
         """
         url = self.path(ref)
         try:
-            data = self.fs.cat_file(self._key(ref.relpath))
+            data = read_object(self.fs, self._key(ref.relpath))
         except FileNotFoundError:
             raise StoreError(f"artifact {ref.kind} {ref.digest[:12]} is missing: {url}") from None
         except Exception as exc:

@@ -44,7 +44,14 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from tumor3d.storage.objectstore import check_reachable, first_line, modified_time, open_fs
+from tumor3d.storage.objectstore import (
+    check_reachable,
+    copy_object,
+    first_line,
+    modified_time,
+    open_fs,
+    read_object,
+)
 from tumor3d.storage.store import STALE_TMP_S, StoreError, utc_now
 
 __all__ = [
@@ -111,7 +118,7 @@ class RemoteFolder:
 
     def cat(self, relpath: str) -> bytes:
         """The bytes of ``<url>/<relpath>``."""
-        return self.fs.cat_file(self.key(relpath))
+        return read_object(self.fs, self.key(relpath))
 
 
 def _marker_path(name: str) -> str:
@@ -273,7 +280,7 @@ def publish_files(
             pass
         step = "copy"
         for rel in data:
-            out.fs.copy(out.key(f"{tmp}/{rel}"), out.key(prefix + rel))
+            copy_object(out.fs, out.key(f"{tmp}/{rel}"), out.key(prefix + rel))
         step = "verify"
         for rel, info in entries.items():
             if _sha256(out.cat(prefix + rel)) != info["sha256"]:

@@ -37,6 +37,7 @@ from prefect.filesystems import LocalFileSystem, RemoteFileSystem
 from prefect.serializers import Serializer
 from pydantic import ValidationError
 
+from tumor3d.storage.objectstore import put_is_atomic, read_object
 from tumor3d.storage.store import atomic_write_bytes
 from tumor3d.tasks.spec import StageOutput
 
@@ -233,8 +234,8 @@ class ScreenedRemoteFolder(RemoteFileSystem):
     _block_type_slug: ClassVar[str] = "tumor3d-screened-remote-result-folder"
 
     def read_raw(self, path: str) -> bytes:
-        """A record's bytes, unscreened (for diagnostics)."""
-        return RemoteFileSystem.read_path(self, _record_name(path), _sync=True)  # type: ignore[call-arg]
+        """A record's bytes, unscreened (for diagnostics): one GET on S3."""
+        return read_object(self.filesystem, self._resolve_path(_record_name(path)))
 
     def read_path(self, path: str, _sync: bool | None = None) -> bytes:  # type: ignore[override]
         """The record stored under ``path`` (a cache key) if :func:`screen_record` trusts it."""
@@ -245,6 +246,22 @@ class ScreenedRemoteFolder(RemoteFileSystem):
     async def aread_path(self, path: str) -> bytes:  # type: ignore[override]
         """As :meth:`read_path`."""
         return self.read_path(path)
+
+    def write_path(self, path: str, content: bytes, _sync: bool | None = None) -> str:  # type: ignore[override]
+        """Write a record: one PUT on S3, else as Prefect's ``RemoteFileSystem`` does.
+
+        S3 has no folders to make, and its PUT is all-or-nothing.
+        """
+        fs = self.filesystem
+        if not put_is_atomic(fs):
+            return RemoteFileSystem.write_path(self, path, content, _sync=True)  # type: ignore[call-arg]
+        key = self._resolve_path(path)
+        fs.pipe_file(key, content)
+        return key
+
+    async def awrite_path(self, path: str, content: bytes) -> str:  # type: ignore[override]
+        """As :meth:`write_path`."""
+        return self.write_path(path, content)
 
 
 def why_refused(data: bytes, key: str) -> str | None:
