@@ -38,6 +38,8 @@ contacts the endpoint once, before any patient starts.
 
 from __future__ import annotations
 
+import functools
+import inspect
 import json
 import os
 import time
@@ -203,19 +205,33 @@ def put_is_atomic(fs: Any) -> bool:
     return not ATOMIC_PUT_PROTOCOLS.isdisjoint(protocol)
 
 
+@functools.cache
+def _sizes_before_reading(fs_type: type) -> bool:
+    """True if this s3fs's ``cat_file`` sizes an object before reading it.
+
+    s3fs 2026.3 and later do (and take ``max_concurrency``); earlier ones read in one
+    GET and refuse the keyword.
+    """
+    reader = getattr(fs_type, "_cat_file", None)
+    try:
+        return reader is not None and "max_concurrency" in inspect.signature(reader).parameters
+    except (TypeError, ValueError):
+        return False
+
+
 def read_object(fs: Any, key: str) -> bytes:
     """The bytes of the object ``key``: one GET on S3.
 
-    s3fs's ``cat_file`` first asks an object's size (a HEAD, and a listing when the
-    key is missing) to read a large one in parallel ranges; the artifacts and
-    records here are read whole, in one request.
+    s3fs's ``cat_file`` (since 2026.3) first asks an object's size (a HEAD, and a
+    listing when the key is missing) to read a large one in parallel ranges; the
+    artifacts and records here are read whole, in one request.
 
     Raises
     ------
     FileNotFoundError
         If there is no such object.
     """
-    if put_is_atomic(fs):
+    if put_is_atomic(fs) and _sizes_before_reading(type(fs)):
         return fs.cat_file(key, max_concurrency=1)
     return fs.cat_file(key)
 
@@ -375,19 +391,21 @@ class ObjectStore(ArtifactStore):
         """Remove temporary keys (``tmp/``) untouched for ``max_age_s``: killed writers'.
 
         A remote writer's process cannot be asked whether it is alive, so a
-        temporary key is removed by age only (a write takes seconds). On S3 only
-        a writer of a back-end or version that wrote through ``tmp/`` leaves any.
+        temporary key is removed by age only (a write takes seconds). On S3, where
+        one PUT writes an object, a killed writer of a large one (s3fs uploads from
+        100 MiB in parts) leaves an unfinished multipart upload instead: invisible,
+        billed, and aborted here by the same age.
 
         Returns
         -------
         list of str
-            The URLs removed.
+            The URLs removed (an aborted upload: its object's URL).
         """
+        removed = self._abort_stale_uploads(max_age_s) if put_is_atomic(self.fs) else []
         try:
             entries = self.fs.find(self._key("tmp"), detail=True)
         except Exception:  # housekeeping: an unlistable store is left as it is
-            return []
-        removed: list[str] = []
+            return removed
         now = time.time()
         for key, entry in entries.items():
             stamp = modified_time(entry)
@@ -398,6 +416,31 @@ class ObjectStore(ArtifactStore):
             except Exception:  # housekeeping: a key that cannot be removed is left as it is
                 continue
             removed.append(f"{self.url}/{key[len(self._base) + 1 :]}")
+        return removed
+
+    def _abort_stale_uploads(self, max_age_s: float) -> list[str]:
+        """Abort the store's multipart uploads started more than ``max_age_s`` ago."""
+        bucket, _, prefix = self._base.partition("/")
+        removed: list[str] = []
+        now = time.time()
+        try:
+            listed = self.fs.call_s3(
+                "list_multipart_uploads", Bucket=bucket, Prefix=f"{prefix}/" if prefix else ""
+            )
+        except Exception:  # housekeeping: an endpoint that cannot list them is left as it is
+            return removed
+        for upload in listed.get("Uploads", []):
+            started = modified_time({"LastModified": upload.get("Initiated")})
+            if started is None or now - started <= max_age_s:
+                continue
+            try:
+                self.fs.call_s3(
+                    "abort_multipart_upload",
+                    Bucket=bucket, Key=upload["Key"], UploadId=upload["UploadId"],
+                )  # fmt: skip
+            except Exception:  # housekeeping: an upload that cannot be aborted is left
+                continue
+            removed.append(f"{self.url.split('://', 1)[0]}://{bucket}/{upload['Key']}")
         return removed
 
     def put_bytes(
