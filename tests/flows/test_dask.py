@@ -17,13 +17,15 @@ import os
 import socket
 import threading
 import time
+import uuid
 
+import numpy as np
 import pytest
 from phantom_rows import small_phantom_rows
 from typer.testing import CliRunner
 
 from tumor3d.errors import InputError
-from tumor3d.flows import dask_runner
+from tumor3d.flows import dask_runner, dask_workers
 from tumor3d.flows.cli import app
 from tumor3d.flows.cohort import run_cohort
 from tumor3d.flows.dask_runner import ClusterError, DaskSpec
@@ -165,6 +167,77 @@ def test_unreachable_scheduler_is_one_line_before_any_patient(tmp_path, monkeypa
     assert res.exit_code == 3, res.output  # an environment error
     assert "cannot connect" in res.output and "Traceback" not in res.output
     assert not out.exists()
+
+
+def _probe_folders(root):
+    return [p for p in root.rglob("*") if dask_workers.PROBE_DIR in p.parts]
+
+
+def test_the_store_probe_is_read_where_it_was_written_and_removed_after(tmp_path):
+    """What a worker is asked: the probe this process left in the store (a folder, or an
+    fsspec URL: the memory file system stands for s3://), and its stage code."""
+    for location in (str(tmp_path / "new" / "store"), f"memory://probe-{uuid.uuid4().hex}"):
+        token = uuid.uuid4().hex
+        remove = dask_workers._write_probe(location, token)
+        seen = dask_workers.worker_view(location, token)
+        assert seen["store"] == "ok", location
+        assert seen["stages"] == {n: s.code_digest for n, s in STAGES.items()}
+        assert seen["packages"]["numpy"] == np.__version__
+        other = dask_workers.worker_view(location, uuid.uuid4().hex)  # another machine's view
+        assert other["store"].startswith("FileNotFoundError"), other["store"]
+        remove()
+        assert dask_workers.worker_view(location, token)["store"].startswith("FileNotFoundError")
+    assert not (tmp_path / "new").exists()  # the folders the probe made are gone with it
+
+
+@pytest.mark.usefixtures("generous_comm_timeouts")
+def test_a_worker_that_does_not_share_the_store_or_the_code_is_one_line_before_any_patient(
+    tmp_path, monkeypatch
+):
+    """``--dask-address``: a worker on a machine that does not see the store (a path on
+    this machine only), or that runs other stage code or other numerical packages, is
+    named in one line, exit 3, before any patient starts; nothing is left behind. Thread
+    workers of this process stand for the other machines: their answer is edited."""
+    rows = _rows(tmp_path / "in", [0])
+    out = tmp_path / "out"
+    manifest = write_manifest(rows, tmp_path / "m.csv")
+    real = dask_workers.worker_view
+    elsewhere = str(tmp_path / "elsewhere")  # where the worker's machine looks
+
+    def blind(location, token):
+        return real(elsewhere, token)
+
+    def other_code(location, token):
+        seen = real(location, token)
+        return {**seen, "stages": {**seen["stages"], "render-views": "0" * 64}}
+
+    def other_numpy(location, token):
+        seen = real(location, token)
+        return {**seen, "packages": {**seen["packages"], "numpy": "1.0.0"}}
+
+    cases = [
+        (blind, f"does not see the artifact store {out / '.tumor3d-store'} (FileNotFoundError"),
+        (other_code, "runs other tumor3d code (stages render-views differ"),
+        (other_numpy, f"other numerical packages (numpy 1.0.0 there, {np.__version__} here)"),
+    ]
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0"
+    ) as cluster:  # fmt: skip
+        address = cluster.scheduler_address
+        worker = next(iter(cluster.scheduler.workers))
+        for view, message in cases:
+            monkeypatch.setattr(dask_workers, "worker_view", view)
+            with pytest.raises(ClusterError) as exc:
+                run_cohort(rows, out, workers=1, dask=DaskSpec(address=address))
+            assert str(exc.value).startswith(f"Dask worker {worker}"), exc.value
+            assert message in str(exc.value) and "\n" not in str(exc.value)
+            assert not out.exists()  # no patient, no store, no probe
+        res = CliRunner().invoke(
+            app, ["cohort", str(manifest), "--out", str(out), "--dask-address", address]
+        )
+        assert res.exit_code == 3, res.output  # an environment error
+        assert "numpy 1.0.0 there" in res.output and "Traceback" not in res.output
+    assert not out.exists() and not _probe_folders(tmp_path)
 
 
 def test_dask_options_are_exclusive():

@@ -47,6 +47,7 @@ from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError, Tumor3DError, exception_line
 from tumor3d.flows.artifacts import publish_cohort_artifacts
 from tumor3d.flows.dask_runner import DaskSpec, check_scheduler, cohort_task_runner
+from tumor3d.flows.dask_workers import check_workers
 from tumor3d.flows.exit_codes import EXIT_CHECK, EXIT_ENVIRONMENT
 from tumor3d.flows.patient import (
     VOLUME_LABELS,
@@ -611,6 +612,8 @@ def run_cohort(
     if dask is not None and dask.address:
         n_cluster = check_scheduler(dask.address)  # one line, before any patient starts
         n = max(1, n_cluster) if workers is None else workers
+        # every worker reads the store where this process writes it and runs this code
+        check_workers(dask.address, store_at)
     elif dask is not None and dask.n_workers and workers is None:
         n = dask.n_workers
     writer: contextlib.AbstractContextManager[None] = contextlib.nullcontext()

@@ -131,7 +131,7 @@ def _reach_destinations(
 
 
 def _preflight_cohort(out: str | Path, store: str | Path | None, dask_address: str | None) -> None:
-    """Reach a cohort's ``s3://`` output and store and its Dask scheduler before starting Prefect.
+    """Reach a cohort's ``s3://`` output and store and its Dask workers before starting Prefect.
 
     :func:`tumor3d.flows.cohort.run_cohort` checks them again (a second round trip
     when they answer) and creates a local store; here an unreachable one is named in
@@ -140,8 +140,11 @@ def _preflight_cohort(out: str | Path, store: str | Path | None, dask_address: s
     _reach_destinations(out, store, make_local_store=False)
     if dask_address:
         from tumor3d.flows.dask_runner import check_scheduler
+        from tumor3d.flows.dask_workers import check_workers
+        from tumor3d.storage.objectstore import default_store_location
 
         check_scheduler(dask_address)
+        check_workers(dask_address, store if store is not None else default_store_location(out))
 
 
 def _check_given_masks(
