@@ -14,6 +14,7 @@ has a stage that kills its worker every time (Dask gives up with ``KilledWorker`
 from __future__ import annotations
 
 import os
+import platform
 import socket
 import threading
 import time
@@ -30,6 +31,7 @@ from tumor3d.flows.cli import app
 from tumor3d.flows.cohort import run_cohort
 from tumor3d.flows.dask_runner import ClusterError, DaskSpec
 from tumor3d.storage.manifest import write_manifest
+from tumor3d.storage.store import StoreError
 from tumor3d.tasks.stages import STAGES
 
 distributed = pytest.importorskip("distributed", reason="Dask extra not installed")
@@ -188,6 +190,13 @@ def test_the_store_probe_is_read_where_it_was_written_and_removed_after(tmp_path
         remove()
         assert dask_workers.worker_view(location, token)["store"].startswith("FileNotFoundError")
     assert not (tmp_path / "new").exists()  # the folders the probe made are gone with it
+    afile = tmp_path / "afile"
+    afile.write_text("not a store")
+    with pytest.raises(InputError, match="must be a folder, but this is a file"):
+        dask_workers._write_probe(str(afile), "t")
+    with pytest.raises(StoreError, match=f"^{afile / 'sub'}: cannot write in the artifact store"):
+        dask_workers._write_probe(str(afile / "sub"), "t")
+    assert afile.read_text() == "not a store" and sorted(tmp_path.iterdir()) == [afile]
 
 
 @pytest.mark.usefixtures("generous_comm_timeouts")
@@ -215,11 +224,30 @@ def test_a_worker_that_does_not_share_the_store_or_the_code_is_one_line_before_a
         seen = real(location, token)
         return {**seen, "packages": {**seen["packages"], "numpy": "1.0.0"}}
 
+    def other_python(location, token):
+        return {**real(location, token), "python": "3.99"}
+
+    def older_tumor3d(location, token):
+        raise ModuleNotFoundError("No module named 'tumor3d.flows.dask_workers'")
+
+    def failing(location, token):
+        raise RuntimeError("boom")
+
+    def silent(location, token):  # stopped, or a task holding the GIL
+        time.sleep(3)
+        return real(location, token)
+
+    here = ".".join(platform.python_version_tuple()[:2])
     cases = [
         (blind, f"does not see the artifact store {out / '.tumor3d-store'} (FileNotFoundError"),
+        (other_python, f"runs Python 3.99 ({here} here)"),
         (other_code, "runs other tumor3d code (stages render-views differ"),
         (other_numpy, f"other numerical packages (numpy 1.0.0 there, {np.__version__} here)"),
+        (older_tumor3d, "runs another version of tumor3d (ModuleNotFoundError: No module"),
+        (failing, ": the check of what it shares with this machine failed (RuntimeError: boom)"),
+        (silent, ": no answer within 0.5 s to the check of the artifact store and the code"),
     ]
+    dask_workers._code()  # this process's stage digests, made once: the workers' are too
     with distributed.LocalCluster(
         n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0"
     ) as cluster:  # fmt: skip
@@ -227,6 +255,10 @@ def test_a_worker_that_does_not_share_the_store_or_the_code_is_one_line_before_a
         worker = next(iter(cluster.scheduler.workers))
         for view, message in cases:
             monkeypatch.setattr(dask_workers, "worker_view", view)
+            # a silent worker is given up after 0.5 s (and so is the last, the CLI's)
+            monkeypatch.setattr(
+                dask_workers, "WORKER_CHECK_TIMEOUT_S", 0.5 if view is silent else 60
+            )
             with pytest.raises(ClusterError) as exc:
                 run_cohort(rows, out, workers=1, dask=DaskSpec(address=address))
             assert str(exc.value).startswith(f"Dask worker {worker}"), exc.value
@@ -236,7 +268,8 @@ def test_a_worker_that_does_not_share_the_store_or_the_code_is_one_line_before_a
             app, ["cohort", str(manifest), "--out", str(out), "--dask-address", address]
         )
         assert res.exit_code == 3, res.output  # an environment error
-        assert "numpy 1.0.0 there" in res.output and "Traceback" not in res.output
+        assert "no answer within 0.5 s" in res.output and "Traceback" not in res.output
+        assert "Prefect" not in res.output  # refused before a Prefect server was started
     assert not out.exists() and not _probe_folders(tmp_path)
 
 

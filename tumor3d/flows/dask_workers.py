@@ -19,17 +19,27 @@ Workers that join after the check are not asked.
 
 from __future__ import annotations
 
+import asyncio
 import os
+import platform
+import threading
 import uuid
 from pathlib import Path
 from typing import Any
 
+from tumor3d.errors import InputError
 from tumor3d.flows.dask_runner import CONNECT_TIMEOUT_S, ClusterError
+from tumor3d.storage.store import StoreError
 
-__all__ = ["PROBE_DIR", "check_workers", "worker_view"]
+__all__ = ["PROBE_DIR", "WORKER_CHECK_TIMEOUT_S", "check_workers", "worker_view"]
 
 #: The probe's folder inside the artifact store (removed after the check).
 PROBE_DIR = ".tumor3d-probe"
+
+#: Seconds every worker has to answer, read at the call. A worker's first answer
+#: imports the stages and digests their code (2-4 s); a stopped or hung worker, or one
+#: whose running task holds the GIL, does not answer and is named.
+WORKER_CHECK_TIMEOUT_S = 60.0
 
 
 def _first_line(exc: BaseException) -> str:
@@ -44,6 +54,8 @@ def _code() -> dict[str, Any]:
 
     dists = sorted({d for names in NUMERICAL_PACKAGES.values() for d in names})
     return {
+        # the code digests are of syntax trees, whose form differs between Python versions
+        "python": ".".join(platform.python_version_tuple()[:2]),
         "stages": {name: spec.code_digest for name, spec in STAGES.items()},
         "packages": {d: installed_version(d) for d in dists},
     }
@@ -72,6 +84,15 @@ def worker_view(store_location: str, token: str) -> dict[str, Any]:
     return {"store": store, **_code()}
 
 
+async def _worker_view_off_the_loop(store_location: str, token: str) -> dict[str, Any]:
+    """:func:`worker_view` in a thread of the worker, which is what the check runs there.
+
+    The worker's event loop (heartbeats, other clients) keeps running while the stages
+    are imported or the store answers slowly.
+    """
+    return await asyncio.to_thread(worker_view, store_location, token)
+
+
 def _write_probe(store_location: str, token: str) -> Any:
     """Write the probe; returns the function that removes it (and any folder it made)."""
     from tumor3d.storage.objectstore import is_url, open_fs
@@ -79,7 +100,12 @@ def _write_probe(store_location: str, token: str) -> Any:
     if is_url(store_location):
         fs, base = open_fs(store_location)
         key = f"{base}/{PROBE_DIR}/{token}"
-        fs.pipe_file(key, token.encode())
+        try:
+            fs.pipe_file(key, token.encode())
+        except Exception as exc:  # noqa: BLE001 - botocore/aiohttp raise many types
+            raise StoreError(
+                f"{store_location}: cannot write in the artifact store ({_first_line(exc)})"
+            ) from None
 
         def remove_object() -> None:
             try:
@@ -89,14 +115,17 @@ def _write_probe(store_location: str, token: str) -> Any:
 
         return remove_object
     root = Path(store_location)
+    if root.exists() and not root.is_dir():
+        raise InputError("the artifact store must be a folder, but this is a file", root)
     folder = root / PROBE_DIR
     made = [p for p in (folder, *folder.parents) if not p.exists()]  # deepest first
-    folder.mkdir(parents=True, exist_ok=True)
     probe = folder / token
-    probe.write_text(token)
 
     def remove_file() -> None:
-        probe.unlink(missing_ok=True)
+        try:
+            probe.unlink()
+        except OSError:  # never written, or already gone
+            pass
         for p in dict.fromkeys((folder, *made)):  # the probe's and those it made, if empty
             try:
                 os.rmdir(p)
@@ -105,6 +134,14 @@ def _write_probe(store_location: str, token: str) -> Any:
             except OSError:  # not empty (the store holds more than the probe): kept
                 break
 
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe.write_text(token)
+    except OSError as exc:
+        remove_file()
+        raise StoreError(
+            f"{root}: cannot write in the artifact store ({exc.strerror or _first_line(exc)})"
+        ) from None
     return remove_file
 
 
@@ -133,8 +170,6 @@ def check_workers(
         other stage code, or has other numerical packages; or that cannot run the
         check (tumor3d not importable there).
     """
-    from distributed import Client
-
     from tumor3d.storage.objectstore import is_url
 
     location = os.fspath(store_location)
@@ -143,44 +178,118 @@ def check_workers(
     token = uuid.uuid4().hex
     remove = _write_probe(location, token)
     try:
-        timeout = CONNECT_TIMEOUT_S if timeout_s is None else timeout_s
-        with Client(address, timeout=timeout) as client:
-            views = client.run(worker_view, location, token, on_error="return")
-    except ClusterError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - the scheduler answered a moment ago
+        connect_s = CONNECT_TIMEOUT_S if timeout_s is None else timeout_s
+        views, silent = _ask_workers(address, location, token, connect_s, WORKER_CHECK_TIMEOUT_S)
+    finally:
+        remove()
+    if silent:
+        raise ClusterError(
+            f"Dask worker {silent[0]}: no answer within {WORKER_CHECK_TIMEOUT_S:g} s to the "
+            "check of the artifact store and the code (stopped, hung, or busy in a task that "
+            "holds the GIL)"
+        )
+    mine = _code()
+    for worker, view in sorted(views.items()):
+        _judge(f"Dask worker {worker}", view, mine, location)
+    return len(views)
+
+
+def _judge(where: str, view: Any, mine: dict[str, Any], location: str) -> None:
+    """Raise :class:`ClusterError` if a worker's answer differs from this machine's."""
+    if isinstance(view, BaseException):
+        if isinstance(view, ImportError) and "tumor3d" in str(view):
+            raise ClusterError(
+                f"{where} runs another version of tumor3d ({_first_line(view)}); install "
+                "the same version on every worker"
+            )
+        if type(view).__name__ == "CommClosedError":
+            raise ClusterError(f"{where} left the cluster during the check ({_first_line(view)})")
+        raise ClusterError(
+            f"{where}: the check of what it shares with this machine failed ({_first_line(view)})"
+        )
+    if view["store"] != "ok":
+        raise ClusterError(
+            f"{where} does not see the artifact store {location} ({view['store']}); every "
+            "worker must reach it at the same location: a path shared by every machine, or s3://"
+        )
+    if view.get("python") != mine["python"]:
+        raise ClusterError(
+            f"{where} runs Python {view.get('python')} ({mine['python']} here): the stages' "
+            "code digests and cache keys differ between Python versions; run every worker "
+            "on the same one"
+        )
+    stages = sorted(n for n, d in mine["stages"].items() if view["stages"].get(n) != d)
+    if stages:
+        raise ClusterError(
+            f"{where} runs other tumor3d code (stages {', '.join(stages)} differ from this "
+            "machine's); install the same version on every worker"
+        )
+    packages = sorted(d for d, v in mine["packages"].items() if view["packages"].get(d) != v)
+    if packages:
+        theirs = ", ".join(
+            f"{d} {view['packages'].get(d)} there, {mine['packages'][d]} here" for d in packages
+        )
+        raise ClusterError(
+            f"{where} has other numerical packages ({theirs}); install the same versions on "
+            "every worker"
+        )
+
+
+def _ask_workers(
+    address: str, location: str, token: str, connect_s: float, answer_s: float
+) -> tuple[dict[str, Any], list[str]]:
+    """Every worker's :func:`worker_view` (or its exception), and the silent workers.
+
+    A worker is silent when it did not answer within ``answer_s``. Asked from a thread
+    with its own event loop (a notebook's loop may be running in this one), each worker
+    separately, so that a silent one is named while the others' answers stand.
+    """
+    from distributed import Client
+
+    async def ask() -> tuple[dict[str, Any], list[str]]:
+        async with Client(address, asynchronous=True, timeout=connect_s) as client:
+            workers = sorted((await client.scheduler.identity())["workers"])
+            asked = {
+                w: asyncio.ensure_future(
+                    client.run(
+                        _worker_view_off_the_loop, location, token, workers=[w], on_error="return"
+                    )
+                )
+                for w in workers
+            }
+            if not asked:
+                return {}, []
+            done, pending = await asyncio.wait(asked.values(), timeout=answer_s)
+            for future in pending:
+                future.cancel()
+            views = {}
+            for w, future in asked.items():
+                if future in done:
+                    exc = future.exception()
+                    views[w] = exc if exc is not None else next(iter(future.result().values()))
+            return views, [w for w, future in asked.items() if future in pending]
+
+    outcome: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            outcome["value"] = asyncio.run(ask())
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=run, name="tumor3d-dask-worker-check", daemon=True)
+    thread.start()
+    thread.join(connect_s + answer_s + 30.0)  # the loop's own deadlines end it before this
+    if thread.is_alive():
+        raise ClusterError(
+            f"Dask scheduler {address}: no answer within {connect_s + answer_s + 30.0:g} s "
+            "while its workers were asked about the artifact store and the code"
+        )
+    if "error" in outcome:
+        exc = outcome["error"]
+        if isinstance(exc, ClusterError | KeyboardInterrupt):
+            raise exc
         raise ClusterError(
             f"Dask scheduler {address}: could not ask its workers ({_first_line(exc)})"
         ) from None
-    finally:
-        remove()
-    mine = _code()
-    for worker, view in sorted(views.items()):
-        where = f"Dask worker {worker}"
-        if isinstance(view, BaseException):
-            raise ClusterError(
-                f"{where}: the check of what it shares with this machine failed "
-                f"({_first_line(view)}); every worker must import this project"
-            )
-        if view["store"] != "ok":
-            raise ClusterError(
-                f"{where} does not see the artifact store {location} ({view['store']}); "
-                "every worker must reach it at the same location: a path shared by every "
-                "machine, or s3://"
-            )
-        stages = sorted(n for n, d in mine["stages"].items() if view["stages"].get(n) != d)
-        if stages:
-            raise ClusterError(
-                f"{where} runs other tumor3d code (stages {', '.join(stages)} differ from "
-                "this machine's); install the same version on every worker"
-            )
-        packages = sorted(d for d, v in mine["packages"].items() if view["packages"].get(d) != v)
-        if packages:
-            theirs = ", ".join(
-                f"{d} {view['packages'].get(d)} there, {mine['packages'][d]} here" for d in packages
-            )
-            raise ClusterError(
-                f"{where} has other numerical packages ({theirs}); install the same versions "
-                "on every worker"
-            )
-    return len(views)
+    return outcome["value"]
