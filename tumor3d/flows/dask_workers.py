@@ -67,8 +67,9 @@ def worker_view(store_location: str, token: str) -> dict[str, Any]:
     Returns
     -------
     dict
-        ``store``: ``"ok"`` or why the probe could not be read there; ``stages`` and
-        ``packages``: as this machine's (:func:`check_workers` compares them).
+        ``store``: ``"ok"`` or why the probe could not be read there; ``python``
+        (major.minor), ``stages`` (code digests) and ``packages`` (versions): as this
+        machine's (:func:`check_workers` compares them).
     """
     from tumor3d.storage.objectstore import is_url, open_fs, read_object
 
