@@ -27,7 +27,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from tumor3d.errors import InputError
+from tumor3d.errors import InputError, exception_line
 from tumor3d.flows.dask_runner import CONNECT_TIMEOUT_S, ClusterError
 from tumor3d.storage.store import StoreError
 
@@ -40,11 +40,6 @@ PROBE_DIR = ".tumor3d-probe"
 #: imports the stages and digests their code (2-4 s); a stopped or hung worker, or one
 #: whose running task holds the GIL, does not answer and is named.
 WORKER_CHECK_TIMEOUT_S = 60.0
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return f"{type(exc).__name__}: {text.splitlines()[0]}" if text else type(exc).__name__
 
 
 def _code() -> dict[str, Any]:
@@ -81,7 +76,7 @@ def worker_view(store_location: str, token: str) -> dict[str, Any]:
             seen = (Path(store_location) / PROBE_DIR / token).read_text()
         store = "ok" if seen == token else "the probe there holds other bytes"
     except Exception as exc:  # noqa: BLE001 - any failure is "does not see it", named
-        store = _first_line(exc)
+        store = exception_line(exc)
     return {"store": store, **_code()}
 
 
@@ -105,7 +100,7 @@ def _write_probe(store_location: str, token: str) -> Any:
             fs.pipe_file(key, token.encode())
         except Exception as exc:  # noqa: BLE001 - botocore/aiohttp raise many types
             raise StoreError(
-                f"{store_location}: cannot write in the artifact store ({_first_line(exc)})"
+                f"{store_location}: cannot write in the artifact store ({exception_line(exc)})"
             ) from None
 
         def remove_object() -> None:
@@ -141,7 +136,7 @@ def _write_probe(store_location: str, token: str) -> Any:
     except OSError as exc:
         remove_file()
         raise StoreError(
-            f"{root}: cannot write in the artifact store ({exc.strerror or _first_line(exc)})"
+            f"{root}: cannot write in the artifact store ({exc.strerror or exception_line(exc)})"
         ) from None
     return remove_file
 
@@ -200,14 +195,13 @@ def _judge(where: str, view: Any, mine: dict[str, Any], location: str) -> None:
     if isinstance(view, BaseException):
         if isinstance(view, ImportError) and "tumor3d" in str(view):
             raise ClusterError(
-                f"{where} runs another version of tumor3d ({_first_line(view)}); install "
+                f"{where} runs another version of tumor3d ({exception_line(view)}); install "
                 "the same version on every worker"
             )
+        why = exception_line(view)
         if type(view).__name__ == "CommClosedError":
-            raise ClusterError(f"{where} left the cluster during the check ({_first_line(view)})")
-        raise ClusterError(
-            f"{where}: the check of what it shares with this machine failed ({_first_line(view)})"
-        )
+            raise ClusterError(f"{where} left the cluster during the check ({why})")
+        raise ClusterError(f"{where}: the check of what it shares with this machine failed ({why})")
     if view["store"] != "ok":
         raise ClusterError(
             f"{where} does not see the artifact store {location} ({view['store']}); every "
@@ -291,6 +285,6 @@ def _ask_workers(
         if isinstance(exc, ClusterError | KeyboardInterrupt):
             raise exc
         raise ClusterError(
-            f"Dask scheduler {address}: could not ask its workers ({_first_line(exc)})"
+            f"Dask scheduler {address}: could not ask its workers ({exception_line(exc)})"
         ) from None
     return outcome["value"]
