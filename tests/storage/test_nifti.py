@@ -198,7 +198,9 @@ def test_a_stored_probability_is_rounded_to_1_255_keeps_the_side_of_a_half_and_c
     np.testing.assert_allclose(levels, np.round(levels), atol=1e-4)  # multiples of 1/255
     np.testing.assert_array_equal(stored >= 0.5, prob >= 0.5)  # no voxel changes side
     sizes = [len(encode_nifti(a, OBLIQUE, dtype=np.float32)) for a in (prob, stored)]
-    assert sizes[1] * 10 < sizes[0], sizes  # noise in the last bits does not compress
+    # noise in the last bits does not compress (the rounded map: 7x smaller with ISA-L's
+    # level 1, 14x with zlib's level 6)
+    assert sizes[1] * 5 < sizes[0], sizes
     array, _ = decode_nifti(encode_nifti(stored, OBLIQUE, dtype=np.float32))
     np.testing.assert_array_equal(array, stored)
 

@@ -2,7 +2,10 @@
 
 :func:`encode_nifti` turns a voxel array and its affine into gzip-compressed
 NIfTI-1 bytes that are identical for identical inputs (gzip ``mtime=0``, no
-file name, a fixed ``descrip``), so that the bytes can be content-addressed.
+file name, a fixed ``descrip``), so that the bytes can be content-addressed. The
+deflate is ISA-L's (``isal.igzip``, standard gzip that every reader opens): on MR
+volumes 19-30 times faster than zlib's level 6, for files up to 20 % larger
+(reports/benchmarks.md, "NIfTI compression").
 sform and qform both hold the affine (code 1, scanner, unless the input's own
 codes are kept: ``SourceGrid.xform_codes``), units are mm. :func:`placed_affine`
 reads where every NIfTI file is placed in the world.
@@ -15,12 +18,12 @@ for voxel in any viewer.
 
 from __future__ import annotations
 
-import gzip
 import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from isal import igzip
 
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
@@ -97,7 +100,9 @@ def differing_qform(img: Any, affine: np.ndarray) -> np.ndarray | None:
 
 
 _DESCRIP = b"tumor3d"
-_GZIP_LEVEL = 6
+#: ISA-L's level 1 (of 0-3): its levels 1 and 2 compress alike; 3 is 4 times slower for
+#: files 4 % smaller; 0 is as fast and 20 % larger.
+_GZIP_LEVEL = 1
 _GZIP_MAGIC = b"\x1f\x8b"
 
 
@@ -167,7 +172,7 @@ def encode_nifti(
         img.header.set_intent("label")
     img.header["descrip"] = _DESCRIP
     raw = img.to_bytes()
-    return gzip.compress(raw, compresslevel=_GZIP_LEVEL, mtime=0)
+    return igzip.compress(raw, compresslevel=_GZIP_LEVEL, mtime=0)
 
 
 def decode_nifti(data: bytes) -> tuple[np.ndarray, np.ndarray]:
@@ -194,7 +199,7 @@ def decode_nifti(data: bytes) -> tuple[np.ndarray, np.ndarray]:
     import nibabel as nib
 
     try:
-        raw = gzip.decompress(data) if bytes(data[:2]) == _GZIP_MAGIC else bytes(data)
+        raw = igzip.decompress(data) if bytes(data[:2]) == _GZIP_MAGIC else bytes(data)
         img = nib.Nifti1Image.from_bytes(raw)
         array = np.asanyarray(img.dataobj).copy()
     except Exception as exc:

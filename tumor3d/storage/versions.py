@@ -37,7 +37,7 @@ NUMERICAL_PACKAGES: dict[str, tuple[str, ...]] = {
 #: Every distribution whose version is recorded: the numerical ones and the rest
 #: of the software a result passes through (orchestration, validation, codecs, plots).
 PACKAGES: tuple[str, ...] = (
-    "prefect", "pydantic", "pyarrow", "vtk", "matplotlib",
+    "prefect", "pydantic", "pyarrow", "isal", "vtk", "matplotlib",
     *dict.fromkeys(d for dists in NUMERICAL_PACKAGES.values() for d in dists),
 )  # fmt: skip
 
