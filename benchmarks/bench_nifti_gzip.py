@@ -12,8 +12,10 @@ Both peers run in one process, alternately:
    acquired.
 2. **Every stage of a patient** without Prefect
    (:func:`tumor3d.flows.patient.run_stages_direct`, a fresh store each time, so every
-   artifact is encoded): the default phantom and, with the data, the LGG head,
-   ``--pairs`` pairs alternated (the first pair a warm-up, not counted).
+   artifact is encoded; in one process the next stage takes a volume from the memo of
+   decoded products, so nothing is inflated): the default phantom and, with the data,
+   the LGG head, ``--pairs`` pairs, each peer first in every other pair (the first
+   pair a warm-up, not counted).
 
 Prints the figures; the machine may be shared: read the ratios.
 
@@ -146,7 +148,8 @@ def main() -> None:
         for name, path, modality in inputs:
             walls: dict[str, list[float]] = {label: [] for label in PEERS}
             for i in range(args.pairs + 1):
-                for label, peer in PEERS.items():
+                order = list(PEERS.items())
+                for label, peer in order if i % 2 else order[::-1]:  # each first in turn
                     store = work / "store"
                     shutil.rmtree(store, ignore_errors=True)
                     with deflate_with(peer):

@@ -4,8 +4,11 @@
 NIfTI-1 bytes that are identical for identical inputs (gzip ``mtime=0``, no
 file name, a fixed ``descrip``), so that the bytes can be content-addressed. The
 deflate is ISA-L's (``isal.igzip``, standard gzip that every reader opens): on MR
-volumes 19-30 times faster than zlib's level 6, for files up to 20 % larger
-(reports/benchmarks.md, "NIfTI compression").
+volumes 19-30 times faster than zlib's level 6, for volumes up to 20 % larger and
+smooth probability maps up to 2 times (reports/benchmarks.md, "NIfTI compression").
+The bytes are the same for a given ISA-L build and processor family (ISA-L has
+code of its own per family): where they differ, a content-addressed artifact is
+stored twice and its dependants recomputed, never read wrong.
 sform and qform both hold the affine (code 1, scanner, unless the input's own
 codes are kept: ``SourceGrid.xform_codes``), units are mm. :func:`placed_affine`
 reads where every NIfTI file is placed in the world.
