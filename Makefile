@@ -25,8 +25,8 @@ demo: setup
 # of its current file is left (tests/conftest.py's scheduler). TEST_WORKERS=0 runs
 # everything in this process. The test Prefect servers and flow runs are set up to idle
 # and burn little (tests/conftest.py). Measured (issue 31 item 7, reports/test_suite.md):
-# .ci/run on clean clones on 2 cores, 1,879-1,887 tests: 312.2-364.8 s of pytest (319.8 s for
-# the current 1,887), 7.5-9 min in all; a warm checkout 294.6-296.6 s.
+# .ci/run on clean clones on 2 cores, 1,889 tests: 282.3 s of pytest at the quietest hour
+# (6.8 min in all), 351.6-412.2 s at loaded ones; a warm checkout 275-291 s at quiet hours.
 # Numba compiling what the warm-up of `make setup` does not: the warm-up test's own
 # warm-up into an empty cache (18 s) and kernels only tests call (12 s). This shared
 # machine's speed moves by ~12 % within a day: compare runs made back to back.
