@@ -13,7 +13,7 @@ exit code 3).
 Wiring only: the probe is a small file (an object on S3) that this process writes
 under ``<store>/.tumor3d-probe/`` and removes again; the code is compared by the
 stages' code digests (:attr:`tumor3d.tasks.spec.StageSpec.code_digest`, which the cache
-keys hold) and the versions of :data:`tumor3d.storage.versions.NUMERICAL_PACKAGES`.
+keys hold) and the versions of :data:`tumor3d.storage.versions.NUMERICAL_DISTRIBUTIONS`.
 Workers that join after the check are not asked.
 """
 
@@ -44,15 +44,14 @@ WORKER_CHECK_TIMEOUT_S = 60.0
 
 def _code() -> dict[str, Any]:
     """The stage code digests and numerical package versions of the calling process."""
-    from tumor3d.storage.versions import NUMERICAL_PACKAGES, installed_version
-    from tumor3d.tasks.stages import STAGES
+    from tumor3d.storage.versions import NUMERICAL_DISTRIBUTIONS, installed_version
+    from tumor3d.tasks.stages import code_digests
 
-    dists = sorted({d for names in NUMERICAL_PACKAGES.values() for d in names})
     return {
         # the code digests are of syntax trees, whose form differs between Python versions
         "python": ".".join(platform.python_version_tuple()[:2]),
-        "stages": {name: spec.code_digest for name, spec in STAGES.items()},
-        "packages": {d: installed_version(d) for d in dists},
+        "stages": code_digests(),
+        "packages": {d: installed_version(d) for d in NUMERICAL_DISTRIBUTIONS},
     }
 
 

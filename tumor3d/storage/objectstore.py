@@ -298,6 +298,10 @@ class ObjectStore(ArtifactStore):
     def _key(self, relpath: str) -> str:
         return f"{self._base}/{relpath}"
 
+    def _url_of(self, key: str) -> str:
+        """The URL of ``key``, a key under this store (:meth:`_key`'s inverse)."""
+        return f"{self.url}/{key[len(self._base) + 1 :]}"
+
     def path(self, ref: ArtifactRef) -> str:  # type: ignore[override]
         """URL of an artifact's object."""
         return f"{self.url}/{ref.relpath}"
@@ -415,7 +419,7 @@ class ObjectStore(ArtifactStore):
                 self.fs.rm_file(key)
             except Exception:  # housekeeping: a key that cannot be removed is left as it is
                 continue
-            removed.append(f"{self.url}/{key[len(self._base) + 1 :]}")
+            removed.append(self._url_of(key))
         return removed
 
     def _abort_stale_uploads(self, max_age_s: float) -> list[str]:
@@ -440,7 +444,7 @@ class ObjectStore(ArtifactStore):
                 )  # fmt: skip
             except Exception:  # housekeeping: an upload that cannot be aborted is left
                 continue
-            removed.append(f"{self.url.split('://', 1)[0]}://{bucket}/{upload['Key']}")
+            removed.append(self._url_of(f"{bucket}/{upload['Key']}"))
         return removed
 
     def put_bytes(

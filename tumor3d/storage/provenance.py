@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from tumor3d.storage.store import canonical_dumps
-from tumor3d.storage.versions import NUMERICAL_PACKAGES, PACKAGES, versions
+from tumor3d.storage.versions import NUMERICAL_DISTRIBUTIONS, PACKAGES, versions
 
 __all__ = [
     "METHOD",
@@ -106,7 +106,7 @@ def cache_identity(folder: str | Path) -> dict[str, Any] | None:
 
 
 #: The distributions whose versions are in the stages' cache keys.
-_KEYED = tuple(name for names in NUMERICAL_PACKAGES.values() for name in names)
+_KEYED = NUMERICAL_DISTRIBUTIONS
 
 
 def same_identity(before: dict[str, Any], after: dict[str, Any]) -> bool:

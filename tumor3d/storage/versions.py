@@ -15,7 +15,13 @@ import platform
 from functools import cache
 from importlib import metadata as importlib_metadata
 
-__all__ = ["NUMERICAL_PACKAGES", "PACKAGES", "installed_version", "versions"]
+__all__ = [
+    "NUMERICAL_DISTRIBUTIONS",
+    "NUMERICAL_PACKAGES",
+    "PACKAGES",
+    "installed_version",
+    "versions",
+]
 
 #: Import name -> the distributions whose versions decide what it computes. numba's
 #: machine code comes from llvmlite's LLVM; ``open3d`` is installed as ``open3d-cpu``.
@@ -34,11 +40,16 @@ NUMERICAL_PACKAGES: dict[str, tuple[str, ...]] = {
     "pandas": ("pandas",),
 }
 
+#: The distributions of :data:`NUMERICAL_PACKAGES`, each once: those whose versions the
+#: stages' cache keys may hold, and that every Dask worker must share.
+NUMERICAL_DISTRIBUTIONS: tuple[str, ...] = tuple(
+    dict.fromkeys(d for dists in NUMERICAL_PACKAGES.values() for d in dists)
+)
+
 #: Every distribution whose version is recorded: the numerical ones and the rest
 #: of the software a result passes through (orchestration, validation, codecs, plots).
 PACKAGES: tuple[str, ...] = (
-    "prefect", "pydantic", "pyarrow", "isal", "vtk", "matplotlib",
-    *dict.fromkeys(d for dists in NUMERICAL_PACKAGES.values() for d in dists),
+    "prefect", "pydantic", "pyarrow", "isal", "vtk", "matplotlib", *NUMERICAL_DISTRIBUTIONS,
 )  # fmt: skip
 
 

@@ -227,7 +227,7 @@ def publish_key(
         "source": source.model_dump(mode="json", exclude={"path"}),
         "outputs": {name: out.content_digest() for name, out in sorted(outputs.items())},
         "config_sha256": config_digest(cfg),
-        "stage_code": {name: spec.code_digest for name, spec in stages.STAGES.items()},
+        "stage_code": stages.code_digests(),
         "publisher": publisher_code_digest(),
         "versions": versions(),
     }
@@ -287,7 +287,7 @@ def _provenance(
         # False: a folder of 2-D slices, or a NIfTI header without orientation (assumed)
         "stated": bool(outputs["ingest-scan"].values.get("orientation_stated", True)),
     }
-    code = {name: spec.code_digest for name, spec in stages.STAGES.items()}
+    code = stages.code_digests()
     provenance = build_provenance(
         input_info=input_info,
         config=cfg.model_dump(mode="json"),

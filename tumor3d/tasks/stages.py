@@ -39,6 +39,7 @@ __all__ = [
     "InputSource",
     "StageOutput",
     "StageSpec",
+    "code_digests",
     "config_field",
     "metric_columns",
     "stage_inputs",
@@ -63,6 +64,11 @@ STAGES: dict[str, StageSpec] = {
         measure.SPEC,
     )
 }
+
+
+def code_digests() -> dict[str, str]:
+    """Stage name -> the digest of its code, as its cache key and ``provenance.json`` hold it."""
+    return {name: spec.code_digest for name, spec in STAGES.items()}
 
 
 def stage_modules(name: str) -> tuple[str, ...]:
