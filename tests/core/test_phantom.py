@@ -592,3 +592,61 @@ def test_random_tumor_shape_rejects_bad_input():
         random_tumor_shape(np.random.default_rng(0), equivalent_diameter_mm=-3.0)
     with pytest.raises(InputError, match="rng must be a numpy.random.Generator"):
         random_tumor_shape(0, equivalent_diameter_mm=30.0)
+
+
+def test_wobble_gradients_and_hessian_bounds_hold_against_finite_differences():
+    from tumor3d.phantom.raster import _wobble_gradients
+
+    head = _random_head(np.random.default_rng(9))
+    packed = head.packed()
+    rng = np.random.default_rng(11)
+    q = rng.normal(size=(2_000, 3))
+    q *= rng.uniform(0.0, 1.15, size=(len(q), 1)) / np.linalg.norm(q, axis=1, keepdims=True)
+
+    def wob(coef, pts):  # the monomial definition, inside the ball (no projection)
+        return np.prod(pts[:, None, :] ** _MONOMIALS[None], axis=-1) @ coef
+
+    h = 1e-5
+    for t, coef in enumerate((head.wob_h, head.wob_b)):
+        got = np.array([_wobble_gradients(*p, head.wob_h, head.wob_b) for p in q])[:, 3 * t :]
+        for r in range(3):
+            e = np.zeros(3)
+            e[r] = h
+            fd = (wob(coef, q + e) - wob(coef, q - e)) / (2 * h)
+            np.testing.assert_allclose(got[:, r], fd, atol=1e-8)  # gh, then gb
+    # the Hessian bounds (packed [13], [14]): second differences along random directions
+    d = rng.normal(size=q.shape)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    h = 0.02
+    for coef, bound in ((head.wob_h, packed[13]), (head.wob_h + head.wob_b, packed[14])):
+        second = np.abs(wob(coef, q + h * d) - 2 * wob(coef, q) + wob(coef, q - h * d)) / h**2
+        assert 0 < second.max() <= bound
+
+
+def test_a_box_that_a_head_field_crosses_is_never_called_pure():
+    # the renderer skips a pixel's samples when _fields_pure_near bounds the fields over
+    # its box; put a threshold at a value the box does reach and it must refuse
+    from tumor3d.phantom.raster import _fields_pure_near
+
+    head = _random_head(np.random.default_rng(9))
+    packed = head.packed()
+    far = packed.copy()
+    far[6:11] = 50.0  # every threshold out of reach
+    rng = np.random.default_rng(12)
+    n_box = 400
+    u = rng.normal(size=(n_box, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    centres = u * rng.uniform(0.8, 1.05, size=(n_box, 1)) * head.semi_axes
+    boxes = rng.uniform(0.2, 2.5, size=(n_box, 3))
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    judged = 0
+    for c, b in zip(centres, boxes, strict=True):
+        offsets = np.vstack([corners, rng.uniform(-1, 1, size=(56, 3))]) * b
+        rho0 = _head_fields_many(c[None], packed, head.wob_h, head.wob_b)[0]
+        rho = _head_fields_many(c + offsets, packed, head.wob_h, head.wob_b)
+        judged += _fields_pure_near(*c, *rho0, b, far, head.wob_h, head.wob_b)
+        for f in range(2):  # rho_h (threshold 6), rho_b (threshold 9)
+            crossed = far.copy()
+            crossed[6 + 3 * f] = rho[np.argmax(np.abs(rho[:, f] - rho0[f])), f]
+            assert not _fields_pure_near(*c, *rho0, b, crossed, head.wob_h, head.wob_b)
+    assert judged > 0.9 * n_box  # boxes were judged by the bound, not refused outright

@@ -34,7 +34,10 @@ Because the skull is a band of the continuous field ``rho_h``, every path
 from the brain to the scalp crosses it, on every slice. ``rho_h`` and
 ``rho_b`` have rigorous Lipschitz bounds (``|grad |q|| <= 1 / min(a)`` and
 ``|grad w| <= sum_m |c_m| deg_m 1.2**(deg_m - 1)``), which the renderer uses
-to skip the supersampling of pixels far from every tissue boundary.
+to skip the supersampling of pixels far from every tissue boundary; near a
+boundary, a second-order bound over the pixel's own sample box (the gradient at its
+centre plus a Hessian bound, ``raster._fields_pure_near``) skips those the boundary
+passes by.
 
 *Tumour* (:class:`TumorShape`). A star-shaped body around the origin,
 ``r(u) = R0 (1 + sum_i a_i exp(kappa_i (u . d_i - 1)))`` for unit

@@ -57,6 +57,7 @@ class _Head:
     def packed(self) -> np.ndarray:
         lw_h = _wobble_lipschitz(self.wob_h)
         lw_b = _wobble_lipschitz(self.wob_b)
+        hw_h = _wobble_hessian(self.wob_h)
         amin = self.semi_axes.min()
         return np.concatenate(
             [
@@ -64,6 +65,7 @@ class _Head:
                 self.semi_axes,
                 self.thresholds(),
                 [(1.0 + lw_h) / amin, (1.0 + lw_h + lw_b) / amin],
+                [hw_h, hw_h + _wobble_hessian(self.wob_b)],
             ]
         )
 
@@ -92,6 +94,16 @@ def _wobble_lipschitz(coef: np.ndarray) -> float:
     """Rigorous Lipschitz bound of ``w``: ``sum |c_m| deg_m 1.2^(deg_m - 1)``."""
     deg = _MONOMIALS.sum(axis=1)
     return float(np.sum(np.abs(coef) * deg * _WOBBLE_BALL ** (deg - 1)))
+
+
+def _wobble_hessian(coef: np.ndarray) -> float:
+    """Rigorous bound of the Hessian's norm of ``w`` in ``q`` on the ball ``|q| <= 1.2``.
+
+    A monomial of degree ``n`` has second derivatives ``a_i (a_j - [i = j]) q^(a - e_i - e_j)``,
+    whose absolute values sum to at most ``n (n - 1) |q|^(n - 2)``, which bounds the norm.
+    """
+    deg = _MONOMIALS.sum(axis=1)
+    return float(np.sum(np.abs(coef) * deg * (deg - 1) * _WOBBLE_BALL ** np.maximum(deg - 2, 0)))
 
 
 def _random_wobble(rng: np.random.Generator, bound: float) -> np.ndarray:

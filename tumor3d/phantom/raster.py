@@ -45,10 +45,11 @@ _BLOCK = 8  # pixel block size of the renderer's uniform-block test
 # Packed tumour vector (length 20):
 #   [0] has_tumour, [1:4] t, [4:13] A^-1 (row-major), [13:16] s_x coefficients of
 #   z, z^2, z^3, [16:19] s_y coefficients, [19] R0.
-# Packed head vector (length 13):
+# Packed head vector (length 15):
 #   [0:3] centre c, [3:6] semi-axes a, [6] thr_scalp_outer (=1), [7] thr_skull_outer,
 #   [8] thr_brain_outer (on rho_h), [9] thr_csf_inner, [10] thr_gm_inner (on rho_b),
-#   [11] Lipschitz of rho_h (1/mm), [12] Lipschitz of rho_b (1/mm).
+#   [11] Lipschitz of rho_h (1/mm), [12] Lipschitz of rho_b (1/mm),
+#   [13] Hessian bound of w_h, [14] of w_h + w_b (both in q, on the ball |q| <= 1.2).
 
 
 @numba.njit(cache=True, inline="always", fastmath=True)
@@ -226,25 +227,104 @@ def _label_at(x, y, z, head, wob_h, wob_b, vent, tum, dirs, amps, kappas, tum_bb
 
 
 @numba.njit(cache=True, inline="always", fastmath=True)
-def _is_pure(x, y, z, rho_h, rho_b, half_diag, box, head, vent, tum_bbox):
+def _wobble_gradients(qx, qy, qz, ch, cb):
+    """Gradients in ``q`` of both wobble polynomials, unprojected (``|q| <= 1.2``).
+
+    The partial derivatives of :func:`_wobbles`' monomials ``m0 .. m18``, term by term.
+    """
+    xx = qx * qx
+    yy = qy * qy
+    zz = qz * qz
+    xy = qx * qy
+    xz = qx * qz
+    yz = qy * qz
+    out = np.empty(6)
+    for t in range(2):
+        c = ch if t == 0 else cb
+        out[3 * t] = (
+            c[9] + c[10] * qz + c[11] * zz + c[12] * qy + c[13] * yz + c[14] * yy
+            + 2.0 * (c[15] * qx + c[16] * xz + c[17] * xy) + 3.0 * c[18] * xx
+        )  # fmt: skip
+        out[3 * t + 1] = (
+            c[3] + c[4] * qz + c[5] * zz + 2.0 * (c[6] * qy + c[7] * yz) + 3.0 * c[8] * yy
+            + c[12] * qx + c[13] * xz + 2.0 * c[14] * xy + c[17] * xx
+        )  # fmt: skip
+        out[3 * t + 2] = (
+            c[0] + 2.0 * c[1] * qz + 3.0 * c[2] * zz + c[4] * qy + 2.0 * c[5] * yz + c[7] * yy
+            + c[10] * qx + 2.0 * c[11] * xz + c[13] * xy + c[16] * xx
+        )  # fmt: skip
+    return out
+
+
+@numba.njit(cache=True, inline="always", fastmath=True)
+def _fields_pure_near(x, y, z, rho_h, rho_b, box, head, wob_h, wob_b):
+    """Second-order test that no head threshold crosses the box around ``(x, y, z)``.
+
+    For ``f = |q| - w(q)`` and ``|dq_r| <= beta_r = box_r / a_r`` over the box:
+    ``|f(q0 + dq) - f(q0)| <= sum_r |df/dq_r(q0)| beta_r + |beta|^2 (1 / q_min + H_w) / 2``,
+    where ``1 / q_min`` bounds the Hessian of ``|q|`` on the annulus the box maps into and
+    ``H_w`` (``head[13]``, ``head[14]``) that of the wobbles on the ball ``|q| <= 1.2``,
+    inside which no projection acts. The box need only clear each threshold by this
+    margin; the Lipschitz test asks for the gradient's worst direction and length, which
+    the slab's depth makes ~4x wider at a boundary that runs through the slice.
+    """
+    qx = (x - head[0]) / head[3]
+    qy = (y - head[1]) / head[4]
+    qz = (z - head[2]) / head[5]
+    n = math.sqrt(qx * qx + qy * qy + qz * qz)
+    bx = box[0] / head[3]
+    by = box[1] / head[4]
+    bz = box[2] / head[5]
+    beta2 = bx * bx + by * by + bz * bz
+    beta = math.sqrt(beta2)
+    q_min = n - beta
+    if q_min <= 0.05 or n + beta > _WOBBLE_BALL:
+        return False
+    g = _wobble_gradients(qx, qy, qz, wob_h, wob_b)
+    ux = qx / n - g[0]
+    uy = qy / n - g[1]
+    uz = qz / n - g[2]
+    curv = 0.5 * beta2 * (1.0 / q_min + head[13])
+    mh = abs(ux) * bx + abs(uy) * by + abs(uz) * bz + curv + 1e-9
+    for k in range(6, 9):
+        if abs(rho_h - head[k]) <= mh:
+            return False
+    ux -= g[3]
+    uy -= g[4]
+    uz -= g[5]
+    curv = 0.5 * beta2 * (1.0 / q_min + head[14])
+    mb = abs(ux) * bx + abs(uy) * by + abs(uz) * bz + curv + 1e-9
+    for k in range(9, 11):
+        if abs(rho_b - head[k]) <= mb:
+            return False
+    return True
+
+
+@numba.njit(cache=True, inline="always", fastmath=True)
+def _is_pure(x, y, z, rho_h, rho_b, half_diag, box, head, wob_h, wob_b, vent, tum_bbox):
     """Tell whether one label fills the whole sample box around ``(x, y, z)``.
 
     No boundary can cross the ball of radius ``half_diag`` (which holds the
     box) when every field is farther from its thresholds than its Lipschitz
     bound times ``half_diag`` (``head[11]`` for ``rho_h``, ``head[12]`` for
-    ``rho_b``, ``1 / min(semi-axes)`` for a ventricle's radius); any overlap
-    of the box with the tumour's bounding box makes the pixel impure.
+    ``rho_b``, ``1 / min(semi-axes)`` for a ventricle's radius); where that
+    first test fails near a head threshold, :func:`_fields_pure_near` bounds the
+    fields over the box itself. Any overlap of the box with the tumour's
+    bounding box makes the pixel impure.
     """
     if tum_bbox[0] <= tum_bbox[3] and _box_overlaps(x, y, z, box, tum_bbox):
         return False
+    near = False
     mh = head[11] * half_diag
     for k in range(6, 9):
         if abs(rho_h - head[k]) <= mh:
-            return False
+            near = True
     mb = head[12] * half_diag
     for k in range(9, 11):
         if abs(rho_b - head[k]) <= mb:
-            return False
+            near = True
+    if near and not _fields_pure_near(x, y, z, rho_h, rho_b, box, head, wob_h, wob_b):
+        return False
     for i in range(vent.shape[0]):
         amin = min(vent[i, 3], min(vent[i, 4], vent[i, 5]))
         if abs(_ventricle_rho(x, y, z, vent, i) - 1.0) <= half_diag / amin:
@@ -314,7 +394,9 @@ def _render(
                         )
                     hd = math.sqrt(bbox[0] ** 2 + bbox[1] ** 2 + bbox[2] ** 2)
                     rho_h, rho_b = _head_fields(x, y, z, head, wob_h, wob_b)
-                    if _is_pure(x, y, z, rho_h, rho_b, hd, bbox, head, vent, tum_bbox):
+                    if _is_pure(
+                        x, y, z, rho_h, rho_b, hd, bbox, head, wob_h, wob_b, vent, tum_bbox
+                    ):
                         lab = _head_label(x, y, z, rho_h, rho_b, head, vent)
                         for j in range(j0, j1):
                             for i in range(i0, i1):
@@ -386,7 +468,9 @@ def _render_pixel(
         lab = _TUMOR
     else:
         lab = _head_label(x, y, z, rho_h, rho_b, head, vent)
-    if adaptive and _is_pure(x, y, z, rho_h, rho_b, half_diag, box, head, vent, tum_bbox):
+    if adaptive and _is_pure(
+        x, y, z, rho_h, rho_b, half_diag, box, head, wob_h, wob_b, vent, tum_bbox
+    ):
         return lab, values[lab]
     acc = 0.0
     for a in range(sub_z.shape[0]):
