@@ -966,7 +966,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", nargs="*", default=None, help="Run only these items (names).")
     args = parser.parse_args(argv)
 
-    from tumor3d.flows.server import prefect_api
+    from tumor3d.flows.api_use import prefect_api
 
     verdicts: list[Verdict] = []
     tmp_root = Path(tempfile.mkdtemp(prefix="tumor3d-hostile-"))

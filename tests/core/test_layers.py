@@ -94,3 +94,16 @@ def test_an_upward_import_is_caught(tmp_path, source, expected):
     path.write_text(source)
     bad = _violations([("tumor3d.segmentation_probe", path)])
     assert bad and all(expected in b for b in bad)
+
+
+#: Issue 31 item 5: no module over about 600 lines, so that each holds one concept.
+MAX_MODULE_LINES = 700
+
+
+def test_no_module_is_longer_than_one_concept_needs():
+    long = {
+        str(path.relative_to(PACKAGE.parent)): n
+        for path in PACKAGE.rglob("*.py")
+        if (n := len(path.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES
+    }
+    assert not long, f"split by concept (docs/ARCHITECTURE.md): {long}"

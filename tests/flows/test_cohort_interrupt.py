@@ -126,7 +126,7 @@ def test_sigterm_ends_a_command_as_ctrl_c_does_in_one_line(signum, code, line):
     script = (
         "import logging, threading, time\n"
         "from tumor3d.flows.cli.errors import _ctrl_c_ends\n"
-        "from tumor3d.flows.server import EXIT_HOOKS\n"
+        "from tumor3d.flows.server_watch import EXIT_HOOKS\n"
         "made, written = threading.Event(), threading.Event()\n"
         "class Late(logging.StreamHandler):\n"
         "    def emit(self, record):\n"
@@ -157,7 +157,7 @@ def test_the_last_line_is_written_once_and_in_stderrs_own_encoding():
     a Ctrl-C handler, are kept to one line by a lock this test does not reach.)"""
     script = (
         "import os, sys\n"
-        "from tumor3d.flows.server import last_line\n"
+        "from tumor3d.flows.server_watch import last_line\n"
         "last_line('stopped: caf\\u00e9')\n"
         "last_line('a second caller')\n"
         "sys.stderr.write('later\\n'); sys.stderr.flush()\n"
@@ -182,7 +182,7 @@ def test_on_a_terminal_the_progress_bar_does_not_erase_the_ctrl_c_line():
         "import sys, time\n"
         "from tumor3d.flows.cli.errors import _ctrl_c_ends\n"
         "from tumor3d.flows.cli.output import _progress\n"
-        "from tumor3d.flows.server import EXIT_HOOKS\n"
+        "from tumor3d.flows.server_watch import EXIT_HOOKS\n"
         "EXIT_HOOKS.append(lambda code: time.sleep(0.3))\n"
         "with _ctrl_c_ends('Ctrl-C stopped the test; a re-run continues'):\n"
         "    with _progress() as bars:\n"
@@ -266,7 +266,7 @@ def test_an_interrupted_cohort_is_crashed_on_its_persistent_server(tmp_path):
     assert runs[0].state.message == err.strip()
     # kill -9 (the out-of-memory killer): no line, the run stays Running; the next
     # command on this machine (any entering prefect_api) sets it Crashed, saying why
-    from tumor3d.flows.server import prefect_api
+    from tumor3d.flows.api_use import prefect_api
 
     proc = subprocess.Popen(
         [sys.executable, "-m", "tumor3d.flows.cli", "cohort", str(manifest), "--out",

@@ -34,10 +34,10 @@ def test_a_python_call_tags_its_runs_and_crashes_the_runs_of_a_killed_kernel(mon
     from prefect.context import FlowRunContext
     from prefect.states import Running
 
-    from tumor3d.flows import server
-    from tumor3d.flows.server import api_of_python_call
+    from tumor3d.flows import api_use
+    from tumor3d.flows.api_use import api_of_python_call
 
-    monkeypatch.setattr(server, "_python_sweeps", {})  # this process has not swept yet
+    monkeypatch.setattr(api_use, "_python_sweeps", {})  # this process has not swept yet
 
     @flow(name="notebook-call")
     def probe() -> list[str]:
@@ -70,7 +70,7 @@ def test_a_python_call_tags_its_runs_and_crashes_the_runs_of_a_killed_kernel(mon
         assert set(process_tags()) <= set(probe())
     with get_client(sync_client=True) as client:
         assert client.read_flow_run(later.id).state.is_running()
-    monkeypatch.setattr(server, "PYTHON_SWEEP_PERIOD_S", 0.0)  # ... and after it, does
+    monkeypatch.setattr(api_use, "PYTHON_SWEEP_PERIOD_S", 0.0)  # ... and after it, does
     with api_of_python_call():
         probe()
     with get_client(sync_client=True) as client:
@@ -96,11 +96,11 @@ def test_a_call_on_the_background_server_sends_its_logs_and_events_before_it_ret
     from prefect.settings import PREFECT_API_URL
 
     from tumor3d.config import PipelineConfig
-    from tumor3d.flows import server
+    from tumor3d.flows import api_use, server
     from tumor3d.flows.patient import run_patient
 
     info = server.ServerInfo(pid=os.getpid(), port=0, api_url=PREFECT_API_URL.value())
-    monkeypatch.setattr(server, "_configured_api_url", lambda: None)  # no PREFECT_API_URL
+    monkeypatch.setattr(api_use, "_configured_api_url", lambda: None)  # no PREFECT_API_URL
     monkeypatch.setattr(server, "server_status", lambda: server.ServerStatus("running", "", info))
     (row,) = small_phantom_rows(tmp_path / "in", [3], "nb")
     result = run_patient(  # a PipelineConfig, as tumor3d.reconstruct takes it
@@ -119,14 +119,14 @@ def test_a_python_calls_mistakes_are_one_line_before_any_flow_run(tmp_path, monk
     Prefect's ParameterBindError with the flow's whole signature), a configuration
     file's path where its text is asked (was "must be a mapping", no hint)."""
     from tumor3d.errors import ConfigError, InputError
-    from tumor3d.flows import server
+    from tumor3d.flows import api_use
     from tumor3d.flows.cohort import run_cohort
     from tumor3d.flows.patient import run_patient
 
     def no_flow_run():
         raise AssertionError("a flow run (and a Prefect server) was started")
 
-    monkeypatch.setattr(server, "api_of_python_call", no_flow_run)
+    monkeypatch.setattr(api_use, "api_of_python_call", no_flow_run)
     out = tmp_path / "out"
     missing = tmp_path / "nowhere.nii.gz"
     with pytest.raises(InputError, match="no such file or folder") as exc:

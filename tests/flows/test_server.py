@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+import tumor3d.flows.api_use as api_use
 import tumor3d.flows.server as server
 from tumor3d.flows.cli import app
 
@@ -34,7 +35,7 @@ def home(tmp_path, monkeypatch):
     monkeypatch.setenv("TUMOR3D_HOME", str(tmp_path / "t3d-home"))
     monkeypatch.setenv("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", str(STARTUP_S))
     # the session's test harness may have set PREFECT_API_URL in Prefect's settings
-    monkeypatch.setattr(server, "_configured_api_url", lambda: None)
+    monkeypatch.setattr(api_use, "_configured_api_url", lambda: None)
     return tmp_path / "t3d-home"
 
 
@@ -88,7 +89,7 @@ def test_start_status_use_stop_and_a_stale_state_file(home):
         assert json.loads((home / "server.json").read_text())["pid"] == info["pid"]
         # later commands use it, and say nothing about starting Prefect
         notes = []
-        with server.prefect_api(on_temporary_start=lambda: notes.append("temporary")) as url:
+        with api_use.prefect_api(on_temporary_start=lambda: notes.append("temporary")) as url:
             from prefect.settings import PREFECT_API_URL
 
             assert url == info["api_url"] == PREFECT_API_URL.value()
@@ -185,7 +186,7 @@ def test_kill_9_of_a_run_leaves_no_temporary_server(home, tmp_path, seed_prefect
 
 def test_a_temporary_server_is_stopped_when_its_command_ends(home):
     notes = []
-    with server.prefect_api(on_temporary_start=lambda: notes.append("temporary")) as url:
+    with api_use.prefect_api(on_temporary_start=lambda: notes.append("temporary")) as url:
         assert notes == ["temporary"]
         assert server.healthy(url)
         port = int(url.rsplit(":", 1)[1].split("/")[0])
@@ -222,30 +223,30 @@ def _calls_from_two_threads(monkeypatch):
 
     from prefect.settings import PREFECT_API_URL, PREFECT_UI_URL, temporary_settings
 
-    monkeypatch.setattr(server, "_PROCESS_APIS", set())
-    monkeypatch.setattr(server, "_PROCESS_API_BEFORE", {})
+    monkeypatch.setattr(api_use, "_PROCESS_APIS", set())
+    monkeypatch.setattr(api_use, "_PROCESS_API_BEFORE", {})
     background, own = "http://127.0.0.1:9/api", "http://127.0.0.1:7/api"
     state = {"bg": "running"}
     info = server.ServerInfo(pid=1, port=9, api_url=background)
     monkeypatch.setattr(server, "server_status", lambda: server.ServerStatus(
         state["bg"], "state.json", info if state["bg"] == "running" else None))  # fmt: skip
-    monkeypatch.setattr(server, "python_call_server", lambda: own)
-    monkeypatch.setattr(server, "check_configured_api", lambda: None)  # (test_python_calls.py)
+    monkeypatch.setattr(api_use, "python_call_server", lambda: own)
+    monkeypatch.setattr(api_use, "check_configured_api", lambda: None)  # (test_python_calls.py)
     # no sweep of these made-up servers (test_python_calls.py checks the sweeps)
-    monkeypatch.setattr(server, "_this_process_once", lambda url: contextlib.nullcontext())
-    real_configured = server._configured_api_url
+    monkeypatch.setattr(api_use, "_this_process_once", lambda url: contextlib.nullcontext())
+    real_configured = api_use._configured_api_url
     before = PREFECT_API_URL.value()
     assert before not in (background, own)
-    monkeypatch.setattr(server, "_configured_api_url", lambda: "http://configured:1/api")
-    with server.api_of_python_call():
+    monkeypatch.setattr(api_use, "_configured_api_url", lambda: "http://configured:1/api")
+    with api_use.api_of_python_call():
         assert PREFECT_API_URL.value() == before  # a configured API wins: nothing changed
-    monkeypatch.setattr(server, "_configured_api_url", real_configured)
+    monkeypatch.setattr(api_use, "_configured_api_url", real_configured)
 
     inside: dict[str, str | None] = {}
     a_in, b_done = threading.Event(), threading.Event()
 
     def call_a():  # on the background server, still running while B calls
-        with server.api_of_python_call():
+        with api_use.api_of_python_call():
             inside["a"] = PREFECT_API_URL.value()
             a_in.set()
             b_done.wait(30)
@@ -253,7 +254,7 @@ def _calls_from_two_threads(monkeypatch):
     def call_b():  # a notebook thread's call (no settings context of its own: the global),
         # inside the caller's own temporary settings, made while A's call runs
         with temporary_settings(updates={"logging.level": "INFO"}):
-            with server.api_of_python_call():
+            with api_use.api_of_python_call():
                 inside["b"] = PREFECT_API_URL.value()
                 inside["b_ui"] = PREFECT_UI_URL.value()
         inside["after"] = PREFECT_API_URL.value()  # the process's API, as a next call reads it
@@ -280,12 +281,13 @@ CALL_FROM_A_THREAD = """
 import sys, time
 from concurrent.futures import ThreadPoolExecutor
 from prefect.settings import PREFECT_API_URL, PREFECT_UI_URL
+import tumor3d.flows.api_use as api_use
 import tumor3d.flows.server as server
 from tumor3d.flows.patient import run_patient
 
 def call():
     result = run_patient(sys.argv[1], sys.argv[2], modality="t2")
-    return result.patient_id, server.python_call_server()
+    return result.patient_id, api_use.python_call_server()
 
 with ThreadPoolExecutor(1) as pool:
     patient, first = pool.submit(call).result()
@@ -294,14 +296,14 @@ serving = []
 for _ in range(8):
     serving.append(server.healthy(first, timeout_s=2.0))
     time.sleep(0.5)
-again = server.python_call_server()
+again = api_use.python_call_server()
 process_api = PREFECT_API_URL.value() == first and PREFECT_UI_URL.value() == ""
-server._CALL_SERVER["proc"].kill()  # found dead by the next call: started again
-server._CALL_SERVER["proc"].wait()
-with server.api_of_python_call():
+api_use._CALL_SERVER["proc"].kill()  # found dead by the next call: started again
+api_use._CALL_SERVER["proc"].wait()
+with api_use.api_of_python_call():
     restarted = PREFECT_API_URL.value()
 print(patient, first, again, all(serving), process_api, restarted,
-      server.healthy(restarted), server._CALL_SERVER["proc"].pid, flush=True)
+      server.healthy(restarted), api_use._CALL_SERVER["proc"].pid, flush=True)
 time.sleep(600)
 """
 
@@ -377,11 +379,11 @@ def test_the_temporary_server_of_serve_runs_the_scheduler_and_a_commands_does_no
         spawned.append(ephemeral)
         raise Stop
 
-    monkeypatch.setattr(server, "_configured_api_url", lambda: None)
+    monkeypatch.setattr(api_use, "_configured_api_url", lambda: None)
     monkeypatch.setattr(server, "server_status", lambda: server.ServerStatus("stopped", "s"))
     monkeypatch.setattr(server, "_spawn", spawn)
     for services in (False, True):
-        with pytest.raises(Stop), server.prefect_api(services=services):
+        with pytest.raises(Stop), api_use.prefect_api(services=services):
             pass
     assert spawned == [True, False]
     monkeypatch.setattr(tumor3d.flows.serve, "serve_cohort", lambda dep: None)

@@ -1,7 +1,7 @@
 """A Prefect server that goes away during a command ends it in one line, exit 3 (issue 29).
 
 Prefect's clients retried a killed background server for about 170 s, then
-failed with two tracebacks. :func:`tumor3d.flows.server._watch_server` looks at the
+failed with two tracebacks. :func:`tumor3d.flows.server_watch._watch_server` looks at the
 server's port while the command runs; nothing listening there three times in
 a row ends the command. Run in a child process (it ends with ``os._exit``),
 against a plain TCP listener standing in for the server. When the command's own
@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 SCRIPT = """
 import socket, sys, time
-import tumor3d.flows.server as s
+import tumor3d.flows.server_watch as s
 s._WATCH_PERIOD_S = 0.2
 srv = socket.socket(); srv.bind(("127.0.0.1", 0)); srv.listen(8)
 port = srv.getsockname()[1]
@@ -39,7 +39,7 @@ print("body finished", flush=True)
 
 SERVER_PROCESS = """
 import signal, socket, subprocess, sys, time
-import tumor3d.flows.server as s
+import tumor3d.flows.server_watch as s
 s._WATCH_PERIOD_S = 0.2
 if len(sys.argv) > 3:
     s._WATCH_CTRL_C_GRACE_S = float(sys.argv[3])
@@ -71,8 +71,8 @@ RUN_CTRL_C = """
 import contextlib, os, signal, time
 import tumor3d.flows.cli.session as session
 import tumor3d.flows.patient as patient
-import tumor3d.flows.server as server
-server.EXIT_HOOKS.append(lambda code: print(f"hook {code}", flush=True))
+import tumor3d.flows.server_watch as server_watch
+server_watch.EXIT_HOOKS.append(lambda code: print(f"hook {code}", flush=True))
 session._prefect = contextlib.nullcontext  # no server: the command's Ctrl-C handling alone
 
 def run_patient(**kwargs):

@@ -45,6 +45,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from tumor3d.config import PipelineConfig, as_config, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError, Tumor3DError, exception_line
+from tumor3d.flows.api_use import api_of_python_call
 from tumor3d.flows.artifacts import publish_cohort_artifacts
 from tumor3d.flows.dask_runner import DaskSpec, check_scheduler, cohort_task_runner
 from tumor3d.flows.dask_workers import check_workers
@@ -58,7 +59,6 @@ from tumor3d.flows.patient import (
     prepare_source,
     sweep_killed_writers,
 )
-from tumor3d.flows.server import api_of_python_call
 from tumor3d.segmentation.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
 from tumor3d.storage import bids
 from tumor3d.storage.cohort_report import (
@@ -621,7 +621,7 @@ def run_cohort(
         check_writable_dir(out)  # an unwritable DIR named before any patient starts
         writer = writing_folder(out)  # one cohort command writes DIR at a time
     flow_fn = cohort_flow.with_options(task_runner=cohort_task_runner(n, dask))
-    # the background server, when a Python caller configured none (flows.server)
+    # the background server, when a Python caller configured none (flows.api_use)
     with writer, api_of_python_call(), tags(f"config:{config_digest(cfg)[:12]}", "cohort"):
         state = flow_fn(
             rows=[_json_row(r) for r in rows], out_dir=str(out),

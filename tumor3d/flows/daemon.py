@@ -260,7 +260,7 @@ def _child(conn: socket.socket, hello: dict, fds: list[int]) -> None:  # pragma:
         os.chdir(hello["cwd"])
         sys.argv = ["tumor3d", *hello["argv"]]
         _send(conn, {"accepted": True, "pid": os.getpid()})
-        from tumor3d.flows.server import EXIT_HOOKS
+        from tumor3d.flows.server_watch import EXIT_HOOKS
 
         EXIT_HOOKS.append(lambda c: _send(conn, {"exit": int(c)}))
         from rich.console import Console

@@ -340,9 +340,9 @@ def run_evaluation(
     """Run :func:`evaluate_flow` (arguments as there) from Python code.
 
     ``manifests``: one manifest's path, or a list of them. Against the Prefect API
-    :func:`tumor3d.flows.server.api_of_python_call` picks.
+    :func:`tumor3d.flows.api_use.api_of_python_call` picks.
     """
-    from tumor3d.flows.server import api_of_python_call
+    from tumor3d.flows.api_use import api_of_python_call
 
     paths = [manifests] if isinstance(manifests, str | Path) else list(manifests)
     with api_of_python_call():

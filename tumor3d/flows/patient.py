@@ -445,7 +445,7 @@ def run_patient(input_path: str | Path, out_dir: str | Path, **kwargs: Any) -> P
 
     from prefect import tags
 
-    from tumor3d.flows.server import api_of_python_call
+    from tumor3d.flows.api_use import api_of_python_call
 
     inspect.signature(patient_flow.fn).bind(str(input_path), str(out_dir), **kwargs)
     cfg = as_config(kwargs.get("config"))

@@ -9,7 +9,7 @@ Every command's flow runs carry two tags (:func:`process_tags`): where its proce
 are seen, and this process's id with its start time. Where is this boot of this
 machine's kernel and its process-id namespace (``/proc/sys/kernel/random/boot_id`` and
 the inode of ``/proc/self/ns/pid``), not the host name, which containers and cloned
-machines share. At the start of each command (:func:`tumor3d.flows.server.prefect_api`),
+machines share. At the start of each command (:func:`tumor3d.flows.api_use.prefect_api`),
 :func:`crash_stale_runs` sets Crashed the Running flow runs tagged with this place whose
 process is gone, with a message that says so. The start time guards against a process
 id reused by another process since; runs of other places are left alone (their
@@ -127,7 +127,7 @@ def crash_stale_runs(limit: int = 200, deadline_s: float = 5.0) -> list[str]:
     from prefect.client.schemas.responses import SetStateStatus
     from prefect.states import Crashed
 
-    from tumor3d.flows.server import quick_client
+    from tumor3d.flows.api_use import quick_client
 
     place = _place()
     if place is None:

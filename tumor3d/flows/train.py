@@ -340,9 +340,9 @@ def _sha256(data: bytes) -> str:
 def run_training(manifest: str | Path, out_dir: str | Path, **kwargs: Any) -> TrainResult:
     """Run :func:`train_flow` (keyword arguments as its parameters).
 
-    Against the Prefect API :func:`tumor3d.flows.server.api_of_python_call` picks.
+    Against the Prefect API :func:`tumor3d.flows.api_use.api_of_python_call` picks.
     """
-    from tumor3d.flows.server import api_of_python_call
+    from tumor3d.flows.api_use import api_of_python_call
 
     with api_of_python_call():
         return train_flow(str(manifest), str(out_dir), **kwargs)

@@ -120,7 +120,7 @@ def serve(
         )  # fmt: skip
     except _HANDLED as exc:
         raise _fail(exc) from None
-    from tumor3d.flows.server import prefect_api
+    from tumor3d.flows.api_use import prefect_api
 
     def temporary_note() -> None:
         console.print(

@@ -62,7 +62,7 @@ def _crash_current_runs(message: str) -> None:
         return
     from prefect.states import Crashed
 
-    from tumor3d.flows.server import quick_client
+    from tumor3d.flows.api_use import quick_client
 
     with quick_client() as client:
         run_id = ctx.flow_run.id
@@ -91,14 +91,14 @@ def _ctrl_c_ends(message: str) -> Iterator[None]:
     a hidden folder and renamed at the end; a staging folder of this ended
     process is removed by the next publish of that patient), the temporary
     server dies with its parent (:mod:`tumor3d.flows.server`), and Prefect's unsent
-    events are dropped. The exit hooks run first (:data:`tumor3d.flows.server.EXIT_HOOKS`:
+    events are dropped. The exit hooks run first (:data:`tumor3d.flows.server_watch.EXIT_HOOKS`:
     a background runner's child reports the exit code to its client there). Install
     from the main thread only.
     """
     import contextlib
     import signal
 
-    from tumor3d.flows.server import EXIT_HOOKS, last_line
+    from tumor3d.flows.server_watch import EXIT_HOOKS, last_line
 
     def ends(code: int, line: str) -> Any:
         def on_signal(signum: int, frame: Any) -> None:

@@ -70,7 +70,7 @@ def _preflight(
         )  # fmt: skip
     scan = read_and_keep(input_path, options)  # the ingest stage takes it: one read
     _check_given_masks(scan, brain_mask, segmentation, options.max_voxels)
-    from tumor3d.flows.server import check_configured_api
+    from tumor3d.flows.api_use import check_configured_api
 
     check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
     _reach_destinations(out, store, make_local_store=True)
@@ -101,7 +101,7 @@ def _preflight_remote(
 
     scan = read_and_keep(input_path, options)  # the ingest stage takes it: one read
     _check_given_masks(scan, brain_mask, segmentation, options.max_voxels)
-    from tumor3d.flows.server import check_configured_api
+    from tumor3d.flows.api_use import check_configured_api
 
     check_configured_api()  # an unreachable PREFECT_API_URL: one line, nothing created
     _reach_destinations(out, store, make_local_store=True)

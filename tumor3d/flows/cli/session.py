@@ -45,8 +45,8 @@ def _no_heartbeats() -> Iterator[None]:
 
 @contextmanager
 def _prefect() -> Iterator[str]:
-    """PREFECT_API_URL, else the background server, else a temporary one (flows.server)."""
-    from tumor3d.flows.server import prefect_api
+    """PREFECT_API_URL, else the background server, else a temporary one (flows.api_use)."""
+    from tumor3d.flows.api_use import prefect_api
 
     with prefect_api(on_temporary_start=_starting_prefect_note) as api_url, _no_heartbeats():
         _quiet_prefect_failures()
