@@ -25,8 +25,9 @@ demo: setup
 # of its current file is left (tests/conftest.py's scheduler). TEST_WORKERS=0 runs
 # everything in this process. The test Prefect servers and flow runs are set up to idle
 # and burn little (tests/conftest.py). Measured (issue 31 item 7, reports/test_suite.md):
-# .ci/run on clean clones on 2 cores, 1,889 tests: 282.3 s of pytest at the quietest hour
-# (6.8 min in all), 351.6-412.2 s at loaded ones; a warm checkout 275-291 s at quiet hours.
+# .ci/run on clean clones on 2 cores, 1,892 tests: 258.0-271.4 s of pytest at quiet hours
+# (5.9-6.2 min in all); the suite ran 20-40 % slower at the loaded hours of 2026-12-06
+# (reports/test_suite.md); a warm checkout 266-267 s.
 # Numba compiling what the warm-up of `make setup` does not: the warm-up test's own
 # warm-up into an empty cache (18 s) and kernels only tests call (12 s). This shared
 # machine's speed moves by ~12 % within a day: compare runs made back to back.
