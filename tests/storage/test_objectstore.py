@@ -594,6 +594,36 @@ def test_an_unfinished_upload_of_a_killed_writer_is_aborted_by_age(s3_endpoint):
     assert uploads("mpu/") == [] and uploads("elsewhere/") == ["elsewhere/objects/big.nii.gz"]
 
 
+def test_the_sweep_reads_every_page_of_unfinished_uploads(s3_endpoint, monkeypatch):
+    """S3 lists unfinished uploads 1,000 a page (moto: all in one); the sweep follows the
+    pages' markers. Here S3's paging with one upload a page, in front of moto's list."""
+    store = ObjectStore(f"s3://{BUCKET}/paged")
+    keys = [f"paged/objects/{c}{c}/" + c * 64 + ".nii.gz" for c in "abc"]
+    for key in keys:
+        s3_endpoint.create_multipart_upload(Bucket=BUCKET, Key=key)
+    real, calls = store.fs.call_s3, []
+
+    def paged(method, **kwargs):
+        if method != "list_multipart_uploads":
+            return real(method, **kwargs)
+        calls.append(dict(kwargs))
+        key_after = kwargs.pop("KeyMarker", "")
+        id_after = kwargs.pop("UploadIdMarker", "")
+        listed = real(method, **kwargs)
+        ups = sorted(listed.get("Uploads", []), key=lambda u: (u["Key"], u["UploadId"]))
+        ups = [u for u in ups if (u["Key"], u["UploadId"]) > (key_after, id_after)]
+        page = dict(listed, Uploads=ups[:1], IsTruncated=len(ups) > 1)
+        if len(ups) > 1:
+            page.update(NextKeyMarker=ups[0]["Key"], NextUploadIdMarker=ups[0]["UploadId"])
+        return page
+
+    monkeypatch.setattr(store.fs, "call_s3", paged)
+    assert store.clean_stale_tmp(max_age_s=-1.0) == [f"s3://{BUCKET}/{k}" for k in keys]
+    assert len(calls) == 3 and calls[1]["KeyMarker"] == keys[0]
+    listed = s3_endpoint.list_multipart_uploads(Bucket=BUCKET, Prefix="paged/")
+    assert listed.get("Uploads", []) == []
+
+
 @pytest.mark.parametrize("sizes_first", [True, False])
 def test_a_read_is_one_get_with_any_s3fs_version(sizes_first):
     """s3fs 2026.3 and later size an object before reading it unless told

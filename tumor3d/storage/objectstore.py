@@ -81,6 +81,8 @@ STORE_DIRNAME = ".tumor3d-store"
 S3_CONNECT_TIMEOUT_S = 5
 #: botocore's attempts at an S3 request (inside each of s3fs's own retries).
 S3_MAX_ATTEMPTS = 3
+#: Pages of unfinished multipart uploads one sweep reads (S3 lists up to 1,000 a page).
+UPLOAD_PAGES = 100
 
 
 def is_url(location: str | os.PathLike[str]) -> bool:
@@ -423,28 +425,41 @@ class ObjectStore(ArtifactStore):
         return removed
 
     def _abort_stale_uploads(self, max_age_s: float) -> list[str]:
-        """Abort the store's multipart uploads started more than ``max_age_s`` ago."""
+        """Abort the store's multipart uploads started more than ``max_age_s`` ago.
+
+        S3 lists them 1,000 a page; the sweep reads up to :data:`UPLOAD_PAGES` pages (a
+        store with more left over reads the rest at its next sweep).
+        """
         bucket, _, prefix = self._base.partition("/")
         removed: list[str] = []
         now = time.time()
-        try:
-            listed = self.fs.call_s3(
-                "list_multipart_uploads", Bucket=bucket, Prefix=f"{prefix}/" if prefix else ""
-            )
-        except Exception:  # housekeeping: an endpoint that cannot list them is left as it is
-            return removed
-        for upload in listed.get("Uploads", []):
-            started = modified_time({"LastModified": upload.get("Initiated")})
-            if started is None or now - started <= max_age_s:
-                continue
+        after: dict[str, str] = {}  # the (key, upload id) a page starts after
+        for _ in range(UPLOAD_PAGES):
             try:
-                self.fs.call_s3(
-                    "abort_multipart_upload",
-                    Bucket=bucket, Key=upload["Key"], UploadId=upload["UploadId"],
+                listed = self.fs.call_s3(
+                    "list_multipart_uploads",
+                    Bucket=bucket, Prefix=f"{prefix}/" if prefix else "", **after,
                 )  # fmt: skip
-            except Exception:  # housekeeping: an upload that cannot be aborted is left
-                continue
-            removed.append(self._url_of(f"{bucket}/{upload['Key']}"))
+            except Exception:  # housekeeping: an endpoint that cannot list them is left
+                return removed
+            for upload in listed.get("Uploads", []):
+                started = modified_time({"LastModified": upload.get("Initiated")})
+                if started is None or now - started <= max_age_s:
+                    continue
+                try:
+                    self.fs.call_s3(
+                        "abort_multipart_upload",
+                        Bucket=bucket, Key=upload["Key"], UploadId=upload["UploadId"],
+                    )  # fmt: skip
+                except Exception:  # housekeeping: an upload that cannot be aborted is left
+                    continue
+                removed.append(self._url_of(f"{bucket}/{upload['Key']}"))
+            if not listed.get("IsTruncated") or not listed.get("NextKeyMarker"):
+                break
+            after = {
+                "KeyMarker": listed["NextKeyMarker"],
+                "UploadIdMarker": listed.get("NextUploadIdMarker", ""),
+            }
         return removed
 
     def put_bytes(
