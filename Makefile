@@ -25,7 +25,7 @@ demo: setup
 # of its current file is left (tests/conftest.py's scheduler). TEST_WORKERS=0 runs
 # everything in this process. The test Prefect servers and flow runs are set up to idle
 # and burn little (tests/conftest.py). Measured (issue 31 item 7, reports/test_suite.md):
-# .ci/run on clean clones on 2 cores, 1,893 tests: 258.0-299.5 s of pytest (5.9-6.8 min in
+# .ci/run on clean clones on 2 cores, 1,893 tests: 258.0-318.8 s of pytest (5.9-7.4 min in
 # all) as the shared machine's hour moves; 20-40 % slower at the loaded hours of 2026-12-06
 # (reports/test_suite.md); a warm checkout 266-267 s.
 # Numba compiling what the warm-up of `make setup` does not: the warm-up test's own
