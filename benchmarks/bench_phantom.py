@@ -37,8 +37,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tumor3d.phantom import make_phantom_patient  # noqa: E402
-from tumor3d.phantom.head import _random_head  # noqa: E402
-from tumor3d.phantom.raster import TISSUE_INTENSITIES, _render  # noqa: E402
+from tumor3d.phantom import patient as patient_module  # noqa: E402
+from tumor3d.phantom.raster import _render  # noqa: E402
 
 SIZES = {
     "small (tests)": {"n_slices": 16, "matrix_size": (128, 128)},
@@ -48,21 +48,25 @@ SIZES = {
 
 
 def render_args(seed: int, kw: dict) -> tuple[float, tuple]:
-    """The renderer's arguments for phantom ``seed`` (as make_phantom_patient calls it)."""
-    t0 = time.perf_counter()
-    p = make_phantom_patient(seed, **kw)
-    made_s = time.perf_counter() - t0
-    head = _random_head(np.random.default_rng(np.random.SeedSequence(seed).spawn(4)[0]))
-    tum, dirs, amps, kappas = p.tumor_shape._packed()
-    surf = p.tumor_shape.surface_points(64, 128)
-    bbox = np.concatenate([surf.min(0) - 2.0, surf.max(0) + 2.0])
-    sub_xy = (np.arange(3) + 0.5) / 3 - 0.5
-    sub_z = ((np.arange(4) + 0.5) / 4 - 0.5) * p.scan.slice_thickness_mm / p.scan.slice_step_mm
-    args = (
-        p.scan.affine.copy(), *p.scan.shape, sub_xy, sub_z, head.packed(), head.wob_h,
-        head.wob_b, head.ventricles, tum, dirs, amps, kappas, bbox,
-        np.array(TISSUE_INTENSITIES["t2"]),
-    )  # fmt: skip
+    """The renderer's arguments for phantom ``seed``, as ``make_phantom_patient`` passes them.
+
+    Taken from the call itself (the renderer wrapped while the phantom is made), without
+    the last one, ``adaptive``; and the time the whole phantom took.
+    """
+    calls: list[tuple] = []
+
+    def recording(*args):
+        calls.append(args[:-1])
+        return _render(*args)
+
+    patient_module._render = recording
+    try:
+        t0 = time.perf_counter()
+        make_phantom_patient(seed, **kw)
+        made_s = time.perf_counter() - t0
+    finally:
+        patient_module._render = _render
+    (args,) = calls
     return made_s, args
 
 
@@ -96,10 +100,9 @@ def main() -> None:
             for r in range(a.repeat):
                 pair = ((old, before), (args, now))
                 for peer_args, times in pair if r % 2 == 0 else pair[::-1]:
-                    t, image, labels = timed(peer_args)
-                    times.append(t)
+                    times.append(timed(peer_args)[0])
             if seed == 1000:
-                _, full_image, full_labels = (0, *_render(*args, False))
+                full_image, full_labels = _render(*args, False)
                 for peer_args in (old, args):
                     _, image, labels = timed(peer_args)
                     assert np.array_equal(image, full_image), name

@@ -431,15 +431,13 @@ class ObjectStore(ArtifactStore):
         store with more left over reads the rest at its next sweep).
         """
         bucket, _, prefix = self._base.partition("/")
+        listing = {"Bucket": bucket, "Prefix": f"{prefix}/" if prefix else ""}
         removed: list[str] = []
         now = time.time()
         after: dict[str, str] = {}  # the (key, upload id) a page starts after
         for _ in range(UPLOAD_PAGES):
             try:
-                listed = self.fs.call_s3(
-                    "list_multipart_uploads",
-                    Bucket=bucket, Prefix=f"{prefix}/" if prefix else "", **after,
-                )  # fmt: skip
+                listed = self.fs.call_s3("list_multipart_uploads", **listing, **after)
             except Exception:  # housekeeping: an endpoint that cannot list them is left
                 return removed
             for upload in listed.get("Uploads", []):

@@ -105,10 +105,6 @@ def cache_identity(folder: str | Path) -> dict[str, Any] | None:
     }
 
 
-#: The distributions whose versions are in the stages' cache keys.
-_KEYED = NUMERICAL_DISTRIBUTIONS
-
-
 def same_identity(before: dict[str, Any], after: dict[str, Any]) -> bool:
     """Whether two :func:`cache_identity` records agree on all that decides the result.
 
@@ -117,7 +113,7 @@ def same_identity(before: dict[str, Any], after: dict[str, Any]) -> bool:
     keys = ("input", "config", "given", "code")
     old_v, new_v = before.get("versions") or {}, after.get("versions") or {}
     return all(before.get(k) == after.get(k) for k in keys) and all(
-        old_v.get(name) == new_v.get(name) for name in _KEYED
+        old_v.get(name) == new_v.get(name) for name in NUMERICAL_DISTRIBUTIONS
     )
 
 
@@ -158,7 +154,7 @@ def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
     old_v, new_v = before.get("versions") or {}, after.get("versions") or {}
     packages = [
         f"{name} {old_v.get(name, '?')} -> {new_v[name]}"
-        for name in _KEYED
+        for name in NUMERICAL_DISTRIBUTIONS
         if name in new_v and old_v.get(name) != new_v[name]
     ]
     said = []
