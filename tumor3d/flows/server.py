@@ -193,6 +193,15 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _child_env() -> dict[str, str]:
+    """A child's environment: this process's, with the project first on ``PYTHONPATH``."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(_PROJECT_ROOT), *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])]
+    )
+    return env
+
+
 def _spawn(
     port: int,
     *,
@@ -202,10 +211,7 @@ def _spawn(
     new_session: bool | None = None,
 ) -> subprocess.Popen:
     """The server process (``new_session``: default, only without ``parent``)."""
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(
-        [str(_PROJECT_ROOT), *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])]
-    )
+    env = _child_env()
     env.pop("PREFECT_API_URL", None)  # the server must not talk to another server
     args = [sys.executable, "-m", SERVER_MODULE, "--port", str(port)]
     if parent is not None:
@@ -237,10 +243,7 @@ def _spawn_runner(log: Path) -> int:
     """
     from tumor3d.flows.daemon import DAEMON_MODULE
 
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(
-        [str(_PROJECT_ROOT), *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])]
-    )
+    env = _child_env()
     with open(log, "ab") as out:
         proc = subprocess.Popen(
             [sys.executable, "-m", DAEMON_MODULE],
