@@ -134,7 +134,14 @@ class Reconstruction:
         """A ``(z, y, x)`` array of the acquired grid in the input's own voxel order."""
         if self.scan is None:
             raise InputError("no input grid recorded")
-        return self.scan.source_grid.to_source(np.asarray(mask_zyx))
+        mask = np.asarray(mask_zyx)
+        grid = self.tumor_mask_slices.shape
+        if mask.shape != grid:
+            raise InputError(
+                f"on_input_grid takes an array of the acquired grid (z, y, x) {grid}, not one "
+                f"of shape {mask.shape} (the interpolated tumor_mask lies on fine_affine)"
+            )
+        return self.scan.source_grid.to_source(mask)
 
 
 def _modality(modality: str | None, scan: Scan | None) -> str:

@@ -63,6 +63,9 @@ def test_an_array_with_its_affine_and_a_file_give_the_same_result(phantom, resul
     assert arr.volumes_mm3 == result.volumes_mm3 and arr.patient_id == "array"
     assert np.array_equal(arr.tumor_mask_slices, result.tumor_mask_slices)
     assert arr.on_input_grid(arr.tumor_mask_slices).shape == grid.shape
+    # the interpolated mask is on another grid: one line, the documented InputError
+    with pytest.raises(InputError, match=r"^on_input_grid takes an array of the acquired grid"):
+        arr.on_input_grid(arr.tumor_mask)
     row = write_phantom_patient(phantom, tmp_path)
     from_file = tumor3d.reconstruct(str(row.image), modality="t2")
     assert from_file.patient_id == row.image.name.split(".")[0]
