@@ -47,6 +47,7 @@ Usage (the figures of ``reports/learned_cv.md``; ``learned.json`` and the
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import subprocess
@@ -70,7 +71,7 @@ FOLD_SEED_STEP = 1000
 def build_dataset(preps, folds, args) -> dict[str, np.ndarray]:
     from real_segmentation import emulate_thick
 
-    from tumor3d.learned.cnn_data import case_input, case_target
+    from tumor3d.learned.cnn_data import case_input, case_target, frame_of
 
     xs, ys, fold, case, train_only, group = [], [], [], [], [], []
     for ci, p in enumerate(preps):
@@ -87,9 +88,10 @@ def build_dataset(preps, folds, args) -> dict[str, np.ndarray]:
                         )
                     )
         for img, ref, extra in views:
-            x = case_input(img, args.size, args.context)
+            frame = frame_of(img, args.framing, p.pixel_mm)
+            x = case_input(img, args.size, args.context, frame)
             xs.append(x)
-            ys.append(case_target(ref, args.size))
+            ys.append(case_target(ref, args.size, frame))
             n = x.shape[0]
             fold.append(np.full(n, k, np.int8))
             case.append(np.full(n, ci, np.int32))
@@ -112,7 +114,7 @@ def build_dataset(preps, folds, args) -> dict[str, np.ndarray]:
 #: The options that are :class:`tumor3d.learned.cnn_train.UNetSettings` fields (the
 #: training workers get them all).
 TRAIN_OPTIONS = ("size", "context", "base", "levels", "epochs", "batch", "lr", "neg_ratio",
-                 "shift", "scale", "rotate_deg")  # fmt: skip
+                 "shift", "scale", "rotate_deg", "framing")  # fmt: skip
 
 
 def _settings(args):
@@ -173,7 +175,9 @@ def worker(args) -> int:
         probs = torch_probability(fit.model, x_all[held]).astype(np.float16)
         infer_s = time.perf_counter() - t1
         np.savez(work / f"prob_fold{k}.npz", index=held, prob=probs)
-        (work / f"unet_fold{k}.npz").write_bytes(unet_to_bytes(fit.model))
+        # the settings in the file: its grid and framing (UNetWeights.size / context / framing)
+        meta = {"settings": dataclasses.asdict(settings), "fold": k}
+        (work / f"unet_fold{k}.npz").write_bytes(unet_to_bytes(fit.model, meta))
         timing[k] = {
             "train_s": fit.seconds,
             "infer_s": infer_s,
@@ -263,7 +267,7 @@ def score_folds(preps, folds, run_folds, case_of, train_only, args, cfg):
     """
     import learned_cv as L
 
-    from tumor3d.learned.cnn_data import upsample
+    from tumor3d.learned.cnn_data import frame_of, upsample
 
     work = Path(args.work)
     rows: list[dict] = []
@@ -306,7 +310,8 @@ def score_folds(preps, folds, run_folds, case_of, train_only, args, cfg):
                 continue
             sel = index[case_of[index] == ci]
             assert not train_only[sel].any() and len(sel) == p.image.shape[0]
-            pr = upsample(prob[np.searchsorted(index, sel)], p.image.shape)
+            frame = frame_of(p.image, args.framing, p.pixel_mm)
+            pr = upsample(prob[np.searchsorted(index, sel)], p.image.shape, frame)
             scored(p, pr, k, rows, "U-Net")
             if args.forest_prob:
                 f = L.case_file(args.forest_prob, p.spec.name)
@@ -386,7 +391,8 @@ def train_final(preps, folds, args, work: Path) -> int:
         + ",".join(map(str, args.train_offsets))
         + ")",
         "settings": {k: getattr(args, k) for k in (*TRAIN_OPTIONS, "train_offsets")},
-        "input": "tumor3d.learned.cnn_data.case_input(image, size, context)",
+        "input": "tumor3d.learned.cnn_data.case_input(image, size, context, "
+        "frame_of(image, framing, pixel_mm))",
         "loss": "BCE + soft Dice; Adam (weight decay 1e-5), one-cycle lr (15 % warm-up)",
     }
     (work / "final_meta.json").write_text(json.dumps(meta, indent=1))
@@ -453,6 +459,12 @@ def main(argv=None) -> int:
     ap.add_argument("--shift", type=int, default=8, help="random shift (pixels at --size)")
     ap.add_argument("--scale", type=float, default=0.0, help="random scaling within 1 +- this")
     ap.add_argument("--rotate-deg", type=float, default=0.0, help="random rotation (degrees)")
+    ap.add_argument(
+        "--framing",
+        choices=("slice", "head", "mm"),
+        default="slice",
+        help="what of each slice the net sees (tumor3d.learned.cnn_data.FRAMINGS)",
+    )
     ap.add_argument(
         "--train-offsets",
         type=int,

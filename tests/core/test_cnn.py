@@ -257,3 +257,82 @@ def test_mirrored_probability_is_mirror_equivariant_and_the_plain_one_is_not():
     p, pf = unet_probability(net, x), unet_probability(net, xf)
     assert np.abs(pf - p[..., ::-1]).max() > 1e-3
     np.testing.assert_allclose(m, 0.5 * (p + pf[..., ::-1]), atol=1e-6)
+
+
+def _head(shape=(4, 40, 36)) -> np.ndarray:
+    """A textured block of tissue (rows 6-30, columns 10-30) in zero air, ``(z, y, x)``."""
+    vol = np.zeros(shape, np.float32)
+    rng = np.random.default_rng(11)
+    vol[:, 6:31, 10:31] = rng.normal(100.0, 15.0, (shape[0], 25, 21))
+    return vol
+
+
+@pytest.mark.parametrize("framing", ["head", "mm"])
+def test_a_framed_net_sees_the_same_pixels_whatever_air_surrounds_the_head(framing):
+    """``head``: the square around the tissue (its extent plus the margin each side);
+    ``mm``: FRAME_MM millimetres each way, centred on the tissue. Either way the same head
+    padded with air, cropped to it, or off centre in a wider slice goes in as the same
+    pixels and its probability comes back on the same voxels; the whole slice
+    (``framing: slice``, the shipped nets) sees the field of view."""
+    from tumor3d.learned.cnn_data import FRAME_MM, HEAD_MARGIN, case_input, frame_of, upsample
+
+    vol = _head()
+    pixel_mm = (8.0, 6.0)
+    y0, x0, rows, cols = frame_of(vol, framing, pixel_mm)
+    if framing == "head":  # rows 6-30: 25 px, the longer extent
+        assert rows == cols == int(np.ceil(25 * (1 + 2 * HEAD_MARGIN)))
+    else:
+        assert (rows, cols) == (round(FRAME_MM / 8.0), round(FRAME_MM / 6.0))
+    assert abs((y0 + rows / 2) - 18.5) <= 0.5 and abs((x0 + cols / 2) - 20.5) <= 0.5
+    variants = {  # (volume, where the original's pixel (0, 0) lies in it)
+        "padded": (np.pad(vol, ((0, 0), (7, 30), (21, 4))), (7, 21)),
+        "cropped": (vol[:, 5:32, 9:32], (-5, -9)),
+    }
+    want = case_input(vol, 16, 1, frame_of(vol, framing, pixel_mm))
+    small = np.random.default_rng(3).random((4, 16, 16)).astype(np.float32)
+    back = upsample(small, vol.shape, frame_of(vol, framing, pixel_mm))
+    assert back[:, 6:31, 10:31].min() > 0
+    if framing == "head":
+        assert back[:, :, :3].max() == 0  # 0 beyond the frame
+    for name, (v, (dy, dx)) in variants.items():
+        frame = frame_of(v, framing, pixel_mm)
+        assert frame == (y0 + dy, x0 + dx, rows, cols), name
+        np.testing.assert_array_equal(case_input(v, 16, 1, frame), want, err_msg=name)
+        got = upsample(small, v.shape, frame)
+        # the pixels both hold, in the original's rows r0:r1 and columns c0:c1
+        r0, r1 = max(0, -dy), min(vol.shape[1], v.shape[1] - dy)
+        c0, c1 = max(0, -dx), min(vol.shape[2], v.shape[2] - dx)
+        np.testing.assert_array_equal(
+            got[:, r0 + dy : r1 + dy, c0 + dx : c1 + dx], back[:, r0:r1, c0:c1], err_msg=name
+        )
+    whole = case_input(variants["padded"][0], 16, 1, frame_of(vol, "slice"))
+    assert not np.array_equal(whole, want)  # the whole slice: the air moves the scale
+
+
+def test_a_weight_files_framing_is_read_from_its_settings_and_checked():
+    """A net trained head-framed is run head-framed (one pass per framing, each back on
+    the native grid); a file naming a framing the code does not know is refused."""
+    from tumor3d.learned.cnn import unet_member_probabilities
+    from tumor3d.learned.cnn_data import case_input, frame_of, upsample
+
+    rng = np.random.default_rng(12)
+    a = random_unet(rng, cin=3, base=2, levels=2)
+    head = unet_from_bytes(_npz_bytes(a, {"settings": {"size": 12, "framing": "head"}}))
+    whole = unet_from_bytes(_npz_bytes(a, {"settings": {"size": 12}}))
+    assert (head.framing, whole.framing) == ("head", "slice")
+    vol = _head()
+    got = unet_member_probabilities([head, whole], vol)
+    for i, framing in enumerate(("head", "slice")):
+        frame = frame_of(vol, framing)
+        x = case_input(vol, 12, 1, frame).astype(np.float32)
+        small = np.stack([1.0 / (1.0 + np.exp(-naive_unet(a, 2, xi))) for xi in x])
+        np.testing.assert_allclose(
+            got[i], upsample(small.astype(np.float32), vol.shape, frame), atol=1e-4
+        )
+    assert float(np.abs(got[0] - got[1]).max()) > 0.01
+    with pytest.raises(InputError, match="w.npz: framing 'brain' unknown"):
+        unet_from_bytes(_npz_bytes(a, {"settings": {"framing": "brain"}}), source="w.npz")
+    mm = unet_from_bytes(_npz_bytes(a, {"settings": {"size": 12, "framing": "mm"}}))
+    with pytest.raises(InputError, match="framed in millimetres needs the pixel spacing"):
+        unet_member_probabilities([mm], vol)
+    assert unet_member_probabilities([mm], vol, pixel_mm=(8.0, 8.0)).shape == (1, *vol.shape)

@@ -84,6 +84,31 @@ def test_settings_the_network_cannot_take_are_refused():
         UNetSettings(scale=0.5)
     with pytest.raises(InputError, match="rotate_deg in"):
         UNetSettings(rotate_deg=-1.0)
+    with pytest.raises(InputError, match="framing must be 'slice', 'head' or 'mm'"):
+        UNetSettings(framing="brain")
+
+
+def test_the_settings_framings_are_the_inference_grids():
+    """The training worker spells the framings (numpy + torch only); they are cnn_data's,
+    and a head-framed patient's slices are the inference's input and target in its frame."""
+    from tumor3d.learned.cnn_data import FRAMINGS, case_input, case_target, frame_of
+
+    for framing in FRAMINGS:
+        UNetSettings(framing=framing)
+    p = make_phantom_patient(11, modality="flair", n_slices=12)
+    label = np.asarray(p.slice_masks) > 0.5
+    head = UNetSettings(size=32, context=1, base=2, levels=2, framing="head")
+    x, y = unet_slices(p.scan.image, label, head)
+    frame = frame_of(p.scan.image, "head")
+    assert frame is not None and frame[2] < p.scan.image.shape[1]  # the head, not the slice
+    mm = UNetSettings(size=32, context=1, base=2, levels=2, framing="mm")
+    pixel_mm = p.scan.pixel_spacing_mm
+    xm, _ = unet_slices(p.scan.image, label, mm, pixel_mm)
+    np.testing.assert_array_equal(
+        xm, case_input(p.scan.image, 32, 1, frame_of(p.scan.image, "mm", pixel_mm))
+    )
+    np.testing.assert_array_equal(x, case_input(p.scan.image, 32, 1, frame))
+    np.testing.assert_array_equal(y, case_target(label, 32, frame))
 
 
 def test_scaling_and_rotation_move_image_and_target_together():

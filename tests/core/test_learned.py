@@ -650,7 +650,7 @@ def test_the_api_averages_on_flair_unless_off_and_the_core_obeys_the_switch(monk
     real = unet_member_probabilities
     monkeypatch.setattr(
         "tumor3d.learned.segment.unet_member_probabilities",
-        lambda *a: calls.append(1) or real(*a),
+        lambda *a, **k: calls.append(1) or real(*a, **k),
     )
     from tumor3d.segmentation.detect import SliceDetection
 

@@ -124,6 +124,11 @@ class UNetWeights:
         return int(self.meta.get("settings", {}).get("size", DEFAULT_SIZE))
 
     @property
+    def framing(self) -> str:
+        """What of each slice the net sees (:data:`tumor3d.learned.cnn_data.FRAMINGS`)."""
+        return str(self.meta.get("settings", {}).get("framing", "slice"))
+
+    @property
     def context(self) -> int:
         """Neighbour slices each side in the input (``in_channels = 2 context + 1``)."""
         return int(self.meta.get("settings", {}).get("context", DEFAULT_CONTEXT))
@@ -156,6 +161,12 @@ def unet_from_bytes(data: bytes, *, source: str = "weights") -> UNetWeights:
         raise InputError(
             f"{source}: {net.in_channels} input channels but context {net.context} "
             f"(2 context + 1 expected)"
+        )
+    from tumor3d.learned.cnn_data import FRAMINGS
+
+    if net.framing not in FRAMINGS:
+        raise InputError(
+            f"{source}: framing {net.framing!r} unknown (expected one of {', '.join(FRAMINGS)})"
         )
     return net
 
@@ -331,37 +342,52 @@ def as_nets(net: Any, *, name: str = "net") -> tuple[UNetWeights, ...]:
 
 
 def unet_member_probabilities(
-    net: UNetWeights | Sequence[UNetWeights], image: np.ndarray, *, mirror: bool = False
+    net: UNetWeights | Sequence[UNetWeights],
+    image: np.ndarray,
+    *,
+    mirror: bool = False,
+    pixel_mm: tuple[float, float] | None = None,
 ) -> np.ndarray:
     """Each net's lesion probability of every voxel of ``image`` ``(z, y, x)``, in [0, 1].
 
     The slices as acquired go in on the grid each net was trained on
-    (:func:`tumor3d.learned.cnn_data.case_input` at the file's size and
-    context, computed once per grid) and come back bilinearly to the native
+    (:func:`tumor3d.learned.cnn_data.case_input` at the file's size, context
+    and framing, computed once per grid) and come back bilinearly to the native
     grid (:func:`tumor3d.learned.cnn_data.upsample`), as in the
     cross-validation. ``mirror``: each probability is also the mean with the
     net's mirrored pass (:func:`unet_probability`). Returns ``(n_nets, z, y, x)``
     float32; their spread inside the lesion is a review figure
     (:func:`tumor3d.learned.review.review_features`, ``net_spread``).
+    ``pixel_mm``: the slices' (row, column) spacing, which a net framed in
+    millimetres needs (:func:`tumor3d.learned.cnn_data.frame_of`).
     """
-    from tumor3d.learned.cnn_data import case_input, upsample
+    from tumor3d.learned.cnn_data import case_input, frame_of, upsample
 
     nets = as_nets(net)
     img = np.asarray(image)
     if img.ndim != 3 or min(img.shape) < 1:
         raise InputError(f"image must be 3-D (z, y, x), got shape {img.shape}")
-    inputs: dict[tuple[int, int], np.ndarray] = {}
+    framings = {n.framing for n in nets}
+    if "mm" in framings and pixel_mm is None:
+        raise InputError("a U-Net framed in millimetres needs the pixel spacing (pixel_mm)")
+    frames = {f: frame_of(img, f, pixel_mm) for f in framings}
+    inputs: dict[tuple[int, int, str], np.ndarray] = {}
     out = np.empty((len(nets), *img.shape), np.float32)
     for i, n in enumerate(nets):
-        grid = (n.size, n.context)
+        grid = (n.size, n.context, n.framing)
         if grid not in inputs:
-            inputs[grid] = case_input(img, *grid)
-        out[i] = upsample(unet_probability(n, inputs[grid], mirror=mirror), img.shape)
+            inputs[grid] = case_input(img, n.size, n.context, frames[n.framing])
+        prob = unet_probability(n, inputs[grid], mirror=mirror)
+        out[i] = upsample(prob, img.shape, frames[n.framing])
     return out
 
 
 def unet_volume_probability(
-    net: UNetWeights | Sequence[UNetWeights], image: np.ndarray, *, mirror: bool = False
+    net: UNetWeights | Sequence[UNetWeights],
+    image: np.ndarray,
+    *,
+    mirror: bool = False,
+    pixel_mm: tuple[float, float] | None = None,
 ) -> np.ndarray:
     """The network's lesion probability of every voxel of ``image`` ``(z, y, x)``, in [0, 1].
 
@@ -373,4 +399,5 @@ def unet_volume_probability(
     ensemble without it (one pass per net: as accurate by cross-validation,
     half the time; ``reports/learned_cv.md``, "A longer-trained U-Net").
     """
-    return unet_member_probabilities(net, image, mirror=mirror).mean(axis=0, dtype=np.float32)
+    members = unet_member_probabilities(net, image, mirror=mirror, pixel_mm=pixel_mm)
+    return members.mean(axis=0, dtype=np.float32)

@@ -62,7 +62,9 @@ class UNetSettings:
     batch, peak learning rate, slices without tumour per slice with, the
     largest random shift in pixels, and the random in-plane scaling (a factor
     within ``1 +- scale``) and rotation (within ``+- rotate_deg`` degrees) of
-    each slice, both 0 (none) in the shipped training.
+    each slice, both 0 (none) in the shipped training; ``framing``: what of each
+    slice the net sees (:data:`tumor3d.learned.cnn_data.FRAMINGS`: the whole
+    slice, shipped; a square around the head; a square of 240 mm on it).
     """
 
     size: int = 128
@@ -76,8 +78,13 @@ class UNetSettings:
     shift: int = 8
     scale: float = 0.0
     rotate_deg: float = 0.0
+    framing: str = "slice"
 
     def __post_init__(self) -> None:
+        # tumor3d.learned.cnn_data.FRAMINGS, spelled here: this module runs where only
+        # numpy and torch are installed (the training worker of benchmarks/cnn_cv.py)
+        if self.framing not in ("slice", "head", "mm"):
+            raise InputError(f"U-Net framing must be 'slice', 'head' or 'mm', got {self.framing!r}")
         if self.size % 2 ** (self.levels - 1):
             raise InputError(
                 f"U-Net size {self.size} is not divisible by 2**(levels-1) = "
@@ -118,21 +125,26 @@ def require_torch() -> Any:
 
 
 def unet_slices(
-    image: np.ndarray, label: np.ndarray, settings: UNetSettings = UNetSettings()
+    image: np.ndarray,
+    label: np.ndarray,
+    settings: UNetSettings = UNetSettings(),
+    pixel_mm: tuple[float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One patient's network input ``(z, 2 context + 1, s, s)`` and target ``(z, s, s)``.
 
     ``image`` is the scan as acquired ``(z, y, x)`` (the raw intensities: the
     input is normalised here, as at inference); ``label`` the boolean
-    reference on the same grid. Both float16.
+    reference on the same grid. Both float16. ``pixel_mm``: the (row, column)
+    spacing, which the ``"mm"`` framing needs.
     """
-    from tumor3d.learned.cnn_data import case_input, case_target
+    from tumor3d.learned.cnn_data import case_input, case_target, frame_of
 
     if np.shape(image) != np.shape(label):
         raise InputError(f"image {np.shape(image)} and label {np.shape(label)} differ in shape")
+    frame = frame_of(image, settings.framing, pixel_mm)
     return (
-        case_input(image, settings.size, settings.context),
-        case_target(np.asarray(label, bool), settings.size),
+        case_input(image, settings.size, settings.context, frame),
+        case_target(np.asarray(label, bool), settings.size, frame),
     )
 
 

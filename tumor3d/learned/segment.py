@@ -166,7 +166,8 @@ def segment_learned(
     else:
         # the network holds the GIL little (matrix products, numpy): it runs beside the forest
         with ThreadPoolExecutor(1, thread_name_prefix="tumor3d-unet") as pool:
-            net = pool.submit(unet_member_probabilities, nets, image)
+            pixel_mm = (float(spacing_mm[1]), float(spacing_mm[2]))  # a net framed in mm
+            net = pool.submit(unet_member_probabilities, nets, image, pixel_mm=pixel_mm)
             forest = _forest(*args)
             members = net.result()
         p_cnn = members.mean(axis=0, dtype=np.float32)
