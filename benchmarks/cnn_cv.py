@@ -527,17 +527,10 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import learned_cv as L
 
-    from tumor3d.config import parse_config
-    from tumor3d.storage.manifest import data_dir
-
-    data = data_dir()
-    if not data.is_dir():
-        print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
+    cases = L.grouped_cases(args.config, args.folds, args.groups)
+    if cases is None:
         return 0
-    cfg = parse_config(Path(args.config).read_text(), source=args.config)
-    specs = L.case_specs(data)
-    folds = L.assign_folds(specs, args.folds)  # on every case, as learned_cv.py
-    specs = [s for s in specs if s.group in args.groups]
+    cfg, specs, folds = cases
     run_folds = list(range(args.folds)) if args.only_folds is None else args.only_folds
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)

@@ -58,19 +58,13 @@ def main(argv=None) -> int:
 
     import learned_cv as L
 
-    from tumor3d.config import parse_config
     from tumor3d.evaluation.metrics import dice
     from tumor3d.learned.cnn import unet_from_bytes, unet_volume_probability
-    from tumor3d.storage.manifest import data_dir
 
-    data = data_dir()
-    if not data.is_dir():
-        print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
+    cases = L.grouped_cases(args.config, args.folds, args.groups)
+    if cases is None:
         return 0
-    cfg = parse_config(Path(args.config).read_text(), source=args.config)
-    specs = L.case_specs(data)
-    folds = L.assign_folds(specs, args.folds)
-    specs = [s for s in specs if s.group in args.groups]
+    cfg, specs, folds = cases
     nets = {
         k: unet_from_bytes((Path(args.work) / f"unet_fold{k}.npz").read_bytes())
         for k in range(args.folds)

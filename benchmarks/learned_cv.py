@@ -230,6 +230,19 @@ def assign_folds(specs: list[CaseSpec], k: int) -> dict[str, int]:
     return folds
 
 
+def grouped_cases(config: str, k: int, groups) -> tuple | None:
+    """(configuration, the cases of ``groups``, their patients' folds of every case's
+    dealing into ``k``); None, said once, when there is no real data."""
+    data = data_dir()
+    if not data.is_dir():
+        print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
+        return None
+    cfg = parse_config(Path(config).read_text(), source=config)
+    specs = case_specs(data)
+    folds = assign_folds(specs, k)  # on every case, as learned_cv.py
+    return cfg, [s for s in specs if s.group in groups], folds
+
+
 @dataclass
 class Prepared:
     spec: CaseSpec
