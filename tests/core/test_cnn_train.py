@@ -103,6 +103,8 @@ def test_the_settings_framings_are_the_inference_grids():
     assert frame is not None and frame[2] < p.scan.image.shape[1]  # the head, not the slice
     mm = UNetSettings(size=32, context=1, base=2, levels=2, framing="mm")
     pixel_mm = p.scan.pixel_spacing_mm
+    with pytest.raises(InputError, match="'mm' framing needs the slices' pixel spacing"):
+        unet_slices(p.scan.image, label, mm)
     xm, _ = unet_slices(p.scan.image, label, mm, pixel_mm)
     np.testing.assert_array_equal(
         xm, case_input(p.scan.image, 32, 1, frame_of(p.scan.image, "mm", pixel_mm))

@@ -141,6 +141,8 @@ def unet_slices(
 
     if np.shape(image) != np.shape(label):
         raise InputError(f"image {np.shape(image)} and label {np.shape(label)} differ in shape")
+    if settings.framing == "mm" and pixel_mm is None:
+        raise InputError("the 'mm' framing needs the slices' pixel spacing (pixel_mm)")
     frame = frame_of(image, settings.framing, pixel_mm)
     return (
         case_input(image, settings.size, settings.context, frame),
