@@ -79,17 +79,28 @@ def frame_of(
     return y0, x0, rows, cols
 
 
+def _overlap(frame: Frame, h: int, w: int) -> tuple[tuple[slice, ...], tuple[slice, ...]] | None:
+    """The pixels a ``frame`` shares with an ``h`` x ``w`` slice; None if it shares none.
+
+    Returns the image's index and the frame's, each ``(:, rows, columns)``.
+    """
+    y0, x0, rows, cols = frame
+    sy, sx = max(0, y0), max(0, x0)
+    ey, ex = min(h, y0 + rows), min(w, x0 + cols)
+    if sy >= ey or sx >= ex:
+        return None
+    image = (slice(None), slice(sy, ey), slice(sx, ex))
+    return image, (slice(None), slice(sy - y0, ey - y0), slice(sx - x0, ex - x0))
+
+
 def _window(vol: np.ndarray, frame: Frame | None, fill: float) -> np.ndarray:
     """The ``frame`` of every slice of ``vol`` ``(z, y, x)``, ``fill`` beyond the image."""
     if frame is None:
         return vol
-    y0, x0, rows, cols = frame
-    z, h, w = vol.shape
-    out = np.full((z, rows, cols), fill, vol.dtype)
-    sy, sx = max(0, y0), max(0, x0)
-    ey, ex = min(h, y0 + rows), min(w, x0 + cols)
-    if sy < ey and sx < ex:
-        out[:, sy - y0 : ey - y0, sx - x0 : ex - x0] = vol[:, sy:ey, sx:ex]
+    out = np.full((vol.shape[0], frame[2], frame[3]), fill, vol.dtype)
+    shared = _overlap(frame, *vol.shape[1:])
+    if shared is not None:
+        out[shared[1]] = vol[shared[0]]
     return out
 
 
@@ -153,10 +164,8 @@ def upsample(
     out = np.clip(out[:, :th, :tw], 0.0, 1.0)
     if frame is None:
         return out
-    y0, x0 = frame[:2]
     full = np.zeros((z, h, w), np.float32)
-    sy, sx = max(0, y0), max(0, x0)
-    ey, ex = min(h, y0 + th), min(w, x0 + tw)
-    if sy < ey and sx < ex:
-        full[:, sy:ey, sx:ex] = out[:, sy - y0 : ey - y0, sx - x0 : ex - x0]
+    shared = _overlap(frame, h, w)
+    if shared is not None:
+        full[shared[0]] = out[shared[1]]
     return full
