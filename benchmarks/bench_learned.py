@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 from tumor3d.config import PipelineConfig  # noqa: E402
 from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
 from tumor3d.learned.cnn import unet_probability, unet_volume_probability  # noqa: E402
-from tumor3d.learned.cnn_data import case_input, upsample  # noqa: E402
+from tumor3d.learned.cnn_data import case_input, frame_of, upsample  # noqa: E402
 from tumor3d.learned.features import compute_features  # noqa: E402
 from tumor3d.learned.forest import predict_proba  # noqa: E402
 from tumor3d.learned.shipped import shipped_cnn, shipped_model  # noqa: E402
@@ -102,13 +102,20 @@ def main(argv=None) -> int:
     t_robust, c_robust = best_of_cpu(lambda: seg("robust"), args.repeat)
     t_learned, c_learned = best_of_cpu(lambda: seg("learned", "off"), args.repeat)
     t_mean, c_mean = best_of_cpu(lambda: seg("learned", "auto"), args.repeat)
-    x = case_input(scan.image, net.size, net.context)
+    pixel_mm = sp[1:]
+    frame = frame_of(scan.image, net.framing, pixel_mm)  # the net's window on each slice
+    x = case_input(scan.image, net.size, net.context, frame)
     small = unet_probability(net, x)
-    t_in, c_in = best_of_cpu(lambda: case_input(scan.image, net.size, net.context), args.repeat)
+    t_frame, c_frame = best_of_cpu(lambda: frame_of(scan.image, net.framing, pixel_mm), args.repeat)
+    t_in, c_in = best_of_cpu(
+        lambda: case_input(scan.image, net.size, net.context, frame), args.repeat
+    )
     t_net, c_net = best_of_cpu(lambda: unet_probability(net, x), args.repeat)
     t_mir, c_mir = best_of_cpu(lambda: unet_probability(net, x, mirror=True), args.repeat)
-    t_up, c_up = best_of_cpu(lambda: upsample(small, scan.image.shape), args.repeat)
-    t_cnn, c_cnn = best_of_cpu(lambda: unet_volume_probability(cnn, scan.image), args.repeat)
+    t_up, c_up = best_of_cpu(lambda: upsample(small, scan.image.shape, frame), args.repeat)
+    t_cnn, c_cnn = best_of_cpu(
+        lambda: unet_volume_probability(cnn, scan.image, pixel_mm=pixel_mm), args.repeat
+    )
     t_feat = best_of(
         lambda: compute_features(scan.image, spacing_mm=sp, modality="flair", lr_axis=lr),
         args.repeat,
@@ -136,7 +143,7 @@ def main(argv=None) -> int:
         f"{load_before:.1f} before, {os.getloadavg()[0]:.1f} after; "
         f"{feats.values.shape[0]} tissue pixels, {model.roots.size} trees; {len(cnn)} U-Nets "
         f"{net.size} x {net.size}, {net.levels} levels, {sum(a.size for a in net.arrays.values())} "
-        f"weights each"
+        f"weights each, framing {net.framing!r}"
     )
     inf_forest, inf_mean = t_learned - t_robust, t_mean - t_robust
     cpu_forest, cpu_mean = c_learned - c_robust, c_mean - c_robust
@@ -165,10 +172,11 @@ def main(argv=None) -> int:
         )
     print(
         f"| U-Net ensemble alone, in the calling thread (input + {len(cnn)} networks, one pass "
-        f"each + upsample) | {t_cnn:.2f} | "
+        f"each, framed + upsample) | {t_cnn:.2f} | "
         f"{c_cnn:.2f} | {t_cnn / inf_forest:.2f} |"
     )
     for name, t, c in (
+        (f"U-Net window (frame_of, {net.framing!r}: the tissue's box)", t_frame, c_frame),
         ("U-Net input (case_input)", t_in, c_in),
         ("U-Net network (numpy, one BLAS thread), one net, one pass", t_net, c_net),
         ("U-Net network with its mirrored pass (not run by the pipeline), one net", t_mir, c_mir),

@@ -1116,23 +1116,29 @@ def _group_figures(rs: list[dict]) -> dict:
 
 def status_doubts(
     pre, spacing_mm, mask: np.ndarray, caveats, method: str, seg_values=None
-) -> list[str]:
+) -> tuple[list[str], list[str]]:
     """What would make a run's status ``check`` beside a learned review's limits, as
     ``tumor3d.api.reconstruct_scan`` says it: no tumour found, ``caveats``, the brain
     mask's notes of preprocessing ``pre`` (doubting where ``method``'s mask lies inside the
     brain mask), and a segmentation that flags itself (``seg_values``: its
-    ``needs_review`` and reasons, ``tumor3d.api.segmentation_values``)."""
+    ``needs_review`` and reasons, ``tumor3d.api.segmentation_values``).
+
+    Returns those doubts, and apart from them the doubt of the voxel size (a slice step
+    the head's shape contradicts, ``scale_notes``): it doubts every volume in mm3 and mL,
+    not the segmentation, and the scoring here counts the LGG heads' voxels, which their
+    unknown voxel size does not change (``reports/learned_cv.md``, "A slice step the
+    head's shape contradicts"), so the review's figures leave it out and say it apart."""
     from tumor3d.imaging.preprocess import brain_mask_figures
     from tumor3d.segmentation.review import brain_mask_run_notes, run_notes, segmentation_review
 
     figures = brain_mask_figures(
         pre.brain_mask, spacing_mm, str(pre.brain_extraction), pre.original_u8
     )
-    _, doubts = run_notes(
-        tumour_found=bool(mask.any()), caveats=caveats, **brain_mask_run_notes(figures, method)
-    )
+    kw = brain_mask_run_notes(figures, method)
+    voxel_size = list(kw.pop("scale_notes"))
+    _, doubts = run_notes(tumour_found=bool(mask.any()), caveats=caveats, **kw)
     flagged, reasons, _ = segmentation_review(seg_values)
-    return doubts + (list(reasons) if flagged else [])
+    return doubts + (list(reasons) if flagged else []), voxel_size
 
 
 def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
@@ -1170,7 +1176,7 @@ def run_configured(preps: list[Prepared], method: str, cfg) -> list[dict]:
         # a rule-based method's review, judged by review_cv.py --default-rows; the caveats
         # said, doubting or not (learned_report.py weighs the midline caveat on them)
         row["caveats"] = list(seg.caveats)
-        row["doubts"] = status_doubts(
+        row["doubts"], row["voxel_size_doubts"] = status_doubts(
             pre, p.spacing_mm, seg.tumor_mask, seg.caveats, seg.method, segmentation_values(seg)
         )
         out.append(row)

@@ -106,7 +106,7 @@ def targets(rows: list[dict], review: dict | None = None) -> str:
                 "",
                 "(On T2 the default's status counts the robust method's midline caveat as a "
                 "note, not a doubt: a rule chosen on these same out-of-fold rows, not nested, "
-                "so its share of the last line is not a held-out figure; \"When to check\" "
+                'so its share of the last line is not a held-out figure; "When to check" '
                 "below.)",
             ]
     return "\n".join(lines)
@@ -269,6 +269,9 @@ def review_table(
             limits(off["final"]),
         ),
     )
+    no_tumour = "no tumour found"
+    n_caveat = sum(any(not d.startswith(no_tumour) for d in r.get("doubts", ())) for r in learned)
+    n_voxel = sum(bool(r.get("voxel_size_doubts")) for r in learned)
     lines = [
         "The review's limits chosen fold by fold on the other folds, judged on the held-out\n"
         "fold (targets: >= 80 % of the cases off by > 25 % flagged, <= 25 % of those within\n"
@@ -279,7 +282,8 @@ def review_table(
         "Flagged is what makes the run's status `check`: the review's limits, or any doubt the\n"
         "pipeline raises beside it whatever the limits (`review_doubts.py`): the learned\n"
         "mask's caveats (a tumour on the scan's first or last slice, or near the air outside\n"
-        "a raw head: 2 of the 96 learned masks), and an empty result (no tumour found asks a\n"
+        f"a raw head: {n_caveat} of the {len(learned)} learned masks), and an empty result (no "
+        "tumour found asks a\n"
         "human to confirm there is none: the model cannot tell a tumour it missed from none;\n"
         "that rule has no limit to fit, but it was added after one case was seen passing\n"
         "unflagged: brain2/t1c, a clinical T1c head where the forest finds nothing and sees\n"
@@ -289,7 +293,13 @@ def review_table(
         "and 9 within 10 %: no sign of a bad volume), and the brain mask's notes doubt a mask\n"
         "that lies inside the brain mask, which the learned one, read from the whole head's\n"
         "tissue, does not (they named 11, 4 off by > 25 % and 4 within 10 %; they are still\n"
-        "said in the notes). Counted as doubts, the two flag 60 % of the real cases within 10 %.\n"
+        "said in the notes). Counted as doubts, the two flag 60 % of the real cases within 10 %\n"
+        "(these three figures with the nets shipped before 2026-12-07, when the rule was set).\n"
+        "The doubt of the voxel size (a slice step the head's shape contradicts) is left out:\n"
+        f"it names {n_voxel} of the {len(learned)} cases, the LGG heads written as 1 mm voxels, "
+        "whose volumes are\n"
+        "scored here in voxel counts, which their voxel size does not change (the section\n"
+        '"A slice step the head\'s shape contradicts" below).\n'
         "On T2 the default runs the robust method (the first row), which has no probability\n"
         "to review: its status asks for a check only when its caveats (a tumour cut by the\n"
         "end of the scan, or near the air outside a raw head), the brain mask's notes or an\n"
@@ -404,16 +414,17 @@ def main(argv=None) -> int:
 
 Command (the figures below; with the prepared cases cached, the forest-alone
 `learned_cv.py --method learned` run took 18 min and the `--cnn-folds` one
-(two nets per fold) 20 min at load 3-4 on 2 shared cores; the fold U-Nets 25 min
-a seed on 2 quiet cores at 20 epochs, 447-530 s per fold, two at a time; 2026-12-05):
+(two nets per fold) 14 min at load 2 on 2 shared cores, 2026-12-07; the fold U-Nets
+about 27 min a seed, 8-10 min per fold, two at a time, 2026-12-06 and 07):
 
 ```
 export TUMOR3D_DATA_DIR=../shared/data
 # the 5 fold U-Nets of each seed, /tmp/cnn{{0,1}}/unet_fold{{k}}.npz (FLAIR, the same folds,
-# 20 epochs; torch in a venv of its own: the section "A small 2-D U-Net" below)
+# 20 epochs, 240 mm centred on the head; torch in a venv of its own: the section
+# "A small 2-D U-Net" below)
 for s in 0 1; do
     nice -n 10 python benchmarks/cnn_cv.py --cache /tmp/cv-cache --work /tmp/cnn$s \\
-        --epochs 20 --seed $s --mirror --json cnn$s.json
+        --epochs 20 --seed $s --framing mm --json cnn$s.json
 done
 # the shipped method: forest + the mean of the two U-Nets on FLAIR, the forest alone
 # on T2 and T1c
@@ -456,7 +467,9 @@ T2, one for T1c) are trained on four folds and score the fifth. On FLAIR the
 method averages the forest's probability with a U-Net's before the cut
 (`segment.learned_cnn: auto`, the nested choice below: the mean in 5 of 5
 folds); the U-Net is an ensemble of two trainings (seeds 0 and 1, 20 epochs:
-"A longer-trained U-Net" below), whose probabilities are averaged. Fold k's
+"A longer-trained U-Net" below), whose probabilities are averaged; each net sees
+240 mm of each slice centred on the head ("The U-Net's framing" below), so the air
+around the head does not move its answer. Fold k's
 FLAIR cases get the two nets `cnn_cv.py` trained on the other four folds'
 FLAIR patients (`--cnn-folds`), through the pipeline's own call
 (`tumor3d.learned.segment.segment_learned(..., cnn=...)`, the weights read by

@@ -10,7 +10,9 @@ result, and the brain mask's notes where they doubt its volume.
 recomputes each case's lesion from its saved map as the run cut it (checked
 against the row's volume), preprocesses as the pipeline does (the brain mask,
 the air outside the head), and writes the rows with ``doubts``: the words that
-would make the status ``check`` whatever the review's limits.
+would make the status ``check`` whatever the review's limits, except the doubt of
+the voxel size, written apart as ``voxel_size_doubts`` (it doubts every volume in mL,
+not the segmentation; the LGG heads are scored in voxel counts).
 ``benchmarks/review_cv.py`` flags a row with doubts as the run's status does.
 
 Usage::
@@ -42,10 +44,12 @@ from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
 from tumor3d.segmentation.segment.learned import learned_caveats  # noqa: E402
 
 
-def doubts(p, mask: np.ndarray, cfg) -> list[str]:
+def doubts(p, mask: np.ndarray, cfg) -> tuple[list[str], list[str]]:
     """The doubts of learned mask ``mask`` on prepared case ``p``, as the learned method's
     run says them: its caveats (:func:`tumor3d.segmentation.segment.learned.learned_caveats`,
-    with the air outside the head), then :func:`learned_cv.status_doubts`."""
+    with the air outside the head), then :func:`learned_cv.status_doubts`; and apart, the
+    doubt of the voxel size (a slice step the head's shape contradicts), which the review's
+    figures leave out (the LGG heads are scored by voxel counts)."""
     pre = preprocess_volume(p.image, **cfg.preprocess.model_dump(), spacing_mm=p.spacing_mm)
     exterior = pre.head_exterior
     caveats = learned_caveats(
@@ -70,11 +74,12 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     cfg = parse_config(Path(args.config).read_text(), source=args.config)
     rows = json.loads(Path(args.rows).read_text())
-    recut, n_doubted = recut_rows(rows, args, cfg, key=args.key), 0
+    recut, n_doubted, n_voxel = recut_rows(rows, args, cfg, key=args.key), 0, 0
     try:
         for r, p, _, mask in recut:
-            r["doubts"] = doubts(p, mask, cfg)
+            r["doubts"], r["voxel_size_doubts"] = doubts(p, mask, cfg)
             n_doubted += bool(r["doubts"])
+            n_voxel += bool(r["voxel_size_doubts"])
             if r["doubts"]:
                 said = "; ".join(d[:70] for d in r["doubts"])
                 print(f"  {r['case']} ({r['vol_err']:+.0f} %): {said}")
@@ -83,7 +88,8 @@ def main(argv=None) -> int:
         return 1
     Path(args.out).write_text(json.dumps(rows, indent=1))
     print(
-        f"{len(rows)} rows, {n_doubted} with doubts; lesions within {recut.worst:.2%} of the rows' "
+        f"{len(rows)} rows, {n_doubted} with doubts (and {n_voxel} doubting the voxel size, "
+        f"left apart); lesions within {recut.worst:.2%} of the rows' "
         f"volumes: wrote {args.out}"
     )
     return 0

@@ -37,7 +37,9 @@ def phantom_slices():
     xs, ys = [], []
     for seed in (11, 12):
         p = make_phantom_patient(seed, modality="flair", n_slices=12)
-        x, y = unet_slices(p.scan.image, np.asarray(p.slice_masks) > 0.5, TINY)
+        x, y = unet_slices(  # the shipped framing: 240 mm centred on the head
+            p.scan.image, np.asarray(p.slice_masks) > 0.5, TINY, p.scan.pixel_spacing_mm
+        )
         xs.append(x)
         ys.append(y)
     return np.concatenate(xs), np.concatenate(ys)

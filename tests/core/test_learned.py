@@ -585,6 +585,32 @@ def test_the_shipped_unets_load_and_each_ones_bytes_move_the_segment_key(tmp_pat
         code_digest.cache_clear()
 
 
+def test_the_shipped_unets_answer_does_not_depend_on_the_air_around_the_head():
+    """The shipped nets see 240 mm centred on the head (``framing: mm``), so a scan
+    padded with air, or cropped near the head, gets the same probability on the
+    voxels it shares with the scan as stored. Nets that resample the whole slice
+    (``slice``, shipped before) moved held-out masks by 8-25 % of their voxels."""
+    from tumor3d.learned.cnn import unet_volume_probability
+    from tumor3d.learned.shipped import shipped_cnn
+
+    nets = shipped_cnn("flair")
+    assert {n.framing for n in nets} == {"mm"}
+    p = make_phantom_patient(7, modality="flair", n_slices=12)
+    img = np.asarray(p.scan.image, np.float32)
+    pixel_mm = tuple(p.scan.pixel_spacing_mm)
+    want = unet_volume_probability(nets, img, pixel_mm=pixel_mm)
+    assert want.max() > 0.5  # it sees the tumour
+    pad = ((0, 0), (20, 9), (13, 20))
+    padded = np.pad(img, pad, constant_values=float(img.min()))
+    got = unet_volume_probability(nets, padded, pixel_mm=pixel_mm)
+    np.testing.assert_allclose(got[:, 20:-9, 13:-20], want, atol=1e-5)
+    rows, cols = np.nonzero((img > np.percentile(img, 60)).any(axis=0))
+    r0, c0 = max(0, rows.min() - 4), max(0, cols.min() - 4)
+    cropped = img[:, r0 : rows.max() + 5, c0 : cols.max() + 5]
+    got = unet_volume_probability(nets, cropped, pixel_mm=pixel_mm)
+    np.testing.assert_allclose(got, want[:, r0 : rows.max() + 5, c0 : cols.max() + 5], atol=1e-5)
+
+
 def test_the_stage_writes_the_mean_on_flair_and_off_writes_the_forest_alone(monkeypatch, tmp_path):
     """The segment stage with a tiny random U-Net standing in for the shipped one: the
     probability it writes is the mean of the forest's (learned_cnn: off) and the

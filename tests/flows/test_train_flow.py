@@ -196,12 +196,15 @@ def test_cnn_slices_are_the_inference_grid_of_each_flair_patient(trained, monkey
         num_rounds=ROUNDS, command="test", cnn=True, cnn_settings=UNET_TINY,
     )  # fmt: skip
     assert seen["settings"] == UNetSettings(**UNET_TINY)
+    assert seen["settings"].framing == "mm"  # the shipped nets' framing
     assert seen["seeds"] == [0, 1]  # the shipped ensemble: one net per seed
     assert seen["meta"]["training_cases"] == ["tr11", "tr12", "tr13n"]
     xs, ys = [], []
     for seed, tumour in ((11, True), (12, True), (13, False)):
         p = make_phantom_patient(seed, modality="flair", n_slices=14, tumor=tumour)
-        x, y = unet_slices(p.scan.image, np.asarray(p.slice_masks) > 0.5)
+        x, y = unet_slices(  # the shipped framing: 240 mm centred on the head
+            p.scan.image, np.asarray(p.slice_masks) > 0.5, pixel_mm=p.scan.pixel_spacing_mm
+        )
         xs.append(x)
         ys.append(y)
     x, y = np.concatenate(xs), np.concatenate(ys)
@@ -237,6 +240,21 @@ def test_cnn_seeds_must_be_distinct_and_are_checked_before_any_patient(
     monkeypatch.setattr(train_mod, "_patient_rows", lambda *a, **k: pytest.fail("a patient ran"))
     with pytest.raises(InputError, match="distinct seeds"):
         run_training(manifest, tmp_path / "m", cnn=True, cnn_seeds=seeds, cnn_settings=UNET_TINY)
+
+
+@pytest.mark.parametrize("key, value", [("framing", "slice"), ("size", 64), ("context", 2)])
+def test_cnn_settings_of_the_slice_grid_are_refused_before_any_patient(
+    trained, monkeypatch, tmp_path, key, value
+):
+    """The unet-slices stage cuts every patient's slices on the shipped grid (size,
+    context and framing), so a net trained on other settings would not match them."""
+    import tumor3d.flows.train as train_mod
+
+    manifest, _, _ = trained
+    monkeypatch.setattr(train_mod, "require_torch", lambda: None)
+    monkeypatch.setattr(train_mod, "_patient_rows", lambda *a, **k: pytest.fail("a patient ran"))
+    with pytest.raises(InputError, match=f"{key} is fixed by the unet-slices stage"):
+        run_training(manifest, tmp_path / "m", cnn=True, cnn_settings={key: value})
 
 
 def test_cnn_trains_a_unet_the_numpy_forward_pass_reads(trained):

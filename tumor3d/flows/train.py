@@ -69,7 +69,7 @@ _PIPELINE_STAGES = ("ingest-scan", "preprocess", "detect-abnormal")
 #: Modalities the U-Net is trained on (its cross-validation: FLAIR; the file's name says so).
 UNET_MODALITIES = ("flair",)
 #: Settings of ``cnn_settings`` the unet-slices stage fixes (its slices are the shipped grid).
-_UNET_GRID = ("size", "context")
+_UNET_GRID = ("size", "context", "framing")
 
 
 @dataclass
@@ -299,7 +299,8 @@ def train_flow(
             meta = {
                 "name": f"tumor3d-unet-flair-seed{seed}-{datetime.date.today().isoformat()}",
                 "modalities": list(UNET_MODALITIES),
-                "input": "tumor3d.learned.cnn_data.case_input(image, size, context)",
+                "input": "tumor3d.learned.cnn_data.case_input(image, size, context, "
+                "frame_of(image, framing, pixel_mm))",
                 "training_cases": [c["patient_id"] for _, c in unet_cases],
                 "command": command,
             }

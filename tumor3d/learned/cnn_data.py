@@ -6,9 +6,10 @@ is given. Arrays are ``(z, y, x)``: slices first, in the volume's own order.
 The network sees each slice resampled to ``size`` x ``size``, 2.5-D: the slice
 and ``context`` neighbours each side as channels (the end slices repeat). What
 of the slice it sees is its *framing* (:data:`FRAMINGS`): ``"slice"``, the whole
-slice, so the field of view sets the scale (the shipped nets); ``"head"``, a
-square around the volume's tissue; or ``"mm"``, a square of :data:`FRAME_MM`
-millimetres centred on the tissue (:func:`frame_of`). With the last two the
+slice, so the field of view sets the scale (the nets shipped before 2026-12-07, and
+a weights file that names no framing); ``"head"``, a square around the volume's
+tissue; or ``"mm"``, a square of :data:`FRAME_MM` millimetres centred on the tissue
+(:func:`frame_of`; the shipped nets). With the last two the
 same head stored with more or less air around it, or cropped to it, gives the
 net the same pixels. Intensity is
 ``(I - median) / robust SD`` over the head's tissue, per patient
@@ -31,8 +32,8 @@ __all__ = ["FRAMINGS", "Frame", "case_input", "case_target", "frame_of", "upsamp
 FRAMINGS = ("slice", "head", "mm")
 #: The margin of a ``"head"`` frame: the tissue's extent plus this fraction each side.
 HEAD_MARGIN = 0.08
-#: The side of an ``"mm"`` frame: the BraTS volumes' field of view, which the shipped
-#: nets learned at (240 x 240 pixels of 1 mm).
+#: The side of an ``"mm"`` frame: the BraTS volumes' field of view (240 x 240 pixels of
+#: 1 mm), at which the whole-slice nets shipped before learned them.
 FRAME_MM = 240.0
 
 #: A window of the slices, ``(y0, x0, rows, columns)`` in native pixels; it may reach

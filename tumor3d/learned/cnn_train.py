@@ -64,7 +64,8 @@ class UNetSettings:
     within ``1 +- scale``) and rotation (within ``+- rotate_deg`` degrees) of
     each slice, both 0 (none) in the shipped training; ``framing``: what of each
     slice the net sees (:data:`tumor3d.learned.cnn_data.FRAMINGS`: the whole
-    slice, shipped; a square around the head; a square of 240 mm on it).
+    slice; a square around the head; a square of 240 mm centred on the head, shipped:
+    the answer does not depend on the air around the head).
     """
 
     size: int = 128
@@ -78,7 +79,7 @@ class UNetSettings:
     shift: int = 8
     scale: float = 0.0
     rotate_deg: float = 0.0
-    framing: str = "slice"
+    framing: str = "mm"
 
     def __post_init__(self) -> None:
         # tumor3d.learned.cnn_data.FRAMINGS, spelled here: this module runs where only

@@ -48,8 +48,8 @@ __all__ = [
 REVIEW_LIMITS: dict[str, dict[str, float]] = {
     "with_net": {
         "mean_probability": 0.85,  # mean probability inside the lesion (below: check)
-        "outside_ratio": 0.2,  # probability mass above 0.5 outside the kept lesion, per inside
-        "net_spread": 0.08,  # mean (max - min) of the ensemble's nets' probabilities inside
+        "outside_ratio": 0.1,  # probability mass above 0.5 outside the kept lesion, per inside
+        "net_spread": 0.12,  # mean (max - min) of the ensemble's nets' probabilities inside
     },
     "single_net": {
         "mean_probability": 0.85,
@@ -58,8 +58,8 @@ REVIEW_LIMITS: dict[str, dict[str, float]] = {
     },
     "forest_alone": {
         "mean_probability": 0.85,
-        "outside_ratio": 0.2,
-        "uncertain_ratio": 1.2,  # voxels of probability 0.2-0.8 per lesion voxel
+        "outside_ratio": 0.1,
+        "uncertain_ratio": 0.6,  # voxels of probability 0.2-0.8 per lesion voxel
     },
 }
 

@@ -10,10 +10,11 @@ in ``tumor3d/learned/models/``: ``hyper.npz`` (FLAIR and T2, whole tumour)
 and ``t1c.npz`` (T1c, tumour core). Beside them, ``unet_flair_seed0.npz``
 and ``unet_flair_seed1.npz``: two trainings (seeds 0 and 1) of a 2-D U-Net
 (:mod:`tumor3d.learned.cnn`, weights only, read without pickle) on FLAIR
-alone, an ensemble whose mean probability the learned method averages with
-the forest's on FLAIR (``segment.learned_cnn``). Their bytes enter the segment
-stage's cache key (``tumor3d.tasks.caching.DATA_FILES``), so a retrained model
-recomputes.
+alone, each seeing 240 mm of each slice centred on the head (``framing: mm`` in
+its settings, :func:`tumor3d.learned.cnn_data.frame_of`), an ensemble whose mean
+probability the learned method averages with the forest's on FLAIR
+(``segment.learned_cnn``). Their bytes enter the segment stage's cache key
+(``tumor3d.tasks.caching.DATA_FILES``), so a retrained model recomputes.
 """
 
 from __future__ import annotations

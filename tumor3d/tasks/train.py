@@ -139,7 +139,7 @@ def _reference_on_scan(scan: Artifact, reference: Artifact) -> tuple[np.ndarray,
 def unet_training_slices(scan: Artifact, reference: Artifact) -> StageResult:
     """The patient's U-Net input and target slices (the shipped network's grid)."""
     image, label = _reference_on_scan(scan, reference)
-    x, y = unet_slices(image, label, UNetSettings())
+    x, y = unet_slices(image, label, UNetSettings(), pixel_mm=scan_spacing_mm(scan)[1:])
     tumour = int(np.sum(y.reshape(len(y), -1).max(axis=1) > 0))
     counts = {"n_slices": int(len(x)), "n_tumour_slices": tumour}
     return StageResult(
