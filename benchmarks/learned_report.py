@@ -468,8 +468,8 @@ method averages the forest's probability with a U-Net's before the cut
 (`segment.learned_cnn: auto`, the nested choice below: the mean in 5 of 5
 folds); the U-Net is an ensemble of two trainings (seeds 0 and 1, 20 epochs:
 "A longer-trained U-Net" below), whose probabilities are averaged; each net sees
-240 mm of each slice centred on the head ("The U-Net's framing" below), so the air
-around the head does not move its answer. Fold k's
+240 mm of each slice centred on the head ("The U-Net's framing" below), so the field
+of view no longer sets the scale at which it sees the head. Fold k's
 FLAIR cases get the two nets `cnn_cv.py` trained on the other four folds'
 FLAIR patients (`--cnn-folds`), through the pipeline's own call
 (`tumor3d.learned.segment.segment_learned(..., cnn=...)`, the weights read by
