@@ -290,11 +290,23 @@ def score_folds(preps, folds, run_folds, case_of, train_only, args, cfg):
 
     x_all = None
     if args.mirror or args.ensemble_work:  # the pipeline's inference: numpy (mirrored pass
-        from tumor3d.learned.cnn import unet_from_bytes, unet_probability  # with --mirror)
+        from tumor3d.learned.cnn import unet_probability  # with --mirror)
 
         with np.load(work / "data.npz", allow_pickle=False) as z:
             x_all = z["x"]
+    from tumor3d.learned.cnn import unet_from_bytes
+
     for k in run_folds:
+        # the held-out probabilities are put back through --framing's window: the fold
+        # nets must have seen that window (their files say which)
+        dirs = [work] + ([Path(args.ensemble_work)] if args.ensemble_work else [])
+        for d in dirs:
+            framing = unet_from_bytes((d / f"unet_fold{k}.npz").read_bytes()).framing
+            if framing != args.framing:
+                raise SystemExit(
+                    f"{d / f'unet_fold{k}.npz'}: a net trained with framing {framing!r}; "
+                    f"run with --framing {framing}"
+                )
         with np.load(work / f"prob_fold{k}.npz", allow_pickle=False) as z:
             index, prob = z["index"], z["prob"]
         if x_all is not None:
@@ -462,8 +474,9 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--framing",
         choices=("slice", "head", "mm"),
-        default="slice",
-        help="what of each slice the net sees (tumor3d.learned.cnn_data.FRAMINGS)",
+        default="mm",
+        help="what of each slice the net sees (tumor3d.learned.cnn_data.FRAMINGS; the shipped "
+        "nets' mm since 2026-12-07, slice before)",
     )
     ap.add_argument(
         "--train-offsets",

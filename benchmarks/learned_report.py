@@ -92,6 +92,8 @@ def targets(rows: list[dict], review: dict | None = None) -> str:
     for name, want, got, lo in checks:
         lines.append(f"| {name} | {want} | {got:.3f} | {'met' if got >= lo else 'missed'} |")
     if review is not None:  # judged on the real cases (the phantoms in brackets)
+        lgg = [r for r in rows if r["group"] == "lgg"]
+        n_voxel = sum(bool(r.get("voxel_size_doubts")) for r in lgg)
         caught, false, n_bad, n_good = review.get("default_real", review["real"])
         _, false_all, _, n_all = review.get("default_all", review["all"])
         lines += [
@@ -99,7 +101,11 @@ def targets(rows: list[dict], review: dict | None = None) -> str:
             f"{'met' if caught >= 0.8 else 'missed'} |",
             f"| real volumes within 10 % flagged for review | <= 25 % | {false:.0%} of {n_good} "
             f"({false_all:.0%} of {n_all} with the phantoms) | "
-            f"{'met' if false <= 0.25 else 'missed'} |",
+            f"{'met' if false <= 0.25 else 'missed'} without the doubt of the voxel size, which "
+            f"these figures leave out (it names {n_voxel} of the {len(lgg)} LGG heads, written "
+            "as 1 mm: their volumes are scored in voxel counts; counted, about half the real "
+            "volumes within 10 % are flagged: the section \"A slice step the head's shape "
+            'contradicts") |',
         ]
         if "default_real" in review:
             lines += [
@@ -269,9 +275,11 @@ def review_table(
             limits(off["final"]),
         ),
     )
+    # review_doubts.py's rows: the learned mask's caveats and the empty result (the learned
+    # method's brain notes do not doubt it), and the voxel size's doubt apart
     no_tumour = "no tumour found"
-    n_caveat = sum(any(not d.startswith(no_tumour) for d in r.get("doubts", ())) for r in learned)
-    n_voxel = sum(bool(r.get("voxel_size_doubts")) for r in learned)
+    n_caveat = sum(any(not d.startswith(no_tumour) for d in r["doubts"]) for r in learned)
+    n_voxel = sum(bool(r["voxel_size_doubts"]) for r in learned)
     lines = [
         "The review's limits chosen fold by fold on the other folds, judged on the held-out\n"
         "fold (targets: >= 80 % of the cases off by > 25 % flagged, <= 25 % of those within\n"

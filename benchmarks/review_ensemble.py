@@ -128,7 +128,8 @@ def main(argv=None) -> int:
     }
     for r in flair:
         p, lesion = saved_lesion(specs[r["case"]], args, cfg)  # cut as the run cut it
-        p1, p2 = unet_member_probabilities(nets[r["fold"]], p.image)  # one pass each
+        # one pass each, framed as each file says (the mm nets need the pixel spacing)
+        p1, p2 = unet_member_probabilities(nets[r["fold"]], p.image, pixel_mm=p.pixel_mm)
         r.update(ensemble_figures(p1, p2, lesion))
         figs = {k: r[k] for k in ("mean_probability", "outside_ratio", "model_disagreement")}
         # flagged by the review before the ensemble's spread (its limits then)

@@ -30,6 +30,9 @@ from tumor3d.storage.phantom_io import write_phantom_patient
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("prefect_harness")]
 
 ROUNDS = 30
+#: tr12's field of view: 256 pixels of 1.1 mm (282 mm), wider than the U-Net's 240 mm window,
+#: so its frame is not the whole slice (the other phantoms' 256 x 0.9375 mm is exactly 240 mm)
+WIDE_FOV = {"matrix_size": (256, 256), "pixel_spacing_mm": 1.1}
 
 
 @pytest.fixture(scope="module")
@@ -37,10 +40,10 @@ def trained(tmp_path_factory):
     folder = tmp_path_factory.mktemp("train-in")
     rows = [
         write_phantom_patient(
-            make_phantom_patient(s, modality="flair", patient_id=f"tr{s}", n_slices=14),
+            make_phantom_patient(s, modality="flair", patient_id=f"tr{s}", n_slices=14, **fov),
             folder / f"tr{s}",
         )
-        for s in (11, 12)
+        for s, fov in ((11, {}), (12, WIDE_FOV))
     ]
     free = make_phantom_patient(13, modality="flair", patient_id="tr13n", n_slices=14,
                                 tumor=False)  # fmt: skip
@@ -179,6 +182,7 @@ def test_cnn_slices_are_the_inference_grid_of_each_flair_patient(trained, monkey
     ``unet_slices`` of the phantom's own image and truth (no torch needed: the
     training itself is replaced by a recorder)."""
     import tumor3d.flows.train as train_mod
+    from tumor3d.learned.cnn_data import frame_of
     from tumor3d.learned.cnn_train import UNetSettings, unet_slices
 
     manifest, out, _ = trained
@@ -200,11 +204,13 @@ def test_cnn_slices_are_the_inference_grid_of_each_flair_patient(trained, monkey
     assert seen["seeds"] == [0, 1]  # the shipped ensemble: one net per seed
     assert seen["meta"]["training_cases"] == ["tr11", "tr12", "tr13n"]
     xs, ys = [], []
-    for seed, tumour in ((11, True), (12, True), (13, False)):
-        p = make_phantom_patient(seed, modality="flair", n_slices=14, tumor=tumour)
+    for seed, tumour, fov in ((11, True, {}), (12, True, WIDE_FOV), (13, False, {})):
+        p = make_phantom_patient(seed, modality="flair", n_slices=14, tumor=tumour, **fov)
         x, y = unet_slices(  # the shipped framing: 240 mm centred on the head
             p.scan.image, np.asarray(p.slice_masks) > 0.5, pixel_mm=p.scan.pixel_spacing_mm
         )
+        if fov:  # a window of 240 / 1.1 = 218 pixels: not the whole slice
+            assert frame_of(p.scan.image, "mm", p.scan.pixel_spacing_mm)[2:] == (218, 218)
         xs.append(x)
         ys.append(y)
     x, y = np.concatenate(xs), np.concatenate(ys)
@@ -277,7 +283,10 @@ def test_cnn_trains_a_unet_the_numpy_forward_pass_reads(trained):
     assert meta["settings"]["epochs"] == 2 and meta["trainer"].startswith("torch ")
     assert meta["seed"] == 3
     p = make_phantom_patient(5, modality="flair", n_slices=14)
-    prob = unet_probability(net, unet_slices(p.scan.image, np.asarray(p.slice_masks) > 0.5)[0])
+    label = np.asarray(p.slice_masks) > 0.5
+    prob = unet_probability(
+        net, unet_slices(p.scan.image, label, pixel_mm=p.scan.pixel_spacing_mm)[0]
+    )
     assert prob.shape == (14, 128, 128) and np.all((prob >= 0) & (prob <= 1))
 
 

@@ -214,8 +214,9 @@ def train_flow(
         Also train the U-Net on the FLAIR patients (PyTorch: the ``train`` extra).
     cnn_settings : dict, optional
         :class:`~tumor3d.learned.cnn_train.UNetSettings` fields other than the
-        slice grid (``size``, ``context``), e.g. ``{"epochs": 2}``; default the
-        shipped network's.
+        slice grid (``size``, ``context``, ``framing``: the unet-slices stage cuts
+        every patient's slices on the shipped grid), e.g. ``{"epochs": 2}``; default
+        the shipped network's.
     cnn_seeds : sequence of int
         One U-Net per seed (an ensemble; the shipped one: 0 and 1).
     cnn_threads : int, optional

@@ -11,7 +11,10 @@ a weights file that names no framing); ``"head"``, a square around the volume's
 tissue; or ``"mm"``, a square of :data:`FRAME_MM` millimetres centred on the tissue
 (:func:`frame_of`; the shipped nets). With the last two the
 same head stored with more or less air around it, or cropped to it, gives the
-net the same pixels. Intensity is
+net the same pixels as long as the volume's tissue mask
+(:func:`tumor3d.learned.features.tissue_foreground`) is the same: its Otsu level
+moves with the amount of air, so on a raw head it can move the window and the
+intensity normalisation a little (``benchmarks/fov_end_to_end.py``). Intensity is
 ``(I - median) / robust SD`` over the head's tissue, per patient
 (:func:`tumor3d.learned.features.normalise_intensity`, as the forest's features),
 clipped to [-5, 10] and divided by 3.

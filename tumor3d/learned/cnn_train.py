@@ -65,7 +65,7 @@ class UNetSettings:
     each slice, both 0 (none) in the shipped training; ``framing``: what of each
     slice the net sees (:data:`tumor3d.learned.cnn_data.FRAMINGS`: the whole
     slice; a square around the head; a square of 240 mm centred on the head, shipped:
-    the answer does not depend on the air around the head).
+    the field of view does not set the scale at which the net sees the head).
     """
 
     size: int = 128

@@ -44,7 +44,8 @@ __all__ = [
 #: (``net_spread`` by a nested choice among the figure sets, over
 #: ``model_disagreement``), ``single_net`` on the single 8-epoch net's rows shipped
 #: before ("The review of the mean"), ``forest_alone``'s own limit (uncertain_ratio) on
-#: the forest's, the first two shared.
+#: the forest's, the first two shared with ``with_net`` (chosen again with the 240 mm
+#: nets; ``single_net`` keeps those of its own rows).
 REVIEW_LIMITS: dict[str, dict[str, float]] = {
     "with_net": {
         "mean_probability": 0.85,  # mean probability inside the lesion (below: check)
