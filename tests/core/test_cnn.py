@@ -260,11 +260,12 @@ def test_mirrored_probability_is_mirror_equivariant_and_the_plain_one_is_not():
 
 
 def _head(shape=(4, 40, 36)) -> np.ndarray:
-    """A textured block of tissue (rows 6-30, columns 10-30) in zero air, ``(z, y, x)``."""
-    vol = np.zeros(shape, np.float32)
+    """A textured ellipse of tissue (rows 6-30, columns 10-30) in zero air, ``(z, y, x)``:
+    round, as a head is, so the box around it holds air in its corners."""
+    yy, xx = np.mgrid[: shape[1], : shape[2]]
+    inside = ((yy - 18) / 12.5) ** 2 + ((xx - 20) / 10.5) ** 2 <= 1
     rng = np.random.default_rng(11)
-    vol[:, 6:31, 10:31] = rng.normal(100.0, 15.0, (shape[0], 25, 21))
-    return vol
+    return np.where(inside, rng.normal(100.0, 15.0, shape), 0.0).astype(np.float32)
 
 
 @pytest.mark.parametrize("framing", ["head", "mm"])

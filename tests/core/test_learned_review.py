@@ -100,7 +100,7 @@ def test_an_ensemble_whose_nets_disagree_is_flagged_where_their_mean_is_confiden
         if review.needs_review:
             assert review.reasons == (
                 "the U-Net ensemble's nets disagree on the outline, check its edges: their "
-                "probabilities differ by 0.24 on average inside the lesion (limit 0.12)",
+                "probabilities differ by 0.24 on average inside the lesion (limit 0.10)",
             )
     # one net (or none): no spread; an empty lesion: 0; a mismatched shape: refused
     one = review_features(prob, lesion, (1.0, 1.0, 1.0), cnn_members=members[:1])

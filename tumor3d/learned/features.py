@@ -102,6 +102,25 @@ def _check_image(image: object) -> np.ndarray:
     return img
 
 
+def _content_box(img: np.ndarray) -> tuple[slice, slice, slice]:
+    """The bounding box ``(z, y, x)`` of the voxels above ``img``'s lowest value.
+
+    All of ``img`` when there are none.
+
+    >>> img = np.zeros((3, 6, 6)); img[1, 2:4, 1:5] = 7.0
+    >>> _content_box(img)
+    (slice(1, 2, None), slice(2, 4, None), slice(1, 5, None))
+    """
+    above = img > img.min()
+    if not above.any():
+        return (slice(None),) * 3
+    box = []
+    for axis in range(3):
+        idx = np.flatnonzero(above.any(axis=tuple(a for a in range(3) if a != axis)))
+        box.append(slice(int(idx[0]), int(idx[-1]) + 1))
+    return tuple(box)
+
+
 def tissue_foreground(image: np.ndarray) -> np.ndarray:
     """The tissue of the volume (a head, or a brain alone), holes filled per slice.
 
@@ -113,6 +132,11 @@ def tissue_foreground(image: np.ndarray) -> np.ndarray:
     is used: a brain extraction that fails on a raw head (it does on many of
     the clinical heads of ``../shared/data``) cannot move the features.
 
+    The thresholds are those of the histogram (256 bins from the volume's lowest
+    value) of every voxel in the box of the voxels above the lowest value
+    (:func:`_content_box`): rows, columns and slices of that value around the head
+    (an exporter's padding, a wider field of view) leave the mask as it is.
+
     Examples
     --------
     >>> img = np.zeros((2, 20, 20)); img[:, 4:16, 4:16] = 100.0; img[:, 8:12, 8:12] = 5.0
@@ -122,11 +146,14 @@ def tissue_foreground(image: np.ndarray) -> np.ndarray:
     from skimage.filters import threshold_multiotsu
 
     img = _check_image(image)
-    sample = img.ravel()[:: max(1, img.size // 500_000)]
+    low = float(img.min())
+    box = img[_content_box(img)]
+    counts, edges = np.histogram(box, bins=256, range=(low, max(float(box.max()), low + 1e-6)))
     try:
-        level = float(threshold_multiotsu(sample, classes=3)[0])
+        centres = 0.5 * (edges[1:] + edges[:-1])
+        level = float(threshold_multiotsu(hist=(counts, centres), classes=3)[0])
     except ValueError:  # fewer than three gray levels
-        level = float(sample.min())
+        level = low
     tissue = ndi.binary_opening(img > level, structure=np.ones((1, 3, 3), bool))
     labels, n = ndi.label(tissue)
     if n == 0:
