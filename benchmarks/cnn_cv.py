@@ -300,23 +300,19 @@ def score_folds(preps, folds, run_folds, case_of, train_only, args, cfg):
         # the held-out probabilities are put back through --framing's window: the fold
         # nets must have seen that window (their files say which)
         dirs = [work] + ([Path(args.ensemble_work)] if args.ensemble_work else [])
-        for d in dirs:
-            framing = unet_from_bytes((d / f"unet_fold{k}.npz").read_bytes()).framing
-            if framing != args.framing:
+        nets = [unet_from_bytes((d / f"unet_fold{k}.npz").read_bytes()) for d in dirs]
+        for d, net in zip(dirs, nets, strict=True):
+            if net.framing != args.framing:
                 raise SystemExit(
-                    f"{d / f'unet_fold{k}.npz'}: a net trained with framing {framing!r}; "
-                    f"run with --framing {framing}"
+                    f"{d / f'unet_fold{k}.npz'}: a net trained with framing {net.framing!r}; "
+                    f"run with --framing {net.framing}"
                 )
         with np.load(work / f"prob_fold{k}.npz", allow_pickle=False) as z:
             index, prob = z["index"], z["prob"]
         if x_all is not None:
-            net = unet_from_bytes((work / f"unet_fold{k}.npz").read_bytes())
-            prob = unet_probability(net, x_all[index], mirror=args.mirror)
-            if args.ensemble_work:  # an ensemble of two trainings: the mean of the two nets
-                other = unet_from_bytes(
-                    (Path(args.ensemble_work) / f"unet_fold{k}.npz").read_bytes()
-                )
-                prob = 0.5 * (prob + unet_probability(other, x_all[index], mirror=args.mirror))
+            # the pipeline's inference; with --ensemble-work the mean of the two trainings
+            probs = [unet_probability(n, x_all[index], mirror=args.mirror) for n in nets]
+            prob = probs[0] if len(probs) == 1 else 0.5 * (probs[0] + probs[1])
         for ci, p in enumerate(preps):
             if folds[p.spec.patient] != k:
                 continue

@@ -31,14 +31,14 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 def _variants(image: np.ndarray, pad: int, margin: int):
     """(name, volume, (dy, dx)): where the prepared slices' pixel (0, 0) lies in it."""
+    from tumor3d.imaging.preprocess import true_box
     from tumor3d.learned.features import tissue_foreground
 
     air = float(image.min())
     padded = np.pad(image, ((0, 0), (pad, pad), (pad, pad)), constant_values=air)
-    tissue = tissue_foreground(image).any(axis=0)
-    ys, xs = np.flatnonzero(tissue.any(axis=1)), np.flatnonzero(tissue.any(axis=0))
-    y0, x0 = max(0, ys[0] - margin), max(0, xs[0] - margin)
-    y1, x1 = min(image.shape[1], ys[-1] + 1 + margin), min(image.shape[2], xs[-1] + 1 + margin)
+    _, ys, xs = true_box(tissue_foreground(image))
+    y0, x0 = max(0, ys.start - margin), max(0, xs.start - margin)
+    y1, x1 = min(image.shape[1], ys.stop + margin), min(image.shape[2], xs.stop + margin)
     cropped = image[:, y0:y1, x0:x1]
     return [("padded", padded, (pad, pad)), ("cropped", cropped, (-y0, -x0))]
 

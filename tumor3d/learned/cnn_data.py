@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage as ndi
 
+from tumor3d.imaging.preprocess import true_box
 from tumor3d.learned.features import normalise_intensity, tissue_foreground
 
 __all__ = ["FRAMINGS", "Frame", "case_input", "case_target", "frame_of", "upsample"]
@@ -69,17 +70,17 @@ def frame_of(
         return None
     if framing == "mm" and pixel_mm is None:
         raise ValueError("the 'mm' framing needs the pixel spacing (pixel_mm)")
-    tissue = tissue_foreground(np.asarray(image, np.float32)).any(axis=0)
-    if not tissue.any():
+    box = true_box(tissue_foreground(np.asarray(image, np.float32)))
+    if box is None:
         return None
-    ys, xs = np.flatnonzero(tissue.any(axis=1)), np.flatnonzero(tissue.any(axis=0))
+    _, ys, xs = box
     if framing == "head":
-        extent = max(ys[-1] - ys[0] + 1, xs[-1] - xs[0] + 1)
+        extent = max(ys.stop - ys.start, xs.stop - xs.start)
         rows = cols = int(np.ceil(extent * (1.0 + 2.0 * HEAD_MARGIN)))
     else:
         rows, cols = (max(1, int(round(FRAME_MM / float(mm)))) for mm in pixel_mm)
-    y0 = int(np.floor((ys[0] + ys[-1] + 1 - rows) / 2.0))
-    x0 = int(np.floor((xs[0] + xs[-1] + 1 - cols) / 2.0))
+    y0 = int(np.floor((ys.start + ys.stop - rows) / 2.0))
+    x0 = int(np.floor((xs.start + xs.stop - cols) / 2.0))
     return y0, x0, rows, cols
 
 

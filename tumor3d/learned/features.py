@@ -22,7 +22,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from tumor3d.errors import InputError
-from tumor3d.imaging.preprocess import fill_holes_per_slice
+from tumor3d.imaging.preprocess import fill_holes_per_slice, true_box
 
 __all__ = [
     "FEATURE_NAMES",
@@ -102,25 +102,6 @@ def _check_image(image: object) -> np.ndarray:
     return img
 
 
-def _content_box(img: np.ndarray) -> tuple[slice, slice, slice]:
-    """The bounding box ``(z, y, x)`` of the voxels above ``img``'s lowest value.
-
-    All of ``img`` when there are none.
-
-    >>> img = np.zeros((3, 6, 6)); img[1, 2:4, 1:5] = 7.0
-    >>> _content_box(img)
-    (slice(1, 2, None), slice(2, 4, None), slice(1, 5, None))
-    """
-    above = img > img.min()
-    if not above.any():
-        return (slice(None),) * 3
-    box = []
-    for axis in range(3):
-        idx = np.flatnonzero(above.any(axis=tuple(a for a in range(3) if a != axis)))
-        box.append(slice(int(idx[0]), int(idx[-1]) + 1))
-    return tuple(box)
-
-
 def tissue_foreground(image: np.ndarray) -> np.ndarray:
     """The tissue of the volume (a head, or a brain alone), holes filled per slice.
 
@@ -134,7 +115,8 @@ def tissue_foreground(image: np.ndarray) -> np.ndarray:
 
     The thresholds are those of the histogram (256 bins from the volume's lowest
     value) of every voxel in the box of the voxels above the lowest value
-    (:func:`_content_box`): rows, columns and slices of that value around the head
+    (:func:`tumor3d.imaging.preprocess.true_box`): rows, columns and slices of that value
+    around the head
     (an exporter's padding, a wider field of view) leave the mask as it is.
 
     Examples
@@ -147,7 +129,8 @@ def tissue_foreground(image: np.ndarray) -> np.ndarray:
 
     img = _check_image(image)
     low = float(img.min())
-    box = img[_content_box(img)]
+    content = true_box(img > low)
+    box = img if content is None else img[content]
     counts, edges = np.histogram(box, bins=256, range=(low, max(float(box.max()), low + 1e-6)))
     try:
         centres = 0.5 * (edges[1:] + edges[:-1])

@@ -44,7 +44,7 @@ from tumor3d.imaging.preprocess.intensity import (
     masked_background,
     to_uint8,
 )
-from tumor3d.imaging.preprocess.masks import fill_holes_per_slice, foreground_brain_mask
+from tumor3d.imaging.preprocess.masks import fill_holes_per_slice, foreground_brain_mask, true_box
 from tumor3d.imaging.preprocess.notes import (
     MAX_INTRACRANIAL_ML,
     MAX_OUTLINE_SHIFT_STEPS,
@@ -88,5 +88,6 @@ __all__ = [
     "slice_step_note",
     "tissue_slice_count",
     "to_uint8",
+    "true_box",
     "unsharp_kernel",
 ]

@@ -44,7 +44,7 @@ def foreground_brain_mask(image: np.ndarray) -> np.ndarray:
 def _foreground_brain_mask(arr: np.ndarray, background=None) -> np.ndarray:
     bg = masked_background(arr) if background is None else background
     fg = ~bg.mask
-    box = _true_box(fg)
+    box = true_box(fg)
     if box is None:
         return fg
     # Components, their sizes and their raster order (argmax's tie-break) are the same
@@ -61,8 +61,13 @@ def _foreground_brain_mask(arr: np.ndarray, background=None) -> np.ndarray:
     return fill_holes_per_slice(fg)
 
 
-def _true_box(mask: np.ndarray) -> tuple[slice, ...] | None:
-    """Bounding box (all three axes) of the True voxels of a 3-D mask, or None."""
+def true_box(mask: np.ndarray) -> tuple[slice, ...] | None:
+    """Bounding box (all three axes) of the True voxels of a 3-D mask, or None.
+
+    >>> m = np.zeros((3, 6, 6), bool); m[1, 2:4, 1:5] = True
+    >>> [(int(s.start), int(s.stop)) for s in true_box(m)]
+    [(1, 2), (2, 4), (1, 5)]
+    """
     zs = np.flatnonzero(mask.any(axis=(1, 2)))
     if zs.size == 0:
         return None
@@ -101,7 +106,7 @@ def fill_holes_per_slice(mask: np.ndarray) -> np.ndarray:
     if mask.ndim != 3:
         raise InputError("fill_holes_per_slice needs a 3-D (z, y, x) mask")
     out = mask.copy()
-    box = _true_box(mask)
+    box = true_box(mask)
     if box is None:
         return out
     background = np.pad(~mask[box], ((0, 0), (1, 1), (1, 1)), constant_values=True)

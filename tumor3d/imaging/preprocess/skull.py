@@ -14,7 +14,7 @@ from skimage.filters import threshold_multiotsu, threshold_otsu
 from skimage.morphology import disk
 
 from tumor3d.errors import InputError
-from tumor3d.imaging.preprocess.masks import _in_plane, _true_box, fill_holes_per_slice
+from tumor3d.imaging.preprocess.masks import _in_plane, fill_holes_per_slice, true_box
 
 SKULL_THRESHOLDS = ("otsu", "multiotsu")
 
@@ -119,7 +119,7 @@ def _opened_largest_component(binary: np.ndarray, radius: int) -> np.ndarray:
     range is the one a per-slice ``argmax`` picks.
     """
     out = np.zeros(binary.shape, dtype=bool)
-    box = _true_box(binary)
+    box = true_box(binary)
     if box is None:
         return out
     ny, nx = binary.shape[1:]
@@ -189,7 +189,7 @@ def _keep_nested_slices(mask: np.ndarray) -> np.ndarray:
     # so all the dilations are done in one call.
     r = _NESTING_TOLERANCE_PX
     dilated = np.zeros_like(mask)
-    box = _true_box(mask)
+    box = true_box(mask)
     ny, nx = mask.shape[1:]
     box = (
         slice(None),
