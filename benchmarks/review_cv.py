@@ -155,6 +155,47 @@ def choose(
     return {**(fixed or {}), **{k: GRID[k][i] for k, i in zip(measures, best, strict=True)}}
 
 
+#: The sequence names a case's id may end with (``Brats18_X/flair``): its patient is the rest.
+SEQUENCES = ("flair", "t2", "t1c", "t1")
+
+
+def patient(case: str) -> str:
+    """The patient of a row's ``case``: the id without its sequence (BraTS rows of
+    one patient share it; an LGG head is its own patient)."""
+    head, _, last = case.rpartition("/")
+    return head if head and last in SEQUENCES else case
+
+
+def _median_limits(chosen: list[dict]) -> dict:
+    """Each figure's limit: the median grid index of ``chosen`` (an odd number of choices,
+    so the median is one of the grid's values)."""
+    return {k: GRID[k][int(np.median([GRID[k].index(c[k]) for c in chosen]))] for k in chosen[0]}
+
+
+def bagged(pick, row_sets: list[list[dict]], n_boot: int, seed: int = 0):
+    """``pick(*row_sets)``'s choice of limits, bagged: ``pick`` run on ``n_boot``
+    bootstrap resamples of the patients (all rows of a drawn patient in every set,
+    drawn together), each figure's limit the median of the chosen grid indices.
+    ``pick`` returns a dict of limits or a tuple of them (each bagged on its own);
+    ``n_boot`` must be odd."""
+    if n_boot % 2 == 0:
+        raise ValueError(f"n_boot must be odd (a median on the grid), got {n_boot}")
+    patients = sorted({patient(r["case"]) for rs in row_sets for r in rs})
+    by = [{p: [r for r in rs if patient(r["case"]) == p] for p in patients} for rs in row_sets]
+    rng = np.random.default_rng(seed)
+    chosen = []
+    for _ in range(n_boot):
+        draw = rng.integers(0, len(patients), len(patients))
+        chosen.append(pick(*([r for i in draw for r in b[patients[i]]] for b in by)))
+    if isinstance(chosen[0], tuple):
+        return tuple(_median_limits([c[j] for c in chosen]) for j in range(len(chosen[0])))
+    return _median_limits(chosen)
+
+
+def _choose(rows: list[dict], measures: tuple[str, ...], bag: int) -> dict:
+    return bagged(lambda rs: choose(rs, measures), [rows], bag) if bag else choose(rows, measures)
+
+
 def rates(rows: list[dict], f: np.ndarray) -> tuple[float, float, int, int]:
     bad, good = _counts(rows)
     return (
@@ -165,13 +206,14 @@ def rates(rows: list[dict], f: np.ndarray) -> tuple[float, float, int, int]:
     )
 
 
-def cross_validate(rows: list[dict], measures: tuple[str, ...] | None = None) -> dict:
+def cross_validate(rows: list[dict], measures: tuple[str, ...] | None = None, bag: int = 0) -> dict:
     """Limits chosen fold by fold on the other folds, judged on the held-out fold.
 
     Returns ``lines`` (the printed report), ``all`` and ``real`` (every case;
     the cases but the phantoms): ``(share of the > 25 % cases flagged, share of
     the within-10 % cases flagged, number of each)``, ``fold_limits`` and
-    ``final`` (the limits chosen on every case).
+    ``final`` (the limits chosen on every case). ``bag``: the choice bagged over this
+    many bootstrap resamples of the patients (:func:`bagged`; 0: not bagged).
     """
     measures = tuple(measures or REVIEW_LIMITS["with_net"])
     rows = [r for r in rows if np.isfinite(r["vol_err"])]
@@ -180,7 +222,7 @@ def cross_validate(rows: list[dict], measures: tuple[str, ...] | None = None) ->
     lines, fold_limits = [f"judged: {', '.join(measures)}"], {}
     for k in folds:
         train = [r for r in rows if r["fold"] != k]
-        lim = fold_limits[k] = choose(train, measures)
+        lim = fold_limits[k] = _choose(train, measures, bag)
         idx = [i for i, r in enumerate(rows) if r["fold"] == k]
         held_flags[idx] = flags([rows[i] for i in idx], lim)
         lines.append(f"fold {k}: limits {lim}")
@@ -200,7 +242,7 @@ def cross_validate(rows: list[dict], measures: tuple[str, ...] | None = None) ->
             f"  real cases only: {caught:.0%} of {n_bad} > 25 % flagged, {false:.0%} of "
             f"{n_good} within 10 % flagged"
         )
-    final = choose(rows, measures)
+    final = _choose(rows, measures, bag)
     # the vectorised search and the review itself agree on the chosen limits
     combo = np.array([[GRID[k].index(final[k]) for k in measures]])
     if not np.array_equal(_flag_matrix(rows, measures, combo)[0], flags(rows, final)):
@@ -241,10 +283,15 @@ NET_ONLY = ("model_disagreement", "net_spread")
 
 
 def _split_limits(
-    rows: list[dict], forest_rows: list[dict], net_measures: tuple, extra: tuple
+    rows: list[dict], forest_rows: list[dict], net_measures: tuple, extra: tuple, bag: int = 0
 ) -> tuple[dict, dict]:
     """The ``with_net`` limits chosen on ``rows``, the forest alone's on ``forest_rows``
-    (its ``extra`` figures; the others but the disagreement fixed at the first choice)."""
+    (its ``extra`` figures; the others but the disagreement fixed at the first choice),
+    bagged over ``bag`` bootstrap resamples of the patients (0: not bagged)."""
+    if bag:
+        return bagged(
+            lambda a, b: _split_limits(a, b, net_measures, extra), [rows, forest_rows], bag
+        )
     net = choose(rows, net_measures)
     shared = {k: v for k, v in net.items() if k not in NET_ONLY and k not in extra}
     return net, choose(forest_rows, extra, fixed=shared) if extra else shared
@@ -260,6 +307,7 @@ def cross_validate_split(
     net_measures: tuple[str, ...] | None = None,
     extra: tuple[str, ...] | None = None,
     default_rows: list[dict] | None = None,
+    bag: int = 0,
 ) -> dict:
     """The two kinds' limits chosen fold by fold (the module docstring), judged on the
     held-out fold. Returns ``lines``, ``all``/``real`` (the shipped rows, as
@@ -269,7 +317,8 @@ def cross_validate_split(
     ``default_rows``: the rows of the cases where the default (``segment.method: auto``)
     runs another method than the learned one (the robust method on real T2); they take
     the place of those cases' learned rows, flagged by :func:`fixed_flags` alone, in
-    ``default_all``/``default_real`` (the review as the default ships it)."""
+    ``default_all``/``default_real`` (the review as the default ships it). ``bag``: each
+    choice bagged over this many bootstrap resamples of the patients (:func:`bagged`)."""
     net_measures = tuple(net_measures or REVIEW_LIMITS["with_net"])
     extra = ALONE_EXTRA if extra is None else tuple(extra)
     rows = [r for r in rows if np.isfinite(r["vol_err"])]
@@ -283,6 +332,7 @@ def cross_validate_split(
             [r for r in forest_rows if r["fold"] != k],
             net_measures,
             extra,
+            bag,
         )
         idx = [i for i, r in enumerate(rows) if r["fold"] == k]
         held[idx] = _split_flags([rows[i] for i in idx], net, alone)
@@ -291,7 +341,7 @@ def cross_validate_split(
         lines.append(f"fold {k}: with_net {net}; forest_alone {alone}")
     lines += [""] + _rate_lines(rows, held, "cross-validated, shipped rows")
     lines += _rate_lines(forest_rows, held_alone, "cross-validated, forest-alone rows")
-    net, alone = _split_limits(rows, forest_rows, net_measures, extra)
+    net, alone = _split_limits(rows, forest_rows, net_measures, extra, bag)
     lines.append(f"\nfinal limits (every case): with_net {net}; forest_alone {alone}")
     real = [r["group"] != "phantom" for r in rows]
     real_alone = [r["group"] != "phantom" for r in forest_rows]
@@ -455,7 +505,17 @@ def main(argv=None) -> int:
         "their status's doubts in place of those cases' learned rows (the review as the "
         "default ships it)",
     )
+    ap.add_argument(
+        "--bagged",
+        type=int,
+        default=0,
+        metavar="B",
+        help="bag each choice of limits over B (odd) bootstrap resamples of the patients: "
+        "each figure's limit the median of the chosen grid indices (0: not bagged)",
+    )
     args = ap.parse_args(argv)
+    if args.bagged and (args.nested or args.nested_alone):
+        ap.error("--bagged does not apply to --nested or --nested-alone")
     if args.default_rows and not args.forest_alone:
         ap.error("--default-rows needs --forest-alone")
     rows = json.loads(Path(args.rows).read_text())
@@ -476,13 +536,15 @@ def main(argv=None) -> int:
                 for r in json.loads(Path(args.default_rows).read_text())
                 if r["case"].endswith("/t2")
             ]
-        out = cross_validate_split(rows, forest, args.measures, args.alone_extra, default)
+        out = cross_validate_split(
+            rows, forest, args.measures, args.alone_extra, default, args.bagged
+        )
         print("\n".join(out["lines"]))
         return 0
     if net_sets:
         print("\n".join(nested(rows, net_sets)))
         return 0
-    out = cross_validate(rows, args.measures)
+    out = cross_validate(rows, args.measures, args.bagged)
     print("\n".join(out["lines"]))
     return 0
 
