@@ -13,7 +13,9 @@ four groups:
 The BraTS volumes are cut to the paper's acquisition as the evaluation does
 (slab ``i`` = mean of 1 mm slices ``5 i + 2`` and ``5 i + 3``; slab reference
 = mean label >= 0.5); the 3-D Dice compares the interpolated stack with the
-1 mm label (``benchmarks/real_segmentation.py`` documents it). The LGG heads
+1 mm label (``benchmarks/real_segmentation.py`` documents it). ``--eval-offset k``
+scores the cut whose slab ``i`` is 1 mm slices ``5 i + k`` and ``5 i + k + 1``
+instead, while the models still train on ``--train-offsets`` (a cut they never saw). The LGG heads
 run at their native slices (voxel size unknown: voxel Dice, voxel-count
 error).
 
@@ -257,6 +259,7 @@ class Prepared:
     head_exterior: np.ndarray | None
     raw: np.ndarray | None = None  # the 1 mm volume (BraTS), for other training offsets
     prior: np.ndarray | None = None  # the robust method's mask (a feature of the model)
+    offset: int = OFFSET  # the slab offset of ``image`` and ``ref`` (BraTS)
 
 
 #: Seeds of the synthetic training patients (the tests' phantoms use seeds below 100).
@@ -296,14 +299,14 @@ def _read(spec: CaseSpec):
     return scan, (np.isin(np.rint(lab), spec.labels) if spec.labels else lab > 0.5)
 
 
-def prepare(spec: CaseSpec, cfg, with_prior: bool = False) -> Prepared:
+def prepare(spec: CaseSpec, cfg, with_prior: bool = False, offset: int = OFFSET) -> Prepared:
     scan, label = _read(spec)
     px = tuple(float(v) for v in scan.pixel_spacing_mm)
     if spec.native:
         img, ref, step = scan.image.astype(np.float32), label, scan.slice_step_mm
     else:
-        img = emulate_thick(scan.image, OFFSET).astype(np.float32)
-        ref = emulate_thick(label, OFFSET) >= 0.5
+        img = emulate_thick(scan.image, offset).astype(np.float32)
+        ref = emulate_thick(label, offset) >= 0.5
         step = STEP * scan.slice_step_mm
     sp = (float(step), *px)
     pre = preprocess_volume(img, **cfg.preprocess.model_dump(), spacing_mm=sp)
@@ -324,6 +327,7 @@ def prepare(spec: CaseSpec, cfg, with_prior: bool = False) -> Prepared:
         pre.head_exterior,
         None if spec.native else scan.image,
         prior,
+        offset,
     )
 
 
@@ -346,15 +350,21 @@ def _prepare_config_json(cfg) -> str:
     )
 
 
-def cached_prepare(spec: CaseSpec, cfg, with_prior: bool, cache: str | None) -> Prepared:
+def cached_prepare(
+    spec: CaseSpec, cfg, with_prior: bool, cache: str | None, offset: int = OFFSET
+) -> Prepared:
     """:func:`prepare`, kept as arrays in ``cache`` (``np.load`` without pickle)."""
+    if spec.native:
+        offset = OFFSET  # a native case has no slab offset
     if cache is None:
-        return prepare(spec, cfg, with_prior)
+        return prepare(spec, cfg, with_prior, offset)
     import hashlib
 
-    # the reference's labels too: the same image scored against another label set
+    # the reference's labels too: the same image scored against another label set; a
+    # slab offset other than the scored cut's (OFFSET keeps the tags cached before)
     labels = "" if spec.labels is None else f"labels={list(spec.labels)}"
-    tag = hashlib.sha256((_prepare_config_json(cfg) + labels).encode()).hexdigest()[:10]
+    cut = "" if offset == OFFSET else f"offset={offset}"
+    tag = hashlib.sha256((_prepare_config_json(cfg) + labels + cut).encode()).hexdigest()[:10]
     path = Path(cache) / f"{spec.name.replace('/', '__')}-{tag}-{int(with_prior)}.npz"
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
@@ -373,8 +383,9 @@ def cached_prepare(spec: CaseSpec, cfg, with_prior: bool, cache: str | None) -> 
             None,
             a.get("raw"),
             a.get("prior"),
+            offset,
         )
-    p = prepare(spec, cfg, with_prior)
+    p = prepare(spec, cfg, with_prior, offset)
     path.parent.mkdir(parents=True, exist_ok=True)
     extra = {k: v for k, v in (("raw", p.raw), ("prior", p.prior)) if v is not None}
     tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")  # renamed when whole: runs share it
@@ -450,8 +461,9 @@ def score(prep: Prepared, mask: np.ndarray, cfg) -> dict:
         )
         fine = st.mask
         lab = prep.label.astype(np.float64)
-        n = min(fine.shape[0], lab.shape[0] - OFFSET - 1)
-        mid = 0.5 * (lab[OFFSET : OFFSET + n] + lab[OFFSET + 1 : OFFSET + 1 + n])
+        off = prep.offset
+        n = min(fine.shape[0], lab.shape[0] - off - 1)
+        mid = 0.5 * (lab[off : off + n] + lab[off + 1 : off + 1 + n])
         inter = float((fine[:n] * mid).sum())
         denom = float(fine[:n].sum()) + float(lab.sum())
         row["dice3d"] = 2.0 * inter / denom if denom else 1.0
@@ -525,7 +537,16 @@ def main(argv=None) -> int:
         type=int,
         nargs="*",
         default=[2],
-        help="BraTS slab offsets sampled for training (evaluation: offset 2)",
+        help="BraTS slab offsets sampled for training (evaluation: --eval-offset)",
+    )
+    ap.add_argument(
+        "--eval-offset",
+        type=int,
+        choices=range(STEP),
+        default=OFFSET,
+        help=f"the BraTS slab offset scored (default {OFFSET}, the cut every figure of "
+        "reports/learned_cv.md is scored at): another one scores the cases at a cut the "
+        "models were not trained on (training still samples --train-offsets)",
     )
     ap.add_argument(
         "--no-prior",
@@ -594,6 +615,8 @@ def main(argv=None) -> int:
         ap.error(
             "--score-groups scores part of the cases: not with --final, --cv-rows, --auto-context"
         )
+    if args.eval_offset != OFFSET and (args.final or args.cv_rows or args.auto_context):
+        ap.error("--eval-offset scores another cut: not with --final, --cv-rows, --auto-context")
     data = data_dir()
     if not data.is_dir():
         print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
@@ -611,7 +634,7 @@ def main(argv=None) -> int:
     preps = []
     want_prior = args.method == "learned" and args.prior
     for s in specs:
-        preps.append(cached_prepare(s, cfg, want_prior, args.cache))
+        preps.append(cached_prepare(s, cfg, want_prior, args.cache, args.eval_offset))
     print(f"prepared {len(preps)} cases in {time.perf_counter() - t0:.0f} s", flush=True)
     rows: list[dict] = []
     if args.method == "learned":
@@ -1012,10 +1035,12 @@ def _training_rows(preps: list[Prepared], args, cfg) -> dict[str, TrainingRows]:
     rng = np.random.default_rng(0)
     out = {}
     for p in preps:
-        parts = [sample_rows(_features(p), p.ref, rng=rng)]
+        # the scored cut's own rows, unless it is not a training offset (--eval-offset)
+        own = p.spec.native or p.offset in args.train_offsets
+        parts = [sample_rows(_features(p), p.ref, rng=rng)] if own else []
         if not p.spec.native:
             for off in args.train_offsets:
-                if off == OFFSET:
+                if off == p.offset:
                     continue
                 img = emulate_thick(p.raw, off).astype(np.float32)
                 prior = None
@@ -1037,6 +1062,7 @@ def _training_rows(preps: list[Prepared], args, cfg) -> dict[str, TrainingRows]:
                     None,
                     None,
                     prior,
+                    off,
                 )
                 parts.append(sample_rows(_features(q), q.ref, rng=rng))
         out[p.spec.name] = TrainingRows.concatenate(parts)
