@@ -36,7 +36,7 @@ SMALL = {"n_slices": 16, "matrix_size": (128, 128)}
 @pytest.fixture(scope="module")
 def tumour_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("direct")
-    patient = make_phantom_patient(2, patient_id="direct2")
+    patient = make_phantom_patient(2, patient_id="direct2", **SMALL)
     image = write_phantom_patient(patient, tmp / "in").image
     run = run_stages_direct(image, tmp / "store", patient_id="direct2")
     return run, ArtifactStore(tmp / "store")
@@ -184,7 +184,7 @@ def test_preprocess_tissue_slices_leave_out_constant_background_slices(tmp_path,
 
     # slices beyond the head of one constant gray, as a skull-stripped volume's background:
     # the image's minimum, or below it (a z-scored volume's negative background)
-    patient = make_phantom_patient(3, patient_id="padded3")
+    patient = make_phantom_patient(3, patient_id="padded3", **SMALL)
     data = patient.scan.image.transpose(2, 1, 0)
     pad = np.full(data.shape[:2] + (3,), float(data.min()) - below_min, dtype=data.dtype)
     padded = np.concatenate([pad, data, pad], axis=2)
@@ -284,7 +284,7 @@ def _count_lesion_runs(monkeypatch):
 
 def test_the_lesion_model_runs_once_in_detect_and_segment_keeps_its_mask(tmp_path, monkeypatch):
     calls = _count_lesion_runs(monkeypatch)
-    patient = make_phantom_patient(2, patient_id="once2")
+    patient = make_phantom_patient(2, patient_id="once2", **SMALL)
     image = write_phantom_patient(patient, tmp_path / "in").image
     cfg = {"detect": {"method": "robust"}, "segment": {"method": "robust"}}
     run = run_stages_direct(image, tmp_path / "store", config=cfg, patient_id="once2")
