@@ -615,8 +615,15 @@ def main(argv=None) -> int:
         ap.error(
             "--score-groups scores part of the cases: not with --final, --cv-rows, --auto-context"
         )
-    if args.eval_offset != OFFSET and (args.final or args.cv_rows or args.auto_context):
-        ap.error("--eval-offset scores another cut: not with --final, --cv-rows, --auto-context")
+    if args.eval_offset != OFFSET and (
+        args.final or args.cv_rows or args.auto_context or args.save_prob
+    ):
+        ap.error(
+            "--eval-offset scores another cut: not with --final, --cv-rows, --auto-context, "
+            "--save-prob (its maps would be named as the default cut's)"
+        )
+    if not args.train_offsets:
+        ap.error("--train-offsets needs at least one offset")
     data = data_dir()
     if not data.is_dir():
         print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
@@ -1035,8 +1042,9 @@ def _training_rows(preps: list[Prepared], args, cfg) -> dict[str, TrainingRows]:
     rng = np.random.default_rng(0)
     out = {}
     for p in preps:
-        # the scored cut's own rows, unless it is not a training offset (--eval-offset)
-        own = p.spec.native or p.offset in args.train_offsets
+        # the scored cut's own rows: the default cut's always (as before --eval-offset),
+        # another cut's only if it is a training offset
+        own = p.spec.native or p.offset == OFFSET or p.offset in args.train_offsets
         parts = [sample_rows(_features(p), p.ref, rng=rng)] if own else []
         if not p.spec.native:
             for off in args.train_offsets:

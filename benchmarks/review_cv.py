@@ -514,6 +514,8 @@ def main(argv=None) -> int:
         "each figure's limit the median of the chosen grid indices (0: not bagged)",
     )
     args = ap.parse_args(argv)
+    if args.bagged < 0 or (args.bagged and args.bagged % 2 == 0):
+        ap.error(f"--bagged must be 0 or an odd number of resamples, got {args.bagged}")
     if args.bagged and (args.nested or args.nested_alone):
         ap.error("--bagged does not apply to --nested or --nested-alone")
     if args.default_rows and not args.forest_alone:
