@@ -1,0 +1,68 @@
+"""benchmarks/learned_cv.py --eval-offset: the scored cut is never trained on unless asked."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+_ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(_ROOT / "benchmarks"))  # learned_cv imports its sibling scripts
+_SPEC = importlib.util.spec_from_file_location(
+    "learned_cv_under_test", _ROOT / "benchmarks" / "learned_cv.py"
+)
+learned_cv = importlib.util.module_from_spec(_SPEC)
+sys.modules[_SPEC.name] = learned_cv  # its dataclasses look their module up
+_SPEC.loader.exec_module(learned_cv)
+
+
+def _case(offset: int, native: bool = False):
+    """A 1 mm volume whose every thin slice holds its own index: a slab's value names its cut."""
+    raw = np.broadcast_to(np.arange(40, dtype=np.float32)[:, None, None], (40, 4, 4)).copy()
+    image = raw if native else learned_cv.emulate_thick(raw, offset).astype(np.float32)
+    spec = learned_cv.CaseSpec("p/flair", "p", "s", "lgg" if native else "brats_flair",
+                               "", "", "flair", native=native)  # fmt: skip
+    return learned_cv.Prepared(
+        spec, image, np.zeros(image.shape, bool), np.zeros(raw.shape, bool),
+        np.ones(image.shape, bool), (5.0, 1.0, 1.0), (1.0, 1.0), 1.0, None, None,
+        None if native else raw, None, learned_cv.OFFSET if native else offset,
+    )  # fmt: skip
+
+
+@pytest.fixture
+def trained_cuts(monkeypatch):
+    """The first slab value of every image the training rows were sampled from."""
+    seen: list[float] = []
+    monkeypatch.setattr(learned_cv, "_features", lambda p: p.image)
+    monkeypatch.setattr(
+        learned_cv, "sample_rows", lambda feats, ref, rng: seen.append(float(feats[0, 0, 0]))
+    )
+    monkeypatch.setattr(learned_cv.TrainingRows, "concatenate", staticmethod(list))
+    return seen
+
+
+@pytest.mark.parametrize(
+    ("scored", "train", "expected"),
+    [
+        (2, [2], [2.5]),  # as shipped: the scored cut is the training cut
+        (0, [2], [2.5]),  # another cut scored: still trained on offset 2 only, not on 0
+        (4, [2], [2.5]),
+        (0, [0, 2], [0.5, 2.5]),  # asked for: its own rows, then offset 2
+        (2, [1, 3], [2.5, 1.5, 3.5]),  # the default cut's own rows always (as before)
+    ],
+)
+def test_the_models_train_on_the_training_offsets_whatever_cut_is_scored(
+    trained_cuts, scored, train, expected
+):
+    args = argparse.Namespace(train_offsets=train)
+    learned_cv._training_rows([_case(scored)], args, cfg=None)
+    assert trained_cuts == expected
+
+
+def test_a_native_case_trains_on_its_own_slices_whatever_the_offsets(trained_cuts):
+    learned_cv._training_rows([_case(0, native=True)], argparse.Namespace(train_offsets=[0]), None)
+    assert trained_cuts == [0.0]
