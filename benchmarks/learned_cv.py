@@ -540,6 +540,16 @@ def main(argv=None) -> int:
         help="BraTS slab offsets sampled for training (evaluation: --eval-offset)",
     )
     ap.add_argument(
+        "--forest-seed",
+        type=int,
+        default=None,
+        metavar="S",
+        help="learned: train the forests with another seed (the rows' sampling and "
+        "LightGBM's bagging and feature sampling); the default is the shipped training's "
+        "(rows seeded 0, LightGBM's own default seeds): how much a retraining alone moves "
+        "the figures",
+    )
+    ap.add_argument(
         "--eval-offset",
         type=int,
         choices=range(STEP),
@@ -624,6 +634,8 @@ def main(argv=None) -> int:
         )
     if not args.train_offsets:
         ap.error("--train-offsets needs at least one offset")
+    if args.forest_seed is not None and args.auto_context:
+        ap.error("--forest-seed does not apply to --auto-context")
     data = data_dir()
     if not data.is_dir():
         print(f"skipped: no real data at {data} (set TUMOR3D_DATA_DIR)")
@@ -690,7 +702,9 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
             parts = [rows_of[p.spec.name] for p in train if p.spec.modality in mods]
             if parts and fam in needed:
                 t1 = time.perf_counter()
-                models[fam] = train_forest(TrainingRows.concatenate(parts))
+                models[fam] = train_forest(
+                    TrainingRows.concatenate(parts), params=_forest_params(args)
+                )
                 print(
                     f"fold {k} {fam}: {sum(len(r.y) for r in parts)} rows, "
                     f"{time.perf_counter() - t1:.0f} s",
@@ -1038,8 +1052,15 @@ def run_auto_context_cv(preps: list[Prepared], folds: dict[str, int], args, cfg)
     return out
 
 
+def _forest_params(args) -> dict | None:
+    """LightGBM's seed with ``--forest-seed`` (None: the shipped training's own defaults)."""
+    seed = getattr(args, "forest_seed", None)
+    return None if seed is None else {"seed": int(seed)}
+
+
 def _training_rows(preps: list[Prepared], args, cfg) -> dict[str, TrainingRows]:
-    rng = np.random.default_rng(0)
+    seed = getattr(args, "forest_seed", None)
+    rng = np.random.default_rng(0 if seed is None else seed)  # the rows' sampling
     out = {}
     for p in preps:
         # the scored cut's own rows: the default cut's always (as before --eval-offset),
@@ -1089,7 +1110,9 @@ def write_final_models(preps: list[Prepared], cv_rows: list[dict], args, cfg) ->
             continue
         meta = _model_meta(fam, mods, train, cv_rows, args)
         model = train_forest(
-            TrainingRows.concatenate([rows_of[p.spec.name] for p in train]), meta=meta
+            TrainingRows.concatenate([rows_of[p.spec.name] for p in train]),
+            params=_forest_params(args),
+            meta=meta,
         )
         (out / f"{fam}.npz").write_bytes(model.to_bytes())
         print(f"wrote {out / f'{fam}.npz'}: {len(train)} cases, {model.roots.size} trees")

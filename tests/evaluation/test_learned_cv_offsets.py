@@ -1,4 +1,5 @@
-"""benchmarks/learned_cv.py --eval-offset: the scored cut is never trained on unless asked."""
+"""benchmarks/learned_cv.py's training: the scored cut is never trained on unless asked
+(``--eval-offset``), and ``--forest-seed`` reseeds the rows and the trees."""
 
 from __future__ import annotations
 
@@ -45,6 +46,16 @@ def trained_cuts(monkeypatch):
     return seen
 
 
+@pytest.fixture
+def sampling_draws(monkeypatch):
+    """The first draw of the generator each patient's rows were sampled with."""
+    seen: list[float] = []
+    monkeypatch.setattr(learned_cv, "_features", lambda p: p.image)
+    monkeypatch.setattr(learned_cv, "sample_rows", lambda f, ref, rng: seen.append(rng.random()))
+    monkeypatch.setattr(learned_cv.TrainingRows, "concatenate", staticmethod(list))
+    return seen
+
+
 @pytest.mark.parametrize(
     ("scored", "train", "expected"),
     [
@@ -66,3 +77,13 @@ def test_the_models_train_on_the_training_offsets_whatever_cut_is_scored(
 def test_a_native_case_trains_on_its_own_slices_whatever_the_offsets(trained_cuts):
     learned_cv._training_rows([_case(0, native=True)], argparse.Namespace(train_offsets=[0]), None)
     assert trained_cuts == [0.0]
+
+
+@pytest.mark.parametrize(("seed", "rng_seed", "params"), [(None, 0, None), (1, 1, {"seed": 1})])
+def test_a_forest_seed_reseeds_the_rows_and_lightgbm_and_none_keeps_the_shipped_training(
+    sampling_draws, seed, rng_seed, params
+):
+    args = argparse.Namespace(train_offsets=[2], forest_seed=seed)
+    learned_cv._training_rows([_case(2, native=True)], args, None)
+    assert sampling_draws == [np.random.default_rng(rng_seed).random()]
+    assert learned_cv._forest_params(args) == params
