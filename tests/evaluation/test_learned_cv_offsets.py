@@ -4,21 +4,12 @@
 from __future__ import annotations
 
 import argparse
-import importlib.util
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from benchmark_scripts import benchmark_module
 
-_ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(_ROOT / "benchmarks"))  # learned_cv imports its sibling scripts
-_SPEC = importlib.util.spec_from_file_location(
-    "learned_cv_under_test", _ROOT / "benchmarks" / "learned_cv.py"
-)
-learned_cv = importlib.util.module_from_spec(_SPEC)
-sys.modules[_SPEC.name] = learned_cv  # its dataclasses look their module up
-_SPEC.loader.exec_module(learned_cv)
+learned_cv = benchmark_module("learned_cv")
 
 
 def _case(offset: int, native: bool = False):

@@ -2,18 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
 import itertools
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
 import pytest
+from benchmark_scripts import benchmark_module
 
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "review_cv.py"
-_SPEC = importlib.util.spec_from_file_location("review_cv_under_test", _PATH)
-review_cv = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(review_cv)
+review_cv = benchmark_module("review_cv")
 
 
 def _rows(n: int) -> list[dict]:
