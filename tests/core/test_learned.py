@@ -612,7 +612,7 @@ def test_the_shipped_unets_window_ignores_in_plane_air_and_crops(fov):
     phantom's 240 mm, or 280 mm: a window of 192 of its 224 pixels). Nets that
     resample the whole slice (``slice``, shipped before) moved held-out masks by
     8-25 % of their voxels. (The head's tissue mask, which places the window, is the
-    same here; on real heads it moves with the amount of air: fov_end_to_end.py.)"""
+    same here; on real heads it moves with the amount of noisy air: fov_end_to_end.py.)"""
     from tumor3d.learned.cnn import unet_volume_probability
     from tumor3d.learned.cnn_data import frame_of
     from tumor3d.learned.shipped import shipped_cnn

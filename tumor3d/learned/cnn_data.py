@@ -12,9 +12,11 @@ tissue; or ``"mm"``, a square of :data:`FRAME_MM` millimetres centred on the tis
 (:func:`frame_of`; the shipped nets). With the last two the
 same head stored with more or less air around it, or cropped to it, gives the
 net the same pixels as long as the volume's tissue mask
-(:func:`tumor3d.learned.features.tissue_foreground`) is the same: its Otsu level
-moves with the amount of air, so on a raw head it can move the window and the
-intensity normalisation a little (``benchmarks/fov_end_to_end.py``). Intensity is
+(:func:`tumor3d.learned.features.tissue_foreground`) is the same: air at the
+image's lowest value does not move it, but noisy air (half the clinical heads of
+``../shared/data``) moves its Otsu level, so cropping such a head can move the
+window and the intensity normalisation a little (``benchmarks/fov_end_to_end.py``).
+Intensity is
 ``(I - median) / robust SD`` over the head's tissue, per patient
 (:func:`tumor3d.learned.features.normalise_intensity`, as the forest's features),
 clipped to [-5, 10] and divided by 3.

@@ -115,9 +115,9 @@ def tissue_foreground(image: np.ndarray) -> np.ndarray:
 
     The thresholds are those of the histogram (256 bins from the volume's lowest
     value) of every voxel in the box of the voxels above the lowest value
-    (:func:`tumor3d.imaging.preprocess.true_box`): rows, columns and slices of that value
-    around the head
-    (an exporter's padding, a wider field of view) leave the mask as it is.
+    (:func:`tumor3d.imaging.preprocess.true_box`): rows, columns and slices of that
+    value around the head (an exporter's padding, a wider field of view) leave the mask
+    as it is. Noisy air, above the lowest value, is inside that box and moves it.
 
     Examples
     --------
