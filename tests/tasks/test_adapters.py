@@ -28,6 +28,7 @@ def preprocess_notes(values):
     skull, size = brain_mask_notes(values)
     return skull + size
 
+
 # Small phantoms (128 x 128 pixels of 1.875 mm, the default field of view, 16 slices) where
 # the image size is not the question: a run costs a third.
 SMALL = {"n_slices": 16, "matrix_size": (128, 128)}
@@ -330,8 +331,8 @@ def test_the_lesion_artifact_metadata_round_trips_the_mirror_plane():
     import json
 
     from tumor3d.segmentation.lesion import LesionResult, MirrorPlane, NormalModel
+    from tumor3d.segmentation.patient import lesion_from_record
     from tumor3d.tasks.detect import lesion_metadata
-    from tumor3d.tasks.segment import lesion_from_artifact
 
     mask = np.zeros((2, 4, 4), dtype=bool)
     mask[1, 1:3, 1:3] = True
@@ -340,21 +341,19 @@ def test_the_lesion_artifact_metadata_round_trips_the_mirror_plane():
         mask, NormalModel(120.0, 20.0, 160.0, float("inf")), 200.0, 160.0, 1, plane
     )
     meta = json.loads(json.dumps(lesion_metadata(original, {})))
-    rebuilt = lesion_from_artifact(mask, meta)
+    rebuilt = lesion_from_record(mask, meta)
     assert rebuilt.plane == plane
     assert rebuilt.model == original.model and rebuilt.n_components == 1
     without = LesionResult(mask, original.model, 200.0, 160.0, 1)
-    assert (
-        lesion_from_artifact(mask, json.loads(json.dumps(lesion_metadata(without, {})))).plane
-        is None
-    )
+    without_meta = json.loads(json.dumps(lesion_metadata(without, {})))
+    assert lesion_from_record(mask, without_meta).plane is None
     # step 3f's flag (found without the symmetry rule's confirmation) round-trips too; an
     # artifact written before the flag existed reads as "not found by step 3f"
     assert not rebuilt.midline
     flagged = LesionResult(mask, original.model, 200.0, 160.0, 1, plane, True)
-    assert lesion_from_artifact(mask, json.loads(json.dumps(lesion_metadata(flagged, {})))).midline
+    assert lesion_from_record(mask, json.loads(json.dumps(lesion_metadata(flagged, {})))).midline
     old_meta = {k: v for k, v in meta.items() if k != "midline"}
-    assert not lesion_from_artifact(mask, old_meta).midline
+    assert not lesion_from_record(mask, old_meta).midline
 
 
 def test_preprocess_notes_say_when_the_brain_is_smaller_than_any_human_brain():
@@ -437,6 +436,61 @@ def test_every_declared_input_is_produced_by_an_earlier_stage_of_the_same_kind()
     ]
     missing = replace(surface, inputs={"tumor_mask": Input("mask", "interpolate-slices.nothing")})
     assert stages.wiring_errors([s if s is not surface else missing for s in order])
+
+
+def test_the_stages_another_needs_are_read_from_the_declarations():
+    from tumor3d.tasks.train import SPEC as TRAINING_ROWS
+    from tumor3d.tasks.train import UNET_SLICES
+
+    def names(specs):
+        return [s.name for s in specs]
+
+    # independent expectation: the inputs each stage's adapter module names, followed back
+    assert names(stages.upstream(TRAINING_ROWS)) == ["ingest-scan", "preprocess", "detect-abnormal"]
+    assert names(stages.upstream(UNET_SLICES)) == ["ingest-scan"]
+    assert names(stages.upstream(stages.STAGES["ingest-scan"])) == []
+    assert names(stages.upstream(stages.STAGES["extract-surface"])) == [
+        "ingest-scan", "preprocess", "detect-abnormal", "segment-tumor", "interpolate-slices"
+    ]  # fmt: skip
+    # the volumes need neither surface of the brain nor the renders
+    assert names(stages.upstream(stages.STAGES["measure-volume"])) == [
+        "ingest-scan", "preprocess", "detect-abnormal", "segment-tumor", "interpolate-slices",
+        "extract-surface", "simplify-mesh",
+    ]  # fmt: skip
+    from dataclasses import replace
+
+    from tumor3d.tasks.spec import Input
+
+    lost = replace(UNET_SLICES, inputs={"scan": Input("scan", "no-such-stage.scan")})
+    with pytest.raises(KeyError, match="no-such-stage"):
+        stages.upstream(lost)
+
+
+def test_a_declared_input_names_the_product_it_takes(tumour_run):
+    run, _ = tumour_run
+    segment = stages.STAGES["segment-tumor"]
+    detection = run.outputs["detect-abnormal"].artifacts["detection"]
+    assert stages.product(run.outputs, segment.inputs["detection"]) is detection
+    with pytest.raises(ValueError, match="given:segmentation"):
+        stages.product(run.outputs, segment.inputs["given_mask"])
+
+
+def test_a_declaration_that_breaks_the_wiring_is_refused_by_name():
+    """check_wiring (run once when the registry is imported) names the wrong input."""
+    from dataclasses import replace
+
+    from tumor3d.tasks import surface
+    from tumor3d.tasks.spec import Input
+
+    stages.check_wiring(stages.STAGES.values())  # the shipped declarations wire up
+    wrong = replace(
+        surface.SPEC, inputs={"tumor_mask": Input("mesh", "interpolate-slices.tumor_mask")}
+    )
+    with pytest.raises(TypeError, match="stage declarations do not wire up") as info:
+        stages.check_wiring([*stages.STAGES.values(), wrong])
+    assert "extract-surface.tumor_mask: interpolate-slices.tumor_mask is 'mask', not 'mesh'" in (
+        str(info.value)
+    )
 
 
 def test_metrics_columns_come_from_the_stage_declarations(tumour_run):

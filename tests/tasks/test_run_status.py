@@ -10,7 +10,7 @@ from __future__ import annotations
 import pytest
 
 from tumor3d.segmentation.review import review_status
-from tumor3d.tasks.publish import run_notes
+from tumor3d.tasks.publish import run_notes, run_review
 from tumor3d.tasks.spec import StageOutput
 
 # a brain mask on 3 of the 30 slices that hold tissue (tumor3d.imaging.preprocess.notes)
@@ -71,3 +71,18 @@ def test_a_default_modality_is_said_in_the_notes_and_doubts_nothing():
     assert "give the modality if the scan is not T2" in said and said not in doubts
     named, _ = run_notes(outputs)
     assert not [n for n in named if n.startswith("modality:")]
+
+
+def test_the_review_adds_the_segmentations_own_reasons_to_the_doubts():
+    outputs = _outputs("learned")
+    _, doubts = run_notes(outputs)
+    assert run_review(outputs, doubts).status == "ok" and doubts == []
+    outputs["segment-tumor"].values.update(
+        needs_review=True, review_reasons=["low confidence inside the lesion"], quality_score=0.4
+    )
+    review = run_review(outputs, ["tumour on the last slice of the scan"])
+    assert review.status == "check" and review.quality_score == 0.4
+    assert review.reasons == (
+        "tumour on the last slice of the scan",
+        "low confidence inside the lesion",
+    )

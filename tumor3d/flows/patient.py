@@ -29,7 +29,7 @@ from tumor3d.config import PipelineConfig, as_config, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
 from tumor3d.errors import InputError
 from tumor3d.flows.artifacts import publish_patient_artifacts
-from tumor3d.segmentation.review import NO_TUMOUR_NOTE, review_status
+from tumor3d.segmentation.review import NO_TUMOUR_NOTE
 from tumor3d.storage import bids
 from tumor3d.storage.brain_mask import GivenBrainMask, read_given_brain_mask
 from tumor3d.storage.derivatives import VOLUME_LABELS, VOLUME_METHODS
@@ -57,6 +57,7 @@ from tumor3d.tasks.publish import (
     publish_patient,
     publish_results,
     run_notes,
+    run_review,
 )
 from tumor3d.tasks.runner import DirectRunner, PrefectRunner, StageRun
 from tumor3d.tasks.spec import InputSource
@@ -270,7 +271,7 @@ def patient_pipeline(
         notes, doubts = run_notes(
             outputs, brain_mask, segmentation, modality_default=source.modality_default
         )
-        review = review_status(doubts, segmentation=outputs["segment-tumor"].values)
+        review = run_review(outputs, doubts)
         metrics = metrics_row(outputs, runner.runs, pid, flow_seconds, notes, review)
         t_publish = time.perf_counter()
         out_path, report, up_to_date = publish_results(

@@ -64,8 +64,11 @@ from tumor3d.tasks.train import UNET_SLICES
 
 __all__ = ["TrainResult", "run_training", "train_flow"]
 
-#: The stages before the training rows (the pipeline's, shared with run/cohort).
-_PIPELINE_STAGES = ("ingest-scan", "preprocess", "detect-abnormal")
+#: The pipeline's stages the training stages take their inputs from (shared with run and
+#: cohort): ingest-scan, preprocess and detect-abnormal, read from the declarations.
+_PIPELINE_STAGES = stages.upstream(TRAINING_ROWS, UNET_SLICES)
+# the order the flow runs them in feeds every declared input (once, at import)
+stages.check_wiring([*_PIPELINE_STAGES, TRAINING_ROWS, UNET_SLICES])
 #: Modalities the U-Net is trained on (its cross-validation: FLAIR; the file's name says so).
 UNET_MODALITIES = ("flair",)
 #: Settings of ``cnn_settings`` the unet-slices stage fixes (its slices are the shipped grid).
@@ -118,11 +121,10 @@ def _patient_rows(
     given = stages.store_given(store, brain_mask=mask)
     root = str(store.root)
     runner = PrefectRunner(store, row.patient_id, len(_PIPELINE_STAGES) + 1 + int(unet))
-    for name in _PIPELINE_STAGES:  # wired from their declarations, as run_stages does
-        spec = stages.STAGES[name]
+    for spec in _PIPELINE_STAGES:  # wired from their declarations, as run_stages does
         inputs = stages.stage_inputs(spec, runner.outputs, source=source, cfg=cfg, given=given)
         runner.run(spec, **inputs, store_root=root)
-    scan = runner.outputs["ingest-scan"].artifacts["scan"]
+    scan = stages.product(runner.outputs, TRAINING_ROWS.inputs["scan"])  # the rows' scan
     if row.reference is not None:
         ref, ref_affine = acquired_reference(prepared)
         meta = {"tumor_free": False}

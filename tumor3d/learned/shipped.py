@@ -19,6 +19,7 @@ probability the learned method averages with the forest's on FLAIR
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import cache
 from importlib import resources
 from typing import Any
@@ -30,10 +31,12 @@ from tumor3d.learned.forest import ForestModel
 __all__ = [
     "CNN_MODELS",
     "MODEL_FAMILIES",
+    "MODEL_IDENTITY_KEYS",
     "check_family",
     "learned_models",
     "model_family",
     "model_file",
+    "model_identity",
     "shipped_cnn",
     "shipped_model",
 ]
@@ -45,6 +48,9 @@ MODEL_FAMILIES: dict[str, str] = {"flair": "hyper", "t2": "hyper", "t1c": "t1c"}
 #: ensemble's files (the same network and data, trained with seeds 0 and 1; the
 #: ensemble was chosen by cross-validation, ``reports/learned_cv.md``).
 CNN_MODELS: dict[str, tuple[str, ...]] = {"flair": ("unet_flair_seed0", "unet_flair_seed1")}
+
+#: The keys of :func:`model_identity` (the last two with the U-Net only), in its order.
+MODEL_IDENTITY_KEYS = ("model", "model_file", "model_sha256", "cnn_model", "cnn_sha256")
 
 
 def model_family(modality: str) -> str:
@@ -147,3 +153,27 @@ def learned_models(modality: str, learned_cnn: str = "auto") -> dict[str, Any]:
     """
     cnn = shipped_cnn(modality) if learned_cnn == "auto" else None
     return {"model": shipped_model(modality), "cnn": cnn}
+
+
+def model_identity(
+    modality: str, model: ForestModel, cnn: Sequence[UNetWeights] | None = None
+) -> dict[str, Any]:
+    """The learned method's models as a run records them (stage values, ``provenance.json``).
+
+    ``model`` (its name, ``"shipped"`` without one), ``model_file`` (the shipped file of
+    the sequence's family, :func:`model_file`) and ``model_sha256`` (of that file, as
+    ``training.json`` and ``sha256sum`` give it; a model built in memory: of its arrays and
+    metadata); with the U-Nets averaged with the forest (``cnn``), ``cnn_model`` (their
+    files' stems, :data:`CNN_MODELS`) and ``cnn_sha256`` (in that order).
+    """
+    out: dict[str, Any] = {
+        "model": model.meta.get("name", "shipped"),
+        "model_file": model_file(model_family(modality)),
+        "model_sha256": model.file_sha256 or model.digest(),
+    }
+    if cnn is not None:
+        out.update(
+            cnn_model=list(CNN_MODELS[modality.lower()]),  # in cnn_sha256's order
+            cnn_sha256=[n.sha256 for n in cnn],
+        )
+    return out

@@ -5,5 +5,7 @@
 (the paper's fuzzy c-means), :mod:`~tumor3d.segmentation.lesion` (the patient's lesion
 model), :mod:`~tumor3d.segmentation.given_segmentation` (a user's mask),
 :mod:`~tumor3d.segmentation.caveats` and :mod:`~tumor3d.segmentation.review` (when a
-human should check). The learned models live in :mod:`tumor3d.learned`.
+human should check); :mod:`~tumor3d.segmentation.patient` is the segment-tumor stage's
+core (one patient's segmentation and everything the stage stores of it). The learned
+models live in :mod:`tumor3d.learned`.
 """

@@ -20,8 +20,9 @@ from typing import Any
 from tumor3d.config import PipelineConfig
 from tumor3d.errors import InputError
 from tumor3d.imaging.scan import SourceGrid, slice_order_note
+from tumor3d.learned.shipped import MODEL_IDENTITY_KEYS
 from tumor3d.metrics import EQ7_SLICE_RULES
-from tumor3d.segmentation.review import Review, brain_mask_run_notes
+from tumor3d.segmentation.review import Review, brain_mask_run_notes, review_status
 from tumor3d.segmentation.review import run_notes as review_notes
 from tumor3d.storage import bids
 from tumor3d.storage.brain_mask import GivenBrainMask
@@ -66,6 +67,7 @@ __all__ = [
     "publish_results",
     "publisher_code_digest",
     "run_notes",
+    "run_review",
 ]
 
 #: ``metrics.parquet``'s columns of when to check (:func:`metrics_row`): needs_review,
@@ -134,21 +136,25 @@ def run_notes(
     slice numbers count from (:func:`tumor3d.imaging.scan.slice_order_note`) and, with
     ``modality_default``, the modality taken by default (nothing named it: the report
     says which sequence the method assumed).
+
+    The stages' outputs are read by their declared names (``outputs``: stage name ->
+    output), the values no declaration lists as a ``metrics.parquet`` column.
     """
     seg = outputs["segment-tumor"].values
-    scan = outputs["ingest-scan"].artifacts.get("scan")
+    ingest = outputs["ingest-scan"]
+    scan = ingest.artifacts.get("scan")
     notes, doubts = review_notes(
         tumour_found=outputs["extract-surface"].values["faces"] > 0,
         caveats=seg.get("caveats") or [],
-        skipped_files=outputs["ingest-scan"].values.get("skipped_files") or [],
+        skipped_files=ingest.values.get("skipped_files") or [],
         brain_mask_note=None if brain_mask is None else brain_mask_note(brain_mask),
         **brain_mask_run_notes(outputs["preprocess"].values, seg.get("segment_method")),
         # nibabel's repairs of a NIfTI header (tumor3d.tasks.ingest), never printed
-        header_notes=outputs["ingest-scan"].values.get("header_notes") or [],
-        slice_order_note=None if scan is None else slice_order_note(
-            source_grid_from_metadata(scan.metadata)
-        ),
-    )  # fmt: skip
+        header_notes=ingest.values.get("header_notes") or [],
+        slice_order_note=None
+        if scan is None
+        else slice_order_note(source_grid_from_metadata(scan.metadata)),
+    )
     if segmentation is not None:
         notes.append(segmentation.note())
     if modality_default:
@@ -158,6 +164,16 @@ def run_notes(
             f"sidecar); give the modality if the scan is not {mod.upper()}"
         )
     return notes, doubts
+
+
+def run_review(outputs: dict[str, StageOutput], doubts: list[str]) -> Review:
+    """The run's status and why: its ``doubts`` (:func:`run_notes`) and the segmentation's own.
+
+    :func:`tumor3d.segmentation.review.review_status` with the segment-tumor stage's
+    values (``needs_review``, ``review_reasons``, ``quality_score`` of a method that
+    reviews itself).
+    """
+    return review_status(doubts, segmentation=outputs["segment-tumor"].values)
 
 
 def metrics_row(
@@ -317,8 +333,7 @@ def _provenance(
             "method": seg.get("segment_method"),
             # the learned method's model: its name and digest (absent for the others), and
             # the U-Net's file and SHA-256 where its probability was averaged with the forest's
-            **{k: seg[k] for k in ("model", "model_file", "model_sha256", "cnn_model",
-                                   "cnn_sha256") if k in seg},  # fmt: skip
+            **{k: seg[k] for k in MODEL_IDENTITY_KEYS if k in seg},
         }
         if segmentation is None
         else segmentation.provenance()

@@ -7,13 +7,12 @@
   adapter receives its inputs loaded by kind and returns a :class:`StageResult`
   of plain values; the decorator stores them by kind
   (:mod:`tumor3d.tasks.kinds`) and returns the :class:`StageSpec`;
-* :class:`StageSpec` -- one stage declared: the above plus the Prefect task;
+* :class:`StageSpec` -- one stage declared: the above plus the Prefect task, a
+  cached task whose key comes from :func:`tumor3d.tasks.caching.stage_cache_policy`;
 * :class:`StageOutput` -- what a stage task returns (small references, never
   arrays), sealed with a digest of its own content so that a cached result
   edited on disk is detected (:meth:`StageOutput.verify`);
-* :class:`InputSource` -- the user's input as the ingest stage sees it;
-* :func:`stage_task` -- makes an adapter function a cached Prefect task whose
-  key comes from :func:`tumor3d.tasks.caching.stage_cache_policy`.
+* :class:`InputSource` -- the user's input as the ingest stage sees it.
 """
 
 from __future__ import annotations
@@ -46,7 +45,6 @@ __all__ = [
     "StageSpec",
     "scan_spacing_mm",
     "stage",
-    "stage_task",
 ]
 
 
@@ -211,7 +209,7 @@ class StageSpec:
     name : str
         Stage name (``extract-surface``); also the Prefect task name.
     task : prefect.Task
-        The adapter as a cached Prefect task (made by :func:`stage_task`).
+        The adapter as a cached Prefect task (made by :func:`stage`).
     entry : callable
         The core function the adapter calls (for documentation and tests).
     config_model : type of pydantic.BaseModel or None
@@ -280,7 +278,7 @@ def stage(
     :class:`~tumor3d.tasks.kinds.Artifact` handle where ``load=False``; None
     for an absent optional one) and ``config`` when the stage has one; it
     returns a :class:`StageResult` whose products are stored under the kinds
-    ``outputs`` declares. The Prefect task (:func:`stage_task`) takes the
+    ``outputs`` declares. The Prefect task (:func:`_cached_task`) takes the
     references instead, plus ``store_root``: its parameters, and so its cache
     key, are the inputs' references by digest, the configuration and the
     stage's code, whose closure is rooted at ``fn``'s module.
@@ -327,7 +325,7 @@ def stage(
         adapter.__module__ = fn.__module__  # the root of the stage's code closure
         return StageSpec(
             name=name,
-            task=stage_task(name)(adapter),
+            task=_cached_task(name, adapter),
             entry=entry,
             config_model=config,
             inputs=dict(inputs),
@@ -338,8 +336,8 @@ def stage(
     return decorate
 
 
-def stage_task(name: str) -> Callable[[Callable[..., StageOutput]], Any]:
-    """Decorate an adapter function as the cached Prefect task of stage ``name``.
+def _cached_task(name: str, fn: Callable[..., StageOutput]) -> Any:
+    """The cached Prefect task of stage ``name`` around its adapter ``fn`` (made by :func:`stage`).
 
     The key is :func:`tumor3d.tasks.caching.stage_cache_policy` with the adapter's
     module as the closure root; the result (a sealed :class:`StageOutput`
@@ -348,39 +346,35 @@ def stage_task(name: str) -> Callable[[Callable[..., StageOutput]], Any]:
     is set per run by the runner (:mod:`tumor3d.tasks.runner`) to the artifact store's
     folder, whose records are screened before Prefect decodes them.
     """
+    from tumor3d.tasks.records import StageOutputSerializer
 
-    def decorate(fn: Callable[..., StageOutput]) -> Any:
-        from tumor3d.tasks.records import StageOutputSerializer
+    policy = stage_cache_policy(name, (fn.__module__,))
+    signature = inspect.signature(fn)
 
-        policy = stage_cache_policy(name, (fn.__module__,))
-        signature = inspect.signature(fn)
+    def timed(*args: Any, **kwargs: Any) -> StageOutput:
+        t0 = time.perf_counter()
+        out = fn(*args, **kwargs)
+        bound = signature.bind(*args, **kwargs)
+        bound.apply_defaults()  # as Prefect's task parameters
+        key = policy.compute_key(None, dict(bound.arguments), {})
+        update = {"compute_seconds": time.perf_counter() - t0, "key": key or ""}
+        return out.model_copy(update=update).sealed()
 
-        def timed(*args: Any, **kwargs: Any) -> StageOutput:
-            t0 = time.perf_counter()
-            out = fn(*args, **kwargs)
-            bound = signature.bind(*args, **kwargs)
-            bound.apply_defaults()  # as Prefect's task parameters
-            key = policy.compute_key(None, dict(bound.arguments), {})
-            update = {"compute_seconds": time.perf_counter() - t0, "key": key or ""}
-            return out.model_copy(update=update).sealed()
-
-        timed.__name__ = fn.__name__
-        timed.__qualname__ = fn.__qualname__
-        timed.__doc__ = fn.__doc__
-        timed.__module__ = fn.__module__
-        timed.__wrapped__ = fn  # type: ignore[attr-defined]
-        return task(
-            name=name,
-            task_run_name=name,
-            cache_policy=policy,
-            persist_result=True,
-            result_serializer=StageOutputSerializer(),
-            # Prefect's in-memory result cache is an LRUCache shared by every
-            # thread of a flow and not thread-safe: with patients running in
-            # parallel lanes it made random cached stages look like misses.
-            # Results are small; read them from the store instead.
-            cache_result_in_memory=False,
-            retries=0,
-        )(timed)
-
-    return decorate
+    timed.__name__ = fn.__name__
+    timed.__qualname__ = fn.__qualname__
+    timed.__doc__ = fn.__doc__
+    timed.__module__ = fn.__module__
+    timed.__wrapped__ = fn  # type: ignore[attr-defined]
+    return task(
+        name=name,
+        task_run_name=name,
+        cache_policy=policy,
+        persist_result=True,
+        result_serializer=StageOutputSerializer(),
+        # Prefect's in-memory result cache is an LRUCache shared by every
+        # thread of a flow and not thread-safe: with patients running in
+        # parallel lanes it made random cached stages look like misses.
+        # Results are small; read them from the store instead.
+        cache_result_in_memory=False,
+        retries=0,
+    )(timed)

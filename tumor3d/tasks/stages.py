@@ -4,8 +4,10 @@ Each stage is declared by the :class:`~tumor3d.tasks.spec.StageSpec` of its adap
 module (``tumor3d/tasks/ingest.py`` ... ``tumor3d/tasks/measure.py``); this module
 collects them (:data:`STAGES`), feeds a stage its inputs from the declarations
 (:func:`stage_inputs`: each input names the stage output, the user's source or
-the given artifact it comes from), checks that wiring (:func:`wiring_errors`)
-and gathers the declared ``metrics.parquet`` columns (:func:`metric_columns`).
+the given artifact it comes from), finds the stages another stage needs
+(:func:`upstream`), checks that wiring (:func:`wiring_errors`; :func:`check_wiring`
+raises, and runs on :data:`STAGES` when this module is imported) and gathers the
+declared ``metrics.parquet`` columns (:func:`metric_columns`).
 No adapter imports this module, so editing it changes no stage's code digest.
 """
 
@@ -32,19 +34,22 @@ from tumor3d.tasks import (
     simplify,
 )
 from tumor3d.tasks import surface as surface_adapter
-from tumor3d.tasks.spec import GIVEN, SOURCE, InputSource, StageOutput, StageSpec
+from tumor3d.tasks.spec import GIVEN, SOURCE, Input, InputSource, StageOutput, StageSpec
 
 __all__ = [
     "STAGES",
     "InputSource",
     "StageOutput",
     "StageSpec",
+    "check_wiring",
     "code_digests",
     "config_field",
     "metric_columns",
+    "product",
     "stage_inputs",
     "stage_modules",
     "store_given",
+    "upstream",
     "wiring_errors",
 ]
 
@@ -106,9 +111,11 @@ def store_given(
         "segmentation": None
         if segmentation is None
         else store.put_volume(
-            segmentation.mask, segmentation.affine, kind="mask",
+            segmentation.mask,
+            segmentation.affine,
+            kind="mask",
             extra={"given_file": segmentation.name},
-        ),  # fmt: skip
+        ),
     }
 
 
@@ -135,11 +142,10 @@ def stage_inputs(
     given = given or {}
     kwargs: dict[str, Any] = {}
     for name, declared in spec.inputs.items():
-        producer = declared.producer
         if declared.source == SOURCE:
             kwargs[name] = source
-        elif producer is not None:
-            kwargs[name] = outputs[producer[0]].artifacts[producer[1]]
+        elif declared.producer is not None:
+            kwargs[name] = product(outputs, declared)
         else:
             value = given.get(declared.source.removeprefix(GIVEN))
             if value is None and not declared.optional:
@@ -149,6 +155,50 @@ def stage_inputs(
     if field is not None:
         kwargs["config"] = getattr(cfg, field)
     return kwargs
+
+
+def product(outputs: Mapping[str, StageOutput], declared: Input) -> ArtifactRef:
+    """The stage product a declared input takes, from ``outputs`` (stage name -> output).
+
+    Raises
+    ------
+    KeyError
+        Its stage has not run, or did not make that product.
+    ValueError
+        The input comes from the source or is given, not from a stage.
+    """
+    if declared.producer is None:
+        raise ValueError(f"input from {declared.source!r} is no stage's product")
+    stage_name, artifact = declared.producer
+    return outputs[stage_name].artifacts[artifact]
+
+
+def upstream(*specs: StageSpec) -> list[StageSpec]:
+    """The stages of :data:`STAGES` whose products ``specs`` need, transitively, in order.
+
+    What a run of ``specs`` alone (training's stages, say) must run first: the
+    stages their inputs name, the stages those take theirs from, and so on.
+
+    Raises
+    ------
+    KeyError
+        An input names a stage that is not in :data:`STAGES`.
+    """
+
+    def producers(spec: StageSpec) -> list[str]:
+        return [i.producer[0] for i in spec.inputs.values() if i.producer is not None]
+
+    needed: set[str] = set()
+    todo = [name for spec in specs for name in producers(spec)]
+    while todo:
+        name = todo.pop()
+        if name in needed:
+            continue
+        if name not in STAGES:
+            raise KeyError(f"an input comes from {name!r}, which is not a stage of STAGES")
+        needed.add(name)
+        todo.extend(producers(STAGES[name]))
+    return [spec for name, spec in STAGES.items() if name in needed]
 
 
 def wiring_errors(specs: Iterable[StageSpec]) -> list[str]:
@@ -180,6 +230,19 @@ def wiring_errors(specs: Iterable[StageSpec]) -> list[str]:
     return errors
 
 
+def check_wiring(specs: Iterable[StageSpec]) -> None:
+    """Raise unless running ``specs`` in this order feeds every input (:func:`wiring_errors`).
+
+    Raises
+    ------
+    TypeError
+        Naming every input that is wrong (a declaration to fix, not a user's error).
+    """
+    errors = wiring_errors(specs)
+    if errors:
+        raise TypeError("stage declarations do not wire up: " + "; ".join(errors))
+
+
 def metric_columns(outputs: Mapping[str, StageOutput]) -> dict[str, Any]:
     """The ``metrics.parquet`` columns the stages declare, from their outputs, in stage order."""
     row: dict[str, Any] = {}
@@ -187,3 +250,6 @@ def metric_columns(outputs: Mapping[str, StageOutput]) -> dict[str, Any]:
         if name in outputs:
             row.update(spec.metric_columns(outputs[name].values))
     return row
+
+
+check_wiring(STAGES.values())  # once, at import: a declaration that breaks the pipeline fails here
