@@ -42,6 +42,9 @@ def test_register_a_new_evaluation_and_reject_a_clash(monkeypatch):
     # tests and doctests after it (selected_evaluations' doctest lists the defaults)
     import tumor3d.evaluation.registry as registry
 
+    # the built-in ones registered first, in the registry kept: run first in a process,
+    # the copy took them and the restored registry lacked them for the tests after
+    registered_evaluations()
     monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
 
     @register_evaluation("unit-test-eval", description="counts slices")

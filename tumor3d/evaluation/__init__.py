@@ -12,7 +12,9 @@
 * :mod:`tumor3d.evaluation.geometry` -- the interpolation (Table 4) and
   simplification (Figure 10) evaluations, run when named.
 
-No file I/O here: the flow (``tumor3d/flows/evaluate.py``) loads and writes.
+No file I/O here: :mod:`tumor3d.storage.evaluation_io` loads,
+:mod:`tumor3d.storage.evaluation_tables` writes, the flow (``tumor3d/flows/evaluate.py``)
+wires.
 """
 
 from tumor3d.evaluation.registry import (

@@ -2,7 +2,7 @@
 
 An *evaluation* is a pure function ``fn(case: EvaluationCase) ->
 EvaluationRows``: arrays in (one patient's published results and its
-reference, already loaded and put on comparable grids by the flow), rows
+reference, already loaded and put on comparable grids by the storage layer), rows
 out. It never reads files. Optionally it also has ``summarize(rows) -> str``,
 which turns every patient's row of one configuration into a Markdown section
 of the report.
@@ -21,7 +21,14 @@ Adding an evaluation = one module and one line:
 2. its name in :data:`EVALUATION_MODULES` below.
 
 Column names of the rows are prefixed with nothing: keep them unique across
-evaluations (``patient_id`` and ``config`` are added by the flow).
+evaluations (``patient_id`` and ``config`` are added by
+:func:`tumor3d.storage.evaluation_tables.evaluation_rows`).
+
+What an evaluation shows of its columns is declared with them
+(``register_evaluation(..., columns=ReportColumns(...))``): the report's table
+per case and its summary per group (:mod:`tumor3d.storage.evaluation_report`)
+and the console's table of ``tumor3d evaluate`` read the declaration, each
+column with its label and format.
 """
 
 from __future__ import annotations
@@ -40,6 +47,8 @@ __all__ = [
     "Evaluation",
     "EvaluationCase",
     "EvaluationRows",
+    "ReportColumn",
+    "ReportColumns",
     "register_evaluation",
     "registered_evaluations",
     "selected_evaluations",
@@ -141,6 +150,49 @@ class EvaluationRows:
 
 
 @dataclass(frozen=True)
+class ReportColumn:
+    """A column an evaluation shows: the values of ``keys``, each by ``fmt``, joined by " / ".
+
+    Parameters
+    ----------
+    label : str
+        Its header (in the report's table per case, after ``<configuration>: ``).
+    keys : tuple of str
+        The ``evaluation.parquet`` columns of one cell (one for a summary or the console).
+    fmt : str
+        :meth:`str.format` pattern of one value, e.g. ``"{:.3f}"``.
+    """
+
+    label: str
+    keys: tuple[str, ...]
+    fmt: str
+
+
+@dataclass(frozen=True)
+class ReportColumns:
+    """Where an evaluation's columns are shown, each with its label and format.
+
+    Parameters
+    ----------
+    title, intro : str
+        Heading and text of the report's table per case (``table``).
+    table : tuple of ReportColumn
+        The report's table per case: one cell per configuration and column.
+    summary : tuple of ReportColumn
+        The report's summary per group: the mean of each (one key each).
+    console : tuple of ReportColumn
+        The console's table of ``tumor3d evaluate`` (one key each; a column only when
+        some case has a value).
+    """
+
+    title: str = ""
+    intro: str = ""
+    table: tuple[ReportColumn, ...] = ()
+    summary: tuple[ReportColumn, ...] = ()
+    console: tuple[ReportColumn, ...] = ()
+
+
+@dataclass(frozen=True)
 class Evaluation:
     """A registered evaluation."""
 
@@ -150,6 +202,8 @@ class Evaluation:
     summarize: Callable[[list[dict[str, Any]]], str] | None = None
     #: Run when the user names no evaluation (the costly ones are asked for by name).
     default: bool = True
+    #: What the report and the console show of its columns.
+    columns: ReportColumns = field(default_factory=ReportColumns)
 
 
 _REGISTRY: dict[str, Evaluation] = {}
@@ -161,6 +215,7 @@ def register_evaluation(
     description: str,
     summarize: Callable[[list[dict[str, Any]]], str] | None = None,
     default: bool = True,
+    columns: ReportColumns | None = None,
 ) -> Callable[[Callable[[EvaluationCase], EvaluationRows]], Callable]:
     """Decorator registering ``fn(case) -> EvaluationRows`` under ``name``.
 
@@ -175,6 +230,8 @@ def register_evaluation(
     default : bool
         Run when no evaluation is named (``tumor3d evaluate`` without
         ``--evaluation``); False for the ones asked for by name.
+    columns : ReportColumns, optional
+        Its columns as the report and the console show them; default none.
     """
     if not isinstance(name, str) or not name:
         raise InputError(f"evaluation name must be a non-empty string, got {name!r}")
@@ -183,7 +240,10 @@ def register_evaluation(
         old = _REGISTRY.get(name)
         if old is not None and old.fn.__qualname__ != fn.__qualname__:
             raise InputError(f"an evaluation named {name!r} is already registered")
-        _REGISTRY[name] = Evaluation(name, description, fn, summarize, bool(default))
+        shown = columns
+        _REGISTRY[name] = Evaluation(
+            name, description, fn, summarize, bool(default), shown or ReportColumns()
+        )
         return fn
 
     return deco

@@ -29,18 +29,57 @@ import numpy as np
 
 from tumor3d.evaluation import metrics as m
 from tumor3d.evaluation.grids import voxel_sizes_mm
-from tumor3d.evaluation.registry import EvaluationCase, EvaluationRows, register_evaluation
+from tumor3d.evaluation.registry import (
+    EvaluationCase,
+    EvaluationRows,
+    ReportColumn,
+    ReportColumns,
+    register_evaluation,
+)
 
-__all__ = ["VOLUME_COLUMNS", "evaluate_segmentation"]
+__all__ = ["COLUMNS", "VOLUME_COLUMNS", "evaluate_segmentation"]
 
 #: metrics.parquet volume columns compared with the reference volume.
 VOLUME_COLUMNS = ("volume_eq7_mm3", "volume_voxel_mm3", "volume_mesh_mm3")
+
+
+_DICE_KEYS = ("dice_slices_mean", "dice_pooled", "dice_3d")
+#: The columns the report (its table per case and summary per group) and the console
+#: show of this evaluation's rows.
+COLUMNS = ReportColumns(
+    title="Overlap and surface distance",
+    intro="Per configuration: mean Dice over the reference's tumour slices / pooled "
+    "Dice on the acquired slices / 3-D Dice on the reference grid; HD95 / max HD "
+    "in mm between boundary voxels on the reference grid, and between the "
+    "vertices of the published marching-cubes surface and of the reference's "
+    "marching-cubes surface (mesh).",
+    table=(
+        ReportColumn("Dice slice / pooled / 3-D", _DICE_KEYS, "{:.3f}"),
+        ReportColumn("HD95 / HD (mm)", ("hd95_mm", "hd_max_mm"), "{:.1f}"),
+        ReportColumn("mesh HD95 / HD (mm)", ("hd95_surface_mm", "hd_max_surface_mm"), "{:.1f}"),
+    ),
+    summary=(
+        ReportColumn("slice Dice", ("dice_slices_mean",), "{:.3f}"),
+        ReportColumn("3-D Dice", ("dice_3d",), "{:.3f}"),
+        ReportColumn("HD95 (mm)", ("hd95_mm",), "{:.1f}"),
+        ReportColumn("Eq. 9 (%)", ("eq9_percent",), "{:.1f}"),
+        ReportColumn("Eq. 7 err. (%)", ("volume_eq7_error_percent",), "{:+.1f}"),
+        ReportColumn("mesh err. (%)", ("volume_mesh_error_percent",), "{:+.1f}"),
+    ),
+    console=(
+        ReportColumn("slice Dice", ("dice_slices_mean",), "{:.3f}"),
+        ReportColumn("3-D Dice", ("dice_3d",), "{:.3f}"),
+        ReportColumn("HD95 mm", ("hd95_mm",), "{:.1f}"),
+        ReportColumn("Eq. 7 err", ("volume_eq7_error_percent",), "{:+.1f} %"),
+    ),
+)
 
 
 @register_evaluation(
     "segmentation",
     description="slice recognition (Table 2), pixel counts (Table 3), Dice/Jaccard, "
     "3-D Dice, HD95/HD max and volume errors against the reference",
+    columns=COLUMNS,
 )
 def evaluate_segmentation(case: EvaluationCase) -> EvaluationRows:
     """Compare one patient's segmentation, 3-D mask and volumes with its reference.

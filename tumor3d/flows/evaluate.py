@@ -3,7 +3,7 @@
 ``tumor3d evaluate MANIFEST... --out DIR [--config NAME=FILE ...]`` runs
 :func:`evaluate_flow`:
 
-1. read the manifest(s) leniently (:func:`tumor3d.storage.manifest.read_manifest_rows`):
+1. read the manifest(s) leniently (:func:`tumor3d.storage.evaluation_tables.collect_rows`):
    a bad row is reported and skipped, the others go on; a row whose file is
    absent is *skipped* (not a failure);
 2. prepare each row (:func:`tumor3d.storage.evaluation_io.prepare_case`): check the
@@ -15,9 +15,11 @@
    so a re-run, or a stage configured alike, is a cache hit);
 4. compare each published patient with its reference by every registered
    evaluation (:func:`tumor3d.evaluation.selected_evaluations`: the default
-   ones, or those named with ``--evaluation``);
+   ones, or those named with ``--evaluation``) into rows
+   (:func:`tumor3d.storage.evaluation_tables.evaluation_rows`);
 5. write ``DIR/evaluation.parquet`` (one row per configuration and patient),
-   ``DIR/evaluation_slices.parquet`` (per acquired slice), the Bland-Altman
+   ``DIR/evaluation_slices.parquet`` (per acquired slice)
+   (:func:`tumor3d.storage.evaluation_tables.write_evaluation_tables`), the Bland-Altman
    plots and ``DIR/REPORT.md`` (:mod:`tumor3d.storage.evaluation_report`).
 
 The patients run through :func:`tumor3d.flows.cohort.run_cohort` (the cohort flow:
@@ -32,18 +34,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pandas as pd
 from prefect import flow, get_run_logger
 
 from tumor3d.config import parse_config
 from tumor3d.errors import InputError
 from tumor3d.evaluation import selected_evaluations
-from tumor3d.storage.evaluation_io import PreparedCase, load_case, prepare_case
-from tumor3d.storage.formats import encode_parquet
-from tumor3d.storage.manifest import ManifestRow, RowProblem, read_manifest_rows
+from tumor3d.storage.evaluation_tables import (
+    collect_rows,
+    evaluation_rows,
+    prepare_cases,
+    write_evaluation_tables,
+)
 from tumor3d.storage.objectstore import default_store_location
-from tumor3d.storage.store import atomic_write_bytes
 from tumor3d.tasks.publish import REVIEW_COLUMNS
 
 __all__ = [
@@ -137,24 +140,6 @@ def _run_cohort(rows, out_dir, *, config, workers, store_dir) -> Any:
 # --------------------------------------------------------------------------- flow
 
 
-def _phantom_rows(n: int, folder: Path) -> list[ManifestRow]:
-    from dataclasses import replace
-
-    from tumor3d.phantom import make_phantom_patient
-    from tumor3d.storage.phantom_io import write_phantom_cohort
-
-    patients = [make_phantom_patient(seed, patient_id=f"phantom{seed:03d}") for seed in range(n)]
-    manifest = write_phantom_cohort(patients, folder)
-    rows, problems = read_manifest_rows(manifest)
-    if problems:  # pragma: no cover - we wrote it ourselves
-        raise InputError(problems[0].message)
-    return [replace(r, reference_kind="truth") for r in rows]
-
-
-def _group(prepared: PreparedCase) -> str:
-    return f"{prepared.reference_kind}, {prepared.acquisition}"
-
-
 def _evaluate_run_name() -> str:
     from prefect.runtime import flow_run
 
@@ -210,84 +195,25 @@ def evaluate_flow(
     configs = _load_configs(config_files or {"default": None})
     chosen = selected_evaluations(evaluations)  # an unknown name: before any work
 
-    rows: list[ManifestRow] = []
-    skipped: list[dict[str, Any]] = []
-    seen: dict[str, str] = {}
-    sources: list[tuple[str, list[ManifestRow]]] = []
-    for m in manifests:
-        good, problems = read_manifest_rows(m)
-        sources.append((str(m), good))
-        for q in problems:
-            skipped.append(_skip(q.patient_id, q.message, q.missing_file, q))
-    if phantoms:
-        generated = _phantom_rows(phantoms, out / "phantoms")
-        sources.append((f"{phantoms} generated phantoms", generated))
-    for where, good in sources:
-        for r in good:
-            if r.patient_id in seen:
-                pid = r.patient_id
-                why = f"{where}: duplicate patient_id {pid!r} (also in {seen[pid]})"
-                skipped.append(_skip(r.patient_id, why, False))
-                continue
-            seen[r.patient_id] = where
-            rows.append(r)
-
-    prepared: list[PreparedCase] = []
-    for r in rows:
-        try:
-            prepared.append(prepare_case(r, out / "emulated"))
-        except InputError as exc:
-            skipped.append(_skip(r.patient_id, str(exc), False))
+    rows, skipped = collect_rows(manifests, phantoms, out / "phantoms")
+    prepared, refused = prepare_cases(rows, out / "emulated")
+    skipped += refused
     for s in skipped:
         logger.warning("skipped: %s", s["reason"])
 
     patient_rows: list[dict[str, Any]] = []
     slice_rows: list[dict[str, Any]] = []
     for cname, cfg in configs.items():
-        run_dir = out / "runs" / cname
         result = _run_cohort(
-            [p.run_row for p in prepared], run_dir, config=cfg, workers=workers, store_dir=store
-        )
-        by_id = {o.patient_id: o for o in result.patients}
-        for p in prepared:
-            pid = p.source.patient_id
-            o = by_id.get(pid)
-            base = {
-                "config": cname, "patient_id": pid, "group": _group(p),
-                "reference_kind": p.reference_kind, "acquisition": p.acquisition,
-                "modality": p.source.modality, "image": p.source.image.name,
-                # evaluated or not; the run's own ok/check is run_status
-                "status": "failed" if o is None or o.status == "failed" else "ok",
-                "run_status": "failed" if o is None else o.status,
-                "failed_stage": None if o is None else o.failed_stage,
-                "error": "not run" if o is None else o.error,
-            }  # fmt: skip
-            if o is None or o.status == "failed":
-                patient_rows.append(base)
-                continue
-            base.update({k: v for k, v in o.metrics.items() if k.startswith(("volume_", "n_"))})
-            base["notes"] = str(o.metrics.get("notes") or "")
-            # when to check, as the run published it (metrics.parquet's columns)
-            for key in REVIEW_COLUMNS:
-                if key in o.metrics:
-                    base[key] = o.metrics[key]
-            try:
-                case = load_case(p, o.output_dir)
-                for ev in chosen.values():
-                    got = ev.fn(case)
-                    base.update(got.patient)
-                    for srow in got.slices:
-                        slice_rows.append({"config": cname, "patient_id": pid,
-                                           "evaluation": ev.name, **srow})  # fmt: skip
-            except Exception as exc:  # one patient's comparison must not stop the others
-                base.update(status="failed", failed_stage="evaluate",
-                            error=f"{type(exc).__name__}: {exc}".splitlines()[0])  # fmt: skip
-            patient_rows.append(base)
+            [p.run_row for p in prepared], out / "runs" / cname, config=cfg, workers=workers,
+            store_dir=store,
+        )  # fmt: skip
+        got = evaluation_rows(cname, prepared, result.patients, chosen,
+                              review_columns=REVIEW_COLUMNS)  # fmt: skip
+        patient_rows += got[0]
+        slice_rows += got[1]
 
-    patients = pd.DataFrame(patient_rows)
-    slices = pd.DataFrame(slice_rows)
-    atomic_write_bytes(out / "evaluation.parquet", encode_parquet(_parquet_safe(patients)))
-    atomic_write_bytes(out / "evaluation_slices.parquet", encode_parquet(_parquet_safe(slices)))
+    patients, slices = write_evaluation_tables(out, patient_rows, slice_rows)
     res = EvaluationResult(out, patients, slices, skipped)
     res.report = write_report(
         out, patients, slices,
@@ -296,34 +222,6 @@ def evaluate_flow(
         command=command, elapsed_s=time.perf_counter() - t0,
     )  # fmt: skip
     return res
-
-
-def _skip(pid: str | None, reason: str, missing: bool, problem: RowProblem | None = None) -> dict:
-    return {
-        "patient_id": pid,
-        "row": None if problem is None else problem.row,
-        "reason": reason,
-        "missing_file": bool(missing),
-    }
-
-
-def _parquet_safe(df: pd.DataFrame) -> pd.DataFrame:
-    """Object columns holding mixed None/bool/number become parquet-friendly."""
-    out = df.copy()
-    for c in out.columns:
-        if out[c].dtype == object:
-            values = [v for v in out[c] if v is not None and not _is_nan(v)]
-            if values and all(isinstance(v, bool | np.bool_) for v in values):
-                out[c] = out[c].astype("boolean")
-            elif values and all(isinstance(v, int | float | np.number) for v in values):
-                out[c] = pd.to_numeric(out[c], errors="coerce")
-            else:
-                out[c] = out[c].map(lambda v: None if v is None else str(v))
-    return out
-
-
-def _is_nan(v: Any) -> bool:
-    return isinstance(v, float) and np.isnan(v)
 
 
 def run_evaluation(

@@ -13,7 +13,10 @@
   (``tumor_mask_slices.nii.gz``, ``tumor_mask.nii.gz``, ``slices.parquet``,
   ``metrics.parquet``, ``tumor.ply``, ``tumor_simplified.ply``) and its
   reference, puts them on comparable grids, and builds the pure
-  :class:`tumor3d.evaluation.EvaluationCase`.
+  :class:`tumor3d.evaluation.EvaluationCase`;
+
+The manifests' rows gathered, one configuration's run turned into the rows of
+``evaluation.parquet`` and their writing: :mod:`tumor3d.storage.evaluation_tables`.
 
 Every problem of a row is an :class:`~tumor3d.errors.InputError` naming the
 row's patient id (and the file).
@@ -399,3 +402,6 @@ def load_case(prepared: PreparedCase, output_dir: str | Path) -> EvaluationCase:
         metrics=metrics,
         extras=extras,
     )
+
+
+# --------------------------------------------------------------------------- cohort rows

@@ -11,14 +11,19 @@ side):
   tumour"), pooled per group, with recall and specificity; the detector's
   own flags in a second table;
 * Table 3 (as in the paper): ``N_g``, ``N_p`` and Eq. 9 per case;
-* Dice: mean per-slice Dice on the reference's tumour slices, pooled Dice
-  and Jaccard on the acquired slices, 3-D Dice on the reference's grid;
-* surface distances: HD95 and maximum Hausdorff distance (mm);
+* each evaluation's table per case, of the columns it declares
+  (:class:`tumor3d.evaluation.registry.ReportColumns`): for ``segmentation``, Dice
+  (mean per-slice Dice on the reference's tumour slices, pooled Dice on the
+  acquired slices, 3-D Dice on the reference's grid) and surface distances
+  (HD95 and maximum Hausdorff distance, mm);
 * volumes: reference volume (mL), signed % error of Eq. 7, voxel and mesh
   volumes; Bland-Altman bias and 95 % limits of agreement (mL and %), one
   PNG per configuration;
-* summary per group; registered evaluations; provenance (command,
-  configurations, versions, input digests).
+* summary per group (the means of the columns each evaluation declares for it);
+  registered evaluations; provenance (command, configurations, versions, input
+  digests).
+
+Tables 2 and 3 and the volumes are the ``segmentation`` evaluation's own sections.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ import pandas as pd
 import yaml
 
 from tumor3d.evaluation.metrics import SliceConfusion, bland_altman
+from tumor3d.evaluation.registry import Evaluation, ReportColumn, ReportColumns
 from tumor3d.storage.patient_outputs import split_notes
 from tumor3d.storage.store import atomic_write_bytes
 from tumor3d.storage.versions import versions
@@ -188,13 +194,71 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def _cell(df: pd.DataFrame, cfg: str, pid: str, column: ReportColumn) -> str:
+    return " / ".join(_f(_get(df, cfg, pid, k), column.fmt) for k in column.keys)
+
+
+def _case_table(
+    df: pd.DataFrame, names: list[str], pids: list[str], shown: ReportColumns, title: str
+) -> list[str]:
+    """An evaluation's table per case: one cell per configuration and declared column."""
+    parts = ["", f"## {shown.title or title}", ""]
+    if shown.intro:
+        parts += [shown.intro, ""]
+    header = ["patient"] + [f"{n}: {c.label}" for n in names for c in shown.table]
+    rows = [[pid, *(_cell(df, n, pid, c) for n in names for c in shown.table)] for pid in pids]
+    return [*parts, _table(header, rows)]
+
+
+def _summary_parts(
+    ok: pd.DataFrame,
+    names: list[str],
+    pids: list[str],
+    groups: dict[str, str],
+    evaluations: Mapping[str, Evaluation],
+) -> list[str]:
+    """The summary per group: the mean of each column the evaluations declare for it."""
+    shown = [c for ev in evaluations.values() for c in ev.columns.summary]
+    if not shown:
+        return []
+    parts = ["", "## Summary per group (mean over the cases of each group)", ""]
+    header = ["group", "configuration", "n ok"] + [c.label for c in shown]
+    rows = []
+    for g in _ordered(groups[p] for p in pids):
+        members = [p for p in pids if groups[p] == g]
+        for n in names:
+            sel = ok[(ok["config"] == n) & ok["patient_id"].isin(members)]
+            cells = [" / ".join(_f(_mean(sel, k), c.fmt) for k in c.keys) for c in shown]
+            rows.append([g, n, f"{len(sel)}/{len(members)}", *cells])
+    return [*parts, _table(header, rows)]
+
+
+def _evaluation_parts(
+    ev: Evaluation,
+    df: pd.DataFrame,
+    names: list[str],
+    pids: list[str],
+    groups: dict[str, str],
+    out_dir: Path,
+) -> list[str]:
+    """An evaluation's sections: the segmentation's own, or its table per case, if any."""
+    if ev.name == "segmentation":
+        return _segmentation_parts(df, names, pids, groups, out_dir, ev.columns)
+    return _case_table(df, names, pids, ev.columns, ev.name) if ev.columns.table else []
+
+
 def _segmentation_parts(
-    df: pd.DataFrame, names: list[str], pids: list[str], groups: dict[str, str], out_dir: Path
+    df: pd.DataFrame,
+    names: list[str],
+    pids: list[str],
+    groups: dict[str, str],
+    out_dir: Path,
+    shown: ReportColumns,
 ) -> list[str]:
     """The segmentation evaluation's sections of ``REPORT.md``.
 
-    Tables 2 and 3, overlap, volumes (the Bland-Altman figures written to
-    ``out_dir``) and the summary per group.
+    Tables 2 and 3, its table per case (``shown``: overlap and surface distance) and
+    volumes (the Bland-Altman figures written to ``out_dir``).
     """
     parts: list[str] = []
     ok = df[df["status"] == "ok"]
@@ -222,9 +286,11 @@ def _segmentation_parts(
         rows.append([pid, _f(first, "{:.0f}"), _f(ref_ab, "{:d}"), *cells])
     parts.append(_table(header, rows))
     parts += ["", "Pooled per group (recall = TP/(TP+FN), specificity = TN/(TN+FP)):", ""]
-    header = ["group"] + [f"{n}: TP / FN / FP / TN" for n in names] + [
-        f"{n}: recall / specificity" for n in names
-    ]
+    header = (
+        ["group"]
+        + [f"{n}: TP / FN / FP / TN" for n in names]
+        + [f"{n}: recall / specificity" for n in names]
+    )
     rows = []
     for g in _ordered(groups[p] for p in with_ref):
         members = [p for p in with_ref if groups[p] == g]
@@ -262,29 +328,8 @@ def _segmentation_parts(
     parts.append(_table(header, rows))
 
     # ---------------------------------------------------------------- Dice / HD
-    parts += ["", "## Overlap and surface distance", ""]
-    parts.append("Per configuration: mean Dice over the reference's tumour slices / pooled "
-                 "Dice on the acquired slices / 3-D Dice on the reference grid; HD95 / max HD "
-                 "in mm between boundary voxels on the reference grid, and between the "
-                 "vertices of the published marching-cubes surface and of the reference's "
-                 "marching-cubes surface (mesh).")  # fmt: skip
-    parts.append("")
-    header = ["patient"] + [h for n in names for h in (f"{n}: Dice slice / pooled / 3-D",
-                                                       f"{n}: HD95 / HD (mm)",
-                                                       f"{n}: mesh HD95 / HD (mm)")]  # fmt: skip
-    rows = []
     tumour_pids = [pid for pid in with_ref if not groups[pid].startswith("tumor_free")]
-    for pid in tumour_pids:
-        cells = []
-        for n in names:
-            cells.append(" / ".join(_f(_get(df, n, pid, k), "{:.3f}")
-                                    for k in ("dice_slices_mean", "dice_pooled", "dice_3d")))
-            cells.append(" / ".join(_f(_get(df, n, pid, k), "{:.1f}")
-                                    for k in ("hd95_mm", "hd_max_mm")))  # fmt: skip
-            cells.append(" / ".join(_f(_get(df, n, pid, k), "{:.1f}")
-                                    for k in ("hd95_surface_mm", "hd_max_surface_mm")))  # fmt: skip
-        rows.append([pid, *cells])
-    parts.append(_table(header, rows))
+    parts += _case_table(df, names, tumour_pids, shown, "segmentation")
 
     # ---------------------------------------------------------------- volumes
     parts += ["", "## Volumes", ""]
@@ -305,8 +350,12 @@ def _segmentation_parts(
                     cells.append(_pct(_get(df, n, pid, col.replace("_mm3", "_error_percent"))))
         rows.append([pid, _f(None if refv is None else refv / 1000.0, "{:.2f}"), *cells])
     parts.append(_table(header, rows))
-    parts += ["", "Agreement over the cases with tumour in the reference (Bland-Altman: "
-              "d = method - reference; bias = mean d; 95 % limits = bias -/+ 1.96 sd):", ""]
+    parts += [
+        "",
+        "Agreement over the cases with tumour in the reference (Bland-Altman: "
+        "d = method - reference; bias = mean d; 95 % limits = bias -/+ 1.96 sd):",
+        "",
+    ]
     header = ["configuration", "method", "n", "bias (mL)", "95 % LoA (mL)", "bias (%)",
               "95 % LoA (%)"]  # fmt: skip
     rows = []
@@ -335,23 +384,6 @@ def _segmentation_parts(
     parts.append(_table(header, rows))
     for n, png in pngs:
         parts += ["", f"![Bland-Altman, {n}]({png})"]
-
-    # ---------------------------------------------------------------- summary per group
-    parts += ["", "## Summary per group (mean over the cases of each group)", ""]
-    metrics = [("dice_slices_mean", "slice Dice", "{:.3f}"), ("dice_3d", "3-D Dice", "{:.3f}"),
-               ("hd95_mm", "HD95 (mm)", "{:.1f}"), ("eq9_percent", "Eq. 9 (%)", "{:.1f}"),
-               ("volume_eq7_error_percent", "Eq. 7 err. (%)", "{:+.1f}"),
-               ("volume_mesh_error_percent", "mesh err. (%)", "{:+.1f}")]  # fmt: skip
-    header = ["group", "configuration", "n ok"] + [m[1] for m in metrics]
-    rows = []
-    for g in _ordered(groups[p] for p in pids):
-        members = [p for p in pids if groups[p] == g]
-        for n in names:
-            sel = ok[(ok["config"] == n) & ok["patient_id"].isin(members)]
-            cells = [_f(_mean(sel, col), fmt) for col, _, fmt in metrics]
-            rows.append([g, n, f"{len(sel)}/{len(members)}", *cells])
-    parts.append(_table(header, rows))
-
     return parts
 
 
@@ -364,11 +396,15 @@ def write_report(
     config_files: dict[str, str | None],
     prepared: list[Any],
     skipped: list[dict[str, Any]],
-    evaluations: dict[str, Any],
+    evaluations: Mapping[str, Evaluation],
     command: str | None,
     elapsed_s: float,
 ) -> Path:
-    """Write ``REPORT.md`` and ``bland_altman_<config>.png`` in ``out_dir``; return the former."""
+    """Write ``REPORT.md`` and ``bland_altman_<config>.png`` in ``out_dir``; return the former.
+
+    Each of ``evaluations`` (name -> registered evaluation) adds its sections and the
+    columns it declares (:class:`tumor3d.evaluation.registry.ReportColumns`).
+    """
     del slices  # per-slice rows are in evaluation_slices.parquet
     names = list(configs)
     pids = [p.source.patient_id for p in prepared]
@@ -446,8 +482,9 @@ def write_report(
         parts += ["", f"**Note:** the reference of {', '.join(algo)} was made by a segmentation "
                   "ALGORITHM, not an expert: agreement with it is not accuracy."]  # fmt: skip
 
-    if "segmentation" in evaluations:  # its tables; a geometry-only run has none to fill
-        parts += _segmentation_parts(df, names, pids, groups, out_dir)
+    for ev in evaluations.values():  # a geometry-only run has no segmentation tables to fill
+        parts += _evaluation_parts(ev, df, names, pids, groups, out_dir)
+    parts += _summary_parts(ok, names, pids, groups, evaluations)
 
     # ---------------------------------------------------------------- registry
     parts += ["", "## Registered evaluations", ""]

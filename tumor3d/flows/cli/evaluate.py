@@ -4,16 +4,29 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 from rich.table import Table
 
+from tumor3d.evaluation.registry import Evaluation, registered_evaluations
 from tumor3d.flows.cli.app import Verbose, app, console, err_console
 from tumor3d.flows.cli.errors import _HANDLED, _ctrl_c_ends, _fail
 from tumor3d.flows.cli.session import _prefect
 from tumor3d.storage.evaluation_report import run_status_cell
+
+
+def _evaluation_help() -> str:
+    """``--evaluation``'s help: the registered evaluations, the default ones first.
+
+    >>> _evaluation_help().partition(": ")[2]
+    'segmentation (the default), interpolation, simplification.'
+    """
+    every = sorted(registered_evaluations().values(), key=lambda ev: (not ev.default, ev.name))
+    names = [f"{ev.name} (the default)" if ev.default else ev.name for ev in every]
+    return f"Registered evaluation to run (repeat): {', '.join(names)}."
 
 
 @app.command()
@@ -39,10 +52,7 @@ def evaluate(
     ] = 0,
     evaluation: Annotated[
         list[str] | None,
-        typer.Option(
-            help="Registered evaluation to run (repeat): segmentation (the default), "
-            "interpolation (Table 4 on the references), simplification (Figure 10)."
-        ),
+        typer.Option(help=_evaluation_help()),
     ] = None,
     verbose: Verbose = False,
 ) -> None:
@@ -67,7 +77,7 @@ def evaluate(
         _load_configs(specs)  # fail fast on a bad configuration
         from tumor3d.evaluation import selected_evaluations
 
-        selected_evaluations(evaluation)  # fail fast on an unknown evaluation
+        chosen = selected_evaluations(evaluation)  # fail fast on an unknown evaluation
         for m in manifest:
             read_manifest_rows(m)  # fail fast on a bad manifest (header, missing file)
         command = "tumor3d " + " ".join(shlex.quote(a) for a in sys.argv[1:])
@@ -83,28 +93,30 @@ def evaluate(
     for s in result.skipped:
         tag = "skipped (file absent)" if s["missing_file"] else "invalid row"
         err_console.print(f"[yellow]{tag}:[/] {s['reason']}", highlight=False, soft_wrap=True)
-    console.print(_evaluation_table(result.patients))
+    console.print(_evaluation_table(result.patients, chosen))
     console.print(f"report: [bold]{result.report}[/]")
     if result.n_failed or result.n_invalid:
         raise typer.Exit(code=1)
 
 
-#: The console's evaluation columns: header, evaluation.parquet column, format.
-_CONSOLE_METRICS = (
-    ("slice Dice", "dice_slices_mean", "{:.3f}"),
-    ("3-D Dice", "dice_3d", "{:.3f}"),
-    ("HD95 mm", "hd95_mm", "{:.1f}"),
-    ("Eq. 7 err", "volume_eq7_error_percent", "{:+.1f} %"),
-)
+def _console_columns(df: Any, evaluations: Mapping[str, Evaluation]) -> list[tuple[str, str, str]]:
+    """``(header, evaluation.parquet column, format)`` of the evaluations' console columns.
+
+    A column only when some row has a value: ``--evaluation interpolation`` alone
+    printed a table of dashes.
+    """
+    declared = [c for ev in evaluations.values() for c in ev.columns.console]
+    keyed = [(c.label, key, c.fmt) for c in declared for key in c.keys]
+    return [m for m in keyed if m[1] in df.columns and df[m[1]].notna().any()]
 
 
-def _evaluation_table(df: Any) -> Table:
+def _evaluation_table(df: Any, evaluations: Mapping[str, Evaluation] | None = None) -> Table:
     """The console's table of ``evaluation.parquet``.
 
-    A metric column only when some row has a value: ``--evaluation interpolation``
-    alone printed a table of dashes.
+    Its metric columns are those the evaluations (default: every registered one)
+    declare for the console (:class:`tumor3d.evaluation.registry.ReportColumns`).
     """
-    shown = [m for m in _CONSOLE_METRICS if m[1] in df.columns and df[m[1]].notna().any()]
+    shown = _console_columns(df, registered_evaluations() if evaluations is None else evaluations)
     table = Table(title="Evaluation", title_justify="left")
     for col in ("config", "patient", "status", *(header for header, _, _ in shown)):
         table.add_column(col)
