@@ -31,15 +31,10 @@ from tumor3d.config import PipelineConfig, as_config
 from tumor3d.errors import InputError
 from tumor3d.geometry.measures import clinical_measures
 from tumor3d.geometry.mesh import Mesh
-from tumor3d.imaging.scan import (
-    MODALITIES,
-    Scan,
-    canonical_flips,
-    canonical_orientation,
-    reverse_axes,
-    slab_height_mm,
-    slice_order_note,
-)
+from tumor3d.imaging.affine import reverse_axes, slab_height_mm
+from tumor3d.imaging.identity import MODALITIES
+from tumor3d.imaging.orientation import canonical_flips, canonical_orientation, slice_order_note
+from tumor3d.imaging.scan import Scan
 from tumor3d.metrics import measure_volumes
 from tumor3d.segmentation.lesion import left_right_axis
 from tumor3d.segmentation.review import brain_mask_run_notes, review_status, run_notes

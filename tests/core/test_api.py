@@ -86,7 +86,7 @@ def test_a_scan_built_in_another_orientation_is_read_as_a_file_would_be(phantom,
     so the result is the LPS one, and on_input_grid gives the masks back as built."""
     import dataclasses
 
-    from tumor3d.imaging.scan import reverse_axes
+    from tumor3d.imaging.affine import reverse_axes
 
     lps = phantom.scan
     image, affine = reverse_axes(lps.image, lps.affine, (True, True, False))
@@ -115,7 +115,7 @@ def test_a_file_stored_top_down_says_where_its_slice_numbers_count_from(phantom,
     import nibabel as nib
 
     from tumor3d.flows.patient import run_notes, run_stages_direct
-    from tumor3d.imaging.scan import reverse_axes
+    from tumor3d.imaging.affine import reverse_axes
 
     lps = phantom.scan
     image, affine = reverse_axes(lps.image, lps.affine, (False, False, True))

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import Scan, SourceGrid, validate_patient_id, zyx_index_to_ras
+from tumor3d.imaging.affine import zyx_index_to_ras
+from tumor3d.imaging.identity import validate_patient_id
+from tumor3d.imaging.scan import Scan, SourceGrid
 
 
 def _scan(**overrides):

@@ -424,7 +424,8 @@ def test_exit_code_of_a_result_to_check_is_documented():
     from pathlib import Path
 
     import tumor3d.flows.cli as cli
-    from tumor3d.flows.cohort import EXIT_CHECK, exit_code_of
+    from tumor3d.flows.cohort_result import exit_code_of
+    from tumor3d.flows.exit_codes import EXIT_CHECK
 
     assert cli.EXIT_CHECK == EXIT_CHECK == 4 and "* 4 -- " in cli.__doc__
     assert exit_code_of(["ok", "check"]) == 4 and exit_code_of(["check", "failed"]) == 1

@@ -163,7 +163,8 @@ def test_a_direct_call_of_the_failed_cohort_flow_raises_with_its_result(inputs, 
     ``PatientsFailed`` holding the whole result when some patient failed, as Prefect raises
     a failed flow's error (a Failed state holding the plain result made Prefect raise a
     TypeError instead: the review of bc8ef5d)."""
-    from tumor3d.flows.cohort import PatientsFailed, cohort_flow
+    from tumor3d.flows.cohort import cohort_flow
+    from tumor3d.flows.cohort_result import PatientsFailed
 
     _, _, missing = inputs
     row = {"patient_id": "ghost", "image": str(missing.image), "modality": "t2"}

@@ -10,7 +10,8 @@ import pytest
 from phantom_rows import small_phantom_rows
 
 import tumor3d.flows.cohort as cohort
-from tumor3d.flows.cohort import CohortResult, PatientOutcome, _run_one
+from tumor3d.flows.cohort import _run_one
+from tumor3d.flows.cohort_result import CohortResult, PatientOutcome
 from tumor3d.storage.store import ArtifactStore
 
 

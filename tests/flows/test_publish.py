@@ -241,7 +241,7 @@ def test_prepare_source_applies_the_destination_rules_before_any_work(tmp_path):
 
 
 def test_a_cohort_row_whose_folder_is_not_a_result_is_refused_before_any_work(tmp_path):
-    from tumor3d.flows.cohort import _validate_rows
+    from tumor3d.storage.cohort_rows import validate_rows as _validate_rows
 
     (tmp_path / "pat1").mkdir()
     (tmp_path / "pat1" / "notes.txt").write_text("mine")

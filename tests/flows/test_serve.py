@@ -290,7 +290,7 @@ def test_last_run_says_which_patients_changed_since_their_earlier_result(tmp_pat
     cohort.md, which the next run replaces; last_run.json keeps it with the run."""
     import logging
 
-    from tumor3d.flows.cohort import CohortResult, PatientOutcome
+    from tumor3d.flows.cohort_result import CohortResult, PatientOutcome
     from tumor3d.flows.serve import _write_last_run
 
     patients = [

@@ -23,8 +23,8 @@ import numpy as np
 import pytest
 
 from tumor3d.config import PipelineConfig
+from tumor3d.imaging.affine import zyx_index_to_ras
 from tumor3d.imaging.preprocess import preprocess_volume
-from tumor3d.imaging.scan import zyx_index_to_ras
 from tumor3d.phantom import make_phantom_patient
 from tumor3d.segmentation.detect import detect_abnormal_slices
 from tumor3d.segmentation.lesion import left_right_axis

@@ -29,6 +29,7 @@ from tumor3d.geometry.mesh import Mesh  # noqa: E402
 from tumor3d.storage import objectstore  # noqa: E402
 from tumor3d.storage.manifest import write_manifest  # noqa: E402
 from tumor3d.storage.objectstore import ObjectStore, open_store  # noqa: E402
+from tumor3d.storage.refs import CorruptArtifactError, StoreError  # noqa: E402
 from tumor3d.storage.remote_publish import (  # noqa: E402
     MARKER,
     RemoteFolder,
@@ -37,7 +38,7 @@ from tumor3d.storage.remote_publish import (  # noqa: E402
     read_marker,
     verify_folder,
 )
-from tumor3d.storage.store import ArtifactStore, CorruptArtifactError, StoreError  # noqa: E402
+from tumor3d.storage.store import ArtifactStore  # noqa: E402
 from tumor3d.tasks.caching import stage_cache_policy  # noqa: E402
 
 BUCKET = "tumor3d-test"
@@ -119,7 +120,7 @@ def test_same_digests_names_and_bytes_as_the_local_store(s3_endpoint, tmp_path):
 def test_cache_keys_do_not_depend_on_the_store_location():
     policy = stage_cache_policy("preprocess", ("tumor3d.tasks.preprocess",))
     ref = {"kind": "scan", "digest": "a" * 64, "relpath": "objects/aa/x.nii.gz"}
-    from tumor3d.storage.store import ArtifactRef
+    from tumor3d.storage.refs import ArtifactRef
 
     inputs = {"scan": ArtifactRef(**ref), "store_root": "/srv/store"}
     local_key = policy.compute_key(None, inputs, {})

@@ -14,7 +14,8 @@ from tumor3d.errors import InputError, os_error_text
 from tumor3d.storage import store as store_module
 from tumor3d.storage.inputs import input_digest
 from tumor3d.storage.readers import read_scan
-from tumor3d.storage.store import ArtifactStore, StoreError
+from tumor3d.storage.refs import StoreError
+from tumor3d.storage.store import ArtifactStore
 
 
 def small_nifti(path):
@@ -79,7 +80,7 @@ def test_unreadable_input_is_one_line_naming_the_file(tmp_path, monkeypatch):
 
 
 def test_a_writable_folder_is_made_and_left_as_it_was(tmp_path):
-    from tumor3d.storage.store import check_writable_dir
+    from tumor3d.storage.atomic import check_writable_dir
 
     check_writable_dir(tmp_path / "a" / "b")
     assert (tmp_path / "a" / "b").is_dir() and not list((tmp_path / "a" / "b").iterdir())
@@ -90,7 +91,7 @@ def test_an_unwritable_folder_is_named_not_the_probe(tmp_path, monkeypatch):
     error names the folder, not the probe's random name."""
     import tempfile
 
-    from tumor3d.storage.store import check_writable_dir
+    from tumor3d.storage.atomic import check_writable_dir
 
     def denied(*args, dir=None, **kwargs):
         raise PermissionError(errno.EACCES, "Permission denied", os.path.join(dir, ".x123"))
@@ -104,7 +105,7 @@ def test_an_unwritable_folder_is_named_not_the_probe(tmp_path, monkeypatch):
 def test_a_check_before_the_input_is_validated_makes_no_folder(tmp_path):
     """create=False (the commands' check before a row may be refused): an absent folder is
     judged by its nearest existing parent and not made; under a file, the file is named."""
-    from tumor3d.storage.store import check_writable_dir
+    from tumor3d.storage.atomic import check_writable_dir
 
     check_writable_dir(tmp_path / "a" / "b", create=False)
     assert not (tmp_path / "a").exists() and not list(tmp_path.iterdir())

@@ -9,7 +9,8 @@ import pytest
 from dicom_factory import write_series
 
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import Scan, SourceGrid, slab_height_mm, slice_plane_spacing_mm
+from tumor3d.imaging.affine import slab_height_mm, slice_plane_spacing_mm
+from tumor3d.imaging.scan import Scan, SourceGrid
 from tumor3d.metrics import volume_eq7_mm3, volume_voxel_mm3, voxel_volume_mm3
 from tumor3d.storage.readers import read_scan
 

@@ -15,8 +15,10 @@ from tumor3d.errors import InputError
 from tumor3d.geometry.mesh import Mesh
 from tumor3d.imaging.scan import Scan, SourceGrid
 from tumor3d.storage import formats
+from tumor3d.storage.atomic import atomic_write_bytes
 from tumor3d.storage.inputs import input_digest
-from tumor3d.storage.store import ArtifactStore, StoreError, atomic_write_bytes
+from tumor3d.storage.refs import StoreError
+from tumor3d.storage.store import ArtifactStore
 
 
 @pytest.fixture

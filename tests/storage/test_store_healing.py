@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from tumor3d.storage.store import ArtifactStore, CorruptArtifactError, StoreError
+from tumor3d.storage.refs import CorruptArtifactError, StoreError
+from tumor3d.storage.store import ArtifactStore
 
 
 @pytest.fixture
@@ -119,7 +120,7 @@ def test_temporary_files_of_killed_writers_are_removed_and_live_ones_kept(store)
     import os
     import time
 
-    from tumor3d.storage.store import HOST_TAG, STALE_TMP_S
+    from tumor3d.storage.atomic import HOST_TAG, STALE_TMP_S
 
     ref = store.put_json({"kept": True})
     folder = store.path(ref).parent
@@ -165,7 +166,7 @@ def test_atomic_writes_name_their_temporary_file_by_host_and_process(store, monk
     """The name the sweep reads is the one the writer gives (a crash mid-write kept it)."""
     import os
 
-    from tumor3d.storage import store as store_module
+    from tumor3d.storage import atomic
 
     seen: list[str] = []
 
@@ -173,9 +174,9 @@ def test_atomic_writes_name_their_temporary_file_by_host_and_process(store, monk
         seen.append(os.path.basename(src))
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(store_module.os, "replace", crash)
+    monkeypatch.setattr(atomic.os, "replace", crash)
     with pytest.raises(StoreError):
         store.put_json({"x": 1})
-    m = store_module._TMP_NAME.match(seen[0])
-    assert m is not None and m["host"] == store_module.HOST_TAG
+    m = atomic.TMP_NAME.match(seen[0])
+    assert m is not None and m["host"] == atomic.HOST_TAG
     assert int(m["pid"]) == os.getpid()

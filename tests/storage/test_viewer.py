@@ -244,7 +244,7 @@ def test_the_vendored_script_is_the_recorded_niivue_release():
 
 def test_a_broken_installation_is_one_environment_error(monkeypatch, tmp_path):
     import tumor3d.storage.viewer as viewer_mod
-    from tumor3d.storage.store import StoreError
+    from tumor3d.storage.refs import StoreError
 
     monkeypatch.setattr(viewer_mod, "NIIVUE_SHA256", "0" * 64)
     with pytest.raises(StoreError, match="is not NiiVue 0.69.0.*reinstall tumor3d"):

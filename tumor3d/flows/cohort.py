@@ -23,6 +23,12 @@ any exception) is recorded with its status, the failing stage and a one-line
 error; the others finish and are published. Nothing is half-written under any
 patient's final folder (:mod:`tumor3d.storage.publish`). ``DIR/cohort.parquet`` and
 ``DIR/cohort.md`` summarise the cohort (:mod:`tumor3d.storage.cohort_report`).
+
+What the flow returns, and how a failure is told apart (the machine's or the
+input's), is :mod:`tumor3d.flows.cohort_result` (:class:`CohortResult`,
+:class:`PatientOutcome`, :class:`PatientsFailed`, :func:`exit_code_of`,
+:func:`one_line_error`: re-exported here); the checks of the rows before any work are
+:func:`tumor3d.storage.cohort_rows.validate_rows`.
 """
 
 from __future__ import annotations
@@ -30,7 +36,6 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import dataclasses
-import errno
 import functools
 import os
 import time
@@ -40,16 +45,24 @@ from typing import Any
 
 from prefect import flow, get_run_logger, tags
 from prefect.states import Failed, State
-from pydantic import BaseModel, ConfigDict, Field
 
 from tumor3d.config import PipelineConfig, as_config, parse_config
 from tumor3d.constants import MAX_VOXELS_DEFAULT
-from tumor3d.errors import InputError, Tumor3DError, exception_line
+from tumor3d.errors import InputError
 from tumor3d.flows.api_use import api_of_python_call
 from tumor3d.flows.artifacts import publish_cohort_artifacts
+from tumor3d.flows.cohort_result import (
+    CohortResult,
+    PatientOutcome,
+    PatientsFailed,
+    environment_failure,
+    exit_code_of,
+    one_line_error,
+    with_recompute_reason,
+)
 from tumor3d.flows.dask_runner import DaskSpec, check_scheduler, cohort_task_runner
 from tumor3d.flows.dask_workers import check_workers
-from tumor3d.flows.exit_codes import EXIT_CHECK, EXIT_ENVIRONMENT
+from tumor3d.flows.exit_codes import EXIT_CHECK
 from tumor3d.flows.patient import (
     VOLUME_LABELS,
     config_digest,
@@ -59,7 +72,7 @@ from tumor3d.flows.patient import (
     prepare_source,
     sweep_killed_writers,
 )
-from tumor3d.segmentation.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
+from tumor3d.segmentation.review import STATUS_FAILED, STATUS_OK
 from tumor3d.storage import bids
 from tumor3d.storage.cohort_report import (
     cohort_markdown,
@@ -69,18 +82,18 @@ from tumor3d.storage.cohort_report import (
     published_patient_ids,
     write_cohort_outputs,
 )
+from tumor3d.storage.cohort_rows import validate_rows
 from tumor3d.storage.folder_lock import writing_folder
 from tumor3d.storage.manifest import ManifestRow, read_manifest
 from tumor3d.storage.objectstore import ObjectStore, default_store_location, is_url, open_store
-from tumor3d.storage.provenance import cache_identity, changed_since, patients_by_reason
-from tumor3d.storage.publish import check_destination, check_outputs_not_inputs
+from tumor3d.storage.provenance import cache_identity
 from tumor3d.storage.remote_publish import RemoteFolder, publish_files, published_names
-from tumor3d.storage.store import ArtifactStore, StoreError, check_writable_dir
+from tumor3d.storage.store import ArtifactStore, check_writable_dir
 from tumor3d.tasks import stages
 from tumor3d.tasks.progress import ProgressEvent, report
 from tumor3d.tasks.runner import StageRun
 
-__all__ = [
+__all__ = [  # with the result types re-exported (tumor3d.flows.cohort_result)
     "CohortResult",
     "EXIT_CHECK",
     "EXTRA_LANES",
@@ -93,9 +106,6 @@ __all__ = [
     "run_cohort",
 ]
 
-#: Longest error message kept per patient (characters).
-_MAX_ERROR = 300
-
 #: Patients in flight beyond the task runner's width. A lane publishes its patient in
 #: the flow's own process after the last stage (0.4 s a phantom patient, ~15 % of its
 #: lane); with one lane per worker that worker idled meanwhile. One more lane keeps
@@ -103,177 +113,9 @@ _MAX_ERROR = 300
 EXTRA_LANES = 1
 
 
-class PatientOutcome(BaseModel):
-    """How one manifest row went.
-
-    Parameters
-    ----------
-    patient_id : str
-    status : {"ok", "check", "failed"}
-        ``check``: completed, but the tool's own checks doubt the result
-        (:mod:`tumor3d.segmentation.review`; the metrics' ``review_reasons`` say why).
-    failed_stage : str or None
-        The stage that raised (``prepare-input`` before the first stage,
-        ``publish`` after the last).
-    error : str or None
-        One line: exception type and message (an OS error: the file it names and
-        what happened, ``OSError: DIR/p1/...: no space left on device (ENOSPC)``).
-    environment : bool
-        Failed for the machine, not the input: an artifact store, or a full,
-        read-only or forbidden disk while writing (:func:`environment_failure`).
-    output_dir : str or None
-        ``DIR/<patient_id>`` when ok.
-    metrics : dict
-        That patient's ``metrics.parquet`` row when ok, else empty.
-    stages : list of StageRun
-        The stages that completed.
-    row : dict
-        The manifest row as given (extra columns passed through).
-    lane_seconds : float
-        Time the patient's lane spent on it: preparing, every stage, publishing.
-    publish_seconds : float
-        Of which publishing (:attr:`tumor3d.flows.patient.PatientResult.publish_seconds`).
-    recomputed : str or None
-        Why stages ran for a patient that an earlier run had published in ``DIR``
-        (:func:`tumor3d.storage.provenance.recompute_reason`: its input or a given
-        file, the code or the numerical packages' versions, or the configuration
-        changed, or the results were not in this store); None when every stage was a
-        cache hit or nothing was published.
-    """
-
-    model_config = ConfigDict(frozen=True)
-
-    patient_id: str
-    status: str
-    failed_stage: str | None = None
-    error: str | None = None
-    environment: bool = False
-    output_dir: str | None = None
-    metrics: dict[str, Any] = Field(default_factory=dict)
-    stages: list[StageRun] = Field(default_factory=list)
-    row: dict[str, Any] = Field(default_factory=dict)
-    lane_seconds: float = 0.0
-    publish_seconds: float = 0.0
-    recomputed: str | None = None
-
-
-class CohortResult(BaseModel):
-    """What :func:`cohort_flow` (and :func:`run_cohort`) returns.
-
-    Attributes
-    ----------
-    patients : list of PatientOutcome
-        One per manifest row, in its order: ``patient_id``, ``status`` (ok, check,
-        failed), ``metrics`` (the ``metrics.parquet`` row), ``output_dir``, the failing
-        stage and its one-line error.
-    removed : list of str
-        Patients published in ``out_dir`` by an earlier run but no longer in the
-        manifest (reported, their folders kept).
-    earlier : list of str
-        Failed patients whose folder still holds an earlier run's result (a new
-        input that failed leaves the old result in place: reported, so that its
-        ``metrics.parquet`` is not read as this run's).
-    out_dir : str
-        ``DIR``.
-    workers : int
-        Stages run at a time.
-    wall_seconds : float
-        The cohort's wall time.
-    failed, to_check : list of PatientOutcome
-        The patients that failed, and those that completed with status ``check``.
-    exit_code : int
-        3 when some patient failed for the machine (``PatientOutcome.environment``:
-        a full disk, a store), else 1 when some failed, else 4 when some needs a
-        check, else 0.
-    """
-
-    model_config = ConfigDict(frozen=True)
-
-    patients: list[PatientOutcome]
-    removed: list[str] = Field(default_factory=list)
-    """Patients published in ``out_dir`` by an earlier run but no longer in the manifest
-    (reported, their folders kept)."""
-    earlier: list[str] = Field(default_factory=list)
-    """Failed patients whose folder in ``out_dir`` still holds an earlier run's result,
-    not this run's input's (reported: nothing in that folder is this run's)."""
-    out_dir: str = ""
-    workers: int = 1
-    wall_seconds: float = 0.0
-
-    @property
-    def failed(self) -> list[PatientOutcome]:
-        """The patients that failed."""
-        return [p for p in self.patients if p.status == STATUS_FAILED]
-
-    @property
-    def to_check(self) -> list[PatientOutcome]:
-        """The patients that completed with status ``check``."""
-        return [p for p in self.patients if p.status == STATUS_CHECK]
-
-    @property
-    def since_earlier(self) -> dict[str, list[str]]:
-        """Patient ids under the reason their result is not the earlier published one."""
-        return patients_by_reason((p.patient_id, p.recomputed) for p in self.patients)
-
-    @property
-    def exit_code(self) -> int:
-        """3 when some failed for the machine, 1 when some failed, 4 when some needs a check."""
-        if any(p.environment for p in self.failed):
-            return EXIT_ENVIRONMENT
-        return exit_code_of([p.status for p in self.patients])
-
-
-#: OS errors that say the machine could not write, wherever they happen.
-_ENVIRONMENT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS})
-#: OS errors that say so once the input was read (before, a forbidden input file).
-_WRITE_ERRNOS = frozenset({errno.EACCES, errno.EPERM})
-
-
-def exit_code_of(statuses: list[str]) -> int:
-    """A command's exit code from its patients' statuses (:mod:`tumor3d.segmentation.review`).
-
-    1 when some failed, else :data:`EXIT_CHECK` (4) when some has status
-    ``check``, else 0.
-
-    >>> exit_code_of(["ok", "ok"]), exit_code_of(["ok", "check"]), exit_code_of(["check", "failed"])
-    (0, 4, 1)
-    """
-    if STATUS_FAILED in statuses:
-        return 1
-    return EXIT_CHECK if STATUS_CHECK in statuses else 0
-
-
 def default_workers() -> int:
     """Patients at a time by default: the number of CPU cores."""
     return max(1, os.cpu_count() or 1)
-
-
-def one_line_error(exc: BaseException) -> str:
-    """``Type: first line of the message``, at most 300 characters.
-
-    An OS error: the file and what happened in words (:func:`tumor3d.errors.os_error_line`).
-    """
-    return exception_line(exc, limit=_MAX_ERROR)
-
-
-def environment_failure(exc: BaseException, *, input_read: bool) -> bool:
-    """Whether a patient's failure is the machine's (exit code 3), not its input's.
-
-    An artifact store that fails, a full or read-only disk anywhere, and a
-    forbidden write once the input was read (``input_read``).
-
-    >>> environment_failure(OSError(28, "No space left on device"), input_read=False)
-    True
-    >>> environment_failure(OSError(13, "Permission denied"), input_read=False)
-    False
-    >>> environment_failure(ValueError("bad"), input_read=True)
-    False
-    """
-    if isinstance(exc, StoreError):
-        return True
-    if not isinstance(exc, OSError) or exc.errno is None:
-        return False
-    return exc.errno in _ENVIRONMENT_ERRNOS or (input_read and exc.errno in _WRITE_ERRNOS)
 
 
 def _row_dict(row: ManifestRow | dict[str, Any]) -> dict[str, Any]:
@@ -417,7 +259,7 @@ def cohort_flow(
         outcomes = [f.result() for f in futures]
     sweep_killed_writers(store, logger)  # of writers killed mid-stage (a lost Dask worker)
     if before:
-        outcomes = [_with_recompute_reason(o, before, layout) for o in outcomes]
+        outcomes = [with_recompute_reason(o, before, layout) for o in outcomes]
         for o in outcomes:
             if o.recomputed:  # a warning: the flow run's log on the server (not the console)
                 logger.warning("patient %s changed since its earlier result: %s",
@@ -457,70 +299,9 @@ def cohort_flow(
     return result
 
 
-def _with_recompute_reason(
-    outcome: PatientOutcome, before: dict[str, dict[str, Any] | None], layout: str
-) -> PatientOutcome:
-    """``outcome`` with :attr:`PatientOutcome.recomputed` when stages ran that were published."""
-    earlier = before.get(bids.folder_name(outcome.patient_id, layout))
-    if earlier is None or outcome.status == STATUS_FAILED or outcome.output_dir is None:
-        return outcome
-    reason = changed_since(earlier, outcome.output_dir, all(s.cached for s in outcome.stages))
-    return outcome if reason is None else outcome.model_copy(update={"recomputed": reason})
-
-
-class PatientsFailed(Tumor3DError):
-    """Some patients of a cohort failed; ``result`` is the whole :class:`CohortResult`.
-
-    The data of the cohort flow run's Failed state: a direct call of
-    :func:`cohort_flow` raises it (as Prefect raises a failed flow's error);
-    :func:`run_cohort` returns its ``result``.
-    """
-
-    def __init__(self, result: CohortResult) -> None:
-        n, total = len(result.failed), len(result.patients)
-        names = ", ".join(o.patient_id for o in result.failed[:3])
-        more = f" and {n - 3} more" if n > 3 else ""
-        super().__init__(f"{n} of {total} patient{'s' if total != 1 else ''} failed: {names}{more}")
-        self.result = result
-
-
 def _default_store(out_dir: str | Path) -> str | Path:
     """``DIR/.tumor3d-store``, or ``<url>/.tumor3d-store`` for an object-store ``--out``."""
     return default_store_location(out_dir)
-
-
-#: A row's columns naming input files (never inside any row's output folder).
-_INPUT_COLUMNS = ("image", "brain_mask", "segmentation")
-
-
-def _validate_rows(
-    rows: list[dict[str, Any]], out_dir: Path | None, layout: str = "default"
-) -> None:
-    seen: dict[str, str] = {}
-    for i, row in enumerate(rows, start=1):
-        pid = row.get("patient_id")
-        if not pid or "image" not in row:
-            raise InputError(f"manifest row {i}: needs patient_id and image")
-        try:
-            folder = bids.folder_name(str(pid), layout)
-        except InputError as exc:
-            raise InputError(f"manifest row {i}: {exc}") from None
-        if folder in seen:
-            what = "patient_id" if folder == pid else f"folder {folder} (as {seen[folder]!r})"
-            raise InputError(f"manifest row {i}: duplicate {what} {pid!r}")
-        seen[folder] = str(pid)
-        # never publish over an input (checked for every row before any work); inputs
-        # are local files, so an object-store output (out_dir None) cannot hold one
-        if out_dir is not None:
-            given = [row[k] for k in _INPUT_COLUMNS if row.get(k)]
-            check_destination(out_dir / folder, given)
-    if out_dir is not None:  # nor over another row's input (a mask kept in its folder)
-        inputs = [r[k] for r in rows for k in _INPUT_COLUMNS if r.get(k)]
-        check_outputs_not_inputs([out_dir / f for f in seen], inputs)
-        if layout == "bids":  # OUT/dataset_description.json: absent or ours, never an input
-            bids.check_dataset_root(out_dir, inputs)
-    elif layout == "bids":
-        raise InputError("--layout bids writes a local folder: give a local --out")
 
 
 def check_cohort_rows(
@@ -532,7 +313,7 @@ def check_cohort_rows(
     command line, before it starts a Prefect server).
     """
     out = None if is_url(out_dir) else Path(out_dir)
-    _validate_rows([_row_dict(r) for r in rows], out, bids.check_layout(layout))
+    validate_rows([_row_dict(r) for r in rows], out, bids.check_layout(layout))
 
 
 def run_cohort(
@@ -600,7 +381,7 @@ def run_cohort(
     ):
         raise InputError(f"workers must be an integer >= 1, got {workers!r}")
     out: str | Path = str(out_dir).rstrip("/") if is_url(out_dir) else Path(out_dir)
-    _validate_rows(rows, None if isinstance(out, str) else out, bids.check_layout(layout))
+    validate_rows(rows, None if isinstance(out, str) else out, bids.check_layout(layout))
     if isinstance(out, str):
         RemoteFolder(out).check()  # one line naming the URL, before any patient starts
     store_at = _default_store(out) if store_dir is None else store_dir

@@ -29,7 +29,7 @@ from typing import Any
 
 from tumor3d.errors import InputError, exception_line
 from tumor3d.flows.dask_runner import CONNECT_TIMEOUT_S, ClusterError
-from tumor3d.storage.store import StoreError
+from tumor3d.storage.refs import StoreError
 
 __all__ = ["PROBE_DIR", "WORKER_CHECK_TIMEOUT_S", "check_workers", "worker_view"]
 

@@ -46,7 +46,8 @@ from tumor3d.storage.readers import (
     suggest_patient_id,
 )
 from tumor3d.storage.readers.handoff import kept_or_read
-from tumor3d.storage.store import ArtifactRef, ArtifactStore
+from tumor3d.storage.refs import ArtifactRef
+from tumor3d.storage.store import ArtifactStore
 from tumor3d.tasks import stages
 from tumor3d.tasks.publish import (
     brain_mask_note,

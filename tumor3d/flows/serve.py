@@ -43,7 +43,8 @@ from prefect.states import Completed, Failed, State
 
 from tumor3d.config import parse_config
 from tumor3d.errors import ConfigError, InputError, Tumor3DError
-from tumor3d.flows.cohort import CohortResult, one_line_error, run_cohort
+from tumor3d.flows.cohort import run_cohort
+from tumor3d.flows.cohort_result import CohortResult, one_line_error
 from tumor3d.flows.dask_runner import DaskSpec
 from tumor3d.segmentation.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
 from tumor3d.storage.objectstore import is_url

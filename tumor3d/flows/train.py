@@ -53,10 +53,11 @@ from tumor3d.learned.cnn_train import UNetSettings, require_torch, slices_from_b
 from tumor3d.learned.rows import rows_from_bytes
 from tumor3d.learned.shipped import MODEL_FAMILIES
 from tumor3d.learned.training import NUM_ROUNDS, TrainingRows, train_forest
+from tumor3d.storage.atomic import atomic_write_bytes
 from tumor3d.storage.evaluation_io import acquired_reference, prepare_case
 from tumor3d.storage.manifest import ManifestRow, read_manifest
 from tumor3d.storage.objectstore import default_store_location, open_store
-from tumor3d.storage.store import ArtifactStore, atomic_write_bytes
+from tumor3d.storage.store import ArtifactStore
 from tumor3d.tasks import stages
 from tumor3d.tasks.runner import PrefectRunner
 from tumor3d.tasks.train import SPEC as TRAINING_ROWS

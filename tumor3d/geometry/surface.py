@@ -52,7 +52,7 @@ from skimage.measure import marching_cubes
 
 from tumor3d.errors import InputError, NoSurfaceError
 from tumor3d.geometry.mesh import Mesh
-from tumor3d.imaging.scan import zyx_index_to_ras
+from tumor3d.imaging.affine import zyx_index_to_ras
 
 __all__ = [
     "clean_mesh",

@@ -1,4 +1,4 @@
-"""The `Scan` data model: one patient's stack of 2-D MR slices.
+"""The `Scan` data model: one patient's stack of 2-D MR slices, and its source grid.
 
 A `Scan` always holds its image as float32 ``(z, y, x)`` with ``z`` the slice
 (acquisition) axis, whatever the voxel order of the file it came from. The
@@ -6,51 +6,37 @@ readers permute the voxel axes of the source and reverse some of them (they
 never resample), and :class:`SourceGrid` remembers how, so that every output
 can be written back in the input's own voxel grid and affine, voxel for voxel.
 
-Working orientation
--------------------
-The readers reverse the Scan axes that run against the working orientation
-(:func:`canonical_flips`, :func:`canonical_orientation`): ``x`` towards the
-patient's left, rows (``y``) towards posterior on an axial slice and towards
-inferior on a coronal or sagittal one, slices (``z``) towards superior on an
-axial stack (left on a sagittal one, posterior on a coronal one). This is how
-DICOM and the BraTS volumes store an axial head (LPS), and so how the learned
-method's training scans ran: its position features and its U-Net read an
-array, and a patient stored the other way (a LAS NIfTI, slices from the top
-down) would otherwise be another input to them (one BraTS FLAIR stored LAS
-lost 16 % of its learned volume).
+``Scan.affine`` maps the voxel index ``(x, y, z, 1)`` to RAS millimetres; use
+:meth:`Scan.index_to_ras` to map points given in array order ``(z, y, x)``.
 
-Affine convention
------------------
-``Scan.affine`` is 4x4 and maps the voxel index ``(x, y, z, 1)`` to RAS
-millimetres, i.e. the affine nibabel would report for the array
-``image.transpose(2, 1, 0)``. Use :meth:`Scan.index_to_ras` to map points
-given in array order ``(z, y, x)``.
+The rest of what this module once held lives by concept (issue 31), and is
+re-exported here under its old names:
 
-Sheared grids
--------------
-The slice-axis column of the affine need not be perpendicular to the slice
-plane (a NIfTI converted from a gantry-tilted series has such a shear). The
-slice *step* is then the distance between slice planes, not the length of
-that column: with ``c_x, c_y, c_z`` the affine's first three columns,
-
-    step = |det [c_x c_y c_z]| / |c_x x c_y|
-
-(:func:`slice_plane_spacing_mm`), so that one pixel area times the step is
-the voxel volume ``|det|`` and the slab volumes of Eq. 7 add up to the
-voxel-counted volume. The two in-plane columns must be perpendicular (to
-:data:`tumor3d.constants.IN_PLANE_ORTHOGONALITY_TOL`), so that the pixel area
-is ``dx * dy``.
+* :mod:`tumor3d.imaging.identity`: :data:`MODALITIES`, :func:`validate_patient_id`;
+* :mod:`tumor3d.imaging.affine`: the affine convention and sheared grids,
+  :func:`slice_plane_spacing_mm`, :func:`in_plane_shear`, :func:`slab_height_mm`,
+  :func:`zyx_index_to_ras`, :func:`reverse_axes`;
+* :mod:`tumor3d.imaging.orientation`: the working orientation,
+  :func:`canonical_flips`, :func:`canonical_orientation`, :func:`slice_order_note`.
 """
 
 from __future__ import annotations
 
-import re
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from tumor3d.constants import IN_PLANE_ORTHOGONALITY_TOL, REL_TOL, SHEAR_TOL, SINGULAR_DET_TOL
+from tumor3d.constants import IN_PLANE_ORTHOGONALITY_TOL, REL_TOL
 from tumor3d.errors import InputError
+from tumor3d.imaging.affine import (
+    in_plane_shear,
+    reverse_axes,
+    slab_height_mm,
+    slice_plane_spacing_mm,
+    zyx_index_to_ras,
+)
+from tumor3d.imaging.identity import MODALITIES, validate_patient_id
+from tumor3d.imaging.orientation import canonical_flips, canonical_orientation, slice_order_note
 
 __all__ = [
     "MODALITIES",
@@ -66,175 +52,6 @@ __all__ = [
     "validate_patient_id",
     "zyx_index_to_ras",
 ]
-
-#: The MR sequences the pipeline knows (they decide which cluster is tumour).
-MODALITIES = ("t2", "flair", "t1c")
-
-_SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
-
-
-def validate_patient_id(patient_id: str) -> str:
-    """Check that a patient id is a safe, single folder name.
-
-    Parameters
-    ----------
-    patient_id : str
-        Candidate id: 1-128 characters from ``[A-Za-z0-9._-]``, starting
-        with a letter or digit (so never ``.``, ``..`` or a hidden name),
-        with no path separator.
-
-    Returns
-    -------
-    str
-        The id, unchanged.
-
-    Raises
-    ------
-    InputError
-        If the id is empty, too long, or contains any other character.
-
-    Examples
-    --------
-    >>> validate_patient_id("pat-0003")
-    'pat-0003'
-    """
-    if not isinstance(patient_id, str) or not _SAFE_ID.match(patient_id):
-        raise InputError(
-            f"unsafe patient id {patient_id!r}: use 1-128 characters from "
-            "letters, digits, '.', '_' and '-', starting with a letter or digit "
-            "(no path separators, no '..')"
-        )
-    return patient_id
-
-
-def slab_height_mm(
-    slice_step_mm: float, slice_thickness_mm: float, slice_gap_mm: float | None
-) -> float:
-    """Slab height of Eq. 7: thickness + gap, or the step where the gap is unknown.
-
-    Parameters
-    ----------
-    slice_step_mm : float
-        Distance between consecutive slice *planes* in mm (for a sheared
-        grid: :func:`slice_plane_spacing_mm`, never the slice-axis column's
-        length). ``Scan.slice_step_mm`` always is.
-    slice_thickness_mm : float
-        Nominal slice thickness in mm.
-    slice_gap_mm : float or None
-        Gap between slices in mm, ``None`` if unknown.
-
-    Returns
-    -------
-    float
-        ``slice_thickness_mm + slice_gap_mm``, or ``slice_step_mm`` when the
-        gap is unknown, in mm.
-    """
-    if slice_gap_mm is None:
-        return float(slice_step_mm)
-    return float(slice_thickness_mm + slice_gap_mm)
-
-
-def slice_plane_spacing_mm(affine: np.ndarray, slice_axis: int = 2) -> float:
-    """Distance between consecutive slice planes of a voxel grid, in mm.
-
-    The slice-axis column ``c_s`` projected on the unit normal of the plane
-    spanned by the two other columns ``c_a, c_b``:
-
-        spacing = |c_s . (c_a x c_b)| / |c_a x c_b| = |det A| / |c_a x c_b|
-
-    It equals the column length ``|c_s|`` only when the grid is not sheared;
-    when the two differ by at most :data:`tumor3d.constants.SHEAR_TOL`
-    (relative), the column length is returned, free of round-off.
-
-    Parameters
-    ----------
-    affine : (4, 4) array_like
-        Voxel index -> world mm.
-    slice_axis : {0, 1, 2}
-        The voxel axis whose step is wanted (2 for a `Scan`'s affine).
-
-    Returns
-    -------
-    float
-        The plane spacing in mm (> 0).
-
-    Raises
-    ------
-    InputError
-        If the affine is not 4x4, not finite, or singular.
-
-    Examples
-    --------
-    >>> shear = np.array([[1.0, 0, 3, 0], [0, 1, 0, 0], [0, 0, 5, 0], [0, 0, 0, 1]])
-    >>> round(slice_plane_spacing_mm(shear), 9)  # the column has length 5.83
-    5.0
-    """
-    lin = _linear_part(affine)
-    if slice_axis not in (0, 1, 2):
-        raise InputError(f"slice_axis must be 0, 1 or 2, got {slice_axis!r}")
-    a, b = (k for k in range(3) if k != slice_axis)
-    normal = np.cross(lin[:, a], lin[:, b])
-    column = lin[:, slice_axis]
-    length = float(np.linalg.norm(column))
-    spacing = abs(float(column @ normal)) / float(np.linalg.norm(normal))
-    # Not sheared (to SHEAR_TOL): the column length itself, free of round-off,
-    # so an orthogonal grid keeps exactly its stated step.
-    return length if length - spacing <= SHEAR_TOL * length else spacing
-
-
-def in_plane_shear(affine: np.ndarray, slice_axis: int = 2) -> float:
-    """How far the two in-plane columns of an affine are from perpendicular.
-
-    Returns ``1 - |c_a x c_b| / (|c_a| |c_b|)`` (0 for perpendicular
-    columns; ``1 - sin`` of the angle between them), the relative error of
-    ``dx * dy`` as the pixel area.
-
-    Parameters
-    ----------
-    affine : (4, 4) array_like
-        Voxel index -> world mm.
-    slice_axis : {0, 1, 2}
-        The slice axis; the two others span the slice plane.
-
-    Returns
-    -------
-    float
-        In ``[0, 1)``.
-    """
-    lin = _linear_part(affine)
-    a, b = (k for k in range(3) if k != slice_axis)
-    na, nb = np.linalg.norm(lin[:, a]), np.linalg.norm(lin[:, b])
-    return float(1.0 - np.linalg.norm(np.cross(lin[:, a], lin[:, b])) / (na * nb))
-
-
-def _linear_part(affine: np.ndarray) -> np.ndarray:
-    aff = np.asarray(affine, dtype=np.float64)
-    if aff.shape != (4, 4):
-        raise InputError(f"affine must be 4x4, got shape {aff.shape}")
-    lin = aff[:3, :3]
-    if not np.all(np.isfinite(lin)) or abs(np.linalg.det(lin)) < SINGULAR_DET_TOL:
-        raise InputError("affine is singular or not finite")
-    return lin
-
-
-def zyx_index_to_ras(points_zyx: np.ndarray, affine: np.ndarray) -> np.ndarray:
-    """Map points given as ``(z, y, x)`` voxel indices to RAS millimetres.
-
-    Parameters
-    ----------
-    points_zyx : (n, 3) array_like
-        Continuous voxel indices in array order ``(z, y, x)``.
-    affine : (4, 4) ndarray
-        Maps ``(x, y, z, 1)`` to RAS mm (see the module docstring).
-
-    Returns
-    -------
-    (n, 3) float64 ndarray
-        RAS coordinates in millimetres.
-    """
-    pts = np.asarray(points_zyx, dtype=np.float64).reshape(-1, 3)[:, ::-1]
-    aff = np.asarray(affine, dtype=np.float64)
-    return pts @ aff[:3, :3].T + aff[:3, 3]
 
 
 @dataclass(frozen=True, eq=False)
@@ -524,119 +341,3 @@ class Scan:
     def index_to_ras(self, points_zyx: np.ndarray) -> np.ndarray:
         """Map ``(z, y, x)`` voxel indices to RAS mm (see :func:`zyx_index_to_ras`)."""
         return zyx_index_to_ras(points_zyx, self.affine)
-
-
-def reverse_axes(
-    array_zyx: np.ndarray, affine_xyz: np.ndarray, flips: tuple[bool, bool, bool]
-) -> tuple[np.ndarray, np.ndarray]:
-    """Reverse some axes of a grid, keeping every voxel at its world position.
-
-    Parameters
-    ----------
-    array_zyx : ndarray, shape (z, y, x)
-    affine_xyz : (4, 4) array_like
-        Maps ``(x, y, z, 1)`` of ``array_zyx`` to RAS mm.
-    flips : tuple of bool
-        Which of ``(x, y, z)`` to reverse.
-
-    Returns
-    -------
-    array : ndarray, shape (z, y, x)
-        A view of ``array_zyx`` with those axes reversed.
-    affine : (4, 4) ndarray
-        Its affine: a reversed axis' column negated and the origin moved to
-        that axis' last voxel.
-    """
-    arr = np.asarray(array_zyx)
-    aff = np.array(affine_xyz, dtype=np.float64)
-    for k, flipped in enumerate(flips):
-        if flipped:
-            arr = np.flip(arr, 2 - k)
-            aff[:3, 3] += aff[:3, k] * (arr.shape[2 - k] - 1)
-            aff[:3, k] = -aff[:3, k]
-    return arr, aff
-
-
-def canonical_flips(affine: np.ndarray) -> tuple[bool, bool, bool]:
-    """Which Scan axes ``(x, y, z)`` run against the working orientation.
-
-    Each axis is judged by the RAS direction its affine column is closest to
-    (the largest absolute component; a tie goes to the first of R, A, S): an
-    axis along left-right should run towards the left, one along front-back
-    towards posterior, and one along superior-inferior towards inferior in
-    the slice plane (rows run top to bottom) and towards superior across
-    slices. For an axial head that is LPS, the order of DICOM and of the
-    BraTS volumes.
-
-    Parameters
-    ----------
-    affine : (4, 4) array_like
-        Maps the Scan's ``(x, y, z, 1)`` to RAS mm.
-
-    Returns
-    -------
-    tuple of bool
-        ``True`` where that axis should be reversed.
-
-    Examples
-    --------
-    >>> canonical_flips(np.diag([-1.0, -1.0, 5.0, 1.0]))  # LPS
-    (False, False, False)
-    >>> canonical_flips(np.diag([-1.0, 1.0, -5.0, 1.0]))  # LAI
-    (False, True, True)
-    >>> canonical_flips(np.eye(4)[:, [0, 2, 1, 3]])  # coronal RSA: x to R, rows to S
-    (True, True, True)
-    """
-    cols = np.asarray(affine, dtype=np.float64)[:3, :3]
-    units = cols / np.linalg.norm(cols, axis=0)
-    flips = []
-    for k in range(3):
-        u = units[:, k]
-        d = int(np.argmax(np.round(np.abs(u), 9)))
-        wanted = 1.0 if (d == 2 and k == 2) else -1.0  # S across slices; L, P, I otherwise
-        flips.append(bool(u[d] * wanted < 0))
-    return flips[0], flips[1], flips[2]
-
-
-def canonical_orientation(scan: Scan) -> Scan:
-    """The same scan with its axes run as the working orientation (see the module docstring).
-
-    Axes are only reversed (:func:`canonical_flips`); voxels keep their values
-    and world positions, and the source grid records the reversal, so outputs
-    are still written in the input's own voxel order. A scan already in the
-    working orientation is returned as it is.
-    """
-    flips = canonical_flips(scan.affine)
-    if not any(flips):
-        return scan
-    image, affine = reverse_axes(scan.image, scan.affine, flips)
-    grid = scan.source_grid
-    combined = tuple(a != b for a, b in zip(grid.flips, flips, strict=True))
-    return replace(
-        scan,
-        image=np.ascontiguousarray(image),
-        affine=affine,
-        source_grid=replace(grid, flips=combined),
-    )
-
-
-def slice_order_note(grid: SourceGrid) -> str | None:
-    """A note for a file that stores its slices the other way round (None otherwise).
-
-    The notes, the report and ``slices.parquet``'s ``slice_index`` count slices in the
-    working order (inferior to superior on an axial stack); such a file, and a viewer
-    showing it, counts them from the other end.
-
-    >>> flipped = SourceGrid(shape=(4, 4, 31), affine=np.eye(4), flips=(False, False, True))
-    >>> slice_order_note(flipped)[:60]
-    'slice numbers count from the other end of the file: it store'
-    >>> slice_order_note(SourceGrid(shape=(4, 4, 31), affine=np.eye(4))) is None
-    True
-    """
-    if not grid.flips[2]:
-        return None
-    last = grid.shape[grid.axes[2]] - 1
-    return (
-        "slice numbers count from the other end of the file: it stores its slices the other "
-        f"way round (slice k here is the file's slice {last} - k; slices.parquet has both)"
-    )

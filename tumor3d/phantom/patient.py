@@ -9,7 +9,8 @@ from typing import Any, Literal
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import Scan, SourceGrid, validate_patient_id
+from tumor3d.imaging.identity import validate_patient_id
+from tumor3d.imaging.scan import Scan, SourceGrid
 from tumor3d.phantom.head import _T_CSF_MM, _Head, _random_head
 from tumor3d.phantom.raster import (
     _MONOMIALS,

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import MODALITIES
+from tumor3d.imaging.identity import MODALITIES
 
 __all__ = [
     "AUTO",

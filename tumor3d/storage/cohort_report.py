@@ -20,12 +20,12 @@ from typing import Any
 import pandas as pd
 
 from tumor3d.segmentation.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
+from tumor3d.storage.atomic import atomic_write_bytes
 from tumor3d.storage.formats import encode_parquet
 from tumor3d.storage.objectstore import is_url
 from tumor3d.storage.patient_outputs import split_notes
 from tumor3d.storage.provenance import patients_by_reason
 from tumor3d.storage.report_html import cohort_report_html
-from tumor3d.storage.store import atomic_write_bytes
 
 __all__ = [
     "cohort_markdown",

@@ -30,9 +30,10 @@ from tumor3d.geometry.mesh import Mesh
 from tumor3d.storage import nifti
 from tumor3d.storage.formats import encode_parquet, encode_ply, encode_stl, encode_vtk_polydata
 from tumor3d.storage.patient_outputs import RENDER_ORDER, overlay_png
+from tumor3d.storage.refs import ArtifactRef
 from tumor3d.storage.report_html import patient_report_html
 from tumor3d.storage.slice_table import slice_table
-from tumor3d.storage.store import ArtifactRef, ArtifactStore, source_grid_from_metadata
+from tumor3d.storage.store import ArtifactStore, source_grid_from_metadata
 from tumor3d.storage.viewer import viewer_html
 
 __all__ = [

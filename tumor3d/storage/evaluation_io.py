@@ -37,11 +37,11 @@ from tumor3d.evaluation.emulate import emulate_thick_labels, emulate_thick_slice
 from tumor3d.evaluation.grids import grids_overlap, resample_nearest, same_grid
 from tumor3d.imaging.brain_mask import binarize_brain_mask, check_same_grid
 from tumor3d.storage import nifti
+from tumor3d.storage.atomic import atomic_write_bytes
 from tumor3d.storage.brain_mask import read_brain_mask_volume
 from tumor3d.storage.formats import decode_parquet, decode_ply
 from tumor3d.storage.manifest import ManifestRow
 from tumor3d.storage.readers import choose_slice_axis
-from tumor3d.storage.store import atomic_write_bytes
 
 __all__ = [
     "PreparedCase",

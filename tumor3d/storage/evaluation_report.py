@@ -42,8 +42,8 @@ import yaml
 
 from tumor3d.evaluation.metrics import SliceConfusion, bland_altman
 from tumor3d.evaluation.registry import Evaluation, ReportColumn, ReportColumns
+from tumor3d.storage.atomic import atomic_write_bytes
 from tumor3d.storage.patient_outputs import split_notes
-from tumor3d.storage.store import atomic_write_bytes
 from tumor3d.storage.versions import versions
 
 __all__ = ["bland_altman_png", "run_status_cell", "write_report"]

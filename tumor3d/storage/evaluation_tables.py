@@ -23,10 +23,10 @@ import pandas as pd
 
 from tumor3d.errors import InputError
 from tumor3d.evaluation.registry import Evaluation
+from tumor3d.storage.atomic import atomic_write_bytes
 from tumor3d.storage.evaluation_io import PreparedCase, load_case, prepare_case
 from tumor3d.storage.formats import encode_parquet
 from tumor3d.storage.manifest import ManifestRow, RowProblem, read_manifest_rows
-from tumor3d.storage.store import atomic_write_bytes
 
 __all__ = [
     "COPIED_METRICS_PREFIXES",

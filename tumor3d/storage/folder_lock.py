@@ -31,7 +31,7 @@ import stat
 from collections.abc import Iterator
 from pathlib import Path
 
-from tumor3d.storage.store import StoreError, utc_now
+from tumor3d.storage.refs import StoreError, utc_now
 
 __all__ = ["LOCK_NAME", "FolderBusyError", "writing_folder"]
 

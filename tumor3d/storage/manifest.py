@@ -65,7 +65,7 @@ from pathlib import Path
 
 from tumor3d.errors import InputError
 from tumor3d.evaluation.registry import REFERENCE_KINDS as CASE_REFERENCE_KINDS
-from tumor3d.imaging.scan import MODALITIES, validate_patient_id
+from tumor3d.imaging.identity import MODALITIES, validate_patient_id
 
 __all__ = [
     "DATA_DIR_DEFAULT",

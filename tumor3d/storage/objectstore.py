@@ -3,9 +3,11 @@
 :class:`ObjectStore` is a backend beside the local
 :class:`~tumor3d.storage.store.ArtifactStore` with the same interface and the same
 digests and object names (``<url>/objects/<d[:2]>/<d>.<suffix>``), so cache
-keys, :class:`~tumor3d.storage.store.ArtifactRef` values and stage results do not
-depend on where the store lives. Only the raw-bytes layer differs; the typed
-helpers (``put_volume``, ``get_mesh``, ...) are the local class's own.
+keys, :class:`~tumor3d.storage.refs.ArtifactRef` values and stage results do not
+depend on where the store lives. Only the file operations under the raw-bytes
+layer differ (reading, writing and quarantining one object, the repair log, the
+sweep); the rules of ``put_bytes`` and ``get_bytes`` and the typed helpers
+(``put_volume``, ``get_mesh``, ...) are the local class's own.
 
 * **Atomic publication**: on S3 an object is written by one PUT, which is
   all-or-nothing (the object appears complete or not at all, a multipart upload
@@ -20,7 +22,7 @@ helpers (``put_volume``, ``get_mesh``, ...) are the local class's own.
   listing to tell a key from a folder, no copy.
 * **Digest verified on read**: a mismatch moves the object to
   ``<url>/quarantine/<name>.<utc time>-<random>`` and raises
-  :class:`~tumor3d.storage.store.CorruptArtifactError`, as locally. Repairs are
+  :class:`~tumor3d.storage.refs.CorruptArtifactError`, as locally. Repairs are
   recorded as one small JSON object each under ``<url>/repairs/`` (object
   stores have no append).
 * **Prefect's results** (the cached stage outputs) live under
@@ -48,16 +50,9 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from tumor3d.storage.store import (
-    STALE_TMP_S,
-    ArtifactRef,
-    ArtifactStore,
-    CorruptArtifactError,
-    Repair,
-    StoreError,
-    canonical_dumps,
-    utc_now,
-)
+from tumor3d.storage.atomic import STALE_TMP_S
+from tumor3d.storage.refs import ArtifactRef, Repair, StoreError
+from tumor3d.storage.store import ArtifactStore
 
 __all__ = [
     "STORE_DIRNAME",
@@ -341,23 +336,14 @@ class ObjectStore(ArtifactStore):
             pass  # the log is informative; the repair itself is done
         return repair
 
-    def _quarantine_key(self, relpath: str, detail: str) -> Repair:
-        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-        moved: str | None = f"quarantine/{Path(relpath).name}.{stamp}-{uuid.uuid4().hex[:8]}"
+    def _quarantine(self, relpath: str, detail: str) -> Repair:
+        moved: str | None = self._quarantine_relpath(Path(relpath).name)
         try:
             copy_object(self.fs, self._key(relpath), self._key(moved))
             self.fs.rm_file(self._key(relpath))
         except FileNotFoundError:  # another worker moved or rewrote it first
             moved = None
-        return self._record(
-            Repair(
-                relpath=relpath,
-                action="quarantined",
-                detail=detail,
-                quarantined_to=moved,
-                time_utc=utc_now(),
-            )
-        )
+        return self._quarantined(relpath, detail, moved)
 
     def read_repairs(self) -> list[Repair]:
         """Every repair recorded under ``<url>/repairs/``, oldest first."""
@@ -373,7 +359,22 @@ class ObjectStore(ArtifactStore):
                 continue
         return out
 
-    # -- raw bytes ---------------------------------------------------------
+    # -- the file operations under the raw-bytes layer ---------------------
+    def _existing_bytes(self, relpath: str) -> bytes | None:
+        try:
+            return read_object(self.fs, self._key(relpath))
+        except OSError:  # absent (FileNotFoundError) or unreadable
+            return None
+
+    def _write_object(self, relpath: str, data: bytes) -> None:
+        """Write ``relpath`` (:meth:`_write_atomically`); else :class:`StoreError` naming it."""
+        try:
+            self._write_atomically(relpath, data)
+        except Exception as exc:  # a denied PUT, an endpoint gone mid-run, ...
+            raise StoreError(
+                f"{self.url}/{relpath}: cannot write the artifact ({first_line(exc)[:200]})"
+            ) from None
+
     def _write_atomically(self, relpath: str, data: bytes) -> None:
         """One PUT where a PUT is all-or-nothing (S3), else a temporary key and a copy.
 
@@ -392,6 +393,15 @@ class ObjectStore(ArtifactStore):
                 self.fs.rm_file(tmp)
             except (OSError, FileNotFoundError):
                 pass
+
+    def _read_object(self, ref: ArtifactRef) -> bytes:
+        url = self.path(ref)
+        try:
+            return read_object(self.fs, self._key(ref.relpath))
+        except FileNotFoundError:
+            raise StoreError(f"artifact {ref.kind} {ref.digest[:12]} is missing: {url}") from None
+        except Exception as exc:
+            raise StoreError(f"{url}: cannot read the artifact ({first_line(exc)[:200]})") from None
 
     def clean_stale_tmp(self, *, max_age_s: float = STALE_TMP_S) -> list[str]:
         """Remove temporary keys (``tmp/``) untouched for ``max_age_s``: killed writers'.
@@ -459,72 +469,3 @@ class ObjectStore(ArtifactStore):
                 "UploadIdMarker": listed.get("NextUploadIdMarker", ""),
             }
         return removed
-
-    def put_bytes(
-        self, data: bytes, *, kind: str, suffix: str, metadata: dict[str, Any] | None = None
-    ) -> ArtifactRef:
-        """Store bytes (one PUT on S3, else a temporary key and a copy); their reference.
-
-        Same rules as :meth:`ArtifactStore.put_bytes`: an object already
-        holding exactly these bytes is left alone, one with other bytes is
-        rewritten and the repair recorded. Raises :class:`StoreError` (one
-        line naming the URL) when the object cannot be written.
-        """
-        meta = json.loads(canonical_dumps(metadata or {}))
-        digest = self.digest_of(data, kind=kind, metadata=meta)
-        relpath = f"objects/{digest[:2]}/{digest}{suffix}"
-        key = self._key(relpath)
-        try:
-            existing: bytes | None = read_object(self.fs, key)
-        except FileNotFoundError:
-            existing = None
-        except OSError:
-            existing = None
-        if existing != data:
-            try:
-                self._write_atomically(relpath, data)
-            except Exception as exc:  # a denied PUT, an endpoint gone mid-run, ...
-                raise StoreError(
-                    f"{self.url}/{relpath}: cannot write the artifact ({first_line(exc)[:200]})"
-                ) from None
-            if existing is not None:
-                self._record(
-                    Repair(
-                        relpath=relpath,
-                        action="rewritten",
-                        detail=f"{relpath}: existing content did not match its digest; rewritten",
-                        time_utc=utc_now(),
-                    )
-                )
-        return ArtifactRef(kind=kind, digest=digest, relpath=relpath, metadata=meta)
-
-    def get_bytes(self, ref: ArtifactRef, *, verify: bool = True) -> bytes:
-        """Read an artifact's bytes, checking its digest unless ``verify`` is False.
-
-        Raises
-        ------
-        StoreError
-            If the object is missing or cannot be read.
-        CorruptArtifactError
-            If its content does not match the digest; it has then been moved
-            to ``quarantine/`` so that recomputing the stage heals the store.
-        """
-        url = self.path(ref)
-        try:
-            data = read_object(self.fs, self._key(ref.relpath))
-        except FileNotFoundError:
-            raise StoreError(f"artifact {ref.kind} {ref.digest[:12]} is missing: {url}") from None
-        except Exception as exc:
-            raise StoreError(f"{url}: cannot read the artifact ({first_line(exc)[:200]})") from None
-        if verify and self.digest_of(data, kind=ref.kind, metadata=ref.metadata) != ref.digest:
-            repair = self._quarantine_key(
-                ref.relpath, f"{ref.relpath}: content does not match its digest; quarantined"
-            )
-            where = repair.quarantined_to or "(already moved)"
-            raise CorruptArtifactError(
-                f"artifact {url} is corrupted (digest mismatch); moved to {where} so the "
-                "stage that made it can recompute it",
-                ref=ref,
-                repair=repair,
-            )
-        return data

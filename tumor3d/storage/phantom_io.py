@@ -23,8 +23,8 @@ from typing import Any
 
 from tumor3d.phantom import PhantomPatient
 from tumor3d.storage import nifti
+from tumor3d.storage.atomic import atomic_write_bytes
 from tumor3d.storage.manifest import ManifestRow, write_manifest
-from tumor3d.storage.store import atomic_write_bytes
 
 __all__ = ["write_phantom_cohort", "write_phantom_patient"]
 

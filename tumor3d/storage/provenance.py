@@ -14,7 +14,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from tumor3d.storage.store import canonical_dumps
+from tumor3d.storage.refs import canonical_dumps
 from tumor3d.storage.versions import NUMERICAL_DISTRIBUTIONS, PACKAGES, versions
 
 __all__ = [

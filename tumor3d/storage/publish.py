@@ -53,8 +53,8 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from tumor3d.errors import InputError
+from tumor3d.storage.atomic import HOST_TAG, STALE_TMP_S, process_alive, writer_gone
 from tumor3d.storage.inputs import input_files
-from tumor3d.storage.store import HOST_TAG, STALE_TMP_S, process_alive, writer_gone
 
 __all__ = [
     "PUBLISH_MANIFEST",

@@ -44,6 +44,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from tumor3d.storage.atomic import STALE_TMP_S
 from tumor3d.storage.objectstore import (
     check_reachable,
     copy_object,
@@ -52,7 +53,7 @@ from tumor3d.storage.objectstore import (
     open_fs,
     read_object,
 )
-from tumor3d.storage.store import STALE_TMP_S, StoreError, utc_now
+from tumor3d.storage.refs import StoreError, utc_now
 
 __all__ = [
     "MARKER",

@@ -1,12 +1,21 @@
-"""Content-addressed artifact store.
+"""The content-addressed artifact store in a folder: :class:`ArtifactStore`.
 
 Each artifact is a file under ``<root>/objects/<d[:2]>/<d>.<suffix>`` where
 ``d`` is the SHA-256 digest of the artifact's kind, its canonical metadata
 (dtype, shape, spacing and affine for images) and its bytes. Files are
-written under a temporary name in the same folder, flushed and renamed, so a
-crash never leaves a half-written artifact under its final name. Nothing is
-ever unpickled: images are NIfTI, meshes PLY, tables parquet, renders PNG,
-small records JSON.
+written under a temporary name in the same folder, flushed and renamed
+(:func:`~tumor3d.storage.atomic.atomic_write_bytes`), so a crash never leaves
+a half-written artifact under its final name. Nothing is ever unpickled:
+images are NIfTI, meshes PLY, tables parquet, renders PNG, small records JSON.
+
+This room holds the store itself: its raw-bytes layer (the digest rule, the
+write that repairs and the read that verifies, over a few file operations an
+object-store back-end replaces: :mod:`tumor3d.storage.objectstore`), its
+healing and its typed helpers (volumes, scans, meshes, tables, PNG, JSON).
+The references, repairs and errors it hands out are
+:mod:`tumor3d.storage.refs`; atomic writes and the sweep of what killed
+writers leave are :mod:`tumor3d.storage.atomic`. Both are re-exported here
+(:data:`__all__`), where most callers import them from.
 
 A store that heals
 ------------------
@@ -33,34 +42,48 @@ arrays.
 
 from __future__ import annotations
 
-import errno
 import hashlib
 import json
 import os
-import re
-import socket
-import tempfile
 import time
 import uuid
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict, Field
 
-from tumor3d.errors import InputError, Tumor3DError, os_error_path, os_error_text
+from tumor3d.errors import InputError, os_error_path, os_error_text
 from tumor3d.geometry.mesh import Mesh
 from tumor3d.imaging.scan import Scan, SourceGrid
 from tumor3d.storage import formats, nifti
+from tumor3d.storage.atomic import (
+    HOST_TAG,
+    STALE_TMP_S,
+    atomic_write_bytes,
+    check_writable_dir,
+    process_alive,
+    remove_stale_tmp,
+    writer_gone,
+)
 from tumor3d.storage.product_memo import products
+from tumor3d.storage.refs import (
+    ArtifactRef,
+    CorruptArtifactError,
+    Repair,
+    StoreError,
+    canonical_dumps,
+    utc_now,
+)
 
 __all__ = [
     "ArtifactRef",
     "ArtifactStore",
     "CorruptArtifactError",
+    "HOST_TAG",
     "Repair",
+    "STALE_TMP_S",
     "StoreError",
     "atomic_write_bytes",
     "canonical_dumps",
@@ -71,196 +94,6 @@ __all__ = [
 ]
 
 _DIGEST_PREFIX = b"tumor3d-artifact-v1\0"
-
-
-class StoreError(Tumor3DError):
-    """A missing, corrupted or unwritable artifact (an environment problem, not bad input)."""
-
-
-@dataclass(frozen=True)
-class Repair:
-    """One repair the store made.
-
-    Parameters
-    ----------
-    relpath : str
-        The object's path relative to the store root.
-    action : str
-        ``"quarantined"`` (content did not match the digest; moved aside) or
-        ``"rewritten"`` (an existing object with other bytes was replaced
-        by :meth:`ArtifactStore.put_bytes`).
-    detail : str
-        One line for a log.
-    quarantined_to : str or None
-        Where the bad file now is (relative to the root), if quarantined.
-    time_utc : str
-        ISO 8601 time of the repair.
-    """
-
-    relpath: str
-    action: str
-    detail: str
-    quarantined_to: str | None = None
-    time_utc: str = ""
-
-
-class CorruptArtifactError(StoreError):
-    """An artifact whose content did not match its digest; it has been quarantined.
-
-    The stage that produced ``ref`` should be run again (its output will be
-    written afresh). ``repair`` says where the bad file went.
-    """
-
-    def __init__(self, message: str, *, ref: ArtifactRef, repair: Repair) -> None:
-        super().__init__(message)
-        self.ref = ref
-        self.repair = repair
-
-
-class ArtifactRef(BaseModel):
-    """A small, JSON-serialisable reference to an artifact in the store.
-
-    Parameters
-    ----------
-    kind : str
-        ``scan``, ``image``, ``mask``, ``mesh``, ``table``, ``png`` or ``json``.
-    digest : str
-        Hex SHA-256 of kind, canonical metadata and bytes.
-    relpath : str
-        Path of the file relative to the store root.
-    metadata : dict
-        Canonical, JSON-able description (shape, dtype, affine, ...).
-    """
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    kind: str
-    digest: str = Field(pattern=r"^[0-9a-f]{64}$")
-    relpath: str
-    metadata: dict[str, Any] = Field(default_factory=dict)
-
-
-def canonical_dumps(obj: Any) -> str:
-    """JSON with sorted keys and no whitespace; NaN is refused."""
-    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False)
-
-
-def _host_identity() -> str:
-    """Who can ask this process's pids: the host name, this boot and the pid namespace.
-
-    Two machines of one name differ by their boot, two containers of one name by
-    their pid namespace; Linux's ``/proc`` gives those two, elsewhere the host name
-    alone.
-    """
-    parts = [socket.gethostname()]
-    try:
-        parts.append(Path("/proc/sys/kernel/random/boot_id").read_text().strip())
-        parts.append(str(os.stat("/proc/self/ns/pid").st_ino))
-    except OSError:
-        pass
-    return "\0".join(parts)
-
-
-#: This machine and pid namespace, in temporary file names: 8 hex digits of
-#: :func:`_host_identity`'s SHA-256. A writer of the same tag can be asked by pid.
-HOST_TAG = hashlib.sha256(_host_identity().encode()).hexdigest()[:8]
-
-#: A temporary file or upload whose writer cannot be asked (another machine's, an
-#: object store's) untouched for this long is a killed writer's (seconds; a write
-#: takes seconds).
-STALE_TMP_S = 3600.0
-
-#: ``.<name>.tmp-<host tag>-<pid>-<random>``, the temporary name of
-#: :func:`atomic_write_bytes` (``.<name>.tmp-<pid>-<random>`` before the host tag).
-_TMP_NAME = re.compile(r"^\.(?P<name>.+)\.tmp-(?:(?P<host>[0-9a-f]{8})-)?(?P<pid>\d+)-[0-9a-f]{8}$")
-
-
-def process_alive(pid: int) -> bool:
-    """True if process ``pid`` of this machine exists (ours, or another user's)."""
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # someone else's live process
-        return True
-    return True
-
-
-def writer_gone(
-    host: str | None, pid: int, path: Path, *, now: float, max_age_s: float = STALE_TMP_S
-) -> bool:
-    """Whether a temporary file or folder, named with its writer's host tag and pid, is left.
-
-    Left by a writer that is gone: this machine's and pid namespace's
-    (:data:`HOST_TAG`) when its process no longer exists; any when ``path`` is
-    untouched for ``max_age_s`` (another machine's, whose pids cannot be asked
-    here, or one whose pid was since reused). Raises ``OSError`` when ``path``
-    cannot be examined (the caller leaves it).
-    """
-    if host == HOST_TAG and not process_alive(pid):
-        return True
-    return now - Path(path).stat().st_mtime > max_age_s
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and a rename.
-
-    The temporary file lives in the destination folder (same file system),
-    is fsynced, then atomically renamed over ``path``. Its name,
-    ``.<name>.tmp-<host tag>-<pid>-<random>``, says which process wrote it,
-    so that one left by a killed process can be told from one being written
-    (:meth:`ArtifactStore.clean_stale_tmp`).
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{HOST_TAG}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def check_writable_dir(folder: Path, *, create: bool = True) -> None:
-    """Check that a file can be created in ``folder``, made with its parents if ``create``.
-
-    Called before any work by the commands and flows that write results there, so
-    an immutable or read-only output folder is named at once instead of after every
-    stage has run. Without ``create`` (a check before the input is validated: a
-    refused command leaves nothing behind) an absent folder is judged by its
-    nearest existing parent, where it would be made.
-
-    Raises
-    ------
-    OSError
-        Naming ``folder`` (not the probe's random name): it cannot be made or written.
-    """
-    folder = Path(folder)
-    where = folder
-    if not create:
-        while not where.exists() and where.parent != where:
-            where = where.parent
-        if where.exists() and not where.is_dir():
-            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(where))
-    try:
-        if create:
-            folder.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".tumor3d-probe-", dir=where)
-    except OSError as exc:
-        raise OSError(exc.errno, exc.strerror, str(folder)) from None
-    os.close(fd)
-    os.unlink(probe)
-
-
-def utc_now() -> str:
-    """The time now in UTC, to the second, as the records write it (``2026-12-06T03:12:00Z``)."""
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 
 
 def _affine_list(affine: np.ndarray) -> list[list[float]]:
@@ -287,6 +120,17 @@ class ArtifactStore:
     StoreError
         If it cannot be created for another reason: no permission, a
         read-only mount, a full disk (an environment error).
+
+    Notes
+    -----
+    :meth:`put_bytes` and :meth:`get_bytes` hold the rules every back-end
+    shares (the digest, a rewrite of other bytes recorded, a mismatch on read
+    quarantined and raised). They reach the stored bytes through a few file
+    operations, ``_existing_bytes``, ``_write_object``, ``_read_object`` and
+    ``_quarantine``, with ``_record``, :meth:`read_repairs`,
+    :meth:`clean_stale_tmp`, :meth:`path` and :meth:`exists`: a back-end
+    elsewhere (:class:`~tumor3d.storage.objectstore.ObjectStore`) overrides
+    those and inherits the rest.
     """
 
     def __init__(self, root: str | os.PathLike[str]) -> None:
@@ -319,19 +163,29 @@ class ArtifactStore:
             pass  # the log is informative; the repair itself is done
         return repair
 
-    def _quarantine(self, path: Path, detail: str) -> Repair:
+    def _quarantine(self, relpath: str, detail: str) -> Repair:
         """Move a bad object aside (never delete it) so that it can be rewritten."""
-        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-        target = self.root / "quarantine" / f"{path.name}.{stamp}-{uuid.uuid4().hex[:8]}"
+        path = self.root / relpath
+        target = self.root / self._quarantine_relpath(path.name)
         target.parent.mkdir(parents=True, exist_ok=True)
         try:
             os.replace(path, target)
             moved: str | None = target.relative_to(self.root).as_posix()
         except FileNotFoundError:  # another process moved or rewrote it first
             moved = None
+        return self._quarantined(path.relative_to(self.root).as_posix(), detail, moved)
+
+    @staticmethod
+    def _quarantine_relpath(name: str) -> str:
+        """Where a bad object named ``name`` goes: ``quarantine/<name>.<utc time>-<random>``."""
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        return f"quarantine/{name}.{stamp}-{uuid.uuid4().hex[:8]}"
+
+    def _quarantined(self, relpath: str, detail: str, moved: str | None) -> Repair:
+        """Record the quarantine of ``relpath``, moved to ``moved`` (None: gone already)."""
         return self._record(
             Repair(
-                relpath=path.relative_to(self.root).as_posix(),
+                relpath=relpath,
                 action="quarantined",
                 detail=detail,
                 quarantined_to=moved,
@@ -357,25 +211,12 @@ class ArtifactStore:
         list of str
             The files removed.
         """
-        removed: list[str] = []
         now = time.time()
         try:
             found = list((self.root / "objects").glob("*/.*.tmp-*"))
         except OSError:
-            return removed
-        for tmp in found:
-            m = _TMP_NAME.match(tmp.name)
-            if m is None:
-                continue
-            try:
-                stale = writer_gone(m["host"], int(m["pid"]), tmp, now=now, max_age_s=max_age_s)
-                if stale:
-                    tmp.unlink()
-            except OSError:  # renamed into place meanwhile, another user's, read-only
-                continue
-            if stale:
-                removed.append(str(tmp))
-        return removed
+            return []
+        return remove_stale_tmp(found, now=now, max_age_s=max_age_s)
 
     def read_repairs(self) -> list[Repair]:
         """Every repair recorded in ``<root>/repairs.jsonl``, oldest first.
@@ -437,18 +278,9 @@ class ArtifactStore:
         meta = json.loads(canonical_dumps(metadata or {}))
         digest = self.digest_of(data, kind=kind, metadata=meta)
         relpath = f"objects/{digest[:2]}/{digest}{suffix}"
-        path = self.root / relpath
-        try:
-            existing = path.read_bytes() if path.is_file() else None
-        except OSError:
-            existing = None
+        existing = self._existing_bytes(relpath)
         if existing != data:
-            try:
-                atomic_write_bytes(path, data)
-            except OSError as exc:  # a full disk, a read-only mount, ...
-                raise StoreError(
-                    f"{path}: cannot write the artifact ({os_error_text(exc)})"
-                ) from None
+            self._write_object(relpath, data)
             if existing is not None:
                 self._record(
                     Repair(
@@ -479,25 +311,47 @@ class ArtifactStore:
             If its content does not match the digest; the file has then
             been quarantined, so that recomputing the stage heals the store.
         """
-        path = self.path(ref)
-        try:
-            data = path.read_bytes()
-        except FileNotFoundError:
-            raise StoreError(f"artifact {ref.kind} {ref.digest[:12]} is missing: {path}") from None
-        except OSError as exc:
-            raise StoreError(f"{path}: cannot read the artifact ({exc.strerror or exc})") from None
+        data = self._read_object(ref)
         if verify and self.digest_of(data, kind=ref.kind, metadata=ref.metadata) != ref.digest:
             repair = self._quarantine(
-                path, f"{ref.relpath}: content does not match its digest; quarantined"
+                ref.relpath, f"{ref.relpath}: content does not match its digest; quarantined"
             )
             where = repair.quarantined_to or "(already moved)"
             raise CorruptArtifactError(
-                f"artifact {path} is corrupted (digest mismatch); moved to {where} so the "
-                "stage that made it can recompute it",
+                f"artifact {self.path(ref)} is corrupted (digest mismatch); moved to {where} so "
+                "the stage that made it can recompute it",
                 ref=ref,
                 repair=repair,
             )
         return data
+
+    # -- the file operations a back-end replaces ----------------------------
+    def _existing_bytes(self, relpath: str) -> bytes | None:
+        """The bytes already stored under ``relpath``, or None (absent or unreadable)."""
+        path = self.root / relpath
+        try:
+            return path.read_bytes() if path.is_file() else None
+        except OSError:
+            return None
+
+    def _write_object(self, relpath: str, data: bytes) -> None:
+        """Write the object ``relpath`` whole; :class:`StoreError` (one line) if it cannot."""
+        path = self.root / relpath
+        try:
+            # looked up here at each call: a test replaces it to fill the disk
+            atomic_write_bytes(path, data)
+        except OSError as exc:  # a full disk, a read-only mount, ...
+            raise StoreError(f"{path}: cannot write the artifact ({os_error_text(exc)})") from None
+
+    def _read_object(self, ref: ArtifactRef) -> bytes:
+        """The stored bytes of ``ref``, unverified; :class:`StoreError` if missing or unreadable."""
+        path = self.path(ref)
+        try:
+            return path.read_bytes()
+        except FileNotFoundError:
+            raise StoreError(f"artifact {ref.kind} {ref.digest[:12]} is missing: {path}") from None
+        except OSError as exc:
+            raise StoreError(f"{path}: cannot read the artifact ({exc.strerror or exc})") from None
 
     # -- typed helpers -----------------------------------------------------
     def put_volume(

@@ -33,8 +33,8 @@ run is reused; Prefect's default policy would key on the run id, and its
 ``TASK_SOURCE`` ignores the core functions a task calls.
 
 The code of the artifact store's own codecs and back-ends
-(``tumor3d/storage/store.py``, ``tumor3d/storage/formats.py``, ``tumor3d/storage/objectstore.py``,
-:data:`FORMAT_MODULES`) are not hashed: the on-disk
+(``tumor3d/storage/store.py`` with ``refs.py`` and ``atomic.py``, ``tumor3d/storage/formats.py``,
+``tumor3d/storage/objectstore.py``: :data:`FORMAT_MODULES`) are not hashed: the on-disk
 form of artifacts is covered by :data:`ARTIFACT_FORMAT_VERSION`, bumped by
 hand when it changes. The modules they import are walked and hashed as any
 other (``tumor3d/storage/nifti.py``, ``tumor3d/imaging/scan.py``, ...). The syntax tree's
@@ -90,7 +90,13 @@ PROJECT_PACKAGES = ("tumor3d",)
 
 #: The store's codecs: covered by :data:`ARTIFACT_FORMAT_VERSION`, their source not hashed.
 FORMAT_MODULES = frozenset(
-    {"tumor3d.storage.store", "tumor3d.storage.formats", "tumor3d.storage.objectstore"}
+    {
+        "tumor3d.storage.store",
+        "tumor3d.storage.refs",
+        "tumor3d.storage.atomic",
+        "tumor3d.storage.formats",
+        "tumor3d.storage.objectstore",
+    }
 )
 
 #: Data files a module reads as part of its behaviour (paths relative to the project

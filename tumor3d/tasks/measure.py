@@ -6,7 +6,7 @@ import pandas as pd
 
 from tumor3d.geometry.measures import clinical_measures
 from tumor3d.geometry.mesh import Mesh
-from tumor3d.imaging.scan import slab_height_mm
+from tumor3d.imaging.affine import slab_height_mm
 from tumor3d.metrics import measure_volumes
 from tumor3d.tasks.kinds import Artifact, Volume
 from tumor3d.tasks.spec import ALL_VALUES, Input, StageResult, stage

@@ -19,7 +19,8 @@ from typing import Any
 
 from tumor3d.config import PipelineConfig
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import SourceGrid, slice_order_note
+from tumor3d.imaging.orientation import slice_order_note
+from tumor3d.imaging.scan import SourceGrid
 from tumor3d.learned.shipped import MODEL_IDENTITY_KEYS
 from tumor3d.metrics import EQ7_SLICE_RULES
 from tumor3d.segmentation.review import Review, brain_mask_run_notes, review_status

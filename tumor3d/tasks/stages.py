@@ -21,7 +21,8 @@ from pydantic import BaseModel
 from tumor3d.config import PipelineConfig
 from tumor3d.storage.brain_mask import GivenBrainMask
 from tumor3d.storage.given_segmentation import GivenSegmentation
-from tumor3d.storage.store import ArtifactRef, ArtifactStore
+from tumor3d.storage.refs import ArtifactRef
+from tumor3d.storage.store import ArtifactStore
 from tumor3d.tasks import (
     brain_surface,
     detect,

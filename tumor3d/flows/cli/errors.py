@@ -29,7 +29,7 @@ def _error_line(exc: BaseException) -> tuple[str, int]:
         return os_error_line(exc), EXIT_ENVIRONMENT
     from tumor3d.flows.dask_runner import ClusterError
     from tumor3d.flows.server import ServerError
-    from tumor3d.storage.store import StoreError
+    from tumor3d.storage.refs import StoreError
 
     environment = StoreError | ServerError | ClusterError
     code = EXIT_ENVIRONMENT if isinstance(exc, environment) else EXIT_INPUT

@@ -83,7 +83,7 @@ def _check_out_writable(out: Path) -> None:
     With ``--store`` elsewhere nothing else writes there before publishing: an
     immutable or read-only folder failed after every stage had run.
     """
-    from tumor3d.storage.store import check_writable_dir
+    from tumor3d.storage.atomic import check_writable_dir
 
     check_writable_dir(out, create=False)  # made when the run starts, not by a refused one
 

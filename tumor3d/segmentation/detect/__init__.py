@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import MODALITIES
+from tumor3d.imaging.identity import MODALITIES
 from tumor3d.segmentation.detect.methods import DETECT_METHODS, paper_premise_holds
 from tumor3d.segmentation.detect.modes import (
     _check_mode_params,

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import MODALITIES
+from tumor3d.imaging.identity import MODALITIES
 from tumor3d.segmentation.detect import SliceDetection
 from tumor3d.segmentation.fcm import FCMDiagnostics, fcm_memberships, fuzzy_cmeans_histogram
 from tumor3d.segmentation.lesion import lesion_params, patient_lesion

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import MODALITIES
+from tumor3d.imaging.identity import MODALITIES
 from tumor3d.segmentation.detect import SliceDetection, paper_premise_holds
 from tumor3d.segmentation.methods import method_names, registered_methods
 

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import MODALITIES
+from tumor3d.imaging.identity import MODALITIES
 from tumor3d.segmentation.caveats import segmentation_caveats
 from tumor3d.segmentation.detect import SliceDetection, _check_pair
 

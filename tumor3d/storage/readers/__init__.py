@@ -94,7 +94,8 @@ from pathlib import Path
 from typing import Any
 
 from tumor3d.errors import InputError, os_error_path, os_error_text
-from tumor3d.imaging.scan import MODALITIES, Scan
+from tumor3d.imaging.identity import MODALITIES
+from tumor3d.imaging.scan import Scan
 from tumor3d.storage.readers.common import (
     MAX_VOXELS_DEFAULT,
     REL_TOL,

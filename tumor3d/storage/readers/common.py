@@ -24,15 +24,10 @@ from tumor3d.constants import (
     SHEAR_TOL,
 )
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import (
-    MODALITIES,
-    Scan,
-    SourceGrid,
-    canonical_orientation,
-    in_plane_shear,
-    slice_plane_spacing_mm,
-    validate_patient_id,
-)
+from tumor3d.imaging.affine import in_plane_shear, slice_plane_spacing_mm
+from tumor3d.imaging.identity import MODALITIES, validate_patient_id
+from tumor3d.imaging.orientation import canonical_orientation
+from tumor3d.imaging.scan import Scan, SourceGrid
 from tumor3d.validation import check_int, check_positive, non_finite_problem
 
 __all__ = [

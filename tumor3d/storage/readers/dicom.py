@@ -18,7 +18,8 @@ from tumor3d.constants import (
     SHEAR_TOL,
 )
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import Scan, SourceGrid, validate_patient_id
+from tumor3d.imaging.identity import validate_patient_id
+from tumor3d.imaging.scan import Scan, SourceGrid
 from tumor3d.storage.readers.common import (
     MAX_VOXELS_DEFAULT,
     REL_TOL,

@@ -30,7 +30,8 @@ import numpy as np
 
 from tumor3d.constants import SINGULAR_DET_TOL
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import Scan, validate_patient_id
+from tumor3d.imaging.identity import validate_patient_id
+from tumor3d.imaging.scan import Scan
 from tumor3d.storage.inputs import detached_data_files
 from tumor3d.storage.readers.common import (
     MAX_VOXELS_DEFAULT,

@@ -16,7 +16,8 @@ from nibabel.orientations import aff2axcodes
 
 from tumor3d.constants import SINGULAR_DET_TOL
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import Scan, validate_patient_id
+from tumor3d.imaging.identity import validate_patient_id
+from tumor3d.imaging.scan import Scan
 from tumor3d.segmentation.review import ORIENTATION_UNSTATED
 from tumor3d.storage.nifti import differing_qform, placed_affine, xform_codes
 from tumor3d.storage.readers.common import (

@@ -15,7 +15,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
 from tumor3d.errors import InputError
-from tumor3d.imaging.scan import validate_patient_id
+from tumor3d.imaging.identity import validate_patient_id
 from tumor3d.storage.readers.common import (
     MAX_VOXELS_DEFAULT,
     _check_override,

@@ -11,7 +11,8 @@ import numpy as np
 
 from tumor3d.constants import YAML_MAX_BYTES
 from tumor3d.errors import ConfigError, InputError
-from tumor3d.imaging.scan import Scan, SourceGrid, validate_patient_id
+from tumor3d.imaging.identity import validate_patient_id
+from tumor3d.imaging.scan import Scan, SourceGrid
 from tumor3d.safe_yaml import load_yaml
 from tumor3d.storage.readers.common import (
     MAX_VOXELS_DEFAULT,

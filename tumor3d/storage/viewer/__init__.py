@@ -59,7 +59,7 @@ import numpy as np
 from tumor3d.errors import InputError
 from tumor3d.geometry.mesh import Mesh
 from tumor3d.storage.nifti import encode_nifti
-from tumor3d.storage.store import StoreError
+from tumor3d.storage.refs import StoreError
 from tumor3d.storage.viewer.template import _BRAIN_ROW, _PAGE, _b64, _centre_mm, _mesh_json, _rgb255
 from tumor3d.storage.viewer.volume import CROP_MARGIN_MM, MAX_VIEWER_VOXELS, _mask, viewer_volume
 
