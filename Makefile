@@ -15,7 +15,8 @@ TUMOR3D_DATA_DIR ?= ../shared/data
 demo: setup
 	$(BIN)/tumor3d demo --out $(DEMO_OUT); rc=$$?; [ $$rc -eq 0 ] || [ $$rc -eq 4 ] || exit $$rc
 
-# The test suite plus the doctests of every package (examples in docstrings must run),
+# The test suite plus the doctests of every package (examples in docstrings must run;
+# storage/, tasks/, flows/ are tumor3d.storage, .tasks, .flows: conftest.py names them),
 # in TEST_WORKERS processes (pytest-xdist). A whole file goes to one worker
 # (--dist loadfile): its module fixtures (a flow run that several tests inspect) run
 # once; each worker has its own Prefect home and test server (tests/conftest.py).
@@ -37,7 +38,7 @@ demo: setup
 TEST_WORKERS ?= 2
 test: setup
 	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder \
-	    tests --doctest-modules tumor3d
+	    tests --doctest-modules tumor3d storage tasks flows
 
 setup: system-deps $(STAMP)
 

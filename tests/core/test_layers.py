@@ -15,7 +15,8 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[2] / "tumor3d"
+from tumor3d.package_layout import PACKAGE_DIRS, PROJECT_ROOT
+
 #: Layer of each sub-package; the core is everything else (rank 0).
 RANK = {"storage": 1, "tasks": 2, "flows": 3}
 #: Modules outside those sub-packages with a layer of their own.
@@ -51,12 +52,14 @@ def _imports(path: Path, module: str) -> set[str]:
 
 
 def _modules() -> list[tuple[str, Path]]:
-    out = []
-    for path in sorted(PACKAGE.rglob("*.py")):
-        rel = path.relative_to(PACKAGE.parent).with_suffix("")
-        parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
-        out.append((".".join(parts), path))
-    return out
+    # tumor3d/ and the folders mapped into the namespace (storage/, tasks/, flows/)
+    out = {}
+    for package, folder in PACKAGE_DIRS.items():
+        for path in sorted((PROJECT_ROOT / folder).rglob("*.py")):
+            rel = path.relative_to(PROJECT_ROOT / folder).with_suffix("")
+            parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+            out[".".join((package, *parts))] = path
+    return sorted(out.items())
 
 
 def _violations(modules: list[tuple[str, Path]]) -> list[str]:
@@ -97,13 +100,13 @@ def test_an_upward_import_is_caught(tmp_path, source, expected):
 
 
 #: Issue 31 item 5: no module over about 600 lines, so that each holds one concept.
-MAX_MODULE_LINES = 700
+MAX_MODULE_LINES = 650  # the longest: config.py 623, tasks/caching.py 615
 
 
 def test_no_module_is_longer_than_one_concept_needs():
     long = {
-        str(path.relative_to(PACKAGE.parent)): n
-        for path in PACKAGE.rglob("*.py")
+        str(path.relative_to(PROJECT_ROOT)): n
+        for _, path in _modules()
         if (n := len(path.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES
     }
     assert not long, f"split by concept (docs/ARCHITECTURE.md): {long}"

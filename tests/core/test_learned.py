@@ -578,6 +578,7 @@ def test_the_shipped_unets_load_and_each_ones_bytes_move_the_segment_key(tmp_pat
     import shutil
 
     from tumor3d.learned.shipped import CNN_MODELS, shipped_cnn
+    from tumor3d.package_layout import SOURCE_FOLDERS
     from tumor3d.tasks.caching import PROJECT_ROOT, code_digest, module_closure
 
     nets = shipped_cnn("flair")
@@ -588,9 +589,10 @@ def test_the_shipped_unets_load_and_each_ones_bytes_move_the_segment_key(tmp_pat
         assert net.sha256 == hashlib.sha256(shipped_file.read_bytes()).hexdigest()
         assert net.in_channels == 2 * net.context + 1 and net.size % 2 ** (net.levels - 1) == 0
     assert nets[0].sha256 != nets[1].sha256 and nets[0].meta["seed"] != nets[1].meta["seed"]
-    shutil.copytree(
-        PROJECT_ROOT / "tumor3d", tmp_path / "tumor3d", ignore=shutil.ignore_patterns("__pycache__")
-    )
+    for folder in SOURCE_FOLDERS:  # tumor3d/ and the folders mapped into it (tasks/, ...)
+        shutil.copytree(
+            PROJECT_ROOT / folder, tmp_path / folder, ignore=shutil.ignore_patterns("__pycache__")
+        )
     try:
         digests = [code_digest(("tumor3d.tasks.segment",), str(tmp_path))]
         for name in names:

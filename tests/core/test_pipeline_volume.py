@@ -1,7 +1,7 @@
 """Volume accuracy of the whole core chain on the project phantom (no Prefect).
 
 The chain calls the same core entry points as the stage adapters
-(``tumor3d/tasks/<stage>.py``) with ``PipelineConfig()`` defaults: preprocess, detect,
+(``tasks/<stage>.py``) with ``PipelineConfig()`` defaults: preprocess, detect,
 segment, interpolate (automatic slice count resolved by the core, tapered end
 caps), the tumour surface, and :func:`tumor3d.metrics.measure_volumes` (the
 Eq. 7 slice rule lives there, not here). The truth is the phantom's exact
@@ -40,7 +40,7 @@ class ChainRun:
 
 
 def _run_chain(patient: PhantomPatient, cfg: PipelineConfig) -> ChainRun:
-    """preprocess -> detect -> segment -> interpolate, as tumor3d/tasks/stages.py does."""
+    """preprocess -> detect -> segment -> interpolate, as tasks/stages.py does."""
     scan = patient.scan
     pre = preprocess_volume(scan.image, **cfg.preprocess.model_dump())
     det = detect_abnormal_slices(

@@ -234,7 +234,7 @@ def test_the_vendored_script_is_the_recorded_niivue_release():
     assert set(files) == {NIIVUE_FILE, NIIVUE_LICENSES_FILE}
     assert NIIVUE_VERSION in NIIVUE_FILE
     assert hashlib.sha256(files[NIIVUE_FILE]).hexdigest() == NIIVUE_SHA256
-    assets = Path(__file__).parents[2] / "tumor3d" / "storage" / "assets"
+    assets = Path(__file__).parents[2] / "storage" / "assets"
     readme = (assets / "README.md").read_text()
     assert NIIVUE_SHA256 in readme and f"**{NIIVUE_VERSION}**" in readme
     licences = files[NIIVUE_LICENSES_FILE].decode()

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from tumor3d.config import SimplifyConfig
+from tumor3d.package_layout import SOURCE_FOLDERS
 from tumor3d.storage.store import ArtifactRef
 from tumor3d.tasks.caching import (
     FORMAT_MODULES,
@@ -101,7 +102,7 @@ def test_closure_holds_a_packages_lazy_imports_only_when_asked_for_a_lazy_name(p
         "aliased": "import tumor3d as t3\n\n\ndef run(x):\n    return t3.Reconstruction\n",
     }  # fmt: skip
     for name, text in probes.items():
-        (package_copy / "tumor3d" / "tasks" / f"probe_{name}.py").write_text(text)
+        (package_copy / "tasks" / f"probe_{name}.py").write_text(text)
     closures = {n: module_closure((f"tumor3d.tasks.probe_{n}",), root) for n in probes}
     assert "tumor3d.api" not in closures["plain"]
     for name in ("from_import", "attribute", "aliased"):
@@ -119,7 +120,7 @@ def test_closure_rejects_unknown_module():
 @pytest.fixture
 def package_copy(tmp_path):
     """A temporary copy of the project packages, with a helper to edit one file."""
-    for pkg in PROJECT_PACKAGES:
+    for pkg in SOURCE_FOLDERS:  # tumor3d/ and the folders mapped into it
         shutil.copytree(PROJECT_ROOT / pkg, tmp_path / pkg,
                         ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
     yield tmp_path
@@ -163,7 +164,7 @@ def test_editing_a_module_changes_exactly_the_keys_whose_closure_holds_it(packag
 
 def test_a_behaviour_edit_in_one_adapter_invalidates_only_that_stage(package_copy):
     before = _keys(package_copy)
-    f = package_copy / "tumor3d" / "tasks" / "render.py"
+    f = package_copy / "tasks" / "render.py"
     f.write_text(f.read_text() + _BEHAVIOUR_EDIT)
     after = _keys(package_copy)
     assert {n for n in STAGES if before[n] != after[n]} == {"render-views"}
@@ -262,7 +263,7 @@ def test_a_function_left_with_only_its_docstring_digests_as_pass():
 @pytest.mark.parametrize("module", sorted(FORMAT_MODULES))
 def test_store_codecs_enter_keys_through_the_format_version_only(package_copy, module, monkeypatch):
     before = _keys(package_copy)
-    f = package_copy.joinpath(*module.split(".")).with_suffix(".py")
+    f = _module_file(module, package_copy)
     f.write_text(f.read_text() + _BEHAVIOUR_EDIT)  # a code change, not only a comment
     assert _keys(package_copy) == before
     import tumor3d.tasks.caching as caching
@@ -447,7 +448,7 @@ def test_an_upgrade_of_a_package_that_computes_nothing_keeps_every_key(monkeypat
 def test_only_the_packages_a_closure_imports_enter_its_key(package_copy, monkeypatch):
     import tumor3d.tasks.caching as caching
 
-    (package_copy / "tumor3d" / "tasks" / "probe_adapter.py").write_text(
+    (package_copy / "tasks" / "probe_adapter.py").write_text(
         "import numpy as np\n\n\ndef run(x):\n    from skimage import measure\n\n"
         "    return measure.label(np.asarray(x))\n"
     )

@@ -16,15 +16,17 @@ from tumor3d.tasks import caching
 
 
 def _tiny_package(root) -> None:
-    (root / "tumor3d" / "tasks").mkdir(parents=True)
+    # laid out as the repository: tumor3d.tasks is the folder tasks/ (package-dir)
+    (root / "tumor3d").mkdir()
+    (root / "tasks").mkdir()
     (root / "tumor3d" / "__init__.py").write_text("")
-    (root / "tumor3d" / "tasks" / "__init__.py").write_text("")
-    (root / "tumor3d" / "tasks" / "probe.py").write_text("LIMIT = 1\n")
+    (root / "tasks" / "__init__.py").write_text("")
+    (root / "tasks" / "probe.py").write_text("LIMIT = 1\n")
 
 
 def test_a_file_edited_while_two_threads_digest_it_gives_one_digest(tmp_path, monkeypatch):
     _tiny_package(tmp_path)
-    probe = tmp_path / "tumor3d" / "tasks" / "probe.py"
+    probe = tmp_path / "tasks" / "probe.py"
     roots, root = ("tumor3d.tasks.probe",), str(tmp_path)
     read_done, release = threading.Event(), threading.Event()
     first = threading.current_thread()  # replaced by the first worker below

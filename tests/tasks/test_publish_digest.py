@@ -11,6 +11,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+from tumor3d.package_layout import SOURCE_FOLDERS
 from tumor3d.tasks.caching import FORMAT_MODULES, code_digest
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -18,7 +19,7 @@ ROOTS = ("tumor3d.tasks.publish", "tumor3d.storage.derivatives")
 
 
 def _copy(tmp_path: Path) -> Path:
-    for pkg in ("tumor3d",):
+    for pkg in SOURCE_FOLDERS:  # tumor3d/ and the folders mapped into it
         shutil.copytree(ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("__pycache__"))
     return tmp_path
 
@@ -27,7 +28,7 @@ def test_a_codec_counts_for_publishing_by_its_behaviour_only(tmp_path):
     root = str(_copy(tmp_path))
     codec = "tumor3d.storage.formats"
     assert codec in FORMAT_MODULES
-    path = tmp_path / "tumor3d" / "storage" / "formats.py"
+    path = tmp_path / "storage" / "formats.py"
     before = code_digest(ROOTS, root, include_codecs=True)
     stage_like = code_digest(ROOTS, root)
     path.write_text(path.read_text() + "\n# a comment\n\n")
@@ -68,7 +69,7 @@ def test_the_publisher_closure_holds_every_module_that_writes_a_published_file()
 
 def test_an_encoder_edit_republishes_and_a_comment_does_not(tmp_path):
     root = str(_copy(tmp_path))
-    path = tmp_path / "tumor3d" / "storage" / "derivatives.py"
+    path = tmp_path / "storage" / "derivatives.py"
     before = code_digest(ROOTS, root, include_codecs=True)
     commented = path.read_text().replace("\n\ndef _viewer(", "\n\n# the viewer\ndef _viewer(", 1)
     assert "# the viewer" in commented

@@ -13,7 +13,7 @@
   simplification (Figure 10) evaluations, run when named.
 
 No file I/O here: :mod:`tumor3d.storage.evaluation_io` loads,
-:mod:`tumor3d.storage.evaluation_tables` writes, the flow (``tumor3d/flows/evaluate.py``)
+:mod:`tumor3d.storage.evaluation_tables` writes, the flow (``flows/evaluate.py``)
 wires.
 """
 

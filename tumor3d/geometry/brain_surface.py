@@ -5,7 +5,7 @@ thick-slice brain mask of skull removal (the paper reconstructs the brain
 surface as well as the tumour); :func:`display_mesh` reduces it to a face
 budget for the browser viewer (``viewer.html``), which holds and draws it.
 Both are pure (arrays in, :class:`~tumor3d.geometry.mesh.Mesh` out). The
-``extract-brain-surface`` stage (``tumor3d/tasks/brain_surface.py``) computes them
+``extract-brain-surface`` stage (``tasks/brain_surface.py``) computes them
 once per brain mask, so the renders, ``brain_mesh.ply`` and ``viewer.html``
 share one surface and a change of the render settings or of the tumour does
 not recompute it.

@@ -31,7 +31,7 @@ def learned_prior(
     """The learned method's prior: the robust method on the same slices.
 
     One definition for inference (:func:`_segment_learned`) and training
-    (``tumor3d/tasks/train.py``), so the model is trained on the prior it is given.
+    (``tasks/train.py``), so the model is trained on the prior it is given.
     """
     return segment_tumor(
         enhanced,

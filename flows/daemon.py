@@ -13,7 +13,8 @@ environment, and runs the command exactly as the client would have in its
 own process (same code, same output on the same terminal, same exit code);
 Ctrl-C in the client is relayed to it.
 
-The console script (:func:`main`) imports only the standard library and
+The console script (:func:`main`) imports only the standard library (and
+:mod:`tumor3d.package_layout`, which does too) and
 forwards ``run`` and ``demo`` when a runner answers; otherwise, and for
 every other command, it runs the command in-process as before. The runner
 refuses (and the client then runs in-process, saying why once) when it runs
@@ -35,6 +36,8 @@ import struct
 import sys
 from pathlib import Path
 
+from tumor3d.package_layout import PROJECT_ROOT, SOURCE_FOLDERS
+
 __all__ = ["DAEMON_MODULE", "code_fingerprint", "forward", "main", "socket_path"]
 
 DAEMON_MODULE = "tumor3d.flows.daemon"
@@ -46,8 +49,9 @@ _ENV_PREFIXES = ("PREFECT_", "TUMOR3D_", "NUMBA_")
 _ENV_OWN = frozenset(
     {"PREFECT_LOGGING_LEVEL", "PREFECT_SERVER_ANALYTICS_ENABLED", "TUMOR3D_DAEMON_CHILD"}
 )
-_PACKAGES = ("tumor3d",)
-_ROOT = Path(__file__).resolve().parents[2]
+#: The folders of the project's code under _ROOT: tumor3d/ and the folders mapped into it.
+_PACKAGES = tuple(str(folder) for folder in SOURCE_FOLDERS)
+_ROOT = PROJECT_ROOT
 _MAX_HELLO = 1 << 20
 
 

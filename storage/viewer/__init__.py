@@ -12,7 +12,7 @@ overlay mosaics and the renders show it), neurological at a click.
 
 It is drawn by NiiVue (``@niivue/niivue``, BSD-2-Clause; WebGL2), the
 viewer of the neuroimaging field, vendored unmodified in
-``tumor3d/storage/assets/`` (version, SHA-256 and licences there). Why NiiVue and
+``storage/assets/`` (version, SHA-256 and licences there). Why NiiVue and
 not a self-written viewer or the earlier plotly page: it reads NIfTI with
 its affine (the page holds the same kind of file the folder publishes, in
 RAS millimetres, so slices, masks and meshes line up by construction, with
@@ -78,9 +78,9 @@ __all__ = [
 ]
 
 
-#: The vendored NiiVue release (``tumor3d/storage/assets/README.md``).
+#: The vendored NiiVue release (``storage/assets/README.md``).
 NIIVUE_VERSION = "0.69.0"
-#: SHA-256 of ``tumor3d/storage/assets/niivue.umd.js`` (checked before it is published).
+#: SHA-256 of ``storage/assets/niivue.umd.js`` (checked before it is published).
 NIIVUE_SHA256 = "47b896b77ec4a5be3ef1949c33ad393b6f45629921f326c279000bcf51bdb4af"
 #: The folder, beside the patient folders, that holds the shared JavaScript.
 ASSETS_DIR = "_assets"
@@ -108,13 +108,13 @@ def viewer_assets() -> dict[str, bytes]:
             files[name] = root.joinpath(packaged).read_bytes()
         except OSError as exc:
             raise StoreError(
-                f"the viewer's packaged tumor3d/storage/assets/{packaged} cannot be read "
+                f"the viewer's packaged assets/{packaged} of tumor3d.storage cannot be read "
                 f"({exc.strerror or exc}): reinstall tumor3d"
             ) from None
     if hashlib.sha256(files[NIIVUE_FILE]).hexdigest() != NIIVUE_SHA256:
         raise StoreError(
-            f"tumor3d/storage/assets/niivue.umd.js is not NiiVue {NIIVUE_VERSION} "
-            "(SHA-256 differs from tumor3d/storage/assets/README.md): reinstall tumor3d"
+            f"assets/niivue.umd.js of tumor3d.storage is not NiiVue {NIIVUE_VERSION} "
+            "(SHA-256 differs from the README.md beside it): reinstall tumor3d"
         )
     return files
 

@@ -49,6 +49,7 @@ from pathlib import Path
 from typing import Any
 
 from tumor3d.errors import Tumor3DError
+from tumor3d.package_layout import PROJECT_ROOT
 
 __all__ = [
     "EXIT_CTRL_C",
@@ -68,7 +69,7 @@ __all__ = [
 STATE_ENV = "TUMOR3D_HOME"
 #: The module run as the server process (``python -m tumor3d.flows.server``).
 SERVER_MODULE = "tumor3d.flows.server"
-_PROJECT_ROOT = Path(__file__).resolve().parents[2]
+_PROJECT_ROOT = PROJECT_ROOT  # the folder holding tumor3d/: the repository, or site-packages
 _PR_SET_PDEATHSIG = 1
 
 

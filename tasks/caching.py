@@ -7,7 +7,7 @@ style of ``prefect/cache_policies.py`` (combined with ``+`` into Prefect's
 * :class:`StageCode` -- the stage name, :data:`ARTIFACT_FORMAT_VERSION` and
   the syntax tree, docstrings removed, of every project module the stage's
   adapter imports, directly or transitively (:func:`module_closure`, an AST
-  walk over ``tumor3d/``, ``tumor3d/storage/`` and ``tumor3d/tasks/``, computed once per
+  walk over ``tumor3d/``, ``storage/`` and ``tasks/``, computed once per
   process; :func:`syntax_dump`: a comment, a docstring or a blank line
   changes no key, a constant or an operator does), with the bytes of the
   data files those modules read (:data:`DATA_FILES`) and the installed
@@ -33,11 +33,11 @@ run is reused; Prefect's default policy would key on the run id, and its
 ``TASK_SOURCE`` ignores the core functions a task calls.
 
 The code of the artifact store's own codecs and back-ends
-(``tumor3d/storage/store.py`` with ``refs.py`` and ``atomic.py``, ``tumor3d/storage/formats.py``,
-``tumor3d/storage/objectstore.py``: :data:`FORMAT_MODULES`) are not hashed: the on-disk
+(``storage/store.py`` with ``refs.py`` and ``atomic.py``, ``storage/formats.py``,
+``storage/objectstore.py``: :data:`FORMAT_MODULES`) are not hashed: the on-disk
 form of artifacts is covered by :data:`ARTIFACT_FORMAT_VERSION`, bumped by
 hand when it changes. The modules they import are walked and hashed as any
-other (``tumor3d/storage/nifti.py``, ``tumor3d/imaging/scan.py``, ...). The syntax tree's
+other (``storage/nifti.py``, ``tumor3d/imaging/scan.py``, ...). The syntax tree's
 form is Python's (``ast.dump``): another Python version may give other keys.
 """
 
@@ -55,6 +55,7 @@ from typing import Any
 from prefect.cache_policies import CachePolicy
 from pydantic import BaseModel
 
+from tumor3d.package_layout import PROJECT_ROOT, module_path
 from tumor3d.storage.store import ArtifactRef, canonical_dumps
 from tumor3d.storage.versions import NUMERICAL_PACKAGES, versions
 
@@ -111,13 +112,15 @@ DATA_FILES: dict[str, tuple[str, ...]] = {
     ),
 }
 
-#: The folder holding the project packages (this repository's root).
-PROJECT_ROOT = Path(__file__).resolve().parents[2]
-
 
 def _module_file(name: str, root: Path) -> Path | None:
-    """The source file of project module ``name`` under ``root``, if any."""
-    base = root.joinpath(*name.split("."))
+    """The source file of project module ``name`` under ``root``, if any.
+
+    ``root`` (default :data:`PROJECT_ROOT`, the folder holding ``tumor3d/``) holds the
+    packages as :func:`tumor3d.package_layout.module_path` lays them out:
+    ``tumor3d.tasks.caching`` is ``tasks/caching.py`` in the repository.
+    """
+    base = root / module_path(name)
     if (base / "__init__.py").is_file():
         return base / "__init__.py"
     if base.with_suffix(".py").is_file():

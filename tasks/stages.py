@@ -1,7 +1,7 @@
 """The registry of pipeline stages, in pipeline order, and the wiring read from it.
 
 Each stage is declared by the :class:`~tumor3d.tasks.spec.StageSpec` of its adapter
-module (``tumor3d/tasks/ingest.py`` ... ``tumor3d/tasks/measure.py``); this module
+module (``tasks/ingest.py`` ... ``tasks/measure.py``); this module
 collects them (:data:`STAGES`), feeds a stage its inputs from the declarations
 (:func:`stage_inputs`: each input names the stage output, the user's source or
 the given artifact it comes from), finds the stages another stage needs

@@ -66,6 +66,7 @@ from pathlib import Path
 from tumor3d.errors import InputError
 from tumor3d.evaluation.registry import REFERENCE_KINDS as CASE_REFERENCE_KINDS
 from tumor3d.imaging.identity import MODALITIES, validate_patient_id
+from tumor3d.package_layout import PROJECT_ROOT
 
 __all__ = [
     "DATA_DIR_DEFAULT",
@@ -96,7 +97,7 @@ MANIFEST_COLUMNS = (
 #: "unspecified" (an empty cell).
 REFERENCE_KINDS = tuple(k for k in CASE_REFERENCE_KINDS if k != "unspecified")
 #: ``${TUMOR3D_DATA_DIR}`` when the environment does not set it.
-DATA_DIR_DEFAULT = (Path(__file__).resolve().parents[2] / ".." / "shared" / "data").resolve()
+DATA_DIR_DEFAULT = (PROJECT_ROOT / ".." / "shared" / "data").resolve()
 _Fail = Callable[[str, str], InputError]
 
 
