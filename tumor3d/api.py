@@ -224,8 +224,8 @@ def reconstruct_scan(
     )
     from tumor3d.pipeline import tumour_surface
     from tumor3d.segmentation.detect import detect_abnormal_slices
-    from tumor3d.segmentation.methods import method_spec, method_uses_lesion, slices_flagged
-    from tumor3d.segmentation.segment import lesion_definition, resolve_method, segment_tumor
+    from tumor3d.segmentation.methods import method_uses_lesion, slices_flagged
+    from tumor3d.segmentation.patient import segment_detected
     from tumor3d.simplify import simplify_mesh, target_face_count
 
     if not isinstance(scan, Scan):
@@ -272,27 +272,14 @@ def reconstruct_scan(
     )  # fmt: skip
     if not method_uses_lesion(cfg.segment.method):  # reused only then
         det = dataclasses.replace(det, lesion=None)
-    learned: dict[str, Any] = {}
-    resolved = resolve_method(cfg.segment.method, scan.modality, det)
-    if tumour_given is None and method_spec(resolved).needs_model:
-        from tumor3d.learned.shipped import learned_models
-
-        # the shipped forest, and the U-Net of the sequence with segment.learned_cnn auto
-        learned = {"image": scan.image, **learned_models(scan.modality, cfg.segment.learned_cnn)}
-    # segment-tumor (a given segmentation replaces it, as tumor3d.tasks.segment does)
-    if tumour_given is not None:
-        from tumor3d.segmentation.given_segmentation import given_definition, given_segmentation
-
-        seg = given_segmentation(tumour_given, spacing_mm=spacing)
-        measured = given_definition(segmentation_name)
-    else:
-        seg = segment_tumor(
-            pre.enhanced, brain, det, modality=scan.modality, spacing_mm=spacing, lr_axis=lr_axis,
-            lesion=cfg.detect.lesion.model_dump(),
-            head_exterior=exterior if exterior is not None and np.any(exterior) else None,
-            **cfg.segment.model_dump(), **learned,
-        )  # fmt: skip
-        measured = lesion_definition(seg.method, scan.modality)
+    # segment-tumor, as the stage (a given segmentation replaces the method)
+    segmented = segment_detected(
+        pre.enhanced, brain, det, affine=affine, modality=scan.modality, spacing_mm=spacing,
+        lesion=cfg.detect.lesion.model_dump(), head_exterior=exterior,
+        image=lambda: scan.image, given=None if tumour_given is None else (tumour_given, affine),
+        given_name=segmentation_name, **cfg.segment.model_dump(),
+    )  # fmt: skip
+    seg, measured = segmented.result, segmented.values["measured"]
     # interpolate-slices, extract-surface, simplify-mesh
     stack = interpolate_stack(
         seg.tumor_mask, **cfg.interpolate.model_dump(), slice_step_mm=scan.slice_step_mm,

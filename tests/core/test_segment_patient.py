@@ -25,7 +25,7 @@ from tumor3d.learned.shipped import MODEL_IDENTITY_KEYS, model_identity, shipped
 from tumor3d.phantom.patient import make_phantom_patient
 from tumor3d.segmentation.detect import detect_abnormal_slices
 from tumor3d.segmentation.lesion import left_right_axis
-from tumor3d.segmentation.patient import review_values, segment_patient
+from tumor3d.segmentation.patient import review_values, segment_detected, segment_patient
 from tumor3d.tasks.detect import lesion_metadata
 
 MODELS = Path(tumor3d.learned.__file__).parent / "models"
@@ -71,6 +71,7 @@ def case():
     exterior = pre.head_exterior if pre.head_exterior is not None else np.zeros_like(pre.brain_mask)
     return {
         "scan": scan,
+        "det": det,
         "lesion": det.lesion.mask,
         "abnormal": np.asarray(det.abnormal, bool),
         "inputs": dict(
@@ -198,3 +199,23 @@ def test_a_model_built_in_memory_is_identified_by_its_arrays():
     }
     assert got["model_sha256"] != _sha256("t1c")
     assert tuple(model_identity("T1C", shipped)) == MODEL_IDENTITY_KEYS[:3]
+
+
+@pytest.mark.parametrize("method", ["robust", "learned", "paper"])
+def test_the_detection_in_memory_segments_as_the_stored_one(case, method):
+    """segment_detected (tumor3d.reconstruct's entry) and segment_patient (the stage's, from
+    the stored records) give the same mask, table and values."""
+    cfg = SegmentConfig(method=method, learned_cnn="off").model_dump()
+    inputs = case["inputs"]
+    stored = segment_patient(
+        **inputs, lesion_mask=lambda: case["lesion"], image=lambda: case["scan"].image, **cfg
+    )
+    det = case["det"] if method != "paper" else replace(case["det"], lesion=None)
+    memory = segment_detected(
+        inputs["enhanced"], inputs["brain_mask"], det, affine=inputs["affine"],
+        modality="flair", spacing_mm=inputs["spacing_mm"], lesion=LesionConfig().model_dump(),
+        head_exterior=inputs["head_exterior"], image=lambda: case["scan"].image, **cfg,
+    )  # fmt: skip
+    assert memory.result.method == stored.result.method
+    assert np.array_equal(memory.result.tumor_mask, stored.result.tumor_mask)
+    assert memory.records == stored.records and memory.values == stored.values

@@ -46,6 +46,7 @@ __all__ = [
     "PatientSegmentation",
     "lesion_from_record",
     "review_values",
+    "segment_detected",
     "segment_model",
     "segment_patient",
     "slice_records",
@@ -232,22 +233,55 @@ def segment_patient(
     -------
     PatientSegmentation
     """
+    with_lesion = given is None and method_uses_lesion(method)
+    det = stored_detection(detection, lesion, lesion_mask, with_lesion=with_lesion)
+    return segment_detected(
+        enhanced, brain_mask, det, affine=affine, modality=modality, spacing_mm=spacing_mm,
+        lesion=lesion["params"], head_exterior=head_exterior, image=image, given=given,
+        given_name=given_name, method=method, learned_cnn=learned_cnn, **keywords,
+    )  # fmt: skip
+
+
+def segment_detected(
+    enhanced: np.ndarray,
+    brain_mask: np.ndarray,
+    detection: SliceDetection,
+    *,
+    affine: np.ndarray,
+    modality: str,
+    spacing_mm: tuple[float, float, float],
+    lesion: Mapping[str, Any],
+    head_exterior: np.ndarray | None,
+    image: Callable[[], np.ndarray],
+    given: Iterable[np.ndarray] | None = None,
+    given_name: str | None = None,
+    method: str = "auto",
+    learned_cnn: str = "auto",
+    **keywords: Any,
+) -> PatientSegmentation:
+    """:func:`segment_patient` from a detection in memory (:func:`tumor3d.reconstruct`'s too).
+
+    ``detection`` is the per-slice detection with the lesion model it computed
+    (``detection.lesion``, None when not computed or not reused); ``lesion``
+    the ``detect.lesion`` keywords; ``head_exterior`` the air outside a raw head
+    (None or all False for a skull-stripped one: no scalp caveat). The other
+    parameters are :func:`segment_patient`'s.
+    """
+    det = detection
     if given is not None:
         mask, mask_affine = given
         result = given_segmentation(np.asarray(mask).astype(bool), spacing_mm=spacing_mm)
-        det = SliceDetection.from_records(list(detection))
         return PatientSegmentation(
             result,
             mask_affine,
             slice_records(result, det.abnormal),
             _values(result, modality, given_definition(given_name)),
         )
-    det = stored_detection(detection, lesion, lesion_mask, with_lesion=method_uses_lesion(method))
     learned: dict[str, Any] = {}
     if method_spec(resolve_method(method, modality, det)).needs_model:  # image + model
         # segment.learned_cnn auto: with the shipped U-Net of the sequence, if any (FLAIR)
         learned = {"image": image(), **learned_models(modality, learned_cnn)}
-    exterior = np.asarray(head_exterior).astype(bool)
+    exterior = None if head_exterior is None else np.asarray(head_exterior).astype(bool)
     result = segment_tumor(
         enhanced,
         brain_mask,
@@ -255,9 +289,9 @@ def segment_patient(
         modality=modality,
         spacing_mm=spacing_mm,
         lr_axis=left_right_axis(affine),
-        lesion=lesion["params"],
+        lesion=dict(lesion),
         # the air outside a raw head (none stored for a skull-stripped one): scalp caveat
-        head_exterior=exterior if exterior.any() else None,
+        head_exterior=exterior if exterior is not None and exterior.any() else None,
         method=method,
         learned_cnn=learned_cnn,
         **keywords,
