@@ -48,8 +48,6 @@ from __future__ import annotations
 import hashlib
 import html
 import json
-import os
-import uuid
 from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
@@ -58,6 +56,7 @@ import numpy as np
 
 from tumor3d.errors import InputError
 from tumor3d.geometry.mesh import Mesh
+from tumor3d.storage.atomic import atomic_write_bytes
 from tumor3d.storage.nifti import encode_nifti
 from tumor3d.storage.refs import StoreError
 from tumor3d.storage.viewer.template import _BRAIN_ROW, _PAGE, _b64, _centre_mm, _mesh_json, _rgb255
@@ -125,7 +124,8 @@ def write_viewer_assets(out_dir: str | Path) -> list[str]:
     A file already there with the same bytes is left alone (not rewritten,
     its time unchanged); a missing or different one is written to a
     temporary name in the same folder, fsynced and renamed over the final
-    name, so a reader never sees it half-written.
+    name (:func:`~tumor3d.storage.atomic.atomic_write_bytes`), so a reader never
+    sees it half-written.
     """
     assets = viewer_assets()
     folder = Path(out_dir) / ASSETS_DIR
@@ -138,15 +138,7 @@ def write_viewer_assets(out_dir: str | Path) -> list[str]:
                 continue
         except OSError:
             pass
-        tmp = folder / f".{name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp"
-        try:
-            with open(tmp, "wb") as fh:
-                fh.write(data)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, final)
-        finally:
-            tmp.unlink(missing_ok=True)
+        atomic_write_bytes(final, data)
         written.append(name)
     return written
 
