@@ -8,7 +8,7 @@ DEMO_OUT ?= demo-out
 # Real MR cases for development and evaluation (never used by the tests).
 TUMOR3D_DATA_DIR ?= ../shared/data
 
-.PHONY: demo test setup system-deps lint bench bench-cohort accuracy real-data evaluate paper clean
+.PHONY: demo test setup system-deps stale-folders lint bench bench-cohort accuracy real-data evaluate paper clean
 
 # Exit code 4 (results published, status "check": the summary says what to look at)
 # is not a failure of these targets.
@@ -40,7 +40,17 @@ test: setup
 	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder \
 	    tests --doctest-modules tumor3d storage tasks flows
 
-setup: system-deps $(STAMP)
+setup: system-deps stale-folders $(STAMP)
+
+# storage/, tasks/ and flows/ lay under tumor3d/ before 620ca24: a checkout that had
+# them keeps their ignored __pycache__ folders there, which would hide the mapped
+# packages (tumor3d/package_layout.py). Removed when they hold no source file.
+stale-folders:
+	@for d in storage tasks flows; do \
+	    if [ -d tumor3d/$$d ] && [ -z "$$(find tumor3d/$$d -name '*.py' -print -quit)" ]; then \
+	        rm -rf tumor3d/$$d && echo "removed tumor3d/$$d (bytecode left by an older layout)"; \
+	    fi; \
+	done
 
 system-deps:
 	@sh scripts/system-deps.sh

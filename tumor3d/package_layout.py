@@ -57,7 +57,7 @@ def _relative(folder: Path) -> Path:
 
 
 #: Each package's folder relative to :data:`PROJECT_ROOT`: ``tumor3d`` and the
-#: :data:`MAPPED_PACKAGES` (``tasks`` in the repository, ``tasks`` installed).
+#: :data:`MAPPED_PACKAGES` (``tasks`` in the repository, ``tumor3d/tasks`` installed).
 PACKAGE_DIRS: dict[str, Path] = {
     "tumor3d": Path("tumor3d"),
     **{name: _relative(_package_dir(name)) for name in MAPPED_PACKAGES},
@@ -77,7 +77,7 @@ def module_path(name: str) -> Path:
 
     The longest package of :data:`PACKAGE_DIRS` that ``name`` is in gives the
     folder: ``tumor3d.tasks.caching`` is ``tasks/caching`` in the repository
-    and ``tasks/caching`` when installed. Add ``.py`` for a module,
+    and ``tumor3d/tasks/caching`` when installed. Add ``.py`` for a module,
     ``/__init__.py`` for a package. Names outside the namespace map as dotted.
     """
     parts = name.split(".")
