@@ -201,6 +201,17 @@ def test_a_model_built_in_memory_is_identified_by_its_arrays():
     assert tuple(model_identity("T1C", shipped)) == MODEL_IDENTITY_KEYS[:3]
 
 
+def test_one_net_is_identified_as_an_ensemble_of_one():
+    """segment_tumor takes one U-Net or several: the identity reads both (the API's path)."""
+    from tumor3d.learned.shipped import shipped_cnn
+
+    nets = shipped_cnn("flair")
+    model = shipped_model("flair")
+    one = model_identity("flair", model, nets[0])
+    ensemble_of_one = model_identity("flair", model, nets[:1])
+    assert one["cnn_sha256"] == [nets[0].sha256] == ensemble_of_one["cnn_sha256"]
+
+
 @pytest.mark.parametrize("method", ["robust", "learned", "paper"])
 def test_the_detection_in_memory_segments_as_the_stored_one(case, method):
     """segment_detected (tumor3d.reconstruct's entry) and segment_patient (the stage's, from

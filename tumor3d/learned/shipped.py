@@ -156,7 +156,7 @@ def learned_models(modality: str, learned_cnn: str = "auto") -> dict[str, Any]:
 
 
 def model_identity(
-    modality: str, model: ForestModel, cnn: Sequence[UNetWeights] | None = None
+    modality: str, model: ForestModel, cnn: UNetWeights | Sequence[UNetWeights] | None = None
 ) -> dict[str, Any]:
     """The learned method's models as a run records them (stage values, ``provenance.json``).
 
@@ -164,7 +164,8 @@ def model_identity(
     the sequence's family, :func:`model_file`) and ``model_sha256`` (of that file, as
     ``training.json`` and ``sha256sum`` give it; a model built in memory: of its arrays and
     metadata); with the U-Nets averaged with the forest (``cnn``), ``cnn_model`` (their
-    files' stems, :data:`CNN_MODELS`) and ``cnn_sha256`` (in that order).
+    files' stems, :data:`CNN_MODELS`) and ``cnn_sha256`` (in that order; one net or an
+    ensemble, as :func:`tumor3d.segmentation.segment.segment_tumor` takes them).
     """
     out: dict[str, Any] = {
         "model": model.meta.get("name", "shipped"),
@@ -174,6 +175,6 @@ def model_identity(
     if cnn is not None:
         out.update(
             cnn_model=list(CNN_MODELS[modality.lower()]),  # in cnn_sha256's order
-            cnn_sha256=[n.sha256 for n in cnn],
+            cnn_sha256=[n.sha256 for n in ((cnn,) if isinstance(cnn, UNetWeights) else cnn)],
         )
     return out
