@@ -68,8 +68,9 @@ T2 data of Arakeri & Reddy (2013), IJSIP 6(3).
 """
 
 # The package's modules: shape (analytic tumour), head (head model), raster
-# (numba kernels), patient (assembly). The private names are re-exported for
-# the tests that check the kernels against reference implementations.
+# (numba kernels), settings (the arguments checked, presets), patient (assembly).
+# The private names are re-exported for the tests that check the kernels against
+# reference implementations.
 from tumor3d.phantom.head import _Head, _random_head  # noqa: F401
 from tumor3d.phantom.patient import PhantomPatient, make_phantom_patient
 from tumor3d.phantom.raster import (  # noqa: F401

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.imaging.identity import validate_patient_id
 from tumor3d.imaging.scan import Scan, SourceGrid
 from tumor3d.phantom.head import _T_CSF_MM, _Head, _random_head
 from tumor3d.phantom.raster import (
@@ -21,14 +20,8 @@ from tumor3d.phantom.raster import (
     _mask_in_box,
     _render,
 )
+from tumor3d.phantom.settings import _Settings, _validated_settings
 from tumor3d.phantom.shape import TumorShape, _scaled_shape, random_tumor_shape, tumor_volume_mm3
-from tumor3d.validation import check_int, check_positive
-
-# Presets: in-plane matrix (rows, columns) and pixel spacing in mm.
-_PRESETS: dict[str, tuple[tuple[int, int], float]] = {
-    "default": ((256, 256), 0.9375),  # 240 x 240 mm
-    "paper": ((480, 640), 0.45),  # 216 mm (rows, A-P) x 288 mm (columns, L-R)
-}
 
 
 def _place_tumor(
@@ -224,72 +217,97 @@ def make_phantom_patient(
     the origin chosen so that the grid centre is RAS ``(0, 0, 0)``, the head
     centre.
     """
-    # ---- validation -------------------------------------------------------
-    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
-        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
-    seed = int(seed)
-    if preset not in _PRESETS:
-        raise InputError(f"preset must be one of {sorted(_PRESETS)}, got {preset!r}")
-    if modality not in TISSUE_INTENSITIES:
-        raise InputError(f"modality must be one of {sorted(TISSUE_INTENSITIES)}, got {modality!r}")
-    if not isinstance(tumor, bool | np.bool_):
-        raise InputError(f"tumor must be True or False, got {tumor!r}")
-    pid = f"phantom-{seed}" if patient_id is None else validate_patient_id(patient_id)
-    preset_matrix, preset_spacing = _PRESETS[preset]
-    fov = np.array(preset_matrix) * preset_spacing  # (rows, cols) in mm
-    if matrix_size is not None:
-        if (
-            not isinstance(matrix_size, tuple | list)
-            or len(matrix_size) != 2
-            or any(
-                isinstance(m, bool) or not isinstance(m, int | np.integer) or m < 8
-                for m in matrix_size
-            )
-        ):
-            raise InputError(
-                f"matrix_size must be two integers (rows, columns) >= 8, got {matrix_size!r}"
-            )
-        matrix = (int(matrix_size[0]), int(matrix_size[1]))
-    if pixel_spacing_mm is not None:
-        spacing = check_positive(pixel_spacing_mm, "pixel_spacing_mm", unit="mm")
-    if matrix_size is None and pixel_spacing_mm is None:
-        matrix, spacing = preset_matrix, preset_spacing
-    elif matrix_size is None:
-        matrix = tuple(int(m) for m in np.ceil(fov / spacing - 1e-9))
-    elif pixel_spacing_mm is None:
-        spacing = float(np.max(fov / np.array(matrix)))
-    thickness = check_positive(slice_thickness_mm, "slice_thickness_mm", unit="mm")
-    gap = check_positive(slice_gap_mm, "slice_gap_mm", allow_zero=True, unit="mm")
-    step = thickness + gap
-    noise_fraction = check_positive(noise_fraction, "noise_fraction", allow_zero=True)
-    if noise_fraction >= 1.0:
-        raise InputError(f"noise_fraction must be < 1, got {noise_fraction!r}")
-    bias_field_strength = check_positive(
-        bias_field_strength, "bias_field_strength", allow_zero=True
+    settings = _validated_settings(
+        seed,
+        preset=preset,
+        tumor=tumor,
+        modality=modality,
+        patient_id=patient_id,
+        n_slices=n_slices,
+        matrix_size=matrix_size,
+        pixel_spacing_mm=pixel_spacing_mm,
+        slice_thickness_mm=slice_thickness_mm,
+        slice_gap_mm=slice_gap_mm,
+        noise_fraction=noise_fraction,
+        bias_field_strength=bias_field_strength,
+        fine_step_mm=fine_step_mm,
+        inplane_subsamples=inplane_subsamples,
+        slab_subsamples=slab_subsamples,
     )
-    if bias_field_strength > 0.9:
-        raise InputError(f"bias_field_strength must be <= 0.9, got {bias_field_strength!r}")
-    fine_step_mm = check_positive(fine_step_mm, "fine_step_mm", unit="mm")
-    n_sub_xy = check_int(inplane_subsamples, "inplane_subsamples", minimum=1)
-    n_sub_z = check_int(slab_subsamples, "slab_subsamples", minimum=1)
-    if n_slices is not None:
-        n_slices = check_int(n_slices, "n_slices", minimum=1)
-
-    # ---- geometry -----------------------------------------------------------
-    ss = np.random.SeedSequence(seed)
-    rng_head, rng_tumor, rng_bias, rng_noise = (np.random.default_rng(s) for s in ss.spawn(4))
+    streams = np.random.SeedSequence(settings.seed).spawn(4)
+    rng_head, rng_tumor, rng_bias, rng_noise = (np.random.default_rng(s) for s in streams)
     head = _random_head(rng_head)
-    ny, nx = matrix
+    affine, grid_shape = _slice_grid(head, settings)
+    shape, tumor_info = _plant_tumor(rng_tumor, head, affine, grid_shape[0], settings)
+    tumor_arrays = _tumor_arrays(shape)
+    image, labels, formation = _form_image(
+        rng_bias, rng_noise, head, tumor_arrays, affine, grid_shape, settings
+    )
+    truth = _truth(labels, affine, grid_shape, shape, tumor_arrays, settings)
+    return PhantomPatient(
+        scan=_make_scan(image, affine, grid_shape, settings),
+        slice_masks=truth.slice_masks,
+        fine_mask=truth.fine_mask,
+        fine_affine=truth.fine_affine,
+        tissue_labels=labels,
+        true_volume_mm3=truth.volume_mm3,
+        params=_params_record(
+            settings, grid_shape, head, formation, truth.volume_mm3, shape, tumor_info
+        ),
+        tumor_shape=shape,
+    )
+
+
+# ---------------------------------------------------------------------------
+# The steps of make_phantom_patient
+# ---------------------------------------------------------------------------
+
+
+class _TumorArrays(NamedTuple):
+    """The tumour as the numba kernels take it (see ``TumorShape._packed``).
+
+    ``bbox_mm`` is ``[min3, max3]`` in RAS mm, 2 mm around the surface; an
+    empty box (min > max) without tumour.
+    """
+
+    packed: np.ndarray
+    dirs: np.ndarray
+    amps: np.ndarray
+    kappas: np.ndarray
+    bbox_mm: np.ndarray
+
+
+class _Truth(NamedTuple):
+    """The ground truth: see the fields of :class:`PhantomPatient`."""
+
+    slice_masks: np.ndarray
+    fine_mask: np.ndarray
+    fine_affine: np.ndarray
+    volume_mm3: float
+
+
+def _slice_grid(head: _Head, settings: _Settings) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """The acquisition's affine and ``(nz, ny, nx)`` shape, centred on the head.
+
+    Without ``settings.n_slices`` the slices cover the whole head.
+
+    Raises
+    ------
+    InputError
+        If the field of view cannot hold the head (with 2 mm to spare each side).
+    """
+    ny, nx = settings.matrix
+    spacing, step = settings.pixel_spacing_mm, settings.slice_step_mm
     ext = head.extent_mm
     if nx * spacing < 2.0 * ext[0] + 4.0 or ny * spacing < 2.0 * ext[1] + 4.0:
         raise InputError(
-            f"matrix_size {matrix} x pixel_spacing_mm {spacing:g} gives a "
+            f"matrix_size {settings.matrix} x pixel_spacing_mm {spacing:g} gives a "
             f"{ny * spacing:.0f} x {nx * spacing:.0f} mm field of view (rows x columns), too "
             f"small for this head ({2 * ext[1] + 4:.0f} x {2 * ext[0] + 4:.0f} mm needed)"
         )
-    if n_slices is None:
-        n_slices = int(np.ceil(2.0 * ext[2] / step)) + 1
-    nz = n_slices
+    nz = settings.n_slices
+    if nz is None:
+        nz = int(np.ceil(2.0 * ext[2] / step)) + 1
     affine = np.array(
         [
             [-spacing, 0.0, 0.0, spacing * (nx - 1) / 2.0],
@@ -298,25 +316,104 @@ def make_phantom_patient(
             [0.0, 0.0, 0.0, 1.0],
         ]
     )
-    z_first, z_last = affine[2, 3], affine[2, 3] + step * (nz - 1)
+    return affine, (nz, ny, nx)
 
-    shape: TumorShape | None = None
-    tumor_info: dict[str, Any] = {}
-    if tumor:
-        shape, tumor_info = _place_tumor(rng_tumor, head, (z_first, z_last))
-        tum, dirs, amps, kappas = shape._packed()
-        surf = shape.surface_points(64, 128)
-        tum_bbox = np.concatenate([surf.min(axis=0) - 2.0, surf.max(axis=0) + 2.0])
-    else:
-        tum = np.zeros(20)
-        dirs, amps, kappas = np.zeros((0, 3)), np.zeros(0), np.zeros(0)
-        tum_bbox = np.array([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])  # empty box
 
-    # ---- image formation ----------------------------------------------------
-    values = np.array(TISSUE_INTENSITIES[modality])
-    sub_xy = (np.arange(n_sub_xy) + 0.5) / n_sub_xy - 0.5
-    sub_z = ((np.arange(n_sub_z) + 0.5) / n_sub_z - 0.5) * thickness / step
-    clean, labels = _render(
+def _plant_tumor(
+    rng: np.random.Generator,
+    head: _Head,
+    affine: np.ndarray,
+    n_slices: int,
+    settings: _Settings,
+) -> tuple[TumorShape | None, dict[str, Any]]:
+    """The tumour between the first and last slice centres and its placement record.
+
+    ``(None, {})`` without tumour (``rng`` is then not drawn from).
+    """
+    if not settings.tumor:
+        return None, {}
+    z_first_mm = affine[2, 3]
+    z_last_mm = affine[2, 3] + settings.slice_step_mm * (n_slices - 1)
+    return _place_tumor(rng, head, (z_first_mm, z_last_mm))
+
+
+def _tumor_arrays(shape: TumorShape | None) -> _TumorArrays:
+    """Pack ``shape`` for the kernels; zero-size arrays and an empty box for None."""
+    if shape is None:
+        return _TumorArrays(
+            packed=np.zeros(20),
+            dirs=np.zeros((0, 3)),
+            amps=np.zeros(0),
+            kappas=np.zeros(0),
+            bbox_mm=np.array([1.0, 1.0, 1.0, -1.0, -1.0, -1.0]),  # empty box
+        )
+    packed, dirs, amps, kappas = shape._packed()
+    surf = shape.surface_points(64, 128)
+    bbox_mm = np.concatenate([surf.min(axis=0) - 2.0, surf.max(axis=0) + 2.0])
+    return _TumorArrays(packed, dirs, amps, kappas, bbox_mm)
+
+
+def _form_image(
+    rng_bias: np.random.Generator,
+    rng_noise: np.random.Generator,
+    head: _Head,
+    tumor_arrays: _TumorArrays,
+    affine: np.ndarray,
+    grid_shape: tuple[int, int, int],
+    settings: _Settings,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Render the slices, apply the bias field and add Rician noise.
+
+    Returns
+    -------
+    image : float32 ndarray, shape (nz, ny, nx)
+        Read-only.
+    labels : uint8 ndarray, shape (nz, ny, nx)
+        Tissue label at each pixel centre of each slice centre plane; read-only.
+    record : dict
+        The image formation's entries of :attr:`PhantomPatient.params`, in order.
+    """
+    values = np.array(TISSUE_INTENSITIES[settings.modality])
+    clean, labels = _render_slices(head, tumor_arrays, affine, grid_shape, values, settings)
+    bias, bias_coef = _bias_field(rng_bias, head, affine, grid_shape, settings.bias_field_strength)
+    clean *= bias
+    noise_free_max = float(clean.max())
+    sigma = settings.noise_fraction * noise_free_max
+    image = _add_rician_noise(rng_noise, clean, sigma)
+    for arr in (image, labels):
+        arr.setflags(write=False)  # owned here: read-only without a copy
+    record = {
+        "tissue_intensities": dict(
+            zip(LABEL_NAMES.values(), (float(v) for v in values), strict=True)
+        ),
+        "bias_field_strength": settings.bias_field_strength,
+        "bias_field_coefficients": bias_coef,
+        "noise_fraction": settings.noise_fraction,
+        "noise_free_max": noise_free_max,
+        "noise_sigma": sigma,
+    }
+    return image, labels, record
+
+
+def _render_slices(
+    head: _Head,
+    tumor_arrays: _TumorArrays,
+    affine: np.ndarray,
+    grid_shape: tuple[int, int, int],
+    values: np.ndarray,
+    settings: _Settings,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-free partial-volume intensities (float64) and labels of every slice.
+
+    Each pixel averages ``n_sub_xy**2`` in-plane sub-samples times ``n_sub_z``
+    samples through the slice thickness.
+    """
+    nz, ny, nx = grid_shape
+    n_xy, n_z = settings.n_sub_xy, settings.n_sub_z
+    thickness, step = settings.slice_thickness_mm, settings.slice_step_mm
+    sub_xy = (np.arange(n_xy) + 0.5) / n_xy - 0.5
+    sub_z = ((np.arange(n_z) + 0.5) / n_z - 0.5) * thickness / step
+    return _render(
         affine,
         nz,
         ny,
@@ -327,95 +424,129 @@ def make_phantom_patient(
         head.wob_h,
         head.wob_b,
         head.ventricles,
-        tum,
-        dirs,
-        amps,
-        kappas,
-        tum_bbox,
+        tumor_arrays.packed,
+        tumor_arrays.dirs,
+        tumor_arrays.amps,
+        tumor_arrays.kappas,
+        tumor_arrays.bbox_mm,
         values,
         True,
     )
-    bias, bias_coef = _bias_field(rng_bias, head, affine, (nz, ny, nx), bias_field_strength)
-    clean *= bias
-    noise_free_max = float(clean.max())
-    sigma = noise_fraction * noise_free_max
+
+
+def _add_rician_noise(rng: np.random.Generator, clean: np.ndarray, sigma: float) -> np.ndarray:
+    """``sqrt((I + sigma n1)^2 + (sigma n2)^2)`` in float32, ``n1, n2 ~ N(0, 1)``."""
     clean = clean.astype(np.float32)
-    n1 = rng_noise.standard_normal(clean.shape, dtype=np.float32)
-    n2 = rng_noise.standard_normal(clean.shape, dtype=np.float32)
+    n1 = rng.standard_normal(clean.shape, dtype=np.float32)
+    n2 = rng.standard_normal(clean.shape, dtype=np.float32)
     n1 *= np.float32(sigma)
     n1 += clean
     n2 *= np.float32(sigma)
-    image = np.hypot(n1, n2)
+    return np.hypot(n1, n2)
 
-    # ---- truth --------------------------------------------------------------
+
+def _truth(
+    labels: np.ndarray,
+    affine: np.ndarray,
+    grid_shape: tuple[int, int, int],
+    shape: TumorShape | None,
+    tumor_arrays: _TumorArrays,
+    settings: _Settings,
+) -> _Truth:
+    """The slice masks, the fine-grid mask and its affine, and the exact volume.
+
+    The fine planes run every ``settings.fine_step_mm`` from the first slice
+    centre; all arrays are read-only.
+    """
+    nz, ny, nx = grid_shape
     slice_masks = labels == _TUMOR
-    n_fine = int(np.floor((nz - 1) * step / fine_step_mm + 1e-9)) + 1
+    n_fine = int(np.floor((nz - 1) * settings.slice_step_mm / settings.fine_step_mm + 1e-9)) + 1
     fine_affine = affine.copy()
-    fine_affine[2, 2] = fine_step_mm
+    fine_affine[2, 2] = settings.fine_step_mm
     fine_mask = np.zeros((n_fine, ny, nx), dtype=bool)
-    volume = 0.0
+    volume_mm3 = 0.0
     if shape is not None:
-        volume = tumor_volume_mm3(shape)
-        lo, hi = _index_box(fine_affine, tum_bbox, fine_mask.shape)
-        _mask_in_box(fine_affine, lo, hi, tum, dirs, amps, kappas, fine_mask)
-
-    for arr in (image, slice_masks, fine_mask, fine_affine, labels):
+        volume_mm3 = tumor_volume_mm3(shape)
+        lo, hi = _index_box(fine_affine, tumor_arrays.bbox_mm, fine_mask.shape)
+        _mask_in_box(
+            fine_affine,
+            lo,
+            hi,
+            tumor_arrays.packed,
+            tumor_arrays.dirs,
+            tumor_arrays.amps,
+            tumor_arrays.kappas,
+            fine_mask,
+        )
+    for arr in (slice_masks, fine_mask, fine_affine):
         arr.setflags(write=False)  # owned here: read-only without a copy
-    scan = Scan(
+    return _Truth(slice_masks, fine_mask, fine_affine, volume_mm3)
+
+
+def _make_scan(
+    image: np.ndarray,
+    affine: np.ndarray,
+    grid_shape: tuple[int, int, int],
+    settings: _Settings,
+) -> Scan:
+    """Wrap the image as the thick-slice :class:`Scan` with its provenance."""
+    nz, ny, nx = grid_shape
+    spacing = settings.pixel_spacing_mm
+    return Scan(
         image=image,
         affine=affine,
         pixel_spacing_mm=(spacing, spacing),
-        slice_step_mm=step,
-        slice_thickness_mm=thickness,
-        slice_gap_mm=gap,
-        modality=modality,
-        patient_id=pid,
-        source=f"synthetic phantom seed={seed} preset={preset} tumor={bool(tumor)}",
+        slice_step_mm=settings.slice_step_mm,
+        slice_thickness_mm=settings.slice_thickness_mm,
+        slice_gap_mm=settings.slice_gap_mm,
+        modality=settings.modality,
+        patient_id=settings.patient_id,
+        source=(
+            f"synthetic phantom seed={settings.seed} preset={settings.preset} "
+            f"tumor={settings.tumor}"
+        ),
         source_grid=SourceGrid(shape=(nx, ny, nz), affine=affine, axes=(0, 1, 2)),
     )
+
+
+def _params_record(
+    settings: _Settings,
+    grid_shape: tuple[int, int, int],
+    head: _Head,
+    formation: dict[str, Any],
+    volume_mm3: float,
+    shape: TumorShape | None,
+    tumor_info: dict[str, Any],
+) -> dict[str, Any]:
+    """The JSON-able :attr:`PhantomPatient.params`: everything that was drawn or chosen."""
+    nz, ny, nx = grid_shape
     params: dict[str, Any] = {
-        "seed": seed,
-        "preset": preset,
-        "modality": modality,
-        "tumor": bool(tumor),
+        "seed": settings.seed,
+        "preset": settings.preset,
+        "modality": settings.modality,
+        "tumor": settings.tumor,
         "matrix_size_rows_cols": [ny, nx],
-        "pixel_spacing_mm": spacing,
+        "pixel_spacing_mm": settings.pixel_spacing_mm,
         "n_slices": nz,
-        "slice_thickness_mm": thickness,
-        "slice_gap_mm": gap,
-        "slice_step_mm": step,
-        "fine_step_mm": fine_step_mm,
-        "inplane_subsamples": n_sub_xy,
-        "slab_subsamples": n_sub_z,
+        "slice_thickness_mm": settings.slice_thickness_mm,
+        "slice_gap_mm": settings.slice_gap_mm,
+        "slice_step_mm": settings.slice_step_mm,
+        "fine_step_mm": settings.fine_step_mm,
+        "inplane_subsamples": settings.n_sub_xy,
+        "slab_subsamples": settings.n_sub_z,
         "head": head.to_dict(),
-        "tissue_intensities": dict(
-            zip(LABEL_NAMES.values(), (float(v) for v in values), strict=True)
-        ),
-        "bias_field_strength": bias_field_strength,
-        "bias_field_coefficients": bias_coef,
-        "noise_fraction": noise_fraction,
-        "noise_free_max": noise_free_max,
-        "noise_sigma": sigma,
-        "true_volume_mm3": volume,
+        **formation,
+        "true_volume_mm3": volume_mm3,
     }
     if shape is not None:
         params["tumor_shape"] = {
             **shape.to_dict(),
             **tumor_info,
-            "equivalent_diameter_mm": float((6.0 * volume / np.pi) ** (1.0 / 3.0)),
+            "equivalent_diameter_mm": float((6.0 * volume_mm3 / np.pi) ** (1.0 / 3.0)),
             "drift_note": "cross-section centroids drift by the shear s(z) = "
             "sum_k shear_coefficients[:, k] z^(k+1), z relative to center_mm",
         }
-    return PhantomPatient(
-        scan=scan,
-        slice_masks=slice_masks,
-        fine_mask=fine_mask,
-        fine_affine=fine_affine,
-        tissue_labels=labels,
-        true_volume_mm3=volume,
-        params=params,
-        tumor_shape=shape,
-    )
+    return params
 
 
 def _index_box(affine: np.ndarray, bbox_mm: np.ndarray, shape: tuple[int, int, int]):
