@@ -147,8 +147,9 @@ def segment_tumor(
         (:func:`tumor3d.segmentation.methods.method_names`); see above.
     wavelet, fuzziness, tol, max_num_iter, min_tumor_pixels, keep_largest_3d_component,
     component_tolerance_px, rim_px, max_brain_fraction, refine_boundary, min_tumor_slices
-        Paper-method parameters (see :func:`_segment_paper`); the robust
-        method uses the last three listed above.
+        Paper-method parameters (see
+        :func:`~tumor3d.segmentation.segment.paper.segment_paper`); the robust method uses
+        the last three listed above.
     multiotsu_classes : int
         Peer: number of multi-Otsu classes (2-6).
     lesion : mapping, optional

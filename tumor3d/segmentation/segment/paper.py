@@ -49,22 +49,7 @@ from tumor3d.segmentation.segment.result import N_GRAY, SegmentationResult
 
 
 def _segment_paper(
-    enhanced: np.ndarray,
-    brain_mask: np.ndarray,
-    detection: SliceDetection,
-    *,
-    modality: str = "t2",
-    wavelet: str = "haar",
-    fuzziness: float = 2.0,
-    tol: float = 1e-3,
-    max_num_iter: int = 100,
-    min_tumor_pixels: int = 20,
-    keep_largest_3d_component: bool = True,
-    component_tolerance_px: int = 3,
-    rim_px: int = 3,
-    max_brain_fraction: float = 0.5,
-    refine_boundary: bool = True,
-    min_tumor_slices: int = 2,
+    img: np.ndarray, brain: np.ndarray, detection: SliceDetection, p: _PaperParams
 ) -> SegmentationResult:
     """The paper's segmentation (``method="paper"``, specification section 3).
 
@@ -91,52 +76,17 @@ def _segment_paper(
 
     Parameters
     ----------
-    enhanced : (z, y, x) ndarray of uint8
-        ``J`` of section 1 (or another dtype holding whole gray levels 0-255).
-    brain_mask : (z, y, x) ndarray of bool
-        ``M_brain`` of section 1 (or 0/1 values of another dtype).
+    img, brain : (z, y, x) ndarray
+        ``J`` (uint8) and ``M_brain`` (bool), checked by :func:`_checked_paper_inputs`.
     detection : SliceDetection
         Section 2 result for the same slices (``k`` and the seeds).
-    modality : {"t2", "flair", "t1c"}
-        Sequence (case-insensitive), for the plausibility check and the rule.
-    wavelet : {"haar"}
-        Wavelet of the one-level DWT; only Haar makes ``LL/2`` the block mean.
-    fuzziness, tol, max_num_iter : float, float, int
-        FCM exponent ``m > 1``, stop threshold on the centre change (gray
-        levels) and iteration limit.
-    min_tumor_pixels : int
-        Smallest tumour component kept on a slice, pixels.
-    keep_largest_3d_component : bool
-        Keep only the largest group of slice masks linked across slices.
-    component_tolerance_px : int
-        In-plane dilation radius (pixels) linking masks of consecutive slices.
-    rim_px : int
-        Width (pixels) of the brain rim where no tumour component is seeded (0: literal step 5).
-    max_brain_fraction : float
-        Largest share of a slice's brain cross-section the tumour may cover; 1 disables it.
-    refine_boundary : bool
-        Decide the pixels on the tumour's boundary by partial volume.
-    min_tumor_slices : int
-        With ``keep_largest_3d_component``, the fewest acquired slices the kept tumour spans.
+    p : _PaperParams
+        The checked parameters (:func:`segment_paper` describes them).
 
     Returns
     -------
     SegmentationResult
-
-    Raises
-    ------
-    InputError
-        On wrong dimensions, dtypes or shapes, a detection of another length,
-        an unknown modality or wavelet, or an out-of-range parameter.
     """
-    img, brain, p = _checked_paper_inputs(
-        enhanced, brain_mask, detection, modality=modality, wavelet=wavelet,
-        fuzziness=fuzziness, tol=tol, max_num_iter=max_num_iter,
-        min_tumor_pixels=min_tumor_pixels, keep_largest_3d_component=keep_largest_3d_component,
-        component_tolerance_px=component_tolerance_px, rim_px=rim_px,
-        max_brain_fraction=max_brain_fraction, refine_boundary=refine_boundary,
-        min_tumor_slices=min_tumor_slices,
-    )  # fmt: skip
     hists = _ll_histograms(img, brain)  # step 1 [A7]: h_LL of every slice
     # step 4 [A8]: the reference centres, from the slices that are not abnormal
     ref = _reference_centers(hists[~detection.abnormal].sum(axis=0), p.m, p.tol, p.max_num_iter)
@@ -186,7 +136,7 @@ def _checked_paper_inputs(
     """``J`` as uint8, ``M_brain`` as bool and the parameters of :func:`_segment_paper`.
 
     Raises :class:`~tumor3d.errors.InputError` on the first input found wrong
-    (see :func:`_segment_paper`).
+    (see :func:`segment_paper`).
     """
     img, brain = _check_pair(enhanced, brain_mask)
     if not isinstance(detection, SliceDetection):
@@ -477,24 +427,64 @@ def segment_paper(
     spacing_mm: tuple[float, float, float] | None,
     head_exterior: np.ndarray | None,
 ) -> SegmentationResult:
-    """The paper's method (:func:`_segment_paper`) with the caveats of its mask."""
-    res = _segment_paper(
-        enhanced,
-        brain_mask,
-        detection,
-        modality=modality,
-        wavelet=wavelet,
-        fuzziness=fuzziness,
-        tol=tol,
-        max_num_iter=max_num_iter,
-        min_tumor_pixels=min_tumor_pixels,
-        keep_largest_3d_component=keep_largest_3d_component,
-        component_tolerance_px=component_tolerance_px,
-        rim_px=rim_px,
-        max_brain_fraction=max_brain_fraction,
-        refine_boundary=refine_boundary,
+    """The paper's method (:func:`_segment_paper`: its steps) with the caveats of its mask.
+
+    Parameters
+    ----------
+    enhanced : (z, y, x) ndarray of uint8
+        ``J`` of section 1 (or another dtype holding whole gray levels 0-255).
+    brain_mask : (z, y, x) ndarray of bool
+        ``M_brain`` of section 1 (or 0/1 values of another dtype).
+    detection : SliceDetection
+        Section 2 result for the same slices (``k`` and the seeds).
+    modality : {"t2", "flair", "t1c"}
+        Sequence (case-insensitive), for the plausibility check and the rule.
+    wavelet : {"haar"}
+        Wavelet of the one-level DWT; only Haar makes ``LL/2`` the block mean.
+    fuzziness, tol, max_num_iter : float, float, int
+        FCM exponent ``m > 1``, stop threshold on the centre change (gray
+        levels) and iteration limit.
+    min_tumor_pixels : int
+        Smallest tumour component kept on a slice, pixels.
+    keep_largest_3d_component : bool
+        Keep only the largest group of slice masks linked across slices.
+    component_tolerance_px : int
+        In-plane dilation radius (pixels) linking masks of consecutive slices.
+    rim_px : int
+        Width (pixels) of the brain rim where no tumour component is seeded (0: literal step 5).
+    max_brain_fraction : float
+        Largest share of a slice's brain cross-section the tumour may cover; 1 disables it.
+    refine_boundary : bool
+        Decide the pixels on the tumour's boundary by partial volume.
+    min_tumor_slices : int
+        With ``keep_largest_3d_component``, the fewest acquired slices the kept tumour spans.
+    spacing_mm : (3,) tuple of float, optional
+        Voxel spacing ``(slice step, row, column)`` for the mask's caveats.
+    head_exterior : (z, y, x) ndarray of bool, optional
+        The air outside a raw head, for the scalp caveat.
+
+    Returns
+    -------
+    SegmentationResult
+        With ``method="paper"`` and the caveats of its mask
+        (:func:`~tumor3d.segmentation.caveats.segmentation_caveats`,
+        :func:`premise_caveat`).
+
+    Raises
+    ------
+    InputError
+        On wrong dimensions, dtypes or shapes, a detection of another length,
+        an unknown modality or wavelet, or an out-of-range parameter.
+    """
+    img, brain, p = _checked_paper_inputs(
+        enhanced, brain_mask, detection, modality=modality, wavelet=wavelet,
+        fuzziness=fuzziness, tol=tol, max_num_iter=max_num_iter,
+        min_tumor_pixels=min_tumor_pixels, keep_largest_3d_component=keep_largest_3d_component,
+        component_tolerance_px=component_tolerance_px, rim_px=rim_px,
+        max_brain_fraction=max_brain_fraction, refine_boundary=refine_boundary,
         min_tumor_slices=min_tumor_slices,
-    )
+    )  # fmt: skip
+    res = _segment_paper(img, brain, detection, p)
     caveats = segmentation_caveats(
         res.tumor_mask, spacing_mm=spacing_mm, head_exterior=head_exterior
     )
