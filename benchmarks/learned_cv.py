@@ -584,6 +584,15 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--save-prob", default=None, help="folder for out-of-fold probabilities")
     ap.add_argument(
+        "--save-models",
+        default=None,
+        metavar="DIR",
+        help="learned: write each fold's forests (DIR/<family>_fold<k>.npz, as the shipped "
+        "files, their metadata naming the fold and its held-out patients) and DIR/folds.json "
+        "(patient -> fold, image file -> patient): the models that never saw a case, for the "
+        "real-data benchmarks' --oof-models (benchmarks/oof_models.py)",
+    )
+    ap.add_argument(
         "--cnn-folds",
         default=None,
         nargs="+",
@@ -649,6 +658,10 @@ def main(argv=None) -> int:
         lgg = [s for s in specs if s.group == "lgg"][: args.limit_lgg]
         specs = [s for s in specs if s.group != "lgg"] + lgg
     folds = assign_folds(specs, args.folds)
+    if args.save_models:
+        if args.method != "learned" or args.auto_context:
+            ap.error("--save-models writes the learned method's fold forests (not auto-context)")
+        write_fold_map(Path(args.save_models) / "folds.json", specs, folds)
     t0 = time.perf_counter()
     preps = []
     want_prior = args.method == "learned" and args.prior
@@ -703,8 +716,14 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
             if parts and fam in needed:
                 t1 = time.perf_counter()
                 models[fam] = train_forest(
-                    TrainingRows.concatenate(parts), params=_forest_params(args)
+                    TrainingRows.concatenate(parts),
+                    params=_forest_params(args),
+                    meta=_fold_meta(fam, mods, k, folds, args) if args.save_models else None,
                 )
+                if args.save_models:
+                    d = Path(args.save_models)
+                    d.mkdir(parents=True, exist_ok=True)
+                    (d / f"{fam}_fold{k}.npz").write_bytes(models[fam].to_bytes())
                 print(
                     f"fold {k} {fam}: {sum(len(r.y) for r in parts)} rows, "
                     f"{time.perf_counter() - t1:.0f} s",
@@ -775,6 +794,27 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
 
 
 FAMILIES = (("hyper", ("flair", "t2")), ("t1c", ("t1c",)))
+
+
+def _fold_meta(fam: str, mods, k: int, folds: dict[str, int], args) -> dict:
+    """A fold forest's metadata: as a shipped model's cut, plus the fold and who it never saw."""
+    return {
+        "name": f"tumor3d-{fam}-fold{k}",
+        "family": fam,
+        "modalities": list(mods),
+        "threshold": _threshold(args, fam),
+        "keep_fraction": args.keep_fraction,
+        "prior": "robust" if args.prior else None,
+        "fold": k,
+        "held_out_patients": sorted(p for p, f in folds.items() if f == k),
+    }
+
+
+def write_fold_map(path: Path, specs: list[CaseSpec], folds: dict[str, int]) -> None:
+    """``folds.json``: each patient's fold, and each case's image file's patient."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    images = {str(Path(s.image).resolve()): s.patient for s in specs}
+    path.write_text(json.dumps({"folds": folds, "images": images}, indent=1, sort_keys=True))
 
 
 def _fold_cnn(folders: list[str], k: int):

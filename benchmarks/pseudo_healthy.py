@@ -35,6 +35,11 @@ Usage::
 
     TUMOR3D_DATA_DIR=/work/shared/data python benchmarks/pseudo_healthy.py [--cases pat0004 ...] \
         [--modality t1c]   # the same cases' T1c without tumour (no implants)
+        [--oof-models DIR --cnn-folds DIR ...]   # the learned models that never saw the case
+
+The default configuration runs the learned method on FLAIR and T1c; its shipped models
+were trained on these patients (their normal tissue included): ``--oof-models``
+(``benchmarks/oof_models.py``) runs each case with the fold's models that never saw it.
 """
 
 from __future__ import annotations
@@ -112,16 +117,16 @@ def ball_fraction(shape, centre, radius: float, ss: int = 3) -> np.ndarray:
     return f
 
 
-def _run(img, scan, cfg, lr_axis, thick: bool, modality: str = "flair"):
+def _run(img, scan, cfg, lr_axis, thick: bool, modality: str = "flair", models=None):
     if thick:
         img, spacing = rs.emulate_thick(img, 2), (rs.STEP * scan.slice_step_mm, 1.0, 1.0)
     else:
         spacing = (scan.slice_step_mm, 1.0, 1.0)
-    _, det, seg, _ = rs.run_pipeline(img, cfg, modality, None, spacing, lr_axis)
+    _, det, seg, _ = rs.run_pipeline(img, cfg, modality, None, spacing, lr_axis, models)
     return det, seg.tumor_mask, spacing
 
 
-def _implanted(healthy, brain, texture, gray, centre, radius_mm, scan, cfg, axis):
+def _implanted(healthy, brain, texture, gray, centre, radius_mm, scan, cfg, axis, models=None):
     """A sphere implanted at ``gray`` (the texture kept), run at 2 mm / 5 mm and at 1 mm.
 
     Returns its volume (mL) and, for the thick then the thin run, ``(soft Dice, volume
@@ -131,13 +136,13 @@ def _implanted(healthy, brain, texture, gray, centre, radius_mm, scan, cfg, axis
     im = np.where(brain, (1.0 - f) * healthy + f * (gray + texture), healthy)
     runs = []
     for thick in (True, False):
-        _, mask, spacing = _run(im, scan, cfg, axis, thick)
+        _, mask, spacing = _run(im, scan, cfg, axis, thick, models=models)
         ref = rs.emulate_thick(f, 2) if thick else f
         runs.append((rs.soft_dice(mask, ref), float(mask.sum()) * float(np.prod(spacing)) / 1000.0))
     return float(f.sum()) / 1000.0, runs
 
 
-def _placements(healthy, brain, texture, gray, scan, cfg, axis, n: int) -> None:
+def _placements(healthy, brain, texture, gray, scan, cfg, axis, n: int, models=None) -> None:
     """Spheres of 10 mm radius at ``gray``, ``n`` per depth class, at random places.
 
     Depth classes by the 3-D distance to the brain's outside against the brain's
@@ -169,7 +174,7 @@ def _placements(healthy, brain, texture, gray, scan, cfg, axis, n: int) -> None:
         sel = np.flatnonzero((d >= lo_d) & (d < hi_d) & where_ok)
         for k in rng.choice(sel, n, replace=False):
             c = np.array([zc[k], yc[k], xc[k]], dtype=np.float64)
-            _, runs = _implanted(healthy, brain, texture, gray, c, 10.0, scan, cfg, axis)
+            _, runs = _implanted(healthy, brain, texture, gray, c, 10.0, scan, cfg, axis, models)
             for thick, (dc, _) in zip((True, False), runs, strict=True):
                 dice[thick, cname == "midline"].append(dc)
             cells = [f"{dc:.2f}" for dc, _ in runs]
@@ -196,11 +201,14 @@ def main(argv=None) -> int:
         default="flair",
         help="t1c: the case's T1c, its whole tumour replaced the same way; no implants",
     )
+    rs.add_config_argument(ap)
+    rs.add_oof_arguments(ap)
     args = ap.parse_args(argv)
+    oof = rs.oof_from_args(args)
     data = rs.real_data_or_skip()
     if data is None:
         return 0
-    cfg = rs.default_config()
+    cfg = rs.default_config(args.config)
     all_cases = {c.name: c for c in rs._cases(data)}
     cases = {c.name: c for c in all_cases.values() if c.modality == "flair" and c.label}
     for name in args.cases:
@@ -208,8 +216,11 @@ def main(argv=None) -> int:
             raise SystemExit(f"unknown case {name!r}: expected one of {sorted(cases)}")
         case = cases[name]
         scan, label = rs.read_case(case)  # the whole tumour (FLAIR label)
+        run_case = case
         if args.modality == "t1c":
-            scan, _ = rs.read_case(all_cases[f"{name}_t1c"])
+            run_case = all_cases[f"{name}_t1c"]
+            scan, _ = rs.read_case(run_case)
+        models = rs.case_models(oof, run_case.image, args.modality, cfg)
         if tuple(scan.pixel_spacing_mm) != (1.0, 1.0) or scan.slice_step_mm != 1.0:
             raise SystemExit(f"{case.image}: expected 1 mm voxels (BraTS)")
         axis = left_right_axis(scan.affine)
@@ -233,7 +244,7 @@ def main(argv=None) -> int:
         print("|---|---|---|")
         cells, where = [], []
         for thick in (True, False):
-            det, mask, spacing = _run(healthy, scan, cfg, axis, thick, args.modality)
+            det, mask, spacing = _run(healthy, scan, cfg, axis, thick, args.modality, models)
             ml = float(mask.sum()) * float(np.prod(spacing)) / 1000.0
             cells.append(f"{int(det.abnormal.sum())} / {det.abnormal.size}, {ml:.2f}")
             where.append(_where(mask))
@@ -249,7 +260,7 @@ def main(argv=None) -> int:
             gray = normal + share * (oedema - normal)
             for r in RADII_MM:
                 true_ml, runs = _implanted(
-                    healthy, brain, texture, gray, centre, r, scan, cfg, axis
+                    healthy, brain, texture, gray, centre, r, scan, cfg, axis, models
                 )
                 cells = [
                     f"{dc:.2f}, {ml:.2f} mL ({100.0 * (ml - true_ml) / true_ml:+.0f} %)"
@@ -257,7 +268,7 @@ def main(argv=None) -> int:
                 ]
                 print(f"| {cname}, r {r:g} mm ({true_ml:.2f} mL) | {cells[0]} | {cells[1]} |")
         if args.placements > 0:
-            _placements(healthy, brain, texture, oedema, scan, cfg, axis, args.placements)
+            _placements(healthy, brain, texture, oedema, scan, cfg, axis, args.placements, models)
     return 0
 
 

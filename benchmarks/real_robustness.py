@@ -43,9 +43,14 @@ A second table gives the tumour volume (Eq. 7, mL) of the volumes without an
 expert tumour label (the tumour-free ones and the clinical T1c, whose label is
 semi-automatic) as given and turned: a normal brain must stay at 0 mL.
 
+The labelled cases are among the shipped learned models' training patients: with
+``--oof-models DIR --cnn-folds DIR ...`` each is run by the cross-validation fold's models
+that never saw it (``benchmarks/oof_models.py``).
+
 Usage::
 
-    TUMOR3D_DATA_DIR=/work/shared/data python benchmarks/real_robustness.py [--cases pat0003 ...]
+    TUMOR3D_DATA_DIR=/work/shared/data python benchmarks/real_robustness.py [--cases pat0003 ...] \
+        [--oof-models DIR --cnn-folds DIR ...]
 """
 
 from __future__ import annotations
@@ -113,11 +118,14 @@ def _variant(img: np.ndarray, name: str, lr_axis: int) -> np.ndarray:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="*", default=None, help="case names (substring match)")
+    rs.add_config_argument(ap)
+    rs.add_oof_arguments(ap)
     args = ap.parse_args(argv)
+    oof = rs.oof_from_args(args)
     data = rs.real_data_or_skip()
     if data is None:
         return 0
-    cfg = rs.default_config()
+    cfg = rs.default_config(args.config)
     variants = (
         "as given", "mirrored", "reversed", "linear", "bias y", "bias z", "noise 8 %",
         "0.5 mm pixels", "5 mm slabs", "7 mm step", "tumour slabs only", *YAWS,
@@ -130,6 +138,7 @@ def main(argv=None) -> int:
         if args.cases and not any(c in case.name for c in args.cases):
             continue
         scan, ref = rs.read_case(case)
+        models = rs.case_models(oof, case.image, case.modality, cfg)
         slab_ref = rs.emulate_thick(ref.astype(np.float64), 2) >= 0.5
         tz = np.flatnonzero(ref.any(axis=(1, 2)))
         cut = slice(int(tz[0]), int(tz[-1]) + 1)  # the thin slices that hold the tumour
@@ -159,7 +168,7 @@ def main(argv=None) -> int:
             elif name == "0.5 mm pixels":
                 thick = ndi.zoom(thick, (1, 2, 2), order=1)
                 sp = (spacing[0], spacing[1] / 2, spacing[2] / 2)
-            _, _, seg, _ = rs.run_pipeline(thick, cfg, case.modality, None, sp, axis)
+            _, _, seg, _ = rs.run_pipeline(thick, cfg, case.modality, None, sp, axis, models)
             mask = seg.tumor_mask
             if name == "mirrored":
                 mask = np.flip(mask, axis=axis)
@@ -187,11 +196,11 @@ def main(argv=None) -> int:
         )
         agree_z = f"{rs.soft_dice(masks['as given'], masks['reversed']):.3f}"
         print(f"| {case.name} | " + " | ".join(cells) + f" | {agree} | {agree_z} |")
-    _unlabelled_table(data, cfg, args.cases)
+    _unlabelled_table(data, cfg, args.cases, oof)
     return 0
 
 
-def _unlabelled_table(data: Path, cfg, only) -> None:
+def _unlabelled_table(data: Path, cfg, only, oof=None) -> None:
     """Tumour volume (mL) of the volumes without an expert label, as given and turned."""
     turns = {"as given": 0.0, "yaw -10": -10.0, "yaw -5": -5.0, "yaw +5": 5.0, "yaw +10": 10.0}
     print()
@@ -205,12 +214,15 @@ def _unlabelled_table(data: Path, cfg, only) -> None:
         scan, _ = rs.read_case(case)
         axis = left_right_axis(scan.affine)
         spacing = (scan.slice_step_mm, *scan.pixel_spacing_mm)
+        # the clinical T1c has a (semi-automatic) label: a cross-validation case; the
+        # tumour-free volumes have none and no model ever saw them
+        models = rs.case_models(oof, case.image, case.modality, cfg) if case.label else None
         cells = []
         for deg in turns.values():
             img = scan.image.astype(np.float64)
             if deg:
                 img = _turned(img, deg)
-            _, _, seg, _ = rs.run_pipeline(img, cfg, case.modality, None, spacing, axis)
+            _, _, seg, _ = rs.run_pipeline(img, cfg, case.modality, None, spacing, axis, models)
             cells.append(f"{float(seg.tumor_mask.sum()) * np.prod(spacing) / 1000.0:.1f}")
         print(f"| {case.name} | " + " | ".join(cells) + " |")
 

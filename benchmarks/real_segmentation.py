@@ -51,7 +51,13 @@ stage.
 Usage::
 
     TUMOR3D_DATA_DIR=/work/shared/data python benchmarks/real_segmentation.py \
-        [--config configs/default.yaml ...] [--cases pat0003 ...] [--native] [--brain-mask]
+        [--config configs/default.yaml ...] [--cases pat0003 ...] [--native] [--brain-mask] \
+        [--oof-models DIR --cnn-folds DIR ...]
+
+The default configuration runs the learned method (FLAIR, T1c) with the shipped models,
+which were trained on these labelled cases: their figures are not accuracy. With
+``--oof-models`` (``learned_cv.py --save-models``) and ``--cnn-folds`` each case is run by
+the models of the cross-validation fold that held its patient out (``oof_models.py``).
 """
 
 from __future__ import annotations
@@ -70,9 +76,12 @@ sys.path.insert(0, str(ROOT))
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.geometry.interpolate import interpolate_stack  # noqa: E402
 from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
+from tumor3d.learned.shipped import learned_models  # noqa: E402
 from tumor3d.segmentation.detect import detect_abnormal_slices  # noqa: E402
 from tumor3d.segmentation.lesion import left_right_axis  # noqa: E402
+from tumor3d.segmentation.methods import method_spec  # noqa: E402
 from tumor3d.segmentation.segment import segment_tumor  # noqa: E402
+from tumor3d.segmentation.segment.definition import resolve_method  # noqa: E402
 from tumor3d.storage.manifest import data_dir  # noqa: E402  (re-exported: rs.data_dir)
 from tumor3d.storage.readers import read_scan  # noqa: E402
 
@@ -127,10 +136,17 @@ def real_data_or_skip() -> Path | None:
     return data
 
 
-def default_config():
-    """``configs/default.yaml``, read by the project's own loader."""
-    path = ROOT / "configs" / "default.yaml"
+def default_config(path: str | Path | None = None):
+    """``path`` (default ``configs/default.yaml``), read by the project's own loader."""
+    path = Path(path) if path else ROOT / "configs" / "default.yaml"
     return parse_config(path.read_text(), source=str(path))
+
+
+def add_config_argument(ap) -> None:
+    """``--config``: one configuration (``configs/robust.yaml``: the rule-based method)."""
+    ap.add_argument("--config", default=None, metavar="YAML",
+                    help="the configuration (default configs/default.yaml: the learned method "
+                         "on FLAIR and T1c; configs/robust.yaml: the rule-based lesion model)")
 
 
 def read_case(case: Case):
@@ -157,7 +173,14 @@ def emulate_thick(vol: np.ndarray, offset: int, step: int = STEP) -> np.ndarray:
     return 0.5 * (vol[idx].astype(np.float64) + vol[idx + 1].astype(np.float64))
 
 
-def run_pipeline(image, cfg, modality, brain_mask=None, spacing_mm=None, lr_axis=None):
+def run_pipeline(image, cfg, modality, brain_mask=None, spacing_mm=None, lr_axis=None,
+                 models=None):
+    """Preprocess, detect and segment ``image`` as the pipeline's stages do.
+
+    Where the configuration's method is the learned one, ``models`` (``segment_tumor``'s
+    ``model`` and ``cnn``: the out-of-fold ones of ``benchmarks/oof_models.py``) or else
+    the shipped models.
+    """
     t = {}
     t0 = time.perf_counter()
     pre = preprocess_volume(image, **cfg.preprocess.model_dump(), brain_mask=brain_mask,
@@ -168,22 +191,58 @@ def run_pipeline(image, cfg, modality, brain_mask=None, spacing_mm=None, lr_axis
                                  spacing_mm=spacing_mm, lr_axis=lr_axis, **cfg.detect.model_dump())
     t["detect"] = time.perf_counter() - t0
     t0 = time.perf_counter()
+    # the learned method (the default on FLAIR and T1c) with the shipped models, as the
+    # segment stage gives them (tumor3d.segmentation.patient.segment_detected): without
+    # them segment_tumor would fall back to the robust method
+    learned = {}
+    if method_spec(resolve_method(cfg.segment.method, modality, det)).needs_model:
+        chosen = models or learned_models(modality, cfg.segment.learned_cnn)
+        learned = {"image": image, **chosen}
     seg = segment_tumor(pre.enhanced, pre.brain_mask, det, modality=modality,
-                        spacing_mm=spacing_mm, lr_axis=lr_axis, **cfg.segment.model_dump())
+                        spacing_mm=spacing_mm, lr_axis=lr_axis, **cfg.segment.model_dump(),
+                        **learned)
     t["segment"] = time.perf_counter() - t0
     return pre, det, seg, t
 
 
-def evaluate(case: Case, cfg, *, native: bool, offset: int, use_mask: bool) -> dict:
+def evaluate(case: Case, cfg, *, native: bool, offset: int, use_mask: bool, oof=None) -> dict:
     scan, label = read_case(case)
     bm = read_scan(case.brainmask).image > 0.5 if (use_mask and case.brainmask) else None
     return evaluate_volume(case.name, scan.image, label, scan, cfg, case.modality,
-                           native=native or case.native_only, offset=offset, brain_mask=bm)
+                           native=native or case.native_only, offset=offset, brain_mask=bm,
+                           models=case_models(oof, case.image, case.modality, cfg))
+
+
+def add_oof_arguments(ap) -> None:
+    """``--oof-models`` and ``--cnn-folds``: the learned method's out-of-fold models."""
+    ap.add_argument("--oof-models", default=None, metavar="DIR",
+                    help="the learned method's fold forests of learned_cv.py --save-models: "
+                         "each case run by the fold that held its patient out "
+                         "(benchmarks/oof_models.py); default: the shipped models, which "
+                         "were trained on these cases")
+    ap.add_argument("--cnn-folds", nargs="*", default=None, metavar="DIR",
+                    help="with --oof-models: the fold U-Nets (cnn_cv.py; one folder a seed)")
+
+
+def oof_from_args(args):
+    """The :class:`oof_models.OutOfFold` of ``--oof-models``, or None (the shipped models)."""
+    if not args.oof_models:
+        return None
+    from oof_models import OutOfFold
+
+    return OutOfFold(args.oof_models, args.cnn_folds)
+
+
+def case_models(oof, image: str, modality: str, cfg):
+    """The out-of-fold ``model``/``cnn`` of a case's image file, or None (the shipped ones)."""
+    if oof is None:
+        return None
+    return oof.models(image, modality, cfg.segment.learned_cnn)
 
 
 def evaluate_volume(name: str, img: np.ndarray, label: np.ndarray | None, scan, cfg,
                     modality: str, *, native: bool, offset: int,
-                    brain_mask: np.ndarray | None = None) -> dict:
+                    brain_mask: np.ndarray | None = None, models=None) -> dict:
     """:func:`evaluate` on arrays: ``img`` and ``label`` (bool or None) on ``scan``'s grid.
 
     ``scan`` gives the spacing and the affine (left-right axis); with ``native`` the
@@ -201,7 +260,7 @@ def evaluate_volume(name: str, img: np.ndarray, label: np.ndarray | None, scan, 
         step_mm = STEP * scan.slice_step_mm
     spacing = (step_mm, *scan.pixel_spacing_mm)
     pre, det, seg, t = run_pipeline(thick, cfg, modality, bm_t, spacing,
-                                    left_right_axis(scan.affine))
+                                    left_right_axis(scan.affine), models)
     mask = seg.tumor_mask
     px_mm2 = float(np.prod(scan.pixel_spacing_mm))
     vol_eq7 = step_mm * px_mm2 * float(mask.sum())
@@ -283,7 +342,9 @@ def main(argv=None) -> int:
     ap.add_argument("--brain-mask", action="store_true", help="pass BraTS brainmask.nii.gz")
     ap.add_argument("--no-tumor-modality", default="t1c", choices=("t1c", "t2", "flair"),
                     help="modality of the no_tumor volumes (default t1c, as in the manifest)")
+    add_oof_arguments(ap)
     args = ap.parse_args(argv)
+    oof = oof_from_args(args)
     data = data_dir()
     if not (data / "brats2013_pat0003").is_dir():
         print(f"real data not found under {data} (set TUMOR3D_DATA_DIR): skipped")
@@ -299,7 +360,8 @@ def main(argv=None) -> int:
         for case in cases:
             try:
                 row = evaluate(case, cfg, native=args.native, offset=args.offset,
-                               use_mask=args.brain_mask)
+                               use_mask=args.brain_mask,
+                               oof=None if case.label is None else oof)
                 print(_fmt(row), flush=True)
             except Exception as exc:  # report and continue with the next case
                 print(f"{case.name:<12} FAILED: {type(exc).__name__}: {exc}", flush=True)

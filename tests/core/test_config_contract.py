@@ -97,6 +97,25 @@ def test_paper_yaml_is_valid_and_reads_the_paper_method():
     assert paper.interpolate.end_caps == "none"
 
 
+@pytest.mark.parametrize("name", sorted(p.name for p in CONFIGS.glob("*.yaml")))
+def test_every_shipped_config_parses(name):
+    # the configurations the README and the reports name (--config configs/<name>)
+    parse_config((CONFIGS / name).read_text(), source=name)
+
+
+@pytest.mark.parametrize("modality", ["flair", "t2", "t1c", None])
+def test_robust_yaml_runs_the_rule_based_method_on_every_sequence(modality):
+    # configs/robust.yaml: the robust lesion model whatever the sequence (no trained model),
+    # as reports/segmentation.md measures it; the default resolves otherwise on FLAIR
+    from tumor3d.segmentation.segment.definition import resolve_method
+
+    robust = parse_config((CONFIGS / "robust.yaml").read_text(), source="robust.yaml")
+    assert resolve_method(robust.segment.method, modality) == "robust"
+    assert resolve_method(PipelineConfig().segment.method, "flair") == "learned"
+    # only the method differs from the default
+    assert robust.model_copy(update={"segment": PipelineConfig().segment}) == PipelineConfig()
+
+
 def test_lesion_defaults_are_the_lesion_config():
     assert LESION_DEFAULTS == LesionConfig().model_dump()
 
