@@ -38,6 +38,11 @@ rules), the 3-D Dice of the interpolated stack and the Eq. 7 volume error; at
 1 mm the 3-D Dice. Then the mean, the minimum and the spread across the
 cases.
 
+``configs/default.yaml`` runs the learned method with the shipped models, which were
+trained on every donor and host patient here (no cross-validation fold holds out a donor
+and its host together), so its rows are not held-out figures; the rule-based lesion model
+(``--config configs/robust.yaml``) was not trained, only tuned by hand on these cases.
+
 Usage::
 
     TUMOR3D_DATA_DIR=/work/shared/data python benchmarks/transplant.py \
