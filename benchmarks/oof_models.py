@@ -10,7 +10,10 @@ case with the models of the cross-validation fold that held its patient out, as
 - ``DIR``: ``learned_cv.py --method learned ... --save-models DIR`` (the fold forests
   ``<family>_fold<k>.npz`` and ``folds.json``: each patient's fold, each image file's patient);
 - ``--cnn-folds``: the fold U-Nets of ``cnn_cv.py`` (``unet_fold<k>.npz``, the same folds),
-  one folder per training seed, averaged as the shipped ensemble is.
+  one folder per training seed, averaged as the shipped ensemble is; required where the
+  default averages a U-Net in (FLAIR), and a net that records its fold must record ``k``.
+  (``cnn_cv.py`` deals the folds on every case; ``learned_cv.py --limit-lgg`` or another
+  ``--folds`` would deal them otherwise: use the same cases and folds for both.)
 
 The models are read as the pipeline reads its own (``ForestModel.from_bytes``,
 ``unet_from_bytes``); the U-Net is used on the sequences that ship one
@@ -58,8 +61,21 @@ class OutOfFold:
         if self.patient(image) not in model.meta.get("held_out_patients", ()):
             raise ValueError(f"{image}: fold {k}'s forest lists other held-out patients")
         cnn = None
-        if learned_cnn == "auto" and modality.lower() in CNN_MODELS and self.cnn_dirs:
+        if learned_cnn == "auto" and modality.lower() in CNN_MODELS:
+            if not self.cnn_dirs:  # the forest alone would be scored as the default
+                raise ValueError(
+                    f"{image}: {modality} runs the forest + U-Net mean: give the fold U-Nets "
+                    "(--cnn-folds), or segment.learned_cnn: off for the forest alone"
+                )
             cnn = tuple(_net(d / f"unet_fold{k}.npz") for d in self.cnn_dirs)
+            for d, net in zip(self.cnn_dirs, cnn, strict=True):
+                # cnn_cv.py records its fold (nets written before it did record none):
+                # a net of another fold saw this patient
+                if net.meta.get("fold", k) != k:
+                    raise ValueError(
+                        f"{d / f'unet_fold{k}.npz'}: trained as fold {net.meta.get('fold')}, "
+                        f"not {k}"
+                    )
         return {"model": model, "cnn": cnn}
 
 

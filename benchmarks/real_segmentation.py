@@ -220,13 +220,15 @@ def add_oof_arguments(ap) -> None:
                          "each case run by the fold that held its patient out "
                          "(benchmarks/oof_models.py); default: the shipped models, which "
                          "were trained on these cases")
-    ap.add_argument("--cnn-folds", nargs="*", default=None, metavar="DIR",
+    ap.add_argument("--cnn-folds", nargs="+", default=None, metavar="DIR",
                     help="with --oof-models: the fold U-Nets (cnn_cv.py; one folder a seed)")
 
 
 def oof_from_args(args):
     """The :class:`oof_models.OutOfFold` of ``--oof-models``, or None (the shipped models)."""
     if not args.oof_models:
+        if args.cnn_folds:
+            raise SystemExit("--cnn-folds needs --oof-models (the fold forests)")
         return None
     from oof_models import OutOfFold
 
