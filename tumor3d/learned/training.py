@@ -31,9 +31,10 @@ __all__ = [
     "train_forest",
 ]
 
-#: LightGBM parameters of the shipped models. Set once; a nested cross-validation by
-#: patient against three other settings (deeper, longer, shallower trees) kept them
-#: (``reports/learned_cv.md``, "The forest's LightGBM parameters, nested").
+#: LightGBM parameters of the shipped models. Set once; for the FLAIR + T2 forest a nested
+#: cross-validation by patient against three other settings (deeper, longer, shallower
+#: trees) kept them (``reports/learned_cv.md``, "The forest's LightGBM parameters,
+#: nested"); the T1c forest uses the same, not cross-validated on their own.
 TRAIN_PARAMS: dict[str, Any] = {
     "objective": "binary",
     "learning_rate": 0.08,
