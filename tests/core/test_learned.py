@@ -282,6 +282,47 @@ def test_keep_main_lesion_keeps_the_heaviest_region_and_its_peers():
     assert not keep_main_lesion(p, 0.96, min_voxels=1).any()
 
 
+def test_keep_main_lesion_chooses_among_the_regions_the_preferred_mask_touches():
+    p = np.zeros((3, 30, 30), np.float32)
+    p[1, 2:12, 2:12] = 0.9  # 100 voxels, mass 90: the heaviest
+    p[1, 20:26, 20:26] = 0.8  # 36 voxels, mass 28.8
+    p[1, 2:4, 25:27] = 0.95  # 4 voxels
+    prefer = np.zeros(p.shape, bool)
+    prefer[1, 22, 22] = True  # touches the lighter region only
+    m = keep_main_lesion(p, 0.5, keep_fraction=1.0, min_voxels=1, prefer=prefer)
+    assert m.sum() == 36 and m[1, 22, 22]
+    # touching only a region too small to keep, or nothing: the choice is as without it
+    prefer[:] = False
+    prefer[1, 2, 25] = True
+    assert keep_main_lesion(p, 0.5, keep_fraction=1.0, min_voxels=10, prefer=prefer).sum() == 100
+    assert keep_main_lesion(p, 0.5, keep_fraction=1.0, prefer=np.zeros(p.shape, bool)).sum() == 100
+    with pytest.raises(InputError, match="prefer has shape"):
+        keep_main_lesion(p, 0.5, prefer=np.zeros((3, 30, 31), bool))
+
+
+def test_on_t1c_the_lesion_is_chosen_where_the_prior_is(tiny_model, monkeypatch):
+    # segment_learned hands the prior (the robust method's mask) to the region's choice on
+    # T1c only (PRIOR_CHOOSES_REGION), the FLAIR and T2 lesions are chosen as before
+    import tumor3d.learned.segment as learned_segment
+
+    seen = []
+    real = learned_segment.keep_main_lesion
+
+    def spy(*args, prefer=None, **kwargs):
+        seen.append(prefer)
+        return real(*args, prefer=prefer, **kwargs)
+
+    monkeypatch.setattr(learned_segment, "keep_main_lesion", spy)
+    scan, truth = _phantom(7)
+    prior = truth.copy()
+    for modality in ("flair", "t2", "t1c"):
+        learned_segment.segment_learned(
+            scan.image, model=tiny_model, spacing_mm=scan.spacing_zyx_mm, modality=modality,
+            lr_axis=left_right_axis(scan.affine), prior=prior,
+        )  # fmt: skip
+    assert seen[0] is None and seen[1] is None and seen[2] is prior
+
+
 def test_review_flags_a_doubtful_map_and_passes_a_confident_one():
     sure = np.zeros((2, 20, 20), np.float32)
     sure[:, 5:15, 5:15] = 0.97
