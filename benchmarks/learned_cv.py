@@ -60,7 +60,11 @@ from tumor3d.learned.context import context_features  # noqa: E402
 from tumor3d.learned.features import compute_features  # noqa: E402
 from tumor3d.learned.forest import predict_proba  # noqa: E402
 from tumor3d.learned.review import review_features  # noqa: E402
-from tumor3d.learned.segment import keep_main_lesion, segment_learned  # noqa: E402
+from tumor3d.learned.segment import (  # noqa: E402
+    PRIOR_CHOOSES_REGION,
+    keep_main_lesion,
+    segment_learned,
+)
 from tumor3d.learned.shipped import CNN_MODELS  # noqa: E402
 from tumor3d.learned.training import (  # noqa: E402
     TrainingRows,
@@ -760,6 +764,7 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
                     _threshold(args, fam),
                     keep_fraction=args.keep_fraction,
                     min_voxels=max(1, int(round(20.0 / vox))),
+                    prefer=_prefer(p),
                 )
             if args.save_prob:
                 d = Path(args.save_prob)
@@ -910,12 +915,18 @@ def _min_voxels(p: Prepared) -> int:
     return max(1, int(round(20.0 / float(np.prod(p.spacing_mm)))))
 
 
+def _prefer(p: Prepared) -> np.ndarray | None:
+    """The region's choice as the pipeline's (``segment_learned``): on T1c, the prior."""
+    return p.prior if p.spec.modality in PRIOR_CHOOSES_REGION else None
+
+
 def _final_mask(p: Prepared, prob: np.ndarray, args, cfg) -> np.ndarray:
     mask = keep_main_lesion(
         prob,
         _threshold(args, _family(p)),
         keep_fraction=args.keep_fraction,
         min_voxels=_min_voxels(p),
+        prefer=_prefer(p),
     )
     mask[mask.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
     return mask
