@@ -33,12 +33,10 @@ sys.path.insert(0, str(ROOT))
 
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
-from tumor3d.learned.shipped import learned_models  # noqa: E402
 from tumor3d.segmentation.detect import detect_abnormal_slices  # noqa: E402
 from tumor3d.segmentation.lesion import left_right_axis  # noqa: E402
-from tumor3d.segmentation.methods import method_spec  # noqa: E402
+from tumor3d.segmentation.patient import method_models  # noqa: E402
 from tumor3d.segmentation.segment import segment_tumor  # noqa: E402
-from tumor3d.segmentation.segment.definition import resolve_method  # noqa: E402
 from tumor3d.storage.manifest import data_dir  # noqa: E402
 
 
@@ -71,9 +69,10 @@ def _run(image: np.ndarray, spacing_mm, lr_axis, cfg) -> dict[str, float]:
     )
     t["detect"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    learned = {}  # the default's learned method with the shipped models, as the stage gives them
-    if method_spec(resolve_method(cfg.segment.method, "flair", det)).needs_model:
-        learned = {"image": image, **learned_models("flair", cfg.segment.learned_cnn)}
+    # the default's learned method with the shipped models, as the segment stage gives them
+    learned = method_models(
+        cfg.segment.method, "flair", det, lambda: image, cfg.segment.learned_cnn
+    )
     segment_tumor(
         pre.enhanced,
         pre.brain_mask,

@@ -59,8 +59,6 @@ def score_grid(args, cfg) -> dict[str, list[dict]]:
     """Every setting's out-of-fold rows of the FLAIR and T2 cases of ``--rows-in``."""
     import learned_cv as L
 
-    from tumor3d.learned.forest import predict_proba
-    from tumor3d.learned.segment import keep_main_lesion
     from tumor3d.learned.training import TrainingRows, train_forest
     from tumor3d.storage.manifest import data_dir
 
@@ -80,6 +78,7 @@ def score_grid(args, cfg) -> dict[str, list[dict]]:
     print(f"sampled rows in {time.perf_counter() - t0:.0f} s", flush=True)
     mods = dict(L.FAMILIES)["hyper"]
     run = {r["case"]: r for r in rows_in}
+    cut = SimpleNamespace(threshold=args.threshold, t1c_threshold=None, keep_fraction=1.0)
     out: dict[str, list[dict]] = {n: [] for n in GRID}
     worst = 0.0
     for k in range(args.folds):
@@ -96,17 +95,12 @@ def score_grid(args, cfg) -> dict[str, list[dict]]:
                 params = {**params, "seed": int(args.forest_seed)}
             model = train_forest(rows, params=params, num_rounds=rounds)
             for p in held:
-                f = L._features(p)
-                forest = np.zeros(f.shape, np.float32)
-                forest.ravel()[f.index] = predict_proba(model, f.values)
+                forest = L.forest_probability(p, model)
                 prob = forest
                 with np.load(L.case_file(args.prob, p.spec.name)) as z:
                     if "cnn" in z.files:  # FLAIR: the mean with the fold's U-Net ensemble
                         prob = (0.5 * forest + 0.5 * z["cnn"].astype(np.float32)).astype(np.float32)
-                mask = keep_main_lesion(
-                    prob, args.threshold, keep_fraction=1.0, min_voxels=L._min_voxels(p)
-                )
-                mask[mask.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
+                mask = L._final_mask(p, prob, cut, cfg)  # as shipped: main region
                 row = L.score(p, mask, cfg)
                 row["fold"] = k
                 out[name].append(row)

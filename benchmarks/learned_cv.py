@@ -61,8 +61,8 @@ from tumor3d.learned.features import compute_features  # noqa: E402
 from tumor3d.learned.forest import predict_proba  # noqa: E402
 from tumor3d.learned.review import review_features  # noqa: E402
 from tumor3d.learned.segment import (  # noqa: E402
-    PRIOR_CHOOSES_REGION,
     keep_main_lesion,
+    region_preference,
     segment_learned,
 )
 from tumor3d.learned.shipped import CNN_MODELS  # noqa: E402
@@ -755,17 +755,8 @@ def run_learned_cv(preps: list[Prepared], folds: dict[str, int], args, cfg) -> l
                     if seg.cnn_members is not None and len(seg.cnn_members) > 1:
                         parts["cnn_members"] = seg.cnn_members
             else:
-                f = _features(p)
-                prob = np.zeros(f.shape, np.float32)
-                prob.ravel()[f.index] = predict_proba(models[fam], f.values)
-                vox = float(np.prod(p.spacing_mm))
-                mask = keep_main_lesion(
-                    prob,
-                    _threshold(args, fam),
-                    keep_fraction=args.keep_fraction,
-                    min_voxels=max(1, int(round(20.0 / vox))),
-                    prefer=_prefer(p),
-                )
+                prob = forest_probability(p, models[fam])
+                mask = _final_mask(p, prob, args, cfg)
             if args.save_prob:
                 d = Path(args.save_prob)
                 d.mkdir(parents=True, exist_ok=True)
@@ -911,13 +902,16 @@ def case_file(folder: str | Path, case: str) -> Path:
     return Path(folder) / (case.replace("/", "__") + ".npz")
 
 
+def forest_probability(p: Prepared, model) -> np.ndarray:
+    """The forest's probability of every voxel of ``p``'s slices (0 outside the tissue)."""
+    f = _features(p)
+    prob = np.zeros(f.shape, np.float32)
+    prob.ravel()[f.index] = predict_proba(model, f.values)
+    return prob
+
+
 def _min_voxels(p: Prepared) -> int:
     return max(1, int(round(20.0 / float(np.prod(p.spacing_mm)))))
-
-
-def _prefer(p: Prepared) -> np.ndarray | None:
-    """The region's choice as the pipeline's (``segment_learned``): on T1c, the prior."""
-    return p.prior if p.spec.modality in PRIOR_CHOOSES_REGION else None
 
 
 def _final_mask(p: Prepared, prob: np.ndarray, args, cfg) -> np.ndarray:
@@ -926,7 +920,7 @@ def _final_mask(p: Prepared, prob: np.ndarray, args, cfg) -> np.ndarray:
         _threshold(args, _family(p)),
         keep_fraction=args.keep_fraction,
         min_voxels=_min_voxels(p),
-        prefer=_prefer(p),
+        prefer=region_preference(p.spec.modality, p.prior),
     )
     mask[mask.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
     return mask

@@ -91,6 +91,19 @@ def _slabs_5mm(vol: np.ndarray) -> np.ndarray:
 COARSE_STEP = 7  # thin slices (mm at 1 mm) between the slabs of the "7 mm step" column
 
 
+def rician(img: np.ndarray, share: float, seed: int) -> np.ndarray:
+    """``img`` with Rician noise: two Gaussian components of SD ``share`` x the median of its
+    non-background voxels, on the intensities shifted to start at 0 (the background, at the
+    image's minimum, kept)."""
+    lo = float(img.min())
+    a = img.astype(np.float64) - lo
+    background = a <= 0
+    sd = share * float(np.median(a[~background]))
+    rng = np.random.default_rng(seed)
+    noisy = np.hypot(a + rng.normal(0.0, sd, a.shape), rng.normal(0.0, sd, a.shape))
+    return np.where(background, 0.0, noisy) + lo
+
+
 def _variant(img: np.ndarray, name: str, lr_axis: int) -> np.ndarray:
     if name in YAWS:
         return _turned(img, YAWS[name])
@@ -101,11 +114,7 @@ def _variant(img: np.ndarray, name: str, lr_axis: int) -> np.ndarray:
     lo = img.min()
     background = img <= lo
     if name == "noise 8 %":
-        rng = np.random.default_rng(0)
-        a = img - lo
-        sd = NOISE * float(np.median(a[~background]))
-        noisy = np.hypot(a + rng.normal(0.0, sd, a.shape), rng.normal(0.0, sd, a.shape))
-        return np.where(background, lo, noisy + lo)
+        return rician(img, NOISE, seed=0)
     axis = (3 - lr_axis if lr_axis in (1, 2) else 1) if name == "bias y" else 0
     coord = np.arange(img.shape[axis], dtype=np.float64)
     g = (coord - coord.mean()) / (coord.max() - coord.mean())

@@ -76,12 +76,10 @@ sys.path.insert(0, str(ROOT))
 from tumor3d.config import parse_config  # noqa: E402
 from tumor3d.geometry.interpolate import interpolate_stack  # noqa: E402
 from tumor3d.imaging.preprocess import preprocess_volume  # noqa: E402
-from tumor3d.learned.shipped import learned_models  # noqa: E402
 from tumor3d.segmentation.detect import detect_abnormal_slices  # noqa: E402
 from tumor3d.segmentation.lesion import left_right_axis  # noqa: E402
-from tumor3d.segmentation.methods import method_spec  # noqa: E402
+from tumor3d.segmentation.patient import method_models  # noqa: E402
 from tumor3d.segmentation.segment import segment_tumor  # noqa: E402
-from tumor3d.segmentation.segment.definition import resolve_method  # noqa: E402
 from tumor3d.storage.manifest import data_dir  # noqa: E402  (re-exported: rs.data_dir)
 from tumor3d.storage.readers import read_scan  # noqa: E402
 
@@ -191,13 +189,11 @@ def run_pipeline(image, cfg, modality, brain_mask=None, spacing_mm=None, lr_axis
                                  spacing_mm=spacing_mm, lr_axis=lr_axis, **cfg.detect.model_dump())
     t["detect"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    # the learned method (the default on FLAIR and T1c) with the shipped models, as the
-    # segment stage gives them (tumor3d.segmentation.patient.segment_detected): without
-    # them segment_tumor would fall back to the robust method
-    learned = {}
-    if method_spec(resolve_method(cfg.segment.method, modality, det)).needs_model:
-        chosen = models or learned_models(modality, cfg.segment.learned_cnn)
-        learned = {"image": image, **chosen}
+    # the learned method (the default on FLAIR and T1c) with its models, as the segment
+    # stage gives them: without them segment_tumor would fall back to the robust method
+    learned = method_models(
+        cfg.segment.method, modality, det, lambda: image, cfg.segment.learned_cnn, models
+    )
     seg = segment_tumor(pre.enhanced, pre.brain_mask, det, modality=modality,
                         spacing_mm=spacing_mm, lr_axis=lr_axis, **cfg.segment.model_dump(),
                         **learned)

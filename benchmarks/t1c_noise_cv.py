@@ -36,20 +36,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from real_robustness import rician  # noqa: E402  (the noise of real_robustness's column)
+
 TRAIN_NOISE = (0.04, 0.12)  # SD of each Rician component, share of the brain's median gray
 TEST_NOISE = 0.08
-
-
-def rician(img: np.ndarray, share: float, seed: int) -> np.ndarray:
-    """``img`` with Rician noise of SD ``share`` x the median of its non-background voxels
-    (on the intensities shifted to start at 0; the background, at the minimum, kept)."""
-    lo = float(img.min())
-    a = img.astype(np.float64) - lo
-    background = a <= 0
-    sd = share * float(np.median(a[~background]))
-    rng = np.random.default_rng(seed)
-    noisy = np.hypot(a + rng.normal(0.0, sd, a.shape), rng.normal(0.0, sd, a.shape))
-    return np.where(background, 0.0, noisy) + lo
 
 
 def noisy_prepared(L, p, cfg, share: float, seed: int):
@@ -73,7 +63,6 @@ def main(argv=None) -> int:
     import learned_cv as L
 
     from tumor3d.config import parse_config
-    from tumor3d.learned.forest import predict_proba
     from tumor3d.learned.segment import keep_main_lesion
     from tumor3d.learned.training import TrainingRows, sample_rows, train_forest
     from tumor3d.storage.manifest import data_dir
@@ -116,9 +105,9 @@ def main(argv=None) -> int:
         for name, model in models.items():
             for p in held:
                 for cond, q in (("clean", p), (f"noise {TEST_NOISE:g}", test[p.spec.name])):
-                    f = L._features(q)
-                    prob = np.zeros(f.shape, np.float32)
-                    prob.ravel()[f.index] = predict_proba(model, f.values)
+                    prob = L.forest_probability(q, model)
+                    # the region chosen by its mass alone, as when this was measured (before
+                    # the T1c choice among the prior's regions: learned_cv._final_mask's)
                     mask = keep_main_lesion(prob, 0.65, keep_fraction=1.0,
                                             min_voxels=L._min_voxels(q))  # fmt: skip
                     mask[mask.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False

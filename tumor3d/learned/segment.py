@@ -30,7 +30,7 @@ from tumor3d.learned.context import CONTEXT_NAMES, context_features
 from tumor3d.learned.features import FEATURE_NAMES, compute_features
 from tumor3d.learned.forest import ForestModel, predict_proba
 
-__all__ = ["LearnedSegmentation", "keep_main_lesion", "segment_learned"]
+__all__ = ["LearnedSegmentation", "keep_main_lesion", "region_preference", "segment_learned"]
 
 _STRUCT_3D = np.ones((3, 3, 3), dtype=bool)
 
@@ -41,6 +41,17 @@ _STRUCT_3D = np.ones((3, 3, 3), dtype=bool)
 #: pat0005's tumour with 6-10 % Rician noise, where the largest region was another
 #: (reports/learned_cv.md, "The T1c region chosen where the robust method found its lesion").
 PRIOR_CHOOSES_REGION = ("t1c",)
+
+
+def region_preference(modality: str, prior: np.ndarray | None) -> np.ndarray | None:
+    """:func:`keep_main_lesion`'s ``prefer``: the prior on T1c, else None.
+
+    The sequences are :data:`PRIOR_CHOOSES_REGION` (case-insensitive).
+
+    >>> region_preference("FLAIR", np.ones((1, 2, 2), bool)) is None
+    True
+    """
+    return prior if modality.strip().lower() in PRIOR_CHOOSES_REGION else None
 
 
 @dataclass(frozen=True)
@@ -198,13 +209,12 @@ def segment_learned(
         p_cnn = members.mean(axis=0, dtype=np.float32)
         prob = (0.5 * (forest.probability + p_cnn)).astype(np.float32)
     # T1c: among the regions the rule-based lesion (the prior) touches, when it found one
-    prefer = prior if modality.strip().lower() in PRIOR_CHOOSES_REGION else None
     mask = keep_main_lesion(
         prob,
         forest.threshold,
         keep_fraction=forest.keep_fraction,
         min_voxels=forest.min_voxels,
-        prefer=prefer,
+        prefer=region_preference(modality, prior),
     )
     both = p_cnn is not None
     return LearnedSegmentation(

@@ -45,6 +45,7 @@ from tumor3d.segmentation.segment import (
 __all__ = [
     "PatientSegmentation",
     "lesion_from_record",
+    "method_models",
     "review_values",
     "segment_detected",
     "segment_model",
@@ -242,6 +243,32 @@ def segment_patient(
     )  # fmt: skip
 
 
+def method_models(
+    method: str,
+    modality: str,
+    detection: SliceDetection | None,
+    image: Callable[[], np.ndarray],
+    learned_cnn: str = "auto",
+    models: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """``segment_tumor``'s ``image``, ``model`` and ``cnn`` keywords, where the method needs them.
+
+    The learned method (``method`` as resolved for ``modality`` and ``detection``) gets
+    the acquired slices (``image()``, called only then) and ``models`` (``model``,
+    ``cnn``), by default the shipped ones (:func:`tumor3d.learned.shipped.learned_models`:
+    with ``learned_cnn`` auto, the shipped U-Net of the sequence, if any); every other
+    method gets nothing (``{}``). The segment stage's rule, for whoever runs the
+    segmentation from arrays (:func:`segment_detected`, the benchmarks' harness).
+
+    >>> method_models("robust", "flair", None, image=lambda: 1 / 0)
+    {}
+    """
+    if not method_spec(resolve_method(method, modality, detection)).needs_model:
+        return {}
+    chosen = models if models is not None else learned_models(modality, learned_cnn)
+    return {"image": image(), **chosen}
+
+
 def segment_detected(
     enhanced: np.ndarray,
     brain_mask: np.ndarray,
@@ -277,10 +304,7 @@ def segment_detected(
             slice_records(result, det.abnormal),
             _values(result, modality, given_definition(given_name)),
         )
-    learned: dict[str, Any] = {}
-    if method_spec(resolve_method(method, modality, det)).needs_model:  # image + model
-        # segment.learned_cnn auto: with the shipped U-Net of the sequence, if any (FLAIR)
-        learned = {"image": image(), **learned_models(modality, learned_cnn)}
+    learned = method_models(method, modality, det, image, learned_cnn)
     exterior = None if head_exterior is None else np.asarray(head_exterior).astype(bool)
     result = segment_tumor(
         enhanced,
