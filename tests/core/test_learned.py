@@ -126,6 +126,52 @@ def test_prior_features_are_its_inside_and_signed_distance_mm():
         compute_features(img, spacing_mm=(5.0, 0.5, 0.5), modality="t2", prior=prior[:1])
 
 
+@pytest.mark.parametrize("lr_axis", [2, 1, None])
+def test_features_are_computed_on_the_tissue_box_alone(monkeypatch, lr_axis):
+    """The features are computed on the box of the tissue (and the prior), not the whole
+    volume; every row equals, bit for bit, the same features computed on the whole volume
+    (the reference: the box widened to the volume). The volumes are built so that each
+    margin of the box matters: a lopsided head whose mirror reaches past its own box, a
+    prior outside the tissue, tissue in the first slice and a gap of empty slices, a
+    phantom's head."""
+    from tumor3d.learned import features
+
+    rng = np.random.default_rng(3)
+    img = np.zeros((9, 70, 90), np.float32)
+    img[1:7, 12:50, 20:60] = 100.0  # the head, its mass to the left of its box's centre
+    img[1:7, 20:40, 60:75] = 100.0  # a thin arm to the right: the mirror reaches past it
+    img[0, 30:35, 30:40] = 100.0  # tissue in the first slice (the neighbour slice repeats)
+    img[2, 25:33, 30:38] = 180.0  # a bright lesion
+    img += rng.normal(0, 3, img.shape).astype(np.float32) * (img > 0)
+    prior = np.zeros(img.shape, bool)
+    prior[3, 52:60, 10:25] = True  # a prior partly outside the tissue's box
+    prior[2, 25:33, 30:38] = True
+    scan, _ = _phantom(4)
+    cases = [
+        (img, (5.0, 0.8, 0.6), prior),
+        (img, (5.0, 0.8, 0.6), None),
+        (np.asarray(scan.image, np.float32), scan.spacing_zyx_mm, None),
+    ]
+    for image, spacing_mm, pr in cases:
+        boxed = compute_features(
+            image, spacing_mm=spacing_mm, modality="t2", lr_axis=lr_axis, prior=pr
+        )
+        with monkeypatch.context() as m:  # the reference: the whole volume
+            whole_box = lambda cand, *a: tuple(slice(0, n) for n in cand.shape)  # noqa: E731
+            m.setattr(features, "_work_box", whole_box)
+            whole = compute_features(
+                image, spacing_mm=spacing_mm, modality="t2", lr_axis=lr_axis, prior=pr
+            )
+        np.testing.assert_array_equal(boxed.index, whole.index)
+        np.testing.assert_array_equal(boxed.candidates, whole.candidates)
+        assert boxed.shape == whole.shape == image.shape
+        for j, name in enumerate(FEATURE_NAMES):
+            np.testing.assert_array_equal(boxed.values[:, j], whole.values[:, j], err_msg=name)
+    # the box is smaller than the volume here (else the test compares a thing with itself)
+    box = features._work_box(tissue_foreground(img), prior, lr_axis, 40.0)
+    assert np.prod([s.stop - s.start for s in box]) < 0.8 * img.size
+
+
 # --------------------------------------------------------------------------- the forest
 
 
@@ -142,6 +188,39 @@ def test_flat_forest_predicts_as_lightgbm():
     model = forest_from_lightgbm_dump(booster.dump_model())
     test = rng.normal(size=(500, 5)).astype(np.float32)
     np.testing.assert_allclose(predict_proba(model, test), booster.predict(test), atol=1e-6)
+
+
+def test_the_walk_sums_every_tree_as_a_naive_walk_does_bit_for_bit(tiny_model):
+    """The blocked, four-rows-at-once walk in float32 against a naive walk of one row
+    through one tree after another in float64, on rows that sit exactly on thresholds
+    (a float32 ``x`` beside a float64 ``t`` it rounds to, above or below it) and
+    row counts that leave a block's last rows outside the groups of four."""
+    from tumor3d.learned.forest import predict_logit
+
+    m = tiny_model
+
+    def naive(x):
+        out = np.zeros(len(x))
+        for i, row in enumerate(x.astype(np.float64)):
+            for root in m.roots:
+                node = root
+                while m.feature[node] >= 0:
+                    go_left = row[m.feature[node]] <= m.threshold[node]
+                    node = m.left[node] if go_left else m.right[node]
+                out[i] += m.value[node]
+        return out
+
+    scan, _ = _phantom(7)
+    x = _features(scan).values[::7][:2051].copy()
+    rng = np.random.default_rng(5)
+    split = np.flatnonzero(m.feature >= 0)
+    for i in range(0, len(x), 3):  # a third of the rows: one feature put on a threshold
+        k = rng.choice(split)
+        x[i, m.feature[k]] = np.float32(m.threshold[k])  # rounds up or down
+    ties = [np.float32(m.threshold[k]) != m.threshold[k] for k in split]
+    assert any(ties)  # thresholds a float32 cannot hold: the float32 compare is tested
+    for n in (2051, 1027, 5, 1):
+        np.testing.assert_array_equal(predict_logit(m, x[:n]), naive(x[:n]))
 
 
 def test_model_round_trip_is_plain_arrays_and_refuses_pickles(tiny_model):

@@ -193,13 +193,54 @@ def _depth_mm(mask: np.ndarray, pixel_mm: tuple[float, float]) -> np.ndarray:
     return out
 
 
-def _mirror(a: np.ndarray, lr_axis: int | None, centre: float) -> np.ndarray:
-    """``a`` reflected about ``centre`` (array index) along ``lr_axis``; edges clamp."""
+def _mirror_source(centre: float, index: np.ndarray, n: int) -> np.ndarray:
+    """The index mirrored about ``centre`` of each of ``index`` along an axis of ``n``; clamped."""
+    return np.clip(np.rint(2.0 * centre - index).astype(np.intp), 0, n - 1)
+
+
+def _mirror(
+    a: np.ndarray, lr_axis: int | None, centre: float, *, start: int = 0, n: int | None = None
+) -> np.ndarray:
+    """``a`` reflected about ``centre`` (array index) along ``lr_axis``; edges clamp.
+
+    ``a`` may be a crop of an axis of ``n`` indices that begins at ``start``
+    (``centre`` is an index of the whole axis); a source outside the crop is
+    clamped to it (the crop of :func:`_work_box` holds every source a tissue
+    pixel needs).
+    """
     if lr_axis is None:
         return a
-    n = a.shape[lr_axis]
-    src = np.clip(np.rint(2.0 * centre - np.arange(n)).astype(np.intp), 0, n - 1)
-    return np.take(a, src, axis=lr_axis)
+    m = a.shape[lr_axis]
+    src = _mirror_source(centre, np.arange(start, start + m), m if n is None else n)
+    return np.take(a, np.clip(src - start, 0, m - 1), axis=lr_axis)
+
+
+def _work_box(
+    cand: np.ndarray, prior: np.ndarray | None, lr_axis: int | None, centre: float
+) -> tuple[slice, slice, slice]:
+    """The part of the volume the features are computed on: they are the same as on the whole.
+
+    The box of the tissue and the prior, one voxel wider on every side (the
+    distance maps' nearest background, and the empty slice beside the first and
+    last whose smoothed intensity is the neighbour-slice feature's 0), and
+    along ``lr_axis`` wide enough to hold the mirror of every tissue column.
+    Every filter is a normalised convolution over the tissue with zero
+    padding, so it gives the same values inside the box as on the whole
+    volume, bit for bit (``test_features_are_computed_on_the_tissue_box_alone``).
+    """
+    both = cand if prior is None else cand | prior
+    box = true_box(both)
+    tissue = true_box(cand)
+    assert box is not None and tissue is not None  # the caller checked the tissue
+    out = []
+    for axis, (s, n) in enumerate(zip(box, cand.shape, strict=True)):
+        lo, hi = max(int(s.start) - 1, 0), min(int(s.stop) + 1, n)
+        if axis == lr_axis:
+            t = tissue[axis]
+            src = _mirror_source(centre, np.arange(t.start, t.stop), n)
+            lo, hi = min(lo, int(src.min())), max(hi, int(src.max()) + 1)
+        out.append(slice(lo, hi))
+    return out[0], out[1], out[2]
 
 
 def _prior_columns(
@@ -291,6 +332,24 @@ def compute_features(
             raise InputError(f"candidates shape {cand.shape} differs from the image's {img.shape}")
     if not cand.any():
         raise InputError("no tissue: the image holds no structure brighter than its background")
+    if prior is not None:
+        prior = np.asarray(prior, dtype=bool)
+        if prior.shape != img.shape:
+            raise InputError(f"prior mask shape {prior.shape} differs from the image's {img.shape}")
+    # left-right asymmetry about the tissue's centre of mass along the left-right axis
+    centre = 0.0
+    if lr_axis is not None:
+        other = tuple(a for a in range(3) if a != lr_axis)
+        profile = cand.sum(axis=other).astype(np.float64)
+        centre = float(np.sum(profile * np.arange(profile.size)) / profile.sum())
+    # every column is computed on the tissue's box alone (the same values as on the whole
+    # volume: _work_box), and only the tissue's pixels get rows
+    box = _work_box(cand, prior, lr_axis, centre)
+    start = [int(b.start) for b in box]
+    full_cand = cand
+    img, cand = img[box], cand[box]
+    if prior is not None:
+        prior = prior[box]
     depth = _depth_mm(cand, pixel_mm)
     deep = depth >= REFERENCE_DEPTH_MM
     if deep.sum() < 1000:  # a small field of view: the tissue's inner half
@@ -307,14 +366,10 @@ def compute_features(
     for s in (2.0, 4.0):
         sq = _smooth_in(norm * norm, cand, px(s))
         cols.append(np.sqrt(np.maximum(sq - smooth[s] ** 2, 0.0)))
-    # left-right asymmetry about the tissue's centre of mass along the left-right axis
-    centre = 0.0
-    if lr_axis is not None:
-        other = tuple(a for a in range(3) if a != lr_axis)
-        profile = cand.sum(axis=other).astype(np.float64)
-        centre = float(np.sum(profile * np.arange(profile.size)) / profile.sum())
+    lr_start = 0 if lr_axis is None else start[lr_axis]
+    lr_n = None if lr_axis is None else full_cand.shape[lr_axis]
     for s in (2.0, 4.0, 8.0):
-        diff = smooth[s] - _mirror(smooth[s], lr_axis, centre)
+        diff = smooth[s] - _mirror(smooth[s], lr_axis, centre, start=lr_start, n=lr_n)
         cols.append(diff if lr_axis is not None else np.zeros_like(norm))
     # the neighbouring slices at the same pixel (3-D context; edge slices repeat)
     s2 = smooth[2.0]
@@ -338,8 +393,12 @@ def compute_features(
     cols.append(depth / np.maximum(max_depth, 1e-3)[:, None, None])
     # position in the tissue's box: left-right offset from the centre (abs), front-back,
     # slice position through the tissue's extent, the slice's share of the largest area
-    zs, ys, xs = np.nonzero(cand)
-    grid = np.indices(img.shape, dtype=np.float32)
+    # (indices of the whole volume)
+    zs, ys, xs = (c + o for c, o in zip(np.nonzero(cand), start, strict=True))
+    grid = [
+        np.arange(o, o + n, dtype=np.float32).reshape([-1 if a == k else 1 for a in range(3)])
+        for k, (o, n) in enumerate(zip(start, img.shape, strict=True))
+    ]
     lr = lr_axis if lr_axis is not None else 2
     ap = 1 if lr == 2 else 2
     lo = [zs.min(), ys.min(), xs.min()]
@@ -352,8 +411,11 @@ def compute_features(
     cols.append(np.broadcast_to((area / max(area.max(), 1.0))[:, None, None], img.shape))
     cols.append(np.full(img.shape, MODALITY_CODES[mod], np.float32))
     cols += _prior_columns(prior, img.shape, pixel_mm)
-    index = np.flatnonzero(cand.ravel())
-    values = np.empty((index.size, len(cols)), dtype=np.float32)
+    where = np.nonzero(cand)
+    values = np.empty((where[0].size, len(cols)), dtype=np.float32)
     for j, c in enumerate(cols):
-        values[:, j] = np.broadcast_to(c, img.shape).ravel()[index]
-    return PatientFeatures(values, index.astype(np.int64), img.shape, cand)
+        values[:, j] = np.broadcast_to(c, img.shape)[where]
+    index = np.ravel_multi_index(
+        tuple(w + o for w, o in zip(where, start, strict=True)), full_cand.shape
+    )
+    return PatientFeatures(values, index.astype(np.int64), full_cand.shape, full_cand)

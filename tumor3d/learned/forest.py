@@ -248,22 +248,79 @@ def forest_from_lightgbm_dump(
     )
 
 
+#: Rows per block of :func:`_walk` (a thread's unit; the block's rows stay in cache while
+#: every tree is walked for them, each tree's nodes while the block passes it).
+_BLOCK_ROWS = 1024
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _walk(x, feature, threshold, left, right, value, roots):  # pragma: no cover - numba
+    """The summed leaf values of every row: blocks of rows in parallel, tree after tree.
+
+    Four rows go down a tree together (their branches are independent, so one
+    row's unpredictable branch does not stall the other three); each row's
+    leaves are summed in tree order, so the sum is the naive walk's, bit for bit.
+    """
     n = x.shape[0]
     out = np.zeros(n, np.float64)
-    for i in numba.prange(n):
-        acc = 0.0
+    for b in numba.prange((n + _BLOCK_ROWS - 1) // _BLOCK_ROWS):
+        lo = b * _BLOCK_ROWS
+        hi = min(n, lo + _BLOCK_ROWS)
         for t in range(roots.shape[0]):
-            node = roots[t]
-            while feature[node] >= 0:
-                if x[i, feature[node]] <= threshold[node]:
-                    node = left[node]
-                else:
-                    node = right[node]
-            acc += value[node]
-        out[i] = acc
+            root = roots[t]
+            i = lo
+            while i + 4 <= hi:
+                n0 = root
+                n1 = root
+                n2 = root
+                n3 = root
+                moving = True
+                while moving:
+                    moving = False
+                    if feature[n0] >= 0:
+                        n0 = left[n0] if x[i, feature[n0]] <= threshold[n0] else right[n0]
+                        moving = True
+                    if feature[n1] >= 0:
+                        n1 = left[n1] if x[i + 1, feature[n1]] <= threshold[n1] else right[n1]
+                        moving = True
+                    if feature[n2] >= 0:
+                        n2 = left[n2] if x[i + 2, feature[n2]] <= threshold[n2] else right[n2]
+                        moving = True
+                    if feature[n3] >= 0:
+                        n3 = left[n3] if x[i + 3, feature[n3]] <= threshold[n3] else right[n3]
+                        moving = True
+                out[i] += value[n0]
+                out[i + 1] += value[n1]
+                out[i + 2] += value[n2]
+                out[i + 3] += value[n3]
+                i += 4
+            while i < hi:
+                node = root
+                while feature[node] >= 0:
+                    node = left[node] if x[i, feature[node]] <= threshold[node] else right[node]
+                out[i] += value[node]
+                i += 1
     return out
+
+
+def float32_at_most(threshold: np.ndarray) -> np.ndarray:
+    """The largest float32 at most each threshold, so the walk compares in float32.
+
+    ``x <= t`` holds for a float32 ``x`` exactly when ``x <= float32_at_most(t)`` does.
+
+    >>> t = np.array([0.1, 0.5, -0.1])
+    >>> t32 = float32_at_most(t)
+    >>> bool(np.all(t32 <= t)), bool(np.float32(0.1) <= t[0]), bool(np.float32(0.1) <= t32[0])
+    (True, False, False)
+    >>> float(t32[1]) == 0.5
+    True
+    """
+    t = np.asarray(threshold, np.float64)
+    with np.errstate(over="ignore"):
+        t32 = t.astype(np.float32)
+    above = t32.astype(np.float64) > t
+    t32[above] = np.nextafter(t32[above], np.float32(-np.inf))
+    return t32
 
 
 def predict_logit(model: ForestModel, x: np.ndarray) -> np.ndarray:
@@ -301,7 +358,7 @@ def predict_logit(model: ForestModel, x: np.ndarray) -> np.ndarray:
     return _walk(
         np.ascontiguousarray(arr),
         model.feature,
-        model.threshold,
+        float32_at_most(model.threshold),
         model.left,
         model.right,
         model.value,
