@@ -297,6 +297,35 @@ def test_rejects_unknown_wavelet(t2_case):
         segment_tumor(pre.enhanced, pre.brain_mask, det, **{**DEFAULTS, "wavelet": "db2"})
 
 
+@pytest.mark.parametrize(
+    ("name", "value", "why"),
+    [
+        ("min_tumor_pixels", 0, "min_tumor_pixels must be >= 1, got 0"),
+        ("min_tumor_slices", 0, "min_tumor_slices must be >= 1, got 0"),
+        ("max_brain_fraction", 1.5, r"max_brain_fraction must lie in \(0, 1\], got 1.5"),
+        ("max_brain_fraction", 0.0, r"max_brain_fraction must lie in \(0, 1\], got 0.0"),
+        ("rim_px", -1, "rim_px must be >= 0, got -1"),
+        ("component_tolerance_px", -2, "component_tolerance_px must be >= 0, got -2"),
+        ("fuzziness", 1.0, "fuzziness"),
+    ],
+)
+def test_the_paper_method_names_a_parameter_out_of_range(t2_case, name, value, why):
+    _, pre, det = t2_case
+    bad = {**DEFAULTS, "method": "paper", name: value}
+    with pytest.raises(InputError, match=why):
+        segment_tumor(pre.enhanced, pre.brain_mask, det, **bad)
+
+
+def test_the_paper_method_takes_its_parameters_as_their_types(t2_case):
+    """Whole numbers given as floats (a YAML ``5.0``) run as the integers they are."""
+    _, pre, det = t2_case
+    given = {**DEFAULTS, "method": "paper"}
+    as_float = {k: float(given[k]) for k in ("min_tumor_pixels", "rim_px", "max_num_iter")}
+    a = segment_tumor(pre.enhanced, pre.brain_mask, det, **given)
+    b = segment_tumor(pre.enhanced, pre.brain_mask, det, **{**given, **as_float})
+    np.testing.assert_array_equal(a.tumor_mask, b.tumor_mask)
+
+
 def test_rejects_non_gray_image(t2_case):
     _, pre, det = t2_case
     with pytest.raises(InputError, match="whole gray levels"):

@@ -100,7 +100,11 @@ def _segment_paper(
 
 @dataclass(frozen=True)
 class _PaperParams:
-    """The checked parameters of :func:`_segment_paper` (``m`` is ``fuzziness``)."""
+    """The parameters of :func:`_segment_paper` (``m`` is ``fuzziness``), checked when made.
+
+    Normalised to their types; :class:`~tumor3d.errors.InputError` on the first one
+    found wrong (:func:`segment_paper` describes them).
+    """
 
     modality: str
     m: float
@@ -114,26 +118,39 @@ class _PaperParams:
     refine_boundary: bool
     min_tumor_slices: int
 
+    def __post_init__(self) -> None:
+        mod = self.modality.strip().lower() if isinstance(self.modality, str) else self.modality
+        if mod not in MODALITIES:
+            raise InputError(f"unknown modality {self.modality!r}: expected one of {MODALITIES}")
+        _check_fcm_params(self.m, self.tol, self.max_num_iter)
+        for name in ("min_tumor_pixels", "min_tumor_slices"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 0.0 < float(self.max_brain_fraction) <= 1.0:
+            raise InputError(
+                f"max_brain_fraction must lie in (0, 1], got {self.max_brain_fraction}"
+            )
+        for name in ("rim_px", "component_tolerance_px"):
+            if int(getattr(self, name)) < 0:
+                raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
+        norm = {"modality": mod, "m": float(self.m), "tol": float(self.tol)}
+        norm["max_brain_fraction"] = float(self.max_brain_fraction)
+        for name in (
+            "max_num_iter",
+            "min_tumor_pixels",
+            "component_tolerance_px",
+            "rim_px",
+            "min_tumor_slices",
+        ):
+            norm[name] = int(getattr(self, name))
+        for name, value in norm.items():
+            object.__setattr__(self, name, value)
+
 
 def _checked_paper_inputs(
-    enhanced: np.ndarray,
-    brain_mask: np.ndarray,
-    detection: SliceDetection,
-    *,
-    modality: str,
-    wavelet: str,
-    fuzziness: float,
-    tol: float,
-    max_num_iter: int,
-    min_tumor_pixels: int,
-    keep_largest_3d_component: bool,
-    component_tolerance_px: int,
-    rim_px: int,
-    max_brain_fraction: float,
-    refine_boundary: bool,
-    min_tumor_slices: int,
-) -> tuple[np.ndarray, np.ndarray, _PaperParams]:
-    """``J`` as uint8, ``M_brain`` as bool and the parameters of :func:`_segment_paper`.
+    enhanced: np.ndarray, brain_mask: np.ndarray, detection: SliceDetection, wavelet: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """``J`` as uint8 and ``M_brain`` as bool, checked against ``detection`` and the wavelet.
 
     Raises :class:`~tumor3d.errors.InputError` on the first input found wrong
     (see :func:`segment_paper`).
@@ -143,36 +160,9 @@ def _checked_paper_inputs(
         raise InputError("detection must be a SliceDetection")
     if len(detection) != img.shape[0]:
         raise InputError(f"detection has {len(detection)} slices but enhanced has {img.shape[0]}")
-    mod = modality.strip().lower() if isinstance(modality, str) else modality
-    if mod not in MODALITIES:
-        raise InputError(f"unknown modality {modality!r}: expected one of {MODALITIES}")
     if wavelet != "haar":
         raise InputError(f"unsupported wavelet {wavelet!r}: only 'haar' is implemented")
-    _check_fcm_params(fuzziness, tol, max_num_iter)
-    if int(min_tumor_pixels) < 1:
-        raise InputError(f"min_tumor_pixels must be >= 1, got {min_tumor_pixels}")
-    if int(min_tumor_slices) < 1:
-        raise InputError(f"min_tumor_slices must be >= 1, got {min_tumor_slices}")
-    if not 0.0 < float(max_brain_fraction) <= 1.0:
-        raise InputError(f"max_brain_fraction must lie in (0, 1], got {max_brain_fraction}")
-    if int(rim_px) < 0:
-        raise InputError(f"rim_px must be >= 0, got {rim_px}")
-    if int(component_tolerance_px) < 0:
-        raise InputError(f"component_tolerance_px must be >= 0, got {component_tolerance_px}")
-    params = _PaperParams(
-        modality=mod,
-        m=float(fuzziness),
-        tol=float(tol),
-        max_num_iter=int(max_num_iter),
-        min_tumor_pixels=int(min_tumor_pixels),
-        keep_largest_3d_component=keep_largest_3d_component,
-        component_tolerance_px=int(component_tolerance_px),
-        rim_px=int(rim_px),
-        max_brain_fraction=float(max_brain_fraction),
-        refine_boundary=refine_boundary,
-        min_tumor_slices=int(min_tumor_slices),
-    )
-    return img, brain, params
+    return img, brain
 
 
 @dataclass
@@ -476,9 +466,9 @@ def segment_paper(
         On wrong dimensions, dtypes or shapes, a detection of another length,
         an unknown modality or wavelet, or an out-of-range parameter.
     """
-    img, brain, p = _checked_paper_inputs(
-        enhanced, brain_mask, detection, modality=modality, wavelet=wavelet,
-        fuzziness=fuzziness, tol=tol, max_num_iter=max_num_iter,
+    img, brain = _checked_paper_inputs(enhanced, brain_mask, detection, wavelet)
+    p = _PaperParams(
+        modality=modality, m=fuzziness, tol=tol, max_num_iter=max_num_iter,
         min_tumor_pixels=min_tumor_pixels, keep_largest_3d_component=keep_largest_3d_component,
         component_tolerance_px=component_tolerance_px, rim_px=rim_px,
         max_brain_fraction=max_brain_fraction, refine_boundary=refine_boundary,
