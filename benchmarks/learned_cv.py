@@ -920,7 +920,7 @@ def _final_mask(p: Prepared, prob: np.ndarray, args, cfg) -> np.ndarray:
         _threshold(args, _family(p)),
         keep_fraction=args.keep_fraction,
         min_voxels=_min_voxels(p),
-        prefer=region_preference(p.spec.modality, p.prior),
+        **region_preference(p.spec.modality, p.prior),
     )
     mask[mask.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
     return mask

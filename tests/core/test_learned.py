@@ -375,31 +375,50 @@ def test_keep_main_lesion_chooses_among_the_regions_the_preferred_mask_touches()
     prefer[1, 2, 25] = True
     assert keep_main_lesion(p, 0.5, keep_fraction=1.0, min_voxels=10, prefer=prefer).sum() == 100
     assert keep_main_lesion(p, 0.5, keep_fraction=1.0, prefer=np.zeros(p.shape, bool)).sum() == 100
+    # with prefer_only, no lesion then: none of the regions large enough touches it
+    only = {"keep_fraction": 1.0, "prefer_only": True}
+    assert keep_main_lesion(p, 0.5, min_voxels=10, prefer=prefer, **only).sum() == 0
+    assert keep_main_lesion(p, 0.5, prefer=np.zeros(p.shape, bool), **only).sum() == 0
+    prefer[1, 22, 22] = True  # and as without it where one does
+    assert keep_main_lesion(p, 0.5, min_voxels=10, prefer=prefer, **only).sum() == 36
     with pytest.raises(InputError, match="prefer has shape"):
         keep_main_lesion(p, 0.5, prefer=np.zeros((3, 30, 31), bool))
 
 
 def test_on_t1c_the_lesion_is_chosen_where_the_prior_is(tiny_model, monkeypatch):
     # segment_learned hands the prior (the robust method's mask) to the region's choice on
-    # T1c only (PRIOR_CHOOSES_REGION), the FLAIR and T2 lesions are chosen as before
+    # T1c only (PRIOR_CHOOSES_REGION), and there only: a T1c lesion the prior does not touch
+    # is none; the FLAIR and T2 lesions are chosen as before
     import tumor3d.learned.segment as learned_segment
 
     seen = []
     real = learned_segment.keep_main_lesion
 
-    def spy(*args, prefer=None, **kwargs):
-        seen.append(prefer)
-        return real(*args, prefer=prefer, **kwargs)
+    def spy(*args, **kwargs):
+        seen.append((kwargs.get("prefer"), kwargs.get("prefer_only", False)))
+        return real(*args, **kwargs)
 
     monkeypatch.setattr(learned_segment, "keep_main_lesion", spy)
     scan, truth = _phantom(7)
     prior = truth.copy()
-    for modality in ("flair", "t2", "t1c"):
-        learned_segment.segment_learned(
+    found = {}
+    for modality, given in (("flair", prior), ("t2", prior), ("t1c", prior), ("t1c", None)):
+        found[modality, given is None] = learned_segment.segment_learned(
             scan.image, model=tiny_model, spacing_mm=scan.spacing_zyx_mm, modality=modality,
-            lr_axis=left_right_axis(scan.affine), prior=prior,
-        )  # fmt: skip
-    assert seen[0] is None and seen[1] is None and seen[2] is prior
+            lr_axis=left_right_axis(scan.affine), prior=given,
+        ).mask  # fmt: skip
+    assert seen[0] == (None, False) and seen[1] == (None, False)
+    assert seen[2][0] is prior and seen[2][1] is True
+    assert seen[3] == (None, False)  # no prior given: every region, as on FLAIR
+    assert found["t1c", False].any() and found["t1c", True].any()
+    # the prior elsewhere (a region of its own the model does not find): no T1c lesion
+    away = np.zeros_like(prior)
+    away[:, :3, :3] = True
+    none = learned_segment.segment_learned(
+        scan.image, model=tiny_model, spacing_mm=scan.spacing_zyx_mm, modality="t1c",
+        lr_axis=left_right_axis(scan.affine), prior=away,
+    ).mask  # fmt: skip
+    assert not none.any()
 
 
 def test_review_flags_a_doubtful_map_and_passes_a_confident_one():

@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -34,24 +35,32 @@ __all__ = ["LearnedSegmentation", "keep_main_lesion", "region_preference", "segm
 
 _STRUCT_3D = np.ones((3, 3, 3), dtype=bool)
 
-#: Sequences whose lesion is chosen among the regions the prior (the robust method's mask)
-#: touches, when it found a lesion: on T1c, enhancing normal structures (vessels, the
-#: choroid plexus, dura) can outweigh the tumour's region, and the rule-based lesion model
-#: sets them aside. Out of fold the choice changes none of the 12 T1c cases and keeps
-#: pat0005's tumour with 6-10 % Rician noise, where the largest region was another
-#: (reports/learned_cv.md, "The T1c region chosen where the robust method found its lesion").
+#: Sequences whose lesion is chosen only among the regions the prior (the robust method's
+#: mask) touches: on T1c, enhancing normal structures (vessels, the choroid plexus, dura)
+#: form regions of their own that can outweigh the tumour's or stand in for a tumour that
+#: is not there, and the rule-based lesion model sets them aside. Where the prior found no
+#: lesion, or none of the regions touches it, there is none. Out of fold the choice
+#: changes no T1c case's figures, keeps pat0005's tumour with 6-10 % Rician noise, where the
+#: largest region was another, and finds nothing in the tumour-free T1c brains, where the
+#: largest region was 31 mL of normal enhancement (reports/learned_cv.md, "The T1c region
+#: chosen where the robust method found its lesion").
 PRIOR_CHOOSES_REGION = ("t1c",)
 
 
-def region_preference(modality: str, prior: np.ndarray | None) -> np.ndarray | None:
-    """:func:`keep_main_lesion`'s ``prefer``: the prior on T1c, else None.
+def region_preference(modality: str, prior: np.ndarray | None) -> dict[str, Any]:
+    """:func:`keep_main_lesion`'s ``prefer`` and ``prefer_only``: the prior, only, on T1c.
 
-    The sequences are :data:`PRIOR_CHOOSES_REGION` (case-insensitive).
+    The sequences are :data:`PRIOR_CHOOSES_REGION` (case-insensitive); other
+    sequences, or no prior given, choose among every region (an empty dict).
 
-    >>> region_preference("FLAIR", np.ones((1, 2, 2), bool)) is None
-    True
+    >>> region_preference("FLAIR", np.ones((1, 2, 2), bool))
+    {}
+    >>> sorted(region_preference("T1c", np.ones((1, 2, 2), bool)))
+    ['prefer', 'prefer_only']
     """
-    return prior if modality.strip().lower() in PRIOR_CHOOSES_REGION else None
+    if prior is None or modality.strip().lower() not in PRIOR_CHOOSES_REGION:
+        return {}
+    return {"prefer": prior, "prefer_only": True}
 
 
 @dataclass(frozen=True)
@@ -92,6 +101,7 @@ def keep_main_lesion(
     keep_fraction: float = 0.3,
     min_voxels: int = 20,
     prefer: np.ndarray | None = None,
+    prefer_only: bool = False,
 ) -> np.ndarray:
     """The 3-D region above ``threshold`` with the largest summed probability, and its peers.
 
@@ -99,7 +109,8 @@ def keep_main_lesion(
     at least ``keep_fraction`` of the largest is kept too. Regions under
     ``min_voxels`` voxels are dropped. Holes are filled per slice. With
     ``prefer`` (a bool mask of the same shape), the choice is among the regions
-    that overlap it, when any of them is large enough; otherwise as without it.
+    that overlap it, when any of them is large enough; otherwise as without it,
+    or, with ``prefer_only``, no lesion.
 
     Examples
     --------
@@ -109,6 +120,11 @@ def keep_main_lesion(
     >>> prior = np.zeros(p.shape, bool); prior[0, 9, 9] = True
     >>> int(keep_main_lesion(p, 0.5, min_voxels=1, keep_fraction=1.0, prefer=prior).sum())
     4
+    >>> elsewhere = np.zeros(p.shape, bool); elsewhere[0, 11, 0] = True
+    >>> int(keep_main_lesion(p, 0.5, min_voxels=1, prefer=elsewhere).sum())
+    16
+    >>> int(keep_main_lesion(p, 0.5, min_voxels=1, prefer=elsewhere, prefer_only=True).sum())
+    0
     """
     prob = np.asarray(probability, dtype=np.float32)
     if prob.ndim != 3:
@@ -130,7 +146,7 @@ def keep_main_lesion(
         if prefer.shape != prob.shape:
             raise InputError(f"prefer has shape {prefer.shape}, the probability {prob.shape}")
         touching = ndi.sum_labels(prefer, labels, ids) > 0
-        if (mass * touching).max() > 0:
+        if prefer_only or (mass * touching).max() > 0:
             mass = mass * touching
     if mass.max() <= 0:
         return np.zeros_like(above)
@@ -208,13 +224,13 @@ def segment_learned(
             members = net.result()
         p_cnn = members.mean(axis=0, dtype=np.float32)
         prob = (0.5 * (forest.probability + p_cnn)).astype(np.float32)
-    # T1c: among the regions the rule-based lesion (the prior) touches, when it found one
+    # T1c: only among the regions the rule-based lesion (the prior) touches
     mask = keep_main_lesion(
         prob,
         forest.threshold,
         keep_fraction=forest.keep_fraction,
         min_voxels=forest.min_voxels,
-        prefer=region_preference(modality, prior),
+        **region_preference(modality, prior),
     )
     both = p_cnn is not None
     return LearnedSegmentation(
