@@ -80,8 +80,9 @@ def build_provenance(
 def cache_identity(folder: str | Path) -> dict[str, Any] | None:
     """What decided a published patient's cache keys, from its ``provenance.json``.
 
-    ``input`` (the input's content digest), ``config`` (the configuration's
-    digest), ``given`` (the SHA-256 of a given brain mask and segmentation),
+    ``input`` (the input's content digest), ``modality`` (the sequence it was
+    segmented as), ``config`` (the configuration's digest), ``given`` (the SHA-256
+    of a given brain mask and segmentation),
     ``code`` (stage -> code digest) and ``versions``; None when the folder
     holds no readable record (never published, or by another tool).
     """
@@ -98,6 +99,7 @@ def cache_identity(folder: str | Path) -> dict[str, Any] | None:
     }  # fmt: skip
     return {
         "input": (doc.get("input") or {}).get("digest_sha256"),
+        "modality": (doc.get("input") or {}).get("modality"),
         "config": doc.get("config_sha256"),
         "given": given,
         "code": {str(s.get("stage")): s.get("code_sha256") for s in stages},
@@ -108,12 +110,20 @@ def cache_identity(folder: str | Path) -> dict[str, Any] | None:
 def same_identity(before: dict[str, Any], after: dict[str, Any]) -> bool:
     """Whether two :func:`cache_identity` records agree on all that decides the result.
 
-    The versions of the numerical packages only (not of python or the platform).
+    The versions of the numerical packages only (not of python or the platform); the
+    modality where both records name one.
+
+    >>> old = {"input": "a", "modality": "flair", "config": "c", "given": {}, "code": {}}
+    >>> same_identity(old, {**old, "modality": "t2"}), same_identity(old, {**old, "modality": None})
+    (False, True)
     """
     keys = ("input", "config", "given", "code")
     old_v, new_v = before.get("versions") or {}, after.get("versions") or {}
-    return all(before.get(k) == after.get(k) for k in keys) and all(
-        old_v.get(name) == new_v.get(name) for name in NUMERICAL_DISTRIBUTIONS
+    mods = (before.get("modality"), after.get("modality"))  # None: a record before it was kept
+    return (
+        all(before.get(k) == after.get(k) for k in keys)
+        and (None in mods or mods[0] == mods[1])
+        and all(old_v.get(name) == new_v.get(name) for name in NUMERICAL_DISTRIBUTIONS)
     )
 
 
@@ -121,7 +131,9 @@ def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
     """Why a patient published before was computed again, in words.
 
     ``before`` and ``after`` are :func:`cache_identity` of the earlier and the
-    new record. In this order: its input or a given file changed; the code of
+    new record. In this order: its input, the modality it was segmented as or a
+    given file changed (a record written before the modality was kept names none:
+    not a change); the code of
     some stages or the versions of the numerical packages the keys hold moved
     (a new release, whose configuration defaults may have moved with it); the
     configuration changed; else nothing the records hold changed, and the
@@ -133,6 +145,8 @@ def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
     ...        "versions": {"tumor3d": "0.1.0", "numpy": "2.4.6"}}
     >>> recompute_reason(old, {**old, "config": "d"})
     'configuration changed'
+    >>> recompute_reason({**old, "modality": "flair"}, {**old, "modality": "t2"})
+    'modality changed: flair -> t2'
     >>> recompute_reason(old, {**old, "given": {"brain_mask": "e3b0"}})
     'given brain mask changed'
     >>> recompute_reason(old, {**old, "config": "d", "code": {"segment": "9", "render": "2"}})
@@ -144,6 +158,9 @@ def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
     """
     if before.get("input") != after.get("input"):
         return "input changed"
+    old_mod, new_mod = before.get("modality"), after.get("modality")
+    if old_mod is not None and new_mod is not None and old_mod != new_mod:
+        return f"modality changed: {old_mod} -> {new_mod}"
     old_given, new_given = before.get("given") or {}, after.get("given") or {}
     files = [k for k in ("brain_mask", "segmentation") if old_given.get(k) != new_given.get(k)]
     if files:

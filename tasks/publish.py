@@ -135,8 +135,9 @@ def run_notes(
     ``header_notes``; the note that the header states no orientation,
     :data:`tumor3d.segmentation.review.ORIENTATION_UNSTATED`, doubts), which end the
     slice numbers count from (:func:`tumor3d.imaging.scan.slice_order_note`) and, with
-    ``modality_default``, the modality taken by default (nothing named it: the report
-    says which sequence the method assumed).
+    ``modality_default``, the modality taken by default (nothing named it), which doubts:
+    the sequence decides the method and what it segments (a FLAIR run as T2 gave twice
+    its tumour's volume, a user audit), so a result on an assumed one asks for a check.
 
     The stages' outputs are read by their declared names (``outputs``: stage name ->
     output), the values no declaration lists as a ``metrics.parquet`` column.
@@ -160,10 +161,12 @@ def run_notes(
         notes.append(segmentation.note())
     if modality_default:
         mod = str(seg.get("modality", "t2"))
-        notes.append(
+        assumed = (
             f"modality: {mod} by default (nothing named it: no option, manifest value or "
             f"sidecar); give the modality if the scan is not {mod.upper()}"
         )
+        notes.append(assumed)
+        doubts.append(assumed)
     return notes, doubts
 
 

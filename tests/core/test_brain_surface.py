@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from tumor3d.errors import InputError
-from tumor3d.geometry.brain_surface import display_mesh
+from tumor3d.geometry.brain_surface import brain_surface, display_mesh
 from tumor3d.geometry.surface import extract_surface, mesh_volume_mm3
 from tumor3d.pipeline import is_closed_surface
 
@@ -76,3 +76,17 @@ def test_the_grid_is_coarsened_over_an_extent_larger_than_its_budget(monkeypatch
     for mesh in (fine, coarse):
         assert is_closed_surface(mesh)
         assert mesh_volume_mm3(mesh) / 1000.0 == pytest.approx(true_ml, rel=0.1)
+
+
+def test_a_mask_of_specks_narrower_than_the_grid_has_an_empty_surface():
+    """A user audit: an image of pure noise kept an 80-voxel brain mask of specks, which
+    vanished on the 2 mm grid; the brain-surface stage then failed the run with "the mask
+    holds no voxel", naming no file. Specks are drawn as no brain (the preprocess stage's
+    notes say the brain was lost); a small but real brain still has its surface."""
+    mask = np.zeros((10, 64, 64), bool)
+    mask[::3, ::9, ::7] = True  # isolated single voxels, 0.5 mm pixels
+    affine = np.diag([0.5, 0.5, 5.0, 1.0])
+    assert brain_surface(mask, affine, spacing_mm=2.0).n_faces == 0
+    blob = np.zeros_like(mask)
+    blob[3:7, 20:40, 20:40] = True
+    assert brain_surface(blob, affine, spacing_mm=2.0).n_faces > 0

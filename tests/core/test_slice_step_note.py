@@ -84,3 +84,34 @@ def test_a_slab_of_one_end_of_the_head_gets_no_verdict():
     assert outline_shift_mm(ball[10:], spacing) is None  # the upper half
     assert outline_shift_mm(ball[:11], spacing) is None  # the lower half
     assert outline_shift_mm(ball[9:], spacing) is not None  # through the widest: measured
+
+
+def test_a_slice_step_too_large_makes_the_brain_taller_than_any_head(phantom):
+    """A user audit: 31 slices 5 mm apart written as 10 mm (or 50 mm) doubled (tenfold)
+    every volume with status ok; the outline's shift only sees a step too small. The
+    brain mask's height along the slices (its slices times the step) is the check: the
+    phantom's 24 slices at 5 mm make no note; at 12 mm the brain is taller than any head."""
+    from tumor3d.imaging.preprocess import MAX_BRAIN_HEIGHT_MM
+
+    step, dy, dx = phantom.spacing_zyx_mm
+    figures, size = _size_notes(phantom.image, (step, dy, dx))
+    n = figures["brain_slices"]
+    assert size == [] and n * step <= MAX_BRAIN_HEIGHT_MM
+    too_large = MAX_BRAIN_HEIGHT_MM / n * 1.05  # the brain 5 % taller than the limit
+    figures, size = _size_notes(phantom.image, (too_large, dy, dx))
+    assert figures["brain_slices"] == n
+    (note,) = size
+    assert note.startswith(f"brain mask on {n} slices of {too_large:g} mm:")
+    assert "slice step in the header is likely too large" in note
+
+
+def test_a_slice_step_too_large_makes_the_run_check():
+    import tumor3d
+
+    scan = make_phantom_patient(12, n_slices=24, matrix_size=(200, 200), pixel_spacing_mm=1.0).scan
+    image = scan.source_grid.to_source(scan.image)
+    wrong = scan.source_grid.affine.copy()
+    wrong[:3, 2] *= 4.0  # 20 mm slices written for 5 mm
+    r = tumor3d.reconstruct(image, affine=wrong, modality="t2")
+    assert r.status == "check"
+    assert any("likely too large" in reason for reason in r.review_reasons)

@@ -486,10 +486,19 @@ def test_status_ok_check_failed_through_metrics_table_pages_console_and_exit_cod
     assert "status: check" in one.output and "more than any skull holds" in one.output
     clean = runner.invoke(app, [
         "run", str(rows[0].image), "--out", str(tmp_path / "one"), "--patient-id", "coh0",
-        "--store", store,
+        "--store", store, "--modality", "t2",
     ])  # fmt: skip
     assert clean.exit_code == 0, clean.output
     assert "status: ok" in clean.output
+    # the same without --modality: T2 assumed, said, and a check (a user audit: a FLAIR
+    # run so was segmented as T2, twice its tumour's volume, with status ok)
+    assumed = runner.invoke(app, [
+        "run", str(rows[0].image), "--out", str(tmp_path / "one"), "--patient-id", "coh0",
+        "--store", store,
+    ])  # fmt: skip
+    assert assumed.exit_code == 4, assumed.output
+    assert "status: check" in " ".join(assumed.output.split())
+    assert "modality: t2 by default" in " ".join(assumed.output.split())
 
 
 def _seg_manifest(path, lines):

@@ -66,7 +66,7 @@ def nifti_input(phantom, tmp_path_factory):
 @pytest.fixture(scope="module")
 def first_run(nifti_input, tmp_path_factory):
     out = tmp_path_factory.mktemp("out")
-    return out, run_patient(nifti_input, out, patient_id="flowpat")
+    return out, run_patient(nifti_input, out, patient_id="flowpat", modality="t2")
 
 
 def test_first_run_computes_every_stage_and_publishes_all_outputs(first_run, phantom):

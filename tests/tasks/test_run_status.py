@@ -61,16 +61,20 @@ def test_a_voxel_size_no_brain_can_have_doubts_every_method():
         assert size in doubts
 
 
-def test_a_default_modality_is_said_in_the_notes_and_doubts_nothing():
+def test_a_default_modality_is_said_in_the_notes_and_asks_for_a_check():
     """Issue 28 item 4: the modality is never assumed silently. The report and metrics
-    say a default one (the console says it at the start); it informs, the status stays."""
+    say a default one (the console says it at the start), and the status asks for a check:
+    the sequence decides what is segmented (a user audit: a FLAIR run without --modality
+    was segmented as T2, twice its tumour's volume, with status ok)."""
     outputs = _outputs("robust")
     outputs["segment-tumor"].values["modality"] = "t2"
     notes, doubts = run_notes(outputs, modality_default=True)
     (said,) = [n for n in notes if n.startswith("modality: t2 by default")]
-    assert "give the modality if the scan is not T2" in said and said not in doubts
-    named, _ = run_notes(outputs)
+    assert "give the modality if the scan is not T2" in said and said in doubts
+    assert run_review(outputs, doubts).status == "check"
+    named, named_doubts = run_notes(outputs)
     assert not [n for n in named if n.startswith("modality:")]
+    assert named_doubts == [d for d in doubts if d != said]  # the modality's doubt alone
 
 
 def test_the_review_adds_the_segmentations_own_reasons_to_the_doubts():

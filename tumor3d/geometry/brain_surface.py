@@ -56,7 +56,9 @@ def brain_surface(brain_mask: np.ndarray, affine: np.ndarray, *, spacing_mm: flo
     Returns
     -------
     Mesh
-        Closed outward surface in RAS mm.
+        Closed outward surface in RAS mm; empty (no face) when the mask holds only
+        specks narrower than the grid (a brain that was lost: the preprocess stage's
+        notes say so).
 
     Raises
     ------
@@ -118,6 +120,8 @@ def brain_surface(brain_mask: np.ndarray, affine: np.ndarray, *, spacing_mm: flo
     zz, yy, xx = np.meshgrid(*(np.arange(m) * step for m in shape_new), indexing="ij", sparse=True)
     coords = np.broadcast_arrays(zz / dz, yy / dy, xx / dx)
     fine = ndi.map_coordinates(sd, coords, order=1, mode="nearest") < 0.0
+    if not fine.any():  # specks narrower than the grid: nothing a context surface can draw
+        return Mesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
     scale = np.diag([step / dx, step / dy, step / dz, 1.0])
     scale[2, 3] = -1.0  # the padded first slice sits at old index -1
     return extract_surface(fine, aff @ scale)

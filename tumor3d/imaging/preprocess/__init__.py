@@ -46,11 +46,13 @@ from tumor3d.imaging.preprocess.intensity import (
 )
 from tumor3d.imaging.preprocess.masks import fill_holes_per_slice, foreground_brain_mask, true_box
 from tumor3d.imaging.preprocess.notes import (
+    MAX_BRAIN_HEIGHT_MM,
     MAX_INTRACRANIAL_ML,
     MAX_OUTLINE_SHIFT_STEPS,
     MIN_BRAIN_SLICE_MM2,
     MIN_BRAIN_SLICE_SHARE,
     brain_coverage_note,
+    brain_height_note,
     brain_mask_figures,
     brain_mask_notes,
     brain_size_note,
@@ -66,6 +68,7 @@ __all__ = [
     "BACKGROUND_RANGE_QUANTILES",
     "BACKGROUND_TOLERANCE",
     "BRAIN_EXTRACTIONS",
+    "MAX_BRAIN_HEIGHT_MM",
     "MAX_INTRACRANIAL_ML",
     "MAX_OUTLINE_SHIFT_STEPS",
     "MIN_BRAIN_SLICE_MM2",
@@ -74,6 +77,7 @@ __all__ = [
     "MaskedBackground",
     "PreprocessResult",
     "brain_coverage_note",
+    "brain_height_note",
     "brain_mask_figures",
     "brain_mask_notes",
     "brain_size_note",
