@@ -149,7 +149,7 @@ def _phantom_run(tmp: Path):
             make_phantom_patient(3, patient_id="cat3", n_slices=16), folder / "in"
         )
         out = folder / "out"
-        res = _cli("run", row.image, "--out", out, "--patient-id", "cat3")
+        res = _cli("run", row.image, "--out", out, "--patient-id", "cat3", *_T2)
         assert res.exit_code == 0, res.output
         _PHANTOM.update(image=row.image, out=out, truth_dir=row.image.parent)
     return _PHANTOM["image"], _PHANTOM["out"]
@@ -206,7 +206,7 @@ def tampered_cached_measure_result_is_recomputed(tmp: Path):
             wrong = str((int(value[0]) + 1) % 10) + value[1:]
             f.write_text(text.replace(needle, needle[: -len(value)] + wrong))
             tampered += 1
-    res = _cli("run", image, "--out", out, "--patient-id", "cat3")
+    res = _cli("run", image, "--out", out, "--patient-id", "cat3", *_T2)
     after = _metrics(out)
     same = after["volume_eq7_mm3"] == before["volume_eq7_mm3"]
     return (res.exit_code == 0 and same and tampered > 0), (
@@ -245,8 +245,8 @@ def flipped_artifact_bytes_are_repaired(tmp: Path):
     data = bytearray(victim.read_bytes())
     data[len(data) // 2 : len(data) // 2 + 8] = bytes(8)
     victim.write_bytes(bytes(data))  # same size, 8 bytes changed
-    res = _cli("run", image, "--out", out, "--patient-id", "cat3")
-    again = _cli("run", image, "--out", out, "--patient-id", "cat3")
+    res = _cli("run", image, "--out", out, "--patient-id", "cat3", *_T2)
+    again = _cli("run", image, "--out", out, "--patient-id", "cat3", *_T2)
     after = _metrics(out)
     quarantined = list((out / ".tumor3d-store" / "quarantine").glob("*"))
     ok = (
@@ -264,7 +264,7 @@ def partial_folders_of_a_killed_publish_are_cleaned(tmp: Path):
     stale = out / ".cat3.partial-999999-0123abcd"  # pid 999999: not running
     stale.mkdir(exist_ok=True)
     (stale / "half.ply").write_bytes(b"ply")
-    res = _cli("run", image, "--out", out, "--patient-id", "cat3")
+    res = _cli("run", image, "--out", out, "--patient-id", "cat3", *_T2)
     return (res.exit_code == 0 and not stale.exists()), f"exit {res.exit_code}"
 
 
@@ -307,7 +307,7 @@ def _second_patient(tmp: Path) -> Path:
         row = write_phantom_patient(
             make_phantom_patient(5, patient_id="cat5", n_slices=16), out.parent / "in5"
         )
-        res = _console("run", row.image, "--out", out, "--patient-id", "cat5")
+        res = _console("run", row.image, "--out", out, "--patient-id", "cat5", *_T2)
         assert res.exit_code == 0, res.output
         _PHANTOM["image5"] = row.image
     return _PHANTOM["image5"]
@@ -317,7 +317,7 @@ def _healed(image: Path, out: Path) -> bool:
     """A further run of cat3 is all cache hits (the bad record was rewritten)."""
     from tumor3d.tasks.stages import STAGES
 
-    res = _console("run", image, "--out", out, "--patient-id", "cat3")
+    res = _console("run", image, "--out", out, "--patient-id", "cat3", *_T2)
     return res.exit_code == 0 and res.output.count("\tcache hit") == len(STAGES)
 
 
@@ -340,7 +340,7 @@ def pickle_record_in_the_store_is_never_unpickled(tmp: Path):
     rec["metadata"]["serializer"] = {"type": "pickle", "picklelib": "cloudpickle"}
     rec["result"] = base64.encodebytes(pickle.dumps(Payload())).decode()
     victim.write_text(json.dumps(rec))
-    res = _console("run", image, "--out", out, "--patient-id", "cat3")
+    res = _console("run", image, "--out", out, "--patient-id", "cat3", *_T2)
     same = _metrics(out)["volume_eq7_mm3"] == before["volume_eq7_mm3"]
     ok = res.exit_code == 0 and not marker.exists() and same and _healed(image, out)
     return ok, f"exit {res.exit_code}; payload ran: {marker.exists()}; Eq. 7 unchanged: {same}"
@@ -356,7 +356,7 @@ def json_record_naming_a_module_imports_nothing(tmp: Path):
     rec["metadata"]["serializer"] = {"type": "json"}
     rec["result"] = json.dumps({"__class__": "this.s", "data": "x"})
     victim.write_text(json.dumps(rec))
-    res = _console("run", image, "--out", out, "--patient-id", "cat3")
+    res = _console("run", image, "--out", out, "--patient-id", "cat3", *_T2)
     imported = "Beautiful is better" in res.output  # what importing 'this' prints
     ok = res.exit_code == 0 and not imported and _healed(image, out)
     return ok, f"exit {res.exit_code}; module 'this' imported: {imported}"
@@ -373,7 +373,7 @@ def another_patients_record_copied_over_is_recomputed(tmp: Path):
     rec = json.loads(theirs.read_text())
     rec["metadata"]["storage_key"] = mine.name  # the storage key adjusted
     mine.write_text(json.dumps(rec))
-    res = _console("run", image, "--out", out, "--patient-id", "cat3")
+    res = _console("run", image, "--out", out, "--patient-id", "cat3", *_T2)
     after = _metrics(out)
     ok = res.exit_code == 0 and after["volume_eq7_mm3"] == before["volume_eq7_mm3"]
     return ok and _healed(image, out), (
@@ -386,7 +386,7 @@ def another_patients_record_copied_over_is_recomputed(tmp: Path):
 def another_stages_record_copied_over_heals(tmp: Path):
     image, out = _phantom_run(tmp)
     _record_of(out, "segment-tumor").write_bytes(_record_of(out, "preprocess").read_bytes())
-    res = _console("run", image, "--out", out, "--patient-id", "cat3")
+    res = _console("run", image, "--out", out, "--patient-id", "cat3", *_T2)
     lines = len(res.output.strip().splitlines())
     ok = res.exit_code == 0 and "Traceback" not in res.output and _healed(image, out)
     return ok, f"exit {res.exit_code}; {lines} output lines; healed"
@@ -401,7 +401,7 @@ def record_symlinked_outside_the_store_is_replaced(tmp: Path):
     before = outside.read_bytes()
     victim.unlink()
     victim.symlink_to(outside)
-    res = _console("run", image, "--out", out, "--patient-id", "cat3")
+    res = _console("run", image, "--out", out, "--patient-id", "cat3", *_T2)
     ok = res.exit_code == 0 and "Traceback" not in res.output
     ok = ok and outside.read_bytes() == before and not victim.is_symlink()
     return ok and _healed(image, out), f"exit {res.exit_code}; link replaced, target untouched"
@@ -757,7 +757,7 @@ def serve_with_an_impossible_cron(tmp: Path):
 def second_run_is_all_cache_hits_and_piped_output_is_plain(tmp: Path):
     image, out = _phantom_run(tmp)
     t0 = time.perf_counter()
-    res = _cli("run", image, "--out", out, "--patient-id", "cat3")
+    res = _cli("run", image, "--out", out, "--patient-id", "cat3", *_T2)
     wall = time.perf_counter() - t0
     hits = res.output.count("\tcache hit")
     from tumor3d.tasks.stages import STAGES
@@ -857,6 +857,47 @@ def _small_phantom(tmp: Path, seed: int, pid: str) -> Path:
     return write_phantom_patient(patient, tmp / "in" / pid).image
 
 
+@item("silent wrong number")
+def run_without_modality_asks_for_a_check(tmp: Path):
+    """A user audit: a FLAIR run without --modality was segmented as T2 (twice its
+    tumour's volume) with status ok, exit 0; an assumed sequence now asks for a check."""
+    image = _small_phantom(tmp, 8, "nomod")
+    res = _cli("run", image, "--out", tmp / "o", "--patient-id", "nomod")
+    reasons = " ".join(_metrics(tmp / "o", "nomod")["review_reasons"].split())
+    said = "modality: t2 by default" in reasons
+    ok = res.exit_code == 4 and said
+    return ok, f"exit {res.exit_code}; the assumed modality among the review's reasons: {said}"
+
+
+@item("silent wrong number")
+def slice_step_too_large_asks_for_a_check(tmp: Path):
+    """A user audit: 31 slices 5 mm apart written as 10 or 50 mm gave 2x or 10x every
+    volume with status ok; a brain taller than any head along the slices doubts the step."""
+    image = _small_phantom(tmp, 9, "step")
+    img = nib.load(str(image))
+    aff = img.affine.copy()
+    aff[:3, 2] *= 10.0  # 50 mm slices written for 5 mm
+    wrong = tmp / "step50.nii.gz"
+    nib.save(nib.Nifti1Image(np.asarray(img.dataobj), aff), str(wrong))
+    res = _cli("run", wrong, "--out", tmp / "o", "--patient-id", "step50", *_T2)
+    reasons = " ".join(_metrics(tmp / "o", "step50")["review_reasons"].split())
+    said = "slice step in the header is likely too large" in reasons
+    return res.exit_code == 4 and said, f"exit {res.exit_code}; the step named: {said}"
+
+
+@item("one-line errors")
+def image_of_noise_ends_check_not_an_error(tmp: Path):
+    """A user audit: an image of pure noise kept a brain mask of specks that vanished on
+    the brain surface's grid, and the run failed with a line naming no file."""
+    rng = np.random.default_rng(0)
+    aff = np.diag([-1.0, -1.0, 5.0, 1.0])
+    noise = _nifti(tmp / "noise.nii.gz", rng.random((96, 96, 12)) * 1000, aff)
+    res = _cli("run", noise, "--out", tmp / "o", "--patient-id", "noise", "--modality", "flair")
+    lost = "the brain was lost" in " ".join(res.output.split())
+    ok = res.exit_code == 4 and "Traceback" not in res.output and lost
+    return ok, f"exit {res.exit_code}; the brain named as lost: {lost}"
+
+
 @item("one-line errors", slow=True)
 def background_server_killed_mid_run(tmp: Path):
     env = _own_home_env(tmp)
@@ -894,7 +935,7 @@ def background_server_killed_mid_run(tmp: Path):
 def ctrl_c_during_a_cohort(tmp: Path):
     env = {**_own_home_env(tmp), **({"PREFECT_API_URL": _API["url"]} if _API.get("url") else {})}
     rows = ["patient_id,image,modality"]
-    for i in range(3):
+    for i in range(6):
         rows.append(f"c{i},{_small_phantom(tmp, 20 + i, f'c{i}')},t2")
     (tmp / "m.csv").write_text("\n".join(rows) + "\n")
     proc = subprocess.Popen(
@@ -902,7 +943,15 @@ def ctrl_c_during_a_cohort(tmp: Path):
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True,
     )  # fmt: skip
-    time.sleep(12)
+    # Ctrl-C mid-cohort: once the first patient is published (a fixed wait let a faster
+    # machine finish the cohort first), with five patients still to go
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if list((tmp / "o").glob("c*/metrics.parquet")):
+            break
+        time.sleep(0.2)
+    if proc.poll() is not None:
+        return False, f"the cohort ended (exit {proc.returncode}) before Ctrl-C could be sent"
     t0 = time.monotonic()
     os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C reaches the terminal's process group
     try:
