@@ -186,7 +186,7 @@ def run(
         raise _fail(exc) from None
     finally:
         forget_kept()  # a scan the ingest stage did not need (its result was cached)
-    _say_modality(modality, origin)
+    _say_modality(modality, origin, input_path)
     if patient_id is None:
         _say_derived_id(input_path)
     print_summary(result)

@@ -161,13 +161,25 @@ def _check_given_masks(
         read_given_segmentation(segmentation, scan, max_voxels=limit)
 
 
-def _say_modality(modality: str, origin: str) -> None:
+def _say_modality(modality: str, origin: str, input_path: Path | None = None) -> None:
     """Say the modality the run used, and where it came from when not from --modality.
 
-    ``origin``: as :func:`tumor3d.storage.readers.resolve_modality` gives it.
+    ``origin``: as :func:`tumor3d.storage.readers.resolve_modality` gives it. A given one
+    that overrides another named by the input's stack sidecar says both (a user audit:
+    a typo in --modality passed silently over the sidecar's).
     """
     if origin == "given":
-        console.print(f"modality: {escape(modality)}", highlight=False)
+        from tumor3d.errors import InputError
+        from tumor3d.storage.readers import declared_modality
+
+        try:  # an unreadable sidecar was not needed: the option decided
+            declared = None if input_path is None else declared_modality(input_path)
+        except InputError:
+            declared = None
+        said = f"modality: {escape(modality)}"
+        if declared is not None and declared != modality:
+            said += f" (given; the stack's sidecar names {escape(declared)})"
+        console.print(said, highlight=False)
     elif origin == "input":
         said = f"modality: {escape(modality)} (named by the stack's sidecar)"
         console.print(said, highlight=False)

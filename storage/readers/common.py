@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import unicodedata
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -130,8 +131,9 @@ def derive_patient_id(path: str | os.PathLike[str]) -> str:
     """Make a folder-safe patient id from an input's file or folder name.
 
     A volume suffix (``.nii.gz``, ``.nii``, ``.nrrd``, ``.nhdr``, ``.mha``,
-    ``.mhd``) is stripped from a file name; every character outside
-    ``[A-Za-z0-9._-]`` becomes ``_``; leading ``.``, ``_`` and ``-`` are
+    ``.mhd``) is stripped from a file name; accented letters lose their accents
+    (``ä`` -> ``a``: a user audit saw ``ärzt`` become ``rzt``); every other character
+    outside ``[A-Za-z0-9._-]`` becomes ``_``; leading ``.``, ``_`` and ``-`` are
     dropped and the result is cut to 128 characters. It is then checked
     by :func:`tumor3d.imaging.scan.validate_patient_id`.
 
@@ -154,10 +156,13 @@ def derive_patient_id(path: str | os.PathLike[str]) -> str:
     --------
     >>> derive_patient_id("/data/pat 03.nii.gz")
     'pat_03'
+    >>> derive_patient_id("/data/ärzt_Müller.nii.gz")
+    'arzt_Muller'
     """
     full_name = Path(os.path.abspath(os.fspath(path))).name
     name = id_source_name(path)
-    candidate = _UNSAFE_ID_CHARS.sub("_", name).lstrip("._-")[:128]
+    plain = "".join(c for c in unicodedata.normalize("NFKD", name) if not unicodedata.combining(c))
+    candidate = _UNSAFE_ID_CHARS.sub("_", plain).lstrip("._-")[:128]
     try:
         return validate_patient_id(candidate)
     except InputError as exc:

@@ -476,7 +476,7 @@ def test_run_says_the_patient_id_it_made_when_it_is_not_the_files_name(tmp_path,
     res = runner.invoke(app, ["run", str(odd), "--out", str(tmp_path / "o")])
     assert res.exit_code == 0, res.output
     said = " ".join(res.output.split())
-    assert "patient id: Pat_01__ (made folder-safe from the name 'Pat 01 é'" in said
+    assert "patient id: Pat_01_e (made folder-safe from the name 'Pat 01 é'" in said
     plain = _nifti(tmp_path / "pat02.nii.gz", data)
     for args in (["run", str(plain)], ["run", str(odd), "--patient-id", "p1"]):
         res = runner.invoke(app, [*args, "--out", str(tmp_path / "o2")])
@@ -745,7 +745,15 @@ def test_a_stacks_sidecar_names_the_modality_when_none_is_given(
     given = runner.invoke(
         app, ["run", str(stack), "--out", str(tmp_path / "o"), "--modality", "t1c"]
     )
-    assert given.exit_code == 0 and seen["modality"] == "t1c" and "sidecar" not in given.output
+    assert given.exit_code == 0 and seen["modality"] == "t1c"
+    # the sidecar's other modality is said beside the given one (a user audit: a typo in
+    # --modality passed silently); the same one is not repeated
+    said = " ".join(given.output.split())
+    assert "modality: t1c (given; the stack's sidecar names flair)" in said
+    same = runner.invoke(
+        app, ["run", str(stack), "--out", str(tmp_path / "o"), "--modality", "FLAIR"]
+    )
+    assert same.exit_code == 0 and "sidecar" not in same.output
     assert prepare_source(stack).modality == "flair" and not prepare_source(stack).modality_default
     assert prepare_source(stack, modality="t2").modality == "t2"
     scans = []

@@ -533,6 +533,10 @@ def test_bad_overrides(tmp_path, kwargs, match):
         ("BraTS-001.NII.GZ", "BraTS-001"),
         ("scan.v2.nii", "scan.v2"),
         ("dicom folder (x)", "dicom_folder__x_"),
+        # accents dropped, not the letter (a user audit: "ärzt" became "rzt")
+        ("ärzt.nii.gz", "arzt"),
+        ("Ñandú_03.nii.gz", "Nandu_03"),
+        ("straße.nii.gz", "stra_e"),  # no ASCII letter to fall back to: replaced
     ],
 )
 def test_derive_patient_id(tmp_path, name, expected):
