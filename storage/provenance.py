@@ -107,6 +107,12 @@ def cache_identity(folder: str | Path) -> dict[str, Any] | None:
     }
 
 
+def _modality_change(before: dict[str, Any], after: dict[str, Any]) -> tuple[str, str] | None:
+    """The earlier and the new modality when both records name one and they differ."""
+    old, new = before.get("modality"), after.get("modality")  # None: a record before it was kept
+    return (old, new) if old is not None and new is not None and old != new else None
+
+
 def same_identity(before: dict[str, Any], after: dict[str, Any]) -> bool:
     """Whether two :func:`cache_identity` records agree on all that decides the result.
 
@@ -119,10 +125,9 @@ def same_identity(before: dict[str, Any], after: dict[str, Any]) -> bool:
     """
     keys = ("input", "config", "given", "code")
     old_v, new_v = before.get("versions") or {}, after.get("versions") or {}
-    mods = (before.get("modality"), after.get("modality"))  # None: a record before it was kept
     return (
         all(before.get(k) == after.get(k) for k in keys)
-        and (None in mods or mods[0] == mods[1])
+        and _modality_change(before, after) is None
         and all(old_v.get(name) == new_v.get(name) for name in NUMERICAL_DISTRIBUTIONS)
     )
 
@@ -158,9 +163,9 @@ def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
     """
     if before.get("input") != after.get("input"):
         return "input changed"
-    old_mod, new_mod = before.get("modality"), after.get("modality")
-    if old_mod is not None and new_mod is not None and old_mod != new_mod:
-        return f"modality changed: {old_mod} -> {new_mod}"
+    modality = _modality_change(before, after)
+    if modality is not None:
+        return f"modality changed: {modality[0]} -> {modality[1]}"
     old_given, new_given = before.get("given") or {}, after.get("given") or {}
     files = [k for k in ("brain_mask", "segmentation") if old_given.get(k) != new_given.get(k)]
     if files:

@@ -18,15 +18,10 @@ from typing import Any
 import numpy as np
 
 from tumor3d.errors import NoSurfaceError
-from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh, empty_mesh
 from tumor3d.geometry.surface import extract_surface, is_watertight
 
 __all__ = ["empty_mesh", "is_closed_surface", "tumour_surface"]
-
-
-def empty_mesh() -> Mesh:
-    """A mesh with no vertex and no face: "no tumour found"."""
-    return Mesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
 
 
 def tumour_surface(mask: np.ndarray, affine: np.ndarray, **options: Any) -> Mesh:

@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.geometry.mesh import Mesh
+from tumor3d.geometry.mesh import Mesh, empty_mesh
 
 __all__ = ["MAX_GRID_VOXELS", "brain_surface", "display_mesh"]
 
@@ -121,7 +121,7 @@ def brain_surface(brain_mask: np.ndarray, affine: np.ndarray, *, spacing_mm: flo
     coords = np.broadcast_arrays(zz / dz, yy / dy, xx / dx)
     fine = ndi.map_coordinates(sd, coords, order=1, mode="nearest") < 0.0
     if not fine.any():  # specks narrower than the grid: nothing a context surface can draw
-        return Mesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
+        return empty_mesh()
     scale = np.diag([step / dx, step / dy, step / dz, 1.0])
     scale[2, 3] = -1.0  # the padded first slice sits at old index -1
     return extract_surface(fine, aff @ scale)

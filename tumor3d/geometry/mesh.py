@@ -8,7 +8,7 @@ import numpy as np
 
 from tumor3d.errors import MeshError
 
-__all__ = ["Mesh"]
+__all__ = ["Mesh", "empty_mesh"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,3 +63,12 @@ class Mesh:
     def is_empty(self) -> bool:
         """True when the mesh has no faces."""
         return self.n_faces == 0
+
+
+def empty_mesh() -> Mesh:
+    """A mesh with no vertex and no face ("no tumour found", a brain too small to draw).
+
+    >>> empty_mesh().n_faces
+    0
+    """
+    return Mesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))

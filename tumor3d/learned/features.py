@@ -198,20 +198,16 @@ def _mirror_source(centre: float, index: np.ndarray, n: int) -> np.ndarray:
     return np.clip(np.rint(2.0 * centre - index).astype(np.intp), 0, n - 1)
 
 
-def _mirror(
-    a: np.ndarray, lr_axis: int | None, centre: float, *, start: int = 0, n: int | None = None
-) -> np.ndarray:
-    """``a`` reflected about ``centre`` (array index) along ``lr_axis``; edges clamp.
+def _mirror(a: np.ndarray, lr_axis: int, centre: float, start: int, n: int) -> np.ndarray:
+    """``a`` reflected about ``centre`` along ``lr_axis``; edges clamp.
 
-    ``a`` may be a crop of an axis of ``n`` indices that begins at ``start``
+    ``a`` is a crop, beginning at index ``start``, of an axis of ``n`` indices
     (``centre`` is an index of the whole axis); a source outside the crop is
     clamped to it (the crop of :func:`_work_box` holds every source a tissue
     pixel needs).
     """
-    if lr_axis is None:
-        return a
     m = a.shape[lr_axis]
-    src = _mirror_source(centre, np.arange(start, start + m), m if n is None else n)
+    src = _mirror_source(centre, np.arange(start, start + m), n)
     return np.take(a, np.clip(src - start, 0, m - 1), axis=lr_axis)
 
 
@@ -248,11 +244,7 @@ def _prior_columns(
 ) -> list[np.ndarray]:
     """Inside, signed distance (mm) and slice-area share of a prior mask."""
     clip = PRIOR_DISTANCE_CLIP_MM
-    if prior is None:
-        prior = np.zeros(shape, bool)
-    prior = np.asarray(prior, dtype=bool)
-    if prior.shape != tuple(shape):
-        raise InputError(f"prior mask shape {prior.shape} differs from the image's {shape}")
+    prior = np.zeros(shape, bool) if prior is None else np.asarray(prior, dtype=bool)
     dist = np.full(shape, clip, np.float32)
     for z in range(shape[0]):
         if prior[z].any():
@@ -366,11 +358,12 @@ def compute_features(
     for s in (2.0, 4.0):
         sq = _smooth_in(norm * norm, cand, px(s))
         cols.append(np.sqrt(np.maximum(sq - smooth[s] ** 2, 0.0)))
-    lr_start = 0 if lr_axis is None else start[lr_axis]
-    lr_n = None if lr_axis is None else full_cand.shape[lr_axis]
-    for s in (2.0, 4.0, 8.0):
-        diff = smooth[s] - _mirror(smooth[s], lr_axis, centre, start=lr_start, n=lr_n)
-        cols.append(diff if lr_axis is not None else np.zeros_like(norm))
+    for s in (2.0, 4.0, 8.0):  # no left-right axis: no asymmetry (0)
+        if lr_axis is None:
+            cols.append(np.zeros_like(norm))
+            continue
+        mirrored = _mirror(smooth[s], lr_axis, centre, start[lr_axis], full_cand.shape[lr_axis])
+        cols.append(smooth[s] - mirrored)
     # the neighbouring slices at the same pixel (3-D context; edge slices repeat)
     s2 = smooth[2.0]
     up = np.concatenate([s2[1:], s2[-1:]], axis=0)
