@@ -327,8 +327,9 @@ def patient_report_data(
     if metrics.get("eq7_slice_rule"):
         counts["Eq. 7 slice rule"] = str(metrics["eq7_slice_rule"])
     data["slice_counts"] = counts
-    if _num(metrics, "slab_height_mm") is not None:
-        data["slab_height_mm"] = _num(metrics, "slab_height_mm")
+    for key in ("slab_height_mm", "slice_thickness_mm", "slice_gap_mm"):
+        if _num(metrics, key) is not None:
+            data[key] = _num(metrics, key)
     if metrics.get("faces_mc") is not None:
         data["faces_before"] = int(metrics["faces_mc"])
     if metrics.get("faces_simplified") is not None:

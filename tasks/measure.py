@@ -63,6 +63,8 @@ def measure_volume(
             mesh_vertices=None if mesh.is_empty else mesh.vertices,
         )
     )
+    # the slab's parts as read (a negative gap: overlapping slices), beside slab_height_mm
+    row.update(slice_thickness_mm=meta["slice_thickness_mm"], slice_gap_mm=meta["slice_gap_mm"])
     return StageResult(artifacts={"volumes": [row]}, values=row)
 
 

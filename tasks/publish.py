@@ -19,6 +19,7 @@ from typing import Any
 
 from tumor3d.config import PipelineConfig
 from tumor3d.errors import InputError
+from tumor3d.imaging.affine import slice_overlap_note
 from tumor3d.imaging.orientation import slice_order_note
 from tumor3d.imaging.scan import SourceGrid
 from tumor3d.learned.shipped import MODEL_IDENTITY_KEYS
@@ -151,8 +152,9 @@ def run_notes(
         skipped_files=ingest.values.get("skipped_files") or [],
         brain_mask_note=None if brain_mask is None else brain_mask_note(brain_mask),
         **brain_mask_run_notes(outputs["preprocess"].values, seg.get("segment_method")),
-        # nibabel's repairs of a NIfTI header (tumor3d.tasks.ingest), never printed
-        header_notes=ingest.values.get("header_notes") or [],
+        # nibabel's repairs of a NIfTI header (tumor3d.tasks.ingest), never printed, and
+        # slices thicker than their step (tumor3d.imaging.affine.slice_overlap_note)
+        header_notes=[*(ingest.values.get("header_notes") or []), *_overlap(ingest.values)],
         slice_order_note=None
         if scan is None
         else slice_order_note(source_grid_from_metadata(scan.metadata)),
@@ -168,6 +170,15 @@ def run_notes(
         notes.append(assumed)
         doubts.append(assumed)
     return notes, doubts
+
+
+def _overlap(values: dict[str, Any]) -> list[str]:
+    """The ingest stage's slice geometry's overlap note, as a list (empty: none or unknown)."""
+    keys = ("slice_step_mm", "slice_thickness_mm", "slice_gap_mm")
+    if any(values.get(k) is None for k in keys):
+        return []
+    note = slice_overlap_note(*(float(values[k]) for k in keys))
+    return [] if note is None else [note]
 
 
 def run_review(outputs: dict[str, StageOutput], doubts: list[str]) -> Review:
@@ -302,10 +313,16 @@ def _provenance(
         "location_sha256": input_location(source.path),
     }
     input_info.update(modality=source.modality, patient_id=source.patient_id)
+    scanned = outputs["ingest-scan"].values
+    # the slab as read: the step from the affine, the thickness stated by the option or
+    # the file's metadata (else the step), the gap what is left (negative: overlapping)
+    input_info["slices"] = {
+        f"{k}_mm": scanned.get(f"slice_{k}_mm") for k in ("step", "thickness", "gap")
+    }
     input_info["orientation"] = {
         **grid_orientation(grid),
         # False: a folder of 2-D slices, or a NIfTI header without orientation (assumed)
-        "stated": bool(outputs["ingest-scan"].values.get("orientation_stated", True)),
+        "stated": bool(scanned.get("orientation_stated", True)),
     }
     code = stages.code_digests()
     provenance = build_provenance(

@@ -31,7 +31,7 @@ from tumor3d.config import PipelineConfig, as_config
 from tumor3d.errors import InputError
 from tumor3d.geometry.measures import clinical_measures
 from tumor3d.geometry.mesh import Mesh
-from tumor3d.imaging.affine import reverse_axes, slab_height_mm
+from tumor3d.imaging.affine import reverse_axes, slab_height_mm, slice_overlap_note
 from tumor3d.imaging.identity import MODALITIES
 from tumor3d.imaging.orientation import canonical_flips, canonical_orientation, slice_order_note
 from tumor3d.imaging.scan import Scan
@@ -305,7 +305,9 @@ def reconstruct_scan(
             mesh_vertices=None if surface.is_empty else surface.vertices,
         )  # fmt: skip
     )
+    row.update(slice_thickness_mm=scan.slice_thickness_mm, slice_gap_mm=scan.slice_gap_mm)
     # notes and status (tumor3d.segmentation.review), as the pipeline's
+    overlap = slice_overlap_note(scan.slice_step_mm, scan.slice_thickness_mm, scan.slice_gap_mm)
     extraction = "given" if given is not None else str(pre.brain_extraction)
     figures = brain_mask_figures(brain, spacing, extraction, pre.original_u8)
     notes, doubts = run_notes(
@@ -314,7 +316,8 @@ def reconstruct_scan(
         skipped_files=scan.skipped_files,
         brain_mask_note="brain mask given: no skull removal" if given is not None else None,
         **brain_mask_run_notes(figures, seg.method),
-        header_notes=header_notes, slice_order_note=slice_order_note(scan.source_grid),
+        header_notes=[*header_notes, *filter(None, [overlap])],
+        slice_order_note=slice_order_note(scan.source_grid),
     )
     if tumour_given is not None:  # informational, as tumor3d.tasks.publish.run_notes
         said = f" ({segmentation_name})" if segmentation_name else ""

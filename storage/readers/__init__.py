@@ -56,7 +56,9 @@ file, ``x.nii.gz`` -> ``x.json``; DICOM ``SliceThickness``; the stack
 sidecar); else it equals the step. The gap is ``step - thickness`` unless
 ``slice_gap_mm`` is given, in which case thickness + gap must equal the step
 within 1 % (an ``InputError`` otherwise); if the thickness is not known at
-all it is then ``step - gap``.
+all it is then ``step - gap``. A thickness above the step, from whichever
+source, is overlapping slices (a negative gap, said in the run's notes) up to
+twice the step, and an ``InputError`` naming its source beyond.
 
 DICOM geometry
 --------------

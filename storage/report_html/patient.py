@@ -123,10 +123,15 @@ def patient_report_html(data: Mapping[str, Any]) -> str:
         rows.append(("Slices flagged abnormal (detection)", f"{len(abnormal)} ({_e(shown)})"))
     for label, count in _check_mapping(data.get("slice_counts", {}), "slice_counts").items():
         rows.append((_e(label), _e(count)))
-    if "slab_height_mm" in data:
-        rows.append(
-            ("Slab height", f"{_fmt(_number(data['slab_height_mm'], 'slab_height_mm'), 2)} mm")
-        )
+    for key, label in (
+        ("slab_height_mm", "Slab height (Eq. 7)"),
+        ("slice_thickness_mm", "Slice thickness"),
+        ("slice_gap_mm", "Slice gap"),
+    ):
+        if key in data:
+            value = _number(data[key], key)
+            said = " (the slices overlap)" if value is not None and value < 0 else ""
+            rows.append((label, f"{_fmt(value, 2)} mm{said}"))
     if "faces_before" in data:
         rows.append(("Faces (marching cubes)", _e(data["faces_before"])))
     if "faces_after" in data:

@@ -150,6 +150,38 @@ def test_the_api_agrees_with_the_pipeline_stage_for_stage(phantom, result, tmp_p
     assert result.status == review.status
 
 
+def test_overlapping_slices_are_said_recorded_and_summed_once(phantom, result, tmp_path):
+    """A sidecar stating slices thicker than their step (overlapping: a user audit found
+    its thickness recorded nowhere) gives the same volumes, since Eq. 7 sums each slice
+    over its step; the overlap is said as a note that does not doubt, and the thickness
+    and gap read are in the metrics, as the pipeline's stages give them."""
+    import json
+
+    from tumor3d.flows.patient import run_notes, run_stages_direct
+    from tumor3d.storage.phantom_io import write_phantom_patient
+
+    step, thickness = phantom.scan.slice_step_mm, phantom.scan.slice_thickness_mm
+    assert thickness < step  # the phantom's acquisition: 2 mm slices every 5 mm
+    assert (result.metrics["slice_thickness_mm"], result.metrics["slice_gap_mm"]) == (
+        pytest.approx(thickness), pytest.approx(step - thickness))  # fmt: skip
+    assert not [n for n in result.notes if "overlap" in n]
+    row = write_phantom_patient(phantom, tmp_path / "in")
+    sidecar = row.image.with_name(row.image.name.replace(".nii.gz", ".json"))
+    meta = json.loads(sidecar.read_text())
+    sidecar.write_text(json.dumps({**meta, "SliceThickness": step + 1.0}))
+    over = tumor3d.reconstruct(str(row.image), modality="t2")
+    for key, v in result.volumes_mm3.items():
+        assert over.volumes_mm3[key] == pytest.approx(v, rel=1e-6), key
+    assert (over.metrics["slice_thickness_mm"], over.metrics["slice_gap_mm"]) == (
+        pytest.approx(step + 1.0), pytest.approx(-1.0))  # fmt: skip
+    (note,) = [n for n in over.notes if n.startswith("the slices overlap")]
+    assert f"{step + 1.0:g} mm thick every {step:g} mm" in note
+    assert over.status == result.status and note not in over.review_reasons
+    runner = run_stages_direct(row.image, tmp_path / "store", patient_id="api3", modality="t2")
+    assert run_notes(runner.outputs)[0] == list(over.notes)
+    assert runner.outputs["measure-volume"].values["slice_gap_mm"] == pytest.approx(-1.0)
+
+
 def test_a_brain_mask_the_tool_doubts_gives_status_check_with_the_reason(phantom):
     # a "brain" mask over the whole field of view: more than any skull holds (the issue's
     # clinical T1c whose note said the result was unreliable, yet showed "ok")

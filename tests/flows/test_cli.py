@@ -799,3 +799,9 @@ def test_methods_lists_the_registered_segmentation_methods_and_formats():
     assert result.exit_code == 0
     rows = {line.split("│")[1].strip() for line in result.output.splitlines() if "│" in line}
     assert set(method_names()) | set(registered_readers()) <= rows
+    # piped with no COLUMNS (a log file: the console is 1,000 wide), the tables still wrap
+    # their descriptions to a readable width (a user audit saw 230 columns)
+    piped = CliRunner().invoke(app, ["methods"], env={"COLUMNS": None})
+    lines = piped.output.splitlines()
+    assert max(len(line) for line in lines) <= 100 and len(lines) > len(rows)
+    assert {line.split("│")[1].strip() for line in lines if "│" in line} == rows

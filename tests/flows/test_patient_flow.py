@@ -147,11 +147,18 @@ def test_mesh_is_closed_in_ras_and_matches_voxel_volume(first_run):
     assert b"SPACE=RAS" in (out / "flowpat" / "tumor.ply").read_bytes()[:300]
 
 
-def test_provenance_records_versions_config_and_input_digest(first_run):
+def test_provenance_records_versions_config_and_input_digest(first_run, phantom):
     out, result = first_run
     prov = json.loads((out / "flowpat" / "provenance.json").read_text())
     assert prov["versions"]["tumor3d"]
     assert prov["input"]["digest_sha256"] and len(prov["input"]["digest_sha256"]) == 64
+    # the slab as read from the sidecar: the phantom's 2 mm slices every 5 mm
+    scan = phantom.scan
+    assert prov["input"]["slices"] == pytest.approx({
+        "step_mm": scan.slice_step_mm, "thickness_mm": scan.slice_thickness_mm,
+        "gap_mm": scan.slice_step_mm - scan.slice_thickness_mm})  # fmt: skip
+    report = (out / "flowpat" / "report.html").read_text()
+    assert f"Slice thickness</th><td class='num'>{scan.slice_thickness_mm:.2f} mm" in report
     assert prov["config"]["simplify"]["reduction_percent"] == 60.0
     assert [s["stage"] for s in prov["stages"]] == STAGE_NAMES
 

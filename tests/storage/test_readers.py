@@ -122,6 +122,39 @@ def test_override_inconsistent_with_step_errors(tmp_path):
         read_scan(f, slice_thickness_mm=2.0, slice_gap_mm=2.0)
 
 
+@pytest.mark.parametrize("source", ["sidecar", "option", "dicom"])
+def test_one_thickness_rule_whatever_states_it(tmp_path, source):
+    """Overlapping slices (up to twice the step) are read; thicker is refused, the source named.
+
+    A user audit found 6 mm on a 5 mm step accepted from a sidecar and refused from
+    the option; the slab of Eq. 7 is the step either way.
+    """
+
+    def read(thickness):
+        d = tmp_path / f"{source}{thickness}"
+        if source == "dicom":
+            write_series(d / "series", thickness_mm=thickness, step_mm=5.0)
+            return read_scan(d / "series")
+        d.mkdir()
+        f = save_nifti(d / "sub.nii.gz", ramp_volume((8, 6, 3)), LAS)
+        if source == "sidecar":
+            (d / "sub.json").write_text(json.dumps({"SliceThickness": thickness}))
+            return read_scan(f)
+        return read_scan(f, slice_thickness_mm=thickness)
+
+    scan = read(6.0)
+    assert (scan.slice_thickness_mm, scan.slice_gap_mm) == pytest.approx((6.0, -1.0))
+    assert scan.slab_height_mm == pytest.approx(5.0)
+    assert read(10.0).slice_gap_mm == pytest.approx(-5.0)  # twice the step: still read
+    named = {
+        "sidecar": r"SliceThickness of the sidecar sub\.json = 11 mm",
+        "option": r"slice_thickness_mm = 11 mm",
+        "dicom": r"the series' SliceThickness = 11 mm",
+    }[source]
+    with pytest.raises(InputError, match=named + r" is larger than the slice step 5 mm"):
+        read(11.0)
+
+
 def test_nifti_permuted_axes_slice_axis_first(tmp_path):
     # source axis 0 is the 4 mm superior-inferior axis; axes 1, 2 are in-plane
     affine = np.array(

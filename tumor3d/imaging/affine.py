@@ -40,6 +40,7 @@ __all__ = [
     "in_plane_shear",
     "reverse_axes",
     "slab_height_mm",
+    "slice_overlap_note",
     "slice_plane_spacing_mm",
     "zyx_index_to_ras",
 ]
@@ -70,6 +71,29 @@ def slab_height_mm(
     if slice_gap_mm is None:
         return float(slice_step_mm)
     return float(slice_thickness_mm + slice_gap_mm)
+
+
+def slice_overlap_note(
+    slice_step_mm: float, slice_thickness_mm: float, slice_gap_mm: float | None
+) -> str | None:
+    """A note for slices thicker than their step (a negative gap), None otherwise.
+
+    Overlapping slices are accepted whatever states their thickness (the option
+    or the file's metadata); Eq. 7 then sums each slice's area over one step, so
+    no tissue is counted twice, and the note says so.
+
+    >>> slice_overlap_note(5.0, 6.0, -1.0).split(";")[0]
+    'the slices overlap: 6 mm thick every 5 mm (1 mm shared by neighbours)'
+    >>> slice_overlap_note(5.0, 2.0, 3.0) is None
+    True
+    """
+    if slice_gap_mm is None or slice_gap_mm >= -1e-6 * slice_step_mm:
+        return None
+    return (
+        f"the slices overlap: {slice_thickness_mm:.4g} mm thick every {slice_step_mm:.4g} mm "
+        f"({-slice_gap_mm:.4g} mm shared by neighbours); Eq. 7 sums each over its "
+        f"{slice_step_mm:.4g} mm step"
+    )
 
 
 def slice_plane_spacing_mm(affine: np.ndarray, slice_axis: int = 2) -> float:
