@@ -72,6 +72,24 @@ def test_a_nominal_step_makes_the_run_check():
     assert any("slice step in the header (1 mm)" in reason for reason in r.review_reasons)
 
 
+def test_a_masked_brain_is_measured_by_its_support_not_its_dark_tissue():
+    """A skull-stripped brain (zero all around) whose dark tissue reaches its edge by a
+    different amount on each slice (a dark wedge of 90 degrees on every other slice, below
+    half the Otsu level, as the algoseg T2's white matter was): the outline is the brain's
+    support, so the shift is the ball's own radius steps (independent: as the sphere test
+    above), not the wedge's come and go (2.6 mm by the threshold)."""
+    zz, yy, xx = np.mgrid[-40:41:4, -60:60, -60:60].astype(float)
+    ball = (zz**2 + yy**2 + xx**2) < 40.0**2
+    width = np.where(np.arange(len(zz))[:, None, None] % 2 == 0, 90.0, 0.0)
+    wedge = ball & (np.abs(np.degrees(np.arctan2(yy, xx))) < width / 2)
+    tissue = np.random.default_rng(0).integers(20, 220, size=ball.shape)
+    brain = np.where(wedge, 10, np.where(ball, tissue, 0)).astype(np.uint8)
+    radii = np.sqrt(np.maximum(40.0**2 - np.arange(-40, 41, 4.0) ** 2, 0))
+    big = np.pi * radii**2 >= 0.25 * np.pi * 40.0**2
+    steps = [abs(radii[k + 1] - radii[k]) for k in range(len(radii) - 1) if big[k] and big[k + 1]]
+    assert outline_shift_mm(brain, (4.0, 1.0, 1.0)) == pytest.approx(np.median(steps), abs=0.3)
+
+
 def test_a_slab_of_one_end_of_the_head_gets_no_verdict():
     """A stack from the head's widest section up holds only its steep part (the top 40 mm
     of a 1 mm brain moved 1.1 steps, a coronal 3 mm head's first 8 slices 2.2: false
