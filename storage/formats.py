@@ -36,6 +36,7 @@ from tumor3d.geometry.mesh import Mesh
 
 __all__ = [
     "PNG_ZLIB_LEVEL",
+    "UNIT_SUFFIXES",
     "decode_parquet",
     "decode_ply",
     "decode_png",
@@ -206,8 +207,33 @@ def encode_stl(mesh: Mesh, *, space: str = "LPS") -> bytes:
     return _write_with(writer, ".stl")
 
 
+#: Name endings of columns that hold a number in a unit (the project's names say the unit:
+#: ``outline_shift_mm``, ``volume_eq7_ml``, ``time_flow_s``).
+UNIT_SUFFIXES = ("_mm", "_mm2", "_mm3", "_ml", "_s")
+
+
 def encode_parquet(table: pd.DataFrame) -> bytes:
-    """Encode a data frame as parquet bytes (no index, deterministic)."""
+    """Encode a data frame as parquet bytes (no index, deterministic).
+
+    A column named with a unit (:data:`UNIT_SUFFIXES`) whose every value is empty
+    (None) is written as float64 NaN, as it is in a table where another row has a
+    value: ``metrics.parquet``'s one row and a cohort's many give it one type.
+
+    >>> t = decode_parquet(encode_parquet(pd.DataFrame([{"outline_shift_mm": None,
+    ...                                                  "notes": None}])))
+    >>> str(t["outline_shift_mm"].dtype), t["notes"].tolist()
+    ('float64', [None])
+    """
+    empty_units = [
+        c
+        for c in table.columns
+        if isinstance(c, str)
+        and c.endswith(UNIT_SUFFIXES)
+        and table[c].dtype == object
+        and table[c].isna().all()
+    ]
+    if empty_units:
+        table = table.astype({c: "float64" for c in empty_units})
     arrow = pa.Table.from_pandas(table, preserve_index=False)
     arrow = arrow.replace_schema_metadata(None)
     sink = io.BytesIO()
