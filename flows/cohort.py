@@ -276,13 +276,13 @@ def cohort_flow(
         removed=removed, earlier=earlier,
     )  # fmt: skip
     if remote is None:
-        write_cohort_outputs(out_dir, table, markdown, removed)
+        write_cohort_outputs(out_dir, table, markdown, removed, earlier)
     else:  # temporary keys, copy, read-back digests, marker last (tumor3d.storage.remote_publish)
         done = set(published_names(remote))
         files = cohort_output_files(
             table, markdown, out_dir, name=Path(out_dir).name,
             exists=lambda rel: rel.split("/", 1)[0] in done and remote.exists(rel),
-            removed=removed,
+            removed=removed, earlier=earlier,
         )  # fmt: skip
         publish_files(remote, "", files, exclusive=False)
     publish_cohort_artifacts(table, name=Path(out_dir).name)

@@ -187,12 +187,7 @@ def cohort_markdown(
             error = str(r["error"]).replace("|", "\\|")
             lines.append(f"| {r['patient_id']} | {r['failed_stage']} | {error} |")
         if earlier:
-            lines += [
-                "",
-                f"The folder of {', '.join(earlier)} still holds an earlier run's result, not "
-                "this run's input's (this run failed before publishing): do not read it as "
-                "this run's.",
-            ]
+            lines += ["", f"The folder of {', '.join(earlier)} {EARLIER_NOTE}."]
     # published before, and this result is not that one: why
     again = (
         patients_by_reason(zip(table["patient_id"], table["recomputed"], strict=True))
@@ -238,11 +233,19 @@ def _finite(value: Any) -> float | None:
     return f if f == f and abs(f) != float("inf") else None
 
 
+#: Said of a failed patient whose folder holds an earlier run's result (cohort.md, .html).
+EARLIER_NOTE = (
+    "still holds an earlier run's result, not this run's input's (this run failed before "
+    "publishing): do not read it as this run's"
+)
+
+
 def cohort_page_rows(
     table: pd.DataFrame,
     out_dir: str | Path,
     *,
     exists: Callable[[str], bool] | None = None,
+    earlier: Sequence[str] = (),
 ) -> list[dict[str, Any]]:
     """The rows of ``cohort.html``: per patient its status, volumes, notes and relative links.
 
@@ -256,6 +259,9 @@ def cohort_page_rows(
     exists : callable, optional
         ``exists("<patient_id>/<file>")``: whether that file is published (for
         an object store); default: the file exists under ``out_dir``.
+    earlier : sequence of str
+        Failed patients whose folder still holds an earlier run's result: their row
+        says so, as ``cohort.md`` does (:func:`cohort_markdown`).
     """
     out = Path(out_dir)
     if exists is None:
@@ -274,6 +280,8 @@ def cohort_page_rows(
             if f"volume_{key}_mm3" in r
         }
         row: dict[str, Any] = {"patient_id": pid, "status": status}
+        if not ok and pid in earlier:
+            row["notes"] = [f"its folder {EARLIER_NOTE}"]
         if ok:
             row["notes"] = row_notes(r)
             row["volumes_mm3"] = vols
@@ -316,15 +324,16 @@ def cohort_output_files(
     name: str | None = None,
     exists: Callable[[str], bool] | None = None,
     removed: Sequence[str] = (),
+    earlier: Sequence[str] = (),
 ) -> dict[str, bytes]:
     """The bytes of ``cohort.parquet``, ``cohort.md`` and ``cohort.html`` (file name -> bytes).
 
     ``name`` is the cohort's name in the page title (:func:`cohort_title`;
-    default ``out_dir``'s name); ``exists`` as :func:`cohort_page_rows`; ``removed``
-    as :func:`cohort_markdown` (the page lists them too).
+    default ``out_dir``'s name); ``exists`` and ``earlier`` as :func:`cohort_page_rows`;
+    ``removed`` as :func:`cohort_markdown` (the page lists them too).
     """
     title = cohort_title(name if name is not None else Path(out_dir).name)
-    rows = cohort_page_rows(table, out_dir, exists=exists)
+    rows = cohort_page_rows(table, out_dir, exists=exists, earlier=earlier)
     page = cohort_report_html(rows, title=title, removed=removed)
     return {
         "cohort.parquet": encode_parquet(table),
@@ -334,9 +343,14 @@ def cohort_output_files(
 
 
 def write_cohort_outputs(
-    out_dir: str | Path, table: pd.DataFrame, markdown: str, removed: Sequence[str] = ()
+    out_dir: str | Path,
+    table: pd.DataFrame,
+    markdown: str,
+    removed: Sequence[str] = (),
+    earlier: Sequence[str] = (),
 ) -> None:
     """Write ``cohort.parquet``, ``cohort.md`` and ``cohort.html`` atomically into ``out_dir``."""
     out = Path(out_dir)
-    for fname, data in cohort_output_files(table, markdown, out, removed=removed).items():
+    files = cohort_output_files(table, markdown, out, removed=removed, earlier=earlier)
+    for fname, data in files.items():
         atomic_write_bytes(out / fname, data)

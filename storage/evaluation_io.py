@@ -136,7 +136,11 @@ def reference_mask(row: ManifestRow) -> tuple[np.ndarray, np.ndarray]:
             )
         mask = rounded > 0
         if not mask.any() and row.reference_kind != "tumor_free":
-            raise InputError(f"patient {row.patient_id}: the reference has no label > 0", where)
+            raise InputError(
+                f"patient {row.patient_id}: the reference has no label > 0 (a patient "
+                "without tumour: give the row reference_kind tumor_free and no reference)",
+                where,
+            )
     else:
         mask = np.isin(rounded, row.reference_labels)
         if not mask.any():

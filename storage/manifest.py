@@ -505,9 +505,12 @@ def _check_header(header: list[str], where: str) -> None:
         )
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
     if missing:
+        # one cell holding them all: another delimiter (a spreadsheet's ';' or a tab)
+        other = len(header) == 1 and any(d in header[0] for d in ";\t|")
+        hint = " (the manifest must be comma-separated)" if other else ""
         raise InputError(
             f"missing required column(s) {', '.join(missing)} in the header "
-            f"(found: {', '.join(header)})",
+            f"(found: {', '.join(header)}){hint}",
             where,
         )
     unknown = [c for c in header if c not in MANIFEST_COLUMNS]

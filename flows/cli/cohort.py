@@ -40,7 +40,7 @@ def cohort(
     layout: Layout = "default",
     verbose: Verbose = False,
 ) -> None:
-    """Run every patient of a manifest, N at a time: OUT/<id>/, OUT/cohort.parquet, OUT/cohort.md.
+    """Run every patient of a manifest, N at a time: OUT/<id>/, OUT/cohort.parquet/.md/.html.
 
     Exit code 0 when every patient succeeded with status ok, 1 when some failed
     (named in the summary; a row whose image is missing fails alone), 4 when

@@ -106,8 +106,8 @@ class _PlainReporter:
             return
         if event.status == "cached":
             what = "cache hit"
-        elif event.status == "done":
-            what = f"{event.seconds:.2f} s"
+        elif event.status == "done":  # wall clock, any wait for a worker included
+            what = f"{event.seconds:.2f} s wall"
         elif event.status == "published":  # its stage says "published" or "up to date"
             self._say(f"{event.patient_id}\tpublish\t{event.stage}")
             return

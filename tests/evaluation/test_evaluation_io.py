@@ -117,6 +117,19 @@ def test_reference_without_requested_labels(thin, tmp_path):
         prepare_case(row, tmp_path)
 
 
+def test_an_empty_reference_names_the_tumour_free_kind(thin, tmp_path):
+    """An all-zero expert label (what an export writes for no tumour) is refused, pointing
+    to the row's reference_kind tumor_free without a reference (a user audit: the error
+    gave no way out), which scores the patient as tumour-free."""
+    image, seg, img, lab, aff = thin
+    empty = _write(tmp_path / "empty.nii.gz", np.zeros_like(lab), aff, "uint8")
+    with pytest.raises(InputError, match=r"patient p8: the reference has no label > 0 .*"
+                       r"reference_kind tumor_free and no reference\)$"):  # fmt: skip
+        reference_mask(ManifestRow("p8", image, "t2", reference=empty))
+    free = ManifestRow("p8", image, "t2", reference_kind="tumor_free")
+    assert prepare_case(free, tmp_path).reference_kind == "tumor_free"
+
+
 def test_reference_outside_the_image_world_space(thin, tmp_path):
     image, _, _, lab, aff = thin
     far = aff.copy()

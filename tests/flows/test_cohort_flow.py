@@ -310,7 +310,8 @@ def test_a_patient_computed_again_says_why(first, inputs, tmp_path):
 def test_a_new_input_that_fails_says_its_folder_holds_the_earlier_result(first, inputs, tmp_path):
     """A patient published by an earlier run whose new image fails keeps the earlier folder
     (published results are not deleted): the run says that folder is not this input's, in
-    its result, cohort.md and the console line, and names no other patient."""
+    its result, cohort.md, cohort.html's row (a user audit: the page a clinician opens
+    said nothing) and the console line, and names no other patient."""
     import shutil
 
     out = tmp_path / "out"
@@ -324,6 +325,11 @@ def test_a_new_input_that_fails_says_its_folder_holds_the_earlier_result(first, 
     assert (out / "coh0" / "metrics.parquet").is_file()  # kept, not deleted
     md = (out / "cohort.md").read_text()
     assert "The folder of coh0 still holds an earlier run's result" in md
+    rows = [r.split("</tr>")[0] for r in (out / "cohort.html").read_text().split("<tr>")]
+    (coh0,) = [r for r in rows if ">coh0<" in r]
+    (coh1,) = [r for r in rows if ">coh1<" in r]
+    assert "its folder still holds an earlier run&#x27;s result" in coh0
+    assert "earlier run" not in coh1
     from tumor3d.flows.cli.app import console
     from tumor3d.flows.cli.output import print_cohort_summary
 

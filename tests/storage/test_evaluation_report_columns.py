@@ -101,10 +101,11 @@ def test_the_segmentation_tables_follow_its_declaration(tmp_path):
     assert "default: 3-D Dice only" in overlap and "| a | 0.88 |" in overlap
     assert "Dice slice / pooled / 3-D" not in overlap
     summary = _section(text, "Summary per group")
-    assert summary.splitlines()[2] == "| group | configuration | n ok | slice Dice |"
+    assert summary.splitlines()[2] == "| group | configuration | n ok | ref-slice Dice |"
     # and as declared in the registry, the report's tables as before
     text = _report(tmp_path, rows, {"segmentation": seg})
     assert "| patient | default: Dice slice / pooled / 3-D | default: HD95 / HD (mm) |" in text
-    assert "| slice Dice | 3-D Dice | HD95 (mm) | Eq. 9 (%) | Eq. 7 err. (%) | mesh err. (%) |" in (
-        text
+    assert (
+        "| ref-slice Dice | pooled Dice | 3-D Dice | HD95 (mm) | Eq. 9 (%) | Eq. 7 err. (%) "
+        "| mesh err. (%) |" in text
     )

@@ -93,6 +93,11 @@ def test_write_then_read_round_trip_with_relative_paths(cohort):
             r"unknown column\(s\) 'notes'",
         ),
         ("patient_id,image,modality\n", r"no data rows below the header"),
+        (  # a spreadsheet's export (a user audit): the delimiter named
+            "patient_id;image;modality\np1;images/p1.nii.gz;t2\n",
+            r"missing required column\(s\) patient_id, image, modality in the header \(found: "
+            r"patient_id;image;modality\) \(the manifest must be comma-separated\)",
+        ),
     ],
 )
 def test_bad_header(cohort, text, match):
