@@ -46,7 +46,7 @@ def validate_rows(
         (or BIDS label), two rows with one folder, an output folder over an input,
         or ``layout="bids"`` with an object-store output.
     """
-    seen: dict[str, str] = {}
+    seen: dict[str, tuple[str, int]] = {}  # folder -> (its patient id, its row)
     for i, row in enumerate(rows, start=1):
         pid = row.get("patient_id")
         if not pid or "image" not in row:
@@ -56,9 +56,14 @@ def validate_rows(
         except InputError as exc:
             raise InputError(f"manifest row {i}: {exc}") from None
         if folder in seen:
-            what = "patient_id" if folder == pid else f"folder {folder} (as {seen[folder]!r})"
-            raise InputError(f"manifest row {i}: duplicate {what} {pid!r}")
-        seen[folder] = str(pid)
+            first, j = seen[folder]
+            if first == str(pid):
+                raise InputError(f"manifest row {i}: duplicate patient_id {pid!r} (row {j})")
+            raise InputError(  # the BIDS layout folds two ids onto one participant label
+                f"manifest row {i}: patient_id {pid!r} and {first!r} (row {j}) would both "
+                f"publish into {folder}"
+            )
+        seen[folder] = (str(pid), i)
         # never publish over an input (checked for every row before any work); inputs
         # are local files, so an object-store output (out_dir None) cannot hold one
         if out_dir is not None:

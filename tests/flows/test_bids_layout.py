@@ -222,9 +222,13 @@ def test_a_cohort_in_the_bids_layout(published, tmp_path):
     bad = [{"patient_id": "bp-1", "image": str(image), "modality": "t2"}]
     with pytest.raises(InputError, match="manifest row 1: patient id 'bp-1' is not a BIDS"):
         run_cohort(bad, tmp_path / "c2", store_dir=str(base / "store"), layout="bids")
-    twice = [{"patient_id": p, "image": str(image), "modality": "t2"} for p in ("sub-7", "7")]
-    with pytest.raises(InputError, match="manifest row 2: duplicate folder sub-7"):
-        run_cohort(twice, tmp_path / "c3", store_dir=str(base / "store"), layout="bids")
+    # either order names both ids and the folder (a user audit: 'p1' then 'sub-p1' was
+    # called a duplicate patient_id 'sub-p1')
+    for ids in (("sub-7", "7"), ("7", "sub-7")):
+        twice = [{"patient_id": p, "image": str(image), "modality": "t2"} for p in ids]
+        with pytest.raises(InputError, match=rf"^manifest row 2: patient_id '{ids[1]}' and "
+                           rf"'{ids[0]}' \(row 1\) would both publish into sub-7$"):  # fmt: skip
+            run_cohort(twice, tmp_path / "c3", store_dir=str(base / "store"), layout="bids")
     assert not (tmp_path / "c2").exists() and not (tmp_path / "c3").exists()
 
 
