@@ -479,7 +479,7 @@ def _resolve_thickness(
             f"{said} is larger than the slice step {step:.6g} mm of the image geometry "
             f"by more than the step (overlapping slices are at most {MAX_OVERLAP_STEPS:g} "
             "steps thick): give the acquired thickness (option slice_thickness_mm, CLI "
-            "--slice-thickness-mm), or slice_gap_mm as well",
+            "--slice-thickness-mm)",
             where,
         )
     if gap_override is None:
