@@ -118,8 +118,13 @@ def _evaluation_table(df: Any, evaluations: Mapping[str, Evaluation] | None = No
     """
     shown = _console_columns(df, registered_evaluations() if evaluations is None else evaluations)
     table = Table(title="Evaluation", title_justify="left")
-    for col in ("config", "patient", "status", *(header for header, _, _ in shown)):
-        table.add_column(col)
+    for col, key in (("config", "config"), ("patient", "patient_id")):
+        # never cut: the row's name (an id cut to "phanto…" names no patient)
+        longest = max((len(str(v)) for v in df[key]), default=0) if key in df else 0
+        table.add_column(col, no_wrap=True, min_width=max(longest, len(col)))
+    table.add_column("status")
+    for header, _, _ in shown:
+        table.add_column(header, justify="right")
     for _, r in df.iterrows():
 
         def cell(key: str, fmt: str, _r: Any = r) -> str:

@@ -702,9 +702,9 @@ def test_the_evaluation_table_shows_the_metrics_the_run_has():
 
     from tumor3d.flows.cli.evaluate import _evaluation_table
 
-    def shown(df):
+    def shown(df, width=150):
         buf = io.StringIO()
-        Console(file=buf, width=150).print(_evaluation_table(df))
+        Console(file=buf, width=width).print(_evaluation_table(df))
         return buf.getvalue()
 
     base = {"config": "default", "patient_id": "p1", "status": "ok", "run_status": "ok"}
@@ -716,10 +716,13 @@ def test_the_evaluation_table_shows_the_metrics_the_run_has():
     text = shown(scored)
     # the mean over the reference's tumour slices beside the pooled Dice, which counts the
     # slices segmented where the reference has none (a user audit read 0.926 as the whole)
-    for header, value in (("ref-slice Dice", "0.900"), ("pooled Dice", "0.600"),
-                          ("3-D Dice", "0.910"), ("HD95 mm", "2.0"),
-                          ("Eq. 7 err", "-3.0 %")):  # fmt: skip
+    for header, value in (("Dice ref slices", "0.900"), ("Dice pooled", "0.600"),
+                          ("3-D Dice", "0.910"), ("Eq. 7 err", "-3.0 %")):  # fmt: skip
         assert header in text and value in text, text
+    # an 80-column terminal keeps a row's config and patient id whole beside its status
+    long = scored.assign(config="peer_multiotsu", patient_id="phantom001n", run_status="check")
+    rows = [line for line in shown(long, width=80).splitlines() if "phantom001n" in line]
+    assert len(rows) == 1 and "peer_multiotsu" in rows[0] and "check" in rows[0], rows
 
 
 def test_a_stacks_sidecar_names_the_modality_when_none_is_given(
