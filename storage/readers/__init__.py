@@ -57,8 +57,8 @@ sidecar); else it equals the step. The gap is ``step - thickness`` unless
 ``slice_gap_mm`` is given, in which case thickness + gap must equal the step
 within 1 % (an ``InputError`` otherwise); if the thickness is not known at
 all it is then ``step - gap``. A thickness above the step, from whichever
-source, is overlapping slices (a negative gap, said in the run's notes) up to
-twice the step, and an ``InputError`` naming its source beyond.
+source, is overlapping slices (a negative gap, said in the run's notes); one
+given by hand more than twice the step is refused as a typo.
 
 DICOM geometry
 --------------

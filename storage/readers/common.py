@@ -268,7 +268,6 @@ def scan_from_volume(
     slice_thickness_mm: float | None,
     slice_gap_mm: float | None,
     file_thickness: Callable[[float], float | None] | None = None,
-    thickness_stated_by: str = "the file's SliceThickness",
     orientation_stated: bool = True,
     xform_codes: tuple[int, int] = (1, 1),
     qform: np.ndarray | None = None,
@@ -302,8 +301,6 @@ def scan_from_volume(
     file_thickness : callable, optional
         Given the slice step (mm), returns the thickness the file's metadata
         states, or None (and checks any stated spacing against the step).
-    thickness_stated_by : str
-        Names where ``file_thickness`` reads it, for an error.
     orientation_stated : bool
         False when the affine's directions are a reader's assumption
         (``Scan.orientation_stated``).
@@ -342,9 +339,7 @@ def scan_from_volume(
     column = float(np.linalg.norm(scan_affine[:3, 2]))
     step = slice_plane_spacing_mm(scan_affine)
     stated = None if file_thickness is None else file_thickness(step)
-    thickness, gap = _resolve_thickness(
-        step, stated, slice_thickness_mm, slice_gap_mm, where, stated_by=thickness_stated_by
-    )
+    thickness, gap = _resolve_thickness(step, stated, slice_thickness_mm, slice_gap_mm, where)
     text = f"{source}, {image.shape[0]} slices along voxel axis {s}"
     if column - step > SHEAR_TOL * column:
         text += (
@@ -437,9 +432,9 @@ def _positive_number(
     return check_positive(value, name, allow_zero=allow_zero, unit="mm", where=where)
 
 
-#: The thickest slice, in slice steps, that overlapping slices have: a slab as thick as
-#: two steps already lies half in each neighbour (the usual overlapping reconstruction);
-#: a thickness beyond it is a wrong value (a typo, or cm read as mm), from either source.
+#: The thickest slice, in slice steps, that a thickness given by hand may state: a slab as
+#: thick as two steps already lies half in each neighbour (the usual overlapping
+#: reconstruction); typed beyond it, a typo (or cm read as mm).
 MAX_OVERLAP_STEPS = 2.0
 
 
@@ -449,15 +444,15 @@ def _resolve_thickness(
     thickness_override: float | None,
     gap_override: float | None,
     where: str,
-    stated_by: str = "the file's SliceThickness",
 ) -> tuple[float, float]:
     """Combine the geometric step with stated thickness/gap (see the module docstring).
 
-    One rule whatever states the thickness (the option, or the file's metadata,
-    named by ``stated_by``): at most the step, the rest of the step is the gap; up to
-    :data:`MAX_OVERLAP_STEPS` steps, the slices overlap (a negative gap,
-    said in the run's notes: :func:`tumor3d.imaging.affine.slice_overlap_note`);
-    thicker, an error. Eq. 7's slab height is the step in every case.
+    Whatever states the thickness (the option, or the file's metadata): at most the
+    step, the rest of the step is the gap; above it, the slices overlap (a negative gap,
+    said in the run's notes: :func:`tumor3d.imaging.affine.slice_overlap_note`). The
+    file's value is read as it states (no volume depends on it: Eq. 7's slab height is
+    the step in every case); one given by hand more than :data:`MAX_OVERLAP_STEPS` steps
+    thick is a typo, an error.
 
     >>> _resolve_thickness(5.0, None, 2.0, None, "x")
     (2.0, 3.0)
@@ -467,19 +462,13 @@ def _resolve_thickness(
     thickness = thickness_override if thickness_override is not None else file_thickness
     if (
         gap_override is None
-        and thickness is not None
-        and thickness > MAX_OVERLAP_STEPS * step * (1 + REL_TOL)
+        and thickness_override is not None
+        and thickness_override > MAX_OVERLAP_STEPS * step * (1 + REL_TOL)
     ):
-        said = (
-            f"slice_thickness_mm = {thickness:g} mm"
-            if thickness_override is not None
-            else f"{stated_by} = {thickness:g} mm"
-        )
         raise InputError(
-            f"{said} is larger than the slice step {step:.6g} mm of the image geometry "
-            f"by more than the step (overlapping slices are at most {MAX_OVERLAP_STEPS:g} "
-            "steps thick): give the acquired thickness (option slice_thickness_mm, CLI "
-            "--slice-thickness-mm)",
+            f"slice_thickness_mm = {thickness:g} mm is larger than the slice step {step:.6g} mm "
+            f"of the image geometry by more than the step (overlapping slices are at most "
+            f"{MAX_OVERLAP_STEPS:g} steps thick): give the acquired thickness",
             where,
         )
     if gap_override is None:

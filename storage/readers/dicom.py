@@ -201,12 +201,7 @@ def read_dicom_series(
         if math.isfinite(value) and value > 0:
             file_thickness = value
     thickness, gap = _resolve_thickness(
-        step,
-        file_thickness,
-        thickness_override,
-        gap_override,
-        str(d),
-        stated_by="the series' SliceThickness",
+        step, file_thickness, thickness_override, gap_override, str(d)
     )
     nz, ny, nx = image.shape
     # the in-plane order of a volume file (in_plane_axes): rows and columns swapped when

@@ -185,7 +185,6 @@ def read_nifti_scan(
         slice_thickness_mm=thickness_override,
         slice_gap_mm=gap_override,
         file_thickness=lambda step: _read_bids_sidecar(p, step),
-        thickness_stated_by=f"SliceThickness of the sidecar {_bids_sidecar_path(p).name}",
         orientation_stated=stated,
         xform_codes=codes,
         qform=qform,
