@@ -151,6 +151,7 @@ def scheduled_cohort_flow(
     """
     logger = get_run_logger()
     started = utc_now()
+    _tag_with_this_process()
     try:
         result = run_cohort(
             manifest, out_dir, config=load_config_file(config_path), workers=workers,
@@ -172,6 +173,32 @@ def scheduled_cohort_flow(
     (logger.warning if result.to_check else logger.info)("scheduled run: %s", message)
     _write_last_run(out_dir, started, "completed", message, result, logger)
     return Completed(message=message, data=result)
+
+
+def _tag_with_this_process() -> None:
+    """Tag the running scheduled run with the process Prefect runs it in.
+
+    Its process tags (:func:`tumor3d.flows.stale_runs.process_tags`) let the next
+    command's sweep set it Crashed if that process ends without reporting: ``serve``
+    stopped by SIGTERM or Ctrl-C mid-run left it Running for good, holding the
+    deployment's one slot (concurrency limit 1), so a restarted ``serve`` ran nothing
+    for minutes and said nothing (a user audit). Best effort: a run is never stopped
+    by it.
+    """
+    import contextlib
+
+    from prefect.context import FlowRunContext
+
+    from tumor3d.flows.api_use import quick_client
+    from tumor3d.flows.stale_runs import process_tags
+
+    ctx = FlowRunContext.get()
+    extra = process_tags()
+    if ctx is None or ctx.flow_run is None or not extra:
+        return
+    with contextlib.suppress(Exception), quick_client() as client:
+        tags = sorted(set(ctx.flow_run.tags) | set(extra))
+        client.update_flow_run(ctx.flow_run.id, tags=tags)
 
 
 class _NoTracebackOfOwnFailures(logging.Filter):
@@ -364,9 +391,11 @@ def serve_cohort(deployment: RunnerDeployment) -> None:  # pragma: no cover - bl
     SIGTERM (systemd, ``kill``) ends it through Prefect's own handler
     (``Runner.handle_sigterm``: exit 0), which creates ``Runner.astop`` without awaiting
     it; the RuntimeWarning that leaves on stderr at exit is Prefect's and is not shown.
-    The scheduled runs carry no process tags (:mod:`tumor3d.flows.stale_runs`): Prefect
-    runs each in a process of its own, which would inherit this one's. The cohort run
-    inside each is tagged with that process's (``run_cohort``'s Python call).
+    The scheduled runs are not given this process's tags (:mod:`tumor3d.flows.stale_runs`):
+    Prefect runs each in a process of its own, which tags its run as it starts
+    (:func:`_tag_with_this_process`), as the cohort run inside it is tagged
+    (``run_cohort``'s Python call); a run whose process ended is set Crashed by the next
+    command, a restarted ``serve`` included, which frees the deployment's slot.
     """
     import warnings
 

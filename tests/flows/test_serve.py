@@ -123,6 +123,30 @@ def _trigger_and_execute(dep) -> str:
     return run_id
 
 
+def _a_run_its_process_left_running_is_crashed_by_the_next_command(run_id: str) -> None:
+    """The scheduled run names the process that ran it (a runner's ``prefect.engine``).
+
+    ``serve`` stopped mid-run left its run Running for good, holding the deployment's
+    one slot, so a restarted ``serve`` ran nothing for minutes (a user audit): set back
+    to Running, the run is set Crashed by the sweep every command starts with, as its
+    process has ended."""
+    from prefect.client.orchestration import get_client
+    from prefect.states import Running
+
+    from tumor3d.flows.stale_runs import PROCESS_TAG, crash_stale_runs, process_tags
+
+    if not process_tags():
+        pytest.skip("no /proc: nothing is tagged")
+    with get_client(sync_client=True) as client:
+        run = client.read_flow_run(run_id)
+        mine = [t for t in run.tags if t.startswith(PROCESS_TAG)]
+        assert mine and not mine[0].startswith(f"{PROCESS_TAG}{os.getpid()}:"), run.tags
+        client.set_flow_run_state(run_id, Running(), force=True)
+    assert run.name in crash_stale_runs()
+    with get_client(sync_client=True) as client:
+        assert client.read_flow_run(run_id).state.is_crashed()
+
+
 def _last_run(out) -> dict:
     return json.loads((out / "last_run.json").read_text())
 
@@ -142,6 +166,7 @@ def test_a_triggered_run_computes_only_the_added_patient_and_reports_removed(tmp
     # a patient is added to the manifest; the scheduled run re-reads it
     write_manifest([*rows, _row(2, inputs)], manifest)
     run_id = _trigger_and_execute(dep)
+    _a_run_its_process_left_running_is_crashed_by_the_next_command(run_id)
     last = _last_run(out)  # an all-ok run: recorded as completed
     assert (last["flow_run_id"], last["state"]) == (run_id, "completed")
     assert last["patients"] == {"ok": 3, "check": 0, "failed": 0}
