@@ -201,6 +201,30 @@ def _tag_with_this_process() -> None:
         client.update_flow_run(ctx.flow_run.id, tags=tags)
 
 
+class _NoShutdownTraceback(logging.Filter):
+    """Drops asyncio's records of callbacks cancelled as ``serve`` shuts down.
+
+    SIGTERM ends Prefect's runner by ``sys.exit(0)`` inside its event loop; the
+    callbacks of its control channel then fail with ``CancelledError`` and asyncio logs
+    each with its traceback ("Exception in callback ...", a user audit saw it on
+    stderr). Only records whose exception is a cancellation or that exit are dropped.
+
+    >>> import asyncio
+    >>> def record(exc):
+    ...     return logging.LogRecord("asyncio", logging.ERROR, "", 0, "cb", None,
+    ...                              (type(exc), exc, None))
+    >>> f = _NoShutdownTraceback()
+    >>> f.filter(record(asyncio.CancelledError())), f.filter(record(ValueError("bug")))
+    (False, True)
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        import asyncio
+
+        exc = record.exc_info[1] if record.exc_info else None
+        return not isinstance(exc, asyncio.CancelledError | SystemExit)
+
+
 class _NoTracebackOfOwnFailures(logging.Filter):
     """Drops Prefect's traceback of a run that :func:`scheduled_cohort_flow` ended Failed.
 
@@ -405,5 +429,10 @@ def serve_cohort(deployment: RunnerDeployment) -> None:  # pragma: no cover - bl
     warnings.filterwarnings(
         "ignore", message="coroutine 'Runner.astop' was never awaited", category=RuntimeWarning
     )
-    with TagsContext(current_tags=set()):
-        serve(deployment)
+    quiet = _NoShutdownTraceback()
+    logging.getLogger("asyncio").addFilter(quiet)
+    try:
+        with TagsContext(current_tags=set()):
+            serve(deployment)
+    finally:
+        logging.getLogger("asyncio").removeFilter(quiet)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -137,12 +138,24 @@ def serve(
                 soft_wrap=True,  # the URL in one piece, to copy
             )
             # Prefect's own hint ("prefect deployment run [DEPLOYMENT_NAME]") reaches this
-            # server only from a shell that points at it
+            # server only from a shell that points at it, and finds `prefect` only on a PATH
+            # that holds this environment's commands (a user audit: it was not)
+            here = Path(sys.executable).with_name("prefect")
+            prefect = str(here) if here.is_file() else "prefect"
             console.print(
                 f"run it now from another shell: PREFECT_API_URL={escape(api_url)} "
-                f"prefect deployment run 'tumor3d-scheduled-cohort/{escape(name)}'",
+                f"{escape(prefect)} deployment run 'tumor3d-scheduled-cohort/{escape(name)}'",
                 soft_wrap=True,
             )
-            serve_cohort(deployment)
+            stopped = (
+                f"stopped serving tumor3d-scheduled-cohort/{escape(name)}; a run it was "
+                "executing, if any, ends Crashed (set by the next tumor3d command)"
+            )
+            try:  # ends by Ctrl-C (Prefect's serve returns) or SIGTERM (its runner exits 0)
+                serve_cohort(deployment)
+            except (KeyboardInterrupt, SystemExit):
+                console.print(stopped, soft_wrap=True)
+                raise
+            console.print(stopped, soft_wrap=True)
     except _HANDLED as exc:
         raise _fail(exc) from None

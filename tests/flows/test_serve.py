@@ -18,6 +18,7 @@ import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -268,8 +269,16 @@ def test_cli_serve_builds_the_deployment_and_hands_it_to_prefect(tmp_path, monke
     assert [d.name for d in served] == ["n1"]
     # how to trigger it now from another shell, with the server it is served on
     url = re.search(r" on\s+(\S+/api); Ctrl-C", ok.output).group(1)
-    hint = f"PREFECT_API_URL={url} prefect deployment run 'tumor3d-scheduled-cohort/n1'"
+    # the prefect command of this environment, which need not be on PATH (a user audit)
+    prefect = Path(sys.executable).with_name("prefect")
+    assert prefect.is_file()
+    hint = f"PREFECT_API_URL={url} {prefect} deployment run 'tumor3d-scheduled-cohort/n1'"
     assert hint in ok.output, ok.output
+    # its end is said (Ctrl-C returns from Prefect's serve; it was silent)
+    assert ok.output.rstrip().endswith(
+        "stopped serving tumor3d-scheduled-cohort/n1; a run it was executing, if any, ends "
+        "Crashed (set by the next tumor3d command)"
+    ), ok.output
     assert served[0].schedules[0].schedule.cron == "30 1 * * 1-5"
     assert served[0].parameters["workers"] == 2
     bad = CliRunner().invoke(app, [*args, "--cron", "every night"])
