@@ -17,8 +17,9 @@ caching as :func:`run_patient`.
 
 from __future__ import annotations
 
+import contextlib
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -373,6 +374,23 @@ def patient_flow(
     seg = None
     if segmentation is not None:
         seg = prepare_segmentation(segmentation, source, out_dir=out_dir)
+    with _writing_patient(out_dir, bids.folder_name(source.patient_id, layout)):
+        return _run_and_publish(
+            source, out_dir, cfg, given, seg, store_dir=store_dir, layout=layout
+        )
+
+
+def _run_and_publish(
+    source: InputSource,
+    out_dir: str,
+    cfg: PipelineConfig,
+    given: GivenBrainMask | None,
+    seg: GivenSegmentation | None,
+    *,
+    store_dir: str | None,
+    layout: str,
+) -> PatientResult:
+    """:func:`patient_flow`'s stages and publishing, once its inputs are checked."""
     store = open_store(store_dir or default_store_location(out_dir))  # s3:// -> ObjectStore
     logger = get_run_logger()
     digest = config_digest(cfg)[:12]
@@ -456,3 +474,22 @@ def run_patient(input_path: str | Path, out_dir: str | Path, **kwargs: Any) -> P
         raise InputError("no such file or folder", path=str(input_path))
     with api_of_python_call(), tags(f"config:{config_digest(cfg)[:12]}"):
         return patient_flow(str(input_path), str(out_dir), **kwargs)
+
+
+@contextlib.contextmanager
+def _writing_patient(out_dir: str, folder: str) -> Iterator[None]:
+    """Hold a local output folder's lock shared and the patient's folder's exclusively.
+
+    :mod:`tumor3d.storage.folder_lock`: runs of other patients into the folder go on
+    together, a second run of this patient (or a cohort command on the folder) stops at
+    once with one line. Taken once the input and the destination are checked (a refused
+    run writes nothing); an object store's output is not locked.
+    """
+    from tumor3d.storage.folder_lock import patient_lock_name, writing_folder
+
+    if is_url(out_dir):
+        yield
+        return
+    out = Path(out_dir)
+    with writing_folder(out, shared=True), writing_folder(out, name=patient_lock_name(folder)):
+        yield

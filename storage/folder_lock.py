@@ -7,7 +7,12 @@ run's volume for a patient whose folder holds the other run's. So every
 command that writes a local output folder holds an exclusive lock on
 ``DIR/.tumor3d-writing`` (``fcntl.flock``) while it runs; a second one fails
 at once with one line naming the folder and the command that holds it (its
-pid, host and start time), an environment error (exit code 3).
+pid, host and start time), an environment error (exit code 3). A ``run`` holds
+that lock shared, so runs of different patients into one folder go together
+while a cohort command waits for none of them, and its patient's lock
+(``DIR/.tumor3d-writing-<folder>``, :func:`patient_lock_name`) exclusively: two
+runs of one patient into one folder both said ``ok`` for a folder that held one
+of them (a user audit); the second now stops.
 
 The operating system releases the lock when its process ends, however it
 ends (``kill -9`` included), so a stale lock cannot block a folder; the file
@@ -33,7 +38,7 @@ from pathlib import Path
 
 from tumor3d.storage.refs import StoreError, utc_now
 
-__all__ = ["LOCK_NAME", "FolderBusyError", "writing_folder"]
+__all__ = ["LOCK_NAME", "FolderBusyError", "patient_lock_name", "writing_folder"]
 
 #: The lock file in an output folder.
 LOCK_NAME = ".tumor3d-writing"
@@ -41,6 +46,18 @@ LOCK_NAME = ".tumor3d-writing"
 
 class FolderBusyError(StoreError):
     """Another command is writing the output folder."""
+
+
+_PATIENT = f"{LOCK_NAME}-"
+
+
+def patient_lock_name(folder_name: str) -> str:
+    """The lock file of one patient's folder, beside it in the output folder.
+
+    >>> patient_lock_name("p1")
+    '.tumor3d-writing-p1'
+    """
+    return f"{_PATIENT}{folder_name}"
 
 
 def _holder(fd: int) -> str:
@@ -76,8 +93,16 @@ def _open_lock(lock: Path) -> tuple[int, bool]:
 
 
 @contextlib.contextmanager
-def writing_folder(folder: str | os.PathLike[str]) -> Iterator[None]:
+def writing_folder(
+    folder: str | os.PathLike[str], *, name: str = LOCK_NAME, shared: bool = False
+) -> Iterator[None]:
     """Hold ``folder``'s writer lock for the body (the folder is made if absent).
+
+    ``name``: the lock file in ``folder`` (:data:`LOCK_NAME`, the whole folder's; a
+    patient's is :func:`patient_lock_name`). ``shared``: held beside other shared
+    holders, but never with an exclusive one: a ``run`` holds the folder's lock shared
+    (many patients of one ``--out`` at once) and its patient's exclusively, a cohort
+    command the folder's exclusively.
 
     Raises
     ------
@@ -88,7 +113,7 @@ def writing_folder(folder: str | os.PathLike[str]) -> Iterator[None]:
         symbolic link there is refused, never followed).
     """
     path = Path(folder)
-    lock = path / LOCK_NAME
+    lock = path / name
     try:
         path.mkdir(parents=True, exist_ok=True)
         fd, writable = _open_lock(lock)
@@ -97,10 +122,11 @@ def writing_folder(folder: str | os.PathLike[str]) -> Iterator[None]:
         raise OSError(exc.errno, exc.strerror, str(target)) from None
     try:
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except BlockingIOError:
+            what = "this folder" if name == LOCK_NAME else f"{name.removeprefix(_PATIENT)} here"
             raise FolderBusyError(
-                f"{path}: another tumor3d command is writing this folder ({_holder(fd)}); "
+                f"{path}: another tumor3d command is writing {what} ({_holder(fd)}); "
                 "wait for it to end or give another output folder"
             ) from None
         except OSError as exc:

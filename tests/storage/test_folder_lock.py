@@ -14,7 +14,12 @@ from phantom_rows import small_phantom_rows
 
 from tumor3d.flows.cli.errors import EXIT_ENVIRONMENT, _error_line
 from tumor3d.flows.cohort import run_cohort
-from tumor3d.storage.folder_lock import LOCK_NAME, FolderBusyError, writing_folder
+from tumor3d.storage.folder_lock import (
+    LOCK_NAME,
+    FolderBusyError,
+    patient_lock_name,
+    writing_folder,
+)
 
 
 def test_a_second_writer_is_refused_naming_the_first_and_may_write_after_it(tmp_path):
@@ -29,6 +34,43 @@ def test_a_second_writer_is_refused_naming_the_first_and_may_write_after_it(tmp_
     with writing_folder(out):  # released at the end of the first
         pass
     assert (out / LOCK_NAME).is_file()
+
+
+def test_runs_share_the_folder_and_hold_their_patient_alone(tmp_path):
+    """Runs hold the folder's lock shared and their patient's exclusively: two runs of
+    other patients go together, a cohort command on the folder stops, and so does a
+    second run of one patient (a user audit: both said ok for a folder holding one)."""
+    out = tmp_path / "out"
+    with writing_folder(out, shared=True), writing_folder(out, shared=True):
+        with pytest.raises(FolderBusyError, match="writing this folder"), writing_folder(out):
+            pass
+        with writing_folder(out, name=patient_lock_name("p1")):
+            with (
+                pytest.raises(FolderBusyError, match=f"^{out}: another tumor3d command is "
+                              "writing p1 here"),
+                writing_folder(out, name=patient_lock_name("p1")),
+            ):  # fmt: skip
+                pass
+            with writing_folder(out, name=patient_lock_name("p2")):
+                pass
+    with writing_folder(out):  # every lock released
+        pass
+
+
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_second_run_of_one_patient_into_one_folder_stops_before_any_work(tmp_path):
+    from tumor3d.flows.patient import run_patient
+
+    (row,) = small_phantom_rows(tmp_path / "in", [0], "lk")
+    out = tmp_path / "out"
+    with writing_folder(out, shared=True), writing_folder(out, name=patient_lock_name("lk0")):
+        with pytest.raises(FolderBusyError, match="writing lk0 here"):
+            run_patient(row.image, out, patient_id="lk0", modality="t2")
+        named = tmp_path / "lk0.nii.gz"  # its id made from the file's name: the same
+        named.write_bytes(row.image.read_bytes())
+        with pytest.raises(FolderBusyError, match="writing lk0 here"):
+            run_patient(named, out, modality="t2")
+    assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME, patient_lock_name("lk0")]
 
 
 def test_a_cohort_on_a_folder_another_command_writes_starts_nothing(tmp_path):
