@@ -107,6 +107,11 @@ class ServerStatus:
     def line(self) -> str:
         """One line for a user."""
         if self.info is None:
+            if Path(self.state_file).exists():  # not a server's record (a user audit: "absent")
+                return (
+                    f"no tumor3d Prefect server known (state file {self.state_file} "
+                    "unreadable: not a server's record)"
+                )
             return f"no tumor3d Prefect server running (state file {self.state_file} absent)"
         i = self.info
         where = f"pid {i.pid}, {i.api_url}, log {i.log}"
@@ -118,7 +123,9 @@ class ServerStatus:
         return {
             "running": f"running and healthy: {where}",
             "unhealthy": f"process alive but the API does not answer /health: {where}",
-            "stale": f"stale state file {self.state_file}: process {i.pid} is gone",
+            # ended, or its id given to another process since (a user audit: a live process
+            # of that id was called "gone")
+            "stale": f"stale state file {self.state_file}: process {i.pid} is not its server",
         }[self.state]
 
 

@@ -68,6 +68,24 @@ def _wait_gone(pid: int, timeout_s: float) -> bool:
     return False
 
 
+def test_a_stale_or_unreadable_state_file_is_said_as_it_is(home):
+    """A state file naming a live process that is no server (its id reused) is stale,
+    not "gone"; a file that is no server record is unreadable, not "absent" (a user
+    audit); status and stop leave the live process alone."""
+    home.mkdir(parents=True)
+    (home / "server.json").write_text(
+        json.dumps({"pid": os.getpid(), "port": 1, "api_url": "http://127.0.0.1:1/api"})
+    )
+    status = server.server_status()
+    assert status.state == "stale"
+    assert status.line.endswith(f"process {os.getpid()} is not its server")
+    (home / "server.json").write_text('{"pid": ')
+    status = server.server_status()
+    assert status.state == "stopped" and "unreadable: not a server's record" in status.line
+    (home / "server.json").unlink()
+    assert server.server_status().line.endswith("server.json absent)")
+
+
 def test_start_status_use_stop_and_a_stale_state_file(home):
     cli = CliRunner()
     assert server.server_status().state == "stopped"
