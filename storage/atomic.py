@@ -115,6 +115,12 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
+    except OSError as exc:
+        if exc.errno is None or exc.filename is not None:
+            raise
+        # a write's or fsync's error names no file (a full disk: "no space left on device"
+        # alone, a user audit): the file it was for
+        raise OSError(exc.errno, exc.strerror, str(path)) from exc
     finally:
         if tmp.exists():
             tmp.unlink()

@@ -45,6 +45,7 @@ The public names are importable from here.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import html
 import json
@@ -129,17 +130,27 @@ def write_viewer_assets(out_dir: str | Path) -> list[str]:
     """
     assets = viewer_assets()
     folder = Path(out_dir) / ASSETS_DIR
+    made = not folder.exists()
     folder.mkdir(parents=True, exist_ok=True)
     written = []
-    for name, data in assets.items():
-        final = folder / name
-        try:
-            if final.is_file() and final.stat().st_size == len(data) and final.read_bytes() == data:
-                continue
-        except OSError:
-            pass
-        atomic_write_bytes(final, data)
-        written.append(name)
+    try:
+        for name, data in assets.items():
+            final = folder / name
+            try:
+                if final.is_file() and final.stat().st_size == len(data):
+                    if final.read_bytes() == data:
+                        continue
+            except OSError:
+                pass
+            atomic_write_bytes(final, data)
+            written.append(name)
+    except OSError:
+        if made:  # a folder this call made and could not fill (a full disk) is not left
+            with contextlib.suppress(OSError):  # another writer's files there: it stays
+                for name in written:
+                    (folder / name).unlink(missing_ok=True)
+                folder.rmdir()
+        raise
     return written
 
 

@@ -105,6 +105,31 @@ def test_atomic_write_leaves_nothing_on_crash(tmp_path, monkeypatch):
     assert list(target.parent.iterdir()) == []  # no temporary left behind either
 
 
+def test_a_write_error_without_a_file_names_the_file_and_no_assets_folder_is_left(
+    tmp_path, monkeypatch
+):
+    """A full disk fails a write or its fsync with no file name ("no space left on device"
+    alone, a user audit): the error names the file it was for; the viewer's assets folder
+    a failed call made is not left behind, empty."""
+    import errno
+
+    from tumor3d.storage.viewer import ASSETS_DIR, write_viewer_assets
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    target = tmp_path / "out" / "artifact.bin"
+    with pytest.raises(OSError) as exc:
+        atomic_write_bytes(target, b"payload")
+    assert (exc.value.errno, exc.value.filename) == (errno.ENOSPC, str(target))
+    assert list(target.parent.iterdir()) == []
+    with pytest.raises(OSError) as exc:
+        write_viewer_assets(tmp_path / "cohort")
+    assert exc.value.filename.startswith(str(tmp_path / "cohort" / ASSETS_DIR))
+    assert list((tmp_path / "cohort").iterdir()) == []
+
+
 def test_atomic_write_replaces_whole_file(tmp_path):
     target = tmp_path / "a.bin"
     atomic_write_bytes(target, b"first version, long")
