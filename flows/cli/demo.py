@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.markup import escape
@@ -66,20 +66,23 @@ def phantom(
         raise _fail(ValueError(f"--normal ({normal}) cannot exceed --n ({n})"))
     try:
         _check_out_dir(out)
-        patients = []
+
+        def make(i: int) -> Any:
+            is_normal = i >= n - normal
+            return make_phantom_patient(
+                seed + i,
+                preset=preset,
+                modality=modality,
+                tumor=not is_normal,
+                patient_id=f"phantom{seed + i:03d}{'n' if is_normal else ''}",
+            )
+
+        # the first before the bar: a bad --preset or --modality is its one line alone
+        patients = [make(0)]
         with _progress() as progress:
-            bar = progress.add_task("generating phantoms", total=n)
-            for i in range(n):
-                is_normal = i >= n - normal
-                patients.append(
-                    make_phantom_patient(
-                        seed + i,
-                        preset=preset,
-                        modality=modality,
-                        tumor=not is_normal,
-                        patient_id=f"phantom{seed + i:03d}{'n' if is_normal else ''}",
-                    )
-                )
+            bar = progress.add_task("generating phantoms", total=n, completed=1)
+            for i in range(1, n):
+                patients.append(make(i))
                 progress.advance(bar)
         manifest = write_phantom_cohort(patients, out)
     except _HANDLED as exc:

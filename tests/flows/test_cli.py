@@ -114,6 +114,17 @@ def test_phantom_command_rejects_more_normal_than_total(tmp_path):
     assert "--normal" in result.output
 
 
+@pytest.mark.parametrize(("option", "named"), [("--preset", "preset"), ("--modality", "modality")])
+def test_a_bad_phantom_option_is_its_one_line_alone(tmp_path, option, named):
+    """A user audit saw the progress bar ('generating phantoms 0/2') before the error."""
+    out = tmp_path / "ph"
+    result = runner.invoke(app, ["phantom", "--out", str(out), "--n", "2", option, "foo"])
+    assert result.exit_code == 2
+    assert result.output.strip().splitlines() == [result.output.strip()], result.output
+    assert result.output.startswith("error: ") and named in result.output
+    assert not out.exists()
+
+
 def test_run_refuses_an_output_folder_that_holds_the_input(tmp_path):
     """Issue 12: `--out O --patient-id pat1` with the input in O/pat1 must not delete it."""
     rng = np.random.default_rng(1)
