@@ -78,6 +78,9 @@ def _crash_current_runs(message: str) -> None:
 def _ctrl_c_ends(message: str) -> Iterator[None]:
     """Ctrl-C (SIGINT) ends the command at once: one line on stderr, exit code 130.
 
+    Unless the command was started with SIGINT ignored (a background job of a shell
+    script), which it then keeps ignoring, in-process as through the warm runner.
+
     SIGTERM (what ``timeout``, systemd and Kubernetes send) alike, exit code 143,
     the line saying SIGTERM where ``message`` says Ctrl-C. The flow runs under way
     are set Crashed on their server, with that line (:func:`_crash_current_runs`).
@@ -125,13 +128,18 @@ def _ctrl_c_ends(message: str) -> Iterator[None]:
 
     terminated = message.replace("Ctrl-C", "SIGTERM", 1)
     previous = {
-        signal.SIGINT: signal.signal(
-            signal.SIGINT, ends(EXIT_INTERRUPTED, f"interrupted: {message}")
-        ),
         signal.SIGTERM: signal.signal(
             signal.SIGTERM, ends(EXIT_TERMINATED, f"terminated: {terminated}")
         ),
     }
+    # a SIGINT ignored by whoever started the command stays ignored (a shell script's
+    # `tumor3d run ... &`: its job must outlive a Ctrl-C at the terminal), as the warm
+    # runner's client, which relays only the SIGINT it receives, already let it (a user
+    # audit: the same script's run stopped in-process and went on through the runner)
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        previous[signal.SIGINT] = signal.signal(
+            signal.SIGINT, ends(EXIT_INTERRUPTED, f"interrupted: {message}")
+        )
     try:
         yield
     finally:

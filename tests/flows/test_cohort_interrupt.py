@@ -170,6 +170,37 @@ def test_the_last_line_is_written_once_and_in_stderrs_own_encoding():
     assert done.returncode == 0 and done.stderr == b"stopped: caf\\xe9\n", done.stderr
 
 
+@pytest.mark.parametrize("ignored", [False, True])
+def test_a_sigint_the_caller_ignored_stays_ignored(ignored):
+    """A command started with SIGINT ignored (a shell script's ``tumor3d run ... &``) keeps
+    ignoring it, as the warm runner's client did (a user audit: in-process the same run
+    stopped); otherwise SIGINT ends it with its line and 130."""
+
+    script = (
+        "import os, signal, sys, time\n"
+        "from tumor3d.flows.cli.errors import _ctrl_c_ends\n"
+        "with _ctrl_c_ends('Ctrl-C stopped the test; a re-run continues'):\n"
+        "    os.kill(os.getpid(), signal.SIGINT)\n"
+        "    time.sleep(0.5)\n"
+        "    print('went on', flush=True)\n"
+        "print('handler back:', signal.getsignal(signal.SIGINT) is signal.SIG_IGN)\n"
+    )
+
+    def start() -> None:
+        if ignored:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    done = subprocess.run([sys.executable, "-c", script], preexec_fn=start,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    if ignored:
+        assert done.returncode == 0, done.stderr
+        assert done.stdout.splitlines() == ["went on", "handler back: True"]
+    else:
+        assert done.returncode == 130 and "went on" not in done.stdout
+        line = "interrupted: Ctrl-C stopped the test; a re-run continues"
+        assert done.stderr.strip().endswith(line), done.stderr
+
+
 def test_on_a_terminal_the_progress_bar_does_not_erase_the_ctrl_c_line():
     """On a terminal the live progress bar is redrawn by its own thread until the process
     exits, each redraw moving the cursor up over the bar: while the interrupted command
