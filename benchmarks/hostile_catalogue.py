@@ -942,6 +942,9 @@ def ctrl_c_during_a_cohort(tmp: Path):
         [_tumor3d(), "cohort", str(tmp / "m.csv"), "--out", str(tmp / "o"), "--workers", "2"],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True,
+        # as from a terminal: a catalogue run as a background job has SIGINT ignored, which
+        # a command keeps ignoring by design (tumor3d.flows.cli.errors._ctrl_c_ends)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )  # fmt: skip
     # Ctrl-C mid-cohort: once the first patient is published (a fixed wait let a faster
     # machine finish the cohort first), with five patients still to go

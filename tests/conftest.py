@@ -170,6 +170,16 @@ def _build_template(folder: Path) -> None:
 
 def pytest_configure(config):
     global _DB_TEMPLATE_OWNER
+    # Commands whose Ctrl-C the tests check are started as from a terminal: a suite
+    # launched with SIGINT ignored (a shell script's background job, `cmd &`) would hand
+    # that on to them, and a command started so keeps ignoring SIGINT by design
+    # (tumor3d.flows.cli.errors._ctrl_c_ends). Every process of the suite (xdist's
+    # workers run this too) takes Python's own handler, so its children start with the
+    # default.
+    import signal
+
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     if _DB_TEMPLATE_ENV in os.environ:  # an xdist worker: the controller made the folder
         return
     import fcntl
