@@ -84,10 +84,13 @@ def close_slices(mask: np.ndarray, pixel_mm: tuple[float, float], radius_mm: flo
 
 def score_settings(rows_in: list[dict], prob_dir: Path, cache: str, cfg) -> dict[str, list[dict]]:
     """Every setting's scored rows: FLAIR (the forest + U-Net maps) and T2 (the robust masks)."""
+    from types import SimpleNamespace
+
     import learned_cv as L
 
-    from tumor3d.learned.segment import keep_main_lesion
     from tumor3d.storage.manifest import data_dir
+
+    shipped = SimpleNamespace(threshold=0.5, t1c_threshold=None, keep_fraction=1.0)
 
     n_ph = sum(r["case"].startswith("phantom/") for r in rows_in) // 2
     specs = {s.name: s for s in L.case_specs(data_dir()) + L.phantom_specs(n_ph)}
@@ -102,8 +105,7 @@ def score_settings(rows_in: list[dict], prob_dir: Path, cache: str, cfg) -> dict
         p = L.cached_prepare(specs[r["case"]], cfg, True, cache)
         if flair:
             family, group = "flair", r["group"]
-            lesion = keep_main_lesion(m, 0.5, keep_fraction=1.0, min_voxels=L._min_voxels(p))
-            lesion[lesion.sum(axis=(1, 2)) < cfg.segment.min_tumor_pixels] = False
+            lesion = L._final_mask(p, m, shipped, cfg)  # the run's own cut of its map
         else:
             family = "t2"
             group = "phantom_t2" if r["group"] == "phantom" else r["group"]
