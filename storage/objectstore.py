@@ -52,7 +52,7 @@ from typing import Any
 
 from tumor3d.storage.atomic import STALE_TMP_S
 from tumor3d.storage.refs import ArtifactRef, Repair, StoreError
-from tumor3d.storage.store import ArtifactStore
+from tumor3d.storage.store import ArtifactStore, check_own_object
 
 __all__ = [
     "STORE_DIRNAME",
@@ -337,6 +337,7 @@ class ObjectStore(ArtifactStore):
         return repair
 
     def _quarantine(self, relpath: str, detail: str) -> Repair:
+        check_own_object(relpath, self.url)
         moved: str | None = self._quarantine_relpath(Path(relpath).name)
         try:
             copy_object(self.fs, self._key(relpath), self._key(moved))

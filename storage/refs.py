@@ -12,11 +12,12 @@ object says so with a :class:`Repair`; a read that finds one raises
 from __future__ import annotations
 
 import json
+import re
 import time
 from dataclasses import dataclass
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from tumor3d.errors import Tumor3DError
 
@@ -26,6 +27,8 @@ __all__ = [
     "Repair",
     "StoreError",
     "canonical_dumps",
+    "check_object_relpath",
+    "object_relpath",
     "utc_now",
 ]
 
@@ -84,7 +87,10 @@ class ArtifactRef(BaseModel):
     digest : str
         Hex SHA-256 of kind, canonical metadata and bytes.
     relpath : str
-        Path of the file relative to the store root.
+        Path of the file relative to the store root: ``objects/<the digest's first two
+        characters>/<digest><suffix>`` (:func:`object_relpath`), the only path a store
+        writes; any other is refused (a record read from a shared store that named
+        ``../x`` or an absolute path would steer the tool to a file outside the store).
     metadata : dict
         Canonical, JSON-able description (shape, dtype, affine, ...).
     """
@@ -95,6 +101,40 @@ class ArtifactRef(BaseModel):
     digest: str = Field(pattern=r"^[0-9a-f]{64}$")
     relpath: str
     metadata: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _relpath_is_its_digests(self) -> ArtifactRef:
+        check_object_relpath(self.relpath, self.digest)
+        return self
+
+
+#: A file name suffix of a stored object: up to two lower-case extensions (``.nii.gz``).
+_SUFFIX = re.compile(r"^(\.[a-z0-9]{1,8}){1,2}$")
+
+
+def object_relpath(digest: str, suffix: str) -> str:
+    """Where a store keeps the object of ``digest``: ``objects/<digest[:2]>/<digest><suffix>``.
+
+    >>> object_relpath("ab" + "0" * 62, ".nii.gz")[:12]
+    'objects/ab/a'
+    """
+    return f"objects/{digest[:2]}/{digest}{suffix}"
+
+
+def check_object_relpath(relpath: str, digest: str) -> None:
+    """``ValueError`` unless ``relpath`` is :func:`object_relpath` of ``digest`` and a suffix.
+
+    >>> d = "ab" + "0" * 62
+    >>> check_object_relpath(object_relpath(d, ".ply"), d)
+    >>> check_object_relpath("../../in/scan.nii.gz", d)
+    Traceback (most recent call last):
+    ValueError: relpath '../../in/scan.nii.gz' is not where the store keeps object ab0000000000...
+    """
+    base = object_relpath(digest, "")
+    if not (relpath.startswith(base) and _SUFFIX.match(relpath[len(base) :])):
+        raise ValueError(
+            f"relpath {relpath!r} is not where the store keeps object {digest[:12]}..."
+        )
 
 
 def canonical_dumps(obj: Any) -> str:

@@ -74,6 +74,7 @@ from tumor3d.storage.refs import (
     Repair,
     StoreError,
     canonical_dumps,
+    object_relpath,
     utc_now,
 )
 
@@ -87,6 +88,7 @@ __all__ = [
     "StoreError",
     "atomic_write_bytes",
     "canonical_dumps",
+    "check_own_object",
     "check_writable_dir",
     "process_alive",
     "utc_now",
@@ -103,6 +105,21 @@ def _affine_list(affine: np.ndarray) -> list[list[float]]:
 def _stored_affine(affine: np.ndarray) -> np.ndarray:
     """The affine a stored volume reads back with: NIfTI keeps the sform as float32."""
     return np.asarray(affine, dtype=np.float64).astype(np.float32).astype(np.float64)
+
+
+def check_own_object(relpath: str, where: object) -> None:
+    """:class:`StoreError` unless ``relpath`` lies in the store's ``objects/``.
+
+    Relative, no ``..``: a store moves or rewrites nothing else, whatever a record names.
+
+    >>> check_own_object("objects/ab/abc.ply", "/s")
+    >>> check_own_object("../in/scan.nii.gz", "/s")
+    Traceback (most recent call last):
+    tumor3d.storage.refs.StoreError: '../in/scan.nii.gz' is not an object of the store /s: not moved
+    """
+    parts = Path(relpath).parts
+    if Path(relpath).is_absolute() or ".." in parts or parts[:1] != ("objects",):
+        raise StoreError(f"{relpath!r} is not an object of the store {where}: not moved")
 
 
 class ArtifactStore:
@@ -164,7 +181,12 @@ class ArtifactStore:
         return repair
 
     def _quarantine(self, relpath: str, detail: str) -> Repair:
-        """Move a bad object aside (never delete it) so that it can be rewritten."""
+        """Move a bad object aside (never delete it) so that it can be rewritten.
+
+        Only an object of the store's own layout (``objects/...``, no ``..``) is ever
+        moved: :class:`StoreError` otherwise, nothing touched.
+        """
+        check_own_object(relpath, self.root)
         path = self.root / relpath
         target = self.root / self._quarantine_relpath(path.name)
         target.parent.mkdir(parents=True, exist_ok=True)
@@ -277,7 +299,7 @@ class ArtifactStore:
         """
         meta = json.loads(canonical_dumps(metadata or {}))
         digest = self.digest_of(data, kind=kind, metadata=meta)
-        relpath = f"objects/{digest[:2]}/{digest}{suffix}"
+        relpath = object_relpath(digest, suffix)
         existing = self._existing_bytes(relpath)
         if existing != data:
             self._write_object(relpath, data)

@@ -119,7 +119,7 @@ def test_same_digests_names_and_bytes_as_the_local_store(s3_endpoint, tmp_path):
 
 def test_cache_keys_do_not_depend_on_the_store_location():
     policy = stage_cache_policy("preprocess", ("tumor3d.tasks.preprocess",))
-    ref = {"kind": "scan", "digest": "a" * 64, "relpath": "objects/aa/x.nii.gz"}
+    ref = {"kind": "scan", "digest": "a" * 64, "relpath": f"objects/aa/{'a' * 64}.nii.gz"}
     from tumor3d.storage.refs import ArtifactRef
 
     inputs = {"scan": ArtifactRef(**ref), "store_root": "/srv/store"}

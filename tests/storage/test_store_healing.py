@@ -180,3 +180,43 @@ def test_atomic_writes_name_their_temporary_file_by_host_and_process(store, monk
     m = atomic.TMP_NAME.match(seen[0])
     assert m is not None and m["host"] == atomic.HOST_TAG
     assert int(m["pid"]) == os.getpid()
+
+
+@pytest.mark.parametrize(
+    "relpath",
+    ["../../in/scan.nii.gz", "/home/u/scan.nii.gz", "objects/{d2}/{d}/../../../../x.json",
+     "objects/00/{other}.json", "objects/{d2}/{d}", "objects/{d2}/{d}.json/../x"],
+)  # fmt: skip
+def test_a_reference_names_only_its_own_object(store, relpath):
+    """A reference (read from a shared store's record, say) whose path is not where the
+    store keeps its digest's object is refused when it is read: it cannot steer a read, a
+    quarantine or a rewrite to a file outside the store."""
+    from pydantic import ValidationError
+
+    from tumor3d.storage.refs import ArtifactRef
+
+    ref = store.put_json({"x": 1})
+    d = ref.digest
+    bad = relpath.format(d2=d[:2], d=d, other="1" * 64)
+    with pytest.raises(ValidationError, match="not where the store keeps object"):
+        ArtifactRef(**{**ref.model_dump(), "relpath": bad})
+    assert ArtifactRef(**ref.model_dump()) == ref  # the store's own path is accepted
+
+
+def test_a_quarantine_moves_nothing_outside_the_objects(store, tmp_path):
+    """A reference made without validation (``model_construct``) that names a file outside
+    the store, with other bytes than its digest's: the read refuses to move it (one line),
+    and the file stays where it is, unchanged."""
+    from tumor3d.storage.refs import ArtifactRef
+
+    victim = tmp_path / "in" / "scan.nii.gz"
+    victim.parent.mkdir()
+    victim.write_bytes(b"the patient's scan")
+    ref = store.put_json({"x": 1})
+    for relpath in ("../in/scan.nii.gz", str(victim)):
+        forged = ArtifactRef.model_construct(**{**ref.model_dump(), "relpath": relpath})
+        with pytest.raises(StoreError, match="is not an object of the store") as info:
+            store.get_bytes(forged)
+        assert "\n" not in str(info.value)
+        assert victim.read_bytes() == b"the patient's scan"
+    assert not (store.root / "quarantine").exists() and store.repairs == []

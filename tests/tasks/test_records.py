@@ -259,3 +259,39 @@ def test_a_record_symlinked_outside_the_store_is_replaced_not_followed(two_patie
     assert not victim.is_symlink()
     assert again.metrics["volume_eq7_mm3"] == eq7["p1"]
     assert all(_rerun(images, out).cache_hits)
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("prefect_harness")
+def test_a_sealed_record_naming_a_file_outside_the_store_touches_nothing(two_patients):
+    """A store's writer reseals a record (its digest is plain SHA-256) whose artifact names
+    the run's own input, absolute or relative: the record is refused (the stage recomputed),
+    the input stays where it was, byte for byte, and nothing is quarantined."""
+    import hashlib
+
+    from tumor3d.storage.refs import canonical_dumps
+
+    images, out, eq7, digests = two_patients
+    image = Path(images["p1"])
+    before = image.read_bytes()
+    store = out / ".tumor3d-store"
+    relative = os.path.relpath(image, store)
+    for relpath in (str(image.resolve()), relative):
+        key = _key_of(out, "measure-volume", "p1", digests)
+        victim = _record_of(out, key)
+        rec = json.loads(victim.read_text())
+        res = json.loads(rec["result"])
+        name = next(iter(res["artifacts"]))
+        res["artifacts"][name]["relpath"] = relpath
+        del res["digest"]  # resealed as StageOutput.content_digest seals: no secret
+        text = canonical_dumps(res).encode()
+        res["digest"] = hashlib.sha256(b"tumor3d-stage-output-v1\0" + text).hexdigest()
+        rec["result"] = json.dumps(res, sort_keys=True)
+        victim.write_text(json.dumps(rec))
+        again = _rerun(images, out)
+        measure = {s.stage: s for s in again.stages}["measure-volume"]
+        assert not measure.cached and "schema" in (measure.repaired or "")
+        assert image.read_bytes() == before
+        assert again.metrics["volume_eq7_mm3"] == eq7["p1"]
+    assert not (store / "quarantine").exists()
+    assert all(_rerun(images, out).cache_hits)
