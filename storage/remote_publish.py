@@ -24,10 +24,14 @@ not published (:func:`published_names` skips it, :func:`read_marker` returns
 None) and the next publish of that name completes it. A folder whose marker
 already lists exactly the staged files' digests, and whose objects still
 match them (read back), is left alone, and so is one whose marker records the
-same publish key when every stage was a cache hit (re-runs from the cache
-upload nothing, although files holding run times differ; a corrupted object
-is re-published when the bytes are compared). :func:`verify_folder` re-reads every listed file
-against its digest (a corrupted or missing object is named).
+same publish key when every stage was a cache hit and whose objects are still the
+ones published (re-runs from the cache upload nothing, although files holding run
+times differ). Whether they are is told by one listing: the marker records each
+object's ETag as the store gave it after the copy, and an object written since
+(even with other bytes of the same size) has another; where the store or an older
+marker gives no ETag, the objects are read back against their digests.
+:func:`verify_folder` re-reads every listed file against its digest (a corrupted
+or missing object is named).
 
 Inputs are never touched: inputs are local files, and only keys under the
 output prefix are written or removed.
@@ -126,6 +130,44 @@ def _marker_path(name: str) -> str:
     return f"{name}/{MARKER}" if name else MARKER
 
 
+def _entries(out: RemoteFolder, name: str, rels) -> dict[str, dict[str, Any] | None]:
+    """The listing entry of each ``<url>/<name>/<rel>`` (None: absent).
+
+    One listing (``name`` empty: the cohort files at the root, each asked for alone).
+    """
+    if name:
+        listing = out._find(name)
+        return {rel: listing.get(out.key(f"{name}/{rel}")) for rel in rels}
+    found: dict[str, dict[str, Any] | None] = {}
+    out.fs.invalidate_cache()
+    for rel in rels:
+        try:
+            found[rel] = out.fs.info(out.key(rel))
+        except OSError:
+            found[rel] = None
+    return found
+
+
+def _etag(entry: Mapping[str, Any] | None) -> str | None:
+    """The ETag of a listing entry (quotes dropped), or None where the store gives none."""
+    tag = str((entry or {}).get("ETag") or (entry or {}).get("etag") or "").strip('"')
+    return tag or None
+
+
+def _unchanged(out: RemoteFolder, name: str, marker: dict[str, Any]) -> bool:
+    """True if every object the marker lists is still the one published.
+
+    Its ETag is the marker's (one listing), or, where the marker or the store gives
+    none, its bytes read back match their digests (:func:`verify_folder`).
+    """
+    etags = marker.get("etags")
+    if isinstance(etags, dict) and set(etags) == set(marker["files"]):
+        now = {rel: _etag(e) for rel, e in _entries(out, name, marker["files"]).items()}
+        if all(now.values()):
+            return now == etags
+    return not verify_folder(out, name)
+
+
 def read_marker(out: RemoteFolder, name: str, *, check_sizes: bool = True) -> dict[str, Any] | None:
     """The marker of ``<url>/<name>/`` if the folder is published, else None.
 
@@ -143,16 +185,8 @@ def read_marker(out: RemoteFolder, name: str, *, check_sizes: bool = True) -> di
     if not isinstance(files, dict):
         return None
     if check_sizes and files:
-        listing = out._find(name) if name else {}
-        for rel, info in files.items():
-            if name:
-                entry = listing.get(out.key(f"{name}/{rel}"))
-            else:  # the cohort files at the root: no listing of the whole prefix
-                try:
-                    entry = out.fs.info(out.key(rel))
-                except OSError:
-                    entry = None
-            if entry is None or int(entry.get("size", -1)) != int(info.get("size", -2)):
+        for rel, entry in _entries(out, name, files).items():
+            if entry is None or int(entry.get("size", -1)) != int(files[rel].get("size", -2)):
                 return None
     return marker
 
@@ -240,8 +274,9 @@ def publish_files(
     (the caller's digest of everything the folder is made from, as in
     :func:`tumor3d.storage.publish.write_publish_manifest`) is recorded in the marker;
     with ``reuse`` (every stage a cache hit), a folder whose valid marker
-    (every listed file present with its size) records the same key is left
-    alone: nothing is uploaded, although files holding run times differ.
+    (every listed file present with its size) records the same key, and whose
+    objects are still the ones published (:func:`_unchanged`), is left alone:
+    nothing is uploaded, although files holding run times differ.
 
     Returns
     -------
@@ -262,8 +297,14 @@ def publish_files(
     data = {rel: (v.read_bytes() if isinstance(v, Path) else bytes(v)) for rel, v in files.items()}
     entries = {rel: {"sha256": _sha256(b), "size": len(b)} for rel, b in sorted(data.items())}
     current = read_marker(out, name)
-    if reuse and key and current is not None and current.get("key") == key:
-        return where  # the same result, published and complete: upload nothing
+    if (
+        reuse
+        and key
+        and current is not None
+        and current.get("key") == key
+        and _unchanged(out, name, current)
+    ):
+        return where  # the same result, published, complete and intact: upload nothing
     if current is not None and current["files"] == entries and not verify_folder(out, name):
         return where  # already published with exactly these bytes (read back, intact)
     tag = f"{name or '_root'}.{os.getpid()}-{uuid.uuid4().hex[:8]}"
@@ -295,6 +336,9 @@ def publish_files(
             for obj in out._find(name):
                 if obj not in keep:
                     out.fs.rm_file(obj)
+        step = "list the copies"
+        rel = ""
+        etags = {r: _etag(e) for r, e in _entries(out, name, entries).items()}
         step = "write the marker"
         rel = MARKER
         marker = {
@@ -302,6 +346,7 @@ def publish_files(
             "name": name,
             "files": entries,
             **({"key": key} if key else {}),
+            **({"etags": etags} if all(etags.values()) else {}),
             "published_utc": utc_now(),
         }
         out.fs.pipe_file(out.key(_marker_path(name)), json.dumps(marker, indent=1).encode())

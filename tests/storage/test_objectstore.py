@@ -389,6 +389,36 @@ def test_a_corrupted_object_is_detected_after_the_copy_and_after_publication(
     assert verify_folder(out, "p1") == []
 
 
+@pytest.mark.parametrize("marker_etags", [True, False])
+def test_a_rerun_from_the_cache_republishes_an_object_edited_since(s3_endpoint, marker_etags):
+    """A re-run whose stages were all cache hits (``reuse``, the same publish key) uploads
+    nothing to an intact folder, but an object written since, with other bytes of the
+    same size (a forged volume in metrics.parquet), is published again: told by its ETag
+    against the marker's, or, for a marker without ETags (written before them), by the
+    bytes read back."""
+    import json
+
+    from tumor3d.storage.remote_publish import publish_files
+
+    out = RemoteFolder(f"s3://{BUCKET}/reuse{int(marker_etags)}")
+    prefix = f"reuse{int(marker_etags)}/p1"
+    publish_files(out, "p1", V1, exclusive=True, key="k1")
+    marker = json.loads(_body(s3_endpoint, f"{prefix}/{MARKER}"))
+    assert set(marker["etags"]) == set(V1)  # moto gives ETags, as S3 does
+    if not marker_etags:
+        del marker["etags"]
+        s3_endpoint.put_object(Bucket=BUCKET, Key=f"{prefix}/{MARKER}", Body=json.dumps(marker))
+    before = _stamps(s3_endpoint, f"{prefix}/")
+    publish_files(out, "p1", V1, exclusive=True, key="k1", reuse=True)
+    assert _stamps(s3_endpoint, f"{prefix}/") == before  # intact: nothing uploaded
+    forged = b"PAR2" + V1["metrics.parquet"][4:]  # same size, other bytes
+    s3_endpoint.put_object(Bucket=BUCKET, Key=f"{prefix}/metrics.parquet", Body=forged)
+    assert read_marker(out, "p1") is not None  # the sizes alone see nothing
+    publish_files(out, "p1", V1, exclusive=True, key="k1", reuse=True)
+    assert _body(s3_endpoint, f"{prefix}/metrics.parquet") == V1["metrics.parquet"]
+    assert verify_folder(out, "p1") == []
+
+
 @pytest.fixture(scope="module")
 def s3_cohort(s3_endpoint, local_pair):
     """The S3 cohorts' one computation, read by the three tests below: the phantoms of
