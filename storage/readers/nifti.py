@@ -117,7 +117,9 @@ def nibabel_header_notes(name: str) -> Iterator[list[str]]:
         for codes in unstated[:1]:
             notes.append(
                 f"{name}: {ORIENTATION_UNSTATED}: read with nibabel's default axes ({codes}), "
-                "so left-right and front-back are unverified; check them, or give the file "
+                "so left-right and front-back are unverified, and the segmentation and its "
+                "volume with them (the learned model reads a head as it lies: this guess "
+                "may turn it); check them, or give the file "
                 "its orientation (the masks on its grid state none either and overlay it in "
                 "any viewer; the meshes and the interpolated mask are placed by that guess, "
                 "which 3D Slicer and ITK-SNAP do not share)"

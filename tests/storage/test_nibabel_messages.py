@@ -96,7 +96,9 @@ def test_a_header_without_orientation_is_a_doubt_of_the_run(tmp_path):
     assert said == [
         "unstated.nii: the NIfTI header states no orientation (sform and qform codes 0): "
         "read with nibabel's default axes (LAS), so left-right and front-back are "
-        "unverified; check them, or give the file its orientation (the masks on its grid "
+        "unverified, and the segmentation and its volume with them (the learned model "
+        "reads a head as it lies: this guess may turn it); check them, or give the file "
+        "its orientation (the masks on its grid "
         "state none either and overlay it in any viewer; the meshes and the interpolated "
         "mask are placed by that guess, which 3D Slicer and ITK-SNAP do not share)"
     ]
