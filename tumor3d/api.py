@@ -502,6 +502,11 @@ def _scan_from_array(data: np.ndarray, affine: np.ndarray | None, options: Any) 
         )
     if data.ndim != 3:
         raise InputError(f"image must be a 3-D array, got shape {data.shape}")
+    if data.dtype.kind not in "iuf":  # complex: which part?; bool: a mask, not an image
+        raise InputError(
+            f"image must be an array of real intensities (integers or floats), got dtype "
+            f"{data.dtype}" + (": a mask is given as segmentation=" if data.dtype == bool else "")
+        )
     from tumor3d.storage.readers.common import scan_from_volume
 
     return scan_from_volume(

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from types import UnionType
 from typing import Any, Literal, Union, get_args, get_origin
 
@@ -57,9 +58,31 @@ class _StageConfig(BaseModel):
         """A number's key takes a number: ``true`` or ``"3"`` is refused, not coerced to 1 or 3."""
         field = cls.model_fields.get(info.field_name or "")
         if field is not None and isinstance(value, bool | str) and _is_number(field.annotation):
+            if isinstance(value, str) and _yaml_reads_as_text(value):
+                raise ValueError(
+                    f"must be a number, not text: YAML reads {value} as text (write it with a "
+                    "point and a signed exponent, as 1.0e+1, or in full)"
+                )
             kind = "true/false" if isinstance(value, bool) else "text (quoted)"
             raise ValueError(f"must be a number, not {kind}")
         return value
+
+
+def _yaml_reads_as_text(value: str) -> bool:
+    """True for a number in exponent form that YAML 1.1 (PyYAML) reads as text.
+
+    ``1e1``, ``1e-3``, ``2.5E3``: YAML wants a point and a signed exponent (``1.0e+1``);
+    ``'1.0e+1'`` arrives as text only when quoted.
+
+    >>> [_yaml_reads_as_text(v) for v in ("1e1", "1e-3", "2.5E3", "10", "abc", "1.0e+1")]
+    [True, True, True, False, False, False]
+    """
+    try:
+        float(value)
+    except ValueError:
+        return False
+    yaml_float = re.fullmatch(r"[-+]?(\d[\d_]*\.[\d_]*|\.\d[\d_]*)[eE][-+]\d+", value)
+    return "e" in value.lower() and "inf" not in value.lower() and yaml_float is None
 
 
 def _is_number(annotation: Any) -> bool:

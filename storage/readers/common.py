@@ -420,9 +420,17 @@ def check_modality(modality: Any, where: str | None = None) -> str:
 
 
 def _check_override(name: str, value: float | None, *, allow_zero: bool) -> float | None:
+    """A thickness or gap given by hand (an option, an API argument): a number of mm.
+
+    :class:`InputError` naming it otherwise, also for text (``'5'`` is the user's input,
+    not a programming error).
+    """
     if value is None:
         return None
-    return _positive_number(value, name, None, allow_zero=allow_zero)
+    try:
+        return _positive_number(value, name, None, allow_zero=allow_zero)
+    except TypeError as exc:
+        raise InputError(str(exc)) from None
 
 
 def _positive_number(

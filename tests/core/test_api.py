@@ -241,6 +241,14 @@ def test_bad_input_is_one_line():
     for what in ("brain_mask", "segmentation"):
         with pytest.raises(InputError, match=f"^{what} is a path \\(m.nii.gz\\)"):
             tumor3d.reconstruct(image, affine=np.eye(4), modality="t2", **{what: "m.nii.gz"})
+    # the fourth audit's F6: a thickness as text was a TypeError; a complex image was cut
+    # to its real part, a bool one (a mask given as the image) gave "no tumour found"
+    with pytest.raises(InputError, match="^slice_thickness_mm must be a positive number"):
+        tumor3d.reconstruct(image, affine=np.eye(4), modality="t2", slice_thickness_mm="5")
+    with pytest.raises(InputError, match="real intensities .* got dtype complex64$"):
+        tumor3d.reconstruct(image + 1j, affine=np.eye(4), modality="t2")
+    with pytest.raises(InputError, match="got dtype bool: a mask is given as segmentation="):
+        tumor3d.reconstruct(image > 3, affine=np.eye(4), modality="t2")
 
 
 def test_the_lazy_names_are_listed_for_tab_completion():

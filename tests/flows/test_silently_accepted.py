@@ -66,6 +66,13 @@ def test_booleans_and_text_are_not_numbers(tmp_path, text, key):
     _one_line(_run_with_config(tmp_path, text.encode()), "c.yaml", key, "must be a number")
 
 
+def test_a_number_yaml_reads_as_text_is_told_how_to_write_it(tmp_path):
+    """PyYAML (YAML 1.1) reads ``1e1`` as text: the error says so, not "quoted"."""
+    r = _run_with_config(tmp_path, b"simplify: {reduction_percent: 1e1}\n")
+    _one_line(r, "c.yaml", "simplify.reduction_percent", "YAML reads 1e1 as text")
+    assert "quoted" not in r.output and "1.0e+1" in r.output
+
+
 def test_numbers_stay_numbers():
     cfg = parse_config({"segment": {"min_tumor_slices": 3}, "simplify": {"reduction_percent": 40}})
     assert cfg.segment.min_tumor_slices == 3 and cfg.simplify.reduction_percent == 40.0
