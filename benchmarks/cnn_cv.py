@@ -114,7 +114,7 @@ def build_dataset(preps, folds, args) -> dict[str, np.ndarray]:
 #: The options that are :class:`tumor3d.learned.cnn_train.UNetSettings` fields (the
 #: training workers get them all).
 TRAIN_OPTIONS = ("size", "context", "base", "levels", "epochs", "batch", "lr", "neg_ratio",
-                 "shift", "scale", "rotate_deg", "framing")  # fmt: skip
+                 "shift", "scale", "rotate_deg", "framing", "slice_dice")  # fmt: skip
 
 
 def _settings(args):
@@ -401,7 +401,13 @@ def train_final(preps, folds, args, work: Path) -> int:
         "settings": {k: getattr(args, k) for k in (*TRAIN_OPTIONS, "train_offsets")},
         "input": "tumor3d.learned.cnn_data.case_input(image, size, context, "
         "frame_of(image, framing, pixel_mm))",
-        "loss": "BCE + soft Dice; Adam (weight decay 1e-5), one-cycle lr (15 % warm-up)",
+        "loss": "BCE + soft Dice"
+        + (
+            f" + {args.slice_dice:g} x per-slice soft Dice (the slices with tumour)"
+            if args.slice_dice
+            else ""
+        )
+        + "; Adam (weight decay 1e-5), one-cycle lr (15 % warm-up)",
     }
     (work / "final_meta.json").write_text(json.dumps(meta, indent=1))
     out = Path(args.final).resolve()
@@ -467,6 +473,12 @@ def main(argv=None) -> int:
     ap.add_argument("--shift", type=int, default=8, help="random shift (pixels at --size)")
     ap.add_argument("--scale", type=float, default=0.0, help="random scaling within 1 +- this")
     ap.add_argument("--rotate-deg", type=float, default=0.0, help="random rotation (degrees)")
+    ap.add_argument(
+        "--slice-dice",
+        type=float,
+        default=0.0,
+        help="weight of a per-slice soft Dice term (the slices with tumour) added to the loss",
+    )
     ap.add_argument(
         "--framing",
         choices=("slice", "head", "mm"),

@@ -88,6 +88,31 @@ def test_settings_the_network_cannot_take_are_refused():
         UNetSettings(rotate_deg=-1.0)
     with pytest.raises(InputError, match="framing must be 'slice', 'head' or 'mm'"):
         UNetSettings(framing="brain")
+    with pytest.raises(InputError, match="slice_dice must be >= 0"):
+        UNetSettings(slice_dice=-0.5)
+
+
+def test_the_per_slice_dice_weighs_each_cross_section_the_same():
+    """A missed one-pixel cross-section costs 1 - 1/2 (the +1 smoothing) on one of the four
+    slices with tumour, an eighth of the term (each slice weighs the same), against a few
+    hundredths of the batch's soft Dice; slices without tumour take no part; a perfect
+    prediction costs nothing."""
+    torch = pytest.importorskip("torch")
+    from tumor3d.learned.cnn_train import per_slice_soft_dice
+
+    y = torch.zeros(5, 16, 16)
+    y[0, :8, :8] = y[1, 2:10, 2:10] = y[2, 4:12, 4:12] = 1.0
+    y[3, 7, 7] = 1.0  # the one-pixel cross-section; slice 4 holds no tumour
+    assert float(per_slice_soft_dice(y.clone(), y)) == pytest.approx(0.0, abs=1e-6)
+    p = y.clone()
+    p[3] = 0.0
+    p[4, :4, :4] = 1.0  # false tumour on the empty slice: not the term's business
+    by_slice = 1 - (2 * (p * y).sum((1, 2)) + 1) / (p.sum((1, 2)) + y.sum((1, 2)) + 1)
+    assert float(per_slice_soft_dice(p, y)) == pytest.approx(float(by_slice[:4].mean()))
+    assert float(per_slice_soft_dice(p, y)) == pytest.approx(0.125, abs=0.005)
+    batch = 1 - (2 * (p * y).sum() + 1) / (p.sum() + y.sum() + 1)
+    assert float(batch) < 0.1
+    assert float(per_slice_soft_dice(p, torch.zeros_like(y))) == 0.0
 
 
 def test_the_settings_framings_are_the_inference_grids():

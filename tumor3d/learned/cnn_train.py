@@ -65,7 +65,11 @@ class UNetSettings:
     each slice, both 0 (none) in the shipped training; ``framing``: what of each
     slice the net sees (:data:`tumor3d.learned.cnn_data.FRAMINGS`: the whole
     slice; a square around the head; a square of 240 mm centred on the head, shipped:
-    the field of view does not set the scale at which the net sees the head).
+    the field of view does not set the scale at which the net sees the head);
+    ``slice_dice``: the weight of a per-slice soft Dice term, the mean over the batch's
+    slices that hold tumour, added to the loss (binary cross-entropy + the batch's soft
+    Dice, in which the large cross-sections outweigh the small ones); 0 (none) in the
+    shipped training.
     """
 
     size: int = 128
@@ -80,6 +84,7 @@ class UNetSettings:
     scale: float = 0.0
     rotate_deg: float = 0.0
     framing: str = "mm"
+    slice_dice: float = 0.0
 
     def __post_init__(self) -> None:
         # tumor3d.learned.cnn_data.FRAMINGS, spelled here: this module runs where only
@@ -96,6 +101,8 @@ class UNetSettings:
                 raise InputError(f"U-Net {name} must be at least 1")
         if self.context < 0 or self.shift < 0 or self.lr <= 0 or self.neg_ratio < 0:
             raise InputError("U-Net context, shift and neg_ratio must be >= 0, lr > 0")
+        if self.slice_dice < 0:
+            raise InputError("U-Net slice_dice must be >= 0")
         if not (0.0 <= self.scale < 0.5 and 0.0 <= self.rotate_deg <= 45.0):
             raise InputError("U-Net scale must lie in [0, 0.5) and rotate_deg in [0, 45]")
 
@@ -303,6 +310,8 @@ def fit_unet(
             inter = (p * yb).sum()
             soft_dice = 1 - (2 * inter + 1) / (p.sum() + yb.sum() + 1)
             loss = F.binary_cross_entropy_with_logits(logit, yb) + soft_dice
+            if s.slice_dice:
+                loss = loss + s.slice_dice * per_slice_soft_dice(p, yb)
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -316,6 +325,20 @@ def fit_unet(
             )
     model.eval()
     return UNetFit(model, int(len(pos) + n_neg), time.perf_counter() - t0, losses)
+
+
+def per_slice_soft_dice(p: Any, y: Any) -> Any:
+    """The per-slice soft Dice loss of ``p`` against ``y`` (both ``(n, s, s)`` tensors).
+
+    1 - the soft Dice of each slice, the mean over the slices where ``y`` holds tumour
+    (0 if none does): each cross-section weighs the same, however small.
+    """
+    ps, ys = p.flatten(1), y.flatten(1)
+    has = ys.sum(1) > 0
+    if not bool(has.any()):
+        return p.sum() * 0.0
+    d = 1 - (2 * (ps * ys).sum(1) + 1) / (ps.sum(1) + ys.sum(1) + 1)
+    return d[has].mean()
 
 
 def torch_probability(model: Any, x: np.ndarray, batch: int = 32) -> np.ndarray:
