@@ -422,17 +422,17 @@ def main(argv=None) -> int:
 
 Command (the figures below; with the prepared cases cached, the forest-alone
 `learned_cv.py --method learned` run took 18 min and the `--cnn-folds` one
-(two nets per fold) 14 min at load 2 on 2 shared cores, 2026-12-07; the fold U-Nets
-about 27 min a seed, 8-10 min per fold, two at a time, 2026-12-06 and 07):
+(two nets per fold) 9-14 min at load 2 on 2 shared cores, 2026-12-07; the fold U-Nets
+27-38 min a seed, 8-17 min per fold, two at a time, 2026-12-06 and 07):
 
 ```
 export TUMOR3D_DATA_DIR=../shared/data
 # the 5 fold U-Nets of each seed, /tmp/cnn{{0,1}}/unet_fold{{k}}.npz (FLAIR, the same folds,
-# 20 epochs, 240 mm centred on the head; torch in a venv of its own: the section
-# "A small 2-D U-Net" below)
+# 20 epochs, 240 mm centred on the head, a per-slice soft Dice in the loss; torch in a
+# venv of its own: the section "A small 2-D U-Net" below)
 for s in 0 1; do
     nice -n 10 python benchmarks/cnn_cv.py --cache /tmp/cv-cache --work /tmp/cnn$s \\
-        --epochs 20 --seed $s --framing mm --json cnn$s.json
+        --epochs 20 --seed $s --framing mm --slice-dice 1.0 --json cnn$s.json
 done
 # the shipped method: forest + the mean of the two U-Nets on FLAIR, the forest alone
 # on T2 and T1c
@@ -477,7 +477,9 @@ method averages the forest's probability with a U-Net's before the cut
 folds); the U-Net is an ensemble of two trainings (seeds 0 and 1, 20 epochs:
 "A longer-trained U-Net" below), whose probabilities are averaged; each net sees
 240 mm of each slice centred on the head ("The U-Net's framing" below), so the field
-of view no longer sets the scale at which it sees the head. Fold k's
+of view no longer sets the scale at which it sees the head; its loss adds a per-slice
+soft Dice, so a small cross-section weighs as much as a large one ("A per-slice soft Dice in
+the U-Net's loss" below). Fold k's
 FLAIR cases get the two nets `cnn_cv.py` trained on the other four folds'
 FLAIR patients (`--cnn-folds`), through the pipeline's own call
 (`tumor3d.learned.segment.segment_learned(..., cnn=...)`, the weights read by

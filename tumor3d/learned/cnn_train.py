@@ -68,8 +68,9 @@ class UNetSettings:
     the field of view does not set the scale at which the net sees the head);
     ``slice_dice``: the weight of a per-slice soft Dice term, the mean over the batch's
     slices that hold tumour, added to the loss (binary cross-entropy + the batch's soft
-    Dice, in which the large cross-sections outweigh the small ones); 0 (none) in the
-    shipped training.
+    Dice, in which the large cross-sections outweigh the small ones); 1 in the shipped
+    training (chosen by the rule of ``reports/learned_cv.md``, "A per-slice soft Dice in
+    the U-Net's loss"; 0 before).
     """
 
     size: int = 128
@@ -84,7 +85,7 @@ class UNetSettings:
     scale: float = 0.0
     rotate_deg: float = 0.0
     framing: str = "mm"
-    slice_dice: float = 0.0
+    slice_dice: float = 1.0
 
     def __post_init__(self) -> None:
         # tumor3d.learned.cnn_data.FRAMINGS, spelled here: this module runs where only
