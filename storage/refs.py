@@ -109,7 +109,7 @@ class ArtifactRef(BaseModel):
 
 
 #: A file name suffix of a stored object: up to two lower-case extensions (``.nii.gz``).
-_SUFFIX = re.compile(r"^(\.[a-z0-9]{1,8}){1,2}$")
+_SUFFIX = re.compile(r"(\.[a-z0-9]{1,8}){1,2}")
 
 
 def object_relpath(digest: str, suffix: str) -> str:
@@ -131,7 +131,7 @@ def check_object_relpath(relpath: str, digest: str) -> None:
     ValueError: relpath '../../in/scan.nii.gz' is not where the store keeps object ab0000000000...
     """
     base = object_relpath(digest, "")
-    if not (relpath.startswith(base) and _SUFFIX.match(relpath[len(base) :])):
+    if not (relpath.startswith(base) and _SUFFIX.fullmatch(relpath[len(base) :])):
         raise ValueError(
             f"relpath {relpath!r} is not where the store keeps object {digest[:12]}..."
         )

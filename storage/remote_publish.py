@@ -26,7 +26,7 @@ already lists exactly the staged files' digests, and whose objects still
 match them (read back), is left alone, and so is one whose marker records the
 same publish key when every stage was a cache hit and whose objects are still the
 ones published (re-runs from the cache upload nothing, although files holding run
-times differ). Whether they are is told by one listing: the marker records each
+times differ). Whether they are is told by a listing: the marker records each
 object's ETag as the store gave it after the copy, and an object written since
 (even with other bytes of the same size) has another; where the store or an older
 marker gives no ETag, the objects are read back against their digests.
@@ -157,7 +157,7 @@ def _etag(entry: Mapping[str, Any] | None) -> str | None:
 def _unchanged(out: RemoteFolder, name: str, marker: dict[str, Any]) -> bool:
     """True if every object the marker lists is still the one published.
 
-    Its ETag is the marker's (one listing), or, where the marker or the store gives
+    Its ETag is the marker's (a listing), or, where the marker or the store gives
     none, its bytes read back match their digests (:func:`verify_folder`).
     """
     etags = marker.get("etags")

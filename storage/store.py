@@ -74,6 +74,7 @@ from tumor3d.storage.refs import (
     Repair,
     StoreError,
     canonical_dumps,
+    check_object_relpath,
     object_relpath,
     utc_now,
 )
@@ -118,7 +119,7 @@ def check_own_object(relpath: str, where: object) -> None:
     tumor3d.storage.refs.StoreError: '../in/scan.nii.gz' is not an object of the store /s: not moved
     """
     parts = Path(relpath).parts
-    if Path(relpath).is_absolute() or ".." in parts or parts[:1] != ("objects",):
+    if Path(relpath).is_absolute() or ".." in parts or parts[:1] != ("objects",) or len(parts) < 3:
         raise StoreError(f"{relpath!r} is not an object of the store {where}: not moved")
 
 
@@ -300,6 +301,7 @@ class ArtifactStore:
         meta = json.loads(canonical_dumps(metadata or {}))
         digest = self.digest_of(data, kind=kind, metadata=meta)
         relpath = object_relpath(digest, suffix)
+        check_object_relpath(relpath, digest)  # a suffix the references refuse: before writing
         existing = self._existing_bytes(relpath)
         if existing != data:
             self._write_object(relpath, data)

@@ -76,12 +76,15 @@ def _yaml_reads_as_text(value: str) -> bool:
 
     >>> [_yaml_reads_as_text(v) for v in ("1e1", "1e-3", "2.5E3", "10", "abc", "1.0e+1")]
     [True, True, True, False, False, False]
+    >>> _yaml_reads_as_text("-.5e+3"), _yaml_reads_as_text(".5e+3")  # YAML: text, a float
+    (True, False)
     """
     try:
         float(value)
     except ValueError:
         return False
-    yaml_float = re.fullmatch(r"[-+]?(\d[\d_]*\.[\d_]*|\.\d[\d_]*)[eE][-+]\d+", value)
+    # PyYAML's float: a sign only before digits ahead of the point, a point, a signed exponent
+    yaml_float = re.fullmatch(r"[-+]?\d[\d_]*\.[\d_]*[eE][-+]\d+|\.\d[\d_]*[eE][-+]\d+", value)
     return "e" in value.lower() and "inf" not in value.lower() and yaml_float is None
 
 

@@ -220,3 +220,14 @@ def test_a_quarantine_moves_nothing_outside_the_objects(store, tmp_path):
         assert "\n" not in str(info.value)
         assert victim.read_bytes() == b"the patient's scan"
     assert not (store.root / "quarantine").exists() and store.repairs == []
+    for relpath in ("objects", "objects/ab"):  # the folders themselves are no objects
+        forged = ArtifactRef.model_construct(**{**ref.model_dump(), "relpath": relpath})
+        with pytest.raises(StoreError, match="is not an object of the store"):
+            store._quarantine(forged.relpath, "test")
+
+
+def test_a_suffix_no_reference_takes_is_refused_before_anything_is_written(store):
+    for suffix in (".PLY", "", ".a.b.c", ".ply\n"):
+        with pytest.raises(ValueError, match="not where the store keeps object"):
+            store.put_bytes(b"x", kind="json", suffix=suffix)
+    assert not (store.root / "objects").exists() or not any((store.root / "objects").rglob("*"))

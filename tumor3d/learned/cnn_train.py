@@ -11,7 +11,8 @@ all three.
 
 The training (issue 28; ``reports/learned_cv.md`` cross-validates it by
 patient): every epoch every slice with tumour and ``neg_ratio`` times as many
-slices without, drawn at random; binary cross-entropy + soft Dice; Adam
+slices without, drawn at random; binary cross-entropy + the batch's soft Dice + the
+mean per-slice soft Dice of its slices with tumour (``UNetSettings.slice_dice``); Adam
 (weight decay 1e-5) with a one-cycle learning rate (15 % warm-up, cosine
 decay); left-right flips, shifts of up to ``shift`` pixels and intensity
 jitter (gain 0.9-1.1, offset +-0.1) per batch. Seeded: torch's and numpy's
@@ -102,7 +103,7 @@ class UNetSettings:
                 raise InputError(f"U-Net {name} must be at least 1")
         if self.context < 0 or self.shift < 0 or self.lr <= 0 or self.neg_ratio < 0:
             raise InputError("U-Net context, shift and neg_ratio must be >= 0, lr > 0")
-        if self.slice_dice < 0:
+        if not self.slice_dice >= 0:  # NaN too
             raise InputError("U-Net slice_dice must be >= 0")
         if not (0.0 <= self.scale < 0.5 and 0.0 <= self.rotate_deg <= 45.0):
             raise InputError("U-Net scale must lie in [0, 0.5) and rotate_deg in [0, 45]")
