@@ -26,10 +26,10 @@ already lists exactly the staged files' digests, and whose objects still
 match them (read back), is left alone, and so is one whose marker records the
 same publish key when every stage was a cache hit and whose objects are still the
 ones published (re-runs from the cache upload nothing, although files holding run
-times differ). Whether they are is told by a listing: the marker records each
-object's ETag as the store gave it after the copy, and an object written since
-(even with other bytes of the same size) has another; where the store or an older
-marker gives no ETag, the objects are read back against their digests.
+times differ). Whether they are is told by the listing that checks the sizes: the
+marker records each object's ETag as the store gave it after the copy, and an object
+written since (even with other bytes of the same size) has another; where the store
+or an older marker gives no ETag, the objects are read back against their digests.
 :func:`verify_folder` re-reads every listed file against its digest (a corrupted
 or missing object is named).
 
@@ -154,18 +154,46 @@ def _etag(entry: Mapping[str, Any] | None) -> str | None:
     return tag or None
 
 
-def _unchanged(out: RemoteFolder, name: str, marker: dict[str, Any]) -> bool:
+def _unchanged(
+    out: RemoteFolder, name: str, marker: dict[str, Any], listed: dict[str, Any]
+) -> bool:
     """True if every object the marker lists is still the one published.
 
-    Its ETag is the marker's (a listing), or, where the marker or the store gives
-    none, its bytes read back match their digests (:func:`verify_folder`).
+    Its ETag, in ``listed`` (the listing :func:`_listed_marker` checked the sizes in), is
+    the marker's, or, where the marker or the store gives none, its bytes read back
+    match their digests (:func:`verify_folder`).
     """
     etags = marker.get("etags")
     if isinstance(etags, dict) and set(etags) == set(marker["files"]):
-        now = {rel: _etag(e) for rel, e in _entries(out, name, marker["files"]).items()}
+        now = {rel: _etag(listed.get(rel)) for rel in marker["files"]}
         if all(now.values()):
             return now == etags
     return not verify_folder(out, name)
+
+
+def _listed_marker(
+    out: RemoteFolder, name: str, *, check_sizes: bool = True
+) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+    """:func:`read_marker`'s marker, and the listing entries it checked the sizes in.
+
+    The entries are empty without ``check_sizes`` (and where the marker is not valid).
+    """
+    try:
+        marker = json.loads(out.cat(_marker_path(name)))
+    except (OSError, ValueError):
+        return None, {}
+    if not isinstance(marker, dict) or marker.get("format") != MARKER_FORMAT:
+        return None, {}
+    files = marker.get("files")
+    if not isinstance(files, dict):
+        return None, {}
+    listed: dict[str, Any] = {}
+    if check_sizes and files:
+        listed = _entries(out, name, files)
+        for rel, entry in listed.items():
+            if entry is None or int(entry.get("size", -1)) != int(files[rel].get("size", -2)):
+                return None, {}
+    return marker, listed
 
 
 def read_marker(out: RemoteFolder, name: str, *, check_sizes: bool = True) -> dict[str, Any] | None:
@@ -175,20 +203,7 @@ def read_marker(out: RemoteFolder, name: str, *, check_sizes: bool = True) -> di
     ``check_sizes``) every file it lists exists with the listed size (one
     listing; :func:`verify_folder` checks the digests).
     """
-    try:
-        marker = json.loads(out.cat(_marker_path(name)))
-    except (OSError, ValueError):
-        return None
-    if not isinstance(marker, dict) or marker.get("format") != MARKER_FORMAT:
-        return None
-    files = marker.get("files")
-    if not isinstance(files, dict):
-        return None
-    if check_sizes and files:
-        for rel, entry in _entries(out, name, files).items():
-            if entry is None or int(entry.get("size", -1)) != int(files[rel].get("size", -2)):
-                return None
-    return marker
+    return _listed_marker(out, name, check_sizes=check_sizes)[0]
 
 
 def verify_folder(out: RemoteFolder, name: str) -> list[str]:
@@ -296,13 +311,13 @@ def publish_files(
     prefix = f"{name}/" if name else ""
     data = {rel: (v.read_bytes() if isinstance(v, Path) else bytes(v)) for rel, v in files.items()}
     entries = {rel: {"sha256": _sha256(b), "size": len(b)} for rel, b in sorted(data.items())}
-    current = read_marker(out, name)
+    current, listed = _listed_marker(out, name)
     if (
         reuse
         and key
         and current is not None
         and current.get("key") == key
-        and _unchanged(out, name, current)
+        and _unchanged(out, name, current, listed)
     ):
         return where  # the same result, published, complete and intact: upload nothing
     if current is not None and current["files"] == entries and not verify_folder(out, name):

@@ -137,9 +137,12 @@ def write_viewer_assets(out_dir: str | Path) -> list[str]:
         for name, data in assets.items():
             final = folder / name
             try:
-                if final.is_file() and final.stat().st_size == len(data):
-                    if final.read_bytes() == data:
-                        continue
+                if (
+                    final.is_file()
+                    and final.stat().st_size == len(data)
+                    and final.read_bytes() == data
+                ):
+                    continue
             except OSError:
                 pass
             atomic_write_bytes(final, data)
