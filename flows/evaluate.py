@@ -46,6 +46,7 @@ from tumor3d.storage.evaluation_tables import (
     prepare_cases,
     write_evaluation_tables,
 )
+from tumor3d.storage.given_models import resolve_learned_models
 from tumor3d.storage.objectstore import default_store_location
 from tumor3d.tasks.publish import REVIEW_COLUMNS
 
@@ -124,7 +125,8 @@ def _load_configs(specs: dict[str, str | None]) -> dict[str, dict[str, Any]]:
             text = p.read_text()
         except OSError as exc:
             raise InputError(f"cannot read configuration: {exc.strerror}", str(p)) from None
-        configs[name] = parse_config(text, source=str(p)).model_dump(mode="json")
+        cfg = resolve_learned_models(parse_config(text, source=str(p)))
+        configs[name] = cfg.model_dump(mode="json")
     return configs
 
 

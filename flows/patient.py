@@ -34,6 +34,7 @@ from tumor3d.segmentation.review import NO_TUMOUR_NOTE
 from tumor3d.storage import bids
 from tumor3d.storage.brain_mask import GivenBrainMask, read_given_brain_mask
 from tumor3d.storage.derivatives import VOLUME_LABELS, VOLUME_METHODS
+from tumor3d.storage.given_models import read_given_models
 from tumor3d.storage.given_segmentation import GivenSegmentation, read_given_segmentation
 from tumor3d.storage.inputs import input_digest, input_location
 from tumor3d.storage.objectstore import default_store_location, is_url, open_store
@@ -76,6 +77,7 @@ __all__ = [
     "patient_flow",
     "patient_pipeline",
     "prepare_brain_mask",
+    "prepare_models",
     "prepare_segmentation",
     "prepare_source",
     "publish_key",
@@ -213,6 +215,17 @@ def prepare_segmentation(
     return read_given_segmentation(path, image, max_voxels=source.max_voxels)
 
 
+def prepare_models(cfg: PipelineConfig) -> dict[str, bytes] | None:
+    """The model files ``segment.learned_models`` names, read and checked (None: unset).
+
+    :func:`tumor3d.storage.given_models.read_given_models`: one line naming the folder
+    or the file. Read again for each patient (a few MB at most), so that the models a
+    result was made with are those its cache key and provenance record.
+    """
+    where = cfg.segment.learned_models
+    return None if where is None else read_given_models(where)
+
+
 def run_stages(
     run: Any,
     source: InputSource,
@@ -261,13 +274,18 @@ def patient_pipeline(
     ``segmentation`` (:func:`prepare_segmentation`) likewise replaces the
     segment-tumor stage's mask. ``layout`` ``"bids"`` publishes BIDS derivatives
     (:mod:`tumor3d.storage.bids`) to ``out_dir/sub-<label>/``, a local ``out_dir`` only.
+    A user's trained models (``segment.learned_models``, :func:`prepare_models`) are
+    stored as an artifact the segment-tumor stage reads in place of the shipped ones.
     """
     t0 = time.perf_counter()
     pid = source.patient_id
     check_layout_destination(source, out_dir, layout, brain_mask, segmentation)  # before work
+    models = prepare_models(cfg)
     runner = PrefectRunner(store, pid, total=len(stages.STAGES), runs=runs)
     try:
-        given = stages.store_given(store, brain_mask=brain_mask, segmentation=segmentation)
+        given = stages.store_given(
+            store, brain_mask=brain_mask, segmentation=segmentation, models=models
+        )
         outputs = run_stages(runner, source, cfg, str(store.root), given=given)
         flow_seconds = time.perf_counter() - t0
         notes, doubts = run_notes(
@@ -448,7 +466,8 @@ def run_stages_direct(
     given = None if brain_mask is None else prepare_brain_mask(brain_mask, source)
     seg = None if segmentation is None else prepare_segmentation(segmentation, source)
     runner = DirectRunner(source.patient_id, len(stages.STAGES))
-    stored = stages.store_given(store, brain_mask=given, segmentation=seg)
+    models = prepare_models(cfg)
+    stored = stages.store_given(store, brain_mask=given, segmentation=seg, models=models)
     run_stages(runner, source, cfg, str(store.root), given=stored)
     return runner
 

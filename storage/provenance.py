@@ -82,7 +82,8 @@ def cache_identity(folder: str | Path) -> dict[str, Any] | None:
 
     ``input`` (the input's content digest), ``modality`` (the sequence it was
     segmented as), ``config`` (the configuration's digest), ``given`` (the SHA-256
-    of a given brain mask and segmentation),
+    of a given brain mask and segmentation, and of the models ``segment.learned_models``
+    named, where the learned method ran with them),
     ``code`` (stage -> code digest) and ``versions``; None when the folder
     holds no readable record (never published, or by another tool).
     """
@@ -97,6 +98,10 @@ def cache_identity(folder: str | Path) -> dict[str, Any] | None:
         key: doc[key].get("sha256") for key in ("brain_mask", "segmentation")
         if isinstance(doc.get(key), dict) and doc[key].get("given")
     }  # fmt: skip
+    seg, config = doc.get("segmentation"), doc.get("config")
+    own = isinstance(config, dict) and (config.get("segment") or {}).get("learned_models")
+    if own and isinstance(seg, dict) and seg.get("model_sha256"):  # a user's trained models
+        given["models"] = [seg["model_sha256"], *(seg.get("cnn_sha256") or [])]
     return {
         "input": (doc.get("input") or {}).get("digest_sha256"),
         "modality": (doc.get("input") or {}).get("modality"),
@@ -154,6 +159,8 @@ def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
     'modality changed: flair -> t2'
     >>> recompute_reason(old, {**old, "given": {"brain_mask": "e3b0"}})
     'given brain mask changed'
+    >>> recompute_reason(old, {**old, "given": {"models": ["9f86"]}})  # segment.learned_models
+    'given models changed'
     >>> recompute_reason(old, {**old, "config": "d", "code": {"segment": "9", "render": "2"}})
     'code of 1 of 2 stages changed'
     >>> recompute_reason(old, {**old, "versions": {"tumor3d": "0.1.0", "numpy": "2.4.7"}})
@@ -167,9 +174,10 @@ def recompute_reason(before: dict[str, Any], after: dict[str, Any]) -> str:
     if modality is not None:
         return f"modality changed: {modality[0]} -> {modality[1]}"
     old_given, new_given = before.get("given") or {}, after.get("given") or {}
-    files = [k for k in ("brain_mask", "segmentation") if old_given.get(k) != new_given.get(k)]
+    keys = ("brain_mask", "segmentation", "models")
+    files = [k for k in keys if old_given.get(k) != new_given.get(k)]
     if files:
-        words = {"brain_mask": "brain mask", "segmentation": "segmentation"}
+        words = {"brain_mask": "brain mask", "segmentation": "segmentation", "models": "models"}
         return f"given {' and '.join(words[k] for k in files)} changed"
     code_after = after.get("code") or {}
     moved = [s for s, digest in code_after.items() if (before.get("code") or {}).get(s) != digest]

@@ -101,6 +101,8 @@ KINDS: dict[str, Kind] = {
     "png": Kind(put=lambda s, v, m: s.put_png(v, extra=m)),
     "gif": Kind(put=_put_bytes("gif", ".gif")),
     "training-rows": Kind(put=_put_bytes("training-rows", ".npz")),
+    # a user's trained models (segment.learned_models), packed: tumor3d.learned.bundle
+    "models": Kind(put=_put_bytes("models", ".npz"), get=lambda s, r: s.get_bytes(r)),
 }
 
 

@@ -10,11 +10,13 @@ method computes it with the parameters that artifact records
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import pandas as pd
 
 from tumor3d.config import SegmentConfig
+from tumor3d.learned.bundle import ModelSet, model_set, unpack_models
 from tumor3d.segmentation.detect import SliceDetection
 from tumor3d.segmentation.patient import segment_patient, stored_detection
 from tumor3d.storage.nifti import probability_for_storage
@@ -52,6 +54,8 @@ def load_detection(
         "head_exterior": Input("mask", "preprocess.head_exterior"),
         # the user's segmentation on the scan's grid (--segmentation)
         "given_mask": Input("mask", "given:segmentation", load=False, optional=True),
+        # a user's trained models (segment.learned_models): their content is in the key
+        "given_models": Input("models", "given:models", load=False, optional=True),
     },
     # tumor_probability: the learned method only
     outputs={"tumor_mask_slices": "mask", "segmentation": "table", "tumor_probability": "image"},
@@ -73,19 +77,24 @@ def segment(
     head_exterior: Volume,
     config: SegmentConfig,
     given_mask: Artifact | None = None,
+    given_models: Artifact | None = None,
 ) -> StageResult:
     """Tumour segmentation: the lesion model (robust), wavelet + histogram FCM, or the peer.
 
     ``given_mask``, the user's segmentation on the scan's grid (``--segmentation``,
     its file name in the artifact's ``given_file``), replaces the method: stored as
     is, method ``"given"``; as an input artifact its content enters the cache key.
+    ``given_models``, a user's trained models (``segment.learned_models``, packed:
+    :func:`tumor3d.learned.bundle.pack_models`), replace the shipped ones; read only
+    for the learned method.
     """
+    modality = scan.metadata["modality"]
     seg = segment_patient(
         enhanced.array,
         brain_mask.array,
         detection.to_dict("records"),
         affine=enhanced.affine,
-        modality=scan.metadata["modality"],
+        modality=modality,
         spacing_mm=scan_spacing_mm(scan),
         lesion=lesion.metadata["lesion"],
         lesion_mask=lambda: lesion.load().array,  # read only if the method reuses the model
@@ -93,6 +102,7 @@ def segment(
         image=lambda: scan.load().array,  # read only for the learned method
         given=None if given_mask is None else given_mask.load(),
         given_name=None if given_mask is None else given_mask.metadata.get("given_file"),
+        models=None if given_models is None else _own_models(given_models, modality, config),
         **config.model_dump(),
     )
     artifacts = {
@@ -106,3 +116,14 @@ def segment(
 
 
 SPEC = segment
+
+
+def _own_models(given: Artifact, modality: str, config: SegmentConfig) -> Callable[[], ModelSet]:
+    """A user's models for ``modality`` (``segment.learned_models``), read when called."""
+    where = config.learned_models or "segment.learned_models"
+
+    def read() -> ModelSet:  # the learned method's only
+        files = unpack_models(given.load(), source=where)
+        return model_set(files, modality, config.learned_cnn, source=where)
+
+    return read

@@ -13,12 +13,14 @@ No adapter imports this module, so editing it changes no stage's code digest.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Iterable, Mapping
 from typing import Any
 
 from pydantic import BaseModel
 
 from tumor3d.config import PipelineConfig
+from tumor3d.learned.bundle import pack_models
 from tumor3d.storage.brain_mask import GivenBrainMask
 from tumor3d.storage.given_segmentation import GivenSegmentation
 from tumor3d.storage.refs import ArtifactRef
@@ -98,14 +100,28 @@ def store_given(
     *,
     brain_mask: GivenBrainMask | None = None,
     segmentation: GivenSegmentation | None = None,
+    models: Mapping[str, bytes] | None = None,
 ) -> dict[str, ArtifactRef | None]:
-    """The given artifacts of a run, stored: ``given:brain_mask``, ``given:segmentation``.
+    """The given artifacts of a run, stored: ``given:`` brain_mask, segmentation, models.
 
     Content-addressed (the same mask, the same reference); a segmentation's
     file name rides along in its metadata (``given_file``: the stage's
-    ``measured`` names it).
+    ``measured`` names it). ``models``: a user's trained model files
+    (``segment.learned_models``, :func:`tumor3d.storage.given_models.read_given_models`),
+    packed into one object (:func:`tumor3d.learned.bundle.pack_models`) whose digest
+    is their content's; their names and SHA-256 ride in its metadata.
     """
     return {
+        "models": None
+        if models is None
+        else store.put_bytes(
+            pack_models(models),
+            kind="models",
+            suffix=".npz",
+            metadata={
+                "files": {n: hashlib.sha256(b).hexdigest() for n, b in sorted(models.items())}
+            },
+        ),
         "brain_mask": None
         if brain_mask is None
         else store.put_volume(brain_mask.mask, brain_mask.affine, kind="mask"),

@@ -188,6 +188,7 @@ def reconstruct_scan(
     segmentation: np.ndarray | None = None,
     segmentation_name: str | None = None,
     header_notes: Sequence[str] = (),
+    models: Mapping[str, bytes] | None = None,
 ) -> Reconstruction:
     """Run the pipeline's stages on a :class:`~tumor3d.imaging.scan.Scan` (pure: arrays in and out).
 
@@ -216,6 +217,10 @@ def reconstruct_scan(
         (:func:`tumor3d.storage.readers.handoff.read_noting`), as the ingest stage
         records them: informational, except that the header states no orientation
         (a doubt).
+    models : mapping of str to bytes, optional
+        The model files of the folder ``segment.learned_models`` names (file name ->
+        bytes: :func:`tumor3d.storage.given_models.read_given_models`; :func:`reconstruct`
+        reads them), which replace the shipped models; required when it is set.
     """
     from tumor3d.geometry.interpolate import interpolate_stack
     from tumor3d.imaging.preprocess import (
@@ -231,6 +236,22 @@ def reconstruct_scan(
     if not isinstance(scan, Scan):
         raise InputError(f"scan must be a tumor3d.imaging.scan.Scan, got {type(scan).__name__}")
     cfg = as_config(config)
+    where = cfg.segment.learned_models
+    if where is not None and models is None:
+        raise InputError(
+            f"segment.learned_models names {where!r}: pass its files as models= "
+            "(tumor3d.storage.given_models.read_given_models), or call tumor3d.reconstruct"
+        )
+    chosen = None
+    if models is not None:
+        from tumor3d.learned.bundle import check_models, model_set
+
+        source = where or "models"
+        check_models(models, source=source)
+
+        def chosen() -> Any:  # the learned method's only
+            return model_set(models, scan.modality, cfg.segment.learned_cnn, source=source)
+
     given = None
     if brain_mask is not None:
         from tumor3d.imaging.brain_mask import binarize_brain_mask
@@ -277,7 +298,7 @@ def reconstruct_scan(
         pre.enhanced, brain, det, affine=affine, modality=scan.modality, spacing_mm=spacing,
         lesion=cfg.detect.lesion.model_dump(), head_exterior=exterior,
         image=lambda: scan.image, given=None if tumour_given is None else (tumour_given, affine),
-        given_name=segmentation_name, **cfg.segment.model_dump(),
+        given_name=segmentation_name, models=chosen, **cfg.segment.model_dump(),
     )  # fmt: skip
     seg, measured = segmented.result, segmented.values["measured"]
     # interpolate-slices, extract-surface, simplify-mesh
@@ -394,14 +415,18 @@ def reconstruct(
     ------
     InputError
         One line: an unreadable file, no affine with an array, no modality,
-        a brain mask or segmentation off the image's grid, an invalid configuration.
+        a brain mask or segmentation off the image's grid, an invalid configuration,
+        a ``segment.learned_models`` folder without the models it needs.
     """
     if isinstance(image, Scan):
         if modality is not None and _modality(modality, None) != image.modality:
             image = dataclasses.replace(image, modality=_modality(modality, None))
         mask = None if brain_mask is None else np.asarray(brain_mask)
         tumour = None if segmentation is None else np.asarray(segmentation)
-        return reconstruct_scan(image, config=config, brain_mask=mask, segmentation=tumour)
+        cfg = as_config(config)
+        return reconstruct_scan(
+            image, config=cfg, brain_mask=mask, segmentation=tumour, models=_given_models(cfg)
+        )
     from tumor3d.storage.readers.options import ReadOptions
 
     if modality is None and isinstance(image, str | os.PathLike):
@@ -434,7 +459,9 @@ def reconstruct(
             if arr.shape != image.shape:
                 raise InputError(f"segmentation has shape {arr.shape}, the image {image.shape}")
             tumour = scan.source_grid.from_source(arr)
-        return reconstruct_scan(scan, config=cfg, brain_mask=mask, segmentation=tumour)
+        return reconstruct_scan(
+            scan, config=cfg, brain_mask=mask, segmentation=tumour, models=_given_models(cfg)
+        )
     if not isinstance(image, str | os.PathLike):
         raise InputError(
             f"image must be a path, a 3-D array with affine, or a Scan; got {type(image).__name__}"
@@ -461,9 +488,23 @@ def reconstruct(
         given_seg = read_given_segmentation(segmentation, scan)
         tumour, name = given_seg.mask, given_seg.name
     return reconstruct_scan(
-        scan, config=cfg, brain_mask=mask, segmentation=tumour, segmentation_name=name,
+        scan,
+        config=cfg,
+        brain_mask=mask,
+        segmentation=tumour,
+        segmentation_name=name,
         header_notes=header_notes,
+        models=_given_models(cfg),
     )
+
+
+def _given_models(cfg: PipelineConfig) -> dict[str, bytes] | None:
+    """The model files ``segment.learned_models`` names, read and checked (None: unset)."""
+    if cfg.segment.learned_models is None:
+        return None
+    from tumor3d.storage.given_models import read_given_models
+
+    return read_given_models(cfg.segment.learned_models)
 
 
 def _on_scan_grid(arr: np.ndarray, scan: Scan, what: str) -> np.ndarray:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 from types import UnionType
 from typing import Any, Literal, Union, get_args, get_origin
 
@@ -29,7 +28,7 @@ from pydantic import (
 )
 
 from tumor3d.errors import ConfigError, InputError
-from tumor3d.safe_yaml import load_yaml
+from tumor3d.safe_yaml import load_yaml, yaml_reads_as_text
 from tumor3d.validation import short_repr
 
 __all__ = [
@@ -58,7 +57,7 @@ class _StageConfig(BaseModel):
         """A number's key takes a number: ``true`` or ``"3"`` is refused, not coerced to 1 or 3."""
         field = cls.model_fields.get(info.field_name or "")
         if field is not None and isinstance(value, bool | str) and _is_number(field.annotation):
-            if isinstance(value, str) and _yaml_reads_as_text(value):
+            if isinstance(value, str) and yaml_reads_as_text(value):
                 raise ValueError(
                     f"must be a number, not text: YAML reads {value} as text (write it with a "
                     "point and a signed exponent, as 1.0e+1, or in full)"
@@ -66,26 +65,6 @@ class _StageConfig(BaseModel):
             kind = "true/false" if isinstance(value, bool) else "text (quoted)"
             raise ValueError(f"must be a number, not {kind}")
         return value
-
-
-def _yaml_reads_as_text(value: str) -> bool:
-    """True for a number in exponent form that YAML 1.1 (PyYAML) reads as text.
-
-    ``1e1``, ``1e-3``, ``2.5E3``: YAML wants a point and a signed exponent (``1.0e+1``);
-    ``'1.0e+1'`` arrives as text only when quoted.
-
-    >>> [_yaml_reads_as_text(v) for v in ("1e1", "1e-3", "2.5E3", "10", "abc", "1.0e+1")]
-    [True, True, True, False, False, False]
-    >>> _yaml_reads_as_text("-.5e+3"), _yaml_reads_as_text(".5e+3")  # YAML: text, a float
-    (True, False)
-    """
-    try:
-        float(value)
-    except ValueError:
-        return False
-    # PyYAML's float: a sign only before digits ahead of the point, a point, a signed exponent
-    yaml_float = re.fullmatch(r"[-+]?\d[\d_]*\.[\d_]*[eE][-+]\d+|\.\d[\d_]*[eE][-+]\d+", value)
-    return "e" in value.lower() and "inf" not in value.lower() and yaml_float is None
 
 
 def _is_number(annotation: Any) -> bool:
@@ -394,6 +373,15 @@ class SegmentConfig(_StageConfig):
         "the shipped 2-D U-Net ensemble's (two seeds, averaged) where one is shipped for the "
         "sequence (FLAIR; trained on FLAIR only: T2 and T1c keep the forest alone), before the "
         "same cut and main region (reports/learned_cv.md); off = the forest alone.",
+    )
+    learned_models: str | None = Field(
+        None,
+        min_length=1,
+        description="learned method: a folder `tumor3d train --out DIR` wrote, whose models "
+        "replace the shipped ones (hyper.npz: FLAIR and T2, t1c.npz: T1c; its FLAIR U-Nets "
+        "unet_flair_seed<k>.npz, or none: the forest alone); their bytes enter the segment "
+        "stage's cache key and provenance.json. Relative: from the working directory. Unset: "
+        "the shipped models.",
     )
 
     @field_validator("method")

@@ -10,6 +10,7 @@ aliases, a key given twice in one mapping, and documents over
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import yaml
@@ -17,7 +18,7 @@ import yaml
 from tumor3d.constants import YAML_MAX_ALIASES, YAML_MAX_BYTES, YAML_MAX_EXPANDED_NODES
 from tumor3d.errors import ConfigError
 
-__all__ = ["load_yaml"]
+__all__ = ["load_yaml", "yaml_reads_as_text"]
 
 
 class _BoundedLoader(yaml.SafeLoader):
@@ -152,3 +153,23 @@ def load_yaml(text: str, *, source: str = "<yaml>") -> Any:
         raise ConfigError(f"not valid YAML: {text_of}", path=source) from None
     finally:
         loader.dispose()
+
+
+def yaml_reads_as_text(value: str) -> bool:
+    """True for a number in exponent form that YAML 1.1 (PyYAML) reads as text.
+
+    ``1e1``, ``1e-3``, ``2.5E3``: YAML wants a point and a signed exponent (``1.0e+1``);
+    ``'1.0e+1'`` arrives as text only when quoted.
+
+    >>> [yaml_reads_as_text(v) for v in ("1e1", "1e-3", "2.5E3", "10", "abc", "1.0e+1")]
+    [True, True, True, False, False, False]
+    >>> yaml_reads_as_text("-.5e+3"), yaml_reads_as_text(".5e+3")  # YAML: text, a float
+    (True, False)
+    """
+    try:
+        float(value)
+    except ValueError:
+        return False
+    # PyYAML's float: a sign only before digits ahead of the point, a point, a signed exponent
+    yaml_float = re.fullmatch(r"[-+]?\d[\d_]*\.[\d_]*[eE][-+]\d+|\.\d[\d_]*[eE][-+]\d+", value)
+    return "e" in value.lower() and "inf" not in value.lower() and yaml_float is None

@@ -77,7 +77,10 @@ def _load_config(path: Path | None) -> dict[str, Any]:
             f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})",
             path=str(path),
         ) from None
-    return parse_config(text, source=str(path)).model_dump(mode="json")
+    from tumor3d.storage.given_models import resolve_learned_models
+
+    cfg = resolve_learned_models(parse_config(text, source=str(path)))  # before any flow
+    return cfg.model_dump(mode="json")
 
 
 Verbose = Annotated[bool, typer.Option("--verbose", "-v", help="Show Prefect's own logs.")]

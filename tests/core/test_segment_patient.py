@@ -19,6 +19,7 @@ import pytest
 
 import tumor3d.learned
 from tumor3d.config import LesionConfig, SegmentConfig
+from tumor3d.errors import InputError
 from tumor3d.imaging.preprocess import preprocess_volume
 from tumor3d.learned.review import Review
 from tumor3d.learned.shipped import MODEL_IDENTITY_KEYS, model_identity, shipped_model
@@ -174,6 +175,47 @@ def test_the_learned_method_records_its_review_and_the_shipped_models(case, lear
     assert v["segment_model"] == ("forest + U-Net mean" if learned_cnn == "auto" else "forest")
     assert v["measured"].startswith("whole tumour: the FLAIR-hyperintense lesion")
     assert v["tumor_pixels_total"] == int(seg.result.tumor_mask.sum())
+
+
+def test_a_users_models_are_read_only_by_the_learned_method_and_recorded_as_theirs(case):
+    """``segment.learned_models``: the models (a callable) are read once, by the learned
+    method only; their files are what the values name; named and not given, an error."""
+    from tumor3d.learned.bundle import model_set
+
+    files = {f"{n}.npz": (MODELS / f"{n}.npz").read_bytes() for n in ("hyper", "unet_flair_seed1")}
+    calls = []
+
+    def models():
+        calls.append(1)
+        return model_set(files, "flair", source="/data/mine")
+
+    cfg = SegmentConfig(method="robust", learned_models="/data/mine").model_dump()
+    robust = segment_patient(
+        **case["inputs"], lesion_mask=lambda: case["lesion"], image=_never("the image"),
+        models=models, **cfg,
+    )  # fmt: skip
+    assert robust.result.method == "robust" and calls == []
+    cfg = SegmentConfig(method="learned", learned_models="/data/mine").model_dump()
+    seg = segment_patient(
+        **case["inputs"], lesion_mask=lambda: case["lesion"], image=lambda: case["scan"].image,
+        models=models, **cfg,
+    )  # fmt: skip
+    assert calls == [1]
+    assert seg.values["segment_model"] == "forest + U-Net mean, models of /data/mine"
+    assert {k: seg.values[k] for k in MODEL_IDENTITY_KEYS} == {
+        "model": shipped_model("flair").meta["name"],
+        "model_file": "/data/mine/hyper.npz",
+        "model_sha256": _sha256("hyper"),
+        "cnn_model": ["/data/mine/unet_flair_seed1.npz"],  # the folder's one net
+        "cnn_sha256": [_sha256("unet_flair_seed1")],
+    }
+    for method in ("learned", "auto"):  # never the shipped models, nor robust, in their place
+        cfg = SegmentConfig(method=method, learned_models="/data/mine").model_dump()
+        with pytest.raises(InputError, match="names '/data/mine' but no model was given"):
+            segment_patient(
+                **case["inputs"], lesion_mask=lambda: case["lesion"],
+                image=lambda: case["scan"].image, **cfg,
+            )  # fmt: skip
 
 
 def test_review_values_are_json_able():

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from tumor3d import reconstruct as tumor3d_reconstruct
 from tumor3d.errors import InputError
 from tumor3d.evaluation.metrics import dice
 from tumor3d.flows.cli import app
@@ -170,6 +171,67 @@ def test_provenance_names_the_model_a_learned_run_used(tmp_path):
     assert prov["segmentation"]["model_sha256"] == shipped_model("flair").file_sha256
     assert prov["segmentation"]["model_file"] == "tumor3d/learned/models/hyper.npz"
     assert result.metrics["segment_method"] == "learned"
+
+
+def test_a_trained_folder_replaces_the_shipped_models_and_its_bytes_key_the_segment_stage(
+    trained, tmp_path
+):
+    """``segment.learned_models: DIR`` (audit 4 F7): the run uses the folder's forest (the
+    API's volume to the mm3, the file named with its SHA-256 in provenance.json), a re-run
+    takes every stage from the cache, and other bytes in the same file recompute the
+    segment stage (and only the stages after it), the new digest recorded."""
+    import hashlib
+    import shutil
+
+    from tumor3d.flows.patient import run_patient
+
+    _, out, _ = trained
+    folder = tmp_path / "mine"
+    shutil.copytree(out / "model", folder, ignore=shutil.ignore_patterns(".tumor3d-store"))
+    patient = make_phantom_patient(
+        5, modality="flair", patient_id="own", n_slices=10, matrix_size=(128, 128)
+    )
+    row = write_phantom_patient(patient, tmp_path / "in")
+    cfg = {"segment": {"learned_models": str(folder)}}
+    kw = dict(patient_id="own", modality="flair", config=cfg)
+    first = run_patient(row.image, tmp_path / "out", **kw)
+    prov = json.loads((tmp_path / "out" / "own" / "provenance.json").read_text())["segmentation"]
+    mine = (folder / "hyper.npz").read_bytes()
+    assert prov["model_file"] == f"{folder}/hyper.npz"
+    assert prov["model_sha256"] == hashlib.sha256(mine).hexdigest()
+    assert "cnn_model" not in prov
+    assert first.metrics["segment_model"] == f"forest, models of {folder}"
+    api = tumor3d_reconstruct(row.image, modality="flair", config=cfg)
+    assert first.metrics["volume_eq7_mm3"] == pytest.approx(api.volumes_mm3["eq7"], abs=1e-6)
+    again = run_patient(row.image, tmp_path / "out", **kw)
+    assert all(again.cache_hits)
+    # other bytes, the same file name: the shipped forest copied over the user's
+    from importlib import resources
+
+    shipped = resources.files("tumor3d.learned").joinpath("models", "hyper.npz").read_bytes()
+    (folder / "hyper.npz").write_bytes(shipped)
+    changed = run_patient(row.image, tmp_path / "out", **kw)
+    cached = {s.stage: s.cached for s in changed.stages}
+    assert not cached["segment-tumor"] and cached["detect-abnormal"], cached
+    prov = json.loads((tmp_path / "out" / "own" / "provenance.json").read_text())["segmentation"]
+    assert prov["model_sha256"] == hashlib.sha256(shipped).hexdigest()
+    assert changed.recomputed == "given models changed"
+
+
+def test_a_models_folder_that_is_not_one_is_refused_before_any_flow(tmp_path):
+    patient = make_phantom_patient(5, modality="flair", patient_id="own", n_slices=8)
+    row = write_phantom_patient(patient, tmp_path / "in")
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "hyper.npz").write_bytes(b"PK not a model")
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(f"segment:\n  learned_models: {tmp_path / 'm'}\n")
+    res = CliRunner().invoke(
+        app, ["run", str(row.image), "--out", str(tmp_path / "out"), "--config", str(cfg)]
+    )
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert res.exit_code == 2 and len(lines) == 1, res.output
+    assert "m/hyper.npz: not a readable tumor3d forest model" in lines[0]
+    assert not (tmp_path / "out").exists()
 
 
 # ---------------------------------------------------------------- --cnn: the U-Net (issue 28)

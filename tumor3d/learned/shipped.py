@@ -25,6 +25,7 @@ from importlib import resources
 from typing import Any
 
 from tumor3d.errors import InputError
+from tumor3d.learned.bundle import ModelSet
 from tumor3d.learned.cnn import UNetWeights, unet_from_bytes
 from tumor3d.learned.forest import ForestModel
 
@@ -33,12 +34,12 @@ __all__ = [
     "MODEL_FAMILIES",
     "MODEL_IDENTITY_KEYS",
     "check_family",
-    "learned_models",
     "model_family",
     "model_file",
     "model_identity",
     "shipped_cnn",
     "shipped_model",
+    "shipped_models",
 ]
 
 #: Which shipped model serves which sequence.
@@ -144,37 +145,52 @@ def shipped_cnn(modality: str) -> tuple[UNetWeights, ...] | None:
     return None if names is None else tuple(_load_cnn(n) for n in names)
 
 
-def learned_models(modality: str, learned_cnn: str = "auto") -> dict[str, Any]:
-    """The learned method's ``model`` and ``cnn`` keywords for ``modality``.
+def shipped_models(modality: str, learned_cnn: str = "auto") -> ModelSet:
+    """The shipped models of the learned method for ``modality``, and their files.
 
     ``cnn`` is the shipped U-Net ensemble where ``learned_cnn`` is ``"auto"`` and one is
     shipped for the sequence (:data:`CNN_MODELS`), else None (the forest alone).
-    One rule for the segment stage and :func:`tumor3d.api.reconstruct_scan`.
+    One rule for the segment stage and :func:`tumor3d.api.reconstruct_scan`; a user's
+    own models (``segment.learned_models``): :func:`tumor3d.learned.bundle.model_set`.
     """
     cnn = shipped_cnn(modality) if learned_cnn == "auto" else None
-    return {"model": shipped_model(modality), "cnn": cnn}
+    names = CNN_MODELS[modality.strip().lower()] if cnn is not None else ()
+    return ModelSet(
+        model=shipped_model(modality),
+        cnn=cnn,
+        model_file=model_file(model_family(modality)),
+        cnn_files=tuple(names),
+    )
 
 
 def model_identity(
-    modality: str, model: ForestModel, cnn: UNetWeights | Sequence[UNetWeights] | None = None
+    modality: str,
+    model: ForestModel,
+    cnn: UNetWeights | Sequence[UNetWeights] | None = None,
+    *,
+    files: ModelSet | None = None,
 ) -> dict[str, Any]:
     """The learned method's models as a run records them (stage values, ``provenance.json``).
 
     ``model`` (its name, ``"shipped"`` without one), ``model_file`` (the shipped file of
-    the sequence's family, :func:`model_file`) and ``model_sha256`` (of that file, as
-    ``training.json`` and ``sha256sum`` give it; a model built in memory: of its arrays and
-    metadata); with the U-Nets averaged with the forest (``cnn``), ``cnn_model`` (their
-    files' stems, :data:`CNN_MODELS`) and ``cnn_sha256`` (in that order; one net or an
-    ensemble, as :func:`tumor3d.segmentation.segment.segment_tumor` takes them).
+    the sequence's family, :func:`model_file`, or ``files.model_file``: a user's own
+    models) and ``model_sha256`` (of that file, as ``training.json`` and ``sha256sum``
+    give it; a model built in memory: of its arrays and metadata); with the U-Nets
+    averaged with the forest (``cnn``), ``cnn_model`` (the shipped files' stems,
+    :data:`CNN_MODELS`, or ``files.cnn_files``) and ``cnn_sha256`` (in that order; one
+    net or an ensemble, as :func:`tumor3d.segmentation.segment.segment_tumor` takes them).
     """
+    shipped = files is None or files.model_file == model_file(model_family(modality))
     out: dict[str, Any] = {
-        "model": model.meta.get("name", "shipped"),
-        "model_file": model_file(model_family(modality)),
+        "model": model.meta.get("name", "shipped" if shipped else "unnamed"),
+        "model_file": model_file(model_family(modality)) if files is None else files.model_file,
         "model_sha256": model.file_sha256 or model.digest(),
     }
     if cnn is not None:
+        nets = (cnn,) if isinstance(cnn, UNetWeights) else tuple(cnn)
+        names = list(CNN_MODELS[modality.lower()]) if files is None else list(files.cnn_files)
         out.update(
-            cnn_model=list(CNN_MODELS[modality.lower()]),  # in cnn_sha256's order
-            cnn_sha256=[n.sha256 for n in ((cnn,) if isinstance(cnn, UNetWeights) else cnn)],
+            cnn_model=names[: len(nets)],  # in cnn_sha256's order
+            cnn_sha256=[n.sha256 for n in nets],
         )
     return out

@@ -18,19 +18,22 @@ identity (:func:`tumor3d.learned.shipped.model_identity`).
 Arrays in, results out. The two inputs a method may not need (the acquired
 image, the lesion model's mask) are passed as functions returning them and
 called only when used; the learned method's shipped models are read from the
-package (:func:`tumor3d.learned.shipped.learned_models`) only when it runs.
+package (:func:`tumor3d.learned.shipped.shipped_models`) only when it runs.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from tumor3d.learned.shipped import learned_models, model_identity
+from tumor3d.errors import InputError
+from tumor3d.learned.bundle import ModelSet
+from tumor3d.learned.shipped import model_identity, shipped_models
 from tumor3d.segmentation.detect import SliceDetection
 from tumor3d.segmentation.given_segmentation import given_definition, given_segmentation
 from tumor3d.segmentation.lesion import LesionResult, MirrorPlane, NormalModel, left_right_axis
@@ -151,17 +154,22 @@ def slice_records(result: SegmentationResult, detected: Any) -> list[dict[str, A
     return [{**r, "flagged": bool(f)} for r, f in zip(result.to_records(), flags, strict=True)]
 
 
-def segment_model(method: str, cnn: Any) -> str:
+def segment_model(method: str, cnn: Any, folder: str | None = None) -> str:
     """Which models made the mask, in words: the learned method's, else ``""``.
+
+    ``folder``: where a user's own models came from (``segment.learned_models``).
 
     >>> segment_model("robust", None), segment_model("learned", None)
     ('', 'forest')
     >>> segment_model("learned", ("unet",))
     'forest + U-Net mean'
+    >>> segment_model("learned", None, "/data/mine")
+    'forest, models of /data/mine'
     """
     if method != "learned":
         return ""
-    return "forest" if cnn is None else "forest + U-Net mean"
+    words = "forest" if cnn is None else "forest + U-Net mean"
+    return words if folder is None else f"{words}, models of {folder}"
 
 
 def review_values(review: Any) -> dict[str, Any]:
@@ -228,7 +236,8 @@ def segment_patient(
         Its file name (``measured`` names it).
     method, learned_cnn, **keywords
         The ``segment`` configuration (:class:`tumor3d.config.SegmentConfig`):
-        passed to :func:`tumor3d.segmentation.segment.segment_tumor`.
+        passed to :func:`tumor3d.segmentation.segment.segment_tumor`, except
+        ``learned_models`` and ``models`` (:func:`segment_detected`).
 
     Returns
     -------
@@ -249,24 +258,39 @@ def method_models(
     detection: SliceDetection | None,
     image: Callable[[], np.ndarray],
     learned_cnn: str = "auto",
-    models: Mapping[str, Any] | None = None,
+    models: ModelSet | Mapping[str, Any] | Callable[[], ModelSet] | None = None,
+    learned_models: str | None = None,
 ) -> dict[str, Any]:
     """``segment_tumor``'s ``image``, ``model`` and ``cnn`` keywords, where the method needs them.
 
     The learned method (``method`` as resolved for ``modality`` and ``detection``) gets
-    the acquired slices (``image()``, called only then) and ``models`` (``model``,
-    ``cnn``), by default the shipped ones (:func:`tumor3d.learned.shipped.learned_models`:
-    with ``learned_cnn`` auto, the shipped U-Net of the sequence, if any); every other
-    method gets nothing (``{}``). The segment stage's rule, for whoever runs the
-    segmentation from arrays (:func:`segment_detected`, the benchmarks' harness).
+    the acquired slices (``image()``, called only then) and the ``model`` and ``cnn`` of
+    ``models`` (a user's own, :func:`tumor3d.learned.bundle.model_set`, or a callable
+    returning them, called only then; or a mapping of the two: the benchmarks'
+    out-of-fold models), by default the shipped ones
+    (:func:`tumor3d.learned.shipped.shipped_models`: with ``learned_cnn`` auto, the
+    shipped U-Net of the sequence, if any), except where ``learned_models`` names a
+    user's folder: then ``models`` must be given (an :class:`InputError`, never the
+    shipped models in their place); every other method gets nothing (``{}``). The
+    segment stage's rule, for whoever runs the segmentation from arrays
+    (:func:`segment_detected`, the benchmarks' harness).
 
     >>> method_models("robust", "flair", None, image=lambda: 1 / 0)
     {}
     """
     if not method_spec(resolve_method(method, modality, detection)).needs_model:
         return {}
-    chosen = models if models is not None else learned_models(modality, learned_cnn)
-    return {"image": image(), **chosen}
+    if models is None and learned_models is not None:
+        raise InputError(
+            f"segment.learned_models names {learned_models!r} but no model was given: pass "
+            "its models (tumor3d.learned.bundle.model_set) as models="
+        )
+    if models is None:
+        chosen = shipped_models(modality, learned_cnn)
+    else:
+        chosen = models() if callable(models) else models
+    keywords = chosen.keywords() if isinstance(chosen, ModelSet) else dict(chosen)
+    return {"image": image(), **keywords}
 
 
 def segment_detected(
@@ -284,6 +308,7 @@ def segment_detected(
     given_name: str | None = None,
     method: str = "auto",
     learned_cnn: str = "auto",
+    models: ModelSet | Callable[[], ModelSet] | None = None,
     **keywords: Any,
 ) -> PatientSegmentation:
     """:func:`segment_patient` from a detection in memory (:func:`tumor3d.reconstruct`'s too).
@@ -291,9 +316,16 @@ def segment_detected(
     ``detection`` is the per-slice detection with the lesion model it computed
     (``detection.lesion``, None when not computed or not reused); ``lesion``
     the ``detect.lesion`` keywords; ``head_exterior`` the air outside a raw head
-    (None or all False for a skull-stripped one: no scalp caveat). The other
-    parameters are :func:`segment_patient`'s.
+    (None or all False for a skull-stripped one: no scalp caveat). ``models``: the
+    learned method's models for ``modality`` when they are a user's own (the folder
+    ``segment.learned_models`` names, read by the caller:
+    :func:`tumor3d.learned.bundle.model_set`; or a callable returning them, called once
+    and only if the learned method runs); None: the shipped ones (with
+    ``learned_models`` set, an error: :func:`tumor3d.segmentation.segment.segment_tumor`).
+    The other parameters are :func:`segment_patient`'s.
     """
+    if callable(models):
+        models = functools.cache(models)
     det = detection
     if given is not None:
         mask, mask_affine = given
@@ -304,7 +336,9 @@ def segment_detected(
             slice_records(result, det.abnormal),
             _values(result, modality, given_definition(given_name)),
         )
-    learned = method_models(method, modality, det, image, learned_cnn)
+    learned = method_models(
+        method, modality, det, image, learned_cnn, models, keywords.get("learned_models")
+    )
     exterior = None if head_exterior is None else np.asarray(head_exterior).astype(bool)
     result = segment_tumor(
         enhanced,
@@ -324,13 +358,21 @@ def segment_detected(
     cnn = learned.get("cnn") if result.method == "learned" else None
     review: dict[str, Any] = {}
     if result.review is not None:  # read by tumor3d.segmentation.review.review_status
-        review = {**review_values(result.review), **model_identity(modality, learned["model"], cnn)}
-    values = _values(result, modality, lesion_definition(result.method, modality), cnn)
+        files = models() if callable(models) else models
+        identity = model_identity(modality, learned["model"], cnn, files=files)
+        review = {**review_values(result.review), **identity}
+    definition = lesion_definition(result.method, modality)
+    folder = keywords.get("learned_models") if models is not None else None
+    values = _values(result, modality, definition, cnn, folder)
     return PatientSegmentation(result, affine, slice_records(result, det.abnormal), review | values)
 
 
 def _values(
-    result: SegmentationResult, modality: str, measured: str, cnn: Any = None
+    result: SegmentationResult,
+    modality: str,
+    measured: str,
+    cnn: Any = None,
+    folder: str | None = None,
 ) -> dict[str, Any]:
     """The stage's values every segmentation has."""
     return {
@@ -342,5 +384,5 @@ def _values(
         "modality": modality,
         "segment_method": result.method,
         "measured": measured,
-        "segment_model": segment_model(result.method, cnn),
+        "segment_model": segment_model(result.method, cnn, folder),
     }

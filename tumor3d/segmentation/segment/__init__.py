@@ -93,6 +93,7 @@ def segment_tumor(
     model: Any = None,
     learned_cnn: str = "auto",
     cnn: Any = None,
+    learned_models: str | None = None,
 ) -> SegmentationResult:
     """Segment the tumour of a patient's slices (specification section 3).
 
@@ -184,6 +185,11 @@ def segment_tumor(
     cnn : tumor3d.learned.cnn.UNetWeights or a sequence of them, optional
         Learned method: the U-Net (ensemble) of the sequence
         (:func:`tumor3d.learned.shipped.shipped_cnn`; FLAIR only), or None.
+    learned_models : str, optional
+        Learned method: the folder of a user's own models (``segment.learned_models``),
+        which the caller reads (:func:`tumor3d.learned.bundle.model_set`) and gives as
+        ``model`` and ``cnn``; set without ``model``, an error (not the rule-based
+        method, nor the shipped models, in its place).
 
     Returns
     -------
@@ -202,6 +208,11 @@ def segment_tumor(
     method = resolve_method(
         method, modality, detection if isinstance(detection, SliceDetection) else None
     )
+    if method == "learned" and model is None and learned_models is not None:
+        raise InputError(
+            f"segment.learned_models names {learned_models!r} but no model was given: pass "
+            "its models (tumor3d.learned.bundle.model_set) as model= and cnn="
+        )
     if method == "learned" and requested == AUTO and (image is None or model is None):
         method = "robust"  # "auto" without the acquired image or a model: the rule-based one
     spec = method_spec(method)

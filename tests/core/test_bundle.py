@@ -1,0 +1,173 @@
+"""A user's trained models in place of the shipped ones (``segment.learned_models``).
+
+The independent expectation: a folder holding copies of the shipped files segments
+exactly as the shipped models do, and one holding the forest alone exactly as
+``segment.learned_cnn: off`` does; the packed files come back byte for byte and
+never through pickle; every bad folder is one line naming it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import pickle
+import zipfile
+from importlib import resources
+
+import numpy as np
+import pytest
+
+import tumor3d
+from tumor3d.errors import InputError
+from tumor3d.learned.bundle import (
+    check_models,
+    model_set,
+    pack_models,
+    unpack_models,
+)
+from tumor3d.learned.shipped import shipped_cnn, shipped_model
+from tumor3d.phantom import make_phantom_patient
+from tumor3d.storage.given_models import read_given_models
+
+
+def _shipped(name: str) -> bytes:
+    return resources.files("tumor3d.learned").joinpath("models", name).read_bytes()
+
+
+SHIPPED = ("hyper.npz", "t1c.npz", "unet_flair_seed0.npz", "unet_flair_seed1.npz")
+
+
+@pytest.fixture(scope="module")
+def shipped_files() -> dict[str, bytes]:
+    return {n: _shipped(n) for n in SHIPPED}
+
+
+def _folder(path, files):
+    path.mkdir()
+    for name, data in files.items():
+        (path / name).write_bytes(data)
+    return path
+
+
+def test_packing_gives_the_files_back_and_the_same_bytes_in_any_order(shipped_files):
+    packed = pack_models(shipped_files)
+    assert unpack_models(packed) == shipped_files
+    assert pack_models(dict(reversed(list(shipped_files.items())))) == packed
+    with pytest.raises(ValueError, match="not model file names"):
+        pack_models({"training.json": b"{}"})
+
+
+def test_a_pickle_in_a_packed_set_is_refused_unread():
+    buf = io.BytesIO()
+    np.save(buf, np.array([{"x": 1}], dtype=object), allow_pickle=True)
+    data = io.BytesIO()
+    with zipfile.ZipFile(data, "w") as zf:
+        zf.writestr("hyper.npy", buf.getvalue())
+    with pytest.raises(InputError, match="not a packed set"):
+        unpack_models(data.getvalue(), source="store")
+    with pytest.raises(InputError, match="not a packed set"):
+        unpack_models(pickle.dumps({"hyper.npz": b""}), source="store")
+
+
+def test_the_set_of_a_sequence_takes_the_folders_files_and_names_them(shipped_files):
+    flair = model_set(shipped_files, "flair", source="mine")
+    assert flair.model.file_sha256 == shipped_model("flair").file_sha256
+    assert flair.model_file == "mine/hyper.npz"
+    assert flair.cnn_files == ("mine/unet_flair_seed0.npz", "mine/unet_flair_seed1.npz")
+    assert [n.sha256 for n in flair.cnn] == [n.sha256 for n in shipped_cnn("flair")]
+    assert model_set(shipped_files, "flair", "off", source="mine").cnn is None
+    t2 = model_set(shipped_files, "T2", source="mine")
+    assert t2.cnn is None and t2.model_file == "mine/hyper.npz"
+    t1c = model_set(shipped_files, "t1c", source="mine")
+    assert t1c.model.file_sha256 == hashlib.sha256(shipped_files["t1c.npz"]).hexdigest()
+    # the seeds in number order, not text order
+    nets = {"hyper.npz": shipped_files["hyper.npz"]}
+    nets |= {f"unet_flair_seed{k}.npz": shipped_files["unet_flair_seed0.npz"] for k in (10, 2)}
+    assert model_set(nets, "flair", source="d").cnn_files == (
+        "d/unet_flair_seed2.npz",
+        "d/unet_flair_seed10.npz",
+    )
+
+
+def test_a_sequence_whose_forest_the_folder_lacks_is_an_error_not_the_shipped_one(shipped_files):
+    only_t1c = {"t1c.npz": shipped_files["t1c.npz"]}
+    with pytest.raises(InputError, match=r"^mine: no hyper\.npz \(FLAIR and T2 model\)"):
+        model_set(only_t1c, "flair", source="mine")
+    swapped = {"hyper.npz": shipped_files["t1c.npz"]}
+    with pytest.raises(InputError, match=r"^mine/hyper\.npz: a model trained for t1c"):
+        check_models(swapped, source="mine")
+
+
+def test_every_bad_folder_is_one_line_naming_it(tmp_path, shipped_files):
+    (tmp_path / "file.txt").write_text("x")
+    empty = _folder(tmp_path / "empty", {"training.json": b"{}"})
+    broken = _folder(tmp_path / "broken", {"hyper.npz": b"not a zip"})
+    net_broken = _folder(
+        tmp_path / "netbroken",
+        {"hyper.npz": shipped_files["hyper.npz"], "unet_flair_seed0.npz": b"\0" * 10},
+    )
+    cases = [
+        (tmp_path / "nope", "no such folder"),
+        (tmp_path / "file.txt", "not a folder"),
+        ("s3://bucket/models", "a local folder"),
+        (empty, "no learned model"),
+        (broken, r"broken/hyper\.npz: not a readable tumor3d forest model"),
+        (net_broken, r"netbroken/unet_flair_seed0\.npz: not a readable \.npz"),
+    ]
+    for where, message in cases:
+        with pytest.raises(InputError, match=message) as err:
+            read_given_models(where)
+        assert "\n" not in str(err.value)
+
+
+def test_a_folder_named_but_not_read_is_refused_never_the_shipped_models():
+    from tumor3d.api import reconstruct_scan
+
+    scan = make_phantom_patient(3, modality="flair", matrix_size=(64, 64), n_slices=6).scan
+    with pytest.raises(InputError, match="pass its files as models="):
+        reconstruct_scan(scan, config={"segment": {"learned_models": "mine"}})
+
+
+def test_segment_tumor_named_a_folder_without_its_model_is_an_error_not_robust():
+    """``auto`` without a model falls back to the robust method; a folder named, never."""
+    from tumor3d.imaging.preprocess import preprocess_volume
+    from tumor3d.segmentation.detect import detect_abnormal_slices
+    from tumor3d.segmentation.segment import segment_tumor
+
+    scan = make_phantom_patient(3, modality="flair", matrix_size=(64, 64), n_slices=8).scan
+    pre = preprocess_volume(scan.image, spacing_mm=scan.spacing_zyx_mm)
+    det = detect_abnormal_slices(
+        pre.enhanced, pre.brain_mask, modality="flair", spacing_mm=scan.spacing_zyx_mm
+    )
+    kw = dict(modality="flair", spacing_mm=scan.spacing_zyx_mm, image=scan.image)
+    assert segment_tumor(pre.enhanced, pre.brain_mask, det, **kw).method == "robust"
+    with pytest.raises(InputError, match="names 'mine' but no model was given"):
+        segment_tumor(pre.enhanced, pre.brain_mask, det, learned_models="mine", **kw)
+
+
+@pytest.fixture(scope="module")
+def flair_scan():
+    return make_phantom_patient(3, modality="flair", matrix_size=(128, 128)).scan
+
+
+def test_copies_of_the_shipped_files_segment_as_the_shipped_models(
+    tmp_path, shipped_files, flair_scan
+):
+    folder = _folder(tmp_path / "copies", {**shipped_files, "training.json": b"{}"})
+    mine = tumor3d.reconstruct(flair_scan, config={"segment": {"learned_models": str(folder)}})
+    shipped = tumor3d.reconstruct(flair_scan)
+    assert shipped.method == mine.method == "learned"
+    np.testing.assert_array_equal(mine.tumor_mask_slices, shipped.tumor_mask_slices)
+    assert mine.volumes_mm3 == shipped.volumes_mm3
+    assert mine.tumour_found
+
+
+def test_a_folder_without_u_nets_segments_as_the_forest_alone(tmp_path, shipped_files, flair_scan):
+    folder = _folder(tmp_path / "forest", {"hyper.npz": shipped_files["hyper.npz"]})
+    mine = tumor3d.reconstruct(flair_scan, config={"segment": {"learned_models": str(folder)}})
+    alone = tumor3d.reconstruct(flair_scan, config={"segment": {"learned_cnn": "off"}})
+    with_nets = tumor3d.reconstruct(flair_scan)
+    np.testing.assert_array_equal(mine.tumor_mask_slices, alone.tumor_mask_slices)
+    assert mine.volumes_mm3 == alone.volumes_mm3
+    # the U-Nets do change this phantom's mask, so the equality above says something
+    assert not np.array_equal(mine.tumor_mask_slices, with_nets.tumor_mask_slices)
