@@ -714,6 +714,45 @@ def slice_thickness_larger_than_the_step(tmp: Path):
     return ok and not (tmp / "o").exists(), detail
 
 
+def _models_run(tmp: Path, hyper: bytes, *needles: str) -> tuple[bool, str]:
+    """A FLAIR run whose ``segment.learned_models`` folder holds ``hyper`` as hyper.npz."""
+    folder = tmp / "models"
+    folder.mkdir()
+    (folder / "hyper.npz").write_bytes(hyper)
+    cfg = tmp / "c.yaml"
+    cfg.write_text(f"segment:\n  learned_models: {folder}\n")
+    res = _console("run", _nifti(tmp / "x.nii.gz"), "--out", tmp / "o", "--config", cfg,
+                   "--modality", "flair")  # fmt: skip
+    ok, detail = _one_line_error(res, 2, "models/hyper.npz", *needles)
+    return ok and not (tmp / "o").exists(), detail
+
+
+@item("store trust")
+def pickle_as_a_users_model_is_never_unpickled(tmp: Path):
+    import io
+
+    import numpy as np
+
+    marker = tmp / "payload-ran"
+
+    class Payload:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+
+    buf = io.BytesIO()
+    np.savez(buf, feature=np.array([Payload()], dtype=object))  # an object array: a pickle
+    ok, detail = _models_run(tmp, buf.getvalue(), "not a readable tumor3d forest model")
+    return ok and not marker.exists(), f"{detail}; payload ran: {marker.exists()}"
+
+
+@item("silently accepted")
+def t1c_model_named_hyper_is_refused(tmp: Path):
+    from importlib import resources
+
+    t1c = resources.files("tumor3d.learned").joinpath("models", "t1c.npz").read_bytes()
+    return _models_run(tmp, t1c, "a model trained for t1c")
+
+
 @item("one-line errors")
 def config_file_with_byte_0xff(tmp: Path):
     return _config_run(tmp, b"render: {}\n# \xff\n", "not UTF-8")

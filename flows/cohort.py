@@ -68,6 +68,7 @@ from tumor3d.flows.patient import (
     config_digest,
     patient_pipeline,
     prepare_brain_mask,
+    prepare_models,
     prepare_segmentation,
     prepare_source,
     sweep_killed_writers,
@@ -151,6 +152,7 @@ def _run_one(
         given = None if not mask else prepare_brain_mask(mask, source, out_dir=out_dir)
         seg_path = row.get("segmentation")
         seg = None if not seg_path else prepare_segmentation(seg_path, source, out_dir=out_dir)
+        prepare_models(cfg, source)  # the folder holds this sequence's model, if it is used
         prepared = True
         result = patient_pipeline(
             source, out_dir, cfg, store, runs=runs, brain_mask=given, segmentation=seg,

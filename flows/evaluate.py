@@ -46,7 +46,7 @@ from tumor3d.storage.evaluation_tables import (
     prepare_cases,
     write_evaluation_tables,
 )
-from tumor3d.storage.given_models import resolve_learned_models
+from tumor3d.storage.given_models import read_config_file
 from tumor3d.storage.objectstore import default_store_location
 from tumor3d.tasks.publish import REVIEW_COLUMNS
 
@@ -120,13 +120,7 @@ def _load_configs(specs: dict[str, str | None]) -> dict[str, dict[str, Any]]:
         if path is None:
             configs[name] = parse_config({}).model_dump(mode="json")
             continue
-        p = Path(path)
-        try:
-            text = p.read_text()
-        except OSError as exc:
-            raise InputError(f"cannot read configuration: {exc.strerror}", str(p)) from None
-        cfg = resolve_learned_models(parse_config(text, source=str(p)))
-        configs[name] = cfg.model_dump(mode="json")
+        configs[name] = read_config_file(path).model_dump(mode="json")
     return configs
 
 

@@ -34,7 +34,7 @@ from tumor3d.segmentation.review import NO_TUMOUR_NOTE
 from tumor3d.storage import bids
 from tumor3d.storage.brain_mask import GivenBrainMask, read_given_brain_mask
 from tumor3d.storage.derivatives import VOLUME_LABELS, VOLUME_METHODS
-from tumor3d.storage.given_models import read_given_models
+from tumor3d.storage.given_models import models_for
 from tumor3d.storage.given_segmentation import GivenSegmentation, read_given_segmentation
 from tumor3d.storage.inputs import input_digest, input_location
 from tumor3d.storage.objectstore import default_store_location, is_url, open_store
@@ -215,15 +215,15 @@ def prepare_segmentation(
     return read_given_segmentation(path, image, max_voxels=source.max_voxels)
 
 
-def prepare_models(cfg: PipelineConfig) -> dict[str, bytes] | None:
-    """The model files ``segment.learned_models`` names, read and checked (None: unset).
+def prepare_models(cfg: PipelineConfig, source: InputSource) -> dict[str, bytes] | None:
+    """The model files of ``segment.learned_models`` this patient's run uses, checked.
 
-    :func:`tumor3d.storage.given_models.read_given_models`: one line naming the folder
-    or the file. Read again for each patient (a few MB at most), so that the models a
-    result was made with are those its cache key and provenance record.
+    :func:`tumor3d.storage.given_models.models_for` (None: unset, or a method that does
+    not run the learned one on the scan's sequence; a folder without the sequence's
+    forest is one line naming it). Read again for each patient (a few MB at most), so
+    that the models a result was made with are those its cache key and provenance record.
     """
-    where = cfg.segment.learned_models
-    return None if where is None else read_given_models(where)
+    return models_for(cfg, source.modality)
 
 
 def run_stages(
@@ -280,7 +280,7 @@ def patient_pipeline(
     t0 = time.perf_counter()
     pid = source.patient_id
     check_layout_destination(source, out_dir, layout, brain_mask, segmentation)  # before work
-    models = prepare_models(cfg)
+    models = prepare_models(cfg, source)
     runner = PrefectRunner(store, pid, total=len(stages.STAGES), runs=runs)
     try:
         given = stages.store_given(
@@ -392,6 +392,7 @@ def patient_flow(
     seg = None
     if segmentation is not None:
         seg = prepare_segmentation(segmentation, source, out_dir=out_dir)
+    prepare_models(cfg, source)  # a folder without the scan's model: before anything is written
     with _writing_patient(out_dir, bids.folder_name(source.patient_id, layout)):
         return _run_and_publish(
             source, out_dir, cfg, given, seg, store_dir=store_dir, layout=layout
@@ -466,7 +467,7 @@ def run_stages_direct(
     given = None if brain_mask is None else prepare_brain_mask(brain_mask, source)
     seg = None if segmentation is None else prepare_segmentation(segmentation, source)
     runner = DirectRunner(source.patient_id, len(stages.STAGES))
-    models = prepare_models(cfg)
+    models = prepare_models(cfg, source)
     stored = stages.store_given(store, brain_mask=given, segmentation=seg, models=models)
     run_stages(runner, source, cfg, str(store.root), given=stored)
     return runner

@@ -41,12 +41,12 @@ from prefect import flow, get_run_logger
 from prefect.deployments.runner import EntrypointType, RunnerDeployment
 from prefect.states import Completed, Failed, State
 
-from tumor3d.config import parse_config
-from tumor3d.errors import ConfigError, InputError, Tumor3DError
+from tumor3d.errors import InputError, Tumor3DError
 from tumor3d.flows.cohort import run_cohort
 from tumor3d.flows.cohort_result import CohortResult, one_line_error
 from tumor3d.flows.dask_runner import DaskSpec
 from tumor3d.segmentation.review import STATUS_CHECK, STATUS_FAILED, STATUS_OK
+from tumor3d.storage.given_models import read_config_file
 from tumor3d.storage.objectstore import is_url
 from tumor3d.storage.store import atomic_write_bytes, utc_now
 
@@ -79,19 +79,11 @@ def load_config_file(path: str | Path | None) -> dict[str, Any]:
     ------
     ConfigError
         An unreadable file or an invalid configuration (naming the file).
+    InputError
+        Its ``segment.learned_models`` folder is not one
+        (:func:`tumor3d.storage.given_models.read_config_file`).
     """
-    if path is None:
-        return {}
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"cannot read configuration: {exc.strerror}", path=str(path)) from None
-    except UnicodeDecodeError as exc:
-        raise ConfigError(
-            f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})",
-            path=str(path),
-        ) from None
-    return parse_config(text, source=str(path)).model_dump(mode="json")
+    return {} if path is None else read_config_file(path).model_dump(mode="json")
 
 
 #: The fields of a cron expression and their ranges.

@@ -5,19 +5,28 @@ wrote (``hyper.npz``, ``t1c.npz``, ``unet_flair_seed<k>.npz``; anything else the
 ``training.json`` say, is left unread), checks every one
 (:func:`tumor3d.learned.bundle.check_models`: plain arrays, never unpickled) and returns
 their bytes by file name. Every problem is one :class:`~tumor3d.errors.InputError` line
-naming the folder or the file. The files are only read.
+naming the folder or the file. The files are only read. :func:`models_for` gives the
+files one run uses (none where its method does not run the learned one), and
+:func:`resolve_learned_models` checks a configuration's folder before any work.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from pathlib import Path
 
-from tumor3d.config import PipelineConfig
-from tumor3d.errors import InputError
-from tumor3d.learned.bundle import MAX_MODEL_BYTES, check_models, is_model_file
+from tumor3d.config import PipelineConfig, parse_config
+from tumor3d.errors import ConfigError, InputError
+from tumor3d.learned.bundle import (
+    MAX_MODEL_BYTES,
+    check_models,
+    is_model_file,
+    used_files,
+    uses_models,
+)
 
-__all__ = ["read_given_models", "resolve_learned_models"]
+__all__ = ["models_for", "read_config_file", "read_given_models", "resolve_learned_models"]
 
 _SETTING = "segment.learned_models"
 
@@ -61,17 +70,74 @@ def read_given_models(path: str | os.PathLike[str]) -> dict[str, bytes]:
     return files
 
 
-def resolve_learned_models(cfg: PipelineConfig) -> PipelineConfig:
+def models_for(cfg: PipelineConfig, modality: str) -> dict[str, bytes] | None:
+    """The model files a run of ``modality`` with ``cfg`` uses, read and checked.
+
+    None where ``segment.learned_models`` is unset or the method does not run the
+    learned one on ``modality`` (``auto`` on T2, ``robust``, ...: the folder is not
+    read); else the forest of the sequence's family and, on FLAIR with
+    ``learned_cnn: auto``, the folder's U-Nets (:func:`tumor3d.learned.bundle.used_files`):
+    what the segment stage's key and ``provenance.json`` then hold.
+
+    Raises
+    ------
+    InputError
+        :func:`read_given_models`' errors, or no forest for the sequence.
+    """
+    seg = cfg.segment
+    if seg.learned_models is None or not uses_models(seg.method, modality):
+        return None
+    files = read_given_models(seg.learned_models)
+    return used_files(files, modality, seg.learned_cnn, source=seg.learned_models)
+
+
+def resolve_learned_models(
+    cfg: PipelineConfig, modalities: Iterable[str] | None = None
+) -> PipelineConfig:
     """``cfg`` with ``segment.learned_models`` an absolute path, its folder checked.
 
-    A command checks the folder before any flow runs (:func:`read_given_models`: one
-    line) and hands on its absolute path, which means the same folder to a flow run
-    in another working directory (a server, a scheduled run). Unset: ``cfg`` as it is.
+    A command checks the folder before any flow runs (one line) and hands on its
+    absolute path, which means the same folder to a flow run in another working
+    directory (a server, a scheduled run). With ``modalities`` (the run's, a
+    manifest's), the folder is read where the method would use it on one of them
+    and must hold the forest of each (:func:`models_for`); without, where the method
+    may run the learned one at all. Unset: ``cfg`` as it is.
     """
     where = cfg.segment.learned_models
     if where is None:
         return cfg
-    read_given_models(where)
     folder = str(Path(where).expanduser().resolve())
     segment = cfg.segment.model_copy(update={"learned_models": folder})
-    return cfg.model_copy(update={"segment": segment})
+    cfg = cfg.model_copy(update={"segment": segment})
+    if modalities is None:
+        if any(uses_models(cfg.segment.method, m) for m in ("flair", "t1c")):
+            read_given_models(folder)
+    else:
+        for modality in sorted(set(modalities)):
+            models_for(cfg, modality)
+    return cfg
+
+
+def read_config_file(path: str | os.PathLike[str]) -> PipelineConfig:
+    """A YAML configuration file, validated, its ``segment.learned_models`` resolved.
+
+    The commands' and the scheduled runs' one reader (:func:`resolve_learned_models`:
+    the folder checked, its path made absolute).
+
+    Raises
+    ------
+    ConfigError
+        An unreadable file, not UTF-8, or an invalid configuration (naming the file).
+    InputError
+        A models folder that is not one (naming it).
+    """
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read configuration: {exc.strerror}", path=str(path)) from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})",
+            path=str(path),
+        ) from None
+    return resolve_learned_models(parse_config(text, source=str(path)))

@@ -227,6 +227,7 @@ def reconstruct_scan(
         brain_mask_figures,
         preprocess_volume,
     )
+    from tumor3d.learned.bundle import check_models, model_set, uses_models
     from tumor3d.pipeline import tumour_surface
     from tumor3d.segmentation.detect import detect_abnormal_slices
     from tumor3d.segmentation.methods import method_uses_lesion, slices_flagged
@@ -237,15 +238,13 @@ def reconstruct_scan(
         raise InputError(f"scan must be a tumor3d.imaging.scan.Scan, got {type(scan).__name__}")
     cfg = as_config(config)
     where = cfg.segment.learned_models
-    if where is not None and models is None:
+    if where is not None and models is None and uses_models(cfg.segment.method, scan.modality):
         raise InputError(
             f"segment.learned_models names {where!r}: pass its files as models= "
             "(tumor3d.storage.given_models.read_given_models), or call tumor3d.reconstruct"
         )
     chosen = None
     if models is not None:
-        from tumor3d.learned.bundle import check_models, model_set
-
         source = where or "models"
         check_models(models, source=source)
 
@@ -423,10 +422,11 @@ def reconstruct(
             image = dataclasses.replace(image, modality=_modality(modality, None))
         mask = None if brain_mask is None else np.asarray(brain_mask)
         tumour = None if segmentation is None else np.asarray(segmentation)
-        cfg = as_config(config)
+        cfg = _resolved(config)
         return reconstruct_scan(
-            image, config=cfg, brain_mask=mask, segmentation=tumour, models=_given_models(cfg)
-        )
+            image, config=cfg, brain_mask=mask, segmentation=tumour,
+            models=_given_models(cfg, image.modality),
+        )  # fmt: skip
     from tumor3d.storage.readers.options import ReadOptions
 
     if modality is None and isinstance(image, str | os.PathLike):
@@ -434,7 +434,7 @@ def reconstruct(
 
         modality = declared_modality(image)  # a stack's sidecar; None: the error below
     mod = _modality(modality, None)
-    cfg = as_config(config)  # a bad configuration fails before the image is read
+    cfg = _resolved(config)  # a bad configuration fails before the image is read
     options = ReadOptions(  # the reading options, checked once
         modality=mod, patient_id=patient_id, slice_thickness_mm=slice_thickness_mm,
         slice_gap_mm=slice_gap_mm,
@@ -460,8 +460,9 @@ def reconstruct(
                 raise InputError(f"segmentation has shape {arr.shape}, the image {image.shape}")
             tumour = scan.source_grid.from_source(arr)
         return reconstruct_scan(
-            scan, config=cfg, brain_mask=mask, segmentation=tumour, models=_given_models(cfg)
-        )
+            scan, config=cfg, brain_mask=mask, segmentation=tumour,
+            models=_given_models(cfg, scan.modality),
+        )  # fmt: skip
     if not isinstance(image, str | os.PathLike):
         raise InputError(
             f"image must be a path, a 3-D array with affine, or a Scan; got {type(image).__name__}"
@@ -494,17 +495,27 @@ def reconstruct(
         segmentation=tumour,
         segmentation_name=name,
         header_notes=header_notes,
-        models=_given_models(cfg),
+        models=_given_models(cfg, scan.modality),
     )
 
 
-def _given_models(cfg: PipelineConfig) -> dict[str, bytes] | None:
-    """The model files ``segment.learned_models`` names, read and checked (None: unset)."""
+def _resolved(config: PipelineConfig | Mapping[str, Any] | str | None) -> PipelineConfig:
+    """The configuration, ``segment.learned_models`` made absolute (said so in provenance)."""
+    cfg = as_config(config)
+    if cfg.segment.learned_models is None:
+        return cfg
+    from tumor3d.storage.given_models import resolve_learned_models
+
+    return resolve_learned_models(cfg)
+
+
+def _given_models(cfg: PipelineConfig, modality: str) -> dict[str, bytes] | None:
+    """The model files of ``segment.learned_models`` a run of ``modality`` uses (or None)."""
     if cfg.segment.learned_models is None:
         return None
-    from tumor3d.storage.given_models import read_given_models
+    from tumor3d.storage.given_models import models_for
 
-    return read_given_models(cfg.segment.learned_models)
+    return models_for(cfg, modality)
 
 
 def _on_scan_grid(arr: np.ndarray, scan: Scan, what: str) -> np.ndarray:

@@ -67,6 +67,7 @@ from tumor3d.flows.cli.app import (  # noqa: E402, F401
     Layout,
     MaxVoxels,
     Verbose,
+    _check_models,
     _load_config,
     app,
     console,
@@ -164,6 +165,7 @@ def run(
         cfg = _load_config(config)
         # the option, else what an image stack's sidecar names, else the default (said)
         modality, origin = resolve_modality(input_path, modality)
+        _check_models(cfg, [modality])  # the folder holds the scan's model, if it is used
         options = ReadOptions(  # the reading options, checked once and passed on as one
             modality=modality, patient_id=patient_id, series_uid=series_uid,
             slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm,

@@ -62,25 +62,18 @@ def _main(
     """3-D reconstruction and volume of brain tumours from thick-slice MR (Arakeri & Reddy 2013)."""
 
 
-def _load_config(path: Path | None) -> dict[str, Any]:
+def _check_models(cfg: dict[str, Any], modalities: list[str]) -> None:
+    """The ``segment.learned_models`` folder holds the forest of each modality that uses it."""
     from tumor3d.config import parse_config
-    from tumor3d.errors import ConfigError
-
-    if path is None:
-        return {}
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"cannot read configuration: {exc.strerror}", path=str(path)) from None
-    except UnicodeDecodeError as exc:
-        raise ConfigError(
-            f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})",
-            path=str(path),
-        ) from None
     from tumor3d.storage.given_models import resolve_learned_models
 
-    cfg = resolve_learned_models(parse_config(text, source=str(path)))  # before any flow
-    return cfg.model_dump(mode="json")
+    resolve_learned_models(parse_config(cfg), modalities)
+
+
+def _load_config(path: Path | None) -> dict[str, Any]:
+    from tumor3d.storage.given_models import read_config_file
+
+    return {} if path is None else read_config_file(path).model_dump(mode="json")
 
 
 Verbose = Annotated[bool, typer.Option("--verbose", "-v", help="Show Prefect's own logs.")]

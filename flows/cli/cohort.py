@@ -18,6 +18,7 @@ from tumor3d.flows.cli.app import (
     MaxVoxels,
     Verbose,
     Workers,
+    _check_models,
     _load_config,
     app,
     console,
@@ -61,6 +62,7 @@ def cohort(
             _check_out_dir(Path(out))
         rows = read_manifest(manifest, require_files=False)
         check_cohort_rows(rows, out, layout)  # a refused row: before a server starts
+        _check_models(cfg, [row.modality or "t2" for row in rows])
         dask = DaskSpec(dask_address, dask_workers)
         _preflight_cohort(out, store, dask.address)  # before a Prefect server is started
         if not is_url(out):

@@ -120,6 +120,99 @@ def test_every_bad_folder_is_one_line_naming_it(tmp_path, shipped_files):
         assert "\n" not in str(err.value)
 
 
+def _forest_bytes(shipped_files, **arrays) -> bytes:
+    import dataclasses
+
+    from tumor3d.learned.forest import ForestModel
+
+    model = ForestModel.from_bytes(shipped_files["hyper.npz"])
+    fields = {k: getattr(model, k).copy() for k in ("feature", "left", "right")}
+    for name, (index, value) in arrays.items():
+        fields[name][index] = value
+    # built past the checks, as a hostile file would be written
+    forged = object.__new__(ForestModel)
+    for f in dataclasses.fields(ForestModel):
+        object.__setattr__(forged, f.name, fields.get(f.name, getattr(model, f.name)))
+    object.__setattr__(forged, "context", None)
+    return forged.to_bytes()
+
+
+def test_a_forest_that_would_never_end_or_read_past_its_features_is_refused(
+    tmp_path, shipped_files
+):
+    """Audit 5: a tree whose root is its own child hung the run for good (a numba loop
+    heeds no signal); one reading column 999 failed only after three stages."""
+    loop = _forest_bytes(shipped_files, left=(0, 0), right=(0, 0))
+    past = _forest_bytes(shipped_files, feature=(0, 999))
+    for name, data, message in (
+        ("loop", loop, "list each child after its node"),
+        ("past", past, "trained on other features"),
+    ):
+        folder = _folder(tmp_path / name, {"hyper.npz": data})
+        with pytest.raises(InputError, match=rf"^{folder}/hyper\.npz: .*{message}") as err:
+            read_given_models(folder)
+        assert "\n" not in str(err.value)
+
+
+def test_an_archive_declaring_more_than_any_model_is_refused_unpacked(
+    tmp_path, shipped_files, monkeypatch
+):
+    """Audit 5: 0.8 MB of zeros declaring 1.8 GB of nodes was read; the entries' declared
+    sizes are now summed before anything is unpacked (the limit lowered here)."""
+    import tumor3d.learned.archive as archive
+
+    monkeypatch.setattr(archive, "MAX_ARRAY_BYTES", 2**20)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, feature=np.zeros(2**19, np.int32))  # 2 MB unpacked
+    small = len(buf.getvalue())
+    for name in ("hyper.npz", "unet_flair_seed0.npz"):
+        files = {"hyper.npz": shipped_files["hyper.npz"], name: buf.getvalue()}
+        folder = _folder(tmp_path / name.removesuffix(".npz"), files)
+        with pytest.raises(InputError, match=rf"{name}: its arrays take 2 MB unpacked"):
+            read_given_models(folder)
+    assert small < 2**16
+
+
+def test_a_broken_u_net_file_never_reads_as_advice_to_unpickle(tmp_path, shipped_files):
+    noise = np.random.default_rng(0).bytes(500)
+    folder = _folder(
+        tmp_path / "n", {"hyper.npz": shipped_files["hyper.npz"], "unet_flair_seed0.npz": noise}
+    )
+    with pytest.raises(InputError, match="unet_flair_seed0.npz: not a readable") as err:
+        read_given_models(folder)
+    assert "allow_pickle" not in str(err.value)
+
+
+def test_a_run_reads_only_the_files_its_method_uses(tmp_path, shipped_files):
+    """Audit 5: a rule-based method read (and was refused by) the folder, and files a run
+    did not use keyed its segmentation."""
+    from tumor3d.config import parse_config
+    from tumor3d.storage.given_models import models_for, resolve_learned_models
+
+    garbage = _folder(tmp_path / "garbage", {"hyper.npz": b"not a model"})
+    for method, modality in (("robust", "flair"), ("paper", "flair"), ("auto", "t2")):
+        cfg = parse_config({"segment": {"method": method, "learned_models": str(garbage)}})
+        assert models_for(cfg, modality) is None  # not read: no error
+        resolve_learned_models(cfg, [modality])
+    folder = _folder(tmp_path / "all", shipped_files)
+    cfg = parse_config({"segment": {"learned_models": str(folder)}})
+    assert set(models_for(cfg, "flair")) == {
+        "hyper.npz",
+        "unet_flair_seed0.npz",
+        "unet_flair_seed1.npz",
+    }
+    assert models_for(cfg, "t2") is None  # auto runs a rule-based method on T2
+    assert set(models_for(cfg, "t1c")) == {"t1c.npz"}
+    off = parse_config({"segment": {"learned_models": str(folder), "learned_cnn": "off"}})
+    assert set(models_for(off, "flair")) == {"hyper.npz"}
+    only_t1c = _folder(tmp_path / "t1c", {"t1c.npz": shipped_files["t1c.npz"]})
+    cfg = parse_config({"segment": {"learned_models": str(only_t1c)}})
+    with pytest.raises(InputError, match=r"no hyper\.npz \(FLAIR and T2 model\)"):
+        resolve_learned_models(cfg, ["t1c", "flair"])
+    resolved = resolve_learned_models(cfg, ["t1c", "t2"])
+    assert resolved.segment.learned_models == str(only_t1c.resolve())
+
+
 def test_a_folder_named_but_not_read_is_refused_never_the_shipped_models():
     from tumor3d.api import reconstruct_scan
 

@@ -216,21 +216,45 @@ def test_a_trained_folder_replaces_the_shipped_models_and_its_bytes_key_the_segm
     prov = json.loads((tmp_path / "out" / "own" / "provenance.json").read_text())["segmentation"]
     assert prov["model_sha256"] == hashlib.sha256(shipped).hexdigest()
     assert changed.recomputed == "given models changed"
+    # a file this FLAIR run does not use (the T1c forest) keys nothing (audit 5)
+    (folder / "t1c.npz").write_bytes(resources.files("tumor3d.learned").joinpath(
+        "models", "t1c.npz").read_bytes())  # fmt: skip
+    unused = run_patient(row.image, tmp_path / "out", **kw)
+    assert all(unused.cache_hits) and unused.recomputed is None
 
 
-def test_a_models_folder_that_is_not_one_is_refused_before_any_flow(tmp_path):
+@pytest.mark.parametrize(
+    ("name", "command", "message"),
+    [
+        ("hyper.npz", "run", "m/hyper.npz: not a readable tumor3d forest model"),
+        ("t1c.npz", "run", r"no hyper.npz (FLAIR and T2 model) for this FLAIR scan"),
+        ("t1c.npz", "cohort", r"no hyper.npz (FLAIR and T2 model) for this FLAIR scan"),
+    ],
+)
+def test_a_models_folder_that_is_not_one_is_refused_before_any_flow(
+    tmp_path, name, command, message
+):
+    """A damaged model, or no model for the scan's sequence (audit 5: that one was found
+    after three stages, and a cohort exited 1 with its tables written)."""
     patient = make_phantom_patient(5, modality="flair", patient_id="own", n_slices=8)
     row = write_phantom_patient(patient, tmp_path / "in")
     (tmp_path / "m").mkdir()
-    (tmp_path / "m" / "hyper.npz").write_bytes(b"PK not a model")
+    (tmp_path / "m" / name).write_bytes(b"PK not a model")
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text(f"segment:\n  learned_models: {tmp_path / 'm'}\n")
-    res = CliRunner().invoke(
-        app, ["run", str(row.image), "--out", str(tmp_path / "out"), "--config", str(cfg)]
-    )
+    if name == "t1c.npz":
+        from importlib import resources
+
+        t1c = resources.files("tumor3d.learned").joinpath("models", "t1c.npz").read_bytes()
+        (tmp_path / "m" / name).write_bytes(t1c)
+    target = str(row.image)
+    if command == "cohort":
+        target = str(write_manifest([row], tmp_path / "manifest.csv"))
+    args = [command, target, "--out", str(tmp_path / "out"), "--config", str(cfg)]
+    res = CliRunner().invoke(app, args + (["--modality", "flair"] if command == "run" else []))
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
     assert res.exit_code == 2 and len(lines) == 1, res.output
-    assert "m/hyper.npz: not a readable tumor3d forest model" in lines[0]
+    assert message in lines[0]
     assert not (tmp_path / "out").exists()
 
 

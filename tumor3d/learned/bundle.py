@@ -9,6 +9,9 @@
   arrays (read without pickle), the artifact whose content enters the segment
   stage's cache key;
 * :func:`check_models`: every file parsed once, a bad one named in one line;
+* :func:`uses_models` and :func:`used_files`: whether a run's segmentation may use
+  them, and the files it may use (the forest of its sequence's family, and on FLAIR
+  the U-Nets): only those are stored, key the segment stage and are recorded;
 * :func:`model_set`: the models one sequence uses, with the files they came from
   (:class:`ModelSet`), as :func:`tumor3d.learned.shipped.shipped_models` gives the
   shipped ones.
@@ -43,6 +46,8 @@ __all__ = [
     "model_set",
     "pack_models",
     "unpack_models",
+    "used_files",
+    "uses_models",
 ]
 
 #: The forest file of each family of sequences (:data:`tumor3d.learned.shipped.MODEL_FAMILIES`).
@@ -121,12 +126,14 @@ def unpack_models(data: bytes, *, source: str = "models") -> dict[str, bytes]:
 
 
 def _forest(files: Mapping[str, bytes], family: str, source: str) -> ForestModel:
+    from tumor3d.learned.segment import check_model_features
     from tumor3d.learned.shipped import check_family
 
     name = FOREST_FILES[family]
     where = f"{source}/{name}"
     model = ForestModel.from_bytes(files[name], source=where)
     check_family(model, family, where)
+    check_model_features(model, source=where)
     return model
 
 
@@ -161,6 +168,55 @@ def check_models(files: Mapping[str, bytes], *, source: str) -> None:
         )
 
 
+def uses_models(method: str, modality: str) -> bool:
+    """Whether ``segment.method`` may run the learned method on ``modality``.
+
+    ``auto`` runs it on FLAIR and T1c, never on T2 (the paper's or the robust method);
+    the rule-based methods never.
+
+    >>> [uses_models(m, "t2") for m in ("auto", "learned", "robust")]
+    [False, True, False]
+    >>> uses_models("auto", "T1c")
+    True
+    """
+    from tumor3d.segmentation.methods import method_spec
+    from tumor3d.segmentation.segment import resolve_method
+
+    return bool(method_spec(resolve_method(method, modality, None)).needs_model)
+
+
+def used_files(
+    files: Mapping[str, bytes], modality: str, learned_cnn: str = "auto", *, source: str
+) -> dict[str, bytes]:
+    """The files of a models folder that segment ``modality``: :func:`model_set`'s.
+
+    Raises
+    ------
+    InputError
+        The folder has no forest for the sequence (:func:`model_set`).
+    """
+    from tumor3d.learned.shipped import model_family
+
+    name = FOREST_FILES[model_family(modality)]
+    if name not in files:
+        _no_forest(name, modality, source)
+    nets = _unet_names(files) if _with_nets(modality, learned_cnn) else []
+    return {n: files[n] for n in (name, *nets)}
+
+
+def _with_nets(modality: str, learned_cnn: str) -> bool:
+    return learned_cnn == "auto" and modality.strip().lower() in _UNET_SEQUENCES
+
+
+def _no_forest(name: str, modality: str, source: str) -> None:
+    seqs = "FLAIR and T2" if name == FOREST_FILES["hyper"] else "T1c"
+    raise InputError(
+        f"{source}: no {name} ({seqs} model) for this {modality.strip().upper()} scan: train "
+        f"one with {seqs} cases (`tumor3d train`), or leave segment.learned_models unset for "
+        "the shipped models"
+    )
+
+
 def model_set(
     files: Mapping[str, bytes], modality: str, learned_cnn: str = "auto", *, source: str
 ) -> ModelSet:
@@ -180,15 +236,10 @@ def model_set(
     family = model_family(modality)
     name = FOREST_FILES[family]
     if name not in files:
-        seqs = "FLAIR and T2" if family == "hyper" else "T1c"
-        raise InputError(
-            f"{source}: no {name} ({seqs} model) for this {modality.upper()} scan: train one "
-            f"with {seqs} cases (`tumor3d train`), or leave segment.learned_models unset for "
-            "the shipped models"
-        )
+        _no_forest(name, modality, source)
     model = _forest(files, family, source)
     nets: tuple[str, ...] = ()
-    if learned_cnn == "auto" and modality.strip().lower() in _UNET_SEQUENCES:
+    if _with_nets(modality, learned_cnn):
         nets = tuple(_unet_names(files))
     cnn = tuple(unet_from_bytes(files[n], source=f"{source}/{n}") for n in nets) or None
     return ModelSet(

@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 
 from tumor3d.errors import InputError
+from tumor3d.learned.archive import archive_error, check_archive
 
 __all__ = [
     "META_KEY",
@@ -140,6 +141,7 @@ def unet_from_bytes(data: bytes, *, source: str = "weights") -> UNetWeights:
     ``source`` names it in errors. The caller reads the bytes (nothing here
     touches the file system).
     """
+    check_archive(data, source=source)
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
             raw = {k: z[k] for k in z.files}
@@ -147,7 +149,8 @@ def unet_from_bytes(data: bytes, *, source: str = "weights") -> UNetWeights:
         meta = {} if meta is None else decode_meta(meta)
         arrays = {k: np.asarray(v, dtype=np.float32) for k, v in raw.items()}
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
-        raise InputError(f"{source}: not a readable .npz of plain arrays ({exc})") from exc
+        why = archive_error(exc)
+        raise InputError(f"{source}: not a readable .npz of plain arrays ({why})") from None
     levels = sum(1 for k in arrays if k.startswith("enc") and k.endswith("_0_w"))
     if levels < 1 or "head_w" not in arrays or not isinstance(meta, dict):
         raise InputError(f"{source}: not a U-Net weight file (no enc0_0_w / head_w)")

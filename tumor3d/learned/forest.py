@@ -25,7 +25,8 @@ from typing import Any
 import numba
 import numpy as np
 
-from tumor3d.errors import InputError, exception_line
+from tumor3d.errors import InputError
+from tumor3d.learned.archive import archive_error, check_archive
 
 # The prediction runs on numba's parallel layer, OpenMP first: numba tries TBB
 # first and prints a warning when the TBB already loaded in the process is too
@@ -40,22 +41,6 @@ if not os.environ.get("NUMBA_THREADING_LAYER_PRIORITY") and (
 __all__ = ["ForestModel", "forest_from_lightgbm_dump", "predict_logit", "predict_proba"]
 
 _ARRAYS = ("feature", "threshold", "left", "right", "value", "roots")
-
-
-def _why(exc: BaseException) -> str:
-    """Why an ``.npz`` could not be read as a model, in words (never advice to unpickle).
-
-    >>> _why(ValueError("Cannot load file containing pickled data when allow_pickle=False"))
-    'not an .npz archive of plain arrays (a model is never unpickled)'
-    >>> _why(KeyError("feature is not a file in the archive"))
-    'no array feature'
-    """
-    if "pickle" in str(exc):
-        return "not an .npz archive of plain arrays (a model is never unpickled)"
-    if isinstance(exc, KeyError):  # numpy: "feature is not a file in the archive"
-        name = str(exc.args[0]).split(" is not a file")[0] if exc.args else ""
-        return f"no array {name}".strip()
-    return exception_line(exc)
 
 
 @dataclass(frozen=True)
@@ -116,6 +101,12 @@ class ForestModel:
                 raise InputError(f"forest array {name!r} points outside the node table")
         if self.roots.min() < 0 or self.roots.max() >= n:
             raise InputError("forest roots point outside the node table")
+        # each tree stored root first (forest_from_lightgbm_dump): a child after its node,
+        # so that every walk ends (a loop would never return, nor heed a signal)
+        nodes = np.flatnonzero(internal)
+        backwards = (self.left[nodes] <= nodes) | (self.right[nodes] <= nodes)
+        if backwards.any():
+            raise InputError("forest trees must list each child after its node (no loops)")
 
     @property
     def n_features(self) -> int:
@@ -142,6 +133,7 @@ class ForestModel:
     @classmethod
     def from_bytes(cls, data: bytes, *, source: str = "model") -> ForestModel:
         """Read :meth:`to_bytes`; never unpickles. ``source`` names it in errors."""
+        check_archive(data, source=source)
         try:
             loaded = np.load(io.BytesIO(data), allow_pickle=False)
             if not isinstance(loaded, np.lib.npyio.NpzFile):  # one .npy array
@@ -157,20 +149,25 @@ class ForestModel:
                 ]
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             raise InputError(
-                f"{source}: not a readable tumor3d forest model ({_why(exc)})"
+                f"{source}: not a readable tumor3d forest model ({archive_error(exc)})"
             ) from None
         context = None
         for arrays, meta in reversed(read):
-            context = cls(
-                arrays["feature"].astype(np.int32),
-                arrays["threshold"].astype(np.float64),
-                arrays["left"].astype(np.int32),
-                arrays["right"].astype(np.int32),
-                arrays["value"].astype(np.float64),
-                arrays["roots"].astype(np.int32),
-                meta,
-                context,
-            )
+            try:  # the arrays' checks (shapes, indices, no loops), naming the file
+                if not isinstance(meta, dict):
+                    raise InputError("its metadata is not a JSON object")
+                context = cls(
+                    arrays["feature"].astype(np.int32),
+                    arrays["threshold"].astype(np.float64),
+                    arrays["left"].astype(np.int32),
+                    arrays["right"].astype(np.int32),
+                    arrays["value"].astype(np.float64),
+                    arrays["roots"].astype(np.int32),
+                    meta,
+                    context,
+                )
+            except (InputError, ValueError, IndexError) as exc:
+                raise InputError(f"{source}: not a valid tumor3d forest model ({exc})") from None
         assert context is not None
         return replace(context, file_sha256=hashlib.sha256(data).hexdigest())
 

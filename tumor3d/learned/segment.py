@@ -31,7 +31,13 @@ from tumor3d.learned.context import CONTEXT_NAMES, context_features
 from tumor3d.learned.features import FEATURE_NAMES, compute_features
 from tumor3d.learned.forest import ForestModel, predict_proba
 
-__all__ = ["LearnedSegmentation", "keep_main_lesion", "region_preference", "segment_learned"]
+__all__ = [
+    "LearnedSegmentation",
+    "check_model_features",
+    "keep_main_lesion",
+    "region_preference",
+    "segment_learned",
+]
 
 _STRUCT_3D = np.ones((3, 3, 3), dtype=bool)
 
@@ -154,6 +160,28 @@ def keep_main_lesion(
     return fill_holes_per_slice(np.isin(labels, keep))
 
 
+def check_model_features(model: ForestModel, *, source: str | None = None) -> None:
+    """Refuse a forest trained on other features than this version of tumor3d computes.
+
+    By the names its metadata records, where it records them, and by the columns its
+    trees read (each stage: the features, and the second stage's context features
+    beside them). ``source`` (a file) starts the message.
+    """
+    where = f"{source}: " if source else ""
+    stages = [(model, FEATURE_NAMES)]
+    if model.context is not None:
+        stages.append((model.context, FEATURE_NAMES + CONTEXT_NAMES))
+    for stage, expected in stages:
+        names = stage.meta.get("feature_names")
+        top = int(stage.feature.max(initial=-1))
+        if (names and tuple(names) != expected) or top >= len(expected):
+            raise InputError(
+                f"{where}the model was trained on other features than this version of "
+                f"tumor3d computes ({len(expected)}; its trees read column {top}); retrain it "
+                "(tumor3d train)"
+            )
+
+
 def segment_learned(
     image: np.ndarray,
     *,
@@ -199,16 +227,7 @@ def segment_learned(
     """
     if not isinstance(model, ForestModel):
         raise InputError(f"model must be a ForestModel, got {type(model).__name__}")
-    stages = [(model, FEATURE_NAMES)]
-    if model.context is not None:
-        stages.append((model.context, FEATURE_NAMES + CONTEXT_NAMES))
-    for stage, expected in stages:
-        names = stage.meta.get("feature_names")
-        if names and tuple(names) != expected:
-            raise InputError(
-                "the model was trained on other features than this version of tumor3d "
-                "computes; retrain it (tumor3d train)"
-            )
+    check_model_features(model)
     nets = None if cnn is None else as_nets(cnn, name="cnn")
     args = (image, model, spacing_mm, modality, lr_axis, threshold, keep_fraction, prior)
     p_cnn = members = None
