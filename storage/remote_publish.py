@@ -161,14 +161,24 @@ def _unchanged(
 
     Its ETag, in ``listed`` (the listing :func:`_listed_marker` checked the sizes in), is
     the marker's, or, where the marker or the store gives none, its bytes read back
-    match their digests (:func:`verify_folder`).
+    match their digests (:func:`verify_folder`). A marker written before ETags were
+    kept gets the listing's then, so that the next re-run compares them instead of
+    reading every object back (the listing was taken before the read-back: an object
+    replaced in between shows another ETag at the next re-run, which publishes again).
     """
     etags = marker.get("etags")
-    if isinstance(etags, dict) and set(etags) == set(marker["files"]):
-        now = {rel: _etag(listed.get(rel)) for rel in marker["files"]}
-        if all(now.values()):
-            return now == etags
-    return not verify_folder(out, name)
+    now = {rel: _etag(listed.get(rel)) for rel in marker["files"]}
+    if isinstance(etags, dict) and set(etags) == set(marker["files"]) and all(now.values()):
+        return now == etags
+    if verify_folder(out, name):
+        return False
+    if listed and all(now.values()):  # best effort: the marker stays valid without them
+        try:
+            body = json.dumps({**marker, "etags": now}, indent=1).encode()
+            out.fs.pipe_file(out.key(_marker_path(name)), body)
+        except Exception:  # noqa: BLE001, S110  (botocore/aiohttp raise many types)
+            pass
+    return True
 
 
 def _listed_marker(

@@ -390,14 +390,17 @@ def test_a_corrupted_object_is_detected_after_the_copy_and_after_publication(
 
 
 @pytest.mark.parametrize("marker_etags", [True, False])
-def test_a_rerun_from_the_cache_republishes_an_object_edited_since(s3_endpoint, marker_etags):
+def test_a_rerun_from_the_cache_republishes_an_object_edited_since(
+    s3_endpoint, marker_etags, monkeypatch
+):
     """A re-run whose stages were all cache hits (``reuse``, the same publish key) uploads
     nothing to an intact folder, but an object written since, with other bytes of the
     same size (a forged volume in metrics.parquet), is published again: told by its ETag
     against the marker's, or, for a marker without ETags (written before them), by the
-    bytes read back."""
+    bytes read back, after which the marker has them (the next re-run reads nothing back)."""
     import json
 
+    import tumor3d.storage.remote_publish as rp
     from tumor3d.storage.remote_publish import publish_files
 
     out = RemoteFolder(f"s3://{BUCKET}/reuse{int(marker_etags)}")
@@ -410,7 +413,18 @@ def test_a_rerun_from_the_cache_republishes_an_object_edited_since(s3_endpoint, 
         s3_endpoint.put_object(Bucket=BUCKET, Key=f"{prefix}/{MARKER}", Body=json.dumps(marker))
     before = _stamps(s3_endpoint, f"{prefix}/")
     publish_files(out, "p1", V1, exclusive=True, key="k1", reuse=True)
-    assert _stamps(s3_endpoint, f"{prefix}/") == before  # intact: nothing uploaded
+    after = _stamps(s3_endpoint, f"{prefix}/")
+    rewritten = {k for k in set(before) | set(after) if before.get(k) != after.get(k)}
+    # intact: nothing uploaded (a marker without ETags gets them)
+    assert rewritten == (set() if marker_etags else {f"{prefix}/{MARKER}"})
+    upgraded = json.loads(_body(s3_endpoint, f"{prefix}/{MARKER}"))
+    assert set(upgraded["etags"]) == set(V1) and all(upgraded["etags"].values())
+    assert {k: v for k, v in upgraded.items() if k != "etags"} == {
+        k: v for k, v in marker.items() if k != "etags"
+    }
+    with monkeypatch.context() as m:  # now told by the ETags: nothing read back
+        m.setattr(rp, "verify_folder", lambda *a: pytest.fail("read back"))
+        publish_files(out, "p1", V1, exclusive=True, key="k1", reuse=True)
     forged = b"PAR2" + V1["metrics.parquet"][4:]  # same size, other bytes
     s3_endpoint.put_object(Bucket=BUCKET, Key=f"{prefix}/metrics.parquet", Body=forged)
     assert read_marker(out, "p1") is not None  # the sizes alone see nothing
