@@ -152,7 +152,7 @@ def _run_one(
         given = None if not mask else prepare_brain_mask(mask, source, out_dir=out_dir)
         seg_path = row.get("segmentation")
         seg = None if not seg_path else prepare_segmentation(seg_path, source, out_dir=out_dir)
-        prepare_models(cfg, source)  # the folder holds this sequence's model, if it is used
+        prepare_models(cfg, source, seg)  # the folder holds this sequence's model, if used
         prepared = True
         result = patient_pipeline(
             source, out_dir, cfg, store, runs=runs, brain_mask=given, segmentation=seg,

@@ -215,15 +215,18 @@ def prepare_segmentation(
     return read_given_segmentation(path, image, max_voxels=source.max_voxels)
 
 
-def prepare_models(cfg: PipelineConfig, source: InputSource) -> dict[str, bytes] | None:
+def prepare_models(
+    cfg: PipelineConfig, source: InputSource, segmentation: GivenSegmentation | None = None
+) -> dict[str, bytes] | None:
     """The model files of ``segment.learned_models`` this patient's run uses, checked.
 
-    :func:`tumor3d.storage.given_models.models_for` (None: unset, or a method that does
-    not run the learned one on the scan's sequence; a folder without the sequence's
-    forest is one line naming it). Read again for each patient (a few MB at most), so
-    that the models a result was made with are those its cache key and provenance record.
+    :func:`tumor3d.storage.given_models.models_for` (None: unset, a given
+    ``segmentation`` in place of the method, or a method that does not run the learned
+    one on the scan's sequence; a folder without the sequence's forest is one line
+    naming it). Read again for each patient (a few MB at most), so that the models a
+    result was made with are those its cache key and provenance record.
     """
-    return models_for(cfg, source.modality)
+    return None if segmentation is not None else models_for(cfg, source.modality)
 
 
 def run_stages(
@@ -280,12 +283,13 @@ def patient_pipeline(
     t0 = time.perf_counter()
     pid = source.patient_id
     check_layout_destination(source, out_dir, layout, brain_mask, segmentation)  # before work
-    models = prepare_models(cfg, source)
+    models = prepare_models(cfg, source, segmentation)
     runner = PrefectRunner(store, pid, total=len(stages.STAGES), runs=runs)
     try:
         given = stages.store_given(
-            store, brain_mask=brain_mask, segmentation=segmentation, models=models
-        )
+            store, brain_mask=brain_mask, segmentation=segmentation, models=models,
+            models_folder=cfg.segment.learned_models,
+        )  # fmt: skip
         outputs = run_stages(runner, source, cfg, str(store.root), given=given)
         flow_seconds = time.perf_counter() - t0
         notes, doubts = run_notes(
@@ -392,7 +396,7 @@ def patient_flow(
     seg = None
     if segmentation is not None:
         seg = prepare_segmentation(segmentation, source, out_dir=out_dir)
-    prepare_models(cfg, source)  # a folder without the scan's model: before anything is written
+    prepare_models(cfg, source, seg)  # a folder without the scan's model: before any writing
     with _writing_patient(out_dir, bids.folder_name(source.patient_id, layout)):
         return _run_and_publish(
             source, out_dir, cfg, given, seg, store_dir=store_dir, layout=layout
@@ -467,8 +471,11 @@ def run_stages_direct(
     given = None if brain_mask is None else prepare_brain_mask(brain_mask, source)
     seg = None if segmentation is None else prepare_segmentation(segmentation, source)
     runner = DirectRunner(source.patient_id, len(stages.STAGES))
-    models = prepare_models(cfg, source)
-    stored = stages.store_given(store, brain_mask=given, segmentation=seg, models=models)
+    models = prepare_models(cfg, source, seg)
+    stored = stages.store_given(
+        store, brain_mask=given, segmentation=seg, models=models,
+        models_folder=cfg.segment.learned_models,
+    )  # fmt: skip
     run_stages(runner, source, cfg, str(store.root), given=stored)
     return runner
 

@@ -94,42 +94,45 @@ def models_for(cfg: PipelineConfig, modality: str) -> dict[str, bytes] | None:
 def resolve_learned_models(
     cfg: PipelineConfig, modalities: Iterable[str] | None = None
 ) -> PipelineConfig:
-    """``cfg`` with ``segment.learned_models`` an absolute path, its folder checked.
+    """``cfg`` with ``segment.learned_models`` an absolute path, checked for ``modalities``.
 
-    A command checks the folder before any flow runs (one line) and hands on its
-    absolute path, which means the same folder to a flow run in another working
-    directory (a server, a scheduled run). With ``modalities`` (the run's, a
-    manifest's), the folder is read where the method would use it on one of them
-    and must hold the forest of each (:func:`models_for`); without, where the method
-    may run the learned one at all. Unset: ``cfg`` as it is.
+    The path made absolute means the same folder to a flow run in another working
+    directory (a server, a scheduled run). With ``modalities`` (a run's, a manifest's),
+    a command checks the folder before any work (one line): read where the method
+    would use it on one of them, it must hold the forest of each (:func:`models_for`).
+    Unset: ``cfg`` as it is.
+
+    Raises
+    ------
+    InputError
+        A URL, or :func:`models_for`' errors.
     """
     where = cfg.segment.learned_models
     if where is None:
         return cfg
+    if "://" in where:
+        raise InputError(f"{where}: {_SETTING} must be a local folder, not a URL")
     folder = str(Path(where).expanduser().resolve())
     segment = cfg.segment.model_copy(update={"learned_models": folder})
     cfg = cfg.model_copy(update={"segment": segment})
-    if modalities is None:
-        if any(uses_models(cfg.segment.method, m) for m in ("flair", "t1c")):
-            read_given_models(folder)
-    else:
-        for modality in sorted(set(modalities)):
-            models_for(cfg, modality)
+    for modality in sorted(set(modalities or ())):
+        models_for(cfg, modality)
     return cfg
 
 
 def read_config_file(path: str | os.PathLike[str]) -> PipelineConfig:
-    """A YAML configuration file, validated, its ``segment.learned_models`` resolved.
+    """A YAML configuration file, validated, its ``segment.learned_models`` made absolute.
 
-    The commands' and the scheduled runs' one reader (:func:`resolve_learned_models`:
-    the folder checked, its path made absolute).
+    The commands' and the scheduled runs' one reader (:func:`resolve_learned_models`;
+    the folder is checked against the scans' sequences where those are known: the
+    commands' ``_check_models``, each patient's run).
 
     Raises
     ------
     ConfigError
         An unreadable file, not UTF-8, or an invalid configuration (naming the file).
     InputError
-        A models folder that is not one (naming it).
+        A models folder named by a URL.
     """
     try:
         text = Path(path).read_text(encoding="utf-8")

@@ -174,8 +174,11 @@ def _unchanged(
         return False
     if listed and all(now.values()):  # best effort: the marker stays valid without them
         try:
-            body = json.dumps({**marker, "etags": now}, indent=1).encode()
-            out.fs.pipe_file(out.key(_marker_path(name)), body)
+            # not over another writer's: the marker must still be the one checked
+            # (a writer that started since removed or replaced it)
+            if json.loads(out.cat(_marker_path(name))) == marker:
+                body = json.dumps({**marker, "etags": now}, indent=1).encode()
+                out.fs.pipe_file(out.key(_marker_path(name)), body)
         except Exception:  # noqa: BLE001, S110  (botocore/aiohttp raise many types)
             pass
     return True

@@ -101,6 +101,7 @@ def store_given(
     brain_mask: GivenBrainMask | None = None,
     segmentation: GivenSegmentation | None = None,
     models: Mapping[str, bytes] | None = None,
+    models_folder: str | None = None,
 ) -> dict[str, ArtifactRef | None]:
     """The given artifacts of a run, stored: ``given:`` brain_mask, segmentation, models.
 
@@ -109,7 +110,10 @@ def store_given(
     ``measured`` names it). ``models``: a user's trained model files
     (``segment.learned_models``, :func:`tumor3d.storage.given_models.read_given_models`),
     packed into one object (:func:`tumor3d.learned.bundle.pack_models`) whose digest
-    is their content's; their names and SHA-256 ride in its metadata.
+    is their content's and their folder's (``models_folder``, which provenance names):
+    their names, SHA-256 and folder ride in its metadata. The configuration's path
+    keys nothing itself (``SegmentConfig.__cache_exclude__``): a run that uses no
+    model is not recomputed for a folder named.
     """
     return {
         "models": None
@@ -119,7 +123,8 @@ def store_given(
             kind="models",
             suffix=".npz",
             metadata={
-                "files": {n: hashlib.sha256(b).hexdigest() for n, b in sorted(models.items())}
+                "files": {n: hashlib.sha256(b).hexdigest() for n, b in sorted(models.items())},
+                "folder": models_folder,
             },
         ),
         "brain_mask": None

@@ -238,7 +238,8 @@ def reconstruct_scan(
         raise InputError(f"scan must be a tumor3d.imaging.scan.Scan, got {type(scan).__name__}")
     cfg = as_config(config)
     where = cfg.segment.learned_models
-    if where is not None and models is None and uses_models(cfg.segment.method, scan.modality):
+    used = segmentation is None and uses_models(cfg.segment.method, scan.modality)
+    if where is not None and models is None and used:
         raise InputError(
             f"segment.learned_models names {where!r}: pass its files as models= "
             "(tumor3d.storage.given_models.read_given_models), or call tumor3d.reconstruct"
@@ -425,7 +426,7 @@ def reconstruct(
         cfg = _resolved(config)
         return reconstruct_scan(
             image, config=cfg, brain_mask=mask, segmentation=tumour,
-            models=_given_models(cfg, image.modality),
+            models=_given_models(cfg, image.modality, segmentation),
         )  # fmt: skip
     from tumor3d.storage.readers.options import ReadOptions
 
@@ -461,7 +462,7 @@ def reconstruct(
             tumour = scan.source_grid.from_source(arr)
         return reconstruct_scan(
             scan, config=cfg, brain_mask=mask, segmentation=tumour,
-            models=_given_models(cfg, scan.modality),
+            models=_given_models(cfg, scan.modality, segmentation),
         )  # fmt: skip
     if not isinstance(image, str | os.PathLike):
         raise InputError(
@@ -495,7 +496,7 @@ def reconstruct(
         segmentation=tumour,
         segmentation_name=name,
         header_notes=header_notes,
-        models=_given_models(cfg, scan.modality),
+        models=_given_models(cfg, scan.modality, segmentation),
     )
 
 
@@ -509,9 +510,12 @@ def _resolved(config: PipelineConfig | Mapping[str, Any] | str | None) -> Pipeli
     return resolve_learned_models(cfg)
 
 
-def _given_models(cfg: PipelineConfig, modality: str) -> dict[str, bytes] | None:
-    """The model files of ``segment.learned_models`` a run of ``modality`` uses (or None)."""
-    if cfg.segment.learned_models is None:
+def _given_models(cfg: PipelineConfig, modality: str, segmentation: Any) -> dict[str, bytes] | None:
+    """The model files of ``segment.learned_models`` a run of ``modality`` uses (or None).
+
+    None too with a given ``segmentation``: no method runs.
+    """
+    if cfg.segment.learned_models is None or segmentation is not None:
         return None
     from tumor3d.storage.given_models import models_for
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import os
 from types import UnionType
-from typing import Any, Literal, Union, get_args, get_origin
+from typing import Any, ClassVar, Literal, Union, get_args, get_origin
 
 from pydantic import (
     BaseModel,
@@ -374,6 +374,10 @@ class SegmentConfig(_StageConfig):
         "sequence (FLAIR; trained on FLAIR only: T2 and T1c keep the forest alone), before the "
         "same cut and main region (reports/learned_cv.md); off = the forest alone.",
     )
+    #: The models folder keys the segment stage through its stored files (their bytes and
+    #: the folder: ``given:models``), only where a run uses them (tumor3d.tasks.stages).
+    __cache_exclude__: ClassVar[frozenset[str]] = frozenset({"learned_models"})
+
     learned_models: str | None = Field(
         None,
         min_length=1,

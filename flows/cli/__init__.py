@@ -165,7 +165,8 @@ def run(
         cfg = _load_config(config)
         # the option, else what an image stack's sidecar names, else the default (said)
         modality, origin = resolve_modality(input_path, modality)
-        _check_models(cfg, [modality])  # the folder holds the scan's model, if it is used
+        # the folder holds the scan's model, if it is used (not with a given segmentation)
+        _check_models(cfg, [] if segmentation is not None else [modality])
         options = ReadOptions(  # the reading options, checked once and passed on as one
             modality=modality, patient_id=patient_id, series_uid=series_uid,
             slice_thickness_mm=slice_thickness_mm, slice_gap_mm=slice_gap_mm,

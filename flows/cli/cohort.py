@@ -62,7 +62,7 @@ def cohort(
             _check_out_dir(Path(out))
         rows = read_manifest(manifest, require_files=False)
         check_cohort_rows(rows, out, layout)  # a refused row: before a server starts
-        _check_models(cfg, [row.modality or "t2" for row in rows])
+        _check_models(cfg, [r.modality or "t2" for r in rows if not r.segmentation])
         dask = DaskSpec(dask_address, dask_workers)
         _preflight_cohort(out, store, dask.address)  # before a Prefect server is started
         if not is_url(out):

@@ -12,7 +12,7 @@ import typer
 from rich.table import Table
 
 from tumor3d.evaluation.registry import Evaluation, registered_evaluations
-from tumor3d.flows.cli.app import Verbose, app, console, err_console
+from tumor3d.flows.cli.app import Verbose, _check_models, app, console, err_console
 from tumor3d.flows.cli.errors import _HANDLED, _ctrl_c_ends, _fail
 from tumor3d.flows.cli.session import _prefect
 from tumor3d.storage.evaluation_report import run_status_cell
@@ -74,12 +74,16 @@ def evaluate(
         raise _fail(ValueError("give at least one MANIFEST or --phantoms N"))
     try:
         specs = parse_config_specs(config)
-        _load_configs(specs)  # fail fast on a bad configuration
+        configs = _load_configs(specs)  # fail fast on a bad configuration
         from tumor3d.evaluation import selected_evaluations
 
         chosen = selected_evaluations(evaluation)  # fail fast on an unknown evaluation
+        modalities = ["t2"] if phantoms else []  # the phantoms command's
         for m in manifest:
-            read_manifest_rows(m)  # fail fast on a bad manifest (header, missing file)
+            rows, _ = read_manifest_rows(m)  # fail fast on a bad manifest (header, files)
+            modalities += [r.modality or "t2" for r in rows if not r.segmentation]
+        for cfg in configs.values():  # each models folder holds the scans' forests
+            _check_models(cfg, modalities)
         command = "tumor3d " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         stopped = "Ctrl-C stopped the evaluation; a re-run continues from the cache"
         with _ctrl_c_ends(stopped), _prefect():

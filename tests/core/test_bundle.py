@@ -255,6 +255,68 @@ def test_copies_of_the_shipped_files_segment_as_the_shipped_models(
     assert mine.tumour_found
 
 
+def test_a_folders_own_forest_is_the_one_that_segments(tmp_path, shipped_files, flair_scan):
+    """Another forest (the shipped one with every leaf raised by 0.4 logit) in the folder:
+    the result is the core's with that forest, not the shipped models'."""
+    import dataclasses
+
+    from tumor3d.learned.forest import ForestModel
+
+    shipped = ForestModel.from_bytes(shipped_files["hyper.npz"])
+    bolder = dataclasses.replace(shipped, value=shipped.value + 0.4 * (shipped.feature < 0))
+    folder = _folder(tmp_path / "bolder", {"hyper.npz": bolder.to_bytes()})
+    cfg = {"segment": {"learned_models": str(folder)}}
+    mine = tumor3d.reconstruct(flair_scan, config=cfg)
+    alone = tumor3d.reconstruct(flair_scan, config={"segment": {"learned_cnn": "off"}})
+    assert mine.volumes_mm3["voxel"] > alone.volumes_mm3["voxel"]  # the bolder forest's
+    from tumor3d.api import reconstruct_scan
+
+    direct = reconstruct_scan(flair_scan, config=cfg, models={"hyper.npz": bolder.to_bytes()})
+    np.testing.assert_array_equal(mine.tumor_mask_slices, direct.tumor_mask_slices)
+
+
+def test_arrays_declared_past_any_model_or_layers_that_do_not_fit_are_one_line(
+    tmp_path, shipped_files
+):
+    """Review 6: a 200-byte file declaring 2**42 values ended in MemoryError, a U-Net
+    with a scalar weight or mismatched layers in ValueError, both tracebacks."""
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        header, {"descr": "<i8", "fortran_order": False, "shape": (2**42,)}
+    )
+    bomb = io.BytesIO()
+    with zipfile.ZipFile(bomb, "w") as zf:
+        zf.writestr("feature.npy", header.getvalue())
+    with np.load(io.BytesIO(shipped_files["unet_flair_seed0.npz"])) as z:
+        arrays = {k: z[k] for k in z.files}
+    bad_nets = {}
+    for name, change in (("scalar", np.float32(1.0)), ("narrow", arrays["enc1_0_w"][:, :3])):
+        buf = io.BytesIO()
+        np.savez(buf, **{**arrays, ("enc0_0_w" if name == "scalar" else "enc1_0_w"): change})
+        bad_nets[name] = buf.getvalue()
+    cases = [
+        ({"hyper.npz": bomb.getvalue()}, r"hyper\.npz: its arrays take 33554432 MB"),
+        ({"unet_flair_seed0.npz": bad_nets["scalar"]}, "a layer of the wrong rank"),
+        ({"unet_flair_seed0.npz": bad_nets["narrow"]}, "its layers do not fit together"),
+    ]
+    for i, (files, message) in enumerate(cases):
+        folder = _folder(tmp_path / str(i), {"hyper.npz": shipped_files["hyper.npz"], **files})
+        with pytest.raises(InputError, match=message) as err:
+            read_given_models(folder)
+        assert "\n" not in str(err.value)
+
+
+def test_the_folders_path_keys_no_stage_by_itself():
+    """The path is excluded from the configuration's key: a run that uses no model (T2,
+    robust) is not recomputed for a folder named; one that uses them is keyed by the
+    stored files and their folder (given:models)."""
+    from tumor3d.config import SegmentConfig
+    from tumor3d.tasks.caching import fingerprint
+
+    assert fingerprint(SegmentConfig(learned_models="/a")) == fingerprint(SegmentConfig())
+    assert fingerprint(SegmentConfig(learned_cnn="off")) != fingerprint(SegmentConfig())
+
+
 def test_a_folder_without_u_nets_segments_as_the_forest_alone(tmp_path, shipped_files, flair_scan):
     folder = _folder(tmp_path / "forest", {"hyper.npz": shipped_files["hyper.npz"]})
     mine = tumor3d.reconstruct(flair_scan, config={"segment": {"learned_models": str(folder)}})

@@ -89,24 +89,18 @@ def test_a_config_that_is_not_utf8_is_one_line(tmp_path):
         load_config_file(tmp_path / "c.yaml")
 
 
-def test_a_scheduled_runs_config_names_its_models_folder_absolute_and_checked(
-    tmp_path, monkeypatch
-):
-    """Audit 5: ``serve`` read segment.learned_models unchecked and relative, to be
-    resolved later from the scheduled run's working directory."""
-    from importlib import resources
-
+def test_a_scheduled_runs_config_names_its_models_folder_absolute(tmp_path, monkeypatch):
+    """Audit 5: ``serve`` read segment.learned_models relative, to be resolved later from
+    the scheduled run's working directory; a URL is refused at once (it was resolved as
+    a local path). Each patient's run checks the files it uses (test_bundle.py)."""
     from tumor3d.flows.serve import load_config_file
 
-    (tmp_path / "m").mkdir()
-    hyper = resources.files("tumor3d.learned").joinpath("models", "hyper.npz").read_bytes()
-    (tmp_path / "m" / "hyper.npz").write_bytes(hyper)
     (tmp_path / "c.yaml").write_text("segment:\n  learned_models: m\n")
     monkeypatch.chdir(tmp_path)
     cfg = load_config_file(tmp_path / "c.yaml")
     assert cfg["segment"]["learned_models"] == str(tmp_path.resolve() / "m")
-    (tmp_path / "m" / "hyper.npz").write_bytes(hyper[:100])
-    with pytest.raises(InputError, match=r"m/hyper\.npz: not a readable tumor3d forest"):
+    (tmp_path / "c.yaml").write_text("segment:\n  learned_models: s3://bucket/m\n")
+    with pytest.raises(InputError, match=r"^s3://bucket/m: .* a local folder, not a URL"):
         load_config_file(tmp_path / "c.yaml")
 
 

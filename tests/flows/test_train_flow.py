@@ -221,6 +221,11 @@ def test_a_trained_folder_replaces_the_shipped_models_and_its_bytes_key_the_segm
         "models", "t1c.npz").read_bytes())  # fmt: skip
     unused = run_patient(row.image, tmp_path / "out", **kw)
     assert all(unused.cache_hits) and unused.recomputed is None
+    # a given segmentation replaces the method: the folder is neither read nor keyed
+    (folder / "hyper.npz").write_bytes(b"PK not a model any more")
+    truth = row.image.parent / "own_truth_slices.nii.gz"  # on the scan's grid
+    given = run_patient(row.image, tmp_path / "out", segmentation=str(truth), **kw)
+    assert given.metrics["segment_method"] == "given"
 
 
 @pytest.mark.parametrize(
@@ -229,6 +234,7 @@ def test_a_trained_folder_replaces_the_shipped_models_and_its_bytes_key_the_segm
         ("hyper.npz", "run", "m/hyper.npz: not a readable tumor3d forest model"),
         ("t1c.npz", "run", r"no hyper.npz (FLAIR and T2 model) for this FLAIR scan"),
         ("t1c.npz", "cohort", r"no hyper.npz (FLAIR and T2 model) for this FLAIR scan"),
+        ("t1c.npz", "evaluate", r"no hyper.npz (FLAIR and T2 model) for this FLAIR scan"),
     ],
 )
 def test_a_models_folder_that_is_not_one_is_refused_before_any_flow(
@@ -248,9 +254,10 @@ def test_a_models_folder_that_is_not_one_is_refused_before_any_flow(
         t1c = resources.files("tumor3d.learned").joinpath("models", "t1c.npz").read_bytes()
         (tmp_path / "m" / name).write_bytes(t1c)
     target = str(row.image)
-    if command == "cohort":
+    if command != "run":
         target = str(write_manifest([row], tmp_path / "manifest.csv"))
-    args = [command, target, "--out", str(tmp_path / "out"), "--config", str(cfg)]
+    named = f"mine={cfg}" if command == "evaluate" else str(cfg)
+    args = [command, target, "--out", str(tmp_path / "out"), "--config", named]
     res = CliRunner().invoke(app, args + (["--modality", "flair"] if command == "run" else []))
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
     assert res.exit_code == 2 and len(lines) == 1, res.output

@@ -425,6 +425,18 @@ def test_a_rerun_from_the_cache_republishes_an_object_edited_since(
     with monkeypatch.context() as m:  # now told by the ETags: nothing read back
         m.setattr(rp, "verify_folder", lambda *a: pytest.fail("read back"))
         publish_files(out, "p1", V1, exclusive=True, key="k1", reuse=True)
+    if not marker_etags:  # another writer's marker, written during the read-back, stays
+        theirs = {**marker, "published_utc": "another writer"}
+        s3_endpoint.put_object(Bucket=BUCKET, Key=f"{prefix}/{MARKER}", Body=json.dumps(marker))
+
+        def meanwhile(*args):
+            s3_endpoint.put_object(Bucket=BUCKET, Key=f"{prefix}/{MARKER}", Body=json.dumps(theirs))
+            return []
+
+        with monkeypatch.context() as m:
+            m.setattr(rp, "verify_folder", meanwhile)
+            publish_files(out, "p1", V1, exclusive=True, key="k1", reuse=True)
+        assert json.loads(_body(s3_endpoint, f"{prefix}/{MARKER}")) == theirs
     forged = b"PAR2" + V1["metrics.parquet"][4:]  # same size, other bytes
     s3_endpoint.put_object(Bucket=BUCKET, Key=f"{prefix}/metrics.parquet", Body=forged)
     assert read_marker(out, "p1") is not None  # the sizes alone see nothing

@@ -13,6 +13,8 @@ from __future__ import annotations
 import io
 import zipfile
 
+import numpy as np
+
 from tumor3d.errors import InputError, exception_line
 
 __all__ = ["MAX_ARRAY_BYTES", "archive_error", "check_archive"]
@@ -24,10 +26,10 @@ MAX_ARRAY_BYTES = 256 * 2**20
 def check_archive(data: bytes, *, source: str, limit: int | None = None) -> None:
     """Refuse an archive whose entries declare more than ``limit`` bytes unpacked.
 
-    ``limit`` defaults to :data:`MAX_ARRAY_BYTES` (read at the call).
-
-    An archive zipfile cannot read is left to the loader, which names what it is.
-    Reading an entry never yields more than its declared size (zipfile stops there).
+    ``limit`` defaults to :data:`MAX_ARRAY_BYTES` (read at the call). Both sizes count:
+    an entry's in the zip directory (reading never yields more: zipfile stops there) and
+    the array its ``.npy`` header declares (numpy allocates it before reading). An
+    archive or header that cannot be read is left to the loader, which names what it is.
 
     >>> import io, zipfile
     >>> buf = io.BytesIO()
@@ -40,18 +42,49 @@ def check_archive(data: bytes, *, source: str, limit: int | None = None) -> None
     ... except InputError as exc:
     ...     print(exc)
     m.npz: its arrays take 3 MB unpacked, more than any tumor3d model (1 MB at most)
+    >>> import numpy as np
+    >>> header = io.BytesIO()  # 128 bytes declaring 2**42 int64 values
+    >>> np.lib.format.write_array_header_1_0(
+    ...     header, {"descr": "<i8", "fortran_order": False, "shape": (2**42,)})
+    >>> buf = io.BytesIO()
+    >>> with zipfile.ZipFile(buf, "w") as zf:
+    ...     zf.writestr("feature.npy", header.getvalue())
+    >>> try:
+    ...     check_archive(buf.getvalue(), source="m.npz")
+    ... except InputError as exc:
+    ...     print(str(exc)[:36])
+    m.npz: its arrays take 33554432 MB u
     """
     try:
         with zipfile.ZipFile(io.BytesIO(data)) as zf:
-            total = sum(info.file_size for info in zf.infolist())
+            infos = zf.infolist()
+            total = sum(info.file_size for info in infos)
+            declared = sum(_declared_bytes(zf, info) for info in infos)
     except (zipfile.BadZipFile, OSError, ValueError, EOFError):
         return
     limit = MAX_ARRAY_BYTES if limit is None else limit
+    total = max(total, declared)
     if total > limit:
         raise InputError(
             f"{source}: its arrays take {total / 2**20:.0f} MB unpacked, more than any "
             f"tumor3d model ({limit // 2**20} MB at most)"
         )
+
+
+def _declared_bytes(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> int:
+    """The bytes of the array an ``.npy`` entry's header declares (0 for another entry)."""
+    if not info.filename.endswith(".npy"):
+        return 0
+    try:
+        with zf.open(info) as fh:
+            version = np.lib.format.read_magic(fh)
+            read = np.lib.format.read_array_header_1_0
+            if version != (1, 0):
+                read = np.lib.format.read_array_header_2_0
+            shape, _, dtype = read(fh)
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile):
+        return 0  # no array header: numpy will not allocate for it (the loader says why)
+    return int(np.prod(shape, dtype=np.float64) * dtype.itemsize)
 
 
 def archive_error(exc: BaseException) -> str:

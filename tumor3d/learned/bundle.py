@@ -59,8 +59,6 @@ UNET_FILE = re.compile(r"unet_flair_seed[0-9]{1,4}\.npz")
 #: A model file larger than this is refused unread (the shipped ones are 0.1-0.5 MB).
 MAX_MODEL_BYTES = 64 * 2**20
 
-_UNET_SEQUENCES = ("flair",)
-
 
 def is_model_file(name: str) -> bool:
     """Whether ``name`` is a model file a models folder may hold.
@@ -205,7 +203,10 @@ def used_files(
 
 
 def _with_nets(modality: str, learned_cnn: str) -> bool:
-    return learned_cnn == "auto" and modality.strip().lower() in _UNET_SEQUENCES
+    """U-Nets beside the forest: ``learned_cnn`` auto, a sequence the shipped ones serve."""
+    from tumor3d.learned.shipped import CNN_MODELS
+
+    return learned_cnn == "auto" and modality.strip().lower() in CNN_MODELS
 
 
 def _no_forest(name: str, modality: str, source: str) -> None:
@@ -234,13 +235,8 @@ def model_set(
     from tumor3d.learned.shipped import model_family
 
     family = model_family(modality)
-    name = FOREST_FILES[family]
-    if name not in files:
-        _no_forest(name, modality, source)
+    name, *nets = used_files(files, modality, learned_cnn, source=source)
     model = _forest(files, family, source)
-    nets: tuple[str, ...] = ()
-    if _with_nets(modality, learned_cnn):
-        nets = tuple(_unet_names(files))
     cnn = tuple(unet_from_bytes(files[n], source=f"{source}/{n}") for n in nets) or None
     return ModelSet(
         model=model,

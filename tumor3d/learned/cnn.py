@@ -148,7 +148,7 @@ def unet_from_bytes(data: bytes, *, source: str = "weights") -> UNetWeights:
         meta = raw.pop(META_KEY, None)
         meta = {} if meta is None else decode_meta(meta)
         arrays = {k: np.asarray(v, dtype=np.float32) for k, v in raw.items()}
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, MemoryError) as exc:
         why = archive_error(exc)
         raise InputError(f"{source}: not a readable .npz of plain arrays ({why})") from None
     levels = sum(1 for k in arrays if k.startswith("enc") and k.endswith("_0_w"))
@@ -159,7 +159,16 @@ def unet_from_bytes(data: bytes, *, source: str = "weights") -> UNetWeights:
     missing = [k for k in needed + ["head_b"] if k not in arrays]
     if missing:
         raise InputError(f"{source}: not a U-Net weight file (missing {', '.join(missing[:3])})")
-    net = UNetWeights(arrays, levels, meta, hashlib.sha256(data).hexdigest())
+    if any(arrays[k].ndim != (4 if k.endswith("_w") else 1) for k in needed + ["head_w", "head_b"]):
+        raise InputError(f"{source}: not a U-Net weight file (a layer of the wrong rank)")
+    try:
+        net = UNetWeights(arrays, levels, meta, hashlib.sha256(data).hexdigest())
+        m = 2 ** (levels - 1)  # a dry pass: the layers' shapes must chain
+        _forward(net, np.zeros((1, 2 * m, 2 * m, net.in_channels), np.float32))
+    except (ValueError, IndexError, TypeError) as exc:
+        raise InputError(
+            f"{source}: not a U-Net weight file (its layers do not fit together: {exc})"
+        ) from None
     if net.in_channels != 2 * net.context + 1:
         raise InputError(
             f"{source}: {net.in_channels} input channels but context {net.context} "

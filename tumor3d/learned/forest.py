@@ -41,6 +41,8 @@ if not os.environ.get("NUMBA_THREADING_LAYER_PRIORITY") and (
 __all__ = ["ForestModel", "forest_from_lightgbm_dump", "predict_logit", "predict_proba"]
 
 _ARRAYS = ("feature", "threshold", "left", "right", "value", "roots")
+#: What reading a damaged or hostile archive raises (MemoryError: an array too large to hold).
+_UNREADABLE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, MemoryError)
 
 
 @dataclass(frozen=True)
@@ -147,7 +149,7 @@ class ForestModel:
                     )
                     for pre in stages
                 ]
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        except _UNREADABLE as exc:
             raise InputError(
                 f"{source}: not a readable tumor3d forest model ({archive_error(exc)})"
             ) from None

@@ -180,9 +180,8 @@ def model_identity(
     :data:`CNN_MODELS`, or ``files.cnn_files``) and ``cnn_sha256`` (in that order; one
     net or an ensemble, as :func:`tumor3d.segmentation.segment.segment_tumor` takes them).
     """
-    shipped = files is None or files.model_file == model_file(model_family(modality))
     out: dict[str, Any] = {
-        "model": model.meta.get("name", "shipped" if shipped else "unnamed"),
+        "model": model.meta.get("name", "shipped" if files is None else "unnamed"),
         "model_file": model_file(model_family(modality)) if files is None else files.model_file,
         "model_sha256": model.file_sha256 or model.digest(),
     }
