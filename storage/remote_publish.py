@@ -173,12 +173,16 @@ def _unchanged(
     if verify_folder(out, name):
         return False
     if listed and all(now.values()):  # best effort: the marker stays valid without them
+        # not over another writer's: the marker must still be the one checked (a writer
+        # that started since removed or replaced it: publish again rather than reuse)
         try:
-            # not over another writer's: the marker must still be the one checked
-            # (a writer that started since removed or replaced it)
-            if json.loads(out.cat(_marker_path(name))) == marker:
-                body = json.dumps({**marker, "etags": now}, indent=1).encode()
-                out.fs.pipe_file(out.key(_marker_path(name)), body)
+            if json.loads(out.cat(_marker_path(name))) != marker:
+                return False
+        except (OSError, ValueError):
+            return False
+        try:
+            body = json.dumps({**marker, "etags": now}, indent=1).encode()
+            out.fs.pipe_file(out.key(_marker_path(name)), body)
         except Exception:  # noqa: BLE001, S110  (botocore/aiohttp raise many types)
             pass
     return True

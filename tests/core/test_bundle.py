@@ -294,10 +294,32 @@ def test_arrays_declared_past_any_model_or_layers_that_do_not_fit_are_one_line(
         buf = io.BytesIO()
         np.savez(buf, **{**arrays, ("enc0_0_w" if name == "scalar" else "enc1_0_w"): change})
         bad_nets[name] = buf.getvalue()
+    wide = io.BytesIO()  # review 7: a dry pass over 2**21 channels took 4 GB
+    np.savez(wide, **{**arrays, "enc0_0_w": np.zeros((513, 3, 3, 3), np.float32)})
+    unnamed, negative = io.BytesIO(), io.BytesIO()  # numpy reads an entry without .npy too
+    with zipfile.ZipFile(unnamed, "w") as zf:
+        zf.writestr("feature", header.getvalue())
+    neg = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        neg, {"descr": "<i8", "fortran_order": False, "shape": (2**30, -(2**30))}
+    )
+    with zipfile.ZipFile(negative, "w") as zf:
+        zf.writestr("feature.npy", neg.getvalue())
+    damaged = bytearray(shipped_files["hyper.npz"])  # deflated: broken where a header is
+    with zipfile.ZipFile(io.BytesIO(shipped_files["hyper.npz"])) as zf:
+        first = zf.infolist()[0]
+    local = first.header_offset  # the local header: 30 bytes, the name, the extra field
+    start = local + 30 + int.from_bytes(damaged[local + 26 : local + 28], "little")
+    start += int.from_bytes(damaged[local + 28 : local + 30], "little")
+    damaged[start : start + 16] = b"\xff" * 16
     cases = [
         ({"hyper.npz": bomb.getvalue()}, r"hyper\.npz: its arrays take 33554432 MB"),
+        ({"hyper.npz": unnamed.getvalue()}, r"hyper\.npz: its arrays take 33554432 MB"),
+        ({"hyper.npz": negative.getvalue()}, r"hyper\.npz: an array header declares a negative"),
+        ({"hyper.npz": bytes(damaged)}, r"hyper\.npz: not a readable tumor3d forest model"),
         ({"unet_flair_seed0.npz": bad_nets["scalar"]}, "a layer of the wrong rank"),
         ({"unet_flair_seed0.npz": bad_nets["narrow"]}, "its layers do not fit together"),
+        ({"unet_flair_seed0.npz": wide.getvalue()}, "larger than any tumor3d U-Net"),
     ]
     for i, (files, message) in enumerate(cases):
         folder = _folder(tmp_path / str(i), {"hyper.npz": shipped_files["hyper.npz"], **files})

@@ -436,6 +436,7 @@ def test_a_rerun_from_the_cache_republishes_an_object_edited_since(
         with monkeypatch.context() as m:
             m.setattr(rp, "verify_folder", meanwhile)
             publish_files(out, "p1", V1, exclusive=True, key="k1", reuse=True)
+        # not written over (theirs lists these same files: nothing to publish again)
         assert json.loads(_body(s3_endpoint, f"{prefix}/{MARKER}")) == theirs
     forged = b"PAR2" + V1["metrics.parquet"][4:]  # same size, other bytes
     s3_endpoint.put_object(Bucket=BUCKET, Key=f"{prefix}/metrics.parquet", Body=forged)

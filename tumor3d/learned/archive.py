@@ -64,6 +64,8 @@ def check_archive(data: bytes, *, source: str, limit: int | None = None) -> None
         return
     limit = MAX_ARRAY_BYTES if limit is None else limit
     total = max(total, declared)
+    if total == float("inf"):
+        raise InputError(f"{source}: an array header declares a negative size")
     if total > limit:
         raise InputError(
             f"{source}: its arrays take {total / 2**20:.0f} MB unpacked, more than any "
@@ -71,20 +73,26 @@ def check_archive(data: bytes, *, source: str, limit: int | None = None) -> None
         )
 
 
-def _declared_bytes(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> int:
-    """The bytes of the array an ``.npy`` entry's header declares (0 for another entry)."""
-    if not info.filename.endswith(".npy"):
-        return 0
+def _declared_bytes(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> float:
+    """The bytes of the array an entry's ``.npy`` header declares (0 for another entry).
+
+    Whatever the entry's name (numpy reads any entry that starts with the ``.npy`` magic);
+    a negative dimension counts as infinitely many bytes.
+    """
     try:
         with zf.open(info) as fh:
-            version = np.lib.format.read_magic(fh)
+            if fh.read(len(np.lib.format.MAGIC_PREFIX)) != np.lib.format.MAGIC_PREFIX:
+                return 0
+            version = tuple(fh.read(2))
             read = np.lib.format.read_array_header_1_0
             if version != (1, 0):
                 read = np.lib.format.read_array_header_2_0
             shape, _, dtype = read(fh)
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile):
-        return 0  # no array header: numpy will not allocate for it (the loader says why)
-    return int(np.prod(shape, dtype=np.float64) * dtype.itemsize)
+    except Exception:  # noqa: BLE001  (hostile bytes: any failure is the loader's to name)
+        return 0
+    if any(int(d) < 0 for d in shape):
+        return float("inf")
+    return float(np.prod(shape, dtype=np.float64)) * dtype.itemsize
 
 
 def archive_error(exc: BaseException) -> str:

@@ -37,7 +37,6 @@ import hashlib
 import io
 import json
 import os
-import zipfile
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import cache
@@ -63,6 +62,11 @@ __all__ = [
 ]
 
 #: The array of a weight file holding its metadata: the UTF-8 bytes (uint8) of a JSON document.
+#: The largest U-Net read (the shipped ones: 4 levels, 64 channels at most): the reader's
+#: dry pass and every inference cost grow with both (a hostile file may declare anything).
+MAX_LEVELS = 6
+MAX_CHANNELS = 512
+
 META_KEY = "meta_json"
 
 
@@ -148,7 +152,7 @@ def unet_from_bytes(data: bytes, *, source: str = "weights") -> UNetWeights:
         meta = raw.pop(META_KEY, None)
         meta = {} if meta is None else decode_meta(meta)
         arrays = {k: np.asarray(v, dtype=np.float32) for k, v in raw.items()}
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, MemoryError) as exc:
+    except Exception as exc:  # noqa: BLE001  (hostile bytes: any failure to read is the file's)
         why = archive_error(exc)
         raise InputError(f"{source}: not a readable .npz of plain arrays ({why})") from None
     levels = sum(1 for k in arrays if k.startswith("enc") and k.endswith("_0_w"))
@@ -161,11 +165,17 @@ def unet_from_bytes(data: bytes, *, source: str = "weights") -> UNetWeights:
         raise InputError(f"{source}: not a U-Net weight file (missing {', '.join(missing[:3])})")
     if any(arrays[k].ndim != (4 if k.endswith("_w") else 1) for k in needed + ["head_w", "head_b"]):
         raise InputError(f"{source}: not a U-Net weight file (a layer of the wrong rank)")
+    widest = max(max(arrays[k].shape[:2]) for k in needed + ["head_w"] if k.endswith("_w"))
+    if levels > MAX_LEVELS or widest > MAX_CHANNELS:
+        raise InputError(
+            f"{source}: {levels} levels and {widest} channels, larger than any tumor3d U-Net "
+            f"({MAX_LEVELS} levels, {MAX_CHANNELS} channels at most)"
+        )
     try:
         net = UNetWeights(arrays, levels, meta, hashlib.sha256(data).hexdigest())
         m = 2 ** (levels - 1)  # a dry pass: the layers' shapes must chain
         _forward(net, np.zeros((1, 2 * m, 2 * m, net.in_channels), np.float32))
-    except (ValueError, IndexError, TypeError) as exc:
+    except (ValueError, IndexError, TypeError, MemoryError) as exc:
         raise InputError(
             f"{source}: not a U-Net weight file (its layers do not fit together: {exc})"
         ) from None

@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import lzma
 import os
 import zipfile
 import zlib
@@ -42,7 +43,10 @@ __all__ = ["ForestModel", "forest_from_lightgbm_dump", "predict_logit", "predict
 
 _ARRAYS = ("feature", "threshold", "left", "right", "value", "roots")
 #: What reading a damaged or hostile archive raises (MemoryError: an array too large to hold).
-_UNREADABLE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, MemoryError)
+_UNREADABLE = (
+    OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, MemoryError,
+    NotImplementedError, RuntimeError, lzma.LZMAError,
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
