@@ -328,6 +328,22 @@ def test_arrays_declared_past_any_model_or_layers_that_do_not_fit_are_one_line(
         assert "\n" not in str(err.value)
 
 
+def test_a_structured_array_where_numbers_belong_is_one_line(tmp_path, shipped_files):
+    """Casting a structured array to numbers raises TypeError: the forest's reader let it
+    through as a traceback, and the U-Net's with the readers' shared list of failures."""
+    record = np.zeros(3, dtype=[("a", "<i4"), ("b", "<f4")])
+    for name, key in (("hyper.npz", "feature"), ("unet_flair_seed0.npz", "enc0_0_w")):
+        with np.load(io.BytesIO(shipped_files[name])) as z:
+            arrays = {k: z[k] for k in z.files}
+        buf = io.BytesIO()
+        np.savez(buf, **{**arrays, key: record})
+        files = {"hyper.npz": shipped_files["hyper.npz"], name: buf.getvalue()}
+        folder = _folder(tmp_path / name.removesuffix(".npz"), files)
+        with pytest.raises(InputError, match=rf"{name}: not a .*Cannot cast") as err:
+            read_given_models(folder)
+        assert "\n" not in str(err.value)
+
+
 def test_the_folders_path_keys_no_stage_by_itself():
     """The path is excluded from the configuration's key: a run that uses no model (T2,
     robust) is not recomputed for a folder named; one that uses them is keyed by the

@@ -11,16 +11,26 @@ archive could not be read without numpy's advice to load it unsafely.
 from __future__ import annotations
 
 import io
+import lzma
 import zipfile
+import zlib
 
 import numpy as np
 
 from tumor3d.errors import InputError, exception_line
 
-__all__ = ["MAX_ARRAY_BYTES", "archive_error", "check_archive"]
+__all__ = ["MAX_ARRAY_BYTES", "UNREADABLE", "archive_error", "check_archive"]
 
 #: The most a model's arrays may take once unpacked (the shipped ones: 0.3-0.6 MB).
 MAX_ARRAY_BYTES = 256 * 2**20
+
+#: What reading a damaged or hostile archive with numpy raises (MemoryError: an array too
+#: large to hold; TypeError: a structured array cast to numbers): the loaders turn each
+#: into one line (:func:`archive_error`'s words).
+UNREADABLE = (
+    OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, MemoryError,
+    NotImplementedError, RuntimeError, lzma.LZMAError, TypeError,
+)  # fmt: skip
 
 
 def check_archive(data: bytes, *, source: str, limit: int | None = None) -> None:

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tumor3d.errors import InputError
+from tumor3d.learned.archive import UNREADABLE, archive_error
 from tumor3d.learned.cnn import UNetWeights, unet_from_bytes
 from tumor3d.learned.forest import ForestModel
 
@@ -115,8 +116,9 @@ def unpack_models(data: bytes, *, source: str = "models") -> dict[str, bytes]:
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
             files = {f"{k}.npz": np.asarray(z[k], dtype=np.uint8).tobytes() for k in z.files}
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
-        raise InputError(f"{source}: not a packed set of tumor3d models ({exc})") from None
+    except UNREADABLE as exc:
+        why = archive_error(exc)
+        raise InputError(f"{source}: not a packed set of tumor3d models ({why})") from None
     bad = [n for n in files if not is_model_file(n)]
     if bad:
         raise InputError(f"{source}: not a packed set of tumor3d models (holds {bad[0]})")

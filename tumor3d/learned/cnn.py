@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.learned.archive import archive_error, check_archive
+from tumor3d.learned.archive import UNREADABLE, archive_error, check_archive
 
 __all__ = [
     "META_KEY",
@@ -152,7 +152,7 @@ def unet_from_bytes(data: bytes, *, source: str = "weights") -> UNetWeights:
         meta = raw.pop(META_KEY, None)
         meta = {} if meta is None else decode_meta(meta)
         arrays = {k: np.asarray(v, dtype=np.float32) for k, v in raw.items()}
-    except Exception as exc:  # noqa: BLE001  (hostile bytes: any failure to read is the file's)
+    except UNREADABLE as exc:
         why = archive_error(exc)
         raise InputError(f"{source}: not a readable .npz of plain arrays ({why})") from None
     levels = sum(1 for k in arrays if k.startswith("enc") and k.endswith("_0_w"))

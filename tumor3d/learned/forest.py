@@ -16,10 +16,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import lzma
 import os
-import zipfile
-import zlib
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -27,7 +24,7 @@ import numba
 import numpy as np
 
 from tumor3d.errors import InputError
-from tumor3d.learned.archive import archive_error, check_archive
+from tumor3d.learned.archive import UNREADABLE, archive_error, check_archive
 
 # The prediction runs on numba's parallel layer, OpenMP first: numba tries TBB
 # first and prints a warning when the TBB already loaded in the process is too
@@ -42,11 +39,6 @@ if not os.environ.get("NUMBA_THREADING_LAYER_PRIORITY") and (
 __all__ = ["ForestModel", "forest_from_lightgbm_dump", "predict_logit", "predict_proba"]
 
 _ARRAYS = ("feature", "threshold", "left", "right", "value", "roots")
-#: What reading a damaged or hostile archive raises (MemoryError: an array too large to hold).
-_UNREADABLE = (
-    OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, MemoryError,
-    NotImplementedError, RuntimeError, lzma.LZMAError,
-)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -153,7 +145,7 @@ class ForestModel:
                     )
                     for pre in stages
                 ]
-        except _UNREADABLE as exc:
+        except UNREADABLE as exc:
             raise InputError(
                 f"{source}: not a readable tumor3d forest model ({archive_error(exc)})"
             ) from None
@@ -172,7 +164,7 @@ class ForestModel:
                     meta,
                     context,
                 )
-            except (InputError, ValueError, IndexError) as exc:
+            except (InputError, ValueError, IndexError, TypeError) as exc:
                 raise InputError(f"{source}: not a valid tumor3d forest model ({exc})") from None
         assert context is not None
         return replace(context, file_sha256=hashlib.sha256(data).hexdigest())

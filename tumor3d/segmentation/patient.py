@@ -321,7 +321,7 @@ def segment_detected(
     ``segment.learned_models`` names, read by the caller:
     :func:`tumor3d.learned.bundle.model_set`; or a callable returning them, called once
     and only if the learned method runs); None: the shipped ones (with
-    ``learned_models`` set, an error: :func:`tumor3d.segmentation.segment.segment_tumor`).
+    ``learned_models`` set, an error: :func:`method_models`).
     The other parameters are :func:`segment_patient`'s.
     """
     if callable(models):
